@@ -1,0 +1,48 @@
+"""esmicp: rigid registration of 3D point clouds with ESM-ICP.
+
+Frames: every transform is ``T_target_source``, a 4x4 matrix that maps source coordinates into
+the target frame (``target ~= source @ R.T + t``).
+"""
+
+from ._version import __version__
+from .api import register
+from .errors import (
+    EsmicpError,
+    EsmicpWarning,
+    IndexAlignmentWarning,
+    InvalidInputError,
+    NonFinitePointsWarning,
+    OutputExistsError,
+    PointCloudFileError,
+)
+from .methods import METHODS
+from .result import IterationRecord, RegistrationResult
+
+
+def __getattr__(name):
+    # The file readers pull in plyfile / pypcd4 / trimesh: load them on first use only.
+    if name in ("read_points", "write_points", "read_transform", "write_transform"):
+        from . import io
+
+        return getattr(io, name)
+    raise AttributeError(f"module 'esmicp' has no attribute {name!r}")
+
+
+__all__ = [
+    "METHODS",
+    "EsmicpError",
+    "EsmicpWarning",
+    "IndexAlignmentWarning",
+    "InvalidInputError",
+    "IterationRecord",
+    "NonFinitePointsWarning",
+    "OutputExistsError",
+    "PointCloudFileError",
+    "RegistrationResult",
+    "__version__",
+    "read_points",
+    "read_transform",
+    "register",
+    "write_points",
+    "write_transform",
+]

@@ -1,0 +1,188 @@
+"""``register()``: validate inputs, pick the method, run it, evaluate the result."""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+
+import numpy as np
+
+from .core.correspondence import NearestNeighbors
+from .core.procrustes import apply
+from .errors import IndexAlignmentWarning, InvalidInputError
+from .methods import METHODS, EsmEstimator, EsmPaperEstimator, IcpEstimator, SigmaSchedule
+from .methods.esm_paper import PAPER_SIGMA
+from .methods.local import Callback, refine
+from .result import RegistrationResult
+from .types import as_points, as_positive, as_transform, check_not_degenerate
+
+logger = logging.getLogger(__name__)
+
+#: Default inlier distance for ``fitness`` / ``inlier_rmse``, in target point spacings.
+INLIER_DISTANCE_SPACINGS = 3.0
+
+#: Below this fraction of source points matched to the target point of the same index, an
+#: ``esm-paper`` run is reported as not index-aligned.
+INDEX_ALIGNED_FRACTION = 0.5
+
+
+def register(
+    source,
+    target,
+    *,
+    method: str = "esm",
+    init=None,
+    sigma: float | None = None,
+    max_iterations: int = 100,
+    tolerance: float = 1e-8,
+    rng=None,
+    callback: Callback | None = None,
+    record_history: bool = False,
+    inlier_distance: float | None = None,
+) -> RegistrationResult:
+    """Rigidly register ``source`` onto ``target``.
+
+    Parameters
+    ----------
+    source : (N, 3) array-like
+        Points to move (source frame). Never modified.
+    target : (M, 3) array-like
+        Points to align to (target frame). N and M may differ. Never modified.
+    method : {"esm", "esm-paper", "icp"}
+        ``esm``: Gaussian-weighted Procrustes on nearest-neighbour pairs (any sizes, any order).
+        ``esm-paper``: the paper's symmetric-matrix formulation; needs index-aligned clouds of
+        equal size (source point k and target point k the same physical point).
+        ``icp``: point-to-point ICP.
+    init : None or (4, 4) array-like
+        Initial ``T_target_source``; None means the identity.
+    sigma : float, optional
+        Kernel width in the clouds' units. None: ``esm`` chooses it from the data each iteration
+        (see :mod:`esmicp.methods.esm`), ``esm-paper`` uses the paper's 1.0. Ignored by ``icp``.
+    max_iterations : int
+        Upper bound on iterations (>= 1).
+    tolerance : float
+        Convergence tolerance: stop once an increment rotates less than ``tolerance`` radians and
+        translates less than ``tolerance`` times the target's bounding-box diagonal, or once the
+        RMS correspondence distance changes by less than ``tolerance`` relative to itself.
+    rng : None, int or numpy.random.Generator
+        Randomness for methods that use it (the local methods here are deterministic).
+    callback : callable, optional
+        Called with an :class:`~esmicp.methods.local.IterationState` after every iteration;
+        returning True stops the run.
+    record_history : bool
+        Keep an :class:`~esmicp.result.IterationRecord` per iteration in ``result.history``.
+    inlier_distance : float, optional
+        Distance (cloud units) within which a source point counts as an inlier for ``fitness`` and
+        ``inlier_rmse``. Default: 3 x the target's median point spacing.
+
+    Returns
+    -------
+    RegistrationResult
+
+    Raises
+    ------
+    InvalidInputError
+        On malformed or degenerate clouds, an unknown method, a malformed or non-rigid ``init``,
+        or non-positive ``sigma``, ``max_iterations`` or ``inlier_distance``.
+    """
+    start = time.perf_counter()
+    source_points = as_points(source, "source")
+    target_points = as_points(target, "target")
+    check_not_degenerate(source_points, "source")
+    check_not_degenerate(target_points, "target")
+    if method not in METHODS:
+        raise InvalidInputError(f"method: unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    initial = np.eye(4) if init is None else as_transform(init, "init")
+    if sigma is not None:
+        sigma = as_positive(sigma, "sigma")
+    if inlier_distance is not None:
+        inlier_distance = as_positive(inlier_distance, "inlier_distance")
+    max_iterations = _as_count(max_iterations, "max_iterations")
+    tolerance = _as_tolerance(tolerance)
+    np.random.default_rng(rng)  # validates rng now; the local methods draw nothing from it
+
+    target_index = NearestNeighbors(target_points)
+    spacing = target_index.spacing()
+    diagonal = float(np.linalg.norm(target_points.max(axis=0) - target_points.min(axis=0)))
+
+    if method == "esm-paper" and len(source_points) != len(target_points):
+        warnings.warn(
+            f"esm-paper needs index-aligned clouds of equal size, got {len(source_points)} source "
+            f"and {len(target_points)} target points; its result is not meaningful here: use method='esm'",
+            IndexAlignmentWarning,
+            stacklevel=2,
+        )
+    estimator = _make_estimator(method, sigma, spacing, diagonal)
+    outcome = refine(
+        source_points,
+        target_index,
+        estimator,
+        init=initial,
+        max_iterations=max_iterations,
+        tolerance=tolerance,
+        scale=diagonal,
+        callback=callback,
+        record_history=record_history,
+    )
+
+    if inlier_distance is None:
+        inlier_distance = INLIER_DISTANCE_SPACINGS * spacing if spacing > 0 else 1e-6 * diagonal
+    distances, indices = target_index.query(apply(outcome.transformation, source_points))
+    inliers = distances <= inlier_distance
+    fitness = float(inliers.mean())
+    inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
+    if method == "esm-paper" and len(source_points) == len(target_points):
+        _warn_if_not_index_aligned(indices)
+
+    return RegistrationResult(
+        transformation=outcome.transformation,
+        converged=outcome.converged,
+        num_iterations=outcome.num_iterations,
+        fitness=fitness,
+        inlier_rmse=inlier_rmse,
+        inlier_distance=float(inlier_distance),
+        runtime_s=time.perf_counter() - start,
+        method=method,
+        sigma=outcome.sigma,
+        message=outcome.message,
+        history=outcome.history,
+    )
+
+
+def _make_estimator(method: str, sigma: float | None, spacing: float, diagonal: float):
+    if method == "icp":
+        return IcpEstimator()
+    if method == "esm-paper":
+        return EsmPaperEstimator(PAPER_SIGMA if sigma is None else sigma)
+    schedule = SigmaSchedule.auto(spacing, diagonal) if sigma is None else SigmaSchedule.constant(sigma)
+    return EsmEstimator(schedule)
+
+
+def _warn_if_not_index_aligned(indices: np.ndarray) -> None:
+    own = float(np.mean(indices == np.arange(len(indices))))
+    if own < INDEX_ALIGNED_FRACTION:
+        warnings.warn(
+            f"esm-paper assumes index-aligned clouds (source point k = target point k), but after "
+            f"registration only {100 * own:.1f}% of source points lie nearest to the target point of "
+            f"their own index; the clouds are probably not index-aligned and the result is likely "
+            f"wrong: use method='esm'",
+            IndexAlignmentWarning,
+            stacklevel=3,
+        )
+
+
+def _as_count(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise InvalidInputError(f"{name}: expected a whole number >= 1, got {value!r}")
+    return int(value)
+
+
+def _as_tolerance(value) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"tolerance: expected a number >= 0, got {value!r}") from None
+    if not np.isfinite(number) or number < 0:
+        raise InvalidInputError(f"tolerance: expected a finite number >= 0, got {value!r}")
+    return number

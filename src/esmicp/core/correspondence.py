@@ -1,0 +1,56 @@
+"""Nearest-neighbour correspondences against a target cloud.
+
+A :class:`NearestNeighbors` index is built once per target and queried every iteration (and, later,
+by every hypothesis of a global search).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+class NearestNeighbors:
+    """KD-tree over a target cloud; queries run on all cores.
+
+    Parameters
+    ----------
+    target : (M, 3) float64 array
+        The cloud to search in (target frame). Kept by reference: do not mutate it afterwards.
+    workers : int
+        Threads for queries; -1 uses every core.
+    """
+
+    def __init__(self, target: np.ndarray, *, workers: int = -1):
+        self.points = target
+        self.workers = workers
+        # A sliding-midpoint tree without node compaction builds about twice as fast as scipy's
+        # default for point clouds and queries as fast (measured on the bunny and the LiDAR pair).
+        self._tree = cKDTree(target, balanced_tree=False, compact_nodes=False)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return ``(distances, indices)`` of each point's nearest target point.
+
+        ``distances`` are Euclidean, in the clouds' units; ``indices`` index ``self.points``.
+        """
+        distances, indices = self._tree.query(points, k=1, workers=self.workers)
+        return distances, indices
+
+    def spacing(self, max_samples: int = 5000) -> float:
+        """Median distance from a target point to its nearest other target point (cloud units).
+
+        Uses an evenly strided subset of at most ``max_samples`` points, so the value is
+        deterministic and cheap on large clouds. Returns 0.0 if every sampled point has a
+        duplicate at the same place and no positive spacing can be found.
+        """
+        count = len(self.points)
+        sample = self.points[np.linspace(0, count - 1, min(count, max_samples)).astype(np.intp)]
+        distances, _ = self._tree.query(sample, k=min(count, 2), workers=self.workers)
+        if distances.ndim == 1:
+            return 0.0
+        nearest = distances[:, 1]
+        positive = nearest[nearest > 0]
+        return float(np.median(positive)) if len(positive) else 0.0

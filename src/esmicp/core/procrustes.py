@@ -1,0 +1,83 @@
+"""Closed-form rigid fits (Kabsch / weighted Procrustes) and small SE(3) helpers.
+
+All transforms are ``T_target_source``: ``target ~= source @ R.T + t``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def rotation_from_cross_covariance(cross_covariance: np.ndarray) -> np.ndarray:
+    """Rotation ``R = V diag(1, 1, d) U^T`` maximising ``trace(R H)`` for ``H = U S V^T``.
+
+    ``H`` is the 3x3 cross-covariance ``sum_i w_i (s_i - s_bar)(t_i - t_bar)^T``; ``d`` fixes a
+    reflection so that ``det R = +1`` (the standard Kabsch/Umeyama correction).
+    """
+    u, _, vt = np.linalg.svd(cross_covariance)
+    v = vt.T
+    correction = np.ones(3)
+    correction[2] = np.sign(np.linalg.det(v @ u.T)) or 1.0
+    return (v * correction) @ u.T
+
+
+def weighted_procrustes(
+    source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid fit of paired points.
+
+    Minimises ``sum_i w_i ||R s_i + t - t_i||^2`` over rotations ``R`` and translations ``t``.
+
+    Parameters
+    ----------
+    source, target : (N, 3) arrays
+        Paired points: ``source[i]`` corresponds to ``target[i]``.
+    weights : (N,) array of non-negative numbers, optional
+        Per-pair weights; only their ratios matter. None means all ones.
+
+    Returns
+    -------
+    rotation : (3, 3) array, translation : (3,) array
+        ``T_target_source`` as ``(R, t)``.
+    """
+    if weights is None:
+        weights = np.ones(len(source))
+    total = weights.sum()
+    normalised = weights / total
+    source_centroid = normalised @ source
+    target_centroid = normalised @ target
+    cross_covariance = (source - source_centroid).T @ ((target - target_centroid) * normalised[:, None])
+    rotation = rotation_from_cross_covariance(cross_covariance)
+    return rotation, target_centroid - rotation @ source_centroid
+
+
+def to_matrix(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """4x4 homogeneous matrix from a 3x3 rotation and a 3-vector translation."""
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation
+    matrix[:3, 3] = translation
+    return matrix
+
+
+def apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Map ``(N, 3)`` points through a 4x4 transform: ``points @ R.T + t`` (a new array)."""
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def rotation_angle(rotation: np.ndarray) -> float:
+    """Geodesic angle of a 3x3 rotation, in radians, in ``[0, pi]``.
+
+    Accurate for tiny angles too (uses ``atan2`` of the skew part and the trace).
+    """
+    skew = np.array(
+        [rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]]
+    )
+    return float(np.arctan2(0.5 * np.linalg.norm(skew), 0.5 * (np.trace(rotation) - 1.0)))
+
+
+def project_to_rotation(matrix: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix (in Frobenius norm) to a 3x3 matrix; removes accumulated drift."""
+    u, _, vt = np.linalg.svd(matrix)
+    correction = np.ones(3)
+    correction[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return (u * correction) @ vt

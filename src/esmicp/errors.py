@@ -1,0 +1,47 @@
+"""The library's own error types.
+
+Every problem with user input surfaces as one of these, with a message that names the file or
+argument and the problem, so that the command line can print one line and exit with status 2.
+"""
+
+from __future__ import annotations
+
+
+class EsmicpError(ValueError):
+    """Base class of every error esmicp raises on bad input."""
+
+
+class InvalidInputError(EsmicpError):
+    """An argument (points, transform, sigma, ...) is malformed or degenerate."""
+
+
+class PointCloudFileError(EsmicpError):
+    """A point-cloud or transform file is missing, unreadable, malformed or of an unknown kind.
+
+    The message always starts with the file's path.
+    """
+
+    def __init__(self, path, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class OutputExistsError(EsmicpError):
+    """An output path already exists and overwriting was not requested."""
+
+    def __init__(self, path):
+        self.path = str(path)
+        super().__init__(f"{self.path}: already exists (pass --force / overwrite=True to replace it)")
+
+
+class EsmicpWarning(UserWarning):
+    """Base class of the warnings esmicp emits."""
+
+
+class NonFinitePointsWarning(EsmicpWarning):
+    """Some points had NaN or infinite coordinates and were dropped."""
+
+
+class IndexAlignmentWarning(EsmicpWarning):
+    """`esm-paper` was run on clouds that cannot be index-aligned (different sizes)."""

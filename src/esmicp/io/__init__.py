@@ -1,0 +1,303 @@
+"""Reading and writing point clouds and rigid transforms.
+
+Point clouds are ``(N, 3)`` float64 arrays of ``x, y, z`` in the file's own frame and units.
+The format is chosen by the file extension (case-insensitive):
+
+========================  =======================================================  =========
+extension                 format                                                   write
+========================  =======================================================  =========
+``.ply``                  PLY, ascii or binary; vertex x/y/z                       float64
+``.pcd``                  PCD, ascii / binary / binary_compressed; fields x y z    float64
+``.xyz .txt .csv .pts``   text, one point per line, first three columns            17 digits
+``.npy``                  NumPy ``(N, 3)`` array (never unpickled)                 float64
+``.off .obj .stl``        triangle mesh: its vertices, or ``sample_points`` on it  (read only)
+========================  =======================================================  =========
+
+Every written format keeps full float64 precision, so write/read round trips are exact.
+
+Every problem with an input file raises :class:`~esmicp.errors.PointCloudFileError` whose message
+starts with the file's path; NaN / infinite points are dropped with a
+:class:`~esmicp.errors.NonFinitePointsWarning`. Writes are atomic (see :mod:`.atomic`).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import stat
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+
+from ..errors import EsmicpError, InvalidInputError, PointCloudFileError
+from ..types import as_points
+from . import npy, off, pcd, ply, text
+from .atomic import atomic_write
+from .transform import read_transform, write_transform
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "READ_EXTENSIONS",
+    "SUPPORTED_EXTENSIONS",
+    "WRITE_EXTENSIONS",
+    "atomic_write",
+    "check_writable",
+    "read_points",
+    "read_transform",
+    "write_points",
+    "write_transform",
+]
+
+_TEXT_EXTENSIONS = (".xyz", ".txt", ".csv", ".pts")
+_MESH_ONLY_EXTENSIONS = (".off", ".obj", ".stl")
+
+#: Extensions :func:`read_points` accepts.
+READ_EXTENSIONS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".pts", ".npy", ".off", ".obj", ".stl")
+#: Extensions :func:`write_points` accepts.
+WRITE_EXTENSIONS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy")
+#: Both lists, for help texts: ``SUPPORTED_EXTENSIONS["read"]`` and ``SUPPORTED_EXTENSIONS["write"]``.
+SUPPORTED_EXTENSIONS = MappingProxyType({"read": READ_EXTENSIONS, "write": WRITE_EXTENSIONS})
+
+_PLY_FORMATS = ("ascii", "binary")
+
+
+def _as_path(path) -> Path:
+    try:
+        return Path(path)
+    except TypeError:
+        raise InvalidInputError(f"expected a file path, got {path!r}") from None
+
+
+def _strip_name(exc: Exception, name: str) -> str:
+    return str(exc).removeprefix(f"{name}: ")
+
+
+def _unsupported(path: Path, supported: tuple[str, ...], action: str) -> PointCloudFileError:
+    extension = path.suffix.lower()
+    what = f"unsupported file extension {extension!r}" if extension else "no file extension"
+    return PointCloudFileError(path, f"{what}; supported for {action}: {', '.join(supported)}")
+
+
+def _check_input_file(path: Path) -> None:
+    """Refuse a missing, non-regular, empty or unreadable input file, in plain words."""
+    try:
+        info = path.stat()
+    except FileNotFoundError:
+        raise PointCloudFileError(path, "no such file") from None
+    except NotADirectoryError:
+        raise PointCloudFileError(path, "no such file (a part of the path is not a folder)") from None
+    except PermissionError:
+        raise PointCloudFileError(path, "permission denied") from None
+    except OSError as exc:
+        raise PointCloudFileError(path, f"cannot access: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(info.st_mode):
+        raise PointCloudFileError(path, "is a directory, not a file")
+    if not stat.S_ISREG(info.st_mode):
+        raise PointCloudFileError(path, "is not a regular file")
+    if info.st_size == 0:
+        raise PointCloudFileError(path, "file is empty")
+    try:
+        with open(path, "rb"):
+            pass
+    except PermissionError:
+        raise PointCloudFileError(path, "permission denied (the file is not readable)") from None
+    except OSError as exc:
+        raise PointCloudFileError(path, f"cannot open: {exc.strerror or exc}") from None
+
+
+def _sample_count(sample_points) -> int:
+    if isinstance(sample_points, (bool, np.bool_)) or not isinstance(sample_points, (int, np.integer)):
+        raise InvalidInputError(f"sample_points: expected a positive integer, got {sample_points!r}")
+    if sample_points < 1:
+        raise InvalidInputError(f"sample_points: expected a positive integer, got {sample_points}")
+    return int(sample_points)
+
+
+def _generator(rng) -> np.random.Generator:
+    try:
+        return np.random.default_rng(rng)
+    except (TypeError, ValueError):
+        raise InvalidInputError(
+            f"rng: expected None, an integer seed or a numpy Generator, got {rng!r}"
+        ) from None
+
+
+def _read_raw(path: Path, reader) -> np.ndarray:
+    """Run a format reader; turn any stray library or OS exception into PointCloudFileError."""
+    try:
+        return reader()
+    except EsmicpError:
+        raise
+    except MemoryError:
+        raise PointCloudFileError(path, "too large to load into memory") from None
+    except PermissionError:
+        raise PointCloudFileError(path, "permission denied") from None
+    except OSError as exc:
+        raise PointCloudFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    except Exception as exc:  # a library failed in a way not anticipated: still one plain error
+        raise PointCloudFileError(path, f"could not be read ({type(exc).__name__}: {exc})") from exc
+
+
+def _finish(path: Path, raw: np.ndarray) -> np.ndarray:
+    """Validate the raw coordinates: drop NaN rows (warning), need at least 3 points."""
+    raw = np.asarray(raw, dtype=np.float64)
+    if raw.ndim == 2 and raw.shape[1] == 3 and len(raw) and not np.isfinite(raw).all(axis=1).any():
+        raise PointCloudFileError(
+            path, f"no valid points: all {len(raw)} points have NaN or infinite coordinates"
+        )
+    try:
+        return as_points(raw, name=str(path))
+    except InvalidInputError as exc:
+        raise PointCloudFileError(path, _strip_name(exc, str(path))) from None
+
+
+def read_points(path, *, sample_points: int | None = None, rng=None) -> np.ndarray:
+    """Read a point cloud (or a mesh's vertices / surface samples) from a file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A file with one of :data:`READ_EXTENSIONS` (case-insensitive).
+    sample_points : int, optional
+        For meshes (``.off``, ``.obj``, ``.stl``, ``.ply`` with faces): draw this many points
+        uniformly on the surface instead of returning the vertices.
+    rng : int or numpy.random.Generator, optional
+        Seed or generator for ``sample_points`` (a seed makes the samples deterministic).
+        Ignored without ``sample_points``.
+
+    Returns
+    -------
+    numpy.ndarray
+        New ``(N, 3)`` float64 array, ``N >= 3``, in the file's frame and units. Points with NaN
+        or infinite coordinates are dropped with a :class:`~esmicp.errors.NonFinitePointsWarning`.
+
+    Raises
+    ------
+    PointCloudFileError
+        The file is missing, a directory, empty, unreadable, of an unsupported extension,
+        malformed or truncated, has no x/y/z, or fewer than 3 finite points.
+    InvalidInputError
+        ``sample_points`` or ``rng`` is invalid.
+    """
+    path = _as_path(path)
+    extension = path.suffix.lower()
+    if extension not in READ_EXTENSIONS:
+        raise _unsupported(path, READ_EXTENSIONS, "reading")
+    if sample_points is not None:
+        count = _sample_count(sample_points)
+        generator = _generator(rng)
+        if extension not in off.MESH_EXTENSIONS:
+            raise PointCloudFileError(
+                path,
+                f"sample_points needs a mesh file ({', '.join(off.MESH_EXTENSIONS)}), "
+                f"but {extension} holds a point cloud",
+            )
+    _check_input_file(path)
+
+    if sample_points is not None:
+        raw = _read_raw(path, lambda: off.read_mesh(path, sample_points=count, rng=generator))
+    elif extension in _MESH_ONLY_EXTENSIONS:
+        raw = _read_raw(path, lambda: off.read_mesh(path))
+    elif extension == ".ply":
+        raw = _read_raw(path, lambda: ply.read_ply(path))
+    elif extension == ".pcd":
+        raw = _read_raw(path, lambda: pcd.read_pcd(path))
+    elif extension == ".npy":
+        raw = _read_raw(path, lambda: npy.read_npy(path))
+    else:
+        raw = _read_raw(path, lambda: text.read_text(path))
+    return _finish(path, raw)
+
+
+def check_writable(path, *, kind: str = "points") -> None:
+    """Check, without creating anything, that an output could be written at ``path``.
+
+    For early refusal (before any work): the extension is one :func:`write_points` supports
+    (``kind="points"``; transforms are text whatever their extension, ``kind="transform"``), the
+    folder exists and ``path`` is not a directory. Whether ``path`` already exists is not checked.
+
+    Raises
+    ------
+    PointCloudFileError
+        The output cannot be written there.
+    """
+    path = _as_path(path)
+    if kind not in ("points", "transform"):
+        raise InvalidInputError(f"kind: expected 'points' or 'transform', got {kind!r}")
+    if kind == "points" and path.suffix.lower() not in WRITE_EXTENSIONS:
+        raise _unsupported(path, WRITE_EXTENSIONS, "writing")
+    if path.is_dir():
+        raise PointCloudFileError(path, "is a directory, cannot write a file there")
+    if not path.parent.is_dir():
+        raise PointCloudFileError(path, f"cannot write: the folder {str(path.parent)!r} does not exist")
+
+
+def write_points(
+    path, points, *, overwrite: bool = False, pcd_format: str = "binary", ply_format: str = "binary"
+) -> None:
+    """Write a point cloud, choosing the format by extension; atomic, never partial.
+
+    Precision kept (all exact float64 round trips):
+
+    - ``.ply``: ``double x, y, z`` vertices, binary little-endian or ascii (17 significant digits).
+    - ``.pcd``: fields ``x y z`` TYPE F SIZE 8; ``binary``, ``binary_compressed`` (LZF) or
+      ``ascii`` (17 significant digits).
+    - ``.xyz``, ``.txt``: ``x y z`` per line, space-separated, 17 significant digits; ``.csv``: the
+      same, comma-separated.
+    - ``.npy``: an ``(N, 3)`` float64 array.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file, one of :data:`WRITE_EXTENSIONS`.
+    points : array_like
+        ``(N, 3)`` coordinates (NaN / infinite rows are dropped with a warning; at least 3 points).
+    overwrite : bool
+        Replace an existing file; otherwise an existing ``path`` raises and is left untouched.
+    pcd_format : {"binary", "binary_compressed", "ascii"}
+        Encoding of ``.pcd`` output.
+    ply_format : {"binary", "ascii"}
+        Encoding of ``.ply`` output.
+
+    Raises
+    ------
+    PointCloudFileError
+        Unsupported extension (raised before anything is created), or the file cannot be written.
+    InvalidInputError
+        ``points`` is not a valid cloud, or ``pcd_format`` / ``ply_format`` is unknown.
+    OutputExistsError
+        ``path`` exists and ``overwrite`` is False.
+    """
+    path = _as_path(path)
+    extension = path.suffix.lower()
+    if extension not in WRITE_EXTENSIONS:
+        raise _unsupported(path, WRITE_EXTENSIONS, "writing")
+    if pcd_format not in pcd.ENCODINGS:
+        raise InvalidInputError(f"pcd_format: expected one of {', '.join(pcd.ENCODINGS)}, got {pcd_format!r}")
+    if ply_format not in _PLY_FORMATS:
+        raise InvalidInputError(f"ply_format: expected one of {', '.join(_PLY_FORMATS)}, got {ply_format!r}")
+    array = as_points(points, name="points")
+
+    if extension == ".ply":
+
+        def writer(handle):
+            ply.write_ply(handle, array, binary=ply_format == "binary")
+    elif extension == ".pcd":
+
+        def writer(handle):
+            pcd.write_pcd(handle, array, encoding=pcd_format)
+    elif extension == ".npy":
+
+        def writer(handle):
+            npy.write_npy(handle, array)
+    else:
+        delimiter = "," if extension == ".csv" else " "
+
+        def writer(handle):
+            text.write_text(handle, array, delimiter=delimiter)
+
+    with atomic_write(path, overwrite) as handle:
+        writer(handle)
+    logger.debug("wrote %d points to %s", len(array), os.fspath(path))

@@ -1,0 +1,464 @@
+"""PLY (Stanford polygon file) point clouds, read and written with :mod:`plyfile`.
+
+Only the ``x``, ``y``, ``z`` properties of the ``vertex`` element are used. Other vertex
+properties (normals, colours, confidence, ...) and other elements (faces, the Stanford scans'
+``range_grid``, ...) are tolerated and ignored.
+
+The header is parsed and checked here first, against the file's size, so that a header that
+declares more data than the file holds is refused before anything is allocated. plyfile then reads
+only the elements up to and including ``vertex`` (a face list after the vertices is never parsed,
+which keeps large meshes fast).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import itertools
+import os
+import tempfile
+import warnings
+
+import numpy as np
+import plyfile
+
+from ..errors import PointCloudFileError
+
+__all__ = ["PlyHeader", "read_ply", "read_ply_header", "write_ply"]
+
+#: Byte size of each PLY scalar type (both the PLY 1.0 names and the sized aliases).
+_SCALAR_SIZES = {
+    "char": 1,
+    "int8": 1,
+    "uchar": 1,
+    "uint8": 1,
+    "short": 2,
+    "int16": 2,
+    "ushort": 2,
+    "uint16": 2,
+    "int": 4,
+    "int32": 4,
+    "uint": 4,
+    "uint32": 4,
+    "float": 4,
+    "float32": 4,
+    "double": 8,
+    "float64": 8,
+}
+_INTEGER_TYPES = {
+    "char",
+    "int8",
+    "uchar",
+    "uint8",
+    "short",
+    "int16",
+    "ushort",
+    "uint16",
+    "int",
+    "int32",
+    "uint",
+    "uint32",
+}
+_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+#: A header longer than this is not a PLY header.
+_MAX_HEADER_BYTES = 1 << 20
+
+
+@dataclasses.dataclass(frozen=True)
+class _Property:
+    name: str
+    value_type: str
+    list_length_type: str | None = None  # set for list properties
+
+    @property
+    def is_list(self) -> bool:
+        return self.list_length_type is not None
+
+    def declaration(self) -> str:
+        if self.is_list:
+            return f"property list {self.list_length_type} {self.value_type} {self.name}"
+        return f"property {self.value_type} {self.name}"
+
+
+@dataclasses.dataclass
+class _Element:
+    name: str
+    count: int
+    properties: list[_Property] = dataclasses.field(default_factory=list)
+
+    @property
+    def has_lists(self) -> bool:
+        return any(p.is_list for p in self.properties)
+
+    def min_binary_row_bytes(self) -> int:
+        """Bytes per row in binary form (exact without lists; a lower bound with lists)."""
+        return sum(_SCALAR_SIZES[p.list_length_type if p.is_list else p.value_type] for p in self.properties)
+
+    def min_ascii_row_bytes(self) -> int:
+        """Lower bound of the bytes per row in ascii form: one character and a separator per value."""
+        return max(2 * len(self.properties), 1)
+
+    def property_names(self) -> list[str]:
+        return [p.name for p in self.properties]
+
+
+@dataclasses.dataclass
+class PlyHeader:
+    """What a PLY header declares, and where its data starts.
+
+    Attributes
+    ----------
+    format : str
+        ``"ascii"``, ``"binary_little_endian"`` or ``"binary_big_endian"``.
+    elements : list
+        The declared elements, in file order.
+    data_offset : int
+        Byte offset of the first data byte (just after ``end_header``).
+    data_bytes : int
+        Number of bytes after the header.
+    """
+
+    format: str
+    elements: list[_Element]
+    data_offset: int
+    data_bytes: int
+
+    @property
+    def is_ascii(self) -> bool:
+        return self.format == "ascii"
+
+    def element(self, name: str) -> _Element | None:
+        for element in self.elements:
+            if element.name == name:
+                return element
+        return None
+
+    def element_counts(self) -> dict[str, int]:
+        return {element.name: element.count for element in self.elements}
+
+
+def _parse_property(path, words: list[str], line_number: int) -> _Property:
+    if len(words) >= 2 and words[1] == "list":
+        if len(words) != 5:
+            raise PointCloudFileError(
+                path,
+                f"malformed PLY header, line {line_number}: expected 'property list <count type> <value type> <name>'",
+            )
+        _, _, length_type, value_type, name = words
+        if length_type not in _INTEGER_TYPES:
+            raise PointCloudFileError(
+                path,
+                f"malformed PLY header, line {line_number}: list length type {length_type!r} is not an integer type",
+            )
+        if value_type not in _SCALAR_SIZES:
+            raise PointCloudFileError(
+                path, f"malformed PLY header, line {line_number}: unknown type {value_type!r}"
+            )
+        return _Property(name, value_type, length_type)
+    if len(words) != 3:
+        raise PointCloudFileError(
+            path, f"malformed PLY header, line {line_number}: expected 'property <type> <name>'"
+        )
+    _, value_type, name = words
+    if value_type not in _SCALAR_SIZES:
+        raise PointCloudFileError(
+            path, f"malformed PLY header, line {line_number}: unknown type {value_type!r}"
+        )
+    return _Property(name, value_type)
+
+
+def _locate_header_end(path, head: bytes) -> tuple[str, int, int]:
+    """Return (newline, index of the newline before ``end_header``, data offset)."""
+    if not head.startswith(b"ply"):
+        raise PointCloudFileError(path, "not a PLY file: it does not start with the 'ply' line")
+    if head[3:5] == b"\r\n":
+        newline = b"\r\n"
+    elif head[3:4] in (b"\n", b"\r"):
+        newline = head[3:4]
+    else:
+        raise PointCloudFileError(path, "not a PLY file: unexpected characters after 'ply' on the first line")
+    marker = newline + b"end_header"
+    start = 0
+    while True:
+        index = head.find(marker, start)
+        if index < 0:
+            if len(head) >= _MAX_HEADER_BYTES:
+                raise PointCloudFileError(
+                    path, "not a valid PLY file: no 'end_header' line in the first 1 MiB"
+                )
+            raise PointCloudFileError(path, "truncated PLY file: the header has no 'end_header' line")
+        after = index + len(marker)
+        rest = head[after:]
+        if rest.startswith(newline):
+            return newline.decode("ascii"), index, after + len(newline)
+        if not rest:  # the header ends the file
+            return newline.decode("ascii"), index, len(head)
+        stripped = rest.lstrip(b" \t")
+        if not stripped or stripped.startswith(newline):
+            raise PointCloudFileError(path, "malformed PLY header: 'end_header' must be alone on its line")
+        start = after
+
+
+def read_ply_header(path, handle=None) -> PlyHeader:
+    """Parse and check the header of the PLY file at ``path``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file, used in error messages (and opened unless ``handle`` is given).
+    handle : binary file object, optional
+        An open handle on the file; it is left positioned at the start of the data.
+
+    Returns
+    -------
+    PlyHeader
+
+    Raises
+    ------
+    PointCloudFileError
+        The header is malformed, or declares more data than the file holds.
+    """
+    if handle is None:
+        with open(path, "rb") as own_handle:
+            return read_ply_header(path, own_handle)
+    handle.seek(0, os.SEEK_END)
+    file_size = handle.tell()
+    handle.seek(0)
+    head = handle.read(_MAX_HEADER_BYTES)
+    newline, end_index, data_offset = _locate_header_end(path, head)
+    try:
+        text = head[:end_index].decode("ascii")
+    except UnicodeDecodeError:
+        raise PointCloudFileError(path, "malformed PLY header: it contains non-ASCII bytes") from None
+
+    file_format = None
+    elements: list[_Element] = []
+    for line_number, line in enumerate(text.split(newline)[1:], start=2):
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        keyword = words[0]
+        if keyword == "format":
+            if file_format is not None:
+                raise PointCloudFileError(
+                    path, f"malformed PLY header, line {line_number}: a second 'format' line"
+                )
+            if len(words) != 3 or words[1] not in _FORMATS or words[2] != "1.0":
+                raise PointCloudFileError(
+                    path,
+                    f"malformed PLY header, line {line_number}: unsupported format {' '.join(words[1:])!r}",
+                )
+            file_format = words[1]
+        elif keyword == "element":
+            if len(words) != 3:
+                raise PointCloudFileError(
+                    path, f"malformed PLY header, line {line_number}: expected 'element <name> <count>'"
+                )
+            try:
+                count = int(words[2])
+            except ValueError:
+                count = -1
+            if count < 0:
+                raise PointCloudFileError(
+                    path,
+                    f"malformed PLY header, line {line_number}: element count {words[2]!r} is not a whole number",
+                )
+            elements.append(_Element(words[1], count))
+        elif keyword == "property":
+            if not elements:
+                raise PointCloudFileError(
+                    path, f"malformed PLY header, line {line_number}: a property before any element"
+                )
+            elements[-1].properties.append(_parse_property(path, words, line_number))
+        else:
+            raise PointCloudFileError(
+                path, f"malformed PLY header, line {line_number}: unexpected {line.strip()[:40]!r}"
+            )
+    if file_format is None:
+        raise PointCloudFileError(path, "malformed PLY header: no 'format' line")
+
+    header = PlyHeader(file_format, elements, data_offset, max(file_size - data_offset, 0))
+    _check_sizes(path, header)
+    handle.seek(data_offset)
+    return header
+
+
+def _describe_count(element: _Element) -> str:
+    plural = {"vertex": "vertices", "face": "faces"}.get(element.name, f"{element.name!r} rows")
+    return f"{element.count} {plural}"
+
+
+def _check_sizes(path, header: PlyHeader) -> None:
+    """Refuse a header that declares more data than the file can hold."""
+    if header.is_ascii:
+        minimum = sum(e.count * e.min_ascii_row_bytes() for e in header.elements if e.count) - 1
+    else:
+        minimum = sum(e.count * e.min_binary_row_bytes() for e in header.elements)
+    if minimum > header.data_bytes:
+        declared = ", ".join(_describe_count(e) for e in header.elements)
+        raise PointCloudFileError(
+            path,
+            f"truncated or corrupt PLY file: its header declares {declared}, which needs at least "
+            f"{minimum} bytes of data, but only {header.data_bytes} bytes follow the header",
+        )
+
+
+def _vertex_element(path, header: PlyHeader) -> tuple[int, _Element]:
+    for index, element in enumerate(header.elements):
+        if element.name == "vertex":
+            break
+    else:
+        names = ", ".join(repr(e.name) for e in header.elements) or "none"
+        raise PointCloudFileError(path, f"PLY file has no 'vertex' element (elements: {names})")
+    by_name = {p.name: p for p in element.properties}
+    missing = [axis for axis in "xyz" if axis not in by_name]
+    if missing:
+        found = ", ".join(element.property_names()) or "none"
+        raise PointCloudFileError(
+            path, f"PLY vertices have no {'/'.join(missing)} coordinate (vertex properties: {found})"
+        )
+    lists = [axis for axis in "xyz" if by_name[axis].is_list]
+    if lists:
+        raise PointCloudFileError(path, f"PLY vertex property {lists[0]!r} is a list, expected a number")
+    return index, element
+
+
+def _rewritten_header(header: PlyHeader, elements: list[_Element]) -> str:
+    """A minimal header that declares only ``elements`` (so plyfile stops after them)."""
+    lines = ["ply", f"format {header.format} 1.0"]
+    for element in elements:
+        lines.append(f"element {element.name} {element.count}")
+        lines.extend(p.declaration() for p in element.properties)
+    lines.append("end_header")
+    return "\n".join(lines) + "\n"
+
+
+def _plyfile_read(path, stream, **kwargs) -> plyfile.PlyData:
+    try:
+        with warnings.catch_warnings():
+            # plyfile's ascii list parser warns on empty lists; that is not a problem.
+            warnings.simplefilter("ignore", UserWarning)
+            return plyfile.PlyData.read(stream, **kwargs)
+    except plyfile.PlyParseError as exc:
+        raise PointCloudFileError(path, f"malformed PLY data: {exc}") from None
+    except UnicodeDecodeError:
+        raise PointCloudFileError(path, "malformed ascii PLY data: it contains non-ASCII bytes") from None
+    except MemoryError:
+        raise PointCloudFileError(path, "PLY file is too large to load into memory") from None
+    except (ValueError, TypeError, IndexError, KeyError, OverflowError, StopIteration) as exc:
+        raise PointCloudFileError(path, f"malformed PLY file: {exc}") from None
+
+
+def _read_ascii(path, handle, header: PlyHeader, needed: list[_Element]) -> np.ndarray:
+    """Vertex coordinates of an ascii PLY file whose header was checked."""
+    rows = sum(e.count for e in needed)
+    text = io.TextIOWrapper(handle, encoding="ascii", newline=None)
+    try:
+        lines = list(itertools.islice(text, rows))
+    except UnicodeDecodeError:
+        raise PointCloudFileError(path, "malformed ascii PLY data: it contains non-ASCII bytes") from None
+    finally:
+        text.detach()
+    if len(lines) < rows:
+        vertex = needed[-1]
+        raise PointCloudFileError(
+            path,
+            f"truncated PLY file: its header declares {vertex.count} vertices, but the data ends after "
+            f"{len(lines)} lines",
+        )
+    return _coordinates(_plyfile_read(path, io.StringIO(_rewritten_header(header, needed) + "".join(lines))))
+
+
+def _read_binary(path, handle, header: PlyHeader, needed: list[_Element]) -> np.ndarray:
+    """Vertex coordinates of a binary PLY file whose header was checked."""
+    if not any(e.has_lists for e in header.elements):
+        # Fixed-size rows everywhere: plyfile memory-maps the file itself, no copy.
+        handle.seek(0)
+        return _coordinates(_plyfile_read(path, handle, mmap="c"))
+    if not any(e.has_lists for e in needed):
+        # A face list (or similar) after the vertices: copy just the rows we need to a temporary
+        # file with a shortened header, which plyfile memory-maps. Reading the face list would make
+        # plyfile loop in Python over every face.
+        size = sum(e.count * e.min_binary_row_bytes() for e in needed)
+        with tempfile.TemporaryFile() as scratch:
+            scratch.write(_rewritten_header(header, needed).encode("ascii"))
+            remaining = size
+            while remaining:
+                chunk = handle.read(min(remaining, 1 << 24))
+                if not chunk:  # pragma: no cover - the size check ran before
+                    raise PointCloudFileError(path, "truncated PLY file: the vertex data ends early")
+                scratch.write(chunk)
+                remaining -= len(chunk)
+            scratch.flush()
+            scratch.seek(0)
+            data = _plyfile_read(path, scratch, mmap="c")
+            points = _coordinates(data)
+            del data  # release the memory map before the scratch file goes
+            return points
+    # Variable-length lists before the vertices (unusual): let plyfile parse everything.
+    handle.seek(0)
+    return _coordinates(_plyfile_read(path, handle, mmap="c"))
+
+
+def _coordinates(data: plyfile.PlyData) -> np.ndarray:
+    """The vertex x, y, z of parsed PLY data as a new ``(N, 3)`` float64 array."""
+    vertices = data["vertex"].data
+    points = np.empty((len(vertices), 3), dtype=np.float64)
+    for column, axis in enumerate("xyz"):
+        points[:, column] = vertices[axis]
+    return points
+
+
+def read_ply(path) -> np.ndarray:
+    """Read the vertex coordinates of a PLY file (ascii or binary, any scalar coordinate type).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N, 3)`` float64 ``x, y, z`` in the file's own frame and units. Rows may contain NaN; the
+        caller filters them.
+
+    Raises
+    ------
+    PointCloudFileError
+        The file is not a PLY file, is truncated, or has no ``vertex`` x/y/z.
+    """
+    with open(path, "rb") as handle:
+        header = read_ply_header(path, handle)
+        vertex_index, _ = _vertex_element(path, header)
+        needed = header.elements[: vertex_index + 1]
+        if header.is_ascii:
+            return _read_ascii(path, handle, header, needed)
+        return _read_binary(path, handle, header, needed)
+
+
+def write_ply(handle, points: np.ndarray, *, binary: bool = True) -> None:
+    """Write ``points`` as the ``vertex`` element (``double x, y, z``) of a PLY file.
+
+    Coordinates are stored as float64 ("double") in both variants, so round trips are exact:
+    binary little-endian bytes, or ascii with 17 significant digits.
+
+    Parameters
+    ----------
+    handle : binary file object
+        Open for writing.
+    points : numpy.ndarray
+        ``(N, 3)`` float64, already validated.
+    binary : bool
+        ``binary_little_endian`` if True, else ``ascii``.
+    """
+    vertices = np.empty(len(points), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+    vertices["x"], vertices["y"], vertices["z"] = points[:, 0], points[:, 1], points[:, 2]
+    element = plyfile.PlyElement.describe(vertices, "vertex")
+    data = plyfile.PlyData([element], text=not binary, byte_order="<", comments=["written by esmicp"])
+    if binary:
+        data.write(handle)
+        return
+    # plyfile's own ascii writer formats every row with a separate numpy.savetxt call (about 15x
+    # slower); write its header, then all rows at once with the same round-trip precision.
+    handle.write((data.header + "\n").encode("ascii"))
+    np.savetxt(handle, points, fmt="%.17g", delimiter=" ")

@@ -1,0 +1,123 @@
+"""4x4 rigid transforms as text: four rows of four numbers, row-major.
+
+Transforms are ``T_target_source`` (they map source coordinates into the target frame), in the
+clouds' units. Written with 17 significant digits, so a write/read round trip is exact.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InvalidInputError, PointCloudFileError
+from ..types import as_transform
+from .atomic import atomic_write
+from .text import read_text_file
+
+__all__ = ["read_transform", "write_transform"]
+
+_SEPARATORS = str.maketrans({",": " ", ";": " ", "\t": " ", "[": " ", "]": " "})
+
+
+def _problem(exc: InvalidInputError, name: str) -> str:
+    """The message of ``exc`` without its leading ``name: `` (PointCloudFileError adds the path)."""
+    return str(exc).removeprefix(f"{name}: ")
+
+
+def _as_path(path) -> Path:
+    try:
+        return Path(path)
+    except TypeError:
+        raise InvalidInputError(f"expected a file path, got {path!r}") from None
+
+
+def _check_readable(path: Path) -> None:
+    if path.is_dir():
+        raise PointCloudFileError(path, "is a directory, not a file")
+    if not path.exists():
+        raise PointCloudFileError(path, "no such file")
+
+
+def read_transform(path) -> np.ndarray:
+    """Read a 4x4 rigid transform from a text file.
+
+    Numbers may be separated by spaces, tabs, commas or semicolons (brackets are ignored); blank
+    lines and lines starting with ``#`` or ``//`` are skipped. The 16 numbers are read row-major.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    numpy.ndarray
+        4x4 float64 homogeneous matrix, checked rigid (see :func:`esmicp.types.as_transform`).
+
+    Raises
+    ------
+    PointCloudFileError
+        The file is missing, unreadable, does not hold exactly 16 numbers, or the matrix is not a
+        rigid transform.
+    """
+    path = _as_path(path)
+    _check_readable(path)
+    try:
+        text = read_text_file(path)
+    except OSError as exc:
+        raise PointCloudFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    words: list[str] = []
+    for line in text.splitlines():
+        stripped = line.strip()
+        if not stripped or stripped.startswith(("#", "//")):
+            continue
+        words.extend(stripped.translate(_SEPARATORS).split())
+    if len(words) != 16:
+        raise PointCloudFileError(
+            path, f"expected a 4x4 transform (16 numbers, row-major), found {len(words)} values"
+        )
+    try:
+        values = [float(word) for word in words]
+    except ValueError:
+        bad = next(word for word in words if not _is_number(word))
+        raise PointCloudFileError(path, f"{bad[:30]!r} is not a number") from None
+    try:
+        return as_transform(np.array(values).reshape(4, 4), name=str(path))
+    except InvalidInputError as exc:
+        raise PointCloudFileError(path, _problem(exc, str(path))) from None
+
+
+def _is_number(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
+
+
+def write_transform(path, T, *, overwrite: bool = False) -> None:
+    """Write a 4x4 rigid transform as text: four rows, 17 significant digits, space-separated.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file; written atomically.
+    T : array_like
+        4x4 rigid transform ``T_target_source``.
+    overwrite : bool
+        Replace an existing file.
+
+    Raises
+    ------
+    InvalidInputError
+        ``T`` is not a 4x4 rigid transform (nothing is written).
+    OutputExistsError
+        ``path`` exists and ``overwrite`` is False.
+    PointCloudFileError
+        The file cannot be written.
+    """
+    path = _as_path(path)
+    matrix = as_transform(T, name="T")
+    text = "".join(" ".join(f"{value:.17g}" for value in row) + "\n" for row in matrix)
+    with atomic_write(path, overwrite, mode="w") as handle:
+        handle.write(text)

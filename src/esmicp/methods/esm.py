@@ -1,0 +1,96 @@
+"""ESM-ICP on true correspondences: the honest generalisation of the paper's method.
+
+Each iteration pairs every source point ``s_i`` with its nearest target point ``t_c(i)``, weighs the
+pair by ``w_i = exp(-||s_i - t_c(i)||^2 / (2 sigma^2))`` and solves the weighted Procrustes problem
+``min sum_i w_i ||R s_i + t - t_c(i)||^2`` (weighted centroids, weighted cross-covariance, SVD,
+``R = V U^T``, ``t = t_bar - R s_bar``). Unlike the paper's symmetric matrix, no pair ever joins
+source point k to target point k, so the clouds may differ in size and order.
+
+Choosing sigma (the paper leaves it open)
+-----------------------------------------
+``sigma`` is in the clouds' units. A fixed value can be given. By default
+(:meth:`SigmaSchedule.auto`) it is re-chosen every iteration as
+
+    sigma_k = max(sigma_floor, 3 * median_i d_i)
+
+with ``d_i`` the current correspondence distances and ``sigma_floor = 2 x`` the target's median
+point spacing (distance from a target point to its nearest neighbour). Far from the solution most
+pairs are wrong by about the median distance, so weights stay broad (a typical pair weighs about
+0.95) and the step behaves like ICP; as the clouds close in, sigma shrinks with the residuals (a
+coarse-to-fine annealing that needs no tuning), down to the floor, where sampling noise still
+weighs about 0.9 and pairs several spacings off (outliers, non-overlapping parts) weigh almost
+nothing. Measured on ModelNet chair halves (2,000 vs 2,000 points, 20 trials per cell): from
+60-degree offsets a factor of 1, 2 and 3 on the median recovered 13, 18 and 20 of 20; from
+90-degree offsets 4, 7 and 13 of 20 (ICP: 15). The floor makes the choice unit-free:
+the same default serves a unit-size ModelNet object, the bunny in metres and a LiDAR scan.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.kernels import relative_gaussian_weights
+from ..core.procrustes import weighted_procrustes
+from ..types import as_positive
+from .base import Step
+
+#: The automatic sigma never falls below this many target point spacings.
+SIGMA_FLOOR_SPACINGS = 2.0
+
+#: The automatic sigma is this many times the median correspondence distance (above the floor).
+SIGMA_MEDIAN_FACTOR = 3.0
+
+
+@dataclass(frozen=True)
+class SigmaSchedule:
+    """How sigma (cloud units) is chosen each iteration.
+
+    ``fixed`` set: that value every iteration. Otherwise
+    ``max(floor, SIGMA_MEDIAN_FACTOR * median distance)``.
+    """
+
+    fixed: float | None = None
+    floor: float = 0.0
+
+    @classmethod
+    def constant(cls, sigma: float) -> "SigmaSchedule":
+        return cls(fixed=as_positive(sigma, "sigma"))
+
+    @classmethod
+    def auto(cls, target_spacing: float, diameter: float) -> "SigmaSchedule":
+        """Schedule with a floor of ``SIGMA_FLOOR_SPACINGS`` point spacings.
+
+        ``diameter`` (cloud units) backs the floor for clouds with no measurable spacing (all
+        target points duplicated): then one millionth of the diameter.
+        """
+        floor = SIGMA_FLOOR_SPACINGS * target_spacing
+        if not floor > 0:
+            floor = 1e-6 * diameter
+        return cls(fixed=None, floor=floor)
+
+    def __call__(self, distances: np.ndarray) -> float:
+        if self.fixed is not None:
+            return self.fixed
+        return max(self.floor, SIGMA_MEDIAN_FACTOR * float(np.median(distances)))
+
+
+class EsmEstimator:
+    """ESM-ICP increment on nearest-neighbour pairs with Gaussian weights.
+
+    Weights are computed relative to the closest pair (see
+    :func:`esmicp.core.kernels.relative_gaussian_weights`): the fit is exactly the one the
+    paper's weights give, but it never breaks down when all of them would underflow to zero.
+    """
+
+    name = "esm"
+
+    def __init__(self, sigma: SigmaSchedule):
+        self.sigma = sigma
+
+    def step(self, moved_source, target, distances, indices) -> Step:
+        sigma = self.sigma(distances)
+        weights = relative_gaussian_weights(distances, sigma)
+        rotation, translation = weighted_procrustes(moved_source, target[indices], weights)
+        return Step(rotation, translation, weights=weights, sigma=sigma)

@@ -1,0 +1,106 @@
+"""The paper's ESM-ICP formulation, computed exactly as its reference code does, in O(N).
+
+Per iteration, with ``c(i)`` the nearest target point of source point ``i``:
+
+- ``s_bar`` is the mean of ALL source points, ``t_bar`` the mean of the matched target points
+  ``t_c(i)`` (both unweighted);
+- ``w_i = exp(-d_i^2 / (2 sigma^2))``, ``d_i = ||s_i - t_c(i)||``;
+- the N x N similarity matrix is filled, for ``i = 0 .. N-1`` in order, with
+  ``M[c(i), i] = w_i`` then ``M[i, c(i)] = w_i`` (a later write to the same entry replaces an
+  earlier one, as in the reference);
+- ``H = Src_c M^T TgtMatched_c^T`` with the centred source points and centred matched target points
+  as the columns of ``Src_c`` and ``TgtMatched_c``;
+- ``H = U S V^T``, ``R = V U^T`` (last column of ``V`` negated when ``det U det V < 0``),
+  ``t = t_bar - R s_bar``.
+
+Requirement: index-aligned clouds
+---------------------------------
+The entry ``M[i, c(i)]`` makes ``H`` pair source point ``c(i)`` with the target matched to point
+``i``, and ``M[c(i), i]`` pairs source ``i`` with the target matched to point ``c(i)``. These are the
+right pairs only when source point k and target point k are the same physical point, as in the
+paper's experiments, where the target is a transformed copy of the source in the same order. On
+clouds sampled independently, or merely reordered, the matrix pairs unrelated points and the
+method fails (measured: see ``docs/esm-paper.md``). Use ``esm`` for real data. With clouds of
+different sizes the entries whose indices fall outside ``0 .. N-1`` have no column to act on and
+are left out (the reference code would index out of bounds there).
+
+``M`` has at most 2N non-zeros and is never built densely: ``H`` is accumulated from its entries.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse
+
+from ..core.kernels import gaussian_weights
+from ..core.procrustes import rotation_from_cross_covariance
+from ..types import as_positive
+from .base import Step
+
+#: The paper's sigma (in the clouds' units; its experiments use unit-size objects).
+PAPER_SIGMA = 1.0
+
+
+def similarity_entries(
+    indices: np.ndarray, weights: np.ndarray, size: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Non-zero entries ``(rows, cols, values)`` of the paper's ``size x size`` matrix M.
+
+    Follows the reference's write order (``M[c(i), i]`` then ``M[i, c(i)]`` for each i) with
+    last-write-wins on repeated entries; entries with an index ``>= size`` are dropped.
+    O(N log N) time (one sort) and O(N) memory.
+    """
+    count = len(indices)
+    own = np.arange(count, dtype=np.int64)
+    matched = np.asarray(indices, dtype=np.int64)
+    rows = np.empty(2 * count, dtype=np.int64)
+    cols = np.empty(2 * count, dtype=np.int64)
+    rows[0::2], cols[0::2] = matched, own
+    rows[1::2], cols[1::2] = own, matched
+    values = np.repeat(weights, 2)
+    inside = (rows < size) & (cols < size)
+    rows, cols, values = rows[inside], cols[inside], values[inside]
+    keys = rows * size + cols
+    _, first_from_end = np.unique(keys[::-1], return_index=True)
+    last = len(keys) - 1 - first_from_end
+    return rows[last], cols[last], values[last]
+
+
+def similarity_matrix(indices: np.ndarray, weights: np.ndarray, size: int) -> scipy.sparse.csr_matrix:
+    """The paper's similarity matrix M as a sparse ``size x size`` matrix (for inspection and
+    heat maps; the solver itself works on :func:`similarity_entries`)."""
+    rows, cols, values = similarity_entries(indices, weights, size)
+    return scipy.sparse.csr_matrix((values, (rows, cols)), shape=(size, size))
+
+
+def paper_cross_covariance(
+    source: np.ndarray, matched_target: np.ndarray, indices: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(H, s_bar, t_bar)`` of the paper: ``H = Src_c M^T TgtMatched_c^T`` in O(N).
+
+    An entry ``M[r, c] = v`` adds ``v (s_c - s_bar)(tm_r - t_bar)^T`` to ``H``.
+    """
+    source_centroid = source.mean(axis=0)
+    target_centroid = matched_target.mean(axis=0)
+    rows, cols, values = similarity_entries(indices, weights, len(source))
+    cross_covariance = ((source[cols] - source_centroid) * values[:, None]).T @ (
+        matched_target[rows] - target_centroid
+    )
+    return cross_covariance, source_centroid, target_centroid
+
+
+class EsmPaperEstimator:
+    """Increment of the paper's formulation (see the module docstring for its requirement)."""
+
+    name = "esm-paper"
+
+    def __init__(self, sigma: float = PAPER_SIGMA):
+        self.sigma = as_positive(sigma, "sigma")
+
+    def step(self, moved_source, target, distances, indices) -> Step:
+        weights = gaussian_weights(distances, self.sigma)
+        cross_covariance, source_centroid, target_centroid = paper_cross_covariance(
+            moved_source, target[indices], indices, weights
+        )
+        rotation = rotation_from_cross_covariance(cross_covariance)
+        return Step(rotation, target_centroid - rotation @ source_centroid, weights=weights, sigma=self.sigma)

@@ -1,0 +1,18 @@
+"""Classic point-to-point ICP (Besl and McKay 1992): every nearest-neighbour pair weighs 1."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..core.procrustes import weighted_procrustes
+from .base import Step
+
+
+class IcpEstimator:
+    """Point-to-point ICP increment: unweighted Procrustes on nearest-neighbour pairs."""
+
+    name = "icp"
+
+    def step(self, moved_source, target, distances, indices) -> Step:
+        rotation, translation = weighted_procrustes(moved_source, target[indices], np.ones(len(indices)))
+        return Step(rotation, translation)

@@ -1,0 +1,127 @@
+"""The iteration loop shared by every local method.
+
+Each iteration: nearest neighbours of the source as currently placed, one increment from the
+method's :class:`~esmicp.methods.base.StepEstimator`, composed on the left
+(``T = T_delta @ T``). It stops when the increment becomes negligible, or when the RMS
+correspondence distance stops changing, both relative to ``tolerance``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..core.correspondence import NearestNeighbors
+from ..core.kernels import effective_count
+from ..core.procrustes import apply, project_to_rotation, rotation_angle, to_matrix
+from ..result import IterationRecord
+from .base import StepEstimator
+
+
+@dataclass(frozen=True)
+class IterationState:
+    """What a callback sees after each iteration (arrays are the solver's own: do not modify).
+
+    ``moved_source`` is the source as placed BEFORE this iteration's increment, ``indices`` and
+    ``distances`` its nearest target points, ``weights`` the weights the method gave each pair
+    (None for unweighted methods), ``transformation`` the ``T_target_source`` AFTER the increment.
+    """
+
+    iteration: int
+    transformation: np.ndarray
+    moved_source: np.ndarray
+    indices: np.ndarray
+    distances: np.ndarray
+    weights: np.ndarray | None
+    sigma: float | None
+
+
+#: Return True from a callback to stop the iterations.
+Callback = Callable[[IterationState], "bool | None"]
+
+
+@dataclass(frozen=True)
+class LocalOutcome:
+    transformation: np.ndarray
+    converged: bool
+    num_iterations: int
+    sigma: float | None
+    message: str
+    history: tuple[IterationRecord, ...] | None
+
+
+def refine(
+    source: np.ndarray,
+    target: NearestNeighbors,
+    estimator: StepEstimator,
+    *,
+    init: np.ndarray,
+    max_iterations: int,
+    tolerance: float,
+    scale: float,
+    callback: Callback | None = None,
+    record_history: bool = False,
+) -> LocalOutcome:
+    """Iterate ``estimator`` from ``init`` (4x4 ``T_target_source``).
+
+    ``scale`` (cloud units, e.g. the target's bounding-box diagonal) makes the translation part of
+    the convergence test unit-free: the loop stops once an increment rotates by less than
+    ``tolerance`` radians and translates by less than ``tolerance * scale``, or once the RMS
+    correspondence distance changes by less than ``tolerance`` relative to itself.
+    """
+    transformation = init.copy()
+    history: list[IterationRecord] | None = [] if record_history else None
+    previous_rmse: float | None = None
+    sigma: float | None = None
+    for iteration in range(1, max_iterations + 1):
+        moved = apply(transformation, source)
+        distances, indices = target.query(moved)
+        step = estimator.step(moved, target.points, distances, indices)
+        if not (np.isfinite(step.rotation).all() and np.isfinite(step.translation).all()):
+            return LocalOutcome(
+                transformation, False, iteration - 1, sigma,
+                f"stopped at iteration {iteration}: the increment was not finite", _freeze(history),
+            )
+        sigma = step.sigma
+        transformation = to_matrix(step.rotation, step.translation) @ transformation
+        transformation[:3, :3] = project_to_rotation(transformation[:3, :3])
+        rmse = float(np.sqrt(np.mean(np.square(distances))))
+        if history is not None:
+            history.append(_record(iteration, transformation, rmse, step.weights, sigma, len(distances)))
+        if callback is not None:
+            state = IterationState(iteration, transformation.copy(), moved, indices, distances, step.weights, sigma)
+            if callback(state):
+                return LocalOutcome(
+                    transformation, False, iteration, sigma, "stopped by the callback", _freeze(history)
+                )
+        small_step = rotation_angle(step.rotation) < tolerance and np.linalg.norm(step.translation) < tolerance * scale
+        settled = previous_rmse is not None and abs(previous_rmse - rmse) <= tolerance * previous_rmse
+        if small_step or settled:
+            reason = "increment below tolerance" if small_step else "RMS distance stopped changing"
+            return LocalOutcome(
+                transformation, True, iteration, sigma, f"converged after {iteration} iterations ({reason})",
+                _freeze(history),
+            )
+        previous_rmse = rmse
+    return LocalOutcome(
+        transformation, False, max_iterations, sigma,
+        f"reached max_iterations={max_iterations} before the tolerance {tolerance:g}", _freeze(history),
+    )
+
+
+def _record(iteration, transformation, rmse, weights, sigma, count) -> IterationRecord:
+    if weights is None:
+        weight_mean = weight_min = weight_max = 1.0
+        effective = float(count)
+    else:
+        weight_mean, weight_min, weight_max = float(weights.mean()), float(weights.min()), float(weights.max())
+        effective = effective_count(weights)
+    return IterationRecord(
+        iteration, transformation.copy(), rmse, sigma, weight_mean, weight_min, weight_max, effective
+    )
+
+
+def _freeze(history):
+    return tuple(history) if history is not None else None

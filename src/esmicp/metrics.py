@@ -1,0 +1,47 @@
+"""Errors between an estimated and a true transform (both ``T_target_source``, 4x4)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .core.procrustes import rotation_angle
+
+
+def rotation_error_deg(estimate: np.ndarray, truth: np.ndarray) -> float:
+    """Geodesic angle between the two rotations, in degrees, in ``[0, 180]``."""
+    return float(np.degrees(rotation_angle(estimate[:3, :3].T @ truth[:3, :3])))
+
+
+def translation_error(estimate: np.ndarray, truth: np.ndarray) -> float:
+    """Euclidean distance between the two translations (cloud units)."""
+    return float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))
+
+
+def paper_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """The ESM-ICP paper's metrics: MSE, RMSE and MAE over the 9 rotation-matrix entries and over
+    the 3 translation components of ``estimate - truth``."""
+    rotation_diff = estimate[:3, :3] - truth[:3, :3]
+    translation_diff = estimate[:3, 3] - truth[:3, 3]
+    rotation_mse = float(np.mean(np.square(rotation_diff)))
+    translation_mse = float(np.mean(np.square(translation_diff)))
+    return {
+        "rotation_mse": rotation_mse,
+        "rotation_rmse": float(np.sqrt(rotation_mse)),
+        "rotation_mae": float(np.mean(np.abs(rotation_diff))),
+        "translation_mse": translation_mse,
+        "translation_rmse": float(np.sqrt(translation_mse)),
+        "translation_mae": float(np.mean(np.abs(translation_diff))),
+    }
+
+
+def random_rotation(rng: np.random.Generator, max_angle_deg: float = 180.0) -> np.ndarray:
+    """A random 3x3 rotation: uniform on SO(3) when ``max_angle_deg >= 180``; otherwise a uniformly
+    random axis and an angle uniform in ``[0, max_angle_deg]``."""
+    from scipy.spatial.transform import Rotation
+
+    if max_angle_deg >= 180.0:
+        return Rotation.random(random_state=rng).as_matrix()
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = np.radians(rng.uniform(0.0, max_angle_deg))
+    return Rotation.from_rotvec(angle * axis).as_matrix()

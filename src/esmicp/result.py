@@ -1,0 +1,111 @@
+"""The records a registration returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class IterationRecord:
+    """What one iteration did (all distances in the clouds' units).
+
+    ``transformation`` is ``T_target_source`` after the iteration; ``rmse`` is the root mean square
+    nearest-neighbour distance of the source as placed before it; ``weight_*`` and
+    ``effective_pairs`` (Kish's ``(sum w)^2 / sum w^2``) describe the weights it used (all 1 for ICP).
+    """
+
+    iteration: int
+    transformation: np.ndarray
+    rmse: float
+    sigma: float | None
+    weight_mean: float
+    weight_min: float
+    weight_max: float
+    effective_pairs: float
+
+    def to_dict(self) -> dict:
+        return {
+            "iteration": self.iteration,
+            "transformation": self.transformation.tolist(),
+            "rmse": self.rmse,
+            "sigma": self.sigma,
+            "weight_mean": self.weight_mean,
+            "weight_min": self.weight_min,
+            "weight_max": self.weight_max,
+            "effective_pairs": self.effective_pairs,
+        }
+
+
+@dataclass(frozen=True)
+class RegistrationResult:
+    """Outcome of :func:`esmicp.register`.
+
+    Attributes
+    ----------
+    transformation : (4, 4) float64 array
+        ``T_target_source``: ``target ~= source @ R.T + t``.
+    converged : bool
+        True when the convergence tolerance was met before ``max_iterations``. False also when the
+        run stopped on a problem; ``message`` then says which.
+    num_iterations : int
+        Iterations performed.
+    fitness : float
+        Open3D's meaning: the fraction of source points whose nearest target point, after the
+        final transformation, lies within ``inlier_distance``.
+    inlier_rmse : float
+        Open3D's meaning: RMS distance of those inlier pairs (cloud units); 0 when there are none.
+    inlier_distance : float
+        The distance (cloud units) that defines an inlier for ``fitness`` and ``inlier_rmse``.
+    runtime_s : float
+        Wall time of the registration in seconds (KD-tree build, iterations, final evaluation).
+    method : str
+        The method's name.
+    sigma : float or None
+        The sigma (cloud units) of the last iteration; None for methods without a kernel.
+    message : str
+        Why the iterations stopped.
+    history : tuple of IterationRecord, or None
+        Per-iteration records, when asked for.
+    """
+
+    transformation: np.ndarray
+    converged: bool
+    num_iterations: int
+    fitness: float
+    inlier_rmse: float
+    inlier_distance: float
+    runtime_s: float
+    method: str
+    sigma: float | None
+    message: str
+    history: tuple[IterationRecord, ...] | None = field(default=None, repr=False)
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """The 3x3 rotation of ``transformation``."""
+        return self.transformation[:3, :3].copy()
+
+    @property
+    def translation(self) -> np.ndarray:
+        """The translation of ``transformation`` (cloud units)."""
+        return self.transformation[:3, 3].copy()
+
+    def to_dict(self, *, include_history: bool = False) -> dict:
+        """A JSON-ready dict (nested lists, plain floats)."""
+        data = {
+            "method": self.method,
+            "transformation": self.transformation.tolist(),
+            "converged": self.converged,
+            "num_iterations": self.num_iterations,
+            "fitness": self.fitness,
+            "inlier_rmse": self.inlier_rmse,
+            "inlier_distance": self.inlier_distance,
+            "sigma": self.sigma,
+            "runtime_s": self.runtime_s,
+            "message": self.message,
+        }
+        if include_history and self.history is not None:
+            data["history"] = [record.to_dict() for record in self.history]
+        return data

@@ -1,0 +1,121 @@
+"""Validation of the library's inputs, in one place.
+
+Clouds are ``(N, 3)`` float64 arrays; transforms are 4x4 float64 homogeneous matrices
+``T_target_source`` (they map source coordinates into the target frame). Inputs are never mutated:
+every validator returns a new array.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from .errors import InvalidInputError, NonFinitePointsWarning
+
+#: Minimum number of points a cloud must have for a rigid fit.
+MIN_POINTS = 3
+
+#: Tolerance on ``R^T R = I`` and ``det R = 1`` when a 4x4 transform is checked for rigidity.
+RIGID_TOLERANCE = 1e-5
+
+
+def as_points(points, name: str = "points", *, min_points: int = MIN_POINTS) -> np.ndarray:
+    """Return ``points`` as a new C-contiguous ``(N, 3)`` float64 array.
+
+    Rows with NaN or infinite coordinates are dropped with a :class:`NonFinitePointsWarning`.
+
+    Raises
+    ------
+    InvalidInputError
+        If the input is not numeric, not of shape ``(N, 3)``, or fewer than ``min_points`` finite
+        points remain. The message starts with ``name``.
+    """
+    try:
+        array = np.array(points, dtype=np.float64, copy=True)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{name}: expected (N, 3) numeric points, could not convert: {exc}") from None
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InvalidInputError(f"{name}: expected (N, 3) points, got shape {array.shape}")
+    finite = np.isfinite(array).all(axis=1)
+    if not finite.all():
+        dropped = int((~finite).sum())
+        array = array[finite]
+        if len(array) >= min_points:
+            warnings.warn(
+                f"{name}: dropped {dropped} point(s) with NaN or infinite coordinates, {len(array)} left",
+                NonFinitePointsWarning,
+                stacklevel=2,
+            )
+    if len(array) < min_points:
+        raise InvalidInputError(
+            f"{name}: need at least {min_points} finite points, got {len(array)}"
+        )
+    return np.ascontiguousarray(array)
+
+
+def degeneracy(points: np.ndarray) -> str | None:
+    """Describe why ``points`` cannot fix a rigid transform, or return None if they can.
+
+    A cloud whose points all coincide, or all lie on one line, leaves a rotation about that line
+    (or every rotation) undetermined. Planar clouds are fine. Thresholds are relative to the
+    cloud's extent, so the check is unit-free.
+    """
+    centred = points - points.mean(axis=0)
+    singular_values = np.linalg.svd(centred, compute_uv=False)
+    scale = max(float(np.abs(points).max()), 1e-300)
+    if singular_values[0] <= 1e-12 * scale * np.sqrt(len(points)):
+        return "all points are identical"
+    if singular_values[1] <= 1e-9 * singular_values[0]:
+        return "all points are collinear"
+    return None
+
+
+def check_not_degenerate(points: np.ndarray, name: str = "points") -> None:
+    """Raise :class:`InvalidInputError` if ``points`` is degenerate (see :func:`degeneracy`)."""
+    problem = degeneracy(points)
+    if problem is not None:
+        raise InvalidInputError(f"{name}: degenerate cloud, {problem}")
+
+
+def as_transform(transform, name: str = "transform", *, tolerance: float = RIGID_TOLERANCE) -> np.ndarray:
+    """Return ``transform`` as a new 4x4 float64 rigid transform.
+
+    Raises
+    ------
+    InvalidInputError
+        If it is not 4x4, not finite, its last row is not ``[0, 0, 0, 1]``, or its 3x3 block is not
+        a rotation (orthonormal with determinant +1, to ``tolerance``).
+    """
+    try:
+        matrix = np.array(transform, dtype=np.float64, copy=True)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{name}: expected a 4x4 numeric matrix, could not convert: {exc}") from None
+    if matrix.shape != (4, 4):
+        raise InvalidInputError(f"{name}: expected a 4x4 matrix, got shape {matrix.shape}")
+    if not np.isfinite(matrix).all():
+        raise InvalidInputError(f"{name}: contains NaN or infinite entries")
+    if not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], atol=tolerance):
+        raise InvalidInputError(f"{name}: last row must be [0 0 0 1], got {matrix[3].tolist()}")
+    rotation = matrix[:3, :3]
+    orthogonality = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    if orthogonality > tolerance:
+        raise InvalidInputError(
+            f"{name}: not rigid, its 3x3 block is not orthonormal (max |R^T R - I| = {orthogonality:.3g})"
+        )
+    determinant = float(np.linalg.det(rotation))
+    if determinant < 0:
+        raise InvalidInputError(f"{name}: not rigid, its 3x3 block is a reflection (det = {determinant:.3g})")
+    matrix[3] = [0.0, 0.0, 0.0, 1.0]
+    return matrix
+
+
+def as_positive(value, name: str) -> float:
+    """Return ``value`` as a finite float > 0, or raise :class:`InvalidInputError`."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{name}: expected a positive number, got {value!r}") from None
+    if not np.isfinite(number) or number <= 0:
+        raise InvalidInputError(f"{name}: must be a finite number > 0, got {value!r}")
+    return number

@@ -1,0 +1,45 @@
+"""Shared fixtures: where the real data lives, and seeded generators.
+
+The real point clouds live in ``../shared/data`` beside the repository (override with the
+``ESMICP_SHARED_DATA`` environment variable). Tests that need them skip when they are missing on a
+developer's machine, but FAIL in CI (``CI=true``), where their absence is a broken setup.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _shared_data_dir() -> Path:
+    override = os.environ.get("ESMICP_SHARED_DATA")
+    if override:
+        return Path(override)
+    return REPO_ROOT.parent / "shared" / "data"
+
+
+def require_shared(relative: str) -> Path:
+    """Return the path of ``relative`` inside the shared data folder, or skip / fail if missing."""
+    path = _shared_data_dir() / relative
+    if not path.exists():
+        message = f"shared data not found: {path} (set ESMICP_SHARED_DATA or put shared/ beside the repo)"
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(message)
+        pytest.skip(message)
+    return path
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """The shared data folder (skipped locally / failed in CI when missing)."""
+    return require_shared("")
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)

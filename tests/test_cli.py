@@ -1,0 +1,229 @@
+"""The command line driven end to end: outputs parsed back, every bad input refused cleanly."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from esmicp.cli import main
+from esmicp.core.procrustes import apply, to_matrix
+from esmicp.metrics import random_rotation, rotation_error_deg
+from esmicp.shapes import asymmetric_shape
+
+
+@pytest.fixture
+def pair(tmp_path):
+    """A source/target pair of files (independent samples of the built-in shape, 20 degrees apart)."""
+    rng = np.random.default_rng(7)
+    target = asymmetric_shape(1500, rng)
+    moved_by = to_matrix(random_rotation(rng, 20.0), [0.1, -0.2, 0.05])
+    source = apply(moved_by, asymmetric_shape(1500, rng))
+    source_path, target_path = tmp_path / "source.xyz", tmp_path / "target.pcd"
+    np.savetxt(source_path, source)
+    _write_ascii_pcd(target_path, target)
+    return source_path, target_path, np.linalg.inv(moved_by), source
+
+
+def _write_ascii_pcd(path, points):
+    header = (
+        "VERSION .7\nFIELDS x y z\nSIZE 8 8 8\nTYPE F F F\nCOUNT 1 1 1\n"
+        f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\nDATA ascii\n"
+    )
+    with open(path, "w") as handle:
+        handle.write(header)
+        np.savetxt(handle, points, fmt="%.17g")
+
+
+def run(capsys, *argv):
+    """Run the CLI in-process; returns (exit status, stdout, stderr), argparse exits included."""
+    try:
+        code = main(list(argv))
+    except SystemExit as exit_:
+        code = exit_.code
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_register_json_is_parsed_back_and_recovers_the_transform(pair, capsys):
+    source, target, truth, _ = pair
+    code, out, err = run(capsys, "register", str(source), str(target), "--json")
+    assert code == 0, err
+    report = json.loads(out)
+    for key in ("transformation", "converged", "num_iterations", "fitness", "inlier_rmse", "runtime_s", "method"):
+        assert key in report
+    estimate = np.array(report["transformation"])
+    assert estimate.shape == (4, 4)
+    assert rotation_error_deg(estimate, truth) < 2.0
+    assert report["method"] == "esm"
+    assert report["source_points"] == 1500
+
+
+def test_register_summary_and_outputs(pair, tmp_path, capsys):
+    source, target, truth, source_points = pair
+    aligned, transform = tmp_path / "aligned.ply", tmp_path / "T.txt"
+    code, out, err = run(
+        capsys, "register", str(source), str(target), "--method", "icp",
+        "--output", str(aligned), "--transform-out", str(transform),
+    )
+    assert code == 0, err
+    assert "T_target_source" in out and "fitness" in out
+    from esmicp import read_points, read_transform
+
+    estimate = read_transform(transform)
+    assert rotation_error_deg(estimate, truth) < 2.0
+    np.testing.assert_allclose(read_points(aligned), apply(estimate, source_points), atol=1e-5)
+
+
+def test_init_file_is_used(pair, tmp_path, capsys):
+    source, target, truth, _ = pair
+    init = tmp_path / "init.txt"
+    np.savetxt(init, truth)
+    code, out, err = run(capsys, "register", str(source), str(target), "--init", str(init), "--json")
+    assert code == 0, err
+    assert rotation_error_deg(np.array(json.loads(out)["transformation"]), truth) < 1.0
+
+
+def test_existing_output_is_refused_unless_forced(pair, tmp_path, capsys):
+    source, target, _, _ = pair
+    existing = tmp_path / "keep.txt"
+    existing.write_text("precious\n")
+    code, out, err = run(capsys, "register", str(source), str(target), "--transform-out", str(existing))
+    assert code == 2
+    assert "keep.txt" in err and "exists" in err and len(err.strip().splitlines()) == 1
+    assert existing.read_text() == "precious\n"
+    code, _, err = run(capsys, "register", str(source), str(target), "--transform-out", str(existing), "--force")
+    assert code == 0, err
+    assert existing.read_text() != "precious\n"
+
+
+def _bad_cases(tmp_path, good):
+    """(description, argv tail, text the error must contain)."""
+    garbage = tmp_path / "garbage.ply"
+    garbage.write_bytes(b"\x00\xffnot a ply file at all\x13\x37" * 10)
+    truncated = tmp_path / "truncated.ply"
+    count = 100
+    truncated.write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex %d\nproperty float x\nproperty float y\n"
+        b"property float z\nend_header\n" % count + np.zeros(3 * count // 2, dtype="<f4").tobytes()
+    )
+    unknown = tmp_path / "cloud.abc"
+    unknown.write_text("1 2 3\n")
+    two_columns = tmp_path / "two.xyz"
+    two_columns.write_text("1 2\n3 4\n5 6\n7 8\n")
+    two_points = tmp_path / "few.xyz"
+    two_points.write_text("0 0 0\n1 1 1\n")
+    identical = tmp_path / "same.xyz"
+    identical.write_text("1 2 3\n" * 10)
+    collinear = tmp_path / "line.xyz"
+    np.savetxt(collinear, np.outer(np.arange(10.0), [1.0, 2.0, 3.0]))
+    all_nan = tmp_path / "nan.xyz"
+    all_nan.write_text("nan nan nan\n" * 5)
+    scaled = tmp_path / "scaled.txt"
+    np.savetxt(scaled, np.diag([2.0, 2.0, 2.0, 1.0]))
+    malformed = tmp_path / "malformed.txt"
+    malformed.write_text("1 0 0\n0 1 0\n")
+    return [
+        ("missing file", [str(tmp_path / "nope.ply"), good], "nope.ply"),
+        ("a directory", [str(tmp_path), good], str(tmp_path)),
+        ("garbage", [str(garbage), good], "garbage.ply"),
+        ("truncated", [str(truncated), good], "truncated.ply"),
+        ("unknown extension", [str(unknown), good], "cloud.abc"),
+        ("wrong shape", [str(two_columns), good], "two.xyz"),
+        ("fewer than 3 points", [str(two_points), good], "few.xyz"),
+        ("all NaN", [str(all_nan), good], "nan.xyz"),
+        ("identical points", [str(identical), good], "identical"),
+        ("collinear points", [str(collinear), good], "collinear"),
+        ("non-rigid init", [good, good, "--init", str(scaled)], "scaled.txt"),
+        ("malformed init", [good, good, "--init", str(malformed)], "malformed.txt"),
+        ("sigma zero", [good, good, "--sigma", "0"], "--sigma"),
+        ("sigma negative", [good, good, "--sigma", "-1"], "--sigma"),
+        ("unknown method", [good, good, "--method", "magic"], "--method"),
+    ]
+
+
+BAD_CASES = [
+    "missing file", "a directory", "garbage", "truncated", "unknown extension", "wrong shape",
+    "fewer than 3 points", "all NaN", "identical points", "collinear points", "non-rigid init",
+    "malformed init", "sigma zero", "sigma negative", "unknown method",
+]
+
+
+@pytest.mark.parametrize("name", BAD_CASES)
+def test_bad_input_gives_one_line_and_exit_2_and_writes_nothing(pair, tmp_path, capsys, name):
+    _, target, _, _ = pair
+    cases = {description: (tail, expected) for description, tail, expected in _bad_cases(tmp_path, str(target))}
+    assert set(cases) == set(BAD_CASES)
+    tail, expected = cases[name]
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    code, _, err = run(capsys, "register", *tail, "--output", str(out_dir / "aligned.npy"))
+    assert code == 2, name
+    _assert_one_line_error(err, expected, name)
+    assert list(out_dir.iterdir()) == [], f"{name}: something was written"
+
+
+def _assert_one_line_error(err, expected, description):
+    lines = err.strip().splitlines()
+    assert lines, f"{description}: no error printed"
+    assert "Traceback" not in err, f"{description}: traceback printed"
+    errors = [line for line in lines if "error" in line]
+    assert len(errors) == 1, f"{description}: expected one error line, got {lines}"
+    assert expected in errors[0], f"{description}: {errors[0]!r} does not mention {expected!r}"
+
+
+def test_nan_rows_are_dropped_with_a_warning(pair, tmp_path, capsys):
+    _, target, _, source_points = pair
+    with_nan = tmp_path / "with_nan.xyz"
+    points = source_points.copy()
+    points[::50] = np.nan
+    np.savetxt(with_nan, points)
+    code, out, err = run(capsys, "register", str(with_nan), str(target), "--json")
+    assert code == 0, err
+    assert "warning" in err and "NaN" in err
+    assert json.loads(out)["source_points"] == len(points) - len(points[::50])
+
+
+def test_esm_paper_warns_on_clouds_of_different_sizes(pair, capsys):
+    source, target, _, _ = pair
+    code, _, err = run(capsys, "register", str(source), str(target), "--method", "esm-paper", "--max-iterations", "3")
+    assert code == 0
+    assert "warning" in err and "index-aligned" in err
+
+
+def test_demo_recovers_the_transform(capsys):
+    code, out, err = run(capsys, "demo", "--seed", "3")
+    assert code == 0, out + err
+    assert "recovered" in out and "NOT recovered" not in out
+
+
+def test_demo_json_is_seeded(capsys):
+    first = json.loads(run(capsys, "demo", "--seed", "5", "--json")[1])
+    second = json.loads(run(capsys, "demo", "--seed", "5", "--json")[1])
+    assert first["true_transformation"] == second["true_transformation"]
+    assert first["transformation"] == second["transformation"]
+    assert first["recovered"] and first["rotation_error_deg"] < 2.0
+
+
+def test_demo_paper_method_on_copy_and_its_failure_when_resampled(capsys):
+    code, out, _ = run(capsys, "demo", "--method", "esm-paper", "--copy", "--max-angle", "180", "--json")
+    assert code == 0 and json.loads(out)["rotation_error_deg"] < 1e-4
+    code, out, err = run(capsys, "demo", "--method", "esm-paper", "--seed", "3", "--json")
+    report = json.loads(out)
+    assert code == 1 and not report["recovered"], "esm-paper unexpectedly recovered a resampled pair"
+    assert "index-aligned" in err
+
+
+def test_console_script_version_and_help():
+    env = dict(os.environ)
+    version = subprocess.run([sys.executable, "-m", "esmicp.cli", "--version"], capture_output=True, text=True, env=env)
+    assert version.returncode == 0 and version.stdout.startswith("esmicp ")
+    for command in ([], ["register"], ["demo"]):
+        shown = subprocess.run(
+            [sys.executable, "-m", "esmicp.cli", *command, "--help"], capture_output=True, text=True, env=env
+        )
+        assert shown.returncode == 0 and "usage: esmicp" in shown.stdout
