@@ -15,7 +15,7 @@ from .methods import METHODS, EsmEstimator, EsmPaperEstimator, IcpEstimator, Sig
 from .methods.esm_paper import PAPER_SIGMA
 from .methods.local import Callback, refine
 from .result import RegistrationResult
-from .types import as_points, as_positive, as_transform, check_not_degenerate
+from .types import as_points, as_positive, as_real, as_transform, check_not_degenerate
 
 logger = logging.getLogger(__name__)
 
@@ -100,7 +100,7 @@ def register(
         inlier_distance = as_positive(inlier_distance, "inlier_distance")
     max_iterations = _as_count(max_iterations, "max_iterations")
     tolerance = _as_tolerance(tolerance)
-    np.random.default_rng(rng)  # validates rng now; the local methods draw nothing from it
+    _check_rng(rng)
 
     target_index = NearestNeighbors(target_points)
     spacing = target_index.spacing()
@@ -178,11 +178,16 @@ def _as_count(value, name: str) -> int:
     return int(value)
 
 
-def _as_tolerance(value) -> float:
+def _check_rng(rng) -> None:
+    """Validate ``rng`` now (the local methods draw nothing from it)."""
     try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise InvalidInputError(f"tolerance: expected a number >= 0, got {value!r}") from None
+        np.random.default_rng(rng)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"rng: expected None, a seed >= 0 or a numpy Generator, got {rng!r} ({exc})") from None
+
+
+def _as_tolerance(value) -> float:
+    number = as_real(value, "tolerance")
     if not np.isfinite(number) or number < 0:
         raise InvalidInputError(f"tolerance: expected a finite number >= 0, got {value!r}")
     return number

@@ -45,3 +45,44 @@ def random_rotation(rng: np.random.Generator, max_angle_deg: float = 180.0) -> n
     axis /= np.linalg.norm(axis)
     angle = np.radians(rng.uniform(0.0, max_angle_deg))
     return Rotation.from_rotvec(angle * axis).as_matrix()
+
+
+def strict_success(
+    estimate: np.ndarray,
+    truth: np.ndarray,
+    diagonal: float,
+    *,
+    max_rotation_deg: float = 2.0,
+    max_translation_fraction: float = 0.02,
+) -> bool:
+    """True if the rotation error is < ``max_rotation_deg`` degrees and the translation error is
+    < ``max_translation_fraction * diagonal`` (``diagonal``: the target's bounding-box diagonal)."""
+    return bool(
+        rotation_error_deg(estimate, truth) < max_rotation_deg
+        and translation_error(estimate, truth) < max_translation_fraction * diagonal
+    )
+
+
+def symmetric_placement_error(source: np.ndarray, estimate: np.ndarray, truth: np.ndarray) -> float:
+    """Distance between ``source`` placed by ``estimate`` and by ``truth``, as point sets.
+
+    The mean nearest-neighbour distance from each placement to the other, averaged over both
+    directions. It ignores point order, so a placement that differs from the truth by a symmetry
+    of the shape (a bottle turned about its axis) scores about the sampling spacing.
+    """
+    from scipy.spatial import cKDTree
+
+    from .core.procrustes import apply
+
+    by_estimate = apply(estimate, source)
+    by_truth = apply(truth, source)
+    forward, _ = cKDTree(by_truth).query(by_estimate)
+    backward, _ = cKDTree(by_estimate).query(by_truth)
+    return float(0.5 * (forward.mean() + backward.mean()))
+
+
+def up_to_symmetry_success(
+    source: np.ndarray, estimate: np.ndarray, truth: np.ndarray, diagonal: float, *, fraction: float = 0.02
+) -> bool:
+    """True if :func:`symmetric_placement_error` is < ``fraction * diagonal``."""
+    return bool(symmetric_placement_error(source, estimate, truth) < fraction * diagonal)

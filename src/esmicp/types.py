@@ -7,6 +7,7 @@ every validator returns a new array.
 
 from __future__ import annotations
 
+import numbers
 import warnings
 
 import numpy as np
@@ -63,10 +64,12 @@ def degeneracy(points: np.ndarray) -> str | None:
     """
     centred = points - points.mean(axis=0)
     singular_values = np.linalg.svd(centred, compute_uv=False)
-    scale = max(float(np.abs(points).max()), 1e-300)
-    if singular_values[0] <= 1e-12 * scale * np.sqrt(len(points)):
+    # Coordinates of magnitude m carry rounding noise of about m * 1e-16, which spreads even an
+    # exact line; anything below this floor is indistinguishable from that noise.
+    rounding_floor = 1e-13 * max(float(np.abs(points).max()), 1e-300) * np.sqrt(len(points))
+    if singular_values[0] <= rounding_floor:
         return "all points are identical"
-    if singular_values[1] <= 1e-9 * singular_values[0]:
+    if singular_values[1] <= 1e-9 * singular_values[0] + rounding_floor:
         return "all points are collinear"
     return None
 
@@ -110,12 +113,17 @@ def as_transform(transform, name: str = "transform", *, tolerance: float = RIGID
     return matrix
 
 
+def as_real(value, name: str) -> float:
+    """Return a real number (Python or NumPy; not a bool or a string) as a float, or raise
+    :class:`InvalidInputError`."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Real, np.floating, np.integer)):
+        raise InvalidInputError(f"{name}: expected a number, got {value!r}")
+    return float(value)
+
+
 def as_positive(value, name: str) -> float:
     """Return ``value`` as a finite float > 0, or raise :class:`InvalidInputError`."""
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise InvalidInputError(f"{name}: expected a positive number, got {value!r}") from None
+    number = as_real(value, name)
     if not np.isfinite(number) or number <= 0:
         raise InvalidInputError(f"{name}: must be a finite number > 0, got {value!r}")
     return number

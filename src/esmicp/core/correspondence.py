@@ -39,18 +39,17 @@ class NearestNeighbors:
         distances, indices = self._tree.query(points, k=1, workers=self.workers)
         return distances, indices
 
-    def spacing(self, max_samples: int = 5000) -> float:
-        """Median distance from a target point to its nearest other target point (cloud units).
+    def spacing(self, max_samples: int = 5000, neighbours: int = 8) -> float:
+        """Median distance from a target point to its nearest *distinct* target point (cloud units).
 
         Uses an evenly strided subset of at most ``max_samples`` points, so the value is
-        deterministic and cheap on large clouds. Returns 0.0 if every sampled point has a
-        duplicate at the same place and no positive spacing can be found.
+        deterministic and cheap on large clouds. Duplicated points are looked past: each sampled
+        point contributes its nearest neighbour at a positive distance among its ``neighbours``
+        nearest. Returns 0.0 only if no sampled point has a distinct neighbour among them.
         """
         count = len(self.points)
         sample = self.points[np.linspace(0, count - 1, min(count, max_samples)).astype(np.intp)]
-        distances, _ = self._tree.query(sample, k=min(count, 2), workers=self.workers)
-        if distances.ndim == 1:
-            return 0.0
-        nearest = distances[:, 1]
-        positive = nearest[nearest > 0]
+        distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=self.workers)
+        distances = np.where(distances > 0, distances, np.inf).min(axis=1)
+        positive = distances[np.isfinite(distances)]
         return float(np.median(positive)) if len(positive) else 0.0
