@@ -195,7 +195,7 @@ def paper_noise(
     points = np.array(points, dtype=np.float64, copy=True)
     if not 0.0 <= fraction <= 1.0:
         raise ValueError(f"fraction: expected a number in [0, 1], got {fraction!r}")
-    count = int(round(fraction * len(points)))
+    count = round(fraction * len(points))
     mask = np.zeros(len(points), dtype=bool)
     mask[rng.choice(len(points), size=count, replace=False)] = True
     noise, _ = paper_noise_draw(count, rng)
@@ -212,7 +212,7 @@ def outlier_trial(
     cloud = _as_cloud(cloud)
     target, source_object = _split(cloud, rng)
     noisy, _ = paper_noise(source_object, fraction, rng, 0.5 * bounding_box_diagonal(cloud))
-    protocol = f"outliers-{int(round(100 * fraction))}"
+    protocol = f"outliers-{round(100 * fraction)}"
     return _moved(protocol, name, target, noisy, rng, seed)
 
 
