@@ -75,7 +75,7 @@ def main(argv=None) -> int:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", esmicp.IndexAlignmentWarning)
                     start = time.perf_counter()
-                    result = esmicp.register(source, target, method=method, max_iterations=args.max_iterations)
+                    result = esmicp.register(source, target, method=method, max_iterations=args.max_iterations, init="identity")
                     elapsed = time.perf_counter() - start
                 error = rotation_error_deg(result.transformation, truth)
                 outcome = outcomes[method]

@@ -13,6 +13,7 @@ from .core.procrustes import apply
 from .errors import IndexAlignmentWarning, InvalidInputError
 from .methods import METHODS, EsmEstimator, EsmPaperEstimator, IcpEstimator, SigmaSchedule
 from .methods.esm_paper import PAPER_SIGMA
+from .init.global_search import STRATEGIES, global_estimate
 from .methods.local import Callback, refine
 from .result import RegistrationResult
 from .types import as_points, as_positive, as_real, as_transform, check_not_degenerate
@@ -54,8 +55,13 @@ def register(
         ``esm-paper``: the paper's symmetric-matrix formulation; needs index-aligned clouds of
         equal size (source point k and target point k the same physical point).
         ``icp``: point-to-point ICP.
-    init : None or (4, 4) array-like
-        Initial ``T_target_source``; None means the identity.
+    init : None, str or (4, 4) array-like
+        Where to start. None or ``"global"`` (the default): find the pose globally, from any
+        rotation and translation, with the best measured strategy (``"auto"``: both strategies
+        below, every candidate verified the same way). ``"rotation-search"`` or ``"features"``:
+        global with that strategy only (see :mod:`esmicp.init.global_search`). ``"identity"`` (or
+        ``"none"``): pure local refinement from the identity. A 4x4 ``T_target_source``: pure local
+        refinement from there.
     sigma : float, optional
         Kernel width in the clouds' units. None: ``esm`` chooses it from the data each iteration
         (see :mod:`esmicp.methods.esm`), ``esm-paper`` uses the paper's 1.0. Ignored by ``icp``.
@@ -66,10 +72,11 @@ def register(
         translates less than ``tolerance`` times the target's bounding-box diagonal, or once the
         RMS correspondence distance changes by less than ``tolerance`` relative to itself.
     rng : None, int or numpy.random.Generator
-        Randomness for methods that use it (the local methods here are deterministic).
+        Randomness of the global search (its subsamples). None uses a fixed seed, so the same input
+        gives the same result; local refinement itself is deterministic.
     callback : callable, optional
-        Called with an :class:`~esmicp.methods.local.IterationState` after every iteration;
-        returning True stops the run.
+        Called with an :class:`~esmicp.methods.local.IterationState` after every iteration of the
+        local refinement (after the global search, if any); returning True stops the run.
     record_history : bool
         Keep an :class:`~esmicp.result.IterationRecord` per iteration in ``result.history``.
     inlier_distance : float, optional
@@ -93,14 +100,14 @@ def register(
     check_not_degenerate(target_points, "target")
     if method not in METHODS:
         raise InvalidInputError(f"method: unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    initial = np.eye(4) if init is None else as_transform(init, "init")
+    init_name, initial = _resolve_init(init)
     if sigma is not None:
         sigma = as_positive(sigma, "sigma")
     if inlier_distance is not None:
         inlier_distance = as_positive(inlier_distance, "inlier_distance")
     max_iterations = _as_count(max_iterations, "max_iterations")
     tolerance = _as_tolerance(tolerance)
-    _check_rng(rng)
+    generator = _as_generator(rng)
 
     target_index = NearestNeighbors(target_points)
     spacing = target_index.spacing()
@@ -113,6 +120,11 @@ def register(
             IndexAlignmentWarning,
             stacklevel=2,
         )
+    estimate = None
+    if initial is None:
+        estimate = global_estimate(source_points, target_points, strategy=init_name, rng=generator)
+        initial = estimate.transformation
+        init_name = f"global:{estimate.strategies[0]}"
     estimator = _make_estimator(method, sigma, spacing, diagonal)
     outcome = refine(
         source_points,
@@ -147,6 +159,13 @@ def register(
         sigma=outcome.sigma,
         message=outcome.message,
         history=outcome.history,
+        init=init_name,
+        ambiguous=bool(estimate is not None and estimate.ambiguous),
+        runner_up_ratio=(
+            None if estimate is None or estimate.runner_up_score is None
+            else estimate.runner_up_score / max(estimate.score, 1e-300)
+        ),
+        global_candidates=0 if estimate is None else estimate.candidates,
     )
 
 
@@ -178,10 +197,32 @@ def _as_count(value, name: str) -> int:
     return int(value)
 
 
-def _check_rng(rng) -> None:
-    """Validate ``rng`` now (the local methods draw nothing from it)."""
+#: Seed of the global search when ``rng`` is None (results are reproducible by default).
+DEFAULT_SEED = 0
+
+#: ``init`` strings meaning "no global search: start from the identity".
+IDENTITY_NAMES = ("identity", "none")
+
+
+def _resolve_init(init) -> tuple[str, np.ndarray | None]:
+    """``(name, T)`` for a given ``init``; ``T`` is None when a global search must find it."""
+    if init is None:
+        return "auto", None
+    if isinstance(init, str):
+        name = "auto" if init == "global" else init
+        if name in STRATEGIES:
+            return name, None
+        if name in IDENTITY_NAMES:
+            return "identity", np.eye(4)
+        choices = ", ".join(("global",) + STRATEGIES + IDENTITY_NAMES)
+        raise InvalidInputError(f"init: unknown strategy {init!r}; choose one of {choices}, or give a 4x4 matrix")
+    return "given", as_transform(init, "init")
+
+
+def _as_generator(rng) -> np.random.Generator:
+    """A Generator from ``rng`` (None: the fixed :data:`DEFAULT_SEED`)."""
     try:
-        np.random.default_rng(rng)
+        return np.random.default_rng(DEFAULT_SEED if rng is None else rng)
     except (TypeError, ValueError) as exc:
         raise InvalidInputError(f"rng: expected None, a seed >= 0 or a numpy Generator, got {rng!r} ({exc})") from None
 

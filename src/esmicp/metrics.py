@@ -12,9 +12,19 @@ def rotation_error_deg(estimate: np.ndarray, truth: np.ndarray) -> float:
     return float(np.degrees(rotation_angle(estimate[:3, :3].T @ truth[:3, :3])))
 
 
-def translation_error(estimate: np.ndarray, truth: np.ndarray) -> float:
-    """Euclidean distance between the two translations (cloud units)."""
-    return float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))
+def translation_error(estimate: np.ndarray, truth: np.ndarray, pivot: np.ndarray | None = None) -> float:
+    """Distance (cloud units) between where the two transforms put the point ``pivot``.
+
+    Without ``pivot`` (the origin) this is the distance between the two translation vectors. With
+    ``pivot`` = the source's centroid it measures the translation error where the object is, so
+    that it does not also count the rotation error times the object's distance from the origin
+    (a 0.5-degree error on a source 5 diameters from the origin moves the origin by 4% of a
+    diameter, the object itself by much less).
+    """
+    if pivot is None:
+        return float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))
+    pivot = np.asarray(pivot, dtype=float)
+    return float(np.linalg.norm((estimate[:3, :3] - truth[:3, :3]) @ pivot + estimate[:3, 3] - truth[:3, 3]))
 
 
 def paper_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
@@ -54,12 +64,17 @@ def strict_success(
     *,
     max_rotation_deg: float = 2.0,
     max_translation_fraction: float = 0.02,
+    pivot: np.ndarray | None = None,
 ) -> bool:
     """True if the rotation error is < ``max_rotation_deg`` degrees and the translation error is
-    < ``max_translation_fraction * diagonal`` (``diagonal``: the target's bounding-box diagonal)."""
+    < ``max_translation_fraction * diagonal`` (``diagonal``: the target's bounding-box diagonal).
+
+    Pass the source's centroid as ``pivot`` to measure the translation error at the object (see
+    :func:`translation_error`); the benchmarks do.
+    """
     return bool(
         rotation_error_deg(estimate, truth) < max_rotation_deg
-        and translation_error(estimate, truth) < max_translation_fraction * diagonal
+        and translation_error(estimate, truth, pivot) < max_translation_fraction * diagonal
     )
 
 

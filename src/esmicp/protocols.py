@@ -66,6 +66,10 @@ class Trial:
         ``(base, i, j)`` for :func:`scan_pairs`, whatever the caller passed otherwise.
     diagonal : float
         Bounding-box diagonal of the target (cloud units); the scale of success thresholds.
+    clean : (N,) read-only bool array or None
+        For the outlier protocols, True for the source points the noise left untouched; None when
+        every source point is clean. Evaluate "up to symmetry" on these points only: a corrupted
+        point turned about a symmetry axis does not land on itself.
     """
 
     protocol: str
@@ -75,6 +79,12 @@ class Trial:
     T_target_source: np.ndarray
     seed: int | tuple | None
     diagonal: float
+    clean: np.ndarray | None = None
+
+    @property
+    def clean_source(self) -> np.ndarray:
+        """The source points untouched by noise (all of them when there is no noise)."""
+        return self.source if self.clean is None else self.source[self.clean]
 
 
 def _frozen(array) -> np.ndarray:
@@ -83,7 +93,10 @@ def _frozen(array) -> np.ndarray:
     return array
 
 
-def _trial(protocol, cloud, source, target, truth, seed) -> Trial:
+def _trial(protocol, cloud, source, target, truth, seed, clean=None) -> Trial:
+    if clean is not None:
+        clean = np.array(clean, dtype=bool, copy=True)
+        clean.setflags(write=False)
     return Trial(
         protocol=protocol,
         cloud=cloud,
@@ -92,6 +105,7 @@ def _trial(protocol, cloud, source, target, truth, seed) -> Trial:
         T_target_source=_frozen(truth),
         seed=seed,
         diagonal=bounding_box_diagonal(target),
+        clean=clean,
     )
 
 
@@ -129,13 +143,13 @@ def _as_cloud(cloud) -> np.ndarray:
     return array
 
 
-def _moved(protocol, name, target, source_object, rng, seed, *, shuffle=False) -> Trial:
+def _moved(protocol, name, target, source_object, rng, seed, *, shuffle=False, clean=None) -> Trial:
     """Move ``source_object`` (in the target's frame) by a random ``G``; truth ``G^-1``."""
     moved_by = random_rigid_transform(rng, bounding_box_diagonal(target))
     source = apply(moved_by, source_object)
     if shuffle:
         source = source[rng.permutation(len(source))]
-    return _trial(protocol, name, source, target, rigid_inverse(moved_by), seed)
+    return _trial(protocol, name, source, target, rigid_inverse(moved_by), seed, clean)
 
 
 def copy_trial(cloud, rng: np.random.Generator, *, name: str = "", seed=None) -> Trial:
@@ -211,9 +225,9 @@ def outlier_trial(
     is half the bounding-box diagonal of ``cloud``."""
     cloud = _as_cloud(cloud)
     target, source_object = _split(cloud, rng)
-    noisy, _ = paper_noise(source_object, fraction, rng, 0.5 * bounding_box_diagonal(cloud))
+    noisy, corrupted = paper_noise(source_object, fraction, rng, 0.5 * bounding_box_diagonal(cloud))
     protocol = f"outliers-{round(100 * fraction)}"
-    return _moved(protocol, name, target, noisy, rng, seed)
+    return _moved(protocol, name, target, noisy, rng, seed, clean=~corrupted)
 
 
 def _subsample(points: np.ndarray, count: int | None, rng: np.random.Generator) -> np.ndarray:

@@ -67,7 +67,20 @@ class RegistrationResult:
     message : str
         Why the iterations stopped.
     history : tuple of IterationRecord, or None
-        Per-iteration records, when asked for.
+        Per-iteration records of the local refinement, when asked for.
+    init : str
+        Where the refinement started: ``"identity"``, ``"given"`` (a 4x4 ``init``), or
+        ``"global:<strategy>"`` with the strategy whose candidate won the global search.
+    ambiguous : bool
+        True when the global search found a clearly different pose (rotation more than 10 degrees
+        away) that fits almost as well (at least 97% of the score): the object is probably
+        symmetric, or the overlap too small to tell. The pose returned is the best-fitting one,
+        but treat it with care. Always False without a global search.
+    runner_up_ratio : float or None
+        Score of the best clearly different pose divided by the winner's (0-1; lower is more
+        confident); None without a global search or without a distinct runner-up.
+    global_candidates : int
+        Number of candidate poses the global search verified (0 without one).
     """
 
     transformation: np.ndarray
@@ -81,6 +94,10 @@ class RegistrationResult:
     sigma: float | None
     message: str
     history: tuple[IterationRecord, ...] | None = field(default=None, repr=False)
+    init: str = "identity"
+    ambiguous: bool = False
+    runner_up_ratio: float | None = None
+    global_candidates: int = 0
 
     @property
     def rotation(self) -> np.ndarray:
@@ -105,6 +122,10 @@ class RegistrationResult:
             "sigma": self.sigma,
             "runtime_s": self.runtime_s,
             "message": self.message,
+            "init": self.init,
+            "ambiguous": self.ambiguous,
+            "runner_up_ratio": self.runner_up_ratio,
+            "global_candidates": self.global_candidates,
         }
         if include_history and self.history is not None:
             data["history"] = [record.to_dict() for record in self.history]

@@ -1,0 +1,1 @@
+"""Global initialisation: coarse poses from local shape features (no initial guess needed)."""

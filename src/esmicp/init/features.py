@@ -1,0 +1,322 @@
+"""Local shape features for global registration: voxel downsampling, PCA normals and FPFH.
+
+Everything is vectorised over points (no Python loop over points) and deterministic. Lengths
+(``voxel``, ``radius``) are in the clouds' units; angles inside FPFH are in radians.
+
+Normal orientation
+------------------
+PCA gives a normal only up to sign, and FPFH's angle features change when a normal flips, so the
+sign must be chosen the same way on both clouds. :func:`estimate_normals` orients each normal
+*away from the cloud's centroid* (``n . (p - centroid) >= 0``) by default. That rule is
+equivariant under rigid motions (rotate and translate the cloud: the normals rotate with it), so
+FPFH stays invariant; it is right for roughly convex objects and consistent between two views of
+the same object as long as their centroids are close. A ``viewpoint`` (a sensor position) may be
+given instead; that rule is *not* equivariant (the viewpoint is fixed in the cloud's frame).
+
+Open3D, for comparison, does not orient estimated normals at all (the sign is whatever its
+3x3 eigen-solver returns, unless the cloud already had normals, which are then used to pick the
+sign); orientation toward +z or a camera are separate, explicit calls there
+(``orient_normals_to_align_with_direction``, ``orient_normals_towards_camera_location``).
+
+FPFH
+----
+Rusu, Blodow and Beetz, "Fast Point Feature Histograms (FPFH) for 3D registration", ICRA 2009.
+For a pair of points ``(p_s, n_s)``, ``(p_t, n_t)`` at distance ``d``, the *source* of the pair is
+the point whose normal is closer to the connecting line (larger ``|n . (p_t - p_s)| / d``), which
+makes the pair's features independent of the order. With ``e = (p_t - p_s) / d`` and the Darboux
+frame ``u = n_s``, ``v = e x u / |e x u|``, ``w = u x v``:
+
+* ``alpha = v . n_t`` in ``[-1, 1]``,
+* ``phi = u . e`` in ``[-1, 1]``,
+* ``theta = atan2(w . n_t, u . n_t)`` in ``[-pi, pi]`` (radians).
+
+(``v = e x u`` rather than the paper's ``u x e`` flips the signs of ``alpha`` and ``theta``, a
+convention that matches Open3D's features bin for bin.) Each is binned into 11 equal bins over its
+range. The SPFH of a point is the histogram of the triplets of its pairs with every neighbour
+within ``radius``: three 11-bin blocks ``[theta | alpha | phi]``, each normalised to sum to 100.
+The FPFH is ``FPFH_i = SPFH_i + 100 * S_i / |S_i|`` per block, with
+``S_i = sum_j SPFH_j / w_ij`` over the neighbours ``j`` of ``i``, ``w_ij`` the squared distance
+(Open3D's and PCL's weighting; the paper writes ``w`` as a distance and a plain ``1/k`` mean; the
+per-block renormalisation makes the result independent of the cloud's units and density). Each
+11-bin block of an FPFH therefore sums to 200 (0 for a point without neighbours).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+from scipy.spatial import cKDTree
+
+from ..errors import InvalidInputError
+from ..types import as_positive
+
+#: Bins per FPFH angle feature, and the feature length (three blocks: theta, alpha, phi).
+FPFH_BINS = 11
+FPFH_DIMENSION = 3 * FPFH_BINS
+
+#: Value each 11-bin block of an SPFH sums to (a point with at least one neighbour).
+SPFH_BLOCK_SUM = 100.0
+
+#: Value each 11-bin block of an FPFH sums to (a point with at least one neighbour).
+FPFH_BLOCK_SUM = 200.0
+
+#: Two cosines (unitless) closer than this count as equal when choosing a pair's source point.
+_TIE_TOLERANCE = 1e-9
+
+
+def _as_cloud(points, name: str = "points", *, min_points: int = 1) -> np.ndarray:
+    array = np.asarray(points, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InvalidInputError(f"{name}: expected (N, 3) points, got shape {array.shape}")
+    if len(array) < min_points:
+        raise InvalidInputError(f"{name}: need at least {min_points} point(s), got {len(array)}")
+    if not np.isfinite(array).all():
+        raise InvalidInputError(f"{name}: contains NaN or infinite coordinates")
+    return array
+
+
+def voxel_downsample(points, voxel: float) -> np.ndarray:
+    """Replace the points of every occupied voxel by their centroid.
+
+    The grid is anchored at the cloud's minimum corner (so the result moves with the cloud under
+    translations; no voxel grid is invariant under rotations).
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        The cloud (any units).
+    voxel : float
+        Edge length of the cubic voxels, in the cloud's units (> 0).
+
+    Returns
+    -------
+    (K, 3) float64 array
+        One centroid per occupied voxel, ``K <= N``, ordered by voxel index (x-major).
+    """
+    points = _as_cloud(points)
+    voxel = as_positive(voxel, "voxel")
+    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    extent = keys.max(axis=0) + 1
+    if float(extent[0]) * float(extent[1]) * float(extent[2]) < 2.0**62:
+        linear = (keys[:, 0] * extent[1] + keys[:, 1]) * extent[2] + keys[:, 2]
+        _, inverse, counts = np.unique(linear, return_inverse=True, return_counts=True)
+    else:  # a grid too fine for one int64 key per voxel
+        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    sums = np.stack([np.bincount(inverse, weights=points[:, axis], minlength=len(counts)) for axis in range(3)], axis=1)
+    return sums / counts[:, None]
+
+
+def dense_point_mask(
+    points, radius: float, *, fraction: float = 0.3, quantile: float = 0.75, tree: cKDTree | None = None
+) -> np.ndarray:
+    """Mask of the points that are not isolated: a radius outlier filter with a relative threshold.
+
+    A point is kept when its number of neighbours within ``radius`` (itself included) is at least
+    ``fraction`` times the ``quantile`` of that number over the cloud. The threshold adapts to the
+    sampling density, so the same call suits sparse and dense clouds; on a clean surface almost
+    every point is kept, while scattered outliers (far from the surface, hence with few
+    neighbours) are dropped.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+    radius : float
+        Neighbourhood radius, in the cloud's units (> 0); a few sampling spacings.
+    fraction : float
+        Relative threshold in ``[0, 1]``; 0 keeps everything.
+    quantile : float
+        Which quantile of the neighbour counts is the reference density, in ``[0, 1]``.
+    tree : cKDTree, optional
+        A tree over ``points``, to reuse.
+
+    Returns
+    -------
+    (N,) bool array
+    """
+    points = _as_cloud(points)
+    radius = as_positive(radius, "radius")
+    tree = cKDTree(points) if tree is None else tree
+    counts = tree.query_ball_point(points, radius, return_length=True)
+    return counts >= fraction * np.quantile(counts, quantile)
+
+
+def estimate_normals(
+    points,
+    k: int = 30,
+    radius: float | None = None,
+    *,
+    at=None,
+    viewpoint=None,
+    tree: cKDTree | None = None,
+) -> np.ndarray:
+    """Unit surface normals by PCA of each point's neighbourhood.
+
+    The normal is the eigenvector of the smallest eigenvalue of the covariance of the
+    neighbourhood (batched ``numpy.linalg.eigh`` on ``(M, 3, 3)`` matrices).
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        The surface samples the neighbourhoods are taken from (any units).
+    k : int
+        At most this many nearest neighbours (the query point itself included when it belongs to
+        ``points``).
+    radius : float, optional
+        If given, only neighbours within ``radius`` (cloud units) are used, among the ``k``
+        nearest (Open3D's "hybrid" search). None: the ``k`` nearest, whatever their distance.
+    at : (M, 3) array, optional
+        Where normals are wanted (default: at ``points``). E.g. the centroids of a downsampled
+        cloud, with neighbourhoods from the dense cloud.
+    viewpoint : (3,) array, optional
+        Orient each normal toward this position (a sensor). Default: away from the centroid of
+        ``points`` (see the module docstring; this default is equivariant under rigid motions).
+    tree : cKDTree, optional
+        A tree over ``points``, to reuse.
+
+    Returns
+    -------
+    (M, 3) float64 array of unit vectors
+        Where fewer than 3 neighbours are found, the normal falls back to the unit direction from
+        the centroid of ``points`` to the query point (or ``+z`` if they coincide).
+    """
+    points = _as_cloud(points)
+    query = points if at is None else _as_cloud(at, "at")
+    if int(k) < 3:
+        raise InvalidInputError(f"k: need at least 3 neighbours for a normal, got {k!r}")
+    k = min(int(k), len(points))
+    upper = np.inf if radius is None else as_positive(radius, "radius")
+    tree = cKDTree(points) if tree is None else tree
+    _, indices = tree.query(query, k=k, distance_upper_bound=upper)
+    indices = indices.reshape(len(query), k)
+    counts = (indices < len(points)).sum(axis=1)
+    # Raw moments of coordinates relative to the cloud's centroid; the padding row (index N, for
+    # missing neighbours) is zero so it adds nothing.
+    centroid = points.mean(axis=0)
+    padded = np.vstack([points - centroid, np.zeros((1, 3))])
+    neighbours = padded[indices]
+    safe_counts = np.maximum(counts, 1).astype(np.float64)
+    mean = neighbours.sum(axis=1) / safe_counts[:, None]
+    covariance = np.matmul(neighbours.transpose(0, 2, 1), neighbours) / safe_counts[:, None, None]
+    covariance -= mean[:, :, None] * mean[:, None, :]
+    _, vectors = np.linalg.eigh(covariance)
+    normals = vectors[:, :, 0]
+
+    outward = query - centroid
+    few = counts < 3
+    if few.any():
+        fallback = outward[few]
+        lengths = np.linalg.norm(fallback, axis=1)
+        fallback = np.where(lengths[:, None] > 0, fallback / np.where(lengths > 0, lengths, 1.0)[:, None], [0.0, 0.0, 1.0])
+        normals[few] = fallback
+    reference = outward if viewpoint is None else np.asarray(viewpoint, dtype=np.float64).reshape(3) - query
+    flip = np.einsum("ij,ij->i", normals, reference) < 0
+    normals[flip] *= -1.0
+    return normals
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Column-wise dot products of two ``(3, P)`` arrays."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _pair_bins(directions: np.ndarray, first: np.ndarray, second: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Bin indices ``(3, P)`` of the (theta, alpha, phi) features of the pairs ``(first, second)``.
+
+    ``directions`` are the unit normals as a ``(3, N)`` array; ``offset`` the ``(3, P)`` unit
+    vectors from each pair's first point to its second. The features do not depend on the order
+    within a pair. Uses closed forms of the Darboux-frame dot products, so no frame is ever
+    formed: with ``e`` the unit direction from the pair's source to its target, ``u`` the source
+    normal and ``n`` the target normal, ``|v| = sqrt(1 - phi^2)``,
+    ``alpha = e . (u x n) / |v|`` and ``theta = atan2((e . n - phi (u . n)) / |v|, u . n)``.
+    """
+    n_first, n_second = directions[:, first], directions[:, second]
+    cos_first = _dot(n_first, offset)
+    cos_second = _dot(n_second, offset)
+    normals_cos = _dot(n_first, n_second)
+    # e . (u x n) is the same whichever point is the source (both e and u x n flip sign).
+    triple = (
+        offset[0] * (n_first[1] * n_second[2] - n_first[2] * n_second[1])
+        + offset[1] * (n_first[2] * n_second[0] - n_first[0] * n_second[2])
+        + offset[2] * (n_first[0] * n_second[1] - n_first[1] * n_second[0])
+    )
+    # Source of the pair: the point whose normal is closer to the connecting line. When both are
+    # equally close (to rounding; e.g. two points with the same normal), either choice is valid
+    # but they can give opposite signs of phi, so take the one with the larger phi: the choice
+    # then depends neither on the order of the pair nor on the cloud's pose.
+    gap = np.abs(cos_first) - np.abs(cos_second)
+    swap = np.where(np.abs(gap) <= _TIE_TOLERANCE, -cos_second > cos_first, gap < 0)
+    phi = np.where(swap, -cos_second, cos_first)
+    target_cos = np.where(swap, -cos_first, cos_second)
+    frame_norm = np.sqrt(np.maximum(1.0 - phi * phi, 0.0))
+    alpha = triple / np.where(frame_norm > 0, frame_norm, 1.0)
+    theta = np.arctan2(target_cos - phi * normals_cos, normals_cos * frame_norm)
+    scaled = np.empty((3, len(phi)))
+    np.multiply(theta + np.pi, FPFH_BINS / (2.0 * np.pi), out=scaled[0])
+    np.multiply(alpha + 1.0, 0.5 * FPFH_BINS, out=scaled[1])
+    np.multiply(phi + 1.0, 0.5 * FPFH_BINS, out=scaled[2])
+    bins = np.floor(scaled, out=scaled).astype(np.intp)
+    return np.clip(bins, 0, FPFH_BINS - 1, out=bins)
+
+
+def fpfh(points, normals, radius: float, tree: cKDTree | None = None) -> np.ndarray:
+    """Fast Point Feature Histograms of every point (see the module docstring for the definition).
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        The cloud (any units).
+    normals : (N, 3) array
+        Unit normals, consistently oriented (e.g. :func:`estimate_normals`).
+    radius : float
+        Neighbourhood radius in the cloud's units (> 0); typically 5x the sampling spacing.
+    tree : cKDTree, optional
+        A tree over ``points``, to reuse.
+
+    Returns
+    -------
+    (N, 33) float64 array
+        Blocks ``[theta (11) | alpha (11) | phi (11)]``; each block sums to
+        :data:`FPFH_BLOCK_SUM` (200) for a point with at least one neighbour within ``radius``,
+        and the whole row is 0 for an isolated point. Invariant under rigid motions of the cloud
+        (with the normals moved along).
+    """
+    points = _as_cloud(points)
+    normals = np.asarray(normals, dtype=np.float64)
+    if normals.shape != points.shape:
+        raise InvalidInputError(f"normals: expected shape {points.shape}, got {normals.shape}")
+    radius = as_positive(radius, "radius")
+    count = len(points)
+    tree = cKDTree(points) if tree is None else tree
+    pairs = tree.query_pairs(radius, output_type="ndarray").astype(np.intp)
+    first, second = pairs[:, 0], pairs[:, 1]
+    coordinates = points.T
+    offset = coordinates[:, second] - coordinates[:, first]
+    distance = np.sqrt(_dot(offset, offset))
+    if not (distance > 0).all():  # coincident points: no direction, no pair feature
+        keep = distance > 0
+        first, second, offset, distance = first[keep], second[keep], offset[:, keep], distance[keep]
+    offset /= distance
+    bins = _pair_bins(np.ascontiguousarray(normals.T), first, second, offset)
+
+    # SPFH: every pair adds its bins to both of its points, 100 / (number of pairs of the point).
+    owners = np.concatenate([first, second])
+    pair_counts = np.bincount(owners, minlength=count)
+    increment = SPFH_BLOCK_SUM / np.maximum(pair_counts, 1)
+    flat = np.tile(bins, 2)
+    flat += (np.arange(3) * FPFH_BINS)[:, None]
+    flat += owners * FPFH_DIMENSION
+    weights = np.broadcast_to(increment[owners], flat.shape)
+    spfh = np.bincount(flat.reshape(-1), weights=weights.reshape(-1), minlength=count * FPFH_DIMENSION)
+    spfh = spfh.reshape(count, FPFH_DIMENSION)
+
+    # FPFH: SPFH + the neighbours' SPFHs weighted by 1 / squared distance, renormalised per block.
+    inverse_square = 1.0 / np.square(distance)
+    weight_matrix = sparse.coo_matrix(
+        (np.concatenate([inverse_square, inverse_square]), (owners, np.concatenate([second, first]))),
+        shape=(count, count),
+    )
+    neighbourhood = np.asarray(weight_matrix @ spfh).reshape(count, 3, FPFH_BINS)
+    block_sums = neighbourhood.sum(axis=2, keepdims=True)
+    neighbourhood *= SPFH_BLOCK_SUM / np.where(block_sums > 0, block_sums, 1.0)
+    return spfh + neighbourhood.reshape(count, FPFH_DIMENSION)

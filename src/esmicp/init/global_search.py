@@ -1,0 +1,204 @@
+"""Global registration: a pose from anywhere, with a confidence.
+
+Candidate poses come from one or both strategies:
+
+``rotation-search``
+    :func:`~esmicp.init.rotation_search.rotation_search`: 96 starting rotations spread over SO(3),
+    centroids aligned, each refined by a short batched ESM on a few hundred points.
+``features``
+    FPFH features matched between the clouds and pruned by geometric consistency
+    (:mod:`esmicp.init.feature_matching`); suited to partial overlap, where centroids differ.
+
+Every candidate is then *verified* the same way: a longer batched ESM on a larger subsample,
+ending with sigma at the data's resolution, scored by the soft fraction of source points lying on
+the target (:func:`~esmicp.init.rotation_search.gaussian_overlap_score`). The best one wins. When a
+clearly different pose (rotation more than ``DISTINCT_ROTATION_DEG`` away) scores within
+``AMBIGUITY_RATIO`` of it, the result is flagged ambiguous: the object is probably symmetric, or
+the overlap too small to decide.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.correspondence import NearestNeighbors
+from ..core.nearest_grid import NearestGrid
+from ..core.procrustes import rotation_angle, to_matrix
+from .rotation_search import batched_esm, gaussian_overlap_score, rotation_search
+
+#: Names accepted as ``init=`` strategies for global registration.
+STRATEGIES = ("auto", "rotation-search", "features")
+
+#: Points of the source used to search / verify, and of the target indexed for both.
+SEARCH_POINTS = 300
+VERIFY_POINTS = 500
+TARGET_POINTS = 3000
+
+#: Cell size and margin of the search's nearest-neighbour grid, as fractions of the target's
+#: bounding-box diagonal (see :class:`~esmicp.core.nearest_grid.NearestGrid`).
+SEARCH_GRID_CELL = 1.0 / 40.0
+SEARCH_GRID_MARGIN = 0.25
+
+#: Starting rotations of the rotation search and their ESM iterations.
+SEARCH_ROTATIONS = 96
+SEARCH_ITERATIONS = 12
+
+#: Candidates kept from the rotation search for verification, and verification iterations
+#: (the last ``VERIFY_FINE_ITERATIONS`` at the finest sigma).
+VERIFY_CANDIDATES = 16
+VERIFY_ITERATIONS = 16
+VERIFY_FINE_ITERATIONS = 6
+
+#: Width of the Gaussian overlap score and floor of the annealed sigma, in target point spacings.
+SCORE_WIDTH_SPACINGS = 2.0
+
+#: Two poses are distinct when their rotations differ by more than this (degrees).
+DISTINCT_ROTATION_DEG = 10.0
+
+#: A distinct runner-up scoring at least this fraction of the best score makes the result ambiguous.
+AMBIGUITY_RATIO = 0.97
+
+#: At most this many poses are returned as contenders for a full-resolution decision.
+MAX_CONTENDERS = 3
+
+#: Source points and iterations (all at the finest sigma) of the full-resolution decision between
+#: contenders that scored alike on the subsample.
+DECIDE_POINTS = 3000
+DECIDE_ITERATIONS = 8
+
+
+@dataclass(frozen=True)
+class GlobalEstimate:
+    """The verified poses, best first, each distinct from those before it.
+
+    ``transformations`` ``(K, 4, 4)`` and ``scores`` ``(K,)`` (soft fraction, 0-1, of the
+    verification source points lying on the target) hold the best pose and every distinct pose
+    scoring at least ``AMBIGUITY_RATIO`` of it, plus the best distinct runner-up below that, if any.
+    ``strategies`` names where each came from; ``candidates`` counts the poses verified.
+    """
+
+    transformations: np.ndarray
+    scores: np.ndarray
+    strategies: tuple[str, ...]
+    candidates: int
+
+    @property
+    def transformation(self) -> np.ndarray:
+        return self.transformations[0]
+
+    @property
+    def score(self) -> float:
+        return float(self.scores[0])
+
+    @property
+    def runner_up_score(self) -> float | None:
+        return float(self.scores[1]) if len(self.scores) > 1 else None
+
+    @property
+    def ambiguous(self) -> bool:
+        """True when a distinct pose scored at least ``AMBIGUITY_RATIO`` of the best."""
+        return len(self.scores) > 1 and self.scores[1] >= AMBIGUITY_RATIO * self.scores[0]
+
+
+def _subsample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    if len(points) <= count:
+        return points
+    return points[rng.choice(len(points), size=count, replace=False)]
+
+
+def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> list[int]:
+    """Indices (in ``order``) of up to ``limit`` poses, each distinct from those before it."""
+    kept: list[int] = []
+    for index in order:
+        rotation = transformations[index, :3, :3]
+        if all(
+            np.degrees(rotation_angle(rotation.T @ transformations[other, :3, :3])) > DISTINCT_ROTATION_DEG
+            for other in kept
+        ):
+            kept.append(int(index))
+            if len(kept) == limit:
+                break
+    return kept
+
+
+def global_estimate(
+    source: np.ndarray, target: np.ndarray, *, strategy: str = "auto", rng: np.random.Generator
+) -> GlobalEstimate:
+    """Find ``T_target_source`` from any initial pose (see the module docstring).
+
+    ``source`` and ``target`` are validated ``(N, 3)`` / ``(M, 3)`` float64 arrays; ``rng`` drives
+    every random subsample, so a seeded generator makes the result reproducible.
+    """
+    target_work = _subsample(target, TARGET_POINTS, rng)
+    index = NearestNeighbors(target_work)
+    spacing = index.spacing()
+    width = SCORE_WIDTH_SPACINGS * spacing if spacing > 0 else 1e-6 * _diagonal(target)
+
+    candidates: list[np.ndarray] = []
+    origins: list[str] = []
+    if strategy in ("auto", "rotation-search"):
+        diagonal = _diagonal(target_work)
+        grid = NearestGrid(target_work, SEARCH_GRID_CELL * diagonal, margin=SEARCH_GRID_MARGIN * diagonal)
+        found = rotation_search(
+            _subsample(source, SEARCH_POINTS, rng), grid,
+            rotations=SEARCH_ROTATIONS, iterations=SEARCH_ITERATIONS, score_width=width, sigma_floor=width,
+        )
+        for position in _distinct(found.transformations, np.arange(len(found.scores)), VERIFY_CANDIDATES):
+            candidates.append(found.transformations[position])
+            origins.append("rotation-search")
+    if strategy in ("auto", "features"):
+        from .feature_matching import feature_hypotheses
+
+        voxel = _feature_voxel(target)
+        for hypothesis in feature_hypotheses(source, target, voxel=voxel, rng=rng):
+            candidates.append(hypothesis.transformation)
+            origins.append("features")
+
+    stacked = np.stack(candidates)
+    rotations, translations, distances = batched_esm(
+        _subsample(source, VERIFY_POINTS, rng), index, stacked[:, :3, :3], stacked[:, :3, 3],
+        iterations=VERIFY_ITERATIONS, sigma_floor=width, fine_iterations=VERIFY_FINE_ITERATIONS,
+    )
+    scores = gaussian_overlap_score(distances, width)
+    verified = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
+    kept = _contenders(verified, scores)
+    transformations, scores = verified[kept], scores[kept]
+    strategies = tuple(origins[index] for index in kept)
+    if len(kept) > 1 and scores[1] >= AMBIGUITY_RATIO * scores[0]:
+        # Poses this close on a subsample are decided on (up to) the full clouds.
+        full_index = NearestNeighbors(target)
+        full_spacing = full_index.spacing()
+        full_width = SCORE_WIDTH_SPACINGS * full_spacing if full_spacing > 0 else width
+        rotations, translations, distances = batched_esm(
+            _subsample(source, DECIDE_POINTS, rng), full_index, transformations[:, :3, :3], transformations[:, :3, 3],
+            iterations=DECIDE_ITERATIONS, sigma_floor=full_width, fine_iterations=DECIDE_ITERATIONS,
+        )
+        decided = gaussian_overlap_score(distances, full_width)
+        refined = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
+        order = _contenders(refined, decided)
+        transformations, scores = refined[order], decided[order]
+        strategies = tuple(strategies[index] for index in order)
+    return GlobalEstimate(transformations, scores, strategies, candidates=len(candidates))
+
+
+def _contenders(transformations: np.ndarray, scores: np.ndarray) -> list[int]:
+    """Indices of the best pose, every distinct pose within ``AMBIGUITY_RATIO`` of it (at most
+    ``MAX_CONTENDERS`` in all), and the best distinct pose below that, best first."""
+    order = np.argsort(-scores, kind="stable")
+    distinct = _distinct(transformations, order, MAX_CONTENDERS + 1)
+    close = sum(scores[index] >= AMBIGUITY_RATIO * scores[distinct[0]] for index in distinct)
+    return distinct[: min(close + 1, MAX_CONTENDERS + 1)]
+
+
+def _diagonal(points: np.ndarray) -> float:
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+#: Voxel of the feature strategy, as a fraction of the target's bounding-box diagonal.
+FEATURE_VOXEL_FRACTION = 1.0 / 40.0
+
+
+def _feature_voxel(target: np.ndarray) -> float:
+    return FEATURE_VOXEL_FRACTION * _diagonal(target)

@@ -1,0 +1,161 @@
+"""Global initialisation by multi-hypothesis rotation search, refined by batched ESM.
+
+Rigid registration from an arbitrary pose has many local optima, but ESM (like ICP) converges from
+any start within a few tens of degrees of the truth. So we start from many rotations spread
+evenly over SO(3) (a super-Fibonacci spiral), each with the centroids aligned, run a short ESM
+refinement of ALL of them at once on subsampled clouds (one KD-tree query per iteration for every
+hypothesis together, batched 3x3 SVDs), and keep the ones whose clouds then overlap best under a
+fixed-width Gaussian score. Everything is vectorised over hypotheses and points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.correspondence import NearestNeighbors
+from ..core.procrustes import to_matrix
+
+#: Constants of the super-Fibonacci spiral (Alexa, "Super-Fibonacci Spirals", CVPR 2022).
+_PHI = np.sqrt(2.0)
+_PSI = 1.533751168755204288118041
+
+
+def so3_grid(count: int) -> np.ndarray:
+    """``count`` rotations spread near-uniformly over SO(3), as ``(count, 3, 3)`` matrices.
+
+    Deterministic (a super-Fibonacci spiral of unit quaternions). Measured over 20,000 random
+    rotations, the distance to the nearest grid rotation is at most 58 degrees (mean 30) for 64
+    rotations, 52 (mean 26) for 96, and 44 (mean 24) for 128.
+    """
+    s = np.arange(count) + 0.5
+    r = np.sqrt(s / count)
+    big_r = np.sqrt(1.0 - s / count)
+    alpha = 2.0 * np.pi * s / _PHI
+    beta = 2.0 * np.pi * s / _PSI
+    w, x, y, z = r * np.sin(alpha), r * np.cos(alpha), big_r * np.sin(beta), big_r * np.cos(beta)
+    return quaternions_to_matrices(np.column_stack([w, x, y, z]))
+
+
+def quaternions_to_matrices(quaternions: np.ndarray) -> np.ndarray:
+    """Unit quaternions ``(K, 4)`` as ``(w, x, y, z)`` to rotation matrices ``(K, 3, 3)``."""
+    w, x, y, z = (quaternions / np.linalg.norm(quaternions, axis=1, keepdims=True)).T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def batched_rotation_from_cross_covariance(cross_covariances: np.ndarray) -> np.ndarray:
+    """Kabsch rotations ``(K, 3, 3)`` maximising ``trace(R H_k)`` for each ``H_k`` (reflection-fixed)."""
+    u, _, vt = np.linalg.svd(cross_covariances)
+    v = np.swapaxes(vt, -1, -2)
+    ut = np.swapaxes(u, -1, -2)
+    sign = np.sign(np.linalg.det(v @ ut))
+    sign[sign == 0] = 1.0
+    v = v.copy()
+    v[:, :, 2] *= sign[:, None]
+    return v @ ut
+
+
+@dataclass(frozen=True)
+class Hypotheses:
+    """Poses ``T_target_source`` ``(K, 4, 4)`` with their scores (higher is better, in [0, 1])."""
+
+    transformations: np.ndarray
+    scores: np.ndarray
+
+
+def batched_esm(
+    source: np.ndarray,
+    target: NearestNeighbors,
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    *,
+    iterations: int,
+    sigma_floor: float,
+    sigma_factor: float = 3.0,
+    fine_iterations: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run ``iterations`` ESM steps for K hypotheses at once.
+
+    ``rotations`` ``(K, 3, 3)`` and ``translations`` ``(K, 3)`` are the starting ``T_target_source``.
+    Each hypothesis anneals its own sigma as ``max(sigma_floor, sigma_factor * median distance)``;
+    the last ``fine_iterations`` of the ``iterations`` use ``sigma_floor`` itself (the fine phase of
+    :mod:`esmicp.methods.esm`, which keeps outliers from biasing the pose).
+    Returns the final rotations, translations and the last correspondence distances ``(K, n)``.
+    """
+    count = len(rotations)
+    for iteration in range(iterations):
+        moved = _place(source, rotations, translations)
+        distances, indices = target.query(moved.reshape(-1, 3))
+        distances = distances.reshape(count, -1)
+        matched = target.points[indices].reshape(moved.shape)
+        if iteration >= iterations - fine_iterations:
+            sigma = np.full(count, sigma_floor)
+        else:
+            sigma = np.maximum(sigma_floor, sigma_factor * np.median(distances, axis=1))
+        squared = np.square(distances)
+        weights = np.exp(-(squared - squared.min(axis=1, keepdims=True)) / (2.0 * sigma[:, None] ** 2))
+        weights /= weights.sum(axis=1, keepdims=True)
+        weights = weights[:, :, None]
+        moved_centroid = (weights * moved).sum(axis=1)
+        matched_centroid = (weights * matched).sum(axis=1)
+        cross = np.matmul(
+            np.swapaxes(weights * (moved - moved_centroid[:, None, :]), 1, 2), matched - matched_centroid[:, None, :]
+        )
+        step_rotation = batched_rotation_from_cross_covariance(cross)
+        step_translation = matched_centroid - np.matmul(step_rotation, moved_centroid[:, :, None])[:, :, 0]
+        rotations = np.matmul(step_rotation, rotations)
+        translations = np.matmul(step_rotation, translations[:, :, None])[:, :, 0] + step_translation
+    distances, _ = target.query(_place(source, rotations, translations).reshape(-1, 3))
+    return rotations, translations, distances.reshape(count, -1)
+
+
+def _place(source: np.ndarray, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """``(K, n, 3)``: the source under each of the K poses."""
+    return np.matmul(source[None, :, :], np.swapaxes(rotations, 1, 2)) + translations[:, None, :]
+
+
+def gaussian_overlap_score(distances: np.ndarray, width: float) -> np.ndarray:
+    """Mean Gaussian similarity ``exp(-d^2 / (2 width^2))`` per row: the soft fraction of source
+    points lying on the target (1 = every point exactly on it)."""
+    return np.exp(-np.square(distances) / (2.0 * width * width)).mean(axis=-1)
+
+
+def rotation_search(
+    source: np.ndarray,
+    target: NearestNeighbors,
+    *,
+    rotations: int = 96,
+    iterations: int = 12,
+    score_width: float,
+    sigma_floor: float,
+    source_centroid: np.ndarray | None = None,
+    target_centroid: np.ndarray | None = None,
+) -> Hypotheses:
+    """Score ``rotations`` starting rotations (a :func:`so3_grid`) after a short batched ESM.
+
+    ``source`` should be a subsample (a few hundred points); ``target`` an index over a (possibly
+    subsampled) target. Each start aligns ``source_centroid`` with ``target_centroid`` (defaults:
+    the clouds' means). Returns every hypothesis with its :func:`gaussian_overlap_score` of width
+    ``score_width`` (cloud units), best first.
+    """
+    if source_centroid is None:
+        source_centroid = source.mean(axis=0)
+    if target_centroid is None:
+        target_centroid = target.points.mean(axis=0)
+    starts = so3_grid(rotations)
+    translations = target_centroid - starts @ source_centroid
+    final_rotations, final_translations, distances = batched_esm(
+        source, target, starts, translations, iterations=iterations, sigma_floor=sigma_floor
+    )
+    scores = gaussian_overlap_score(distances, score_width)
+    order = np.argsort(-scores, kind="stable")
+    transformations = np.stack([to_matrix(final_rotations[k], final_translations[k]) for k in order])
+    return Hypotheses(transformations, scores[order])
