@@ -112,7 +112,7 @@ def build_trials(args, clouds) -> dict[str, list]:
     trials = {}
     for protocol in args.protocols:
         if protocol == SCAN_PAIRS:
-            scans = load_scans(args.data / "bunny_scans", max_points=args.scan_points, rng=args.seed)
+            scans = load_scans(args.data / "bunny_scans", max_points=args.scan_points or None, rng=args.seed)
             pairs = scan_pairs(scans, args.seed)
             if args.scan_trials is not None and args.scan_trials < len(pairs):
                 keep = np.linspace(0, len(pairs) - 1, args.scan_trials).round().astype(int)
@@ -194,7 +194,7 @@ def main(argv=None) -> int:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
     parser.add_argument("--trials", type=int, default=60, help="trials per object protocol")
     parser.add_argument("--points", type=int, default=2000, help="points per cloud (per half when split)")
-    parser.add_argument("--scan-points", type=int, default=2000, help="points per bunny scan")
+    parser.add_argument("--scan-points", type=int, default=2000, help="points per bunny scan (0: every point, 30-40k)")
     parser.add_argument("--scan-trials", type=int, default=None, help="cap on scan pairs (evenly spaced; default all)")
     parser.add_argument("--methods", default=DEFAULT_METHODS)
     parser.add_argument("--protocols", default=",".join(ALL_PROTOCOLS))

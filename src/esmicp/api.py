@@ -122,10 +122,14 @@ def register(
         )
     estimate = None
     if initial is None:
-        estimate = global_estimate(source_points, target_points, strategy=init_name, rng=generator)
+        estimate = global_estimate(
+            source_points, target_points, strategy=init_name, rng=generator, target_index=target_index
+        )
         initial = estimate.transformation
         init_name = f"global:{estimate.strategies[0]}"
-    estimator = _make_estimator(method, sigma, spacing, diagonal)
+    # After a global search (which ends at the finest sigma) the pose is already close: start in
+    # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
+    estimator = _make_estimator(method, sigma, spacing, diagonal, start_fine=estimate is not None)
     outcome = refine(
         source_points,
         target_index,
@@ -169,13 +173,13 @@ def register(
     )
 
 
-def _make_estimator(method: str, sigma: float | None, spacing: float, diagonal: float):
+def _make_estimator(method: str, sigma: float | None, spacing: float, diagonal: float, *, start_fine: bool = False):
     if method == "icp":
         return IcpEstimator()
     if method == "esm-paper":
         return EsmPaperEstimator(PAPER_SIGMA if sigma is None else sigma)
     schedule = SigmaSchedule.auto(spacing, diagonal) if sigma is None else SigmaSchedule.constant(sigma)
-    return EsmEstimator(schedule)
+    return EsmEstimator(schedule, start_fine=start_fine)
 
 
 def _warn_if_not_index_aligned(indices: np.ndarray) -> None:

@@ -1,26 +1,46 @@
 """Global pose hypotheses from FPFH correspondences, without any initial guess.
 
-Pipeline of :func:`feature_hypotheses`: voxel-downsample both clouds, estimate normals, compute
-FPFH (:mod:`esmicp.init.features`), match the features (:func:`match_features`), then find rigid
-transforms that many correspondences agree with, robustly:
+Pipeline of :func:`feature_hypotheses` (all lengths scale with the ``voxel`` argument):
 
-``"ransac"``
-    RANSAC over 3-correspondence samples, drawn in batches of thousands. A sample survives only
-    if the three pairwise distances agree between source and target to within 10 % (a rigid
-    motion preserves lengths) and its triangle is not too small; every survivor is solved at once
-    by a batched Kabsch fit (``numpy.linalg.svd`` on ``(B, 3, 3)``) and scored by counting, for
-    all correspondences at once, those it maps to within ``inlier_distance``. Batches are drawn
-    until the standard RANSAC stopping rule is met (``confidence`` that an all-inlier sample was
-    drawn, given the best inlier fraction so far) or ``max_trials`` samples were drawn.
-``"clique"``
-    Pairwise-consistency graph (as in TEASER++ / KISS-Matcher, re-derived here): correspondences
-    ``i`` and ``j`` are consistent when ``| |s_i - s_j| - |t_i - t_j| | <= 2 inlier_distance``.
-    Greedy cliques grown from the best-connected correspondences are solved by Kabsch.
+1. Voxel-downsample each cloud (the keypoints), and drop isolated keypoints, with their points:
+   fewer occupied voxels within ``2 voxel`` than 0.3 x the cloud's 75th percentile
+   (:func:`~esmicp.init.features.dense_point_mask`). This removes scattered outliers, which
+   otherwise corrupt the normals and histograms of the clean points near them.
+2. PCA normals at the keypoints from the remaining dense points (at most 60 within ``4 voxel``),
+   oriented away from the centroid; FPFH within ``7 voxel`` (:mod:`esmicp.init.features`).
+3. Mutual nearest neighbours in feature space (:func:`match_features`).
+4. A robust estimator over the correspondences, ``method``:
 
-Either way each candidate is refit by Kabsch on its own inliers, and the best *distinct*
-candidates are returned (distinct: rotations more than 10 degrees apart or translations more than
-2 voxels apart). Transforms are ``T_target_source``: ``target ~= source @ R.T + t``.
-Randomness comes only from the ``rng`` argument, so a seed gives identical hypotheses.
+   ``"ransac"`` (default)
+       RANSAC over 3-correspondence samples, drawn in batches (256, then doubling up to
+       ``batch``). A sample survives only if its three side lengths agree between source and
+       target to within 10 % (a rigid motion preserves lengths) and its smallest side is at least
+       ``2 voxel``; all survivors are solved at once by a batched Kabsch fit
+       (``numpy.linalg.svd`` on ``(B, 3, 3)``) and scored at once by counting the correspondences
+       each maps to within ``inlier_distance``. Batches are drawn until the RANSAC stopping rule
+       is met (``confidence`` that an all-inlier sample was drawn, given the best inlier fraction
+       so far) and ``min_trials`` samples were drawn, or ``max_trials`` samples were drawn.
+   ``"clique"``
+       Pairwise-consistency graph (the idea of TEASER++ / KISS-Matcher, re-derived here):
+       correspondences ``i`` and ``j`` are adjacent when
+       ``| |s_i - s_j| - |t_i - t_j| | <= 2 inlier_distance``. Greedy cliques grown from the
+       best-connected unused correspondences are solved by Kabsch.
+
+5. The best candidates by inlier count are made distinct (rotations more than 10 degrees apart or
+   translations more than 2 voxels apart), each is refit by Kabsch on its own inlier
+   correspondences (twice), and the survivors are ranked by the *overlap* of the keypoint clouds
+   they produce (fraction of source keypoints within ``inlier_distance`` of a target keypoint),
+   which tells the true pose from a wrong one better than the count of correspondences does.
+
+The default radii (normals 4, FPFH 7, filter 2 voxels) come from measurements on ModelNet objects
+(2,000 points a side, ``voxel = diagonal / 40``, 20 trials each): with Open3D's usual 2 and 5
+voxels and no filter, the best hypothesis is within 10 degrees for 1/20 (chair), 6/20 (airplane)
+and 5/20 (bunny) trials of the ESM-ICP paper's ``outliers-60`` protocol, against 19/20, 18/20 and
+20/20 with these defaults (all 20/20 on clean halves either way). On the Stanford bunny scan pairs
+both settings get 42 of 46 pairs.
+
+Transforms are ``T_target_source``: ``target ~= source @ R.T + t``. Randomness comes only from
+the ``rng`` argument, so a seed gives identical hypotheses.
 """
 
 from __future__ import annotations
@@ -32,8 +52,8 @@ from scipy.spatial import cKDTree
 
 from ..core.procrustes import to_matrix
 from ..errors import InvalidInputError
-from ..types import as_points, as_positive
-from .features import dense_point_mask, estimate_normals, fpfh, voxel_downsample
+from ..types import as_points, as_positive, as_real
+from .features import dense_point_mask, estimate_normals, fpfh, voxel_grid
 
 #: Below this many mutual matches, :func:`match_features` falls back to one-way matches.
 MIN_MUTUAL_MATCHES = 30
@@ -54,9 +74,6 @@ _SCORE_CHUNK = 2_000_000
 
 #: Size of the first RANSAC batch (later ones double, up to the ``batch`` argument).
 _FIRST_BATCH = 256
-
-#: Candidates kept between RANSAC batches (best inlier counts).
-_POOL = 256
 
 METHODS = ("ransac", "clique")
 
@@ -81,11 +98,15 @@ class Hypothesis:
         Feature correspondences it maps to within ``inlier_distance`` of their target point.
     inlier_fraction : float
         ``inlier_count`` divided by the number of correspondences, in ``[0, 1]``.
+    overlap : float
+        Fraction of the source keypoints (the downsampled, filtered source) that it maps within
+        ``inlier_distance`` of a target keypoint, in ``[0, 1]``. Hypotheses are ranked by it.
     """
 
     transformation: np.ndarray
     inlier_count: int
     inlier_fraction: float
+    overlap: float
 
 
 # --------------------------------------------------------------------------------------------
@@ -290,8 +311,14 @@ def _edge_lengths(points: np.ndarray) -> np.ndarray:
     return np.linalg.norm(points - np.roll(points, -1, axis=1), axis=2)
 
 
-def _ransac(source, target, threshold, rng, *, max_trials, min_trials, batch, confidence, min_edge):
-    """Batched RANSAC on paired points; returns candidate ``(rotations, translations, counts)``."""
+def _ransac(
+    source, target, threshold, rng, *, max_trials, min_trials, batch, confidence, min_edge, keep, min_translation
+):
+    """Batched RANSAC on paired points.
+
+    Returns ``(rotations, translations, counts)`` of at most ``keep`` mutually distinct candidates
+    (see :func:`_distinct_order`), each the best-scoring of its neighbourhood of poses.
+    """
     count = len(source)
     pool_r = np.zeros((0, 3, 3))
     pool_t = np.zeros((0, 3))
@@ -315,9 +342,9 @@ def _ransac(source, target, threshold, rng, *, max_trials, min_trials, batch, co
         pool_r = np.concatenate([pool_r, rotations])
         pool_t = np.concatenate([pool_t, translations])
         pool_c = np.concatenate([pool_c, counts])
-        if len(pool_c) > _POOL:
-            top = np.argsort(-pool_c, kind="stable")[:_POOL]
-            pool_r, pool_t, pool_c = pool_r[top], pool_t[top], pool_c[top]
+        # Keep the best candidate of each of the ``keep`` best distinct poses seen so far.
+        top = _distinct_order(pool_r, pool_t, pool_c, keep, min_translation)
+        pool_r, pool_t, pool_c = pool_r[top], pool_t[top], pool_c[top]
         best = max(best, int(counts.max()))
         fraction = best / count
         if fraction >= 1.0:
@@ -329,12 +356,20 @@ def _ransac(source, target, threshold, rng, *, max_trials, min_trials, batch, co
 
 
 def _cliques(source, target, threshold, *, max_cliques, min_edge):
-    """Greedy cliques of the pairwise length-consistency graph; returns Kabsch fits of each."""
+    """Greedy cliques of the pairwise length-consistency graph; returns Kabsch fits of each.
+
+    Correspondences ``i`` and ``j`` are adjacent when their source and target distances agree to
+    within ``2 threshold`` (and both exceed ``min_edge``). Each clique starts at the unused
+    correspondence of highest degree and repeatedly adds the candidate adjacent to the most
+    remaining candidates (degrees within the candidate set are updated incrementally, so growing
+    one clique costs O(K^2) in all).
+    """
     count = len(source)
     source_d = np.linalg.norm(source[:, None] - source[None], axis=2)
     target_d = np.linalg.norm(target[:, None] - target[None], axis=2)
     graph = np.abs(source_d - target_d) <= 2.0 * threshold
     graph &= np.minimum(source_d, target_d) >= min_edge
+    weights = graph.astype(np.float32)
     degree = graph.sum(axis=1)
     used = np.zeros(count, dtype=bool)
     rotations, translations = [], []
@@ -344,12 +379,16 @@ def _cliques(source, target, threshold, *, max_cliques, min_edge):
             break
         seed = free[np.argmax(degree[free])]
         members = [seed]
-        candidates = np.flatnonzero(graph[seed])
-        while len(candidates):
-            local = graph[np.ix_(candidates, candidates)].sum(axis=1)
-            pick = candidates[np.argmax(local)]
+        candidates = graph[seed].copy()
+        local = weights @ candidates.astype(np.float32)  # neighbours of every node among candidates
+        while candidates.any():
+            pool = np.flatnonzero(candidates)
+            pick = pool[np.argmax(local[pool])]
             members.append(pick)
-            candidates = candidates[graph[pick, candidates]]
+            removed = candidates & ~graph[pick]
+            removed[pick] = True
+            candidates &= ~removed
+            local -= weights[:, removed].sum(axis=1)
         members = np.asarray(members)
         used[members] = True
         if len(members) < 3:
@@ -364,15 +403,38 @@ def _cliques(source, target, threshold, *, max_cliques, min_edge):
     return rotations, translations, counts
 
 
+def _overlap(rotations, translations, source, target_tree, threshold) -> np.ndarray:
+    """``(C,)`` fraction of ``source`` points that each candidate maps within ``threshold`` of a
+    point of ``target_tree``."""
+    moved = np.einsum("cij,nj->cni", rotations, source) + translations[:, None, :]
+    distances, _ = target_tree.query(moved.reshape(-1, 3), distance_upper_bound=threshold)
+    return (distances.reshape(len(rotations), len(source)) <= threshold).mean(axis=1)
+
+
 # --------------------------------------------------------------------------------------------
 # The public entry point
 
 
-def _keypoints(points: np.ndarray, voxel: float, normal_radius: float, feature_radius: float, filter_radius: float | None):
-    """Downsampled points and their FPFH (rows of isolated points removed)."""
+def _as_count(value, name: str, minimum: int) -> int:
+    """``value`` as an int >= ``minimum``, or :class:`InvalidInputError`."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise InvalidInputError(f"{name}: expected an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _keypoints(
+    points: np.ndarray, voxel: float, normal_radius: float, feature_radius: float, filter_radius: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Downsampled points and their FPFH.
+
+    Isolated voxels (few occupied voxels within ``filter_radius``: scattered outliers) are dropped
+    with their points before normals are estimated; so are keypoints without FPFH neighbours.
+    Normals are PCA normals of the (dense) remaining points around each keypoint.
+    """
+    down, owner = voxel_grid(points, voxel)
     if filter_radius is not None:
-        points = points[dense_point_mask(points, filter_radius)]
-    down = voxel_downsample(points, voxel)
+        keep = dense_point_mask(down, filter_radius)
+        points, down = points[keep[owner]], down[keep]
     normals = estimate_normals(points, k=_NORMAL_NEIGHBOURS, radius=normal_radius, at=down)
     features = fpfh(down, normals, feature_radius)
     described = features.any(axis=1)
@@ -398,16 +460,17 @@ def feature_hypotheses(
 ) -> list[Hypothesis]:
     """Candidate poses ``T_target_source`` from FPFH feature correspondences, best first.
 
+    See the module docstring for the pipeline.
+
     Parameters
     ----------
     source, target : (N, 3), (M, 3) arrays
         The clouds, in the same units, in any relative pose.
     voxel : float
-        Downsampling voxel edge (cloud units); sets the scale of everything: normals use
-        neighbours within ``2 voxel`` (at most 30), FPFH within ``5 voxel``. About 1/40 of the
-        object's bounding-box diagonal is a good start.
+        Downsampling voxel edge (cloud units); sets the scale of everything else. About 1/40 of
+        the object's bounding-box diagonal works best on ModelNet-like objects.
     rng : numpy.random.Generator or int
-        The only source of randomness (a seed is turned into ``default_rng(seed)``).
+        The only source of randomness (an int is a seed for ``numpy.random.default_rng``).
     max_hypotheses : int
         Return at most this many distinct hypotheses.
     max_trials, min_trials : int
@@ -418,18 +481,23 @@ def feature_hypotheses(
         A correspondence is an inlier of a pose when the pose maps its source point within this
         distance (cloud units) of its target point. Default ``1.5 voxel``.
     method : {"ransac", "clique"}
-        Robust estimator (see the module docstring).
+        Robust estimator.
     confidence : float
-        RANSAC stops early once an all-inlier sample has been drawn with this probability.
+        RANSAC stopping rule: probability, in ``(0, 1)``, that an all-inlier sample was drawn.
     batch : int
-        RANSAC samples drawn and checked at once.
+        Largest RANSAC batch (samples drawn and checked at once).
+    normal_radius, feature_radius : float, optional
+        Neighbourhood radii (cloud units) of the normals and of FPFH. Default ``4 voxel`` and
+        ``7 voxel``.
+    filter_radius : float, optional
+        Radius (cloud units) of the isolated-keypoint filter; default ``2 voxel``; 0 disables it.
 
     Returns
     -------
     list of Hypothesis
-        Distinct hypotheses (rotations > 10 degrees or translations > 2 voxels apart), ordered by
-        decreasing ``inlier_count``; each is refit by Kabsch on its own inlier correspondences.
-        Empty when fewer than 3 correspondences are found or no sample passes the checks.
+        At most ``max_hypotheses`` distinct hypotheses, each refit on its own inliers, ordered by
+        decreasing ``overlap`` (then ``inlier_count``). Empty when fewer than 3 correspondences
+        are found or no sample passes the checks.
     """
     source = as_points(source, "source")
     target = as_points(target, "target")
@@ -439,14 +507,27 @@ def feature_hypotheses(
         raise InvalidInputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
     if rng is None:
         raise InvalidInputError("rng: a numpy Generator or an integer seed is required (results must be reproducible)")
+    confidence = as_real(confidence, "confidence")
+    if not 0.0 < confidence < 1.0:
+        raise InvalidInputError(f"confidence: must be in (0, 1), got {confidence!r}")
     rng = np.random.default_rng(rng)
-    max_hypotheses = int(max_hypotheses)
-    if max_hypotheses < 1:
-        raise InvalidInputError(f"max_hypotheses: must be >= 1, got {max_hypotheses}")
+    max_hypotheses = _as_count(max_hypotheses, "max_hypotheses", 1)
+    max_trials = _as_count(max_trials, "max_trials", 0)
+    min_trials = _as_count(min_trials, "min_trials", 0)
+    batch = _as_count(batch, "batch", 1)
 
-    normal_radius = NORMAL_RADIUS_VOXELS * voxel if normal_radius is None else as_positive(normal_radius, "normal_radius")
-    feature_radius = FEATURE_RADIUS_VOXELS * voxel if feature_radius is None else as_positive(feature_radius, "feature_radius")
-    filter_radius = FILTER_RADIUS_VOXELS * voxel if filter_radius is None else (filter_radius or None)
+    if normal_radius is None:
+        normal_radius = NORMAL_RADIUS_VOXELS * voxel
+    normal_radius = as_positive(normal_radius, "normal_radius")
+    if feature_radius is None:
+        feature_radius = FEATURE_RADIUS_VOXELS * voxel
+    feature_radius = as_positive(feature_radius, "feature_radius")
+    if filter_radius is None:
+        filter_radius = FILTER_RADIUS_VOXELS * voxel
+    elif as_real(filter_radius, "filter_radius") == 0:
+        filter_radius = None
+    else:
+        filter_radius = as_positive(filter_radius, "filter_radius")
     source_points, source_features = _keypoints(source, voxel, normal_radius, feature_radius, filter_radius)
     target_points, target_features = _keypoints(target, voxel, normal_radius, feature_radius, filter_radius)
     matches = match_features(source_features, target_features)
@@ -455,17 +536,20 @@ def feature_hypotheses(
     paired_source = source_points[matches[:, 0]]
     paired_target = target_points[matches[:, 1]]
     min_edge = 2.0 * voxel
+    min_translation = DISTINCT_TRANSLATION_VOXELS * voxel
     if method == "ransac":
         rotations, translations, counts = _ransac(
             paired_source,
             paired_target,
             threshold,
             rng,
-            max_trials=int(max_trials),
-            min_trials=int(min_trials),
-            batch=int(batch),
-            confidence=float(confidence),
+            max_trials=max_trials,
+            min_trials=min_trials,
+            batch=batch,
+            confidence=confidence,
             min_edge=min_edge,
+            keep=4 * max_hypotheses,
+            min_translation=min_translation,
         )
     else:
         rotations, translations, counts = _cliques(
@@ -473,14 +557,18 @@ def feature_hypotheses(
         )
     if len(counts) == 0:
         return []
-    min_translation = DISTINCT_TRANSLATION_VOXELS * voxel
     pool = _distinct_order(rotations, translations, counts, 4 * max_hypotheses, min_translation)
     rotations, translations, counts = _refit(
         rotations[pool], translations[pool], paired_source, paired_target, threshold
     )
     final = _distinct_order(rotations, translations, counts, max_hypotheses, min_translation)
+    rotations, translations, counts = rotations[final], translations[final], counts[final]
+    # Rank by geometric overlap of the keypoint clouds: it tells the true pose from a wrong one
+    # with many consistent (but wrong) correspondences better than the count does.
+    overlap = _overlap(rotations, translations, source_points, cKDTree(target_points), threshold)
+    order = np.lexsort((-counts, -overlap))
     hypotheses = []
-    for index in final:
+    for index in order:
         matrix = to_matrix(rotations[index], translations[index])
         matrix.setflags(write=False)
         hypotheses.append(
@@ -488,6 +576,7 @@ def feature_hypotheses(
                 transformation=matrix,
                 inlier_count=int(counts[index]),
                 inlier_fraction=float(counts[index]) / len(matches),
+                overlap=float(overlap[index]),
             )
         )
     return hypotheses

@@ -32,8 +32,7 @@ from .rotation_search import batched_esm, gaussian_overlap_score, rotation_searc
 STRATEGIES = ("auto", "rotation-search", "features")
 
 #: Points of the source used to search / verify, and of the target indexed for both.
-SEARCH_POINTS = 300
-VERIFY_POINTS = 500
+SEARCH_POINTS = 200
 TARGET_POINTS = 3000
 
 #: Cell size and margin of the search's nearest-neighbour grid, as fractions of the target's
@@ -45,11 +44,12 @@ SEARCH_GRID_MARGIN = 0.25
 SEARCH_ROTATIONS = 96
 SEARCH_ITERATIONS = 12
 
-#: Candidates kept from the rotation search for verification, and verification iterations
-#: (the last ``VERIFY_FINE_ITERATIONS`` at the finest sigma).
+#: Candidates kept from the rotation search for verification.
 VERIFY_CANDIDATES = 16
-VERIFY_ITERATIONS = 16
-VERIFY_FINE_ITERATIONS = 6
+
+#: Verification rounds (successive halving): ``(source points, ESM iterations at the finest sigma,
+#: distinct poses kept)``. Every candidate runs the first round; the survivors the next.
+VERIFY_ROUNDS = ((200, 6, 6), (600, 10, 4))
 
 #: Width of the Gaussian overlap score and floor of the annealed sigma, in target point spacings.
 SCORE_WIDTH_SPACINGS = 2.0
@@ -65,8 +65,8 @@ MAX_CONTENDERS = 3
 
 #: Source points and iterations (all at the finest sigma) of the full-resolution decision between
 #: contenders that scored alike on the subsample.
-DECIDE_POINTS = 3000
-DECIDE_ITERATIONS = 8
+DECIDE_POINTS = 1500
+DECIDE_ITERATIONS = 6
 
 
 @dataclass(frozen=True)
@@ -124,15 +124,25 @@ def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> lis
 
 
 def global_estimate(
-    source: np.ndarray, target: np.ndarray, *, strategy: str = "auto", rng: np.random.Generator
+    source: np.ndarray,
+    target: np.ndarray,
+    *,
+    strategy: str = "auto",
+    rng: np.random.Generator,
+    target_index: NearestNeighbors | None = None,
 ) -> GlobalEstimate:
     """Find ``T_target_source`` from any initial pose (see the module docstring).
 
     ``source`` and ``target`` are validated ``(N, 3)`` / ``(M, 3)`` float64 arrays; ``rng`` drives
-    every random subsample, so a seeded generator makes the result reproducible.
+    every random subsample, so a seeded generator makes the result reproducible. ``target_index``
+    (a :class:`NearestNeighbors` over ``target``) is reused when given.
     """
-    target_work = _subsample(target, TARGET_POINTS, rng)
-    index = NearestNeighbors(target_work)
+    full_index = target_index if target_index is not None else NearestNeighbors(target)
+    if len(target) <= TARGET_POINTS:
+        target_work, index = target, full_index
+    else:
+        target_work = _subsample(target, TARGET_POINTS, rng)
+        index = NearestNeighbors(target_work)
     spacing = index.spacing()
     width = SCORE_WIDTH_SPACINGS * spacing if spacing > 0 else 1e-6 * _diagonal(target)
 
@@ -156,20 +166,29 @@ def global_estimate(
             candidates.append(hypothesis.transformation)
             origins.append("features")
 
-    stacked = np.stack(candidates)
-    rotations, translations, distances = batched_esm(
-        _subsample(source, VERIFY_POINTS, rng), index, stacked[:, :3, :3], stacked[:, :3, 3],
-        iterations=VERIFY_ITERATIONS, sigma_floor=width, fine_iterations=VERIFY_FINE_ITERATIONS,
-    )
-    scores = gaussian_overlap_score(distances, width)
-    verified = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
+    if not candidates:
+        # Only the feature strategy can come back empty (too few feature matches): fall back to
+        # the rotation search rather than fail.
+        return global_estimate(source, target, strategy="rotation-search", rng=rng)
+    # Successive halving: every candidate briefly on few points, the best few longer on more.
+    verified = np.stack(candidates)
+    origins_array = np.array(origins)
+    for points, iterations, keep in VERIFY_ROUNDS:
+        rotations, translations, distances = batched_esm(
+            _subsample(source, points, rng), index, verified[:, :3, :3], verified[:, :3, 3],
+            iterations=iterations, sigma_floor=width, fine_iterations=iterations,
+        )
+        scores = gaussian_overlap_score(distances, width)
+        verified = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
+        survivors = _distinct(verified, np.argsort(-scores, kind="stable"), keep)
+        verified, scores, origins_array = verified[survivors], scores[survivors], origins_array[survivors]
+    origins = list(origins_array)
     kept = _contenders(verified, scores)
     transformations, scores = verified[kept], scores[kept]
     strategies = tuple(origins[index] for index in kept)
     if len(kept) > 1 and scores[1] >= AMBIGUITY_RATIO * scores[0]:
         # Poses this close on a subsample are decided on (up to) the full clouds.
-        full_index = NearestNeighbors(target)
-        full_spacing = full_index.spacing()
+        full_spacing = spacing if index is full_index else full_index.spacing()
         full_width = SCORE_WIDTH_SPACINGS * full_spacing if full_spacing > 0 else width
         rotations, translations, distances = batched_esm(
             _subsample(source, DECIDE_POINTS, rng), full_index, transformations[:, :3, :3], transformations[:, :3, 3],

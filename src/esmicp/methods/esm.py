@@ -97,9 +97,21 @@ class EsmEstimator:
 
     name = "esm"
 
-    def __init__(self, sigma: SigmaSchedule):
+    def __init__(self, sigma: SigmaSchedule, *, start_fine: bool = False):
         self.sigma = sigma
-        self.fine = False
+        self.fine = start_fine
+
+    @property
+    def accelerated(self) -> bool:
+        """True once sigma is fixed (a user's sigma, or the fine phase): the loop may then apply
+        Anderson acceleration (:mod:`esmicp.methods.acceleration`) against :meth:`objective`."""
+        return self.fine or self.sigma.fixed is not None
+
+    def objective(self, distances: np.ndarray) -> float:
+        """The ESM similarity at the current sigma: mean of ``exp(-d^2 / (2 sigma^2))`` (higher is
+        better); meaningful only while :attr:`accelerated` (sigma fixed)."""
+        sigma = self.sigma(distances, fine=True)
+        return float(np.mean(np.exp(-np.square(distances) / (2.0 * sigma * sigma))))
 
     def step(self, moved_source, target, distances, indices) -> Step:
         sigma = self.sigma(distances, fine=self.fine)

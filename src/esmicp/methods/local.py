@@ -17,6 +17,7 @@ from ..core.correspondence import NearestNeighbors
 from ..core.kernels import effective_count
 from ..core.procrustes import apply, project_to_rotation, rotation_angle, to_matrix
 from ..result import IterationRecord
+from .acceleration import AndersonAccelerator
 from .base import StepEstimator
 
 
@@ -75,9 +76,20 @@ def refine(
     history: list[IterationRecord] | None = [] if record_history else None
     previous_rmse: float | None = None
     sigma: float | None = None
+    accelerator = AndersonAccelerator(scale) if getattr(estimator, "accelerated", None) is not None else None
+    fallback: np.ndarray | None = None  # the plain step, while an accelerated proposal is on trial
+    objective_before = 0.0
     for iteration in range(1, max_iterations + 1):
         moved = apply(transformation, source)
         distances, indices = target.query(moved)
+        if fallback is not None:
+            if estimator.objective(distances) < objective_before:
+                # The accelerated proposal fits worse than the pose it came from: take the plain step.
+                transformation, fallback = fallback, None
+                accelerator.reset()
+                moved = apply(transformation, source)
+                distances, indices = target.query(moved)
+            fallback = None
         step = estimator.step(moved, target.points, distances, indices)
         if not (np.isfinite(step.rotation).all() and np.isfinite(step.translation).all()):
             return LocalOutcome(
@@ -85,8 +97,19 @@ def refine(
                 f"stopped at iteration {iteration}: the increment was not finite", _freeze(history),
             )
         sigma = step.sigma
-        transformation = to_matrix(step.rotation, step.translation) @ transformation
-        transformation[:3, :3] = project_to_rotation(transformation[:3, :3])
+        plain = to_matrix(step.rotation, step.translation) @ transformation
+        plain[:3, :3] = project_to_rotation(plain[:3, :3])
+        following = plain
+        if accelerator is not None:
+            if estimator.accelerated:
+                objective_before = estimator.objective(distances)
+                following = accelerator.propose(transformation, plain)
+                if following is not plain:
+                    fallback = plain
+            else:
+                accelerator.reset()
+        increment = following @ np.linalg.inv(transformation)
+        transformation = following
         rmse = float(np.sqrt(np.mean(np.square(distances))))
         if history is not None:
             history.append(_record(iteration, transformation, rmse, step.weights, sigma, len(distances)))
@@ -96,7 +119,9 @@ def refine(
                 return LocalOutcome(
                     transformation, False, iteration, sigma, "stopped by the callback", _freeze(history)
                 )
-        small_step = rotation_angle(step.rotation) < tolerance and np.linalg.norm(step.translation) < tolerance * scale
+        small_step = (
+            rotation_angle(increment[:3, :3]) < tolerance and np.linalg.norm(increment[:3, 3]) < tolerance * scale
+        )
         settled = previous_rmse is not None and abs(previous_rmse - rmse) <= tolerance * previous_rmse
         if small_step or settled:
             reason = "increment below tolerance" if small_step else "RMS distance stopped changing"
