@@ -210,7 +210,7 @@ def test_demo_json_is_seeded(capsys):
 
 
 def test_demo_paper_method_on_copy_and_its_failure_when_resampled(capsys):
-    code, out, _ = run(capsys, "demo", "--method", "esm-paper", "--copy", "--max-angle", "180", "--json")
+    code, out, _ = run(capsys, "demo", "--method", "esm-paper", "--copy", "--init", "identity", "--json")
     assert code == 0 and json.loads(out)["rotation_error_deg"] < 1e-4
     code, out, err = run(capsys, "demo", "--method", "esm-paper", "--seed", "3", "--json")
     report = json.loads(out)

@@ -14,7 +14,11 @@ import numpy as np
 
 from . import __version__
 from .errors import EsmicpError, EsmicpWarning, OutputExistsError
+from .init.global_search import STRATEGIES
 from .io import READ_EXTENSIONS, WRITE_EXTENSIONS
+
+#: ``--init`` values that name a strategy rather than a file.
+INIT_NAMES = ("global", *STRATEGIES, "identity", "none")
 from .methods import METHODS
 
 EXIT_OK = 0
@@ -78,7 +82,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     reg.add_argument("--max-iterations", type=_positive_int, default=100, help="default 100")
     reg.add_argument("--tolerance", type=float, default=1e-8, help="convergence tolerance (default 1e-8)")
-    reg.add_argument("--init", type=Path, metavar="FILE", help="initial T_target_source, 4x4 text (default identity)")
+    reg.add_argument(
+        "--init", default="global", metavar="FILE|STRATEGY",
+        help="where to start: 'global' (default: find the pose from anywhere), 'rotation-search' or "
+        "'features' (global with one strategy), 'identity' (local refinement only), or a file "
+        "holding a 4x4 T_target_source to refine from",
+    )
     reg.add_argument(
         "--inlier-distance", type=_positive_float,
         help="distance (cloud units) that counts as an inlier for fitness (default 3 target point spacings)",
@@ -88,7 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="for mesh files (.off .obj .stl, .ply with faces): sample N points on the surface "
         "instead of taking the vertices (seeded by --seed)",
     )
-    reg.add_argument("--seed", type=int, default=0, help="seed for --sample-points (default 0)")
+    reg.add_argument("--seed", type=int, default=0, help="seed of the global search and --sample-points (default 0)")
     reg.add_argument(
         "--output", type=Path, metavar="ALIGNED_FILE",
         help=f"write the aligned source here ({' '.join(WRITE_EXTENSIONS)})",
@@ -102,14 +111,22 @@ def build_parser() -> argparse.ArgumentParser:
         "demo",
         help="register a built-in shape back onto itself (no files needed)",
         description="Sample a built-in asymmetric shape twice (independent samples, so no point "
-        "pairs exactly), move one by a random rigid transform, register it back and compare with "
-        "the truth. Exit status 0 when the transform is recovered (rotation error < 2 degrees and "
-        "translation error < 2%% of the shape's size), 1 otherwise.",
+        "pairs exactly), move one by a random rigid transform (any rotation, a translation of up to "
+        "5 shape sizes per axis), register it back and compare with the truth. Exit status 0 when the "
+        "transform is recovered (rotation error < 2 degrees and translation error at the shape < 2%% "
+        "of its size), 1 otherwise.",
     )
     demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     demo.add_argument("--points", type=_positive_int, default=2000, help="points per cloud (default 2000)")
     demo.add_argument("--method", choices=list(METHODS), default="esm", help="default esm")
-    demo.add_argument("--max-angle", type=_positive_float, default=45.0, help="largest initial rotation, degrees (default 45)")
+    demo.add_argument(
+        "--max-angle", type=_positive_float, default=180.0,
+        help="largest initial rotation, degrees (default 180: uniform over all rotations)",
+    )
+    demo.add_argument(
+        "--init", default="global", choices=INIT_NAMES,
+        help="where registration starts (default global; 'identity' shows a purely local method)",
+    )
     demo.add_argument(
         "--copy", action="store_true",
         help="make the source a moved copy of the target in the same point order (the paper's protocol)",
@@ -159,9 +176,9 @@ def _run_register(args) -> int:
     _check_output(args.transform_out, args.force, "transform")
     source = io.read_points(args.source, sample_points=args.sample_points, rng=args.seed)
     target = io.read_points(args.target, sample_points=args.sample_points, rng=args.seed + 1)
-    init = io.read_transform(args.init) if args.init is not None else None
+    init = args.init if args.init in INIT_NAMES else io.read_transform(Path(args.init))
     result = register(
-        source, target, method=args.method, init=init, sigma=args.sigma,
+        source, target, method=args.method, init=init, sigma=args.sigma, rng=args.seed,
         max_iterations=args.max_iterations, tolerance=args.tolerance, inlier_distance=args.inlier_distance,
     )
     if args.output is not None:
@@ -185,6 +202,12 @@ def _run_register(args) -> int:
 def _print_summary(result) -> None:
     state = "converged" if result.converged else "NOT converged"
     print(f"method {result.method}: {state}, {result.num_iterations} iterations, {result.runtime_s * 1000:.1f} ms")
+    print(f"  start: {result.init}" + (f", {result.global_candidates} candidate poses verified" if result.global_candidates else ""))
+    if result.ambiguous:
+        print(
+            f"  AMBIGUOUS: a clearly different pose fits almost as well (score ratio {result.runner_up_ratio:.3f}); "
+            "the object may be symmetric or the overlap too small to tell"
+        )
     print(f"  {result.message}")
     sigma = "n/a" if result.sigma is None else f"{result.sigma:.6g}"
     print(
@@ -210,12 +233,12 @@ def _run_demo(args) -> int:
     sample = target.copy() if args.copy else asymmetric_shape(args.points, rng)
     size = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
     # Move the source by G; the transform that brings it back is T_target_source = G^-1.
-    moved_by = to_matrix(random_rotation(rng, args.max_angle), rng.uniform(-0.25, 0.25, 3) * size)
+    moved_by = to_matrix(random_rotation(rng, args.max_angle), rng.uniform(-5.0, 5.0, 3) * size)
     truth = np.linalg.inv(moved_by)
     source = apply(moved_by, sample)
-    result = register(source, target, method=args.method)
+    result = register(source, target, method=args.method, init=args.init, rng=args.seed)
     rotation_error = rotation_error_deg(result.transformation, truth)
-    translation_err = translation_error(result.transformation, truth)
+    translation_err = translation_error(result.transformation, truth, pivot=source.mean(axis=0))
     recovered = rotation_error < 2.0 and translation_err < 0.02 * size
     protocol = "copy (same points, same order)" if args.copy else "resampled (independent samples)"
     if args.json:
@@ -234,7 +257,10 @@ def _run_demo(args) -> int:
         print("true T_target_source =")
         print(_format_matrix(truth))
         verdict = "recovered" if recovered else "NOT recovered"
-        print(f"rotation error {rotation_error:.4g} degrees, translation error {translation_err:.4g} units: {verdict}")
+        print(
+            f"rotation error {rotation_error:.4g} degrees, translation error {translation_err:.4g} units "
+            f"(at the source's centroid): {verdict}"
+        )
     return EXIT_OK if recovered else EXIT_FAILED
 
 

@@ -41,15 +41,15 @@ SEARCH_GRID_CELL = 1.0 / 40.0
 SEARCH_GRID_MARGIN = 0.25
 
 #: Starting rotations of the rotation search and their ESM iterations.
-SEARCH_ROTATIONS = 96
-SEARCH_ITERATIONS = 12
+SEARCH_ROTATIONS = 64
+SEARCH_ITERATIONS = 10
 
 #: Candidates kept from the rotation search for verification.
 VERIFY_CANDIDATES = 16
 
 #: Verification rounds (successive halving): ``(source points, ESM iterations at the finest sigma,
 #: distinct poses kept)``. Every candidate runs the first round; the survivors the next.
-VERIFY_ROUNDS = ((200, 6, 6), (600, 10, 4))
+VERIFY_ROUNDS = ((200, 6, 6), (400, 8, 4))
 
 #: Width of the Gaussian overlap score and floor of the annealed sigma, in target point spacings.
 SCORE_WIDTH_SPACINGS = 2.0
@@ -65,8 +65,8 @@ MAX_CONTENDERS = 3
 
 #: Source points and iterations (all at the finest sigma) of the full-resolution decision between
 #: contenders that scored alike on the subsample.
-DECIDE_POINTS = 1500
-DECIDE_ITERATIONS = 6
+DECIDE_POINTS = 800
+DECIDE_ITERATIONS = 5
 
 
 @dataclass(frozen=True)
