@@ -54,6 +54,10 @@ VERIFY_ROUNDS = ((200, 6, 6), (400, 8, 4))
 #: Width of the Gaussian overlap score and floor of the annealed sigma, in target point spacings.
 SCORE_WIDTH_SPACINGS = 2.0
 
+#: ``"auto"`` stops after the rotation search when its best verified pose puts at least this soft
+#: fraction of the source on the target, unambiguously (full overlap: features would not help).
+CONFIDENT_SCORE = 0.8
+
 #: Two poses are distinct when their rotations differ by more than this (degrees).
 DISTINCT_ROTATION_DEG = 10.0
 
@@ -123,6 +127,19 @@ def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> lis
     return kept
 
 
+@dataclass
+class _Workspace:
+    """What every stage of one global search shares."""
+
+    source: np.ndarray
+    target: np.ndarray
+    rng: np.random.Generator
+    full_index: NearestNeighbors
+    index: NearestNeighbors  # over ``target`` or a subsample of it
+    spacing: float
+    width: float
+
+
 def global_estimate(
     source: np.ndarray,
     target: np.ndarray,
@@ -136,70 +153,91 @@ def global_estimate(
     ``source`` and ``target`` are validated ``(N, 3)`` / ``(M, 3)`` float64 arrays; ``rng`` drives
     every random subsample, so a seeded generator makes the result reproducible. ``target_index``
     (a :class:`NearestNeighbors` over ``target``) is reused when given.
+
+    ``"auto"`` runs the rotation search first; when its verified best pose already puts at least
+    ``CONFIDENT_SCORE`` of the source on the target and no distinct pose comes close, that is
+    final (clouds that overlap fully, as most objects do). Otherwise the feature candidates join,
+    and everything is verified together.
     """
     full_index = target_index if target_index is not None else NearestNeighbors(target)
     if len(target) <= TARGET_POINTS:
-        target_work, index = target, full_index
+        index = full_index
     else:
-        target_work = _subsample(target, TARGET_POINTS, rng)
-        index = NearestNeighbors(target_work)
+        index = NearestNeighbors(_subsample(target, TARGET_POINTS, rng))
     spacing = index.spacing()
     width = SCORE_WIDTH_SPACINGS * spacing if spacing > 0 else 1e-6 * _diagonal(target)
+    work = _Workspace(source, target, rng, full_index, index, spacing, width)
 
     candidates: list[np.ndarray] = []
     origins: list[str] = []
     if strategy in ("auto", "rotation-search"):
-        diagonal = _diagonal(target_work)
-        grid = NearestGrid(target_work, SEARCH_GRID_CELL * diagonal, margin=SEARCH_GRID_MARGIN * diagonal)
-        found = rotation_search(
-            _subsample(source, SEARCH_POINTS, rng), grid,
-            rotations=SEARCH_ROTATIONS, iterations=SEARCH_ITERATIONS, score_width=width, sigma_floor=width,
-        )
-        for position in _distinct(found.transformations, np.arange(len(found.scores)), VERIFY_CANDIDATES):
-            candidates.append(found.transformations[position])
-            origins.append("rotation-search")
+        candidates += _rotation_candidates(work)
+        origins += ["rotation-search"] * (len(candidates) - len(origins))
+    if strategy == "auto":
+        estimate = _verify(work, candidates, origins)
+        if estimate.score >= CONFIDENT_SCORE and not estimate.ambiguous:
+            return estimate
     if strategy in ("auto", "features"):
-        from .feature_matching import feature_hypotheses
-
-        voxel = _feature_voxel(target)
-        for hypothesis in feature_hypotheses(source, target, voxel=voxel, rng=rng):
-            candidates.append(hypothesis.transformation)
-            origins.append("features")
-
+        found = _feature_candidates(work)
+        candidates += found
+        origins += ["features"] * len(found)
     if not candidates:
         # Only the feature strategy can come back empty (too few feature matches): fall back to
         # the rotation search rather than fail.
-        return global_estimate(source, target, strategy="rotation-search", rng=rng)
-    # Successive halving: every candidate briefly on few points, the best few longer on more.
+        return global_estimate(source, target, strategy="rotation-search", rng=rng, target_index=full_index)
+    return _verify(work, candidates, origins)
+
+
+def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
+    target = work.index.points
+    diagonal = _diagonal(target)
+    grid = NearestGrid(target, SEARCH_GRID_CELL * diagonal, margin=SEARCH_GRID_MARGIN * diagonal)
+    found = rotation_search(
+        _subsample(work.source, SEARCH_POINTS, work.rng), grid,
+        rotations=SEARCH_ROTATIONS, iterations=SEARCH_ITERATIONS, score_width=work.width, sigma_floor=work.width,
+    )
+    return [found.transformations[k] for k in _distinct(found.transformations, np.arange(len(found.scores)), VERIFY_CANDIDATES)]
+
+
+def _feature_candidates(work: _Workspace) -> list[np.ndarray]:
+    from .feature_matching import feature_hypotheses
+
+    hypotheses = feature_hypotheses(work.source, work.target, voxel=_feature_voxel(work.target), rng=work.rng)
+    return [hypothesis.transformation for hypothesis in hypotheses]
+
+
+def _batched_verification(work, index, source_points, transformations, iterations, width):
+    rotations, translations, distances = batched_esm(
+        source_points, index, transformations[:, :3, :3], transformations[:, :3, 3],
+        iterations=iterations, sigma_floor=width, fine_iterations=iterations,
+    )
+    refined = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
+    return refined, gaussian_overlap_score(distances, width)
+
+
+def _verify(work: _Workspace, candidates: list[np.ndarray], origins: list[str]) -> GlobalEstimate:
+    """Successive halving over ``candidates``, then a full-resolution decision between poses that
+    still score alike."""
     verified = np.stack(candidates)
     origins_array = np.array(origins)
     for points, iterations, keep in VERIFY_ROUNDS:
-        rotations, translations, distances = batched_esm(
-            _subsample(source, points, rng), index, verified[:, :3, :3], verified[:, :3, 3],
-            iterations=iterations, sigma_floor=width, fine_iterations=iterations,
+        verified, scores = _batched_verification(
+            work, work.index, _subsample(work.source, points, work.rng), verified, iterations, work.width
         )
-        scores = gaussian_overlap_score(distances, width)
-        verified = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
         survivors = _distinct(verified, np.argsort(-scores, kind="stable"), keep)
         verified, scores, origins_array = verified[survivors], scores[survivors], origins_array[survivors]
-    origins = list(origins_array)
     kept = _contenders(verified, scores)
-    transformations, scores = verified[kept], scores[kept]
-    strategies = tuple(origins[index] for index in kept)
+    transformations, scores, origins_array = verified[kept], scores[kept], origins_array[kept]
     if len(kept) > 1 and scores[1] >= AMBIGUITY_RATIO * scores[0]:
-        # Poses this close on a subsample are decided on (up to) the full clouds.
-        full_spacing = spacing if index is full_index else full_index.spacing()
-        full_width = SCORE_WIDTH_SPACINGS * full_spacing if full_spacing > 0 else width
-        rotations, translations, distances = batched_esm(
-            _subsample(source, DECIDE_POINTS, rng), full_index, transformations[:, :3, :3], transformations[:, :3, 3],
-            iterations=DECIDE_ITERATIONS, sigma_floor=full_width, fine_iterations=DECIDE_ITERATIONS,
+        full_spacing = work.spacing if work.index is work.full_index else work.full_index.spacing()
+        full_width = SCORE_WIDTH_SPACINGS * full_spacing if full_spacing > 0 else work.width
+        refined, decided = _batched_verification(
+            work, work.full_index, _subsample(work.source, DECIDE_POINTS, work.rng), transformations,
+            DECIDE_ITERATIONS, full_width,
         )
-        decided = gaussian_overlap_score(distances, full_width)
-        refined = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
         order = _contenders(refined, decided)
-        transformations, scores = refined[order], decided[order]
-        strategies = tuple(strategies[index] for index in order)
-    return GlobalEstimate(transformations, scores, strategies, candidates=len(candidates))
+        transformations, scores, origins_array = refined[order], decided[order], origins_array[order]
+    return GlobalEstimate(transformations, scores, tuple(origins_array), candidates=len(candidates))
 
 
 def _contenders(transformations: np.ndarray, scores: np.ndarray) -> list[int]:
