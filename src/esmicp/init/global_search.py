@@ -19,7 +19,7 @@ the overlap too small to decide.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -173,19 +173,26 @@ def global_estimate(
     if strategy in ("auto", "rotation-search"):
         candidates += _rotation_candidates(work)
         origins += ["rotation-search"] * (len(candidates) - len(origins))
+    searched = len(candidates)
     if strategy == "auto":
         estimate = _verify(work, candidates, origins)
         if estimate.score >= CONFIDENT_SCORE and not estimate.ambiguous:
             return estimate
+        # Keep only the verified contenders of the rotation search for the joint verification.
+        candidates, origins = list(estimate.transformations), list(estimate.strategies)
+    found_count = 0
     if strategy in ("auto", "features"):
         found = _feature_candidates(work)
+        found_count = len(found)
         candidates += found
         origins += ["features"] * len(found)
     if not candidates:
         # Only the feature strategy can come back empty (too few feature matches): fall back to
         # the rotation search rather than fail.
         return global_estimate(source, target, strategy="rotation-search", rng=rng, target_index=full_index)
-    return _verify(work, candidates, origins)
+    estimate = _verify(work, candidates, origins)
+    # Count each candidate pose once (the re-verified rotation-search contenders are not new ones).
+    return replace(estimate, candidates=searched + found_count)
 
 
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
