@@ -49,7 +49,7 @@ VERIFY_CANDIDATES = 16
 
 #: Verification rounds (successive halving): ``(source points, ESM iterations at the finest sigma,
 #: distinct poses kept)``. Every candidate runs the first round; the survivors the next.
-VERIFY_ROUNDS = ((200, 6, 6), (400, 8, 4))
+VERIFY_ROUNDS = ((200, 6, 6), (400, 14, 4))
 
 #: Width of the Gaussian overlap score and floor of the annealed sigma, in target point spacings.
 SCORE_WIDTH_SPACINGS = 2.0
