@@ -1,0 +1,112 @@
+"""Building blocks of the global search and of the fast local loop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import esmicp
+from esmicp.core.correspondence import NearestNeighbors
+from esmicp.core.nearest_grid import NearestGrid
+from esmicp.init import global_search
+from esmicp.init.rotation_search import batched_esm, batched_rotation_from_cross_covariance, so3_grid
+from esmicp.methods import EsmEstimator, SigmaSchedule
+from esmicp.methods.local import refine
+from esmicp.metrics import random_rotation, rotation_error_deg
+from esmicp.protocols import make_trial
+from esmicp.shapes import asymmetric_shape
+
+
+def test_nearest_grid_returns_an_almost_nearest_point_with_its_exact_distance():
+    rng = np.random.default_rng(0)
+    target = asymmetric_shape(1500, rng)
+    queries = asymmetric_shape(5000, rng) @ random_rotation(rng).T * 1.3
+    cell = 0.03
+    grid = NearestGrid(target, cell, margin=0.5)
+    distances, indices = grid.query(queries)
+    np.testing.assert_allclose(distances, np.linalg.norm(queries - target[indices], axis=1))
+    exact, _ = cKDTree(target).query(queries)
+    assert (distances >= exact - 1e-12).all()
+    inside = (queries > target.min(axis=0) - 0.5).all(axis=1) & (queries < target.max(axis=0) + 0.5).all(axis=1)
+    assert (distances[inside] - exact[inside]).max() <= 2 * np.sqrt(3) * cell
+
+
+def test_batched_kabsch_matches_one_at_a_time():
+    from esmicp.core.procrustes import rotation_from_cross_covariance
+
+    covariances = np.random.default_rng(1).normal(size=(50, 3, 3))
+    batched = batched_rotation_from_cross_covariance(covariances)
+    for one, covariance in zip(batched, covariances):
+        np.testing.assert_allclose(one, rotation_from_cross_covariance(covariance), atol=1e-12)
+
+
+def test_batched_esm_pulls_every_nearby_start_to_the_truth():
+    rng = np.random.default_rng(2)
+    target = asymmetric_shape(2000, rng)
+    truth = random_rotation(rng, 180.0)
+    source = target @ truth  # so that R_true = truth maps source onto target
+    starts = np.stack([random_rotation(rng, 25.0) @ truth for _ in range(8)])
+    index = NearestNeighbors(target)
+    rotations, translations, distances = batched_esm(
+        source, index, starts, np.zeros((8, 3)), iterations=30, sigma_floor=2 * index.spacing()
+    )
+    for rotation in rotations:
+        assert np.degrees(np.arccos(np.clip((np.trace(rotation.T @ truth) - 1) / 2, -1, 1))) < 0.5
+    assert distances.shape == (8, len(source))
+
+
+class _PlainEsm(EsmEstimator):
+    """ESM without Anderson acceleration, for comparison."""
+
+    @property
+    def accelerated(self) -> bool:
+        return False
+
+
+def test_anderson_acceleration_reaches_an_equally_good_pose_in_fewer_iterations():
+    rng = np.random.default_rng(3)
+    target = asymmetric_shape(3000, rng)
+    truth = random_rotation(rng, 15.0)
+    source = asymmetric_shape(3000, rng) @ truth  # resampled: the optimum is flat near the truth
+    index = NearestNeighbors(target)
+    schedule = SigmaSchedule.constant(2 * index.spacing())
+    common = dict(init=np.eye(4), max_iterations=400, tolerance=1e-10, scale=3.0)
+    fast = refine(source, index, EsmEstimator(schedule), **common)
+    plain = refine(source, index, _PlainEsm(schedule), **common)
+    assert fast.converged and plain.converged
+    assert fast.num_iterations < plain.num_iterations, (fast.num_iterations, plain.num_iterations)
+    objective = EsmEstimator(schedule).objective
+    fast_objective = objective(index.query(source @ fast.transformation[:3, :3].T + fast.transformation[:3, 3])[0])
+    plain_objective = objective(index.query(source @ plain.transformation[:3, :3].T + plain.transformation[:3, 3])[0])
+    assert fast_objective >= plain_objective * (1 - 1e-4), (fast_objective, plain_objective)
+    true_pose = np.eye(4)
+    true_pose[:3, :3] = truth
+    assert rotation_error_deg(fast.transformation, true_pose) < 0.5
+    assert rotation_error_deg(fast.transformation, plain.transformation) < 0.2
+
+
+def test_auto_stops_after_the_rotation_search_on_a_confident_full_overlap(monkeypatch):
+    called = []
+    monkeypatch.setattr(global_search, "_feature_candidates", lambda work: called.append(1) or [])
+    rng = np.random.default_rng(4)
+    target = asymmetric_shape(2000, rng)
+    source = target[rng.permutation(len(target))] @ random_rotation(rng).T
+    estimate = global_search.global_estimate(source, target, rng=np.random.default_rng(0))
+    assert estimate.score >= global_search.CONFIDENT_SCORE
+    assert called == [] and set(estimate.strategies) == {"rotation-search"}
+
+
+def test_features_strategy_falls_back_to_the_rotation_search_when_no_match_is_found(monkeypatch):
+    monkeypatch.setattr(global_search, "_feature_candidates", lambda work: [])
+    trial = make_trial("shuffled", asymmetric_shape(3000, 5), seed=1, index=0)
+    result = esmicp.register(trial.source, trial.target, init="features")
+    assert result.init == "global:rotation-search"
+    assert rotation_error_deg(result.transformation, trial.T_target_source) < 1.0
+
+
+@pytest.mark.parametrize("count", [1, 7, 64])
+def test_so3_grid_is_made_of_rotations(count):
+    grid = so3_grid(count)
+    assert grid.shape == (count, 3, 3)
+    np.testing.assert_allclose(np.linalg.det(grid), 1.0)
