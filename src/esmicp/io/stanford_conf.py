@@ -42,10 +42,11 @@ def _pose(path, line_number: int, words: list[str]) -> np.ndarray:
 
 def _entries(path: Path) -> list[tuple[str, str, np.ndarray]]:
     """``(name, file, T_world_scan)`` per scan line, in file order; name = the file's stem."""
+    from . import _check_input_file
+
+    _check_input_file(path)
     try:
         text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise PointCloudFileError(path, "no such file") from None
     except UnicodeDecodeError:
         raise PointCloudFileError(path, "not a text file") from None
     except OSError as exc:
