@@ -56,7 +56,7 @@ VERIFY_CANDIDATES = 16
 
 #: Verification rounds (successive halving): ``(source points, ESM iterations at the finest sigma,
 #: distinct poses kept)``. Every candidate runs the first round; the survivors the next.
-VERIFY_ROUNDS = ((200, 6, 6), (400, 14, 4))
+VERIFY_ROUNDS = ((200, 6, 6), (400, 12, 4))
 
 #: Width of the Gaussian overlap score and floor of the annealed sigma, in target point spacings.
 SCORE_WIDTH_SPACINGS = 2.0
@@ -181,12 +181,14 @@ def global_estimate(
         candidates += _rotation_candidates(work)
         origins += ["rotation-search"] * (len(candidates) - len(origins))
     searched = len(candidates)
+    carried = None
     if strategy == "auto":
         estimate = _verify(work, candidates, origins)
         if estimate.score >= CONFIDENT_SCORE and not estimate.ambiguous:
             return estimate
-        # Keep only the verified contenders of the rotation search for the joint verification.
-        candidates, origins = list(estimate.transformations), list(estimate.strategies)
+        # The rotation search's verified contenders join the feature candidates in the last round.
+        carried = (estimate.transformations, estimate.scores, list(estimate.strategies))
+        candidates, origins = [], []
     found_count = 0
     if strategy in ("auto", "features"):
         found = _feature_candidates(work)
@@ -194,10 +196,12 @@ def global_estimate(
         candidates += found
         origins += ["features"] * len(found)
     if not candidates:
+        if carried is not None:
+            return estimate
         # Only the feature strategy can come back empty (too few feature matches): fall back to
         # the rotation search rather than fail.
         return global_estimate(source, target, strategy="rotation-search", rng=rng, target_index=full_index)
-    estimate = _verify(work, candidates, origins)
+    estimate = _verify(work, candidates, origins, carried=carried)
     # Count each candidate pose once (the re-verified rotation-search contenders are not new ones).
     return replace(estimate, candidates=searched + found_count)
 
@@ -229,9 +233,16 @@ def _batched_verification(index, source_points, transformations, iterations, wid
     return refined, gaussian_overlap_score(distances, width)
 
 
-def _verify(work: _Workspace, candidates: list[np.ndarray], origins: list[str]) -> GlobalEstimate:
+def _verify(
+    work: _Workspace,
+    candidates: list[np.ndarray],
+    origins: list[str],
+    *,
+    carried: tuple[np.ndarray, np.ndarray, list[str]] | None = None,
+) -> GlobalEstimate:
     """Successive halving over ``candidates``, then a full-resolution decision between poses that
-    still score alike."""
+    still score alike. ``carried`` poses (with their scores and origins), verified before by the
+    same rounds, join the survivors after the last round."""
     verified = np.stack(candidates)
     origins_array = np.array(origins)
     for points, iterations, keep in VERIFY_ROUNDS:
@@ -240,6 +251,10 @@ def _verify(work: _Workspace, candidates: list[np.ndarray], origins: list[str]) 
         )
         survivors = _distinct(verified, np.argsort(-scores, kind="stable"), keep)
         verified, scores, origins_array = verified[survivors], scores[survivors], origins_array[survivors]
+    if carried is not None:
+        verified = np.concatenate([verified, carried[0]])
+        scores = np.concatenate([scores, carried[1]])
+        origins_array = np.concatenate([origins_array, np.array(carried[2])])
     kept = _contenders(verified, scores)
     transformations, scores, origins_array = verified[kept], scores[kept], origins_array[kept]
     if len(kept) > 1 and scores[1] >= AMBIGUITY_RATIO * scores[0]:
