@@ -16,7 +16,7 @@ from .methods.esm_paper import PAPER_SIGMA
 from .init.global_search import STRATEGIES, global_estimate
 from .methods.local import Callback, refine
 from .result import RegistrationResult
-from .types import as_points, as_positive, as_real, as_transform, check_not_degenerate
+from .types import as_count, as_points, as_positive, as_real, as_transform, check_not_degenerate
 
 logger = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ def register(
         sigma = as_positive(sigma, "sigma")
     if inlier_distance is not None:
         inlier_distance = as_positive(inlier_distance, "inlier_distance")
-    max_iterations = _as_count(max_iterations, "max_iterations")
+    max_iterations = as_count(max_iterations, "max_iterations")
     tolerance = _as_tolerance(tolerance)
     generator = _as_generator(rng)
 
@@ -195,10 +195,6 @@ def _warn_if_not_index_aligned(indices: np.ndarray) -> None:
         )
 
 
-def _as_count(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise InvalidInputError(f"{name}: expected a whole number >= 1, got {value!r}")
-    return int(value)
 
 
 #: Seed of the global search when ``rng`` is None (results are reproducible by default).

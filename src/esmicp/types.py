@@ -121,6 +121,14 @@ def as_real(value, name: str) -> float:
     return float(value)
 
 
+def as_count(value, name: str, minimum: int = 1) -> int:
+    """Return a whole number (Python or NumPy int; not a bool, float or string) >= ``minimum``, or
+    raise :class:`InvalidInputError`."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise InvalidInputError(f"{name}: expected a whole number >= {minimum}, got {value!r}")
+    return int(value)
+
+
 def as_positive(value, name: str) -> float:
     """Return ``value`` as a finite float > 0, or raise :class:`InvalidInputError`."""
     number = as_real(value, name)

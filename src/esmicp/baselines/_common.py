@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import importlib
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import InvalidInputError
-from ..types import as_points, as_positive, check_not_degenerate
+from ..types import as_count, as_points, as_positive, check_not_degenerate
 from . import INSTALL_HINT, MissingDependencyError
 
 #: Default voxel size, as a fraction of the target's bounding-box diagonal. ModelNet40 objects
@@ -26,6 +27,10 @@ NORMAL_RADIUS_VOXELS = 2.0
 
 #: Default cap on the ICP refinement's iterations.
 ICP_MAX_ITERATIONS = 50
+
+
+#: The package name to ask for when Open3D cannot be imported.
+OPEN3D_PACKAGE = "open3d (PyPI: open3d-cpu or open3d)"
 
 
 def require(module: str, package: str):
@@ -59,10 +64,28 @@ def voxel_for(target: np.ndarray, voxel_size: float | None) -> float:
     return as_positive(voxel_size, "voxel_size")
 
 
-def iterations(value, name: str = "max_iterations") -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise InvalidInputError(f"{name}: expected a whole number >= 1, got {value!r}")
-    return int(value)
+@dataclass(frozen=True)
+class Inputs:
+    """An adapter's arguments, checked: clouds, voxel (cloud units), iteration cap, library seed."""
+
+    source: np.ndarray
+    target: np.ndarray
+    voxel: float
+    max_iterations: int
+    seed: int
+
+
+def checked_inputs(source, target, voxel_size, max_iterations, rng) -> Inputs:
+    """Every adapter's argument checks, in one place (see :func:`prepare`, :func:`voxel_for`,
+    :func:`seed_from`)."""
+    source_points, target_points = prepare(source, target)
+    return Inputs(
+        source_points,
+        target_points,
+        voxel_for(target_points, voxel_size),
+        as_count(max_iterations, "max_iterations"),
+        seed_from(rng),
+    )
 
 
 def seed_from(rng) -> int:

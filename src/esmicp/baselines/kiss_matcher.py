@@ -31,13 +31,11 @@ from ._common import (
     ICP_MAX_ITERATIONS,
     NORMAL_RADIUS_VOXELS,
     check_refinement,
-    iterations,
+    checked_inputs,
     o3d_cloud,
     o3d_icp,
-    prepare,
+    OPEN3D_PACKAGE,
     require,
-    seed_from,
-    voxel_for,
 )
 
 NAME = "kiss-matcher-icp"
@@ -76,12 +74,10 @@ def register(
         When kiss_matcher or open3d cannot be imported.
     """
     kiss_matcher = require("kiss_matcher", "kiss-matcher")
-    o3d = require("open3d", "open3d (PyPI: open3d-cpu or open3d)")
-    source_points, target_points = prepare(source, target)
-    voxel = voxel_for(target_points, voxel_size)
-    max_iterations = iterations(max_iterations)
+    o3d = require("open3d", OPEN3D_PACKAGE)
+    inputs = checked_inputs(source, target, voxel_size, max_iterations, rng)  # the seed goes unused
+    source_points, target_points, voxel = inputs.source, inputs.target, inputs.voxel
     refinement = check_refinement(refinement)
-    seed_from(rng)  # validate only
 
     start = time.perf_counter()
     # Centred (float32 keeps the precision of far-from-origin coordinates: the trials move
@@ -103,7 +99,7 @@ def register(
         o3d_cloud(o3d, target_points),
         coarse,
         ICP_DISTANCE_VOXELS * voxel,
-        max_iterations,
+        inputs.max_iterations,
         refinement=refinement,
         normal_radius=NORMAL_RADIUS_VOXELS * voxel,
     )

@@ -30,13 +30,11 @@ from ._common import (
     ICP_MAX_ITERATIONS,
     NORMAL_RADIUS_VOXELS,
     check_refinement,
-    iterations,
+    checked_inputs,
     o3d_cloud,
     o3d_icp,
-    prepare,
+    OPEN3D_PACKAGE,
     require,
-    seed_from,
-    voxel_for,
 )
 
 NAME = "open3d-ransac-fpfh-icp"
@@ -92,16 +90,14 @@ def register(
     MissingDependencyError
         When open3d cannot be imported.
     """
-    o3d = require("open3d", "open3d (PyPI: open3d-cpu or open3d)")
-    source_points, target_points = prepare(source, target)
-    voxel = voxel_for(target_points, voxel_size)
-    max_iterations = iterations(max_iterations)
+    o3d = require("open3d", OPEN3D_PACKAGE)
+    inputs = checked_inputs(source, target, voxel_size, max_iterations, rng)
+    source_points, target_points, voxel = inputs.source, inputs.target, inputs.voxel
     refinement = check_refinement(refinement)
-    seed = seed_from(rng)
     registration = o3d.pipelines.registration
 
     start = time.perf_counter()
-    o3d.utility.random.seed(seed)
+    o3d.utility.random.seed(inputs.seed)
     source_cloud = o3d_cloud(o3d, source_points)
     target_cloud = o3d_cloud(o3d, target_points)
     source_down, source_feature = fpfh(o3d, source_cloud, voxel)
@@ -128,7 +124,7 @@ def register(
         target_cloud,
         coarse.transformation,
         ICP_DISTANCE_VOXELS * voxel,
-        max_iterations,
+        inputs.max_iterations,
         refinement=refinement,
         normal_radius=NORMAL_RADIUS_VOXELS * voxel,
     )
@@ -136,7 +132,7 @@ def register(
 
     found = len(coarse.correspondence_set) >= 3
     notes = (
-        f"voxel={voxel:.6g}, seed={seed}, downsampled {len(source_down.points)}/{len(target_down.points)} pts; "
+        f"voxel={voxel:.6g}, seed={inputs.seed}, downsampled {len(source_down.points)}/{len(target_down.points)} pts; "
         f"ransac fitness={coarse.fitness:.3f} inliers={len(coarse.correspondence_set)}; "
         f"{refinement} icp fitness={fine.fitness:.3f} rmse={fine.inlier_rmse:.3g}"
     )

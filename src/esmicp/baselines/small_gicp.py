@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from . import BaselineResult
-from ._common import iterations, prepare, require, seed_from, voxel_for
+from ._common import checked_inputs, require
 
 NAME = "small-gicp"
 
@@ -44,10 +44,8 @@ def register(
         When small_gicp cannot be imported.
     """
     small_gicp = require("small_gicp", "small-gicp")
-    source_points, target_points = prepare(source, target)
-    voxel = voxel_for(target_points, voxel_size)
-    max_iterations = iterations(max_iterations)
-    seed_from(rng)  # validate only
+    inputs = checked_inputs(source, target, voxel_size, max_iterations, rng)  # the seed goes unused
+    source_points, target_points, voxel = inputs.source, inputs.target, inputs.voxel
 
     start = time.perf_counter()
     result = small_gicp.align(
@@ -57,7 +55,7 @@ def register(
         downsampling_resolution=float(voxel),
         max_correspondence_distance=float(CORRESPONDENCE_DISTANCE_VOXELS * voxel),
         num_threads=1,
-        max_iterations=max_iterations,
+        max_iterations=inputs.max_iterations,
         translation_epsilon=float(1e-3 * voxel),
     )
     runtime = time.perf_counter() - start

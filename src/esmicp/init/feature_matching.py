@@ -53,7 +53,7 @@ from scipy.spatial import cKDTree
 
 from ..core.procrustes import to_matrix
 from ..errors import InvalidInputError
-from ..types import as_points, as_positive, as_real
+from ..types import as_count, as_points, as_positive, as_real
 from .features import dense_point_mask, estimate_normals, fpfh, voxel_grid
 
 #: Below this many mutual matches, :func:`match_features` falls back to one-way matches.
@@ -416,11 +416,6 @@ def _overlap(rotations, translations, source, target_tree, threshold) -> np.ndar
 # The public entry point
 
 
-def _as_count(value, name: str, minimum: int) -> int:
-    """``value`` as an int >= ``minimum``, or :class:`InvalidInputError`."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise InvalidInputError(f"{name}: expected an integer >= {minimum}, got {value!r}")
-    return int(value)
 
 
 def _keypoints(
@@ -512,10 +507,10 @@ def feature_hypotheses(
     if not 0.0 < confidence < 1.0:
         raise InvalidInputError(f"confidence: must be in (0, 1), got {confidence!r}")
     rng = np.random.default_rng(rng)
-    max_hypotheses = _as_count(max_hypotheses, "max_hypotheses", 1)
-    max_trials = _as_count(max_trials, "max_trials", 0)
-    min_trials = _as_count(min_trials, "min_trials", 0)
-    batch = _as_count(batch, "batch", 1)
+    max_hypotheses = as_count(max_hypotheses, "max_hypotheses", 1)
+    max_trials = as_count(max_trials, "max_trials", 0)
+    min_trials = as_count(min_trials, "min_trials", 0)
+    batch = as_count(batch, "batch", 1)
 
     if normal_radius is None:
         normal_radius = NORMAL_RADIUS_VOXELS * voxel
