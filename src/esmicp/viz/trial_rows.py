@@ -2,6 +2,11 @@
 trials: a small, fast stand-in for a full benchmark, so that the plots can be tried and tested on
 measured figures. The full benchmark suite writes the same rows.
 
+The trials (:func:`angle_trial`) spread the initial rotation evenly over 0-180 degrees (a rotation
+uniform on SO(3) would put most trials near 180 degrees) and rotate the source about its own
+centroid with a small shift, so that local methods started from the identity are tested on the
+rotation they must undo.
+
 ``python -m esmicp.viz.trial_rows OUT_DIR`` writes ``rows.jsonl`` and the plots there.
 """
 
@@ -19,13 +24,51 @@ import numpy as np
 from ..api import register
 from ..errors import EsmicpError
 from ..metrics import paper_errors, rotation_error_deg, strict_success, translation_error, up_to_symmetry_success
-from ..protocols import make_trial
+from ..core.procrustes import apply, to_matrix
+from ..protocols import Trial, bounding_box_diagonal, rigid_inverse
 from ..shapes import asymmetric_shape
 
 #: Methods, protocols and sigmas (fractions of the target's diagonal) of :func:`local_trial_rows`.
 DEFAULT_METHODS = ("esm", "icp", "esm-paper")
 DEFAULT_PROTOCOLS = ("copy", "resampled")
 DEFAULT_SIGMA_FRACTIONS = (0.01, 0.03, 0.1, 0.3, 1.0)
+
+
+#: Protocols :func:`angle_trial` builds (their meaning as in :mod:`esmicp.protocols`).
+ANGLE_PROTOCOLS = ("copy", "shuffled", "resampled")
+
+
+def angle_trial(protocol: str, cloud, angle_deg: float, rng: np.random.Generator, *, name: str = "", seed=None) -> Trial:
+    """A trial of ``protocol`` whose source is rotated by exactly ``angle_deg`` degrees (random
+    axis) about its centroid and shifted by up to 5% of the diagonal. ``copy``: the source is the
+    cloud; ``shuffled``: the same, point order shuffled; ``resampled``: the cloud split in two
+    random halves, target and source."""
+    cloud = np.asarray(cloud, dtype=np.float64)
+    if protocol not in ANGLE_PROTOCOLS:
+        raise ValueError(f"protocol: expected one of {', '.join(ANGLE_PROTOCOLS)}, got {protocol!r}")
+    target, source_object = cloud, cloud
+    if protocol == "resampled":
+        order = rng.permutation(len(cloud))
+        half = len(cloud) // 2
+        target, source_object = cloud[order[:half]], cloud[order[half : 2 * half]]
+    axis = rng.normal(size=3)
+    rotation = _about(axis, angle_deg)
+    centroid = source_object.mean(axis=0)
+    shift = rng.uniform(-0.05, 0.05, 3) * bounding_box_diagonal(target)
+    moved_by = to_matrix(rotation, centroid - rotation @ centroid + shift)
+    source = apply(moved_by, source_object)
+    if protocol == "shuffled":
+        source = source[rng.permutation(len(source))]
+    target, truth = np.array(target), rigid_inverse(moved_by)
+    for array in (source, target, truth):
+        array.setflags(write=False)
+    return Trial(protocol, name, source, target, truth, seed, bounding_box_diagonal(target))
+
+
+def _about(axis, angle_deg: float) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.radians(angle_deg) * axis / np.linalg.norm(axis)).as_matrix()
 
 
 def trial_row(trial, method: str, *, dataset: str, index: int, seed: int, sigma=None, max_iterations: int = 100) -> dict:
@@ -75,23 +118,29 @@ def local_trial_rows(
     sigma_fractions: Sequence[float] = DEFAULT_SIGMA_FRACTIONS,
     dataset: str = "synthetic",
 ) -> list[dict]:
-    """Rows of every method on ``trials`` seeded trials per protocol (clouds: name -> (N, 3); the
-    built-in shape by default), plus a sigma sweep of ``sweep_method`` (fixed sigma = fraction x
-    the target diagonal) on the first protocol's trials. All from the identity."""
+    """Rows of every method on ``trials`` trials per protocol (clouds: name -> (N, 3) points, used
+    as given; default: the built-in shape at ``points`` points; resampled halves have half), the initial rotations
+    spread evenly over (0, 180) degrees (:func:`angle_trial`), plus a sigma sweep of
+    ``sweep_method`` on the first protocol's trials (fixed sigma = fraction x the cloud's diagonal,
+    the same value on every trial of a cloud). All from the identity. Trial ``index`` of a
+    protocol draws from ``SeedSequence(seed, spawn_key=(protocol number, index))``."""
     if clouds is None:
-        clouds = {"built-in shape": asymmetric_shape(2 * points, np.random.default_rng(seed))}
+        clouds = {"built-in shape": asymmetric_shape(points, np.random.default_rng(seed))}
     names = list(clouds)
     rows = []
-    for protocol in protocols:
+    for number, protocol in enumerate(protocols):
         for index in range(trials):
             name = names[index % len(names)]
-            trial = make_trial(protocol, clouds[name], seed, index, name=name, points=points)
+            rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(number, index)))
+            angle = (index + 0.5) * 180.0 / trials
+            trial = angle_trial(protocol, clouds[name], angle, rng, name=name, seed=(seed, number, index))
             for method in methods:
                 rows.append(trial_row(trial, method, dataset=dataset, index=index, seed=seed))
-            if sweep_method is not None and protocol == protocols[0]:
+            if sweep_method is not None and number == 0:
+                diagonal = bounding_box_diagonal(clouds[name])
                 for fraction in sigma_fractions:
-                    rows.append(trial_row(trial, sweep_method, dataset=dataset, index=index, seed=seed,
-                                          sigma=float(fraction * trial.diagonal)))
+                    sigma = float(f"{fraction * diagonal:.4g}")
+                    rows.append(trial_row(trial, sweep_method, dataset=dataset, index=index, seed=seed, sigma=sigma))
     return rows
 
 
@@ -102,7 +151,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m esmicp.viz.trial_rows", description=__doc__)
     parser.add_argument("out_dir", type=Path)
     parser.add_argument("--trials", type=int, default=12)
-    parser.add_argument("--points", type=int, default=500)
+    parser.add_argument("--points", type=int, default=600)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--force", action="store_true", help="overwrite existing files")
     args = parser.parse_args(argv)

@@ -9,6 +9,7 @@ counts (read by the tests, handy for scripts).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 
 import numpy as np
@@ -187,8 +188,24 @@ def view_html(
     return view_figure(traces, max_display_points=max_display_points, title=title, truth=truth)
 
 
+#: id of the plot's element in the page, and of the JSON block holding the data.
+PLOT_ID, DATA_ID = "esmicp-view", "esmicp-data"
+
+
+def view_page(figure) -> str:
+    """The viewer as one self-contained HTML page (plotly.js inlined). The page also carries
+    ``figure.layout.meta`` (methods, poses per iteration, counts) as a JSON block with id
+    :data:`DATA_ID`, for scripts."""
+    html = figure.to_html(include_plotlyjs=True, full_html=True, div_id=PLOT_ID, auto_play=False)
+    meta = figure.layout.meta
+    if meta is not None:
+        data = json.dumps(meta).replace("</", "<\\/")
+        html = html.replace("</body>", f'<script type="application/json" id="{DATA_ID}">{data}</script>\n</body>', 1)
+    return html
+
+
 def write_view(figure, path, *, overwrite: bool = False) -> None:
-    """Write the viewer as one self-contained HTML file (plotly.js inlined), atomically."""
-    html = figure.to_html(include_plotlyjs=True, full_html=True, div_id="esmicp-view", auto_play=False)
+    """Write :func:`view_page` to ``path`` atomically (refused if it exists, unless ``overwrite``)."""
+    html = view_page(figure)
     with atomic_write(path, overwrite, mode="w") as handle:
         handle.write(html)
