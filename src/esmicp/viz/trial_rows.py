@@ -16,13 +16,14 @@ import argparse
 import json
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from ..api import register
-from ..errors import EsmicpError
+from ..errors import EsmicpError, EsmicpWarning
 from ..metrics import paper_errors, rotation_error_deg, strict_success, translation_error, up_to_symmetry_success
 from ..core.procrustes import apply, to_matrix
 from ..protocols import Trial, bounding_box_diagonal, rigid_inverse
@@ -72,7 +73,10 @@ def _about(axis, angle_deg: float) -> np.ndarray:
 
 
 def trial_row(trial, method: str, *, dataset: str, index: int, seed: int, sigma=None, max_iterations: int = 100) -> dict:
-    """One schema row: ``method`` run from the identity on ``trial`` (a :class:`~esmicp.protocols.Trial`)."""
+    """One schema row: ``method`` run from the identity on ``trial`` (a :class:`~esmicp.protocols.Trial`).
+
+    The library's warnings (e.g. ``esm-paper`` on clouds that are not index-aligned) go to the
+    extra key ``warnings`` (a list of messages) instead of the console."""
     truth = trial.T_target_source
     row = {
         "trial_id": f"{dataset}/{trial.cloud}/{trial.protocol}/{index}", "seed": seed, "protocol": trial.protocol,
@@ -83,8 +87,10 @@ def trial_row(trial, method: str, *, dataset: str, index: int, seed: int, sigma=
     }
     start = time.perf_counter()
     try:
-        result = register(trial.source, trial.target, method=method, init="identity", sigma=sigma,
-                          max_iterations=max_iterations)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", EsmicpWarning)
+            result = register(trial.source, trial.target, method=method, init="identity", sigma=sigma,
+                              max_iterations=max_iterations)
     except (EsmicpError, np.linalg.LinAlgError) as exc:
         row.update(status="failed", reason=str(exc), rotation_error_deg=None, translation_error=None,
                    success_strict=None, success_symmetry=None, time_s=None, iterations=None,
@@ -102,6 +108,7 @@ def trial_row(trial, method: str, *, dataset: str, index: int, seed: int, sigma=
         mse_r=paper["rotation_mse"], rmse_r=paper["rotation_rmse"], mae_r=paper["rotation_mae"],
         mse_t=paper["translation_mse"], rmse_t=paper["translation_rmse"], mae_t=paper["translation_mae"],
         time_s=elapsed, iterations=result.num_iterations,
+        warnings=[str(w.message) for w in caught if issubclass(w.category, EsmicpWarning)],
     )
     return row
 
