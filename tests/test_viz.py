@@ -181,6 +181,18 @@ def test_view_page_is_self_contained_and_carries_the_poses(tmp_path):
     assert view_page(figure) == html
 
 
+def test_view_opens_at_the_iteration_asked_for():
+    require_plotting()
+    pair = builtin_pair(points=300, angle_deg=30)
+    trace = trace_registration(pair.source, pair.target)
+    for asked, shown in ((4, 4), (10_000, trace.iterations)):
+        figure = view_html(pair.source, pair.target, shown_iteration=asked)
+        assert figure.layout.sliders[0].active == shown
+        np.testing.assert_allclose(np.asarray(figure.data[2].x), trace.aligned(shown)[:, 0], atol=1e-5)
+    with pytest.raises(InvalidInputError, match="shown_iteration"):
+        view_html(pair.source, pair.target, shown_iteration=-1)
+
+
 # --- the commands -----------------------------------------------------------------------------
 
 

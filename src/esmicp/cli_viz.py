@@ -29,6 +29,16 @@ def _nonnegative_angle(text: str) -> float:
     return value
 
 
+def _nonnegative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
+    return value
+
+
 def add_parser(commands) -> None:
     """Register the ``view``, ``heatmap`` and ``animate`` subcommands on ``commands`` (the
     subparsers object of :func:`esmicp.cli.build_parser`)."""
@@ -66,6 +76,8 @@ def add_parser(commands) -> None:
                       help=f"a second method shown side by side ({', '.join(METHODS)})")
     view.add_argument("--max-display-points", type=_positive_int, default=2000, metavar="N",
                       help="points drawn per cloud (default 2000; the page says when it subsamples)")
+    view.add_argument("--show-iteration", type=_nonnegative_int, default=0, metavar="K",
+                      help="iteration the page opens at (default 0, the start; a large K: the last)")
     view.set_defaults(handler=_run_view)
 
     heat = commands.add_parser(
@@ -140,7 +152,7 @@ def _run_view(args) -> int:
     figure = view_html(
         source, target, method=args.method, compare=args.compare, init=init, sigma=args.sigma,
         max_iterations=args.max_iterations, max_display_points=args.max_display_points,
-        title=args.title or description, truth=truth,
+        title=args.title or description, truth=truth, shown_iteration=args.show_iteration,
     )
     write_view(figure, args.output, overwrite=args.force)
     iterations = ", ".join(f"{m}: {n} iterations" for m, n in zip(figure.layout.meta["methods"], figure.layout.meta["iterations"]))

@@ -172,7 +172,7 @@ def _box(axes, groups: list[tuple[str, str, np.ndarray]], protocols: list[str], 
             position = method_index + (protocol_index - (len(protocols) - 1) / 2) * width
             parts = axes.boxplot(
                 [values[0]], positions=[position], widths=width * 0.9, patch_artist=True, showfliers=True,
-                flierprops={"markersize": 2},
+                flierprops={"markersize": 2}, medianprops={"color": "black"},
             )
             for patch in parts["boxes"]:
                 patch.set_facecolor(colours[protocol_index])
@@ -231,7 +231,8 @@ def time_figure(rows):
     axes = figure.subplots()
     times = [np.array([r["time_s"] for r in drawn if r["method"] == m], dtype=float) * 1000 for m in methods]
     if methods:
-        axes.boxplot(times, positions=range(len(methods)), widths=0.6, flierprops={"markersize": 2})
+        axes.boxplot(times, positions=range(len(methods)), widths=0.6, flierprops={"markersize": 2},
+                     medianprops={"color": "black"})
         for k, values in enumerate(times):
             axes.annotate(
                 f"median {np.median(values):.3g} ms\n(n={len(values)})", (k, np.max(values)), xytext=(0, 4),

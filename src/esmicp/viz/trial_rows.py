@@ -7,7 +7,8 @@ uniform on SO(3) would put most trials near 180 degrees) and rotate the source a
 centroid with a small shift, so that local methods started from the identity are tested on the
 rotation they must undo.
 
-``python -m esmicp.viz.trial_rows OUT_DIR`` writes ``rows.jsonl`` and the plots there.
+``python -m esmicp.viz.trial_rows OUT_DIR [--rows-out rows.jsonl]`` writes the plots in OUT_DIR
+(and the rows, when asked).
 """
 
 from __future__ import annotations
@@ -160,13 +161,14 @@ def main(argv=None) -> int:
     parser.add_argument("--trials", type=int, default=12)
     parser.add_argument("--points", type=int, default=600)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rows-out", type=Path, metavar="FILE", help="also write the rows here (JSON Lines)")
     parser.add_argument("--force", action="store_true", help="overwrite existing files")
     args = parser.parse_args(argv)
     try:
         rows = local_trial_rows(trials=args.trials, points=args.points, seed=args.seed)
-        args.out_dir.mkdir(exist_ok=True)
-        with atomic_write(args.out_dir / "rows.jsonl", args.force, mode="w") as handle:
-            handle.writelines(json.dumps(row) + "\n" for row in rows)
+        if args.rows_out is not None:
+            with atomic_write(args.rows_out, args.force, mode="w") as handle:
+                handle.writelines(json.dumps(row) + "\n" for row in rows)
         for path in write_bench_plots(rows, args.out_dir, overwrite=args.force):
             print(path)
     except EsmicpError as exc:

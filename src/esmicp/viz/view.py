@@ -64,12 +64,14 @@ def view_figure(
     max_display_points: int = DEFAULT_DISPLAY_POINTS,
     title: str | None = None,
     truth=None,
+    shown_iteration: int = 0,
 ):
     """A plotly Figure: one 3D scene per trace (same input), a slider over the iterations.
 
     Slider step k shows every method after k iterations (a method that stopped earlier keeps
     its last pose, and its caption says so). ``truth`` (4x4 ``T_target_source``), when known,
-    adds the rotation error to the captions.
+    adds the rotation error to the captions. The page opens at step ``shown_iteration``
+    (clipped to the last step).
     """
     go = require("plotly.graph_objects")
     subplots = require("plotly.subplots")
@@ -80,6 +82,7 @@ def view_figure(
     source_shown = display_subset(len(first.source), max_display_points, seed=1)
     target_shown = display_subset(len(first.target), max_display_points, seed=2)
     steps = max(trace.iterations for trace in traces)
+    opened = min(as_count(shown_iteration, "shown_iteration", minimum=0), steps)
 
     figure = subplots.make_subplots(
         rows=1, cols=len(traces), specs=[[{"type": "scene"}] * len(traces)],
@@ -98,7 +101,8 @@ def view_figure(
             _scatter(go, first.source[source_shown], "source (start)", START_COLOUR, scene, 1.5, 0.35, legend), 1, column
         )
         figure.add_trace(
-            _scatter(go, trace.aligned(0)[source_shown], "source (aligned)", ALIGNED_COLOUR, scene, showlegend=legend),
+            _scatter(go, trace.aligned(min(opened, trace.iterations))[source_shown], "source (aligned)",
+                     ALIGNED_COLOUR, scene, showlegend=legend),
             1, column,
         )
         aligned_index.append(len(figure.data) - 1)
@@ -157,8 +161,8 @@ def view_figure(
     figure.update_layout(
         title={"text": f"{heading}<br><sup>start: {', '.join(sorted({t.start for t in traces}))}; "
                "slider: iterations (0 = start)</sup>"},
-        annotations=annotations(0),
-        sliders=[{"active": 0, "steps": slider_steps, "currentvalue": {"prefix": "iteration "}, "y": -0.12, "pad": {"t": 40}}],
+        annotations=annotations(opened),
+        sliders=[{"active": opened, "steps": slider_steps, "currentvalue": {"prefix": "iteration "}, "y": -0.12, "pad": {"t": 40}}],
         margin={"l": 10, "r": 10, "t": 80, "b": 190},
         height=720, meta=meta, legend={"itemsizing": "constant"},
     )
@@ -177,6 +181,7 @@ def view_html(
     max_display_points: int = DEFAULT_DISPLAY_POINTS,
     title: str | None = None,
     truth=None,
+    shown_iteration: int = 0,
 ):
     """Register with ``method`` (and ``compare``, side by side) from ``init`` and return the viewer's
     plotly Figure (:func:`view_figure`); :func:`write_view` saves it as one HTML file."""
@@ -185,7 +190,9 @@ def view_html(
         trace_registration(source, target, method=name, init=init, sigma=sigma, max_iterations=max_iterations)
         for name in methods
     ]
-    return view_figure(traces, max_display_points=max_display_points, title=title, truth=truth)
+    return view_figure(
+        traces, max_display_points=max_display_points, title=title, truth=truth, shown_iteration=shown_iteration
+    )
 
 
 #: id of the plot's element in the page, and of the JSON block holding the data.
