@@ -279,3 +279,15 @@ def test_garbage_cloud_file_is_one_line(tmp_path, capsys):
     code, _, stderr = run(capsys, "heatmap", str(bad), "-o", str(tmp_path / "m.png"))
     assert code == 2 and "bad.ply" in stderr and len(stderr.strip().splitlines()) == 1
     assert not (tmp_path / "m.png").exists()
+
+
+def test_missing_plotting_library_is_one_line_with_the_install_hint(tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "plotly.graph_objects", None)  # makes the import fail
+    monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
+    for argv in (["view", "--points", "50"], ["heatmap"]):
+        out = tmp_path / ("v.html" if argv[0] == "view" else "m.png")
+        code, _, stderr = run(capsys, *argv, "-o", str(out))
+        assert code == 2 and "pip install 'esmicp[viz]'" in stderr and len(stderr.strip().splitlines()) == 1
+        assert not out.exists()

@@ -123,6 +123,14 @@ def _check_output(path: Path, force: bool, allowed: tuple[str, ...], what: str) 
         raise OutputExistsError(path)
 
 
+def _require(*modules: str) -> None:
+    """Fail before any work when a plotting library is missing (one line, with the install hint)."""
+    from .viz._deps import require
+
+    for module in modules:
+        require(module)
+
+
 def _inputs(args):
     """``(source, target, description, truth, init)`` from the positional clouds and options."""
     from . import io
@@ -148,6 +156,7 @@ def _run_view(args) -> int:
     from .viz.view import view_html, write_view
 
     _check_output(args.output, args.force, (".html", ".htm"), "viewer")
+    _require("plotly.graph_objects", "plotly.subplots")
     source, target, description, truth, init = _inputs(args)
     figure = view_html(
         source, target, method=args.method, compare=args.compare, init=init, sigma=args.sigma,
@@ -165,6 +174,7 @@ def _run_heatmap(args) -> int:
     from .viz.heatmap import heatmap
 
     _check_output(args.output, args.force, IMAGE_EXTENSIONS, "image")
+    _require("matplotlib.figure", "matplotlib.backends.backend_agg")
     methods = [name.strip() for name in args.methods.split(",") if name.strip()]
     unknown = [name for name in methods if name not in METHODS]
     if unknown or not methods:
@@ -184,6 +194,7 @@ def _run_animate(args) -> int:
     from .viz.trace import trace_registration
 
     _check_output(args.output, args.force, ANIMATION_EXTENSIONS, "animation")
+    _require("matplotlib.figure", "matplotlib.backends.backend_agg", "matplotlib.animation")
     source, target, description, truth, init = _inputs(args)
     trace = trace_registration(
         source, target, method=args.method, init=init, sigma=args.sigma, max_iterations=args.max_iterations
