@@ -70,7 +70,7 @@ def heatmap_figure(
         colorbar.set_label("M entry (weight w_i)", fontsize=8)
     starts = ", ".join(sorted({trace.start for trace in traces}))
     summary = "\n".join(_summary(trace, truth) for trace in traces)
-    heading = title or "Similarity matrix M per iteration"
+    heading = "Similarity matrix M per iteration" + (f": {title}" if title else "")
     figure.suptitle(f"{heading}; start: {starts}\n{summary}", fontsize=9)
     return figure
 

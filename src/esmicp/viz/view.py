@@ -79,6 +79,9 @@ def view_figure(
         raise InvalidInputError("traces: need at least one registration to show")
     max_display_points = as_count(max_display_points, "max_display_points")
     first = traces[0]
+    for trace in traces[1:]:
+        if not (np.array_equal(trace.source, first.source) and np.array_equal(trace.target, first.target)):
+            raise InvalidInputError("traces: the methods shown side by side must have run on the same clouds")
     source_shown = display_subset(len(first.source), max_display_points, seed=1)
     target_shown = display_subset(len(first.target), max_display_points, seed=2)
     steps = max(trace.iterations for trace in traces)
@@ -106,12 +109,10 @@ def view_figure(
             1, column,
         )
         aligned_index.append(len(figure.data) - 1)
-        axis = {"range": None, "title": ""}
+        # Fixed, equal ranges: the clouds do not jump as the slider moves, and stay undistorted.
         figure.layout[scene].update(
             aspectmode="cube",
-            xaxis={**axis, "range": [centre[0] - half, centre[0] + half]},
-            yaxis={**axis, "range": [centre[1] - half, centre[1] + half]},
-            zaxis={**axis, "range": [centre[2] - half, centre[2] + half]},
+            **{f"{name}axis": {"range": [c - half, c + half], "title": name} for name, c in zip("xyz", centre)},
         )
 
     titles = list(figure.layout.annotations)
