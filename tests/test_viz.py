@@ -291,3 +291,21 @@ def test_missing_plotting_library_is_one_line_with_the_install_hint(tmp_path, ca
         code, _, stderr = run(capsys, *argv, "-o", str(out))
         assert code == 2 and "pip install 'esmicp[viz]'" in stderr and len(stderr.strip().splitlines()) == 1
         assert not out.exists()
+
+
+def test_commands_start_from_a_given_transform_file(tmp_path, capsys):
+    image_module = require_plotting()
+    from esmicp.io import write_transform
+
+    pair = builtin_pair(points=300, angle_deg=35)
+    np.savetxt(tmp_path / "s.xyz", pair.source)
+    np.savetxt(tmp_path / "t.xyz", pair.target)
+    write_transform(tmp_path / "T.txt", pair.T_target_source)
+    out = tmp_path / "run.gif"
+    code, stdout, stderr = run(capsys, "animate", str(tmp_path / "s.xyz"), str(tmp_path / "t.xyz"),
+                               "--init", str(tmp_path / "T.txt"), "-o", str(out))
+    assert code == 0, stderr
+    assert "from given pose" in stdout
+    trace = trace_registration(pair.source, pair.target, init=pair.T_target_source)
+    with image_module.open(out) as gif:
+        assert gif.n_frames == trace.iterations + 1 <= 4
