@@ -9,7 +9,7 @@ import re
 import numpy as np
 import pytest
 from conftest import require_shared
-from viz_support import check_image, require_plotting
+from test_viz_support import check_image, require_plotting
 
 from esmicp.cli import main
 from esmicp.core.procrustes import apply

@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from viz_support import check_image, require_plotting
+from test_viz_support import check_image, require_plotting
 
 from esmicp.errors import InvalidInputError, OutputExistsError, PointCloudFileError
 from esmicp.viz import (

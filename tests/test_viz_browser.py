@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from viz_support import check_image, in_ci, require_module, require_plotting
+from test_viz_support import check_image, in_ci, require_module, require_plotting
 
 from esmicp.cli import main
 from esmicp.core.procrustes import apply

@@ -1,4 +1,4 @@
-"""Shared by the visualisation tests: the optional libraries (skipped locally when missing,
+"""Helpers shared by the visualisation tests (no tests here): the optional libraries (skipped locally
 FAILED in CI where .ci/run installs them) and image checks."""
 
 from __future__ import annotations
