@@ -1,5 +1,5 @@
-"""Helpers shared by the visualisation tests (no tests here): the optional libraries (skipped locally when missing,
-FAILED in CI where .ci/run installs them) and image checks."""
+"""Helpers shared by the visualisation tests (no tests here): the optional libraries (skipped
+locally when missing, FAILED in CI where .ci/run installs them) and image checks."""
 
 from __future__ import annotations
 
