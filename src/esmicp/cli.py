@@ -133,6 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     demo.set_defaults(handler=_run_demo)
+    __import__("esmicp.cli_viz", fromlist=["add_parser"]).add_parser(commands)  # view, heatmap, animate
     return parser
 
 

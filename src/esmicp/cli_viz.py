@@ -1,0 +1,207 @@
+"""``esmicp view``, ``esmicp heatmap`` and ``esmicp animate``: pictures of a registration's local
+iterations (a thin layer over :mod:`esmicp.viz`). Outputs are written atomically and never over an
+existing file without ``--force``; bad input ends in one line on stderr (exit status 2).
+
+Inputs, the same for all three: no file (the built-in shape, the source a rotated copy of it),
+one file (the source a rotated copy of that cloud: the paper's protocol, index-aligned), or
+SOURCE and TARGET files.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .errors import InvalidInputError, OutputExistsError
+from .methods import METHODS
+
+#: Where the local iterations start (``--init``), besides a 4x4 text file.
+START_NAMES = ("identity",)
+
+
+def _nonnegative_angle(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of degrees, got {text!r}") from None
+    if not 0.0 <= value <= 180.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 180] degrees, got {text!r}")
+    return value
+
+
+def _nonnegative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
+    return value
+
+
+def add_parser(commands) -> None:
+    """Register the ``view``, ``heatmap`` and ``animate`` subcommands on ``commands`` (the
+    subparsers object of :func:`esmicp.cli.build_parser`)."""
+    from .cli import _positive_float, _positive_int
+
+    def common(parser, *, points_default, points_help, output_help):
+        parser.add_argument("clouds", nargs="*", type=Path, metavar="CLOUD",
+                            help="none (built-in shape), one cloud (the source is a rotated copy of it), "
+                            "or SOURCE TARGET")
+        parser.add_argument("-o", "--output", type=Path, required=True, help=output_help)
+        parser.add_argument("--init", default="identity", metavar="identity|FILE",
+                            help="where the local iterations start: 'identity' (default) or a file with "
+                            "a 4x4 T_target_source (for instance one written by 'esmicp register --transform-out')")
+        parser.add_argument("--sigma", type=_positive_float, help="fixed Gaussian kernel width (cloud units)")
+        parser.add_argument("--max-iterations", type=_positive_int, default=100, help="default 100")
+        parser.add_argument("--points", type=_positive_int, default=points_default, metavar="N",
+                            help=points_help)
+        parser.add_argument("--angle", type=_nonnegative_angle, default=30.0, metavar="DEG",
+                            help="rotation of the copy, with no file or one file (default 30 degrees)")
+        parser.add_argument("--seed", type=int, default=0,
+                            help="seed of the copy's rotation axis and of the built-in shape (default 0)")
+        parser.add_argument("--title", help="title of the picture (default: what the input is)")
+        parser.add_argument("--force", action="store_true", help="overwrite an existing output file")
+
+    view = commands.add_parser(
+        "view", help="interactive 3D viewer of the iterations (one self-contained HTML file)",
+        description="Register, then write one self-contained HTML page (plotly.js inlined, opens offline "
+        "in any browser) showing target, source and aligned source in 3D, with a slider over the "
+        "iterations; --compare adds a second method side by side on the same input.",
+    )
+    common(view, points_default=None, points_help="downsample each cloud to N well-spread points first "
+           "(default: keep all; large clouds are subsampled for display only)", output_help="the .html file")
+    view.add_argument("--method", choices=list(METHODS), default="esm", help="default esm")
+    view.add_argument("--compare", choices=list(METHODS), metavar="OTHER_METHOD",
+                      help=f"a second method shown side by side ({', '.join(METHODS)})")
+    view.add_argument("--max-display-points", type=_positive_int, default=2000, metavar="N",
+                      help="points drawn per cloud (default 2000; the page says when it subsamples)")
+    view.add_argument("--show-iteration", type=_nonnegative_int, default=0, metavar="K",
+                      help="iteration the page opens at (default 0, the start; a large K: the last)")
+    view.set_defaults(handler=_run_view)
+
+    heat = commands.add_parser(
+        "heatmap", help="similarity matrix M over the iterations, as a grid of heat maps (paper Fig. 3)",
+        description="Register with each method and draw its similarity matrix M at a few iterations: "
+        "esm-paper's symmetric N x N matrix M(i, c(i)) = M(c(i), i) = w_i, esm's N x M matrix "
+        "M(i, c(i)) = w_i. The clouds are downsampled to --points well-spread points first (default 21, "
+        "as in the paper), so that M is readable.",
+    )
+    common(heat, points_default=21, points_help="downsample each cloud to N well-spread points (default 21)",
+           output_help="the image (.png, .svg or .pdf)")
+    heat.add_argument("--methods", default="esm-paper,esm",
+                      help=f"comma-separated methods, one row each (default esm-paper,esm; from {', '.join(METHODS)})")
+    heat.add_argument("--columns", type=_positive_int, default=6, help="iterations shown per method (default 6)")
+    heat.set_defaults(handler=_run_heatmap)
+
+    anim = commands.add_parser(
+        "animate", help="the alignment as an animated GIF (or MP4 with ffmpeg), rendered headlessly",
+        description="Register, then write an animation with one frame per iteration plus the start "
+        "(iterations + 1 frames): the target and the source as it moves, coloured by weight.",
+    )
+    common(anim, points_default=None, points_help="downsample each cloud to N well-spread points first "
+           "(default: keep all)", output_help="the animation (.gif, or .mp4 where ffmpeg exists)")
+    anim.add_argument("--method", choices=list(METHODS), default="esm", help="default esm")
+    anim.add_argument("--fps", type=_positive_float, default=4.0, help="frames per second (default 4)")
+    anim.add_argument("--max-display-points", type=_positive_int, default=1500, metavar="N",
+                      help="points drawn per cloud (default 1500)")
+    anim.set_defaults(handler=_run_animate)
+
+
+def _check_output(path: Path, force: bool, allowed: tuple[str, ...], what: str) -> None:
+    """Refuse, before any work, an output with the wrong extension, in a missing folder, or that
+    exists without --force."""
+    from .errors import PointCloudFileError
+    from .viz.files import check_extension
+
+    check_extension(path, allowed, what)
+    if path.is_dir():
+        raise PointCloudFileError(path, "is a directory, cannot write a file there")
+    if not path.parent.is_dir():
+        raise PointCloudFileError(path, f"cannot write: the folder {str(path.parent)!r} does not exist")
+    if path.exists() and not force:
+        raise OutputExistsError(path)
+
+
+def _require(*modules: str) -> None:
+    """Fail before any work when a plotting library is missing (one line, with the install hint)."""
+    from .viz._deps import require
+
+    for module in modules:
+        require(module)
+
+
+def _inputs(args):
+    """``(source, target, description, truth, init)`` from the positional clouds and options."""
+    from . import io
+    from .viz.inputs import builtin_pair, downsample, moved_copy
+
+    if len(args.clouds) > 2:
+        raise InvalidInputError(f"CLOUD: give at most two files (SOURCE TARGET), got {len(args.clouds)}")
+    init = "identity" if args.init in START_NAMES else io.read_transform(Path(args.init))
+    if not args.clouds:
+        pair = builtin_pair(points=args.points, angle_deg=args.angle, seed=args.seed)
+        return pair.source, pair.target, pair.description, pair.T_target_source, init
+    if len(args.clouds) == 1:
+        cloud = downsample(io.read_points(args.clouds[0]), args.points)
+        pair = moved_copy(cloud, angle_deg=args.angle, seed=args.seed, name=args.clouds[0].name)
+        return pair.source, pair.target, pair.description, pair.T_target_source, init
+    source = downsample(io.read_points(args.clouds[0]), args.points)
+    target = downsample(io.read_points(args.clouds[1]), args.points)
+    description = f"{args.clouds[0].name} ({len(source)} points) -> {args.clouds[1].name} ({len(target)} points)"
+    return source, target, description, None, init
+
+
+def _run_view(args) -> int:
+    from .viz.view import view_html, write_view
+
+    _check_output(args.output, args.force, (".html", ".htm"), "viewer")
+    _require("plotly.graph_objects", "plotly.subplots")
+    source, target, description, truth, init = _inputs(args)
+    figure = view_html(
+        source, target, method=args.method, compare=args.compare, init=init, sigma=args.sigma,
+        max_iterations=args.max_iterations, max_display_points=args.max_display_points,
+        title=args.title or description, truth=truth, shown_iteration=args.show_iteration,
+    )
+    write_view(figure, args.output, overwrite=args.force)
+    iterations = ", ".join(f"{m}: {n} iterations" for m, n in zip(figure.layout.meta["methods"], figure.layout.meta["iterations"]))
+    print(f"viewer written to {args.output} ({iterations})")
+    return 0
+
+
+def _run_heatmap(args) -> int:
+    from .viz.files import IMAGE_EXTENSIONS, save_figure
+    from .viz.heatmap import heatmap
+
+    _check_output(args.output, args.force, IMAGE_EXTENSIONS, "image")
+    _require("matplotlib.figure", "matplotlib.backends.backend_agg")
+    methods = [name.strip() for name in args.methods.split(",") if name.strip()]
+    unknown = [name for name in methods if name not in METHODS]
+    if unknown or not methods:
+        raise InvalidInputError(f"--methods: unknown method(s) {', '.join(unknown) or '(none given)'}; choose from {', '.join(METHODS)}")
+    source, target, description, truth, init = _inputs(args)
+    figure = heatmap(
+        source, target, methods=methods, init=init, sigma=args.sigma, max_iterations=args.max_iterations,
+        columns=args.columns, title=args.title or description, truth=truth,
+    )
+    save_figure(figure, args.output, overwrite=args.force)
+    print(f"heat maps written to {args.output}")
+    return 0
+
+
+def _run_animate(args) -> int:
+    from .viz.animate import ANIMATION_EXTENSIONS, animation_figure, write_animation
+    from .viz.trace import trace_registration
+
+    _check_output(args.output, args.force, ANIMATION_EXTENSIONS, "animation")
+    _require("matplotlib.figure", "matplotlib.backends.backend_agg", "matplotlib.animation")
+    source, target, description, truth, init = _inputs(args)
+    trace = trace_registration(
+        source, target, method=args.method, init=init, sigma=args.sigma, max_iterations=args.max_iterations
+    )
+    animation = animation_figure(
+        trace, max_display_points=args.max_display_points, title=args.title or description, truth=truth, fps=args.fps
+    )
+    write_animation(animation, args.output, overwrite=args.force, fps=args.fps)
+    print(f"animation written to {args.output} ({trace.label}; {trace.iterations + 1} frames)")
+    return 0

@@ -1,0 +1,48 @@
+"""Pictures of a registration, built on the solver's per-iteration callback (the solver never plots).
+
+Needs the ``viz`` extra (``pip install 'esmicp[viz]'``: matplotlib and plotly), imported only when a
+picture is drawn. Every function returns the figure object (a matplotlib ``Figure`` or
+``FuncAnimation``, a plotly ``Figure``), for notebooks; the ``write_*`` helpers save them atomically.
+"""
+
+from .animate import animate, animation_figure, write_animation
+from .bench_plots import (
+    error_boxplots_figure,
+    read_bench_rows,
+    sigma_sweep_figure,
+    success_vs_angle_figure,
+    time_figure,
+    write_bench_plots,
+)
+from .files import save_figure
+from .heatmap import heatmap, heatmap_figure
+from .inputs import builtin_pair, downsample, farthest_point_subset, moved_copy
+from .similarity import similarity_matrix
+from .trace import RegistrationTrace, trace_registration
+from .view import view_figure, view_html, view_page, write_view
+
+__all__ = [
+    "RegistrationTrace",
+    "animate",
+    "animation_figure",
+    "builtin_pair",
+    "downsample",
+    "error_boxplots_figure",
+    "farthest_point_subset",
+    "heatmap",
+    "heatmap_figure",
+    "moved_copy",
+    "read_bench_rows",
+    "save_figure",
+    "sigma_sweep_figure",
+    "similarity_matrix",
+    "success_vs_angle_figure",
+    "time_figure",
+    "trace_registration",
+    "view_figure",
+    "view_html",
+    "view_page",
+    "write_animation",
+    "write_bench_plots",
+    "write_view",
+]
