@@ -20,6 +20,7 @@ from .io import READ_EXTENSIONS, WRITE_EXTENSIONS
 #: ``--init`` values that name a strategy rather than a file.
 INIT_NAMES = ("global", *STRATEGIES, "identity", "none")
 from .methods import METHODS
+from .cli_bench import add_parser as add_bench_parser
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -133,6 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     demo.set_defaults(handler=_run_demo)
+    add_bench_parser(commands)
     return parser
 
 
