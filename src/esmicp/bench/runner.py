@@ -237,8 +237,9 @@ def _run_dask(todo, config, options, workers, writer, bar) -> None:
         ) from exc
     cluster = None
     if options.scheduler is None:
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=logging.ERROR)
+        # Bound to this machine only; the status page on a free port (8787 may belong to someone else).
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               dashboard_address=":0", silence_logs=logging.ERROR)
         client = Client(cluster)
     else:
         try:
