@@ -122,22 +122,30 @@ def read_json(path: Path):
         raise PointCloudFileError(path, f"cannot read the saved configuration ({exc})") from None
 
 
-def prepare_folder(out_dir: Path, *, resume: bool, force: bool) -> None:
-    """Create ``out_dir``; refuse a folder holding results unless ``resume`` or ``force`` (which
-    removes the previous run's files: rows, configuration, versions and tables)."""
+def check_folder(out_dir: Path, *, resume: bool, force: bool) -> None:
+    """Refuse (changing nothing) a folder holding results unless ``resume`` or ``force``; refuse
+    ``resume`` where there is nothing to resume."""
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InvalidInputError(f"{out_dir}: exists and is not a folder")
     rows = out_dir / ROWS
-    if resume:
-        if not rows.exists():
-            raise InvalidInputError(f"{rows}: nothing to resume (no rows file); run without --resume")
-        return
+    if resume and not rows.exists():
+        raise InvalidInputError(f"{rows}: nothing to resume (no rows file); run without --resume")
     existing = [p for p in (rows, out_dir / CONFIG) if p.exists()]
-    if existing and not force:
+    if existing and not (resume or force):
         raise InvalidInputError(
             f"{existing[0]}: already exists (pass --resume to continue that run, or --force to replace it)"
         )
+
+
+def prepare_folder(out_dir: Path, *, resume: bool, force: bool) -> None:
+    """Create ``out_dir``; refuse a folder holding results unless ``resume`` or ``force`` (which
+    removes the previous run's files: rows, configuration, versions and tables)."""
+    check_folder(out_dir, resume=resume, force=force)
+    out_dir = Path(out_dir)
+    if resume:
+        return
+    rows = out_dir / ROWS
     if force:
         from .tables import TABLE_FILES_GLOB
 

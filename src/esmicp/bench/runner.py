@@ -189,8 +189,9 @@ def run_bench(config: BenchConfig, options: RunOptions = RunOptions()) -> BenchO
     """
     check_methods(config.methods)
     out_dir = Path(options.out_dir)
+    results.check_folder(out_dir, resume=options.resume, force=options.force)
+    planned = plan(config)  # before anything is written or replaced: a bad dataset changes nothing
     results.prepare_folder(out_dir, resume=options.resume, force=options.force)
-    planned = plan(config)
     _save_config(config, out_dir, options.resume)
     rows_path = out_dir / results.ROWS
     done = {row_key(row) for row in results.read_rows(rows_path)}
