@@ -296,3 +296,24 @@ def test_missing_library_is_unavailable_and_a_crash_is_failed(tmp_path, monkeypa
     assert rows[("copy", "fake-crash")]["status"] == "failed" and "boom" in rows[("copy", "fake-crash")]["reason"]
     assert rows[("copy", "fake-crash")]["rotation_error_deg"] is None
     assert "unavailable" in (tmp_path / "summary.md").read_text()
+
+
+def test_perturbed_start_is_the_same_for_every_local_method_and_said_in_the_rows(tmp_path):
+    config = small(protocols=("shuffled",), trials=3, init="perturbed", init_perturbation_deg=20.0,
+                   methods=("esm", "icp", "esm-global"))
+    run_bench(config, serial(tmp_path))
+    rows = read_rows(tmp_path / "rows.jsonl")
+    assert {r["init"] for r in rows if r["method"] != "esm-global"} == {"given"}
+    assert {r["init"] for r in rows if r["method"] == "esm-global"} == {"none (global)"}
+    # 20 degrees and 10% of the diagonal from the truth: both local methods come back.
+    assert all(r["success_strict"] for r in rows if r["method"] == "esm")
+
+
+def test_scan_datasets_give_scan_pairs(tmp_path):
+    data = require_shared("bunny_scans").parent
+    config = BenchConfig(protocols=("scan-pairs", "copy"), datasets=("bunny-scans",), methods=("icp",), trials=3,
+                         points=(300,), data_dir=str(data))
+    run_bench(config, serial(tmp_path))
+    rows = read_rows(tmp_path / "rows.jsonl")
+    assert len(rows) == 3 and {r["protocol"] for r in rows} == {"scan-pairs"}
+    assert all("->" in r["cloud"] and r["points_source"] == 300 for r in rows)

@@ -38,6 +38,8 @@ BUILTIN = ("synthetic", "modelnet40", "bunny", "bunny-scans", "lidar-pair")
 #: Datasets made of scans with known poses (protocol ``scan-pairs`` only).
 SCAN_DATASETS = ("bunny-scans", "lidar-pair")
 MESH_EXTENSIONS = (".off", ".obj", ".stl")
+#: Datasets whose clouds do not depend on the requested size (no meshes to sample).
+POINTS_INDEPENDENT = ("synthetic", "bunny", "bunny-scans", "lidar-pair")
 
 
 @dataclass(frozen=True, eq=False)

@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import InvalidInputError
 from . import results, tables
 from .config import PAPER_PROTOCOLS, SCAN_PROTOCOL, BenchConfig, RunOptions
-from .datasets import load_dataset
+from .datasets import POINTS_INDEPENDENT, load_dataset
 from .methods import SIGMA_METHODS, check_methods
 from .trials import (
     PAPER_TABLE,
@@ -78,9 +78,14 @@ def plan(config: BenchConfig) -> list[_Planned]:
     """Every trial of ``config``, in a fixed order, each with a builder of its arrays."""
     data_dir = Path(config.data_dir)
     planned = []
+    loaded = {}
     for name in config.datasets:
         for points in config.points:
-            dataset = load_dataset(name, data_dir, points)
+            # Only meshes (sampled per size) depend on the size: load everything else once.
+            key = (name, points) if name not in POINTS_INDEPENDENT else name
+            if key not in loaded:
+                loaded[key] = load_dataset(name, data_dir, points)
+            dataset = loaded[key]
             if dataset.is_scans:
                 if SCAN_PROTOCOL in config.protocols:
                     planned.extend(_scan_plan(dataset, points, config))
