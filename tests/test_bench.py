@@ -174,7 +174,7 @@ def test_sigint_keeps_finished_trials_and_resume_completes_them(tmp_path):
     assert rows[: len(interrupted)] == interrupted
 
 
-def test_local_dask_cluster_of_two_workers_equals_a_serial_run(tmp_path):
+def _require_dask():
     try:
         import dask.distributed  # noqa: F401
     except ImportError as exc:
@@ -182,6 +182,10 @@ def test_local_dask_cluster_of_two_workers_equals_a_serial_run(tmp_path):
         if _in_ci():
             pytest.fail(message)
         pytest.skip(message)
+
+
+def test_local_dask_cluster_of_two_workers_equals_a_serial_run(tmp_path):
+    _require_dask()
     config = small(protocols=("copy", "outliers-30", "partial"), methods=(*LOCAL_OURS, "esm-global"), trials=3)
     run_bench(config, serial(tmp_path / "serial"))
     run_bench(config, RunOptions(out_dir=tmp_path / "dask", workers=2, progress=False))
@@ -189,6 +193,18 @@ def test_local_dask_cluster_of_two_workers_equals_a_serial_run(tmp_path):
     dask_rows = sorted(read_rows(tmp_path / "dask" / "rows.jsonl"), key=_key)
     assert len(serial_rows) == 3 * 3 * 4
     assert [_without_timings(r) for r in dask_rows] == [_without_timings(r) for r in serial_rows]
+
+
+def test_an_existing_scheduler_runs_the_same_tasks(tmp_path):
+    _require_dask()
+    from dask.distributed import LocalCluster
+
+    config = small(protocols=("copy",), trials=2)
+    run_bench(config, serial(tmp_path / "serial"))
+    with LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", dashboard_address=":0") as cluster:
+        run_bench(config, RunOptions(out_dir=tmp_path / "remote", scheduler=cluster.scheduler_address, progress=False))
+    expected = sorted(map(_without_timings, read_rows(tmp_path / "serial" / "rows.jsonl")), key=_key)
+    assert sorted(map(_without_timings, read_rows(tmp_path / "remote" / "rows.jsonl")), key=_key) == expected
 
 
 def test_a_folder_of_off_meshes_is_a_dataset_sampled_to_n_points(tmp_path):

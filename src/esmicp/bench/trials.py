@@ -24,7 +24,7 @@ from ..protocols import (
 )
 from .config import PAPER_PROTOCOLS
 from .datasets import name_seed
-from .paper import PAPER_CASES, PaperCase, paper_motion, paper_trial
+from .paper import PAPER_CASES, PaperCase, case_protocol, paper_motion, paper_trial
 
 #: Fraction of each half a ``partial`` crop keeps.
 PARTIAL_KEEP = 0.7
@@ -150,8 +150,7 @@ def build_case_trial(spec: TrialSpec, cloud: np.ndarray, data_dir) -> Trial:
     case = next(c for c in PAPER_CASES if c.name == spec.case)
     rng = np.random.default_rng(spec.seed)
     target = _subsample(np.asarray(cloud, dtype=np.float64), spec.points, rng)
-    noise_protocol = {0.0: "paper", 0.3: "paper-noise-30", 0.6: "paper-noise-60"}[case.noise_fraction]
-    trial = paper_trial(noise_protocol, target, case.motion(data_dir), rng, name=spec.cloud, seed=spec.seed)
+    trial = paper_trial(case_protocol(case), target, case.motion(data_dir), rng, name=spec.cloud, seed=spec.seed)
     return Trial(PAPER_TABLE, trial.cloud, trial.source, trial.target, trial.T_target_source, trial.seed,
                  trial.diagonal, trial.clean)
 
