@@ -141,15 +141,20 @@ def test_resume_refuses_a_different_configuration(tmp_path):
         run_bench(small(trials=1, max_iterations=5), serial(tmp_path, resume=True))
 
 
-def _bench_command(out: Path, *extra: str) -> list[str]:
+def _bench_command(out: Path, workers: str) -> list[str]:
     return [sys.executable, "-m", "esmicp.cli", "bench", "--datasets", "synthetic", "--protocols", "copy,shuffled",
-            "--methods", "esm,icp", "--trials", "12", "--points", "400", "--workers", "1", "--no-progress",
-            "--out", str(out), *extra]
+            "--methods", "esm,icp", "--trials", "12", "--points", "400", "--workers", workers, "--no-progress",
+            "--out", str(out)]
 
 
-def test_sigint_keeps_finished_trials_and_resume_completes_them(tmp_path):
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_sigint_keeps_finished_trials_and_resume_completes_them(tmp_path, workers):
+    if workers != "1":
+        _require_dask()
     out = tmp_path / "run"
-    process = subprocess.Popen(_bench_command(out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # Its own process group, which gets the SIGINT as from Ctrl-C in a terminal (workers included).
+    process = subprocess.Popen(_bench_command(out, workers), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, start_new_session=True)
     rows_path = out / "rows.jsonl"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
@@ -159,10 +164,10 @@ def test_sigint_keeps_finished_trials_and_resume_completes_them(tmp_path):
     else:
         process.kill()
         pytest.fail("the bench wrote no rows within 120 s")
-    process.send_signal(signal.SIGINT)
+    os.killpg(process.pid, signal.SIGINT)
     _, stderr = process.communicate(timeout=60)
     assert process.returncode == 130, stderr
-    assert "--resume" in stderr
+    assert "--resume" in stderr and "Traceback" not in stderr
     interrupted = read_rows(rows_path)
     assert 4 <= len(interrupted) < 2 * 12 * 2
     assert rows_path.read_bytes().endswith(b"\n")  # every row on disk is whole

@@ -8,8 +8,10 @@ interrupted trials are the only ones ``resume`` runs again.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -244,8 +246,11 @@ def _run_dask(todo, config, options, workers, writer, bar) -> None:
     cluster = None
     if options.scheduler is None:
         # Bound to this machine only; the status page on a free port (8787 may belong to someone else).
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=":0", silence_logs=logging.ERROR)
+        # The worker processes start with Ctrl-C ignored (they inherit it): this process alone
+        # handles it, closing the cluster, instead of every worker printing a traceback.
+        with _sigint_ignored():
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                   dashboard_address=":0", silence_logs=logging.ERROR)
         client = Client(cluster)
     else:
         try:
@@ -264,6 +269,19 @@ def _run_dask(todo, config, options, workers, writer, bar) -> None:
         client.close(timeout=10)
         if cluster is not None:
             cluster.close(timeout=10)
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    try:
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread: nothing to change
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def write_tables(out_dir: Path) -> tuple[Path, ...]:
