@@ -164,10 +164,11 @@ def _describe(rows: list[dict]) -> str:
     trials = len({r["trial_id"] for r in rows})
     budgets = sorted({r["max_iterations"] for r in rows if r["max_iterations"] is not None})
     starts = sorted({r["init"] for r in rows if r["method_kind"] == "local"})
+    local = (f"every local method started from: {', '.join(starts)}, with an iteration budget of "
+             f"{', '.join(map(str, budgets))}" if starts else "no local methods")
     return (
         f"{trials} trials; datasets {', '.join(datasets)} ({len(clouds)} clouds); points {', '.join(map(str, points))}; "
-        f"every local method started from: {', '.join(starts) or '-'}, with an iteration budget of "
-        f"{', '.join(map(str, budgets)) or '-'}; global methods get no start and use their own budgets."
+        f"{local}; global methods get no start and use their own budgets."
     )
 
 

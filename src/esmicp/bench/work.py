@@ -71,7 +71,7 @@ def run_one(item: WorkItem, method: str, sigma: float | None) -> dict:
         "method": method,
         "method_kind": kind,
         "sigma": sigma,
-        "max_iterations": item.max_iterations if kind == "local" and method != "esm-global" else None,
+        "max_iterations": item.max_iterations if kind == "local" else None,
         "init": item.init_label if kind == "local" else "none (global)",
         "status": "ok",
         "reason": "",
