@@ -308,14 +308,19 @@ def test_missing_library_is_unavailable_and_a_crash_is_failed(tmp_path, monkeypa
     def crashing(source, target, **kwargs):
         raise RuntimeError("boom")
 
+    def slow(source, target, **kwargs):
+        raise subprocess.TimeoutExpired("goicp", 10)
+
     monkeypatch.setitem(baselines.BASELINES, "fake-missing", missing)
     monkeypatch.setitem(baselines.BASELINES, "fake-crash", crashing)
-    run_bench(small(trials=1, methods=("esm", "fake-missing", "fake-crash")), serial(tmp_path))
+    monkeypatch.setitem(baselines.BASELINES, "fake-slow", slow)
+    run_bench(small(trials=1, methods=("esm", "fake-missing", "fake-crash", "fake-slow")), serial(tmp_path))
     rows = {(r["protocol"], r["method"]): r for r in read_rows(tmp_path / "rows.jsonl")}
     assert rows[("copy", "fake-missing")]["status"] == "unavailable"
     assert "pip install fakelib" in rows[("copy", "fake-missing")]["reason"]
     assert rows[("copy", "fake-crash")]["status"] == "failed" and "boom" in rows[("copy", "fake-crash")]["reason"]
     assert rows[("copy", "fake-crash")]["rotation_error_deg"] is None
+    assert rows[("copy", "fake-slow")]["status"] == "timeout"
     assert "unavailable" in (tmp_path / "summary.md").read_text()
 
 

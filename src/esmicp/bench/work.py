@@ -4,6 +4,7 @@ in, one row per method out (the row schema of ``docs/bench.md``)."""
 from __future__ import annotations
 
 import math
+import subprocess
 from dataclasses import dataclass
 
 import numpy as np
@@ -100,7 +101,7 @@ def run_one(item: WorkItem, method: str, sigma: float | None) -> dict:
     except Unavailable as exc:
         row.update(status="unavailable", reason=str(exc))
         return row
-    except TimeoutError as exc:
+    except (TimeoutError, subprocess.TimeoutExpired) as exc:  # e.g. an adapter's child process ran out of time
         row.update(status="timeout", reason=f"{type(exc).__name__}: {exc}")
         return row
     except Exception as exc:  # noqa: BLE001 - a method's own crash is a row, not the end of the run
