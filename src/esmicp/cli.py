@@ -16,10 +16,12 @@ from . import __version__
 from .errors import EsmicpError, EsmicpWarning, OutputExistsError
 from .init.global_search import STRATEGIES
 from .io import READ_EXTENSIONS, WRITE_EXTENSIONS
+from .methods import METHODS
+from .cli_bench import add_parser as add_bench_parser
+from .cli_viz import add_parser as add_viz_parser
 
 #: ``--init`` values that name a strategy rather than a file.
 INIT_NAMES = ("global", *STRATEGIES, "identity", "none")
-from .methods import METHODS
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -133,7 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     demo.set_defaults(handler=_run_demo)
-    __import__("esmicp.cli_viz", fromlist=["add_parser"]).add_parser(commands)  # view, heatmap, animate
+    add_bench_parser(commands)  # bench
+    add_viz_parser(commands)  # view, heatmap, animate
     return parser
 
 

@@ -1,0 +1,144 @@
+"""The methods a benchmark runs, behind one call: ours (through :func:`esmicp.register`) and the
+adapters of :mod:`esmicp.baselines`.
+
+Local methods (``esm``, ``esm-paper``, ``icp`` and the baselines of kind ``local``) all get the
+same start (``init``: a 4x4 ``T_target_source``) and the same iteration budget; global ones
+(``esm-global``, the library's default ``register(source, target, rng=seed)``, and the baselines
+of kind ``global``) get neither. A missing optional library or missing weights is reported, never
+hidden: :class:`Unavailable`.
+"""
+
+from __future__ import annotations
+
+import inspect
+import time
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Our methods and their kinds.
+OUR_METHODS = {"esm": "local", "esm-paper": "local", "icp": "local", "esm-global": "global"}
+
+#: Kinds of the adapters that existed before ``esmicp.baselines.BASELINE_KINDS``: every one is
+#: global but ``small-gicp`` (GICP from the identity).
+_FALLBACK_LOCAL = frozenset({"small-gicp"})
+
+#: Substrings of learned baselines' names (excluded from the geometric default of ``--paper``).
+LEARNED_MARKERS = ("pointnetlk", "dcp", "rpm", "deepgmr", "learned")
+
+#: Methods whose ``sigma`` a sigma sweep sets.
+SIGMA_METHODS = ("esm", "esm-paper")
+
+
+class Unavailable(Exception):
+    """The method cannot run here (library or weights missing); the message says what to do."""
+
+
+@dataclass(frozen=True)
+class MethodOutcome:
+    """What a method returned: the estimated ``T_target_source`` and what it said about it."""
+
+    transformation: np.ndarray
+    time_s: float
+    iterations: int | None
+    converged: bool | None
+    notes: str
+    ambiguous: bool | None = None
+
+
+def _baselines():
+    from .. import baselines
+
+    return baselines
+
+
+def method_names() -> list[str]:
+    """Every method name the bench knows: ours, then the baselines'."""
+    return [*OUR_METHODS, *_baselines().BASELINES]
+
+
+def method_kind(name: str) -> str:
+    """``local`` or ``global``."""
+    if name in OUR_METHODS:
+        return OUR_METHODS[name]
+    kinds = getattr(_baselines(), "BASELINE_KINDS", None) or {}
+    if name in kinds:
+        return kinds[name]
+    return "local" if name in _FALLBACK_LOCAL else "global"
+
+
+def is_learned(name: str) -> bool:
+    return any(marker in name.lower() for marker in LEARNED_MARKERS)
+
+
+def check_methods(names) -> None:
+    """Raise :class:`~esmicp.errors.InvalidInputError` naming any unknown method."""
+    from ..errors import InvalidInputError
+
+    known = method_names()
+    for name in names:
+        if name not in known:
+            raise InvalidInputError(f"methods: unknown method {name!r}; choose from {', '.join(known)}")
+
+
+def run_method(
+    name: str, source, target, *, init: np.ndarray, max_iterations: int, sigma: float | None, seed: int
+) -> MethodOutcome:
+    """Run ``name`` once; only the registration call is timed (``time.perf_counter``).
+
+    Raises :class:`Unavailable` for a missing library / weights; any other exception is the
+    method's own failure.
+    """
+    if name in OUR_METHODS:
+        return _run_ours(name, source, target, init, max_iterations, sigma, seed)
+    return _run_baseline(name, source, target, init, max_iterations, seed)
+
+
+def _run_ours(name, source, target, init, max_iterations, sigma, seed) -> MethodOutcome:
+    from ..api import register
+    from ..errors import IndexAlignmentWarning
+
+    with warnings.catch_warnings():
+        # esm-paper on clouds that are not index-aligned is part of what the bench measures.
+        warnings.simplefilter("ignore", IndexAlignmentWarning)
+        if name != "esm-global":
+            start_from = "identity" if np.array_equal(init, np.eye(4)) else init
+        start = time.perf_counter()
+        if name == "esm-global":
+            result = register(source, target, rng=seed)
+        else:
+            result = register(source, target, method=name, init=start_from, sigma=sigma, max_iterations=max_iterations)
+        elapsed = time.perf_counter() - start
+    return MethodOutcome(
+        result.transformation, elapsed, int(result.num_iterations), bool(result.converged),
+        f"init={result.init} fitness={result.fitness:.4f} {result.message}",
+        bool(result.ambiguous) if name == "esm-global" else None,
+    )
+
+
+def _run_baseline(name, source, target, init, max_iterations, seed) -> MethodOutcome:
+    baselines = _baselines()
+    adapter = baselines.get_baseline(name)
+    kwargs = {"rng": seed}
+    if method_kind(name) == "local":
+        kwargs["max_iterations"] = max_iterations
+        if _accepts(adapter, "init"):
+            kwargs["init"] = init
+        elif not np.allclose(init, np.eye(4)):
+            raise TypeError(f"{name} takes no initial guess (this version of its adapter starts from the identity)")
+    start = time.perf_counter()
+    try:
+        result = adapter(source, target, **kwargs)
+    except baselines.MissingDependencyError as exc:
+        raise Unavailable(str(exc)) from exc
+    elapsed = time.perf_counter() - start
+    return MethodOutcome(np.asarray(result.transformation, dtype=np.float64), elapsed, None, result.converged,
+                         result.notes)
+
+
+def _accepts(adapter, parameter: str) -> bool:
+    try:
+        return parameter in inspect.signature(adapter).parameters
+    except (TypeError, ValueError):
+        return False

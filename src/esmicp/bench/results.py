@@ -1,0 +1,159 @@
+"""Result files: rows appended one line at a time (JSON Lines), flushed and synced per row, so an
+interrupted run loses no finished row; the resolved configuration and the library versions beside
+them.
+
+Files in a run's folder (:data:`ROWS`, :data:`CONFIG`, :data:`VERSIONS`; tables by
+:mod:`esmicp.bench.tables`). A row is written with one ``write`` of one whole line on a file
+opened for appending; a line cut short by a crash (no final newline) is ignored when reading and
+removed before appending again.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+
+from ..errors import InvalidInputError, PointCloudFileError
+
+ROWS = "rows.jsonl"
+CONFIG = "config.json"
+VERSIONS = "versions.json"
+
+#: Distributions whose versions are saved beside every result (when installed).
+VERSIONED = ("esmicp", "numpy", "scipy", "open3d-cpu", "open3d", "small-gicp", "kiss-matcher", "probreg",
+             "py-goicp", "torch", "dask", "distributed", "tqdm")
+
+
+def library_versions() -> dict:
+    """Python, platform, CPU count and the installed versions of :data:`VERSIONED` (None: absent)."""
+    from importlib import metadata
+
+    versions = {}
+    for name in VERSIONED:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return {"python": sys.version.split()[0], "platform": platform.platform(), "cpu_count": os.cpu_count(),
+            "packages": versions}
+
+
+def read_rows(path) -> list[dict]:
+    """Every complete row of a rows file, in file order (a torn last line is skipped)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return []
+    except OSError as exc:
+        raise PointCloudFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    lines = data.split(b"\n")
+    complete = lines[:-1]  # the part after the last newline is empty or torn
+    rows = []
+    for number, line in enumerate(complete, start=1):
+        if not line.strip():
+            continue
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError as exc:
+            raise PointCloudFileError(path, f"line {number} is not a JSON row ({exc.msg})") from None
+    return rows
+
+
+class RowWriter:
+    """Appends rows to a rows file; each row is on disk (flushed, fsynced) when :meth:`write` returns."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        _drop_torn_tail(self.path)
+        try:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        except OSError as exc:
+            raise PointCloudFileError(self.path, f"cannot write: {exc.strerror or exc}") from None
+        self.written = 0
+
+    def write(self, row: dict) -> None:
+        line = (json.dumps(row, allow_nan=False, separators=(",", ":")) + "\n").encode("utf-8")
+        view = memoryview(line)
+        while view:  # one write for a regular file; the loop only guards against short writes
+            view = view[os.write(self._fd, view):]
+        os.fsync(self._fd)
+        self.written += 1
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _drop_torn_tail(path: Path) -> None:
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return
+    if data and not data.endswith(b"\n"):
+        with open(path, "r+b") as handle:
+            handle.truncate(data.rfind(b"\n") + 1)
+
+
+def write_json(path: Path, data, *, overwrite: bool) -> None:
+    from ..io.atomic import atomic_write
+
+    with atomic_write(path, overwrite=overwrite, mode="w") as handle:
+        json.dump(data, handle, indent=2, sort_keys=True)
+        handle.write("\n")
+
+
+def read_json(path: Path):
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        raise PointCloudFileError(path, f"cannot read the saved configuration ({exc})") from None
+
+
+def check_folder(out_dir: Path, *, resume: bool, force: bool) -> None:
+    """Refuse (changing nothing) a folder holding results unless ``resume`` or ``force``; refuse
+    ``resume`` where there is nothing to resume."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InvalidInputError(f"{out_dir}: exists and is not a folder")
+    rows = out_dir / ROWS
+    if resume and not rows.exists():
+        raise InvalidInputError(f"{rows}: nothing to resume (no rows file); run without --resume")
+    existing = [p for p in (rows, out_dir / CONFIG) if p.exists()]
+    if existing and not (resume or force):
+        raise InvalidInputError(
+            f"{existing[0]}: already exists (pass --resume to continue that run, or --force to replace it)"
+        )
+
+
+def prepare_folder(out_dir: Path, *, resume: bool, force: bool) -> None:
+    """Create ``out_dir``; refuse a folder holding results unless ``resume`` or ``force`` (which
+    removes the previous run's files: rows, configuration, versions and tables)."""
+    check_folder(out_dir, resume=resume, force=force)
+    out_dir = Path(out_dir)
+    if resume:
+        return
+    rows = out_dir / ROWS
+    if force:
+        from .tables import TABLE_FILES_GLOB
+
+        for path in [rows, out_dir / CONFIG, out_dir / VERSIONS, *out_dir.glob(TABLE_FILES_GLOB[0]),
+                     *out_dir.glob(TABLE_FILES_GLOB[1])]:
+            if path.is_file():
+                path.unlink()
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PointCloudFileError(out_dir, f"cannot create the folder: {exc.strerror or exc}") from None

@@ -1,0 +1,211 @@
+"""Summary tables from rows: Markdown in the paper's layout (rows = methods, columns = metrics)
+and CSV.
+
+Conventions (also in ``docs/bench.md``):
+
+- Success rates count every row that ran or crashed (``ok``, ``failed``, ``timeout``): a crash is
+  a failure to register. ``unavailable`` rows are not counted; the method shows as unavailable.
+- The paper's metrics (MSE / RMSE / MAE of the rotation-matrix entries and of the translation
+  vector) are means over the ``ok`` rows, as the paper averages; rotation / translation errors
+  and times are medians over the ``ok`` rows.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import statistics
+from collections import defaultdict
+
+SUMMARY_MD = "summary.md"
+SUMMARY_CSV = "summary.csv"
+#: Globs of every table file a run writes (``--force`` removes them).
+TABLE_FILES_GLOB = ("summary.*", "paper-*.md")
+
+PAPER_METRICS = (("mse_r", "MSE(R)"), ("rmse_r", "RMSE(R)"), ("mae_r", "MAE(R)"),
+                 ("mse_t", "MSE(t)"), ("rmse_t", "RMSE(t)"), ("mae_t", "MAE(t)"))
+CSV_COLUMNS = ("protocol", "method", "sigma", "method_kind", "init", "max_iterations", "rows", "ok", "failed",
+               "timeout", "unavailable", "success_strict_pct", "success_symmetry_pct",
+               "median_rotation_error_deg", "median_translation_error", *[key for key, _ in PAPER_METRICS],
+               "median_time_s", "reason")
+
+
+def protocol_label(row: dict) -> str:
+    """The protocol as tables group it: with the translation range (``paper-t1000``) or the
+    printed case (``paper-table:airplane``) where there is one."""
+    if row.get("case"):
+        return f"{row['protocol']}:{row['case']}"
+    if row.get("translation_range") is not None:
+        return f"{row['protocol']}-t{row['translation_range']:g}"
+    return row["protocol"]
+
+
+def method_label(row: dict) -> str:
+    return row["method"] if row.get("sigma") is None else f"{row['method']} (sigma={row['sigma']:g})"
+
+
+def _median(values):
+    values = [v for v in values if v is not None]
+    return statistics.median(values) if values else None
+
+
+def _mean(values):
+    values = [v for v in values if v is not None]
+    return statistics.fmean(values) if values else None
+
+
+def _fmt(value, digits=3) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, str):
+        return value
+    return f"{value:.{digits}g}"
+
+
+def group_stats(rows: list[dict]) -> dict:
+    """Counts, success rates, medians and the paper's means for the rows of one group."""
+    ok = [r for r in rows if r["status"] == "ok"]
+    counted = [r for r in rows if r["status"] != "unavailable"]
+    stats = {
+        "rows": len(rows),
+        "ok": len(ok),
+        "failed": sum(r["status"] == "failed" for r in rows),
+        "timeout": sum(r["status"] == "timeout" for r in rows),
+        "unavailable": sum(r["status"] == "unavailable" for r in rows),
+        "success_strict_pct": 100.0 * sum(bool(r["success_strict"]) for r in ok) / len(counted) if counted else None,
+        "success_symmetry_pct": 100.0 * sum(bool(r["success_symmetry"]) for r in ok) / len(counted) if counted else None,
+        "median_rotation_error_deg": _median(r["rotation_error_deg"] for r in ok),
+        "median_translation_error": _median(r["translation_error"] for r in ok),
+        "median_time_s": _median(r["time_s"] for r in ok),
+        "reason": next((r["reason"] for r in rows if r["status"] != "ok"), ""),
+    }
+    for key, _ in PAPER_METRICS:
+        stats[key] = _mean(r[key] for r in ok)
+    first = rows[0]
+    stats.update(method_kind=first["method_kind"], init=first["init"], max_iterations=first["max_iterations"])
+    return stats
+
+
+def _groups(rows, key):
+    groups = defaultdict(list)
+    for row in rows:
+        groups[key(row)].append(row)
+    return groups
+
+
+def _ordered_methods(rows) -> list[str]:
+    seen = {}
+    for row in rows:
+        seen.setdefault(method_label(row), None)
+    return list(seen)
+
+
+def _success_cell(stats) -> str:
+    if stats["ok"] == 0 and stats["unavailable"] == stats["rows"]:
+        return "unavailable"
+    cell = f"{_fmt(stats['success_strict_pct'], 3)} / {_fmt(stats['success_symmetry_pct'], 3)}"
+    if stats["median_time_s"] is not None:
+        cell += f" ({1000 * stats['median_time_s']:.3g} ms)"
+    crashed = stats["failed"] + stats["timeout"]
+    return cell + (f" [{crashed} failed]" if crashed else "")
+
+
+def overview_table(rows: list[dict]) -> str:
+    """Methods x protocols; cell: strict success % / success up to symmetry % (median time)."""
+    protocols = list(dict.fromkeys(protocol_label(r) for r in rows))
+    by_cell = _groups(rows, lambda r: (method_label(r), protocol_label(r)))
+    counts = {p: len({r["trial_id"] for r in rows if protocol_label(r) == p}) for p in protocols}
+    header = "| method | kind | " + " | ".join(f"{p} ({counts[p]} trials)" for p in protocols) + " |"
+    lines = [header, "|" + "---|" * (len(protocols) + 2)]
+    for method in _ordered_methods(rows):
+        kind = next(r["method_kind"] for r in rows if method_label(r) == method)
+        cells = [_success_cell(group_stats(by_cell[(method, p)])) if by_cell.get((method, p)) else "-"
+                 for p in protocols]
+        lines.append(f"| {method} | {kind} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def metrics_table(rows: list[dict]) -> str:
+    """The paper's layout for one group of trials: rows = methods, columns = metrics."""
+    names = " | ".join(label for _, label in PAPER_METRICS)
+    lines = [
+        f"| method | kind | start | iterations | ran / failed / unavailable | strict % | symmetry % | "
+        f"median rot. err. (deg) | median transl. err. | {names} | median time (ms) |",
+        "|" + "---|" * 16,
+    ]
+    by_method = _groups(rows, method_label)
+    for method in _ordered_methods(rows):
+        stats = group_stats(by_method[method])
+        if stats["unavailable"] == stats["rows"]:
+            lines.append(f"| {method} | {stats['method_kind']} | {stats['init']} | - | unavailable: "
+                         f"{_short(stats['reason'])} |" + " - |" * 11)
+            continue
+        paper = " | ".join(_fmt(stats[key]) for key, _ in PAPER_METRICS)
+        time_ms = None if stats["median_time_s"] is None else 1000 * stats["median_time_s"]
+        lines.append(
+            f"| {method} | {stats['method_kind']} | {stats['init']} | {_fmt(stats['max_iterations'])} | "
+            f"{stats['ok'] + stats['failed'] + stats['timeout']} / {stats['failed'] + stats['timeout']} / "
+            f"{stats['unavailable']} | {_fmt(stats['success_strict_pct'])} | {_fmt(stats['success_symmetry_pct'])} | "
+            f"{_fmt(stats['median_rotation_error_deg'])} | {_fmt(stats['median_translation_error'])} | {paper} | "
+            f"{_fmt(time_ms)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _short(text: str, limit: int = 90) -> str:
+    text = text.replace("|", "/").replace("\n", " ")
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _describe(rows: list[dict]) -> str:
+    datasets = sorted({r["dataset"] for r in rows})
+    clouds = sorted({r["cloud"] for r in rows})
+    points = sorted({r["points"] for r in rows if r.get("points") is not None})
+    trials = len({r["trial_id"] for r in rows})
+    budgets = sorted({r["max_iterations"] for r in rows if r["max_iterations"] is not None})
+    starts = sorted({r["init"] for r in rows if r["method_kind"] == "local"})
+    local = (f"every local method started from: {', '.join(starts)}, with an iteration budget of "
+             f"{', '.join(map(str, budgets))}" if starts else "no local methods")
+    return (
+        f"{trials} trials; datasets {', '.join(datasets)} ({len(clouds)} clouds); points {', '.join(map(str, points))}; "
+        f"{local}; global methods get no start and use their own budgets."
+    )
+
+
+def summary_markdown(rows: list[dict], title: str = "Benchmark summary") -> str:
+    """The overview table, then one metrics table per protocol."""
+    parts = [f"# {title}\n", _describe(rows) + "\n",
+             "Cells of the overview: strict success % / success up to symmetry % (median time of the "
+             "registration call). Definitions: docs/bench.md.\n", overview_table(rows)]
+    for protocol, group in _groups(rows, protocol_label).items():
+        parts.append(f"## {protocol}\n\n{_describe(group)}\n\n{metrics_table(group)}")
+    return "\n".join(parts)
+
+
+def summary_csv(rows: list[dict]) -> str:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for (protocol, method, sigma), group in _groups(rows, lambda r: (protocol_label(r), r["method"], r.get("sigma"))).items():
+        stats = group_stats(group)
+        writer.writerow({"protocol": protocol, "method": method, "sigma": sigma,
+                         **{key: stats[key] for key in CSV_COLUMNS if key in stats}})
+    return out.getvalue()
+
+
+def paper_tables(rows: list[dict]) -> dict[str, str]:
+    """One Markdown file per paper table: ``paper-table-<case>.md`` for each printed transform and
+    ``paper-<protocol>-t<range>.md`` for each randomised paper protocol; rows = methods, columns =
+    the paper's metrics; one table per cloud size."""
+    files = {}
+    paper_rows = [r for r in rows if r["protocol"].startswith("paper")]
+    for label, group in _groups(paper_rows, protocol_label).items():
+        name = "paper-table-" + group[0]["case"] if group[0].get("case") else label
+        parts = [f"# {label}\n", _describe(group) + "\n"]
+        if group[0].get("case"):
+            parts.append(f"One trial per cloud size: {group[0]['cloud']} under the transform the paper prints "
+                         f"for {group[0]['case']}; initial rotation {group[0]['initial_rotation_deg']:.1f} deg.\n")
+        for points, sized in _groups(group, lambda r: r.get("points")).items():
+            parts.append(f"## {points} points\n\n{metrics_table(sized)}")
+        files[f"{name}.md"] = "\n".join(parts)
+    return files

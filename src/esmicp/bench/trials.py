@@ -1,0 +1,185 @@
+"""Trial plans: what every row of a run is about, with the seed that rebuilds it alone.
+
+A :class:`TrialSpec` is small and names everything a trial depends on; :func:`build_trial` turns
+it (with its cloud) into an :class:`esmicp.protocols.Trial`. Seeds: for every (protocol,
+dataset, points, translation range) a ``SeedSequence`` built from the run's seed and those names
+is spawned (``SeedSequence.spawn``) into one child per trial; a trial's ``seed`` is a 32-bit int
+drawn from its child, and ``build_trial(spec, cloud)`` needs nothing else.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.procrustes import apply, to_matrix
+from ..protocols import (
+    PROTOCOLS,
+    Trial,
+    bounding_box_diagonal,
+    make_trial,
+    random_rigid_transform,
+    rigid_inverse,
+)
+from .config import PAPER_PROTOCOLS
+from .datasets import name_seed
+from .paper import PAPER_CASES, PaperCase, case_protocol, paper_motion, paper_trial
+
+#: Fraction of each half a ``partial`` crop keeps.
+PARTIAL_KEEP = 0.7
+PAPER_TABLE = "paper-table"
+
+
+@dataclass(frozen=True)
+class TrialSpec:
+    """One trial, by name and seed.
+
+    ``index`` is the trial's number within its (protocol, dataset, points, range) group;
+    ``translation_range`` is set for the paper protocols, ``case`` for ``paper-table``.
+    """
+
+    trial_id: str
+    protocol: str
+    dataset: str
+    cloud: str
+    seed: int
+    index: int
+    points: int
+    translation_range: float | None = None
+    case: str | None = None
+
+
+def group_seeds(base_seed: int, protocol: str, dataset: str, points: int, count: int, translation_range=None) -> list[int]:
+    """``count`` trial seeds: children of one ``SeedSequence`` per group, spawned."""
+    entropy = [int(base_seed), name_seed(protocol), name_seed(dataset), int(points)]
+    if translation_range is not None:
+        entropy.append(name_seed(repr(float(translation_range))))
+    children = np.random.SeedSequence(entropy).spawn(count)
+    return [int(child.generate_state(1)[0]) for child in children]
+
+
+def _range_label(value: float) -> str:
+    return f"t{value:g}"
+
+
+def object_specs(protocol: str, dataset: str, clouds: list[str], points: int, trials: int, seed: int, translation_range=None) -> list[TrialSpec]:
+    """Trials of an object protocol, round-robin over ``clouds``."""
+    seeds = group_seeds(seed, protocol, dataset, points, trials, translation_range)
+    label = protocol if translation_range is None else f"{protocol}-{_range_label(translation_range)}"
+    specs = []
+    for index, trial_seed in enumerate(seeds):
+        cloud = clouds[index % len(clouds)]
+        specs.append(
+            TrialSpec(f"{dataset}/{cloud}/n{points}/{label}/{index}", protocol, dataset, cloud, trial_seed,
+                      index, points, translation_range)
+        )
+    return specs
+
+
+def paper_case_specs(dataset: str, clouds: list[str], points: int, seed: int) -> list[TrialSpec]:
+    """One ``paper-table`` trial per :data:`PAPER_CASES` entry whose class is in ``clouds``."""
+    specs = []
+    for index, case in enumerate(PAPER_CASES):
+        cloud = find_class(case, clouds)
+        if cloud is None:
+            continue
+        trial_seed = group_seeds(seed, PAPER_TABLE, f"{dataset}/{case.name}", points, 1)[0]
+        specs.append(TrialSpec(f"{dataset}/{cloud}/n{points}/{PAPER_TABLE}/{case.name}", PAPER_TABLE, dataset,
+                               cloud, trial_seed, index, points, case=case.name))
+    return specs
+
+
+def find_class(case: PaperCase, clouds: list[str]) -> str | None:
+    """The first cloud named ``<class>`` or ``<class>_<number>``."""
+    for cloud in clouds:
+        if cloud == case.cloud or (cloud.startswith(case.cloud + "_") and cloud[len(case.cloud) + 1 :].isdigit()):
+            return cloud
+    return None
+
+
+def _subsample(cloud: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    if len(cloud) <= count:
+        return cloud
+    return cloud[np.sort(rng.choice(len(cloud), size=count, replace=False))]
+
+
+def _crop(points: np.ndarray, rng: np.random.Generator, keep: float) -> np.ndarray:
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    height = (points - points.mean(axis=0)) @ direction
+    return points[height >= np.quantile(height, 1.0 - keep)]
+
+
+def partial_trial(cloud: np.ndarray, rng: np.random.Generator, *, name: str, seed, points: int) -> Trial:
+    """``partial``: two disjoint random halves of ``points`` points, each cropped by its own random
+    half-space to :data:`PARTIAL_KEEP` of its points (so the overlap is partial), the source half
+    moved by :func:`esmicp.protocols.random_rigid_transform`; truth = the inverse move."""
+    cloud = _subsample(np.asarray(cloud, dtype=np.float64), 2 * points, rng)
+    order = rng.permutation(len(cloud))
+    half = len(cloud) // 2
+    target = _crop(cloud[order[:half]], rng, PARTIAL_KEEP)
+    source_object = _crop(cloud[order[half : 2 * half]], rng, PARTIAL_KEEP)
+    moved_by = random_rigid_transform(rng, bounding_box_diagonal(target))
+    return Trial("partial", name, _frozen(apply(moved_by, source_object)), _frozen(target),
+                 _frozen(rigid_inverse(moved_by)), seed, bounding_box_diagonal(target))
+
+
+def _frozen(array) -> np.ndarray:
+    array = np.array(array, dtype=np.float64, copy=True)
+    array.setflags(write=False)
+    return array
+
+
+def build_trial(spec: TrialSpec, cloud: np.ndarray) -> Trial:
+    """The trial ``spec`` describes, on ``cloud`` (the dataset's full cloud), from ``spec.seed``."""
+    if spec.protocol in PROTOCOLS:
+        return make_trial(spec.protocol, cloud, spec.seed, 0, name=spec.cloud, points=spec.points)
+    rng = np.random.default_rng(spec.seed)
+    if spec.protocol == "partial":
+        return partial_trial(cloud, rng, name=spec.cloud, seed=spec.seed, points=spec.points)
+    if spec.protocol in PAPER_PROTOCOLS:
+        target = _subsample(np.asarray(cloud, dtype=np.float64), spec.points, rng)
+        moved_by = paper_motion(rng, spec.translation_range)
+        return paper_trial(spec.protocol, target, moved_by, rng, name=spec.cloud, seed=spec.seed)
+    raise ValueError(f"protocol: {spec.protocol!r} is not built from a spec (use build_case_trial / scan pairs)")
+
+
+def build_case_trial(spec: TrialSpec, cloud: np.ndarray, data_dir) -> Trial:
+    """A ``paper-table`` trial: the printed transform of ``spec.case`` on ``cloud``."""
+    case = next(c for c in PAPER_CASES if c.name == spec.case)
+    rng = np.random.default_rng(spec.seed)
+    target = _subsample(np.asarray(cloud, dtype=np.float64), spec.points, rng)
+    trial = paper_trial(case_protocol(case), target, case.motion(data_dir), rng, name=spec.cloud, seed=spec.seed)
+    return Trial(PAPER_TABLE, trial.cloud, trial.source, trial.target, trial.T_target_source, trial.seed,
+                 trial.diagonal, trial.clean)
+
+
+def perturbed_init(truth: np.ndarray, target: np.ndarray, seed: int, angle_deg: float, fraction: float) -> np.ndarray:
+    """A start near the truth: ``truth`` followed by a rotation of exactly ``angle_deg`` about a
+    random axis through the target's centroid, and a shift of ``fraction`` of the target's
+    diagonal in a random direction. Drawn from ``seed`` alone (the same for every method)."""
+    rng = np.random.default_rng([int(seed), 1])
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    from scipy.spatial.transform import Rotation
+
+    rotation = Rotation.from_rotvec(np.radians(angle_deg) * axis).as_matrix()
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    centroid = np.asarray(target).mean(axis=0)
+    shift = fraction * bounding_box_diagonal(target) * direction
+    delta = to_matrix(rotation, centroid - rotation @ centroid + shift)
+    return delta @ truth
+
+
+__all__ = [
+    "PAPER_TABLE",
+    "TrialSpec",
+    "build_case_trial",
+    "build_trial",
+    "object_specs",
+    "paper_case_specs",
+    "partial_trial",
+    "perturbed_init",
+]

@@ -1,0 +1,189 @@
+"""``esmicp bench``: the command line of the benchmark suite (:mod:`esmicp.bench`), a thin layer:
+parse flags into a :class:`~esmicp.bench.BenchConfig`, run, print where the results are.
+
+Hooked into ``esmicp`` by :func:`add_parser` (called from :func:`esmicp.cli.build_parser`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+from pathlib import Path
+
+EXIT_OK = 0
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+
+#: Flags that take part in the configuration, and the BenchConfig field each one sets.
+_CONFIG_FLAGS = {
+    "protocols": "protocols", "datasets": "datasets", "methods": "methods", "trials": "trials",
+    "points": "points", "seed": "seed", "max_iterations": "max_iterations", "init": "init",
+    "init_angle": "init_perturbation_deg", "init_shift": "init_perturbation_fraction",
+    "translation_ranges": "translation_ranges", "sigma_sweep": "sigma_sweep", "data": "data_dir",
+}
+
+
+def _names(text: str) -> tuple[str, ...]:
+    names = tuple(part.strip() for part in text.split(",") if part.strip())
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected a comma-separated list, got {text!r}")
+    return names
+
+
+def _numbers(kind):
+    def parse(text: str) -> tuple:
+        try:
+            values = tuple(kind(part) for part in _names(text))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+        return values
+
+    return parse
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text!r}")
+    return value
+
+
+def add_parser(commands) -> argparse.ArgumentParser:
+    """Add the ``bench`` subcommand to ``commands`` (the subparsers of ``esmicp``)."""
+    bench = commands.add_parser(
+        "bench",
+        help="run the benchmark suite (paper protocol and tables, honest protocols, every method)",
+        description="Run registration methods on seeded trials and write one JSON row per (trial, method) "
+        "to OUT/rows.jsonl, the resolved configuration (config.json) and library versions (versions.json) "
+        "beside it, and summary tables (summary.md, summary.csv; with --paper one paper-*.md per paper "
+        "table). Defaults: the honest protocols on the built-in synthetic clouds, every method. "
+        "Exit status: 0 done, 2 bad input (nothing run), 130 interrupted (finished trials kept: "
+        "continue with --resume). See docs/bench.md.",
+    )
+    bench.add_argument("--paper", action="store_true",
+                       help="the paper's experiments: protocols paper, paper-noise-30, paper-noise-60 at translation "
+                       "ranges 1,100,1000 plus the paper's printed transforms, on modelnet40, with our methods and "
+                       "the geometric baselines, 40 iterations (other flags override)")
+    bench.add_argument("--protocols", type=_names, help="comma-separated (default: copy,shuffled,resampled,"
+                       "outliers-30,outliers-60,partial,scan-pairs)")
+    bench.add_argument("--datasets", type=_names, help="comma-separated: synthetic (default), modelnet40, bunny, "
+                       "bunny-scans, lidar-pair, or folders of point-cloud / mesh files")
+    bench.add_argument("--methods", type=_names, help="comma-separated method names, or 'all' (default), 'ours', "
+                       "'geometric' (all but the learned baselines)")
+    bench.add_argument("--trials", type=_count, help="trials per protocol, dataset and size (default 10; --paper 12)")
+    bench.add_argument("--points", type=_numbers(int), help="cloud sizes, comma-separated (default 1024,2048)")
+    bench.add_argument("--seed", type=int, help="base seed of every trial (default 0)")
+    bench.add_argument("--max-iterations", type=_count, help="iteration budget of every local method (default 40)")
+    bench.add_argument("--init", choices=("identity", "perturbed"),
+                       help="start of every local method: identity (default) or perturbed (the truth moved by "
+                       "--init-angle degrees and --init-shift diagonals)")
+    bench.add_argument("--init-angle", type=float, help="perturbed start: rotation, degrees (default 30)")
+    bench.add_argument("--init-shift", type=float, help="perturbed start: shift, fraction of the diagonal (default 0.1)")
+    bench.add_argument("--translation-ranges", type=_numbers(float),
+                       help="paper protocols: translation ranges, cloud units (default 1000; --paper 1,100,1000)")
+    bench.add_argument("--sigma-sweep", type=_numbers(float), metavar="S1,S2,...",
+                       help="run esm and esm-paper once per fixed sigma (cloud units) instead of their default, "
+                       "e.g. 0.005,0.01,0.02,0.05,0.1,0.2")
+    bench.add_argument("--data", type=str, help="the shared data folder (default $ESMICP_SHARED_DATA or ../shared/data)")
+    bench.add_argument("--out", type=Path, default=Path("bench-results"), help="results folder (default bench-results)")
+    bench.add_argument("--workers", type=_count, help="worker processes (default: every local core; 1 = serial)")
+    bench.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                       help="run on this existing Dask scheduler (default: a local Dask cluster)")
+    bench.add_argument("--resume", action="store_true",
+                       help="continue the run in --out: skip finished (trial, method) rows; flags not given are "
+                       "taken from its config.json")
+    bench.add_argument("--force", action="store_true", help="replace the results in --out")
+    bench.add_argument("--no-progress", action="store_true", help="no progress bar")
+    bench.add_argument("--plots", action="store_true", help="also draw the figures (needs esmicp.viz: the viz extra)")
+    bench.set_defaults(handler=run)
+    return bench
+
+
+def _defaults(paper: bool) -> dict:
+    from .bench.config import HONEST_OBJECT_PROTOCOLS, SCAN_PROTOCOL
+    from .bench.datasets import default_data_dir
+    from .bench.paper import PAPER_ITERATIONS, PAPER_TRANSLATION_RANGES
+
+    common = dict(points=(1024, 2048), seed=0, init="identity", init_perturbation_deg=30.0,
+                  init_perturbation_fraction=0.1, sigma_sweep=(), data_dir=str(default_data_dir()))
+    if paper:
+        return dict(common, protocols=("paper", "paper-noise-30", "paper-noise-60"), datasets=("modelnet40",),
+                    methods=("geometric",), trials=12, max_iterations=PAPER_ITERATIONS,
+                    translation_ranges=PAPER_TRANSLATION_RANGES, paper_tables=True)
+    return dict(common, protocols=(*HONEST_OBJECT_PROTOCOLS, SCAN_PROTOCOL), datasets=("synthetic",),
+                methods=("all",), trials=10, max_iterations=40, translation_ranges=(1000.0,), paper_tables=False)
+
+
+def _expand_methods(names) -> tuple[str, ...]:
+    from .bench.methods import OUR_METHODS, is_learned, method_names
+
+    expanded = []
+    for name in names:
+        if name == "all":
+            expanded.extend(method_names())
+        elif name == "ours":
+            expanded.extend(OUR_METHODS)
+        elif name == "geometric":
+            expanded.extend(m for m in method_names() if not is_learned(m))
+        else:
+            expanded.append(name)
+    return tuple(dict.fromkeys(expanded))
+
+
+def build_config(args):
+    """The :class:`~esmicp.bench.BenchConfig` of ``args``: with ``--resume``, the saved one with the
+    flags given on top; otherwise the defaults (``--paper``'s or the honest ones) with the flags."""
+    from .bench import BenchConfig
+    from .bench.results import CONFIG, read_json
+
+    values = None
+    if args.resume:
+        values = read_json(args.out / CONFIG)
+        if values is None:
+            from .errors import InvalidInputError
+
+            raise InvalidInputError(f"{args.out / CONFIG}: not found, nothing to resume")
+        values = {key: tuple(value) if isinstance(value, list) else value for key, value in values.items()}
+    if values is None:
+        values = _defaults(args.paper)
+    for flag, field in _CONFIG_FLAGS.items():
+        value = getattr(args, flag)
+        if value is not None:
+            values[field] = value
+    if args.paper:
+        values["paper_tables"] = True
+    values["methods"] = _expand_methods(values["methods"])
+    return BenchConfig.from_dict(values)
+
+
+def run(args) -> int:
+    from .bench import Interrupted, RunOptions, run_bench, read_rows
+    from .bench.results import ROWS
+
+    if args.plots and importlib.util.find_spec("esmicp.viz") is None:
+        from .errors import InvalidInputError
+
+        raise InvalidInputError("--plots needs esmicp.viz, which is not installed (the viz extra: pip install 'esmicp[viz]')")
+    config = build_config(args)
+    options = RunOptions(out_dir=args.out, workers=args.workers, scheduler=args.scheduler, resume=args.resume,
+                         force=args.force, progress=not args.no_progress)
+    try:
+        outcome = run_bench(config, options)
+    except Interrupted as stop:
+        print(f"esmicp bench: interrupted; {stop.rows_written} finished rows of this session are in {stop.rows_path}; "
+              f"continue with: esmicp bench --out {args.out} --resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(f"{outcome.rows_written} rows run, {outcome.rows_skipped} already done, {outcome.rows_total} in "
+          f"{outcome.out_dir / ROWS}")
+    for path in outcome.files:
+        print(f"table written to {path}")
+    if args.plots:
+        from .viz.bench_plots import write_bench_plots
+
+        write_bench_plots(read_rows(outcome.out_dir / ROWS), outcome.out_dir)
+        print(f"plots written to {outcome.out_dir}")
+    return EXIT_OK
