@@ -122,3 +122,22 @@ def test_rows_file_round_trip_and_bad_rows(rows, tmp_path):
     assert "time_s" in REQUIRED_KEYS
     with pytest.raises(InvalidInputError, match="no benchmark rows"):
         write_bench_plots([], tmp_path / "none")
+
+
+def test_bench_command_with_plots_draws_the_run_and_redraws_on_resume(tmp_path):
+    """``esmicp bench --plots``: the figures of the rows on disk, drawn again after ``--resume``."""
+    require_plotting()
+    from esmicp.cli import main
+
+    out = tmp_path / "run"
+    command = ["bench", "--protocols", "copy", "--datasets", "synthetic", "--methods", "esm,esm-paper",
+               "--points", "300", "--trials", "2", "--out", str(out), "--no-progress", "--workers", "1",
+               "--plots"]
+    assert main(command) == 0
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    assert pngs == ["errors.png", "success_vs_angle.png", "time.png"]
+    for name in pngs:
+        check_image(out / name, min_width=400, min_height=300)
+    first = {name: (out / name).stat().st_mtime_ns for name in pngs}
+    assert main([*command, "--resume"]) == 0  # nothing left to run; the plots are drawn again
+    assert all((out / name).stat().st_mtime_ns > first[name] for name in pngs)

@@ -7,7 +7,6 @@ Hooked into ``esmicp`` by :func:`add_parser` (called from :func:`esmicp.cli.buil
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 from pathlib import Path
 
@@ -164,10 +163,11 @@ def run(args) -> int:
     from .bench import Interrupted, RunOptions, run_bench, read_rows
     from .bench.results import ROWS
 
-    if args.plots and importlib.util.find_spec("esmicp.viz") is None:
-        from .errors import InvalidInputError
+    if args.plots:
+        # Before the run, not after it: a missing plotting library must not cost a whole run.
+        from .viz._deps import require
 
-        raise InvalidInputError("--plots needs esmicp.viz, which is not installed (the viz extra: pip install 'esmicp[viz]')")
+        require("matplotlib")
     config = build_config(args)
     options = RunOptions(out_dir=args.out, workers=args.workers, scheduler=args.scheduler, resume=args.resume,
                          force=args.force, progress=not args.no_progress)
@@ -184,6 +184,9 @@ def run(args) -> int:
     if args.plots:
         from .viz.bench_plots import write_bench_plots
 
-        write_bench_plots(read_rows(outcome.out_dir / ROWS), outcome.out_dir)
-        print(f"plots written to {outcome.out_dir}")
+        # The plots are derived from every row on disk, so a resumed run redraws them.
+        paths = write_bench_plots(read_rows(outcome.out_dir / ROWS), outcome.out_dir,
+                                  overwrite=args.resume or args.force)
+        for path in paths:
+            print(f"plot written to {path}")
     return EXIT_OK
