@@ -14,7 +14,7 @@ is ``"local"`` (it starts from ``init`` and runs at most ``max_iterations`` iter
 
 The libraries are optional and imported only when an adapter runs; a missing one raises
 :class:`MissingDependencyError` with an install hint, missing model weights
-:class:`WeightsNotAvailableError`. Nothing here is imported by ``import esmicp``. The methods, their
+:class:`WeightsNotAvailableError`, Go-ICP past its time limit :class:`BaselineTimeoutError`. Nothing here is imported by ``import esmicp``. The methods, their
 settings and install commands: ``docs/baselines.md``.
 """
 

@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from . import BaselineResult
 from ._common import apply, checked_inputs, diagonal, local_distance
+from ..types import as_positive
 
 NAME = "icp-nl"
 
@@ -129,7 +130,7 @@ def register(
     distance = (
         local_distance(source_points, target_points, inputs.init)
         if max_correspondence_distance is None
-        else float(max_correspondence_distance)
+        else as_positive(max_correspondence_distance, "max_correspondence_distance")
     )
     tree = cKDTree(target_points)
     spacing = float(np.median(tree.query(target_points[: min(len(target_points), 5000)], k=2)[0][:, 1]))

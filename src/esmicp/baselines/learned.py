@@ -9,7 +9,9 @@ result. (PointNetLK, whose weights are available, is :mod:`esmicp.baselines.poin
 
 from __future__ import annotations
 
-from . import BaselineResult, WeightsNotAvailableError
+from typing import NoReturn
+
+from . import WeightsNotAvailableError
 from ._common import checked_inputs
 from .weights import find_weights
 
@@ -21,7 +23,7 @@ DEEPGMR = "deepgmr"
 WEIGHT_FILES = {DCP: "dcp/model.best.t7", RPM_NET: "rpm-net/model-best.pth", DEEPGMR: "deepgmr/modelnet_clean.pth"}
 
 
-def _unavailable(method, source, target, init, max_iterations, voxel_size, rng, weights_dir) -> BaselineResult:
+def _unavailable(method, source, target, init, max_iterations, voxel_size, rng, weights_dir) -> NoReturn:
     checked_inputs(source, target, voxel_size, max_iterations, rng, init)
     path = find_weights(method, WEIGHT_FILES[method], weights_dir)
     raise WeightsNotAvailableError(
