@@ -14,7 +14,8 @@ is ``"local"`` (it starts from ``init`` and runs at most ``max_iterations`` iter
 
 The libraries are optional and imported only when an adapter runs; a missing one raises
 :class:`MissingDependencyError` with an install hint, missing model weights
-:class:`WeightsNotAvailableError`, Go-ICP past its time limit :class:`BaselineTimeoutError`. Nothing here is imported by ``import esmicp``. The methods, their
+:class:`WeightsNotAvailableError`, Go-ICP past its time limit :class:`BaselineTimeoutError`.
+Nothing here is imported by ``import esmicp``. The methods, their
 settings and install commands: ``docs/baselines.md``.
 """
 
@@ -122,7 +123,10 @@ def _registry() -> tuple[dict[str, Baseline], dict[str, str]]:
         learned.DEEPGMR: (learned.deepgmr, "global"),
         # Local: start from init, at most max_iterations iterations.
         small_gicp.NAME: (small_gicp.register, "local"),
-        small_gicp.NAME_VGICP: (update_wrapper(partial(small_gicp.register, registration_type="VGICP"), small_gicp.register), "local"),
+        small_gicp.NAME_VGICP: (
+            update_wrapper(partial(small_gicp.register, registration_type="VGICP"), small_gicp.register),
+            "local",
+        ),
         open3d_local.NAME_ICP: (open3d_local.icp, "local"),
         open3d_local.NAME_ICP_PLANE: (open3d_local.icp_point_to_plane, "local"),
         open3d_local.NAME_GICP: (open3d_local.gicp, "local"),

@@ -12,13 +12,13 @@ One fix: with ``update_scale=False`` probreg 0.3.8's M-step updates the variance
 ``sum P ||x - R y - t||^2`` (Myronenko & Song 2010, Fig. 2, with ``s = 1``): the variance then
 stays near the cloud's own spread and CPD stops short (4 degrees off on a chair at 10 degrees,
 measured). The adapter's subclass :class:`_RigidCPD` replaces that M-step by the paper's
-(written in the project), with the correct ``(tr(X'P1X) - 2 tr(A'R) + tr(Y'P1Y)) / (Np D)``. ``w`` is the uniform-outlier weight (probreg's default, 0). The EM is O(N x M) in
-time and memory per iteration. probreg's result maps the moved source onto the target: the
-adapter composes it with ``init`` into ``T_target_source``. Deterministic: ``rng`` and
-``voxel_size`` are validated and unused.
-
-probreg 0.3.8 is source-only and its requirements pull the full ``open3d`` wheel: install it with
-``pip install --no-deps probreg==0.3.8`` and then ``pip install 'esmicp[cpd]'`` (docs/baselines.md).
+(written in the project), with the correct ``(tr(X'P1X) - 2 tr(A'R) + tr(Y'P1Y)) / (Np D)``. ``w``
+is the uniform-outlier weight (probreg's default, 0). The EM is O(N x M) in time and memory per
+iteration. probreg's result maps the moved source onto the target: the adapter composes it with
+``init`` into ``T_target_source``. Deterministic: ``rng`` and ``voxel_size`` are validated and
+unused. probreg 0.3.8 is source-only and its requirements pull the full ``open3d`` wheel: install it
+with ``pip install --no-deps probreg==0.3.8`` and then ``pip install 'esmicp[cpd]'``
+(docs/baselines.md).
 """
 
 from __future__ import annotations

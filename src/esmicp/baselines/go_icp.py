@@ -131,7 +131,7 @@ def register(
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.PIPE,
                 timeout=timeout_s,
-                env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [_package_root(), os.environ.get("PYTHONPATH")]))},
+                env={**os.environ, "PYTHONPATH": _child_pythonpath()},
             )
         except subprocess.TimeoutExpired:
             raise BaselineTimeoutError(
@@ -140,7 +140,8 @@ def register(
             ) from None
         if finished.returncode != 0 or not result_path.exists():
             message = finished.stderr.decode(errors="replace").strip().splitlines()
-            raise RuntimeError(f"{NAME}: the Go-ICP child process failed: {message[-1] if message else finished.returncode}")
+            last = message[-1] if message else f"exit status {finished.returncode}"
+            raise RuntimeError(f"{NAME}: the Go-ICP child process failed: {last}")
         with np.load(result_path) as result:
             rotation = result["rotation"]
             translation = result["translation"]
@@ -164,6 +165,8 @@ def register(
     )
 
 
-def _package_root() -> str:
-    """The folder holding the ``esmicp`` package, so that the child imports this very copy."""
-    return str(Path(__file__).resolve().parents[2])
+def _child_pythonpath() -> str:
+    """``PYTHONPATH`` for the child: the folder holding this ``esmicp`` package first, so that the
+    child imports this very copy."""
+    folders = [str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH", "")]
+    return os.pathsep.join(folder for folder in folders if folder)

@@ -72,7 +72,8 @@ _GENERATORS = np.array(
     dtype=np.float64,
 )
 # Second derivatives of exp(w) x at w = 0: (E_i E_j + E_j E_i) / 2.
-_SECOND = 0.5 * (np.einsum("iab,jbc->ijac", _GENERATORS, _GENERATORS) + np.einsum("jab,ibc->ijac", _GENERATORS, _GENERATORS))
+_PRODUCTS = np.einsum("iab,jbc->ijac", _GENERATORS, _GENERATORS)  # E_i E_j
+_SECOND = 0.5 * (_PRODUCTS + _PRODUCTS.transpose(1, 0, 2, 3))
 
 
 class _Gaussians:
@@ -129,7 +130,8 @@ class _Gaussians:
         if not with_derivatives:
             return value, len(np.unique(point_index))
         # dq/dp: rotation columns E_k x, then the identity.
-        jacobian = np.concatenate([np.einsum("kab,nb->nak", _GENERATORS, x), np.broadcast_to(np.eye(3), (len(x), 3, 3))], axis=2)
+        rotation_part = np.einsum("kab,nb->nak", _GENERATORS, x)
+        jacobian = np.concatenate([rotation_part, np.broadcast_to(np.eye(3), (len(x), 3, 3))], axis=2)
         projected = np.einsum("na,nak->nk", inverse_q, jacobian)  # q^T S^-1 dq/dp_k
         factor = -self.d1 * self.d2 * exponent  # > 0
         gradient = np.einsum("n,nk->k", factor, projected)

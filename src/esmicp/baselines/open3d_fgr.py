@@ -58,7 +58,8 @@ def register(
         method=NAME,
         converged=None,
         notes=(
-            f"voxel={voxel:.6g}, seed={inputs.seed}, downsampled {len(source_down.points)}/{len(target_down.points)} pts; "
+            f"voxel={voxel:.6g}, seed={inputs.seed}, "
+            f"downsampled {len(source_down.points)}/{len(target_down.points)} pts; "
             f"fgr distance={FGR_DISTANCE_VOXELS * voxel:.6g} fitness={result.fitness:.3f} rmse={result.inlier_rmse:.3g}"
         ),
     )

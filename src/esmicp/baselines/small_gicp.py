@@ -1,13 +1,14 @@
 """``small-gicp`` / ``small-vgicp``: small_gicp's generalized ICP and voxelized GICP from ``init``.
 LOCAL methods.
 
-``small_gicp.align(target, source, init_T_target_source=init, registration_type="GICP" | "VGICP",
-downsampling_resolution=v, max_correspondence_distance=d, max_iterations=...)`` with ``v`` the
-voxel size (given, or 1/40 of the target's bounding-box diagonal): both clouds voxel-downsampled by
-``v``, covariances from their 10 nearest neighbours (small_gicp's default), then GICP iterations
-from ``init`` (VGICP: the target's covariances merged per voxel of size ``4v``, one voxel lookup per
-source point instead of a nearest-neighbour search; voxels of ``v`` hold too few points on
-1,000-2,000-point objects, small_gicp's own example uses 4 downsampling voxels too). ``d`` follows the rule of every local adapter
+``small_gicp.align(target, source, init_T_target_source=init,
+registration_type="GICP" | "VGICP", downsampling_resolution=v, max_correspondence_distance=d,
+max_iterations=...)`` with ``v`` the voxel size (given, or 1/40 of the target's bounding-box
+diagonal): both clouds voxel-downsampled by ``v``, covariances from their 10 nearest neighbours
+(small_gicp's default), then GICP iterations from ``init`` (VGICP: the target's covariances merged
+per voxel of size ``4v``, one voxel lookup per source point instead of a nearest-neighbour search;
+voxels of ``v`` hold too few points on 1,000-2,000-point objects, small_gicp's own defaults have the
+same 4:1 ratio). ``d`` follows the rule of every local adapter
 (:func:`esmicp.baselines._common.local_distance`: every source point paired at the start) unless
 ``max_correspondence_distance`` is given; VGICP has no correspondence distance (a point whose voxel
 is empty in the target is simply unpaired), so from far starts it cannot move. Deterministic: one
