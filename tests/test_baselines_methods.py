@@ -13,10 +13,11 @@ from __future__ import annotations
 import inspect
 import os
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import require_shared
+from conftest import REPO_ROOT, require_shared
 from scipy.spatial.transform import Rotation
 from test_baselines import _in_ci, require_module
 
@@ -78,14 +79,24 @@ def _require(method: str) -> None:
         require_weights(WEIGHTS)
 
 
+#: The shared weights beside the repository (whether esmicp is installed editable or not).
+SHARED_WEIGHTS = REPO_ROOT.parent / "shared" / "weights"
+
+
+@pytest.fixture(autouse=True)
+def _weights_from_the_shared_folder(monkeypatch):
+    """Point the adapters at ../shared/weights beside this checkout, unless the environment
+    already names a folder (tests that need another folder set it themselves)."""
+    if not os.environ.get("ESMICP_WEIGHTS_DIR"):
+        monkeypatch.setenv("ESMICP_WEIGHTS_DIR", str(SHARED_WEIGHTS))
+
+
 def require_weights(relative: str):
     """The shared weights file ``relative``: skipped locally when missing, failed in CI."""
-    from esmicp.baselines.weights import candidate_dirs
-
-    for folder in candidate_dirs():
-        if (folder / relative).is_file():
-            return folder / relative
-    message = f"weights not found: {relative} in {', '.join(map(str, candidate_dirs()))}"
+    folder = Path(os.environ.get("ESMICP_WEIGHTS_DIR") or SHARED_WEIGHTS)
+    if (folder / relative).is_file():
+        return folder / relative
+    message = f"weights not found: {folder / relative} (set ESMICP_WEIGHTS_DIR or put shared/ beside the repo)"
     if _in_ci():
         pytest.fail(message)
     pytest.skip(message)

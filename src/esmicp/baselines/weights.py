@@ -1,8 +1,10 @@
 """Where the learned baselines look for pretrained weights (never shipped in the repository).
 
-In this order: the ``weights_dir`` argument of the adapter; the ``ESMICP_WEIGHTS_DIR`` environment
-variable; ``../shared/weights`` beside the repository checkout (the project's shared folder). Inside
-it, each model has its own folder (``pointnetlk/best_model.t7``, ...).
+In this order: the ``weights_dir`` argument of the adapter (only it, when given); the
+``ESMICP_WEIGHTS_DIR`` environment variable; ``shared/weights`` beside the repository checkout
+(the project's shared folder) when esmicp runs from its source tree; ``../shared/weights`` from the
+current directory (a checkout's root, when esmicp is installed as a package, as in CI). Inside it,
+each model has its own folder (``pointnetlk/best_model.t7``, ...).
 """
 
 from __future__ import annotations
@@ -26,6 +28,9 @@ def candidate_dirs(weights_dir=None) -> list[Path]:
     if os.environ.get(WEIGHTS_ENV):
         folders.append(Path(os.environ[WEIGHTS_ENV]))
     folders.append(_CHECKOUT_SHARED)
+    beside_cwd = Path.cwd().resolve().parent / "shared" / "weights"
+    if beside_cwd != _CHECKOUT_SHARED:
+        folders.append(beside_cwd)
     return folders
 
 
