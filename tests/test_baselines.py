@@ -141,7 +141,7 @@ def test_open3d_ransac_is_deterministic_for_a_seed(chair_pair):
 
 
 def test_registry_and_bad_arguments(chair_pair):
-    assert set(BASELINES) == set(MODULES)
+    assert set(MODULES) <= set(BASELINES)  # every adapter: tests/test_baselines_methods.py
     with pytest.raises(InvalidInputError, match="unknown method 'nope'"):
         get_baseline("nope")
     _require_all("open3d-ransac-fpfh-icp")

@@ -1,30 +1,22 @@
-"""Third-party registration methods, wrapped behind one interface, for honest comparisons.
+"""Third-party and reference registration methods, wrapped behind one interface, for honest
+comparisons.
 
 Every adapter is a callable::
 
-    register(source, target, *, voxel_size=None, rng=None, max_iterations=...) -> BaselineResult
+    adapter(source, target, *, init=None, max_iterations=..., voxel_size=None, rng=None) -> BaselineResult
 
-with ``source`` / ``target`` ``(N, 3)`` / ``(M, 3)`` point arrays and the result's
-``transformation`` the usual ``T_target_source`` (``target ~= source @ R.T + t``).
+with ``source`` / ``target`` ``(N, 3)`` / ``(M, 3)`` point arrays, ``init`` a 4x4
+``T_target_source`` initial guess (None = identity) and the result's ``transformation`` the usual
+``T_target_source`` (``target ~= source @ R.T + t``). :data:`BASELINE_KINDS` says whether a method
+is ``"local"`` (it starts from ``init`` and runs at most ``max_iterations`` iterations) or
+``"global"`` (it ignores both: it finds the pose from anywhere; where a refinement follows,
+``max_iterations`` caps that refinement).
 
-The libraries are optional (``pip install 'esmicp[baselines]'``) and imported only when an adapter
-runs; a missing one raises :class:`MissingDependencyError` with an install hint. Nothing here is
-imported by ``import esmicp``.
-
-Adapters (:data:`BASELINES`):
-
-``open3d-ransac-fpfh-icp``
-    Open3D: voxel downsampling, FPFH features, RANSAC on feature matches, then point-to-point ICP
-    on the full clouds (:mod:`esmicp.baselines.open3d_ransac`). Global.
-``kiss-matcher-icp``
-    KISS-Matcher (faster-PFH + ROBIN + GNC) as the global step, then the same Open3D ICP
-    (:mod:`esmicp.baselines.kiss_matcher`). Global.
-``open3d-ransac-fpfh-p2l``, ``kiss-matcher-p2l``
-    The same two pipelines refined by point-to-plane ICP (target normals) instead. On resampled
-    surfaces (two different samplings of one shape) point-to-point ICP keeps a bias of a few tenths
-    of a degree that point-to-plane mostly removes.
-``small-gicp``
-    small_gicp's GICP from the identity (:mod:`esmicp.baselines.small_gicp`). Local only.
+The libraries are optional and imported only when an adapter runs; a missing one raises
+:class:`MissingDependencyError` with an install hint, missing model weights
+:class:`WeightsNotAvailableError`, Go-ICP past its time limit :class:`BaselineTimeoutError`.
+Nothing here is imported by ``import esmicp``. The methods, their
+settings and install commands: ``docs/baselines.md``.
 """
 
 from __future__ import annotations
@@ -74,31 +66,87 @@ class BaselineResult:
     notes: str = ""
 
 
+class WeightsNotAvailableError(MissingDependencyError):
+    """A learned baseline's pretrained weights are not found (the message says where they were
+    looked for, and how to supply them)."""
+
+
+class BaselineTimeoutError(EsmicpError, TimeoutError):
+    """A baseline did not finish within its time limit (Go-ICP's ``timeout_s``). Also a
+    :class:`TimeoutError`, which is what ``esmicp bench`` records as status ``timeout``."""
+
+
 class Baseline(Protocol):
     def __call__(
-        self, source, target, *, voxel_size: float | None = None, rng=None, max_iterations: int = ...
+        self,
+        source,
+        target,
+        *,
+        init=None,
+        max_iterations: int = ...,
+        voxel_size: float | None = None,
+        rng=None,
     ) -> BaselineResult: ...
 
 
-def _registry() -> dict[str, Baseline]:
+def _registry() -> tuple[dict[str, Baseline], dict[str, str]]:
     from functools import partial, update_wrapper
 
-    from . import kiss_matcher, open3d_ransac, small_gicp
+    from . import (
+        cpd,
+        go_icp,
+        icp_nl,
+        kiss_matcher,
+        learned,
+        ndt,
+        open3d_fgr,
+        open3d_local,
+        open3d_ransac,
+        pointnetlk,
+        small_gicp,
+    )
 
-    def plane(adapter):
-        return update_wrapper(partial(adapter, refinement="point-to-plane"), adapter)
+    def refined(adapter, refinement):
+        return update_wrapper(partial(adapter, refinement=refinement), adapter)
 
-    return {
-        open3d_ransac.NAME: open3d_ransac.register,
-        kiss_matcher.NAME: kiss_matcher.register,
-        open3d_ransac.NAME_PLANE: plane(open3d_ransac.register),
-        kiss_matcher.NAME_PLANE: plane(kiss_matcher.register),
-        small_gicp.NAME: small_gicp.register,
+    adapters: dict[str, tuple[Baseline, str]] = {
+        # Global: find the pose from anywhere; init is ignored.
+        open3d_ransac.NAME: (open3d_ransac.register, "global"),
+        kiss_matcher.NAME: (kiss_matcher.register, "global"),
+        open3d_ransac.NAME_PLANE: (refined(open3d_ransac.register, "point-to-plane"), "global"),
+        kiss_matcher.NAME_PLANE: (refined(kiss_matcher.register, "point-to-plane"), "global"),
+        open3d_ransac.NAME_ALONE: (refined(open3d_ransac.register, "none"), "global"),
+        kiss_matcher.NAME_ALONE: (refined(kiss_matcher.register, "none"), "global"),
+        open3d_fgr.NAME: (open3d_fgr.register, "global"),
+        go_icp.NAME: (go_icp.register, "global"),
+        learned.DCP: (learned.dcp, "global"),
+        learned.RPM_NET: (learned.rpm_net, "global"),
+        learned.DEEPGMR: (learned.deepgmr, "global"),
+        # Local: start from init, at most max_iterations iterations.
+        small_gicp.NAME: (small_gicp.register, "local"),
+        small_gicp.NAME_VGICP: (
+            update_wrapper(partial(small_gicp.register, registration_type="VGICP"), small_gicp.register),
+            "local",
+        ),
+        open3d_local.NAME_ICP: (open3d_local.icp, "local"),
+        open3d_local.NAME_ICP_PLANE: (open3d_local.icp_point_to_plane, "local"),
+        open3d_local.NAME_GICP: (open3d_local.gicp, "local"),
+        icp_nl.NAME: (icp_nl.register, "local"),
+        ndt.NAME: (ndt.register, "local"),
+        cpd.NAME: (cpd.register, "local"),
+        pointnetlk.NAME: (pointnetlk.register, "local"),
     }
+    return (
+        {name: adapter for name, (adapter, _) in adapters.items()},
+        {name: kind for name, (_, kind) in adapters.items()},
+    )
 
 
 #: name -> adapter. The adapter modules import their libraries only when called.
-BASELINES: dict[str, Baseline] = _registry()
+#: name -> "local" | "global" (see the module's docstring).
+BASELINES, BASELINE_KINDS = _registry()
+BASELINES: dict[str, Baseline]
+BASELINE_KINDS: dict[str, str]
 
 
 def get_baseline(name: str) -> Baseline:
@@ -113,9 +161,12 @@ def get_baseline(name: str) -> Baseline:
 
 __all__ = [
     "BASELINES",
+    "BASELINE_KINDS",
     "INSTALL_HINT",
     "Baseline",
     "BaselineResult",
+    "BaselineTimeoutError",
     "MissingDependencyError",
+    "WeightsNotAvailableError",
     "get_baseline",
 ]

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InvalidInputError
-from ..types import as_count, as_points, as_positive, check_not_degenerate
+from ..types import as_count, as_points, as_positive, as_transform, check_not_degenerate
 from . import INSTALL_HINT, MissingDependencyError
 
 #: Default voxel size, as a fraction of the target's bounding-box diagonal. ModelNet40 objects
@@ -33,14 +33,28 @@ ICP_MAX_ITERATIONS = 50
 OPEN3D_PACKAGE = "open3d (PyPI: open3d-cpu or open3d)"
 
 
-def require(module: str, package: str):
-    """Import ``module`` now, or raise :class:`MissingDependencyError` naming ``package``."""
+#: Install hints of the libraries that need more than ``pip install 'esmicp[baselines]'``
+#: (docs/baselines.md and .ci/run give the same commands).
+PROBREG_HINT = (
+    "pip install --no-deps probreg==0.3.8 && pip install 'esmicp[cpd]' "
+    "(--no-deps: probreg's own requirements pull the full 400 MB open3d on top of open3d-cpu)"
+)
+GOICP_HINT = (
+    "pip install 'esmicp[go-icp-build]' && pip install --no-build-isolation py-goicp==0.0.4 "
+    "(py-goicp builds only with cython 0.29.37 and autowrap 0.22.11)"
+)
+TORCH_HINT = "pip install 'esmicp[learned]' (CPU torch, pinned to torch==2.13.0)"
+
+
+def require(module: str, package: str, hint: str = INSTALL_HINT):
+    """Import ``module`` now, or raise :class:`MissingDependencyError` naming ``package`` and
+    how to install it (``hint``)."""
     try:
         return importlib.import_module(module)
     except (ImportError, OSError) as exc:  # OSError: a shared library (libusb for open3d) missing
         raise MissingDependencyError(
             f"{package} is needed for this baseline but cannot be imported ({exc}); install it with: "
-            f"{INSTALL_HINT}"
+            f"{hint}"
         ) from exc
 
 
@@ -66,18 +80,20 @@ def voxel_for(target: np.ndarray, voxel_size: float | None) -> float:
 
 @dataclass(frozen=True)
 class Inputs:
-    """An adapter's arguments, checked: clouds, voxel (cloud units), iteration cap, library seed."""
+    """An adapter's arguments, checked: clouds, voxel (cloud units), iteration cap, library seed,
+    initial guess (4x4 ``T_target_source``; the identity when none was given)."""
 
     source: np.ndarray
     target: np.ndarray
     voxel: float
     max_iterations: int
     seed: int
+    init: np.ndarray
 
 
-def checked_inputs(source, target, voxel_size, max_iterations, rng) -> Inputs:
+def checked_inputs(source, target, voxel_size, max_iterations, rng, init=None) -> Inputs:
     """Every adapter's argument checks, in one place (see :func:`prepare`, :func:`voxel_for`,
-    :func:`seed_from`)."""
+    :func:`seed_from`, :func:`checked_init`)."""
     source_points, target_points = prepare(source, target)
     return Inputs(
         source_points,
@@ -85,7 +101,34 @@ def checked_inputs(source, target, voxel_size, max_iterations, rng) -> Inputs:
         voxel_for(target_points, voxel_size),
         as_count(max_iterations, "max_iterations"),
         seed_from(rng),
+        checked_init(init),
     )
+
+
+def checked_init(init) -> np.ndarray:
+    """``init`` as a rigid 4x4 ``T_target_source``; None is the identity."""
+    if init is None:
+        return np.eye(4)
+    return as_transform(init, "init")
+
+
+def apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``points`` (source frame) mapped by ``transform``: ``points @ R.T + t``."""
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def local_distance(source: np.ndarray, target: np.ndarray, init: np.ndarray) -> float:
+    """The max correspondence distance of the local methods: ``diag(source) + diag(target) +
+    |centroid(init * source) - centroid(target)|`` (cloud units).
+
+    No nearest-neighbour distance at the start can exceed it, so every source point has a
+    correspondence, as in classic ICP (and as ``esm`` / ``icp`` pair every point): a smaller
+    bound would cripple the local methods from far starts (the paper's protocol starts them from
+    the identity under any rotation and translations of up to 1,000 object sizes), where the
+    clouds do not even touch.
+    """
+    offset = float(np.linalg.norm(apply(init, source).mean(axis=0) - target.mean(axis=0)))
+    return diagonal(source) + diagonal(target) + offset
 
 
 def seed_from(rng) -> int:
@@ -105,7 +148,8 @@ def o3d_cloud(o3d, points: np.ndarray):
 
 
 #: Refinements the global adapters offer after their global step.
-REFINEMENTS = ("point-to-point", "point-to-plane")
+#: ``"none"``: the global step's pose as it is (``open3d-ransac-fpfh``, ``kiss-matcher``).
+REFINEMENTS = ("point-to-point", "point-to-plane", "none")
 
 
 def check_refinement(refinement: str) -> str:
@@ -146,3 +190,25 @@ def o3d_icp(
             relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=max_iterations
         ),
     )
+
+
+def refine(
+    o3d, source_cloud, target_cloud, coarse: np.ndarray, voxel: float, max_iterations: int, refinement: str
+) -> tuple[np.ndarray, str]:
+    """A global step's pose ``coarse`` refined by Open3D ICP (``refinement``: point-to-point or
+    point-to-plane, max correspondence distance :data:`ICP_DISTANCE_VOXELS` voxels), or kept as it
+    is (``"none"``). Returns the 4x4 ``T_target_source`` and a note for the result."""
+    if refinement == "none":
+        return np.array(coarse, dtype=np.float64), "no refinement"
+    fine = o3d_icp(
+        o3d,
+        source_cloud,
+        target_cloud,
+        coarse,
+        ICP_DISTANCE_VOXELS * voxel,
+        max_iterations,
+        refinement=refinement,
+        normal_radius=NORMAL_RADIUS_VOXELS * voxel,
+    )
+    note = f"{refinement} icp fitness={fine.fitness:.3f} rmse={fine.inlier_rmse:.3g}"
+    return np.array(fine.transformation, dtype=np.float64), note

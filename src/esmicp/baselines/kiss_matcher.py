@@ -15,8 +15,10 @@ voxel units, whatever the clouds' units; the pose is mapped back.
 
 Its pose is refined exactly as in :mod:`esmicp.baselines.open3d_ransac`: point-to-point
 ``registration_icp`` on the full clouds, max correspondence distance ``1.5v``
-(``refinement="point-to-plane"``, registered as ``kiss-matcher-p2l``: point-to-plane ICP). KISS-Matcher draws
-no random numbers: ``rng`` is accepted for the common interface and unused.
+(``refinement="point-to-plane"``, registered as ``kiss-matcher-p2l``: point-to-plane ICP;
+``refinement="none"``, registered as ``kiss-matcher``: KISS-Matcher's pose as it is). KISS-Matcher
+draws no random numbers: ``rng`` is accepted for the common interface and unused; a global method,
+it ignores ``init``.
 """
 
 from __future__ import annotations
@@ -27,29 +29,30 @@ import numpy as np
 
 from . import BaselineResult
 from ._common import (
-    ICP_DISTANCE_VOXELS,
     ICP_MAX_ITERATIONS,
-    NORMAL_RADIUS_VOXELS,
+    OPEN3D_PACKAGE,
     check_refinement,
     checked_inputs,
     o3d_cloud,
-    o3d_icp,
-    OPEN3D_PACKAGE,
+    refine,
     require,
 )
 
 NAME = "kiss-matcher-icp"
 #: The name of the same pipeline refined by point-to-plane ICP.
 NAME_PLANE = "kiss-matcher-p2l"
+#: The name of KISS-Matcher alone (no refinement).
+NAME_ALONE = "kiss-matcher"
 
 
 def register(
     source,
     target,
     *,
+    init=None,
+    max_iterations: int = ICP_MAX_ITERATIONS,
     voxel_size: float | None = None,
     rng=None,
-    max_iterations: int = ICP_MAX_ITERATIONS,
     refinement: str = "point-to-point",
 ) -> BaselineResult:
     """Register ``source`` onto ``target`` with KISS-Matcher, then ICP.
@@ -64,9 +67,11 @@ def register(
         Validated, unused (the method is deterministic).
     max_iterations : int
         Cap on the ICP refinement's iterations.
-    refinement : {"point-to-point", "point-to-plane"}
+    refinement : {"point-to-point", "point-to-plane", "none"}
         The ICP that refines the global pose (point-to-plane: target normals from a radius of
-        2 voxels). The result's ``method`` is ``"kiss-matcher-p2l"`` for point-to-plane.
+        2 voxels), or none. The result's ``method`` is ``"kiss-matcher-p2l"`` for point-to-plane,
+        ``"kiss-matcher"`` for none.
+    init : ignored (validated): a global method.
 
     Raises
     ------
@@ -74,10 +79,10 @@ def register(
         When kiss_matcher or open3d cannot be imported.
     """
     kiss_matcher = require("kiss_matcher", "kiss-matcher")
-    o3d = require("open3d", OPEN3D_PACKAGE)
-    inputs = checked_inputs(source, target, voxel_size, max_iterations, rng)  # the seed goes unused
-    source_points, target_points, voxel = inputs.source, inputs.target, inputs.voxel
     refinement = check_refinement(refinement)
+    o3d = None if refinement == "none" else require("open3d", OPEN3D_PACKAGE)
+    inputs = checked_inputs(source, target, voxel_size, max_iterations, rng, init)  # seed, init unused
+    source_points, target_points, voxel = inputs.source, inputs.target, inputs.voxel
 
     start = time.perf_counter()
     # Centred (float32 keeps the precision of far-from-origin coordinates: the trials move
@@ -93,27 +98,26 @@ def register(
     coarse = np.eye(4)
     coarse[:3, :3] = rotation
     coarse[:3, 3] = translation + target_centre - rotation @ source_centre
-    fine = o3d_icp(
+    transformation, refinement_note = refine(
         o3d,
-        o3d_cloud(o3d, source_points),
-        o3d_cloud(o3d, target_points),
+        None if o3d is None else o3d_cloud(o3d, source_points),
+        None if o3d is None else o3d_cloud(o3d, target_points),
         coarse,
-        ICP_DISTANCE_VOXELS * voxel,
+        voxel,
         inputs.max_iterations,
-        refinement=refinement,
-        normal_radius=NORMAL_RADIUS_VOXELS * voxel,
+        refinement,
     )
     runtime = time.perf_counter() - start
 
     notes = (
         f"voxel={voxel:.6g}; kiss valid={bool(solution.valid)} "
         f"rotation_inliers={matcher.get_num_rotation_inliers()} final_inliers={matcher.get_num_final_inliers()}; "
-        f"{refinement} icp fitness={fine.fitness:.3f} rmse={fine.inlier_rmse:.3g}"
+        f"{refinement_note}"
     )
     return BaselineResult(
-        transformation=np.array(fine.transformation, dtype=np.float64),
+        transformation=transformation,
         runtime_s=runtime,
-        method=NAME if refinement == "point-to-point" else NAME_PLANE,
+        method={"point-to-point": NAME, "point-to-plane": NAME_PLANE, "none": NAME_ALONE}[refinement],
         converged=bool(solution.valid),
         notes=notes,
     )

@@ -12,7 +12,10 @@ With ``v`` the voxel size (given, or 1/40 of the target's bounding-box diagonal)
 5. point-to-point ``registration_icp`` on the full (not downsampled) clouds from the RANSAC pose,
    max correspondence distance ``1.5v``, at most ``max_iterations`` iterations
    (``refinement="point-to-plane"``, registered as ``open3d-ransac-fpfh-p2l``: point-to-plane
-   ICP instead, target normals from a radius of ``2v``).
+   ICP instead, target normals from a radius of ``2v``; ``refinement="none"``, registered as
+   ``open3d-ransac-fpfh``: no refinement, the RANSAC pose as it is).
+
+A global method: ``init`` is accepted for the common interface and ignored.
 
 Open3D's RANSAC draws from Open3D's global generator, seeded here with
 ``o3d.utility.random.seed`` from ``rng``: the same seed gives the same result.
@@ -26,20 +29,21 @@ import numpy as np
 
 from . import BaselineResult
 from ._common import (
-    ICP_DISTANCE_VOXELS,
     ICP_MAX_ITERATIONS,
     NORMAL_RADIUS_VOXELS,
+    OPEN3D_PACKAGE,
     check_refinement,
     checked_inputs,
     o3d_cloud,
-    o3d_icp,
-    OPEN3D_PACKAGE,
+    refine,
     require,
 )
 
 NAME = "open3d-ransac-fpfh-icp"
 #: The name of the same pipeline refined by point-to-plane ICP.
 NAME_PLANE = "open3d-ransac-fpfh-p2l"
+#: The name of RANSAC + FPFH alone (no refinement).
+NAME_ALONE = "open3d-ransac-fpfh"
 
 #: Radii in voxels (Open3D's tutorial values); the normal radius, 2, is NORMAL_RADIUS_VOXELS.
 FPFH_RADIUS_VOXELS = 5.0
@@ -64,9 +68,10 @@ def register(
     source,
     target,
     *,
+    init=None,
+    max_iterations: int = ICP_MAX_ITERATIONS,
     voxel_size: float | None = None,
     rng=None,
-    max_iterations: int = ICP_MAX_ITERATIONS,
     refinement: str = "point-to-point",
 ) -> BaselineResult:
     """Register ``source`` onto ``target`` with Open3D RANSAC on FPFH matches, then ICP.
@@ -81,9 +86,11 @@ def register(
         Seeds Open3D's RANSAC (``o3d.utility.random.seed``).
     max_iterations : int
         Cap on the ICP refinement's iterations.
-    refinement : {"point-to-point", "point-to-plane"}
+    refinement : {"point-to-point", "point-to-plane", "none"}
         The ICP that refines the global pose (point-to-plane: target normals from a radius of
-        2 voxels). The result's ``method`` is ``"open3d-ransac-fpfh-p2l"`` for point-to-plane.
+        2 voxels), or none. The result's ``method`` is ``"open3d-ransac-fpfh-p2l"`` for
+        point-to-plane, ``"open3d-ransac-fpfh"`` for none.
+    init : ignored (validated): a global method.
 
     Raises
     ------
@@ -91,7 +98,7 @@ def register(
         When open3d cannot be imported.
     """
     o3d = require("open3d", OPEN3D_PACKAGE)
-    inputs = checked_inputs(source, target, voxel_size, max_iterations, rng)
+    inputs = checked_inputs(source, target, voxel_size, max_iterations, rng, init)  # init unused
     source_points, target_points, voxel = inputs.source, inputs.target, inputs.voxel
     refinement = check_refinement(refinement)
     registration = o3d.pipelines.registration
@@ -118,15 +125,8 @@ def register(
         ],
         criteria=registration.RANSACConvergenceCriteria(RANSAC_MAX_ITERATIONS, RANSAC_CONFIDENCE),
     )
-    fine = o3d_icp(
-        o3d,
-        source_cloud,
-        target_cloud,
-        coarse.transformation,
-        ICP_DISTANCE_VOXELS * voxel,
-        inputs.max_iterations,
-        refinement=refinement,
-        normal_radius=NORMAL_RADIUS_VOXELS * voxel,
+    transformation, refinement_note = refine(
+        o3d, source_cloud, target_cloud, coarse.transformation, voxel, inputs.max_iterations, refinement
     )
     runtime = time.perf_counter() - start
 
@@ -134,12 +134,12 @@ def register(
     notes = (
         f"voxel={voxel:.6g}, seed={inputs.seed}, downsampled {len(source_down.points)}/{len(target_down.points)} pts; "
         f"ransac fitness={coarse.fitness:.3f} inliers={len(coarse.correspondence_set)}; "
-        f"{refinement} icp fitness={fine.fitness:.3f} rmse={fine.inlier_rmse:.3g}"
+        f"{refinement_note}"
     )
     return BaselineResult(
-        transformation=np.array(fine.transformation, dtype=np.float64),
+        transformation=transformation,
         runtime_s=runtime,
-        method=NAME if refinement == "point-to-point" else NAME_PLANE,
+        method={"point-to-point": NAME, "point-to-plane": NAME_PLANE, "none": NAME_ALONE}[refinement],
         converged=found,
         notes=notes,
     )
