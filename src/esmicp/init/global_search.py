@@ -76,8 +76,12 @@ MAX_CONTENDERS = 3
 
 #: Source points and iterations (all at the finest sigma) of the full-resolution decision between
 #: contenders that scored alike on the subsample.
-DECIDE_POINTS = 800
-DECIDE_ITERATIONS = 5
+DECIDE_POINTS = 2000
+DECIDE_ITERATIONS = 10
+
+#: The full-resolution decision runs when the runner-up scores at least this fraction of the best.
+DECIDE_RATIO = 0.9
+DECIDE_SIGMA_SPACINGS = 1.0
 
 
 @dataclass(frozen=True)
@@ -184,11 +188,14 @@ def global_estimate(
     carried = None
     if strategy == "auto":
         estimate = _verify(work, candidates, origins)
-        if estimate.score >= CONFIDENT_SCORE and not estimate.ambiguous:
-            return estimate
+        if estimate.score >= CONFIDENT_SCORE:
+            # Ambiguous or not: features would not tell a symmetric object's twins apart either.
+            return _decide(work, estimate)
         # The rotation search's verified contenders join the feature candidates in the last round.
         carried = (estimate.transformations, estimate.scores, list(estimate.strategies))
-        candidates, origins = [], []
+        candidates = _twins(work.index.points, estimate.transformation)
+        origins = ["rotation-search"] * len(candidates)
+        searched += len(candidates)
     found_count = 0
     if strategy in ("auto", "features"):
         found = _feature_candidates(work)
@@ -197,12 +204,12 @@ def global_estimate(
         origins += ["features"] * len(found)
     if not candidates:
         if carried is not None:
-            return estimate
+            return _decide(work, estimate)
         # Only the feature strategy can come back empty (too few feature matches): fall back to
         # the rotation search rather than fail.
         return global_estimate(source, target, strategy="rotation-search", rng=rng, target_index=full_index)
-    estimate = _verify(work, candidates, origins, carried=carried)
-    # Count each candidate pose once (the re-verified rotation-search contenders are not new ones).
+    estimate = _decide(work, _verify(work, candidates, origins, carried=carried))
+    # Count each candidate pose once (the carried rotation-search contenders are not new ones).
     return replace(estimate, candidates=searched + found_count)
 
 
@@ -224,10 +231,10 @@ def _feature_candidates(work: _Workspace) -> list[np.ndarray]:
     return [hypothesis.transformation for hypothesis in hypotheses]
 
 
-def _batched_verification(index, source_points, transformations, iterations, width):
+def _batched_verification(index, source_points, transformations, iterations, width, sigma=None):
     rotations, translations, distances = batched_esm(
         source_points, index, transformations[:, :3, :3], transformations[:, :3, 3],
-        iterations=iterations, sigma_floor=width, fine_iterations=iterations,
+        iterations=iterations, sigma_floor=width if sigma is None else sigma, fine_iterations=iterations,
     )
     refined = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
     return refined, gaussian_overlap_score(distances, width)
@@ -256,17 +263,35 @@ def _verify(
         scores = np.concatenate([scores, carried[1]])
         origins_array = np.concatenate([origins_array, np.array(carried[2])])
     kept = _contenders(verified, scores)
-    transformations, scores, origins_array = verified[kept], scores[kept], origins_array[kept]
-    if len(kept) > 1 and scores[1] >= AMBIGUITY_RATIO * scores[0]:
-        full_spacing = work.spacing if work.index is work.full_index else work.full_index.spacing()
-        full_width = SCORE_WIDTH_SPACINGS * full_spacing if full_spacing > 0 else work.width
-        refined, decided = _batched_verification(
-            work.full_index, _subsample(work.source, DECIDE_POINTS, work.rng), transformations,
-            DECIDE_ITERATIONS, full_width,
-        )
-        order = _contenders(refined, decided)
-        transformations, scores, origins_array = refined[order], decided[order], origins_array[order]
-    return GlobalEstimate(transformations, scores, tuple(origins_array), candidates=len(candidates))
+    return GlobalEstimate(verified[kept], scores[kept], tuple(origins_array[kept]), candidates=len(candidates))
+
+
+def _decide(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
+    """Re-verify ``estimate``'s contenders on (up to) the full clouds when the runner-up scores at
+    least ``DECIDE_RATIO`` of the best: ``DECIDE_ITERATIONS`` ESM iterations at a sigma of
+    ``DECIDE_SIGMA_SPACINGS`` target spacings on ``DECIDE_POINTS`` source points, then the same
+    Gaussian score on the full target."""
+    scores = estimate.scores
+    if len(scores) < 2 or scores[1] < DECIDE_RATIO * scores[0]:
+        return estimate
+    full_spacing = work.spacing if work.index is work.full_index else work.full_index.spacing()
+    full_width = SCORE_WIDTH_SPACINGS * full_spacing if full_spacing > 0 else work.width
+    sigma = DECIDE_SIGMA_SPACINGS * full_spacing if full_spacing > 0 else None
+    refined, decided = _batched_verification(
+        work.full_index, _subsample(work.source, DECIDE_POINTS, work.rng), estimate.transformations,
+        DECIDE_ITERATIONS, full_width, sigma=sigma,
+    )
+    # Coverage the other way: the target points (clean, unlike a noisy source) lying on the placed
+    # source. A symmetric twin leaves the target's asymmetric details uncovered.
+    target_points = _subsample(work.target, DECIDE_POINTS, work.rng)
+    source_index = NearestNeighbors(work.source)
+    # Target points in the source frame under each pose: rows (t - translation) @ R = R^T (t - translation).
+    in_source = np.matmul(target_points[None] - refined[:, None, :3, 3], refined[:, :3, :3])
+    backward, _ = source_index.query(in_source.reshape(-1, 3))
+    decided = 0.5 * (decided + gaussian_overlap_score(backward.reshape(len(refined), -1), full_width))
+    order = _contenders(refined, decided)
+    strategies = tuple(estimate.strategies[k] for k in order)
+    return GlobalEstimate(refined[order], decided[order], strategies, candidates=estimate.candidates)
 
 
 def _contenders(transformations: np.ndarray, scores: np.ndarray) -> list[int]:
@@ -280,6 +305,29 @@ def _contenders(transformations: np.ndarray, scores: np.ndarray) -> list[int]:
 
 def _diagonal(points: np.ndarray) -> float:
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+#: Twins of the rotation search's best pose join the candidates when ``"auto"`` is not confident:
+#: the pose turned by each of these angles (degrees) about each principal axis of the target,
+#: through the target's centroid. Near-symmetric objects (a box-like night stand, a cup) under
+#: heavy noise otherwise end on a symmetric twin of the truth that neither strategy proposes.
+TWIN_ANGLES_DEG = (180.0,)
+
+
+def _twins(target: np.ndarray, transformation: np.ndarray) -> list[np.ndarray]:
+    """``transformation`` composed on the left with turns by :data:`TWIN_ANGLES_DEG` about the
+    principal axes of ``target`` through its centroid (``len(TWIN_ANGLES_DEG) * 3`` poses)."""
+    from scipy.spatial.transform import Rotation
+
+    centre = target.mean(axis=0)
+    centred = target - centre
+    _, axes = np.linalg.eigh(centred.T @ centred)
+    twins = []
+    for axis in axes.T:
+        for angle in TWIN_ANGLES_DEG:
+            turn = Rotation.from_rotvec(np.radians(angle) * axis).as_matrix()
+            twins.append(to_matrix(turn, centre - turn @ centre) @ transformation)
+    return twins
 
 
 #: Voxel of the feature strategy, as a fraction of the target's bounding-box diagonal.
