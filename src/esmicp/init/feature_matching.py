@@ -139,7 +139,9 @@ def _matches(source: np.ndarray, target: np.ndarray, *, second: bool, mutual: bo
             second_distance = np.sqrt(np.maximum(squared.min(axis=1), 0.0)).astype(np.float64)
             squared[rows, forward] = best
         if mutual:
-            is_mutual = best <= squared.min(axis=0)[forward]
+            # argmin, not a <= comparison: float32 rounding can tie two source rows for one target
+            # row, and a mutual match must stay one-to-one.
+            is_mutual = squared.argmin(axis=0)[forward] == rows
         return forward, distance, second_distance, is_mutual
     distances, indices = cKDTree(target).query(source, k=2 if second else 1)
     distances, indices = distances.reshape(len(source), -1), indices.reshape(len(source), -1)
