@@ -71,10 +71,11 @@ VERIFY_ROUNDS = ((200, 6, 6), (400, 12, 4))
 SCORE_WIDTH_SPACINGS = 2.0
 
 #: ``"auto"`` stops after the rotation search when its best verified pose puts at least this soft
-#: fraction of the source on the target (full overlap: features would not help, nor tell a
-#: symmetric object's twins apart). Measured on 130 outliers-30 trials: the rotation search alone
-#: was right in all 130, scoring 0.58-0.78 (5th percentile 0.63); on outliers-60, where it was
-#: wrong in 25 trials, its best score reached 0.62 only once.
+#: fraction of the source on the target, unambiguously (full overlap: features would not help; on
+#: a symmetric object, an exact copy's features find the exact pose among the twins, which the
+#: rotation search's few contenders often miss). Measured on 130 outliers-30 trials: the rotation
+#: search alone was right in all 130, scoring 0.58-0.78 (5th percentile 0.63); on outliers-60,
+#: where it was wrong in 25 trials, its best score reached 0.62 only once.
 CONFIDENT_SCORE = 0.6
 
 #: Two poses are distinct when their rotations differ by more than this (degrees).
@@ -180,9 +181,9 @@ def global_estimate(
     ``target_spacing`` (its :meth:`~NearestNeighbors.spacing`, cloud units).
 
     ``"auto"`` runs the rotation search first; when its verified best pose already puts at least
-    ``CONFIDENT_SCORE`` of the source on the target, that is final, ambiguous or not (clouds that
-    overlap fully, as most objects do). Otherwise the feature candidates and the twins of that
-    pose (:func:`_twins`) join, and everything is verified together.
+    ``CONFIDENT_SCORE`` of the source on the target and no distinct pose comes close, that is
+    final (clouds that overlap fully, as most objects do). Otherwise the feature candidates and
+    the twins of that pose (:func:`_twins`) join, and everything is verified together.
     """
     full_index = target_index if target_index is not None else NearestNeighbors(target)
     if len(target) <= TARGET_POINTS:
@@ -202,8 +203,7 @@ def global_estimate(
     carried = None
     if strategy == "auto":
         estimate = _verify(work, candidates, origins)
-        if estimate.score >= CONFIDENT_SCORE:
-            # Ambiguous or not: features would not tell a symmetric object's twins apart either.
+        if estimate.score >= CONFIDENT_SCORE and not estimate.ambiguous:
             return _decide(work, estimate)
         # The rotation search's verified contenders join the feature candidates in the last round.
         carried = (estimate.transformations, estimate.scores, list(estimate.strategies))
