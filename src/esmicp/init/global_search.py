@@ -13,10 +13,10 @@ Candidate poses come from one or both strategies:
 Every candidate is then *verified* the same way (successive halving, ``VERIFY_ROUNDS``): batched
 ESM at the data's resolution on a subsample, scored by the soft fraction of source points lying on
 the target (:func:`~esmicp.init.rotation_search.gaussian_overlap_score`). Poses that still score
-alike (runner-up within ``DECIDE_RATIO``) are *decided* on (up to) the full clouds: ESM at a finer
-sigma on every source point, scored both ways, source on target and target on source (the
-target's own points are clean, while up to 60% of a noisy source is not, and a symmetric twin
-leaves the target's asymmetric details uncovered). The best one wins. When a clearly different
+alike (runner-up within ``DECIDE_RATIO``) are *decided* on (up to) the full clouds: ESM at a
+finer sigma on up to ``DECIDE_POINTS`` points, scored both ways, source on target and target on
+source (the target's own points are clean, while up to 60% of a noisy source is not, and a
+symmetric twin leaves the target's asymmetric details uncovered). The best one wins. When a clearly different
 pose (rotation more than ``DISTINCT_ROTATION_DEG`` away) scores within ``AMBIGUITY_RATIO`` of it,
 the result is flagged ambiguous: the object is probably symmetric, or the overlap too small to
 decide.
@@ -87,14 +87,15 @@ AMBIGUITY_RATIO = 0.97
 #: At most this many poses are returned as contenders for a full-resolution decision.
 MAX_CONTENDERS = 3
 
-#: Source points and iterations (all at the finest sigma) of the full-resolution decision between
-#: contenders that scored alike on the subsample.
+#: Points (at most, of each cloud) and ESM iterations of the full-resolution decision between
+#: contenders that scored alike on the subsample (:func:`_decide`), and its fixed sigma, in target
+#: point spacings (finer than the verification's, so that near-truth poses converge).
 DECIDE_POINTS = 2000
 DECIDE_ITERATIONS = 10
+DECIDE_SIGMA_SPACINGS = 1.0
 
 #: The full-resolution decision runs when the runner-up scores at least this fraction of the best.
 DECIDE_RATIO = 0.9
-DECIDE_SIGMA_SPACINGS = 1.0
 
 
 @dataclass(frozen=True)
@@ -285,8 +286,9 @@ def _verify(
 def _decide(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     """Re-verify ``estimate``'s contenders on (up to) the full clouds when the runner-up scores at
     least ``DECIDE_RATIO`` of the best: ``DECIDE_ITERATIONS`` ESM iterations at a sigma of
-    ``DECIDE_SIGMA_SPACINGS`` target spacings on ``DECIDE_POINTS`` source points, then the same
-    Gaussian score on the full target."""
+    ``DECIDE_SIGMA_SPACINGS`` target spacings on ``DECIDE_POINTS`` source points, then the mean of
+    two Gaussian overlap scores: those source points on the full target, and ``DECIDE_POINTS``
+    target points on the full placed source. Returns the contenders re-ranked by it."""
     scores = estimate.scores
     if len(scores) < 2 or scores[1] < DECIDE_RATIO * scores[0]:
         return estimate
@@ -325,8 +327,8 @@ def _diagonal(points: np.ndarray) -> float:
 
 #: Twins of the rotation search's best pose join the candidates when ``"auto"`` is not confident:
 #: the pose turned by each of these angles (degrees) about each principal axis of the target,
-#: through the target's centroid. Near-symmetric objects (a box-like night stand, a cup) under
-#: heavy noise otherwise end on a symmetric twin of the truth that neither strategy proposes.
+#: through the target's centroid. A near-symmetric object (a box-like night stand) under heavy
+#: noise otherwise ends on a symmetric twin of the truth that neither strategy proposes.
 TWIN_ANGLES_DEG = (180.0,)
 
 
