@@ -7,7 +7,8 @@ default, per cloud or per half), ``--trials`` trials each, round-robin over the 
 30 %, each scan subsampled to ``--scan-points`` points, the source spun about its centroid by a
 rotation uniform on SO(3). Every method gets the same trials and the same per-trial seed, starts
 from nothing (no initial pose), and only its registration call is timed (``time.perf_counter``,
-after one untimed warm-up call per method, so that imports are not counted).
+after one untimed warm-up call per method, so that imports are not counted). Methods take turns
+trial by trial, so that changes in the machine's load hit them alike.
 
 Methods (``--methods``, comma-separated): ``esm-global`` (``esmicp.register(source, target,
 rng=seed)``, the library's default method) and any name of :data:`esmicp.baselines.BASELINES`
@@ -189,6 +190,29 @@ def failures(rows: list[dict]) -> str:
     return f"failed: {listing(hard)}; only up to symmetry: {listing(soft)}"
 
 
+def time_summary(results: dict, methods: list[str], protocols: list[str]) -> str:
+    """Times of the registration call over every object trial (all protocols but the scan pairs):
+    median, 90th percentile and maximum per method, and the first method's ratio to each other
+    one (of the medians, and the median of the per-trial ratios on the same trials)."""
+    if not protocols:
+        return ""
+    times = {
+        m: np.array([r.get("time_s", np.nan) for p in protocols for r in results[(p, m)]]) for m in methods
+    }
+    lines = [f"Time over the {len(times[methods[0]])} object trials ({', '.join(protocols)}):"]
+    for m in methods:
+        t = 1000 * times[m][np.isfinite(times[m])]
+        lines.append(f"- {m}: median {np.median(t):.0f} ms, p90 {np.percentile(t, 90):.0f} ms, max {t.max():.0f} ms")
+    first = methods[0]
+    for m in methods[1:]:
+        paired = times[first] / times[m]
+        lines.append(
+            f"- {first} / {m}: {np.nanmedian(times[first]) / np.nanmedian(times[m]):.2f} (ratio of medians), "
+            f"{np.nanmedian(paired):.2f} (median of per-trial ratios)"
+        )
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
@@ -224,18 +248,17 @@ def main(argv=None) -> int:
     results: dict[tuple[str, str], list[dict]] = {}
     with args.out.open("w", encoding="utf-8") as out:
         for protocol, protocol_trials in trials.items():
-            for method in methods:
-                started = time.perf_counter()
-                rows = [run_one(runners[method], method, trial) for trial in protocol_trials]
-                for row in rows:
+            # Methods take turns trial by trial, so that a change in the machine's load hits them alike.
+            rows_by_method = {method: [] for method in methods}
+            for trial in protocol_trials:
+                for method in methods:
+                    row = run_one(runners[method], method, trial)
+                    rows_by_method[method].append(row)
                     out.write(json.dumps(row) + "\n")
                 out.flush()
-                results[(protocol, method)] = rows
-                print(
-                    f"{protocol:12s} {method:24s} {len(rows)} trials in {time.perf_counter() - started:.1f} s: {cell(rows)}",
-                    file=sys.stderr,
-                    flush=True,
-                )
+            for method in methods:
+                results[(protocol, method)] = rows_by_method[method]
+                print(f"{protocol:12s} {method:24s}: {cell(rows_by_method[method])}", file=sys.stderr, flush=True)
 
     counts = ", ".join(f"{p} {len(t)}" for p, t in trials.items())
     print(
@@ -251,6 +274,8 @@ def main(argv=None) -> int:
     print()
     for protocol in trials:
         print(f"- **{protocol}**: " + "; ".join(f"{m}: {failures(results[(protocol, m)])}" for m in methods))
+    print()
+    print(time_summary(results, methods, [p for p in trials if p != SCAN_PAIRS]))
     print(f"\nPer-trial rows: {args.out}")
     return 0
 

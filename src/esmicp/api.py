@@ -123,7 +123,8 @@ def register(
     estimate = None
     if initial is None:
         estimate = global_estimate(
-            source_points, target_points, strategy=init_name, rng=generator, target_index=target_index
+            source_points, target_points, strategy=init_name, rng=generator, target_index=target_index,
+            target_spacing=spacing,
         )
         initial = estimate.transformation
         init_name = f"global:{estimate.strategies[0]}"
