@@ -7,6 +7,7 @@ import os
 import numpy as np
 
 from ..errors import PointCloudFileError
+from ._messages import excerpt, one_line
 
 __all__ = ["read_npy", "write_npy"]
 
@@ -29,7 +30,7 @@ def _read_npy_header(path, handle) -> tuple[tuple[int, ...], bool, np.dtype]:
     except PointCloudFileError:
         raise
     except Exception as exc:  # noqa: BLE001 - ValueError, SyntaxError, ... from a corrupt header
-        raise PointCloudFileError(path, f"corrupt .npy header: {exc}") from None
+        raise PointCloudFileError(path, f"corrupt .npy header: {one_line(exc, 160)}") from None
 
 
 def read_npy(path) -> np.ndarray:
@@ -73,14 +74,14 @@ def read_npy(path) -> np.ndarray:
     except MemoryError:
         raise PointCloudFileError(path, ".npy file is too large to load into memory") from None
     except Exception as exc:  # noqa: BLE001 - ValueError (pickled / truncated), OSError, EOFError
-        raise PointCloudFileError(path, f"could not read .npy data: {exc}") from None
+        raise PointCloudFileError(path, f"could not read .npy data: {one_line(exc, 160)}") from None
 
     if array.dtype.names:
         missing = [axis for axis in "xyz" if axis not in array.dtype.names]
         if missing:
             raise PointCloudFileError(
                 path,
-                f"structured array has no {'/'.join(missing)} field (fields: {', '.join(array.dtype.names)})",
+                f"structured array has no {'/'.join(missing)} field (fields: {excerpt(', '.join(array.dtype.names), 60)})",
             )
         if array.ndim != 1:
             array = array.reshape(-1)

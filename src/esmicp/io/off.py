@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import PointCloudFileError
+from ._messages import excerpt, one_line
 from . import ply
 from .text import read_text_file
 
@@ -46,7 +47,7 @@ def _check_off(path, text: str) -> None:
     except (IndexError, ValueError):
         raise PointCloudFileError(
             path,
-            f"malformed OFF file: expected a 'vertices faces edges' count line, got {counts_text[:40]!r}",
+            f"malformed OFF file: expected a 'vertices faces edges' count line, got {excerpt(counts_text)}",
         ) from None
     if vertices < 0 or faces < 0:
         raise PointCloudFileError(path, f"malformed OFF file: negative counts {vertices} {faces}")
@@ -71,19 +72,54 @@ def _load(path: Path, extension: str):
         ply.read_ply_header(path)  # refuses lying / truncated headers before trimesh allocates
     try:
         if source is not None:
-            mesh = trimesh.load(source, file_type="off", force="mesh", process=False)
+            loaded = trimesh.load(source, file_type="off", process=False)
         else:
-            mesh = trimesh.load(str(path), file_type=extension[1:], force="mesh", process=False)
+            loaded = trimesh.load(str(path), file_type=extension[1:], process=False)
+        vertices, faces = _geometry(path, loaded)
+    except PointCloudFileError:
+        raise
     except MemoryError:
         raise PointCloudFileError(path, "mesh is too large to load into memory") from None
     except Exception as exc:  # noqa: BLE001 - trimesh raises many kinds (ValueError, NameError, ...)
         problem = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise PointCloudFileError(
-            path, f"could not read the {extension[1:].upper()} mesh: {problem}"
+            path, f"could not read the {extension[1:].upper()} mesh: {one_line(problem, 160)}"
         ) from None
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise PointCloudFileError(path, f"could not read a triangle mesh from it (got {type(mesh).__name__})")
-    return mesh
+    # A plain mesh, without the file's materials or textures: trimesh handles those lazily and
+    # needs optional packages (Pillow) for them, which reading coordinates must not depend on.
+    return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+
+
+def _geometry(path, loaded) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``(V, 3)`` and triangles ``(F, 3)`` of what ``trimesh.load`` returned.
+
+    A file of vertices only (an OBJ of ``v`` lines) gives a trimesh ``PointCloud``: its vertices
+    and no faces. A ``Scene`` (an OBJ with several objects or materials) gives all its meshes,
+    concatenated in the file's order.
+    """
+    import trimesh
+
+    if isinstance(loaded, trimesh.Scene):
+        parts = list(loaded.geometry.values())
+    else:
+        parts = [loaded]
+    vertices, faces, offset = [], [], 0
+    for part in parts:
+        if not isinstance(part, (trimesh.Trimesh, trimesh.PointCloud)):
+            raise PointCloudFileError(path, f"could not read a triangle mesh from it (got {type(part).__name__})")
+        part_vertices = np.asarray(part.vertices, dtype=np.float64).reshape(-1, 3)
+        if isinstance(part, trimesh.Trimesh):
+            part_faces = np.asarray(part.faces).reshape(-1, 3)
+            if part_faces.size and (part_faces.min() < 0 or part_faces.max() >= len(part_vertices)):
+                raise PointCloudFileError(
+                    path, f"malformed mesh: a face refers to a vertex that does not exist ({len(part_vertices)} vertices)"
+                )
+            faces.append(part_faces.astype(np.int64) + offset)
+        vertices.append(part_vertices)
+        offset += len(part_vertices)
+    if not vertices:
+        return np.empty((0, 3)), np.empty((0, 3), dtype=np.int64)
+    return np.concatenate(vertices), np.concatenate(faces) if faces else np.empty((0, 3), dtype=np.int64)
 
 
 def read_mesh(
