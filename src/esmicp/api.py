@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 import warnings
@@ -15,6 +16,7 @@ from .methods import METHODS, EsmEstimator, EsmPaperEstimator, IcpEstimator, Sig
 from .methods.esm_paper import PAPER_SIGMA
 from .init.global_search import STRATEGIES, global_estimate
 from .methods.local import Callback, refine
+from .numerics import checked_refine, from_working, to_working, uncentred_callback, uncentred_history, working_origin
 from .result import RegistrationResult
 from .types import as_count, as_points, as_positive, as_real, as_transform, check_not_degenerate
 
@@ -109,6 +111,14 @@ def register(
     tolerance = _as_tolerance(tolerance)
     generator = _as_generator(rng)
 
+    # Far from the origin (UTM / ECEF coordinates), register in a frame shifted onto the target and
+    # map the result back: rounding noise would otherwise exceed the tolerance (see esmicp.numerics).
+    origin = working_origin(target_points)
+    if origin is not None:
+        source_points, target_points = source_points - origin, target_points - origin
+        initial = None if initial is None else to_working(initial, origin)
+        callback = uncentred_callback(callback, origin)
+
     target_index = NearestNeighbors(target_points)
     spacing = target_index.spacing()
     diagonal = float(np.linalg.norm(target_points.max(axis=0) - target_points.min(axis=0)))
@@ -130,7 +140,7 @@ def register(
     # After a global search (which ends at the finest sigma) the pose is already close: start in
     # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
     estimator = _make_estimator(method, sigma, spacing, diagonal, start_fine=estimate is not None)
-    outcome = refine(
+    outcome = checked_refine(
         source_points,
         target_index,
         estimator,
@@ -150,6 +160,11 @@ def register(
     inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
     if method == "esm-paper" and len(source_points) == len(target_points):
         _warn_if_not_index_aligned(indices)
+    if origin is not None:
+        outcome = dataclasses.replace(
+            outcome, transformation=from_working(outcome.transformation, origin),
+            history=uncentred_history(outcome.history, origin),
+        )
 
     return RegistrationResult(
         transformation=outcome.transformation,
