@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 
 import numpy as np
 
@@ -21,10 +22,14 @@ def _read_npy_header(path, handle) -> tuple[tuple[int, ...], bool, np.dtype]:
             path, "not a .npy file: it does not start with the NumPy magic bytes"
         ) from None
     try:
-        if version == (1, 0):
-            return np.lib.format.read_array_header_1_0(handle)
-        if version == (2, 0):
-            return np.lib.format.read_array_header_2_0(handle)
+        with warnings.catch_warnings():
+            # NumPy warns about quirks of a header it still reads (deprecated type aliases, Python 2
+            # headers, escape sequences): they are not the user's concern.
+            warnings.simplefilter("ignore")
+            if version == (1, 0):
+                return np.lib.format.read_array_header_1_0(handle)
+            if version == (2, 0):
+                return np.lib.format.read_array_header_2_0(handle)
         # Version 3.0 (utf-8 field names): there is no public reader for it, np.load checks it.
         raise PointCloudFileError(path, f"unsupported .npy format version {version[0]}.{version[1]}")
     except PointCloudFileError:
@@ -70,7 +75,9 @@ def read_npy(path) -> np.ndarray:
             f"{needed} bytes, but only {data_bytes} bytes of data follow the header",
         )
     try:
-        array = np.load(path, allow_pickle=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the header quirks again (see _read_npy_header)
+            array = np.load(path, allow_pickle=False)
     except MemoryError:
         raise PointCloudFileError(path, ".npy file is too large to load into memory") from None
     except Exception as exc:  # noqa: BLE001 - ValueError (pickled / truncated), OSError, EOFError

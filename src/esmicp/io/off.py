@@ -8,7 +8,9 @@ trimesh is imported lazily: it is slow to import.
 from __future__ import annotations
 
 import io
+import os
 import re
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +61,38 @@ def _check_off(path, text: str) -> None:
         )
 
 
+_STL_HEADER_BYTES = 84  # an 80-byte comment and the uint32 triangle count
+_STL_TRIANGLE_BYTES = 50  # normal, three vertices (12 float32) and a uint16 attribute
+
+
+def _check_stl(path) -> None:
+    """Refuse a binary STL whose triangle count disagrees with its size, in plain words.
+
+    An ascii STL starts with ``solid``; some binary ones do too (in their 80-byte comment), so a
+    file is binary when its size is exactly what its triangle count needs. Otherwise trimesh would
+    fall back to parsing the bytes as ascii and find nothing.
+    """
+    size = os.path.getsize(path)
+    with open(path, "rb") as handle:
+        head = handle.read(_STL_HEADER_BYTES)
+    if len(head) == _STL_HEADER_BYTES:
+        (count,) = struct.unpack("<I", head[80:84])
+        if size == _STL_HEADER_BYTES + _STL_TRIANGLE_BYTES * count:
+            return
+    if head.lstrip()[:5].lower() == b"solid":
+        return  # ascii: trimesh parses it (and reports what it cannot)
+    if len(head) < _STL_HEADER_BYTES:
+        raise PointCloudFileError(
+            path, f"not an STL file: {size} bytes is too short for a binary STL, and it does not start with 'solid'"
+        )
+    needed = _STL_HEADER_BYTES + _STL_TRIANGLE_BYTES * count
+    raise PointCloudFileError(
+        path,
+        f"truncated or corrupt binary STL file: its header declares {count} triangles, which need "
+        f"{needed} bytes, but the file has {size} bytes",
+    )
+
+
 def _load(path: Path, extension: str):
     """Load the mesh at ``path`` with trimesh, unprocessed (vertices kept as in the file)."""
     import trimesh
@@ -70,6 +104,8 @@ def _load(path: Path, extension: str):
         source = io.BytesIO(text.encode("utf-8"))
     elif extension == ".ply":
         ply.read_ply_header(path)  # refuses lying / truncated headers before trimesh allocates
+    elif extension == ".stl":
+        _check_stl(path)
     try:
         if source is not None:
             loaded = trimesh.load(source, file_type="off", process=False)
@@ -151,6 +187,9 @@ def read_mesh(
     extension = path.suffix.lower()
     mesh = _load(path, extension)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    if len(vertices) == 0:
+        hint = " (an ascii STL without facets, or a binary one whose triangle count is wrong)" if extension == ".stl" else ""
+        raise PointCloudFileError(path, f"no vertices could be read from this {extension[1:].upper()} file{hint}")
     if sample_points is None:
         if extension == ".stl":
             _, first = np.unique(vertices, axis=0, return_index=True)
