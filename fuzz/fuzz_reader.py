@@ -14,6 +14,7 @@ meshes) trimesh are instrumented, so coverage inside them guides the mutations.
 Useful libFuzzer options: ``-max_total_time=S`` (stop after S seconds), ``-runs=N``,
 ``-timeout=S`` (an input taking longer is a hang, reported as a crash), ``-rss_limit_mb=M``,
 ``-artifact_prefix=DIR/``, ``-dict=fuzz/dicts/<format>.dict``, ``-max_len=BYTES``.
+``--light`` instruments esmicp only (trimesh takes 10-30 s to instrument): for short runs.
 At the end libFuzzer prints ``Done N runs in S second(s)``: the number of inputs tried.
 """
 
@@ -53,21 +54,36 @@ def main() -> None:
         for target in harness.TARGETS.values():
             print(f"{target.name:16s} {target.extension:5s} {target.description}")
         return
+    light = "--light" in argv
+    if light:
+        argv.remove("--light")
     name = _pop_option(argv, "--target")
     if name not in harness.TARGETS:
         sys.exit(f"fuzz_reader.py: --target must be one of {', '.join(harness.TARGETS)}, got {name!r}")
     target = harness.TARGETS[name]
     mesh = target.extension in (".off", ".obj", ".stl")
 
-    with atheris.instrument_imports(include=_INSTRUMENTED + (["trimesh"] if mesh else [])):
+    # Instrumenting trimesh takes 10-30 s at start-up; --light (for short runs) instruments esmicp only.
+    include = ["esmicp"] if light else _INSTRUMENTED + (["trimesh"] if mesh else [])
+    with atheris.instrument_imports(include=include):
         import esmicp.io  # noqa: F401
         if mesh:
             import trimesh  # noqa: F401
         if target.extension == ".pcd":
             import pypcd4  # noqa: F401
 
-    work = Path(tempfile.mkdtemp(prefix=f"esmicp-fuzz-{name}-"))
-    path = work / f"input{target.extension}"
+    if os.environ.get("ESMICP_FUZZ_BREAK_READER"):
+        # Self-test of this set-up (tests/test_fuzz_atheris.py): a reader that always fails wrongly.
+        def broken_reader(path, **kwargs):
+            raise KeyError("deliberately broken reader")
+
+        esmicp.io.read_points = broken_reader
+
+    # Where each input is written (libFuzzer ends the process without Python's clean-up, so the
+    # caller may choose a folder it removes itself: ESMICP_FUZZ_WORKDIR).
+    work = Path(os.environ.get("ESMICP_FUZZ_WORKDIR") or tempfile.mkdtemp(prefix=f"esmicp-fuzz-{name}-"))
+    work.mkdir(parents=True, exist_ok=True)
+    path = work / f"input-{os.getpid()}{target.extension}"
 
     def test_one_input(data: bytes) -> None:
         path.write_bytes(data)
@@ -81,14 +97,13 @@ def main() -> None:
     # Without a corpus directory, start from the seeds (libFuzzer adds what it finds there).
     if not any(not word.startswith("-") for word in argv[1:]):
         corpus = work / "corpus"
-        corpus.mkdir()
+        corpus.mkdir(exist_ok=True)
         for index, data in enumerate(harness.seeds(name)):
             (corpus / f"seed{index}").write_bytes(data)
         argv.append(str(corpus))
     dictionary = HERE / "dicts" / _DICTIONARIES.get(target.extension[1:], "")
     if dictionary.is_file() and not any(word.startswith("-dict=") for word in argv):
         argv.append(f"-dict={dictionary}")
-    os.environ.setdefault("ESMICP_FUZZ_TARGET", name)
     atheris.Setup(argv, test_one_input)
     atheris.Fuzz()
 

@@ -67,43 +67,64 @@ TARGETS = {
 }
 
 
+#: Mesh files are also read with ``sample_points`` (surface sampling), under the same contract.
+MESH_EXTENSIONS = (".off", ".obj", ".stl")
+SAMPLE_POINTS = 16
+
+
 def check_file(path: Path) -> str:
     """Read ``path`` with :func:`esmicp.read_points` and check the contract.
+
+    Mesh files are read twice: their vertices, and :data:`SAMPLE_POINTS` points sampled on them.
 
     Returns
     -------
     str
-        ``"points"`` or ``"error"``: how the input ended (both are fine).
+        ``"points"`` or ``"error"``: how reading the vertices ended (both are fine).
 
     Raises
     ------
     ContractViolation
         The reader broke the contract; the message says how.
     """
+    outcome = _check_read(path, {})
+    if Path(path).suffix.lower() in MESH_EXTENSIONS:
+        _check_read(path, {"sample_points": SAMPLE_POINTS, "rng": 0})
+    return outcome
+
+
+def _check_read(path: Path, options: dict) -> str:
+    from esmicp import io as esmicp_io
     from esmicp.errors import NonFinitePointsWarning, PointCloudFileError
-    from esmicp.io import read_points
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            points = read_points(path)
+            points = esmicp_io.read_points(path, **options)
         except PointCloudFileError as exc:
             _check_error(path, exc)
             outcome = "error"
         except Exception as exc:  # noqa: BLE001 - that is exactly what the fuzzer looks for
             raise ContractViolation(
-                f"{type(exc).__name__} escaped read_points (not PointCloudFileError): {exc}"
+                f"{type(exc).__name__} escaped read_points{_describe(options)} (not PointCloudFileError): {exc}"
             ) from exc
         else:
             _check_points(points)
+            if "sample_points" in options and len(points) != options["sample_points"]:
+                raise ContractViolation(f"asked for {options['sample_points']} samples, got {len(points)}")
             outcome = "points"
     stray = [w for w in caught if not issubclass(w.category, NonFinitePointsWarning)]
     if stray:
         first = stray[0]
         raise ContractViolation(
-            f"stray warning {first.category.__name__} from {first.filename}:{first.lineno}: {first.message}"
+            f"stray warning {first.category.__name__} from {first.filename}:{first.lineno}"
+            f"{_describe(options)}: {first.message}"
         )
     return outcome
+
+
+def _describe(options: dict) -> str:
+    return f" (with sample_points={options['sample_points']})" if options else ""
 
 
 def _check_error(path: Path, exc: Exception) -> None:

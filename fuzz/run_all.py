@@ -8,13 +8,15 @@ Usage (from the repository root)::
 
 Each target runs in its own process (``fuzz/fuzz_reader.py``); an input that breaks the readers'
 contract is saved as ``<artifacts>/<target>/crash-<sha1>`` and its violation printed. With
-``--keep-going`` a target that crashed is restarted (from its grown corpus) until its time is
-used up, so one run can find several distinct problems. Exit status 1 if anything was found.
+``--keep-going`` a target that crashed is restarted (from its grown corpus, ``<artifacts>/<target>/corpus``)
+until its time is used up, so one run can find several distinct problems. Exit status 1 if anything
+was found.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import subprocess
 import sys
@@ -50,12 +52,13 @@ class Outcome:
 
 def fuzz_target(
     name: str, seconds: float, artifacts: Path, *, corpus: Path | None = None, keep_going: bool = False,
-    timeout_s: int = 10, rss_limit_mb: int = 2048, extra: list[str] | None = None,
+    timeout_s: int = 10, rss_limit_mb: int = 2048, extra: list[str] | None = None, light: bool = False,
 ) -> Outcome:
     """Fuzz target ``name`` for about ``seconds`` seconds (several processes with ``keep_going``)."""
     outcome = Outcome(name)
     artifacts.mkdir(parents=True, exist_ok=True)
-    corpus = corpus or Path(tempfile.mkdtemp(prefix=f"esmicp-corpus-{name}-"))
+    corpus = corpus or artifacts / "corpus"
+    corpus.mkdir(parents=True, exist_ok=True)
     if not any(corpus.iterdir()):
         for index, data in enumerate(harness.seeds(name)):
             (corpus / f"seed{index}").write_bytes(data)
@@ -66,12 +69,13 @@ def fuzz_target(
             break
         before = set(artifacts.glob("crash-*")) | set(artifacts.glob("timeout-*")) | set(artifacts.glob("oom-*"))
         command = [
-            sys.executable, str(HERE / "fuzz_reader.py"), "--target", name,
+            sys.executable, str(HERE / "fuzz_reader.py"), "--target", name, *(["--light"] if light else []),
             f"-max_total_time={remaining}", f"-timeout={timeout_s}", f"-rss_limit_mb={rss_limit_mb}",
             f"-artifact_prefix={artifacts}/", "-print_final_stats=1", *(extra or []), str(corpus),
         ]
         started = time.monotonic()
-        process = subprocess.run(command, capture_output=True, text=True, errors="replace")
+        environment = {**os.environ, "ESMICP_FUZZ_WORKDIR": str(artifacts / "work")}
+        process = subprocess.run(command, capture_output=True, text=True, errors="replace", env=environment)
         outcome.seconds += time.monotonic() - started
         log = process.stdout + process.stderr
         done = _DONE.search(log)
@@ -100,13 +104,14 @@ def main(argv=None) -> int:
     parser.add_argument("--targets", nargs="*", default=list(harness.TARGETS), choices=list(harness.TARGETS))
     parser.add_argument("--artifacts", type=Path, default=None, help="where crashes go (default: a temp dir)")
     parser.add_argument("--keep-going", action="store_true", help="restart a target after a crash")
+    parser.add_argument("--light", action="store_true", help="instrument esmicp only (quick start-up)")
     args = parser.parse_args(argv)
     artifacts = args.artifacts or Path(tempfile.mkdtemp(prefix="esmicp-fuzz-artifacts-"))
     print(f"| target | inputs tried | seconds | coverage (edges / features) | violations |")
     print(f"|---|---|---|---|---|")
     total_runs, found_any = 0, False
     for name in args.targets:
-        outcome = fuzz_target(name, args.seconds, artifacts / name, keep_going=args.keep_going)
+        outcome = fuzz_target(name, args.seconds, artifacts / name, keep_going=args.keep_going, light=args.light)
         total_runs += outcome.runs
         found_any |= bool(outcome.crashes or outcome.failed)
         summary = "; ".join(dict.fromkeys(outcome.violations)) or ("FUZZER FAILED" if outcome.failed else "none")

@@ -11,6 +11,7 @@ import io
 import os
 import re
 import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -107,11 +108,15 @@ def _load(path: Path, extension: str):
     elif extension == ".stl":
         _check_stl(path)
     try:
-        if source is not None:
-            loaded = trimesh.load(source, file_type="off", process=False)
-        else:
-            loaded = trimesh.load(str(path), file_type=extension[1:], process=False)
-        vertices, faces = _geometry(path, loaded)
+        # trimesh computes normals of whatever the file holds: NaN / infinite coordinates (dropped
+        # later, with a warning of our own) must not surface as NumPy's RuntimeWarnings.
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            if source is not None:
+                loaded = trimesh.load(source, file_type="off", process=False)
+            else:
+                loaded = trimesh.load(str(path), file_type=extension[1:], process=False)
+            vertices, faces = _geometry(path, loaded)
     except PointCloudFileError:
         raise
     except MemoryError:
@@ -203,7 +208,8 @@ def read_mesh(
         raise PointCloudFileError(
             path, "has no faces to sample points from (it is a point cloud, not a mesh)"
         )
-    area = float(mesh.area)
+    with np.errstate(all="ignore"):  # non-finite vertices give a non-finite area, refused below
+        area = float(mesh.area)
     if not np.isfinite(area) or area <= 0:
         raise PointCloudFileError(
             path, "cannot sample points: the mesh surface has zero (or non-finite) area"
