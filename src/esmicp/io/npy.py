@@ -95,12 +95,14 @@ def read_npy(path) -> np.ndarray:
         columns = [array[axis] for axis in "xyz"]
         if any(column.ndim != 1 or not _is_real(column.dtype) for column in columns):
             raise PointCloudFileError(path, "structured array fields x, y, z must be plain numbers")
-        return np.stack(columns, axis=1).astype(np.float64)
+        with np.errstate(invalid="ignore"):  # a signalling NaN in float32 data: dropped later
+            return np.stack(columns, axis=1).astype(np.float64)
     if not _is_real(array.dtype):
         raise PointCloudFileError(path, f"expected numeric (real) coordinates, got dtype {array.dtype}")
     if array.ndim != 2 or array.shape[1] != 3:
         raise PointCloudFileError(path, f"expected an (N, 3) array of points, got shape {array.shape}")
-    return array.astype(np.float64)
+    with np.errstate(invalid="ignore"):  # a signalling NaN in float32 data: dropped later
+        return array.astype(np.float64)
 
 
 def _is_real(dtype: np.dtype) -> bool:

@@ -293,8 +293,9 @@ def read_pcd(path) -> np.ndarray:
         cloud = PointCloud.from_fileobj(stream)
         table = np.atleast_1d(cloud.pc_data)
         points = np.empty((len(table), 3), dtype=np.float64)
-        for column, axis in enumerate("xyz"):
-            points[:, column] = table[axis]
+        with np.errstate(invalid="ignore"):  # a signalling NaN in float32 data: dropped later
+            for column, axis in enumerate("xyz"):
+                points[:, column] = table[axis]
     except MemoryError:
         raise PointCloudFileError(path, "PCD file is too large to load into memory") from None
     except Exception as exc:  # noqa: BLE001 - pypcd4 raises RuntimeError, ValueError, pydantic errors...

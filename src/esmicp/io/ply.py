@@ -412,8 +412,9 @@ def _coordinates(data: plyfile.PlyData) -> np.ndarray:
     """The vertex x, y, z of parsed PLY data as a new ``(N, 3)`` float64 array."""
     vertices = data["vertex"].data
     points = np.empty((len(vertices), 3), dtype=np.float64)
-    for column, axis in enumerate("xyz"):
-        points[:, column] = vertices[axis]
+    with np.errstate(invalid="ignore"):  # a signalling NaN in float32 data: dropped later
+        for column, axis in enumerate("xyz"):
+            points[:, column] = vertices[axis]
     return points
 
 
