@@ -19,6 +19,7 @@ from .methods.local import Callback, refine
 from .numerics import checked_refine, from_working, to_working, uncentred_callback, uncentred_history, working_origin
 from .result import RegistrationResult
 from .types import as_count, as_points, as_positive, as_real, as_transform, check_not_degenerate
+from .types import check_representable
 
 logger = logging.getLogger(__name__)
 
@@ -92,7 +93,8 @@ def register(
     Raises
     ------
     InvalidInputError
-        On malformed or degenerate clouds, an unknown method, a malformed or non-rigid ``init``,
+        On malformed or degenerate clouds (or beyond float64 geometry, see
+        :func:`esmicp.types.check_representable`), an unknown method, a malformed or non-rigid ``init``,
         or non-positive ``sigma``, ``max_iterations`` or ``inlier_distance``.
     """
     start = time.perf_counter()
@@ -100,6 +102,8 @@ def register(
     target_points = as_points(target, "target")
     check_not_degenerate(source_points, "source")
     check_not_degenerate(target_points, "target")
+    check_representable(source_points, "source")
+    check_representable(target_points, "target")
     if method not in METHODS:
         raise InvalidInputError(f"method: unknown method {method!r}; choose one of {', '.join(METHODS)}")
     init_name, initial = _resolve_init(init)

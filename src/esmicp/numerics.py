@@ -22,6 +22,7 @@ import dataclasses
 
 import numpy as np
 
+from .core.kernels import effective_count
 from .methods.local import LocalOutcome, refine
 
 __all__ = [
@@ -39,6 +40,9 @@ __all__ = [
 #: origin than this many times the target's bounding-box diagonal (rounding noise then exceeds
 #: ~1e-13 of the cloud's size; below, a shift would change nothing measurable).
 FAR_FROM_ORIGIN = 1e3
+
+#: Fewer effective pairs (Kish's count of the weights) than this cannot fix a rotation.
+MIN_EFFECTIVE_PAIRS = 3.0
 
 #: Tolerance on ``R^T R = I`` of a result (results are re-orthonormalised every iteration).
 RESULT_RIGID_TOLERANCE = 1e-6
@@ -109,19 +113,41 @@ def rigidity_problem(transform: np.ndarray) -> str | None:
     return None
 
 
-def checked_refine(source, target, estimator, *, init: np.ndarray, **kwargs) -> LocalOutcome:
-    """:func:`esmicp.methods.local.refine`, guarded: the outcome's pose is always finite and rigid.
+class _LastWeights:
+    """A step estimator that remembers the weights of its last step (everything else delegated)."""
 
-    A start that is not a finite rigid transform (e.g. a failed global search) is not refined: the
-    outcome is the identity with ``converged=False`` and the reason. A refined pose that is not
-    one is replaced by the start, again with ``converged=False`` and the reason.
+    def __init__(self, estimator):
+        self._estimator = estimator
+        self.last_weights = None
+
+    def step(self, *args, **kwargs):
+        step = self._estimator.step(*args, **kwargs)
+        self.last_weights = step.weights
+        return step
+
+    def __getattr__(self, name):
+        return getattr(self._estimator, name)
+
+
+def checked_refine(source, target, estimator, *, init: np.ndarray, **kwargs) -> LocalOutcome:
+    """:func:`esmicp.methods.local.refine`, guarded: no NaN, and no false convergence.
+
+    - A start that is not a finite rigid transform (e.g. a failed global search) is not refined:
+      the outcome is the identity with ``converged=False`` and the reason.
+    - A refined pose that is not a finite rigid transform is replaced by the start, again with
+      ``converged=False`` and the reason.
+    - A run whose last step gave fewer than :data:`MIN_EFFECTIVE_PAIRS` effective pairs (every
+      Gaussian weight underflowed to 0: a fixed ``sigma`` far below the distances between the
+      clouds, e.g. ``esm-paper``'s 1.0 on clouds in micrometres of kilometres) did not fit the data:
+      its "convergence" is that of a step that could not rotate, so it is reported as not converged.
     """
     problem = rigidity_problem(init)
     if problem is not None:
         return LocalOutcome(
             np.eye(4), False, 0, None, f"no pose: the refinement would have started from {problem}", None
         )
-    outcome = refine(source, target, estimator, init=init, **kwargs)
+    watched = _LastWeights(estimator)
+    outcome = refine(source, target, watched, init=init, **kwargs)
     problem = rigidity_problem(outcome.transformation)
     if problem is not None:
         return dataclasses.replace(
@@ -129,5 +155,16 @@ def checked_refine(source, target, estimator, *, init: np.ndarray, **kwargs) -> 
             transformation=init.copy(),
             converged=False,
             message=f"stopped: the refined pose was {problem}; the starting pose is returned instead",
+        )
+    weights = watched.last_weights
+    if weights is not None and len(weights) and effective_count(weights) < MIN_EFFECTIVE_PAIRS:
+        sigma = "" if outcome.sigma is None else f" (sigma {outcome.sigma:.3g})"
+        return dataclasses.replace(
+            outcome,
+            converged=False,
+            message=(
+                f"no fit: in the last iteration every pair weighed (almost) 0{sigma}, the clouds are "
+                f"too far apart for the kernel; use a larger sigma or method='esm' (sigma from the data)"
+            ),
         )
     return outcome
