@@ -290,7 +290,8 @@ def read_pcd(path) -> np.ndarray:
         block = _data_block(path, handle, header)
     stream = io.BytesIO(_normalized_header(header).encode("ascii") + block)
     try:
-        cloud = PointCloud.from_fileobj(stream)
+        with np.errstate(over="ignore", invalid="ignore"):  # ascii 1e72 in a float32 field: inf, dropped later
+            cloud = PointCloud.from_fileobj(stream)
         table = np.atleast_1d(cloud.pc_data)
         points = np.empty((len(table), 3), dtype=np.float64)
         with np.errstate(invalid="ignore"):  # a signalling NaN in float32 data: dropped later

@@ -343,8 +343,9 @@ def _rewritten_header(header: PlyHeader, elements: list[_Element]) -> str:
 
 def _plyfile_read(path, stream, **kwargs) -> plyfile.PlyData:
     try:
-        with warnings.catch_warnings():
-            # plyfile's ascii list parser warns on empty lists; that is not a problem.
+        with warnings.catch_warnings(), np.errstate(over="ignore", invalid="ignore"):
+            # plyfile's ascii list parser warns on empty lists; that is not a problem. An ascii
+            # value beyond its property's type (1e72 for a float) becomes inf: dropped later.
             warnings.simplefilter("ignore", UserWarning)
             return plyfile.PlyData.read(stream, **kwargs)
     except plyfile.PlyParseError as exc:
