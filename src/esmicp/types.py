@@ -78,7 +78,7 @@ def degeneracy(points: np.ndarray) -> str | None:
 #: far from float64's overflow (1.8e308).
 MAX_COORDINATE = 1e100
 
-#: Smallest extent (bounding-box diagonal) a registration accepts: squared point spacings must stay
+#: Smallest extent (longest side of the bounding box) a registration accepts: squared point spacings must stay
 #: far from float64's underflow (2.2e-308), where precision is lost (measured: a 1e-160 cloud is
 #: registered 0.1 degrees off, a 1e-200 one not at all).
 MIN_EXTENT = 1e-100
@@ -97,7 +97,7 @@ def check_representable(points: np.ndarray, name: str = "points") -> None:
             f"{name}: coordinates up to {magnitude:.3g} in magnitude, beyond the {MAX_COORDINATE:g} that "
             f"float64 squared distances allow; rescale the cloud (other units)"
         )
-    extent = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    extent = float(np.max(points.max(axis=0) - points.min(axis=0)))  # no squares: they would underflow
     if extent < MIN_EXTENT:
         raise InvalidInputError(
             f"{name}: the cloud spans only {extent:.3g} units, below the {MIN_EXTENT:g} that float64 "
