@@ -15,7 +15,7 @@ from .errors import IndexAlignmentWarning, InvalidInputError
 from .methods import METHODS, EsmEstimator, EsmPaperEstimator, IcpEstimator, SigmaSchedule
 from .methods.esm_paper import PAPER_SIGMA
 from .init.global_search import STRATEGIES, global_estimate
-from .methods.local import Callback, refine
+from .methods.local import Callback
 from .numerics import checked_refine, from_working, to_working, uncentred_callback, uncentred_history, working_origin
 from .result import RegistrationResult
 from .types import as_count, as_points, as_positive, as_real, as_transform, check_not_degenerate

@@ -136,10 +136,11 @@ def checked_refine(source, target, estimator, *, init: np.ndarray, **kwargs) -> 
       the outcome is the identity with ``converged=False`` and the reason.
     - A refined pose that is not a finite rigid transform is replaced by the start, again with
       ``converged=False`` and the reason.
-    - A run whose last step gave fewer than :data:`MIN_EFFECTIVE_PAIRS` effective pairs (every
-      Gaussian weight underflowed to 0: a fixed ``sigma`` far below the distances between the
-      clouds, e.g. ``esm-paper``'s 1.0 on clouds in micrometres of kilometres) did not fit the data:
-      its "convergence" is that of a step that could not rotate, so it is reported as not converged.
+    - A run whose last step gave fewer than :data:`MIN_EFFECTIVE_PAIRS` effective pairs (half the
+      pairs for clouds under 6 points) did not fit the data: every Gaussian weight underflowed to
+      0 (a fixed ``sigma`` far below the distances between the clouds, e.g. ``esm-paper``'s 1.0 on
+      an object kilometres across), so its step could only align centroids, never rotate. It is
+      reported as not converged.
     """
     problem = rigidity_problem(init)
     if problem is not None:
@@ -157,7 +158,8 @@ def checked_refine(source, target, estimator, *, init: np.ndarray, **kwargs) -> 
             message=f"stopped: the refined pose was {problem}; the starting pose is returned instead",
         )
     weights = watched.last_weights
-    if weights is not None and len(weights) and effective_count(weights) < MIN_EFFECTIVE_PAIRS:
+    # (Half the pairs at most: a 3-point cloud with unequal weights has fewer than 3 effective ones.)
+    if weights is not None and len(weights) and effective_count(weights) < min(MIN_EFFECTIVE_PAIRS, 0.5 * len(weights)):
         sigma = "" if outcome.sigma is None else f" (sigma {outcome.sigma:.3g})"
         return dataclasses.replace(
             outcome,
