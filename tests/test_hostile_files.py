@@ -204,3 +204,17 @@ def test_the_cap_bites(tmp_path):
     probe = CHILD.replace("results = {}", "import numpy\ntry:\n    numpy.ones(2**30 // 8)\n    print('allocated')\nexcept MemoryError:\n    print('refused')\nsys.exit(0)\nresults = {}")
     process = subprocess.run([sys.executable, "-c", probe, str(CHILD_HEADROOM_BYTES)], capture_output=True, text=True, timeout=120)
     assert process.stdout.strip() == "refused", process.stdout + process.stderr[-2000:]
+
+
+@pytest.mark.parametrize("name", ["1e12-points-binary.ply", "4GB.npy", "uncompressed-size-claims-4GB.pcd"])
+def test_command_line_refuses_a_hostile_file_in_one_line(tmp_path, capsys, name):
+    from esmicp.cli import EXIT_BAD_INPUT, main
+
+    hostile = write_hostile(tmp_path, name)
+    good = tmp_path / "good.xyz"
+    good.write_text("0 0 0\n1 0 0\n0 1 0\n0 0 1\n")
+    out = tmp_path / "aligned.ply"
+    assert main(["register", str(hostile), str(good), "--output", str(out)]) == EXIT_BAD_INPUT
+    stderr = capsys.readouterr().err
+    assert stderr.count("\n") == 1 and stderr.startswith(f"esmicp register: error: {hostile}: "), stderr
+    assert not out.exists()
