@@ -105,6 +105,24 @@ def compare_shift(shape: np.ndarray) -> None:
             cells.append(f"{state}, {result.num_iterations}, {rotation_error_deg(result.transformation, truth):.2g} deg")
         print(f"| {label} | " + " | ".join(cells) + " |")
     esmicp.numerics.FAR_FROM_ORIGIN = default
+    try:
+        import open3d as o3d
+    except ImportError:
+        return
+    # Peer: Open3D's point-to-point ICP on the same 1e8 pair and on the same pair at the origin.
+    source = apply(np.linalg.inv(truth), target[rng.permutation(len(target))])
+    cells = []
+    for label, offset in (("at 2.3e8", np.zeros(3)), ("moved to the origin", -target.mean(axis=0))):
+        clouds = [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points + offset)) for points in (source, target)]
+        shift = to_matrix(np.eye(3), offset)
+        criteria = o3d.pipelines.registration.ICPConvergenceCriteria(1e-8, 1e-8, 100)
+        result = o3d.pipelines.registration.registration_icp(
+            clouds[0], clouds[1], 0.5 * size_of(target), np.eye(4),
+            o3d.pipelines.registration.TransformationEstimationPointToPoint(), criteria,
+        )
+        estimate = np.linalg.inv(shift) @ np.asarray(result.transformation) @ shift
+        cells.append(f"{label}: {rotation_error_deg(estimate, truth):.2g} deg (fitness {result.fitness:.2f})")
+    print("\nPeer, Open3D point-to-point ICP from the identity (100 iterations, tolerance 1e-8): " + "; ".join(cells))
 
 
 def main() -> None:
