@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 import warnings
@@ -14,9 +15,11 @@ from .errors import IndexAlignmentWarning, InvalidInputError
 from .methods import METHODS, EsmEstimator, EsmPaperEstimator, IcpEstimator, SigmaSchedule
 from .methods.esm_paper import PAPER_SIGMA
 from .init.global_search import STRATEGIES, global_estimate
-from .methods.local import Callback, refine
+from .methods.local import Callback
+from .numerics import checked_refine, from_working, to_working, uncentred_callback, uncentred_history, working_origin
 from .result import RegistrationResult
 from .types import as_count, as_points, as_positive, as_real, as_transform, check_not_degenerate
+from .types import check_representable
 
 logger = logging.getLogger(__name__)
 
@@ -90,7 +93,8 @@ def register(
     Raises
     ------
     InvalidInputError
-        On malformed or degenerate clouds, an unknown method, a malformed or non-rigid ``init``,
+        On malformed or degenerate clouds (or beyond float64 geometry, see
+        :func:`esmicp.types.check_representable`), an unknown method, a malformed or non-rigid ``init``,
         or non-positive ``sigma``, ``max_iterations`` or ``inlier_distance``.
     """
     start = time.perf_counter()
@@ -98,6 +102,8 @@ def register(
     target_points = as_points(target, "target")
     check_not_degenerate(source_points, "source")
     check_not_degenerate(target_points, "target")
+    check_representable(source_points, "source")
+    check_representable(target_points, "target")
     if method not in METHODS:
         raise InvalidInputError(f"method: unknown method {method!r}; choose one of {', '.join(METHODS)}")
     init_name, initial = _resolve_init(init)
@@ -108,6 +114,14 @@ def register(
     max_iterations = as_count(max_iterations, "max_iterations")
     tolerance = _as_tolerance(tolerance)
     generator = _as_generator(rng)
+
+    # Far from the origin (UTM / ECEF coordinates), register in a frame shifted onto the target and
+    # map the result back: rounding noise would otherwise exceed the tolerance (see esmicp.numerics).
+    origin = working_origin(target_points)
+    if origin is not None:
+        source_points, target_points = source_points - origin, target_points - origin
+        initial = None if initial is None else to_working(initial, origin)
+        callback = uncentred_callback(callback, origin)
 
     target_index = NearestNeighbors(target_points)
     spacing = target_index.spacing()
@@ -131,7 +145,7 @@ def register(
     # After a global search (which ends at the finest sigma) the pose is already close: start in
     # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
     estimator = _make_estimator(method, sigma, spacing, diagonal, start_fine=estimate is not None)
-    outcome = refine(
+    outcome = checked_refine(
         source_points,
         target_index,
         estimator,
@@ -151,6 +165,11 @@ def register(
     inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
     if method == "esm-paper" and len(source_points) == len(target_points):
         _warn_if_not_index_aligned(indices)
+    if origin is not None:
+        outcome = dataclasses.replace(
+            outcome, transformation=from_working(outcome.transformation, origin),
+            history=uncentred_history(outcome.history, origin),
+        )
 
     return RegistrationResult(
         transformation=outcome.transformation,

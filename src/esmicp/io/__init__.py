@@ -33,6 +33,7 @@ import numpy as np
 from ..errors import EsmicpError, InvalidInputError, PointCloudFileError
 from ..types import as_points
 from . import npy, off, pcd, ply, text
+from ._messages import one_line
 from .atomic import atomic_write
 from .transform import read_transform, write_transform
 
@@ -137,7 +138,7 @@ def _read_raw(path: Path, reader) -> np.ndarray:
     except OSError as exc:
         raise PointCloudFileError(path, f"cannot read: {exc.strerror or exc}") from None
     except Exception as exc:  # a library failed in a way not anticipated: still one plain error
-        raise PointCloudFileError(path, f"could not be read ({type(exc).__name__}: {exc})") from exc
+        raise PointCloudFileError(path, f"could not be read ({type(exc).__name__}: {one_line(exc, 160)})") from exc
 
 
 def _finish(path: Path, raw: np.ndarray) -> np.ndarray:

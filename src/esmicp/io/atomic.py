@@ -1,8 +1,21 @@
-"""Atomic file output: a file either appears complete at its path, or not at all."""
+"""Atomic file output: a file either appears complete at its path, or not at all.
+
+Where the system allows it (Linux, ``O_TMPFILE``), the data is written to an *unnamed* file in the
+destination's folder, which is given its name (``linkat``, with ``AT_EMPTY_PATH`` or through
+``/proc/self/fd``) only once it is complete and flushed. A process killed while writing, even by SIGKILL, then leaves nothing
+behind: the kernel frees an unnamed file with its last descriptor. Replacing an existing file
+links the finished data under a hidden temporary name and renames it over the old one; only a
+kill in the microseconds between those two calls could leave that complete hidden file. Elsewhere,
+the data goes to a hidden named temporary file (``.<name>.<random>.tmp``), removed on any
+exception, Ctrl-C included; only a kill that Python cannot intercept (SIGKILL, a power cut) could
+leave it.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import functools
 import logging
 import os
 import secrets
@@ -35,6 +48,105 @@ def _create_temporary(directory: Path, name: str) -> tuple[int, Path]:
             continue
         return descriptor, candidate
     raise FileExistsError(f"could not create a unique temporary file in {directory}")
+
+
+#: Devices on which an unnamed file could not be given a name (so the named temporary file is used).
+_UNNAMED_UNSUPPORTED: set[int] = set()
+
+_AT_FDCWD = -100
+_AT_EMPTY_PATH = 0x1000
+
+
+def _create_unnamed(directory: Path) -> int | None:
+    """An unnamed file in ``directory`` (Linux ``O_TMPFILE``), or None where that is not possible."""
+    flag = getattr(os, "O_TMPFILE", None)
+    if flag is None:
+        return None
+    try:
+        if directory.stat().st_dev in _UNNAMED_UNSUPPORTED:
+            return None
+        return os.open(directory, flag | os.O_RDWR, 0o666)
+    except OSError:  # EOPNOTSUPP, EISDIR (old kernels), EINVAL (some file systems), ...
+        return None
+
+
+@functools.lru_cache(maxsize=1)
+def _libc_linkat():
+    try:
+        import ctypes
+        import ctypes.util
+
+        function = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True).linkat
+    except (ImportError, OSError, AttributeError, TypeError):  # pragma: no cover - not glibc / musl
+        return None
+    function.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_int]
+    return function
+
+
+def _link_descriptor(descriptor: int, destination: Path) -> None:
+    """Give the open unnamed file ``descriptor`` the name ``destination``.
+
+    ``linkat(fd, "", AT_EMPTY_PATH)`` where permitted (it needs CAP_DAC_READ_SEARCH), else the
+    documented ``/proc/self/fd/<fd>`` link. Raises FileExistsError when ``destination`` exists,
+    another OSError when the system allows neither.
+    """
+    linkat = _libc_linkat()
+    if linkat is not None:
+        import ctypes
+
+        if linkat(descriptor, b"", _AT_FDCWD, os.fsencode(destination), _AT_EMPTY_PATH) == 0:
+            return
+        code = ctypes.get_errno()
+        if code == errno.EEXIST:
+            raise FileExistsError(code, os.strerror(code), str(destination))
+    os.link(f"/proc/self/fd/{descriptor}", destination, follow_symlinks=True)
+
+
+def _publish_unnamed(descriptor: int, path: Path, overwrite: bool) -> None:
+    """Give the finished unnamed file its name (atomically; never clobbering without overwrite)."""
+    try:
+        _link_descriptor(descriptor, path)
+        return
+    except FileExistsError:
+        if not overwrite:
+            raise OutputExistsError(path) from None
+    # Replace the existing file: a hidden name first, then an atomic rename over the old file.
+    for _ in range(100):
+        temporary = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+        try:
+            _link_descriptor(descriptor, temporary)
+        except FileExistsError:
+            continue
+        try:
+            os.replace(temporary, path)
+        except BaseException:
+            os.unlink(temporary)
+            raise
+        return
+    raise FileExistsError(f"could not create a unique temporary file in {path.parent}")
+
+
+def _copy_to_named(descriptor: int, directory: Path, name: str) -> Path:
+    """Copy the unnamed file's content to a new named temporary file (flushed); return its path."""
+    target, temporary = _create_temporary(directory, name)
+    try:
+        offset = 0
+        while True:
+            chunk = os.pread(descriptor, 1 << 20, offset)
+            if not chunk:
+                break
+            view = memoryview(chunk)
+            while view:
+                written = os.write(target, view)
+                view = view[written:]
+            offset += len(chunk)
+        os.fsync(target)
+    except BaseException:
+        os.close(target)
+        os.unlink(temporary)
+        raise
+    os.close(target)
+    return temporary
 
 
 def _fsync_directory(directory: Path) -> None:
@@ -80,7 +192,9 @@ def atomic_write(path, overwrite: bool = False, *, mode: str = "wb"):
 
     The temporary file lives in the same directory as ``path`` (so the final rename is atomic), is
     flushed and fsynced, then moved into place only if the ``with`` block finishes without an
-    exception. On any exception the temporary file is removed and ``path`` is left untouched.
+    exception. On any exception the temporary file is removed and ``path`` is left untouched. On
+    Linux the temporary file has no name at all until it is complete (see the module docstring), so
+    that even a killed process leaves nothing behind.
 
     Parameters
     ----------
@@ -117,7 +231,10 @@ def atomic_write(path, overwrite: bool = False, *, mode: str = "wb"):
         raise PointCloudFileError(path, f"cannot write: the folder {str(directory)!r} does not exist")
 
     try:
-        descriptor, temporary = _create_temporary(directory, path.name)
+        descriptor = _create_unnamed(directory)
+        temporary = None
+        if descriptor is None:
+            descriptor, temporary = _create_temporary(directory, path.name)
     except OSError as exc:
         raise PointCloudFileError(path, f"cannot write: {_describe_os_error(exc)}") from None
 
@@ -135,13 +252,25 @@ def atomic_write(path, overwrite: bool = False, *, mode: str = "wb"):
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
-        _publish(temporary, path, overwrite)
+            if temporary is None:  # named while still open: the name refers to the descriptor
+                try:
+                    _publish_unnamed(handle.fileno(), path, overwrite)
+                except OutputExistsError:
+                    raise
+                except OSError:
+                    # This file system / mount cannot name an unnamed file (EXDEV through /proc in
+                    # some containers and VMs): copy it to a named temporary file, and use named
+                    # ones directly from now on.
+                    _UNNAMED_UNSUPPORTED.add(directory.stat().st_dev)
+                    temporary = _copy_to_named(handle.fileno(), directory, path.name)
+        if temporary is not None:
+            _publish(temporary, path, overwrite)
         published = True
         _fsync_directory(directory)
     except OSError as exc:
         raise PointCloudFileError(path, f"cannot write: {_describe_os_error(exc)}") from exc
     finally:
-        if not published:
+        if not published and temporary is not None:
             try:
                 os.unlink(temporary)
             except FileNotFoundError:

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import os
+import warnings
 
 import numpy as np
 
 from ..errors import PointCloudFileError
+from ._messages import excerpt, one_line
 
 __all__ = ["read_npy", "write_npy"]
 
@@ -20,16 +22,20 @@ def _read_npy_header(path, handle) -> tuple[tuple[int, ...], bool, np.dtype]:
             path, "not a .npy file: it does not start with the NumPy magic bytes"
         ) from None
     try:
-        if version == (1, 0):
-            return np.lib.format.read_array_header_1_0(handle)
-        if version == (2, 0):
-            return np.lib.format.read_array_header_2_0(handle)
+        with warnings.catch_warnings():
+            # NumPy warns about quirks of a header it still reads (deprecated type aliases, Python 2
+            # headers, escape sequences): they are not the user's concern.
+            warnings.simplefilter("ignore")
+            if version == (1, 0):
+                return np.lib.format.read_array_header_1_0(handle)
+            if version == (2, 0):
+                return np.lib.format.read_array_header_2_0(handle)
         # Version 3.0 (utf-8 field names): there is no public reader for it, np.load checks it.
         raise PointCloudFileError(path, f"unsupported .npy format version {version[0]}.{version[1]}")
     except PointCloudFileError:
         raise
     except Exception as exc:  # noqa: BLE001 - ValueError, SyntaxError, ... from a corrupt header
-        raise PointCloudFileError(path, f"corrupt .npy header: {exc}") from None
+        raise PointCloudFileError(path, f"corrupt .npy header: {one_line(exc, 160)}") from None
 
 
 def read_npy(path) -> np.ndarray:
@@ -69,30 +75,34 @@ def read_npy(path) -> np.ndarray:
             f"{needed} bytes, but only {data_bytes} bytes of data follow the header",
         )
     try:
-        array = np.load(path, allow_pickle=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the header quirks again (see _read_npy_header)
+            array = np.load(path, allow_pickle=False)
     except MemoryError:
         raise PointCloudFileError(path, ".npy file is too large to load into memory") from None
     except Exception as exc:  # noqa: BLE001 - ValueError (pickled / truncated), OSError, EOFError
-        raise PointCloudFileError(path, f"could not read .npy data: {exc}") from None
+        raise PointCloudFileError(path, f"could not read .npy data: {one_line(exc, 160)}") from None
 
     if array.dtype.names:
         missing = [axis for axis in "xyz" if axis not in array.dtype.names]
         if missing:
             raise PointCloudFileError(
                 path,
-                f"structured array has no {'/'.join(missing)} field (fields: {', '.join(array.dtype.names)})",
+                f"structured array has no {'/'.join(missing)} field (fields: {excerpt(', '.join(array.dtype.names), 60)})",
             )
         if array.ndim != 1:
             array = array.reshape(-1)
         columns = [array[axis] for axis in "xyz"]
         if any(column.ndim != 1 or not _is_real(column.dtype) for column in columns):
             raise PointCloudFileError(path, "structured array fields x, y, z must be plain numbers")
-        return np.stack(columns, axis=1).astype(np.float64)
+        with np.errstate(invalid="ignore"):  # a signalling NaN in float32 data: dropped later
+            return np.stack(columns, axis=1).astype(np.float64)
     if not _is_real(array.dtype):
         raise PointCloudFileError(path, f"expected numeric (real) coordinates, got dtype {array.dtype}")
     if array.ndim != 2 or array.shape[1] != 3:
         raise PointCloudFileError(path, f"expected an (N, 3) array of points, got shape {array.shape}")
-    return array.astype(np.float64)
+    with np.errstate(invalid="ignore"):  # a signalling NaN in float32 data: dropped later
+        return array.astype(np.float64)
 
 
 def _is_real(dtype: np.dtype) -> bool:

@@ -8,12 +8,16 @@ trimesh is imported lazily: it is slow to import.
 from __future__ import annotations
 
 import io
+import os
 import re
+import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import PointCloudFileError
+from ._messages import excerpt, one_line
 from . import ply
 from .text import read_text_file
 
@@ -46,7 +50,7 @@ def _check_off(path, text: str) -> None:
     except (IndexError, ValueError):
         raise PointCloudFileError(
             path,
-            f"malformed OFF file: expected a 'vertices faces edges' count line, got {counts_text[:40]!r}",
+            f"malformed OFF file: expected a 'vertices faces edges' count line, got {excerpt(counts_text)}",
         ) from None
     if vertices < 0 or faces < 0:
         raise PointCloudFileError(path, f"malformed OFF file: negative counts {vertices} {faces}")
@@ -56,6 +60,38 @@ def _check_off(path, text: str) -> None:
             f"truncated OFF file: its header declares {vertices} vertices and {faces} faces, but only "
             f"{len(rest)} data lines follow",
         )
+
+
+_STL_HEADER_BYTES = 84  # an 80-byte comment and the uint32 triangle count
+_STL_TRIANGLE_BYTES = 50  # normal, three vertices (12 float32) and a uint16 attribute
+
+
+def _check_stl(path) -> None:
+    """Refuse a binary STL whose triangle count disagrees with its size, in plain words.
+
+    An ascii STL starts with ``solid``; some binary ones do too (in their 80-byte comment), so a
+    file is binary when its size is exactly what its triangle count needs. Otherwise trimesh would
+    fall back to parsing the bytes as ascii and find nothing.
+    """
+    size = os.path.getsize(path)
+    with open(path, "rb") as handle:
+        head = handle.read(_STL_HEADER_BYTES)
+    if len(head) == _STL_HEADER_BYTES:
+        (count,) = struct.unpack("<I", head[80:84])
+        if size == _STL_HEADER_BYTES + _STL_TRIANGLE_BYTES * count:
+            return
+    if head.lstrip()[:5].lower() == b"solid":
+        return  # ascii: trimesh parses it (and reports what it cannot)
+    if len(head) < _STL_HEADER_BYTES:
+        raise PointCloudFileError(
+            path, f"not an STL file: {size} bytes is too short for a binary STL, and it does not start with 'solid'"
+        )
+    needed = _STL_HEADER_BYTES + _STL_TRIANGLE_BYTES * count
+    raise PointCloudFileError(
+        path,
+        f"truncated or corrupt binary STL file: its header declares {count} triangles, which need "
+        f"{needed} bytes, but the file has {size} bytes",
+    )
 
 
 def _load(path: Path, extension: str):
@@ -69,21 +105,62 @@ def _load(path: Path, extension: str):
         source = io.BytesIO(text.encode("utf-8"))
     elif extension == ".ply":
         ply.read_ply_header(path)  # refuses lying / truncated headers before trimesh allocates
+    elif extension == ".stl":
+        _check_stl(path)
     try:
-        if source is not None:
-            mesh = trimesh.load(source, file_type="off", force="mesh", process=False)
-        else:
-            mesh = trimesh.load(str(path), file_type=extension[1:], force="mesh", process=False)
+        # trimesh computes normals of whatever the file holds: NaN / infinite coordinates (dropped
+        # later, with a warning of our own) must not surface as NumPy's RuntimeWarnings.
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            if source is not None:
+                loaded = trimesh.load(source, file_type="off", process=False)
+            else:
+                loaded = trimesh.load(str(path), file_type=extension[1:], process=False)
+            vertices, faces = _geometry(path, loaded)
+    except PointCloudFileError:
+        raise
     except MemoryError:
         raise PointCloudFileError(path, "mesh is too large to load into memory") from None
     except Exception as exc:  # noqa: BLE001 - trimesh raises many kinds (ValueError, NameError, ...)
         problem = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise PointCloudFileError(
-            path, f"could not read the {extension[1:].upper()} mesh: {problem}"
+            path, f"could not read the {extension[1:].upper()} mesh: {one_line(problem, 160)}"
         ) from None
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise PointCloudFileError(path, f"could not read a triangle mesh from it (got {type(mesh).__name__})")
-    return mesh
+    # A plain mesh, without the file's materials or textures: trimesh handles those lazily and
+    # needs optional packages (Pillow) for them, which reading coordinates must not depend on.
+    return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+
+
+def _geometry(path, loaded) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``(V, 3)`` and triangles ``(F, 3)`` of what ``trimesh.load`` returned.
+
+    A file of vertices only (an OBJ of ``v`` lines) gives a trimesh ``PointCloud``: its vertices
+    and no faces. A ``Scene`` (an OBJ with several objects or materials) gives all its meshes,
+    concatenated in the file's order.
+    """
+    import trimesh
+
+    if isinstance(loaded, trimesh.Scene):
+        parts = list(loaded.geometry.values())
+    else:
+        parts = [loaded]
+    vertices, faces, offset = [], [], 0
+    for part in parts:
+        if not isinstance(part, (trimesh.Trimesh, trimesh.PointCloud)):
+            raise PointCloudFileError(path, f"could not read a triangle mesh from it (got {type(part).__name__})")
+        part_vertices = np.asarray(part.vertices, dtype=np.float64).reshape(-1, 3)
+        if isinstance(part, trimesh.Trimesh):
+            part_faces = np.asarray(part.faces).reshape(-1, 3)
+            if part_faces.size and (part_faces.min() < 0 or part_faces.max() >= len(part_vertices)):
+                raise PointCloudFileError(
+                    path, f"malformed mesh: a face refers to a vertex that does not exist ({len(part_vertices)} vertices)"
+                )
+            faces.append(part_faces.astype(np.int64) + offset)
+        vertices.append(part_vertices)
+        offset += len(part_vertices)
+    if not vertices:
+        return np.empty((0, 3)), np.empty((0, 3), dtype=np.int64)
+    return np.concatenate(vertices), np.concatenate(faces) if faces else np.empty((0, 3), dtype=np.int64)
 
 
 def read_mesh(
@@ -115,6 +192,9 @@ def read_mesh(
     extension = path.suffix.lower()
     mesh = _load(path, extension)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    if len(vertices) == 0:
+        hint = " (an ascii STL without facets, or a binary one whose triangle count is wrong)" if extension == ".stl" else ""
+        raise PointCloudFileError(path, f"no vertices could be read from this {extension[1:].upper()} file{hint}")
     if sample_points is None:
         if extension == ".stl":
             _, first = np.unique(vertices, axis=0, return_index=True)
@@ -128,7 +208,8 @@ def read_mesh(
         raise PointCloudFileError(
             path, "has no faces to sample points from (it is a point cloud, not a mesh)"
         )
-    area = float(mesh.area)
+    with np.errstate(all="ignore"):  # non-finite vertices give a non-finite area, refused below
+        area = float(mesh.area)
     if not np.isfinite(area) or area <= 0:
         raise PointCloudFileError(
             path, "cannot sample points: the mesh surface has zero (or non-finite) area"

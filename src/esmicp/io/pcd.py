@@ -23,6 +23,7 @@ import struct
 import numpy as np
 
 from ..errors import PointCloudFileError
+from ._messages import excerpt, one_line
 
 __all__ = ["ENCODINGS", "read_pcd", "write_pcd"]
 
@@ -76,13 +77,13 @@ def _integers(path, key: str, words: list[str], *, positive: bool) -> list[int]:
         values = [int(word) for word in words]
     except ValueError:
         raise PointCloudFileError(
-            path, f"malformed PCD header: {key} must be whole numbers, got {' '.join(words)!r}"
+            path, f"malformed PCD header: {key} must be whole numbers, got {excerpt(' '.join(words))}"
         ) from None
     low = 1 if positive else 0
     if any(value < low for value in values):
         raise PointCloudFileError(
             path,
-            f"malformed PCD header: {key} must be {'> 0' if positive else '>= 0'}, got {' '.join(words)!r}",
+            f"malformed PCD header: {key} must be {'> 0' if positive else '>= 0'}, got {excerpt(' '.join(words))}",
         )
     return values
 
@@ -107,7 +108,7 @@ def _read_header(path, handle) -> _PcdHeader:
         key, *words = line.split()
         key = key.upper()
         if key not in _KEYS:
-            raise PointCloudFileError(path, f"not a PCD file: unexpected header line {line[:40]!r}")
+            raise PointCloudFileError(path, f"not a PCD file: unexpected header line {excerpt(line)}")
         if key in entries:
             raise PointCloudFileError(path, f"malformed PCD header: {key} appears twice")
         entries[key] = words
@@ -134,7 +135,7 @@ def _read_header(path, handle) -> _PcdHeader:
     for field, kind, size in zip(fields, types, sizes):
         if (kind, size) not in _VALID_TYPES:
             raise PointCloudFileError(
-                path, f"malformed PCD header: field {field!r} has unsupported TYPE {kind} SIZE {size}"
+                path, f"malformed PCD header: field {excerpt(field)} has unsupported TYPE {excerpt(kind, 10)} SIZE {size}"
             )
     for key in ("WIDTH", "HEIGHT", "POINTS"):
         if key in entries and len(entries[key]) != 1:
@@ -154,7 +155,7 @@ def _read_header(path, handle) -> _PcdHeader:
     data = entries["DATA"][0].lower() if entries["DATA"] else ""
     if data not in ENCODINGS:
         raise PointCloudFileError(
-            path, f"unsupported PCD DATA encoding {data!r} (expected one of {', '.join(ENCODINGS)})"
+            path, f"unsupported PCD DATA encoding {excerpt(data, 20)} (expected one of {', '.join(ENCODINGS)})"
         )
     return _PcdHeader(fields, sizes, types, counts, width, height, points, data, offset, file_size - offset)
 
@@ -163,7 +164,7 @@ def _check_fields(path, header: _PcdHeader) -> None:
     missing = [axis for axis in "xyz" if axis not in header.fields]
     if missing:
         raise PointCloudFileError(
-            path, f"PCD file has no {'/'.join(missing)} field (fields: {' '.join(header.fields)})"
+            path, f"PCD file has no {'/'.join(missing)} field (fields: {excerpt(' '.join(header.fields), 60)})"
         )
     for axis in "xyz":
         count = header.counts[header.fields.index(axis)]
@@ -289,16 +290,18 @@ def read_pcd(path) -> np.ndarray:
         block = _data_block(path, handle, header)
     stream = io.BytesIO(_normalized_header(header).encode("ascii") + block)
     try:
-        cloud = PointCloud.from_fileobj(stream)
+        with np.errstate(over="ignore", invalid="ignore"):  # ascii 1e72 in a float32 field: inf, dropped later
+            cloud = PointCloud.from_fileobj(stream)
         table = np.atleast_1d(cloud.pc_data)
         points = np.empty((len(table), 3), dtype=np.float64)
-        for column, axis in enumerate("xyz"):
-            points[:, column] = table[axis]
+        with np.errstate(invalid="ignore"):  # a signalling NaN in float32 data: dropped later
+            for column, axis in enumerate("xyz"):
+                points[:, column] = table[axis]
     except MemoryError:
         raise PointCloudFileError(path, "PCD file is too large to load into memory") from None
     except Exception as exc:  # noqa: BLE001 - pypcd4 raises RuntimeError, ValueError, pydantic errors...
         problem = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise PointCloudFileError(path, f"malformed PCD {header.data} data: {problem}") from None
+        raise PointCloudFileError(path, f"malformed PCD {header.data} data: {one_line(problem, 160)}") from None
     if len(points) != header.points:
         raise PointCloudFileError(
             path,

@@ -23,6 +23,7 @@ import numpy as np
 import plyfile
 
 from ..errors import PointCloudFileError
+from ._messages import excerpt, one_line
 
 __all__ = ["PlyHeader", "read_ply", "read_ply_header", "write_ply"]
 
@@ -148,11 +149,11 @@ def _parse_property(path, words: list[str], line_number: int) -> _Property:
         if length_type not in _INTEGER_TYPES:
             raise PointCloudFileError(
                 path,
-                f"malformed PLY header, line {line_number}: list length type {length_type!r} is not an integer type",
+                f"malformed PLY header, line {line_number}: list length type {excerpt(length_type, 20)} is not an integer type",
             )
         if value_type not in _SCALAR_SIZES:
             raise PointCloudFileError(
-                path, f"malformed PLY header, line {line_number}: unknown type {value_type!r}"
+                path, f"malformed PLY header, line {line_number}: unknown type {excerpt(value_type, 20)}"
             )
         return _Property(name, value_type, length_type)
     if len(words) != 3:
@@ -162,7 +163,7 @@ def _parse_property(path, words: list[str], line_number: int) -> _Property:
     _, value_type, name = words
     if value_type not in _SCALAR_SIZES:
         raise PointCloudFileError(
-            path, f"malformed PLY header, line {line_number}: unknown type {value_type!r}"
+            path, f"malformed PLY header, line {line_number}: unknown type {excerpt(value_type, 20)}"
         )
     return _Property(name, value_type)
 
@@ -246,7 +247,7 @@ def read_ply_header(path, handle=None) -> PlyHeader:
             if len(words) != 3 or words[1] not in _FORMATS or words[2] != "1.0":
                 raise PointCloudFileError(
                     path,
-                    f"malformed PLY header, line {line_number}: unsupported format {' '.join(words[1:])!r}",
+                    f"malformed PLY header, line {line_number}: unsupported format {excerpt(' '.join(words[1:]))}",
                 )
             file_format = words[1]
         elif keyword == "element":
@@ -261,7 +262,7 @@ def read_ply_header(path, handle=None) -> PlyHeader:
             if count < 0:
                 raise PointCloudFileError(
                     path,
-                    f"malformed PLY header, line {line_number}: element count {words[2]!r} is not a whole number",
+                    f"malformed PLY header, line {line_number}: element count {excerpt(words[2], 20)} is not a whole number",
                 )
             elements.append(_Element(words[1], count))
         elif keyword == "property":
@@ -272,7 +273,7 @@ def read_ply_header(path, handle=None) -> PlyHeader:
             elements[-1].properties.append(_parse_property(path, words, line_number))
         else:
             raise PointCloudFileError(
-                path, f"malformed PLY header, line {line_number}: unexpected {line.strip()[:40]!r}"
+                path, f"malformed PLY header, line {line_number}: unexpected {excerpt(line.strip())}"
             )
     if file_format is None:
         raise PointCloudFileError(path, "malformed PLY header: no 'format' line")
@@ -283,8 +284,15 @@ def read_ply_header(path, handle=None) -> PlyHeader:
     return header
 
 
+def _shortened(items: list[str], limit: int = 6) -> str:
+    """``items`` joined by commas, the first ``limit`` only (a corrupt header may declare thousands)."""
+    if len(items) <= limit:
+        return ", ".join(items)
+    return ", ".join(items[:limit]) + f", ... ({len(items)} in all)"
+
+
 def _describe_count(element: _Element) -> str:
-    plural = {"vertex": "vertices", "face": "faces"}.get(element.name, f"{element.name!r} rows")
+    plural = {"vertex": "vertices", "face": "faces"}.get(element.name, f"{excerpt(element.name, 20)} rows")
     return f"{element.count} {plural}"
 
 
@@ -295,7 +303,7 @@ def _check_sizes(path, header: PlyHeader) -> None:
     else:
         minimum = sum(e.count * e.min_binary_row_bytes() for e in header.elements)
     if minimum > header.data_bytes:
-        declared = ", ".join(_describe_count(e) for e in header.elements)
+        declared = _shortened([_describe_count(e) for e in header.elements])
         raise PointCloudFileError(
             path,
             f"truncated or corrupt PLY file: its header declares {declared}, which needs at least "
@@ -308,18 +316,18 @@ def _vertex_element(path, header: PlyHeader) -> tuple[int, _Element]:
         if element.name == "vertex":
             break
     else:
-        names = ", ".join(repr(e.name) for e in header.elements) or "none"
+        names = _shortened([excerpt(e.name, 20) for e in header.elements]) or "none"
         raise PointCloudFileError(path, f"PLY file has no 'vertex' element (elements: {names})")
     by_name = {p.name: p for p in element.properties}
     missing = [axis for axis in "xyz" if axis not in by_name]
     if missing:
-        found = ", ".join(element.property_names()) or "none"
+        found = _shortened([excerpt(name, 20) for name in element.property_names()]) or "none"
         raise PointCloudFileError(
             path, f"PLY vertices have no {'/'.join(missing)} coordinate (vertex properties: {found})"
         )
     lists = [axis for axis in "xyz" if by_name[axis].is_list]
     if lists:
-        raise PointCloudFileError(path, f"PLY vertex property {lists[0]!r} is a list, expected a number")
+        raise PointCloudFileError(path, f"PLY vertex property {excerpt(lists[0], 20)} is a list, expected a number")
     return index, element
 
 
@@ -335,18 +343,19 @@ def _rewritten_header(header: PlyHeader, elements: list[_Element]) -> str:
 
 def _plyfile_read(path, stream, **kwargs) -> plyfile.PlyData:
     try:
-        with warnings.catch_warnings():
-            # plyfile's ascii list parser warns on empty lists; that is not a problem.
+        with warnings.catch_warnings(), np.errstate(over="ignore", invalid="ignore"):
+            # plyfile's ascii list parser warns on empty lists; that is not a problem. An ascii
+            # value beyond its property's type (1e72 for a float) becomes inf: dropped later.
             warnings.simplefilter("ignore", UserWarning)
             return plyfile.PlyData.read(stream, **kwargs)
     except plyfile.PlyParseError as exc:
-        raise PointCloudFileError(path, f"malformed PLY data: {exc}") from None
+        raise PointCloudFileError(path, f"malformed PLY data: {one_line(exc, 160)}") from None
     except UnicodeDecodeError:
         raise PointCloudFileError(path, "malformed ascii PLY data: it contains non-ASCII bytes") from None
     except MemoryError:
         raise PointCloudFileError(path, "PLY file is too large to load into memory") from None
     except (ValueError, TypeError, IndexError, KeyError, OverflowError, StopIteration) as exc:
-        raise PointCloudFileError(path, f"malformed PLY file: {exc}") from None
+        raise PointCloudFileError(path, f"malformed PLY file: {one_line(exc, 160)}") from None
 
 
 def _read_ascii(path, handle, header: PlyHeader, needed: list[_Element]) -> np.ndarray:
@@ -404,8 +413,9 @@ def _coordinates(data: plyfile.PlyData) -> np.ndarray:
     """The vertex x, y, z of parsed PLY data as a new ``(N, 3)`` float64 array."""
     vertices = data["vertex"].data
     points = np.empty((len(vertices), 3), dtype=np.float64)
-    for column, axis in enumerate("xyz"):
-        points[:, column] = vertices[axis]
+    with np.errstate(invalid="ignore"):  # a signalling NaN in float32 data: dropped later
+        for column, axis in enumerate("xyz"):
+            points[:, column] = vertices[axis]
     return points
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import PointCloudFileError
+from ._messages import excerpt
 
 _MESH_KEYWORDS = ("bmesh", "mesh")
 _SKIPPED_KEYWORDS = ("camera",)
@@ -26,7 +27,7 @@ def _pose(path, line_number: int, words: list[str]) -> np.ndarray:
         values = np.array([float(word) for word in words[2:]])
     except ValueError:
         raise PointCloudFileError(
-            path, f"line {line_number}: expected 7 numbers after the file name, got {' '.join(words[2:])!r}"
+            path, f"line {line_number}: expected 7 numbers after the file name, got {excerpt(' '.join(words[2:]))}"
         ) from None
     if not np.isfinite(values).all():
         raise PointCloudFileError(path, f"line {line_number}: pose has NaN or infinite values")
@@ -59,7 +60,7 @@ def _entries(path: Path) -> list[tuple[str, str, np.ndarray]]:
             continue
         if words[0] not in _MESH_KEYWORDS:
             raise PointCloudFileError(
-                path, f"line {line_number}: unknown keyword {words[0]!r} (expected bmesh, mesh or camera)"
+                path, f"line {line_number}: unknown keyword {excerpt(words[0], 20)} (expected bmesh, mesh or camera)"
             )
         if len(words) != 9:
             raise PointCloudFileError(
@@ -74,7 +75,7 @@ def _entries(path: Path) -> list[tuple[str, str, np.ndarray]]:
         name = Path(file_name).stem
         if name in seen:
             raise PointCloudFileError(
-                path, f"line {line_number}: scan {name!r} already listed on line {seen[name]}"
+                path, f"line {line_number}: scan {excerpt(name)} already listed on line {seen[name]}"
             )
         seen[name] = line_number
         entries.append((name, file_name, pose))

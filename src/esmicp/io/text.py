@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import PointCloudFileError
+from ._messages import excerpt
 
 __all__ = ["read_text", "read_text_file", "write_text"]
 
@@ -55,7 +56,7 @@ def _first_bad_value(path, rows: list[list[str]], line_numbers: list[int]) -> Po
                 float(word)
             except ValueError:
                 return PointCloudFileError(
-                    path, f"line {line_number}, column {column}: {word[:30]!r} is not a number"
+                    path, f"line {line_number}, column {column}: {excerpt(word, 30)} is not a number"
                 )
     return PointCloudFileError(path, "could not read the coordinates as numbers")  # pragma: no cover
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..errors import InvalidInputError, PointCloudFileError
 from ..types import as_transform
+from ._messages import excerpt
 from .atomic import atomic_write
 from .text import read_text_file
 
@@ -80,7 +81,7 @@ def read_transform(path) -> np.ndarray:
         values = [float(word) for word in words]
     except ValueError:
         bad = next(word for word in words if not _is_number(word))
-        raise PointCloudFileError(path, f"{bad[:30]!r} is not a number") from None
+        raise PointCloudFileError(path, f"{excerpt(bad, 30)} is not a number") from None
     try:
         return as_transform(np.array(values).reshape(4, 4), name=str(path))
     except InvalidInputError as exc:

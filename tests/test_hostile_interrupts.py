@@ -1,0 +1,187 @@
+"""Interrupted work: ``esmicp register --output`` interrupted mid-run (SIGINT) or killed while
+writing (SIGINT, SIGTERM, SIGKILL) never leaves a half-written or temporary file behind, and an
+existing output it was replacing stays intact.
+
+The command runs in a child process; to interrupt it at a known moment, the child slows down one
+step (every registration iteration sleeps a little, or the writer stops half-way) and touches a
+"ready" file when it is there. The code that is interrupted is the real one.
+"""
+
+from __future__ import annotations
+
+import errno
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import esmicp
+from esmicp.core.procrustes import apply, to_matrix
+from esmicp.io import atomic, read_points, write_points
+from esmicp.shapes import asymmetric_shape
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+
+CHILD = r"""
+import contextlib, pathlib, sys, time
+import esmicp.api, esmicp.cli, esmicp.io.text, esmicp.io.transform
+
+where, ready, argv = sys.argv[1], pathlib.Path(sys.argv[2]), sys.argv[3:]
+if where == "registering":
+    real_register = esmicp.api.register
+
+    def slow_register(*args, **kwargs):
+        def every_iteration(state):
+            ready.touch()
+            time.sleep(0.05)
+
+        kwargs["callback"] = every_iteration
+        return real_register(*args, **kwargs)
+
+    esmicp.api.register = slow_register
+elif where == "writing-points":
+    real_write = esmicp.io.text.write_text
+
+    def half_then_wait(handle, points, **kwargs):
+        real_write(handle, points[: len(points) // 2], **kwargs)
+        handle.flush()
+        ready.touch()
+        time.sleep(60)
+        real_write(handle, points[len(points) // 2 :], **kwargs)
+
+    esmicp.io.text.write_text = half_then_wait
+elif where == "writing-transform":
+    real_atomic = esmicp.io.transform.atomic_write
+
+    @contextlib.contextmanager
+    def stalling_atomic_write(*args, **kwargs):
+        with real_atomic(*args, **kwargs) as handle:
+            real_handle_write = handle.write
+
+            def write(text):
+                real_handle_write(text[: len(text) // 2])
+                handle.flush()
+                ready.touch()
+                time.sleep(60)
+                return real_handle_write(text[len(text) // 2 :])
+
+            handle.write = write
+            yield handle
+
+    esmicp.io.transform.atomic_write = stalling_atomic_write
+sys.exit(esmicp.cli.main(argv))
+"""
+
+
+@pytest.fixture(scope="module")
+def clouds(tmp_path_factory):
+    """source.xyz and target.xyz in a folder of their own (3,000 points; source moved 20 degrees)."""
+    folder = tmp_path_factory.mktemp("clouds")
+    target = asymmetric_shape(3000, rng=5)
+    angle = np.deg2rad(20.0)
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    write_points(folder / "target.xyz", target)
+    write_points(folder / "source.xyz", apply(to_matrix(rotation, [0.3, -0.1, 0.2]), target))
+    return folder
+
+
+def interrupt(clouds: Path, out: Path, where: str, sig: int, *extra: str, force: bool = False):
+    """Run ``esmicp register`` in a child, send ``sig`` once it is ``where``; return the process."""
+    ready = out.parent / f"ready-{where}-{sig}"
+    argv = ["register", str(clouds / "source.xyz"), str(clouds / "target.xyz"), "--init", "identity",
+            "--output", str(out), *extra, *(["--force"] if force else [])]
+    process = subprocess.Popen(
+        [sys.executable, "-c", CHILD, where, str(ready), *argv],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    deadline = time.monotonic() + 60
+    while not ready.exists():
+        if process.poll() is not None or time.monotonic() > deadline:
+            process.kill()
+            stdout, stderr = process.communicate()
+            pytest.fail(f"the child never got {where}: {stdout}{stderr}")
+        time.sleep(0.02)
+    ready.unlink()
+    process.send_signal(sig)
+    stdout, stderr = process.communicate(timeout=60)
+    return process.returncode, stdout, stderr
+
+
+def entries(folder: Path) -> list[str]:
+    return sorted(path.name for path in folder.iterdir())
+
+
+def test_sigint_during_registration_writes_nothing(clouds, tmp_path):
+    out = tmp_path / "aligned.xyz"
+    code, _, stderr = interrupt(clouds, out, "registering", signal.SIGINT, "--transform-out", str(tmp_path / "T.txt"))
+    assert code == 130, stderr
+    assert "interrupted; no partial output was written" in stderr
+    assert entries(tmp_path) == []
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL], ids=["SIGINT", "SIGTERM", "SIGKILL"])
+def test_interrupted_while_writing_the_output_leaves_nothing(clouds, tmp_path, sig):
+    out = tmp_path / "aligned.xyz"
+    code, _, stderr = interrupt(clouds, out, "writing-points", sig)
+    assert code == (130 if sig == signal.SIGINT else -sig), stderr
+    assert entries(tmp_path) == [], "a half-written or temporary file was left behind"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL], ids=["SIGINT", "SIGKILL"])
+def test_interrupted_while_replacing_an_output_keeps_the_old_one(clouds, tmp_path, sig):
+    out = tmp_path / "aligned.xyz"
+    out.write_text("old content\n")
+    code, _, stderr = interrupt(clouds, out, "writing-points", sig, force=True)
+    assert code == (130 if sig == signal.SIGINT else -sig), stderr
+    assert entries(tmp_path) == ["aligned.xyz"]
+    assert out.read_text() == "old content\n"
+
+
+def test_killed_while_writing_the_transform_keeps_only_complete_files(clouds, tmp_path):
+    """The aligned cloud is written first, completely; the transform being written is not there."""
+    out, transform = tmp_path / "aligned.xyz", tmp_path / "T.txt"
+    code, _, stderr = interrupt(clouds, out, "writing-transform", signal.SIGKILL, "--transform-out", str(transform))
+    assert code == -signal.SIGKILL, stderr
+    assert entries(tmp_path) == ["aligned.xyz"]
+    assert read_points(out).shape == (3000, 3)
+
+
+def test_an_uninterrupted_run_writes_both(clouds, tmp_path):
+    """The same child set-up, left alone: the outputs are complete (the interrupts above are real)."""
+    out, transform = tmp_path / "aligned.xyz", tmp_path / "T.txt"
+    argv = ["register", str(clouds / "source.xyz"), str(clouds / "target.xyz"), "--init", "identity",
+            "--output", str(out), "--transform-out", str(transform)]
+    process = subprocess.run(
+        [sys.executable, "-c", CHILD, "none", str(tmp_path / "unused"), *argv], capture_output=True, text=True, timeout=120
+    )
+    assert process.returncode == 0, process.stderr
+    assert entries(tmp_path) == ["T.txt", "aligned.xyz"]
+    np.testing.assert_allclose(read_points(out), read_points(clouds / "target.xyz"), atol=1e-6)
+    assert esmicp.read_transform(transform).shape == (4, 4)
+
+
+def test_without_unnamed_files_the_named_temporary_is_used_and_removed(tmp_path, monkeypatch):
+    """Where an unnamed file cannot be given a name (EXDEV through /proc in some containers), the
+    data is copied to a hidden named temporary file, and later writes use named ones directly."""
+
+    def cannot_link(descriptor, destination):
+        raise OSError(errno.EXDEV, "Invalid cross-device link")
+
+    monkeypatch.setattr(atomic, "_link_descriptor", cannot_link)
+    monkeypatch.setattr(atomic, "_UNNAMED_UNSUPPORTED", set())
+    points = asymmetric_shape(500, rng=1)
+    write_points(tmp_path / "first.ply", points)
+    np.testing.assert_array_equal(read_points(tmp_path / "first.ply"), points)
+    with atomic.atomic_write(tmp_path / "second.bin") as handle:
+        handle.write(b"data")
+        hidden = [name for name in entries(tmp_path) if name.startswith(".second.bin.")]
+        assert len(hidden) == 1
+    assert entries(tmp_path) == ["first.ply", "second.bin"]
+    with pytest.raises(KeyboardInterrupt), atomic.atomic_write(tmp_path / "third.bin") as handle:
+        handle.write(b"partial")
+        raise KeyboardInterrupt
+    assert entries(tmp_path) == ["first.ply", "second.bin"]
