@@ -343,3 +343,26 @@ def test_scan_datasets_give_scan_pairs(tmp_path):
     rows = read_rows(tmp_path / "rows.jsonl")
     assert len(rows) == 3 and {r["protocol"] for r in rows} == {"scan-pairs"}
     assert all("->" in r["cloud"] and r["points_source"] == 300 for r in rows)
+
+
+def test_slow_methods_run_on_their_trial_budget_only(tmp_path, monkeypatch):
+    """A slow method runs on the first ``slow_trials`` trials of each group; 0 lifts the budget.
+    (``icp`` stands in for Go-ICP here, so that the test itself is fast.)"""
+    from esmicp.bench import runner
+
+    monkeypatch.setattr(runner, "SLOW_METHODS", ("icp",))
+    common = dict(protocols=("copy", "shuffled"), datasets=("synthetic",), methods=("esm", "icp"), trials=3,
+                  points=(200,), max_iterations=5)
+    budget = read_rows_of(tmp_path / "budget", BenchConfig(**common, slow_trials=1))
+    counts = {m: sum(r["method"] == m for r in budget) for m in ("esm", "icp")}
+    assert counts == {"esm": 6, "icp": 2}
+    assert sorted(r["protocol"] for r in budget if r["method"] == "icp") == ["copy", "shuffled"]
+    everything = read_rows_of(tmp_path / "all", BenchConfig(**common, slow_trials=0))
+    assert sum(r["method"] == "icp" for r in everything) == 6
+    with pytest.raises(InvalidInputError, match="slow_trials"):
+        BenchConfig(**common, slow_trials=-1)
+
+
+def read_rows_of(out_dir, config):
+    run_bench(config, RunOptions(out_dir=out_dir, workers=1, progress=False))
+    return read_rows(out_dir / "rows.jsonl")

@@ -20,6 +20,7 @@ _CONFIG_FLAGS = {
     "points": "points", "seed": "seed", "max_iterations": "max_iterations", "init": "init",
     "init_angle": "init_perturbation_deg", "init_shift": "init_perturbation_fraction",
     "translation_ranges": "translation_ranges", "sigma_sweep": "sigma_sweep", "data": "data_dir",
+    "slow_trials": "slow_trials",
 }
 
 
@@ -28,6 +29,16 @@ def _names(text: str) -> tuple[str, ...]:
     if not names:
         raise argparse.ArgumentTypeError(f"expected a comma-separated list, got {text!r}")
     return names
+
+
+def _count_or_zero(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
+    return value
 
 
 def _numbers(kind):
@@ -76,6 +87,9 @@ def add_parser(commands) -> argparse.ArgumentParser:
     bench.add_argument("--trials", type=_count, help="trials per protocol, dataset and size (default 10; --paper 12)")
     bench.add_argument("--points", type=_numbers(int), help="cloud sizes, comma-separated (default 1024,2048)")
     bench.add_argument("--seed", type=int, help="base seed of every trial (default 0)")
+    bench.add_argument("--slow-trials", type=_count_or_zero, metavar="N",
+                       help="run the slow methods (go-icp: seconds per trial) on the first N trials of each "
+                       "randomised group only, and on every paper-table case (default 2; 0: every trial)")
     bench.add_argument("--max-iterations", type=_count, help="iteration budget of every local method (default 40)")
     bench.add_argument("--init", choices=("identity", "perturbed"),
                        help="start of every local method: identity (default) or perturbed (the truth moved by "

@@ -60,6 +60,11 @@ class BenchConfig:
         once with their default; every other method runs once.
     paper_tables : bool
         Also run the paper's printed transforms (protocol ``paper-table``).
+    slow_trials : int
+        Methods of :data:`esmicp.bench.methods.SLOW_METHODS` (seconds per trial: Go-ICP's
+        branch-and-bound) run only on the first ``slow_trials`` trials of each randomised
+        (protocol, dataset, points, range) group, and on every ``paper-table`` case; 0 means on
+        every trial. The tables give each cell's trial count, so a row run on fewer trials says so.
     data_dir : str
         The shared data folder (``modelnet40/``, ``bunny/``, ...).
     """
@@ -78,6 +83,7 @@ class BenchConfig:
     sigma_sweep: tuple[float, ...] = ()
     paper_tables: bool = False
     data_dir: str = ""
+    slow_trials: int = 2
 
     def __post_init__(self):
         _check_names("protocols", self.protocols, PROTOCOL_NAMES)
@@ -89,6 +95,8 @@ class BenchConfig:
             raise InvalidInputError(f"methods: a method is listed twice in {','.join(self.methods)}")
         _check_positive_int("trials", self.trials)
         _check_positive_int("max_iterations", self.max_iterations)
+        if isinstance(self.slow_trials, bool) or not isinstance(self.slow_trials, int) or self.slow_trials < 0:
+            raise InvalidInputError(f"slow_trials: expected a whole number >= 0, got {self.slow_trials!r}")
         if not self.points:
             raise InvalidInputError("points: give at least one cloud size")
         for count in self.points:

@@ -68,6 +68,11 @@ def method_kind(name: str) -> str:
     return "local" if name in _FALLBACK_LOCAL else "global"
 
 
+#: Methods that take seconds per trial (measured: Go-ICP 5-25 s at 300 data points), run on a
+#: budget of trials (:attr:`esmicp.bench.config.BenchConfig.slow_trials`).
+SLOW_METHODS = ("go-icp",)
+
+
 def is_learned(name: str) -> bool:
     return any(marker in name.lower() for marker in LEARNED_MARKERS)
 

@@ -21,7 +21,7 @@ from ..errors import InvalidInputError
 from . import results, tables
 from .config import PAPER_PROTOCOLS, SCAN_PROTOCOL, BenchConfig, RunOptions
 from .datasets import POINTS_INDEPENDENT, load_dataset
-from .methods import SIGMA_METHODS, check_methods
+from .methods import SIGMA_METHODS, SLOW_METHODS, check_methods
 from .trials import (
     PAPER_TABLE,
     TrialSpec,
@@ -74,6 +74,13 @@ def _runs(config: BenchConfig) -> list[tuple[str, float | None]]:
         else:
             runs.append((method, None))
     return runs
+
+
+def _runs_of(spec, runs, config: BenchConfig) -> list[tuple[str, float | None]]:
+    """The runs of one trial: every run, but slow methods only within their trial budget."""
+    if config.slow_trials == 0 or spec.case is not None or spec.index < config.slow_trials:
+        return runs
+    return [(method, sigma) for method, sigma in runs if method not in SLOW_METHODS]
 
 
 def plan(config: BenchConfig) -> list[_Planned]:
@@ -205,8 +212,9 @@ def run_bench(config: BenchConfig, options: RunOptions = RunOptions()) -> BenchO
     runs = _runs(config)
     todo, skipped = [], 0
     for item in planned:
-        remaining = [(m, s) for m, s in runs if (item.spec.trial_id, m, s) not in done]
-        skipped += len(runs) - len(remaining)
+        remaining = [(m, s) for m, s in _runs_of(item.spec, runs, config)
+                     if (item.spec.trial_id, m, s) not in done]
+        skipped += len(_runs_of(item.spec, runs, config)) - len(remaining)
         if remaining:
             todo.append((item, remaining))
     total_runs = sum(len(remaining) for _, remaining in todo)
