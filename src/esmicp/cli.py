@@ -17,6 +17,7 @@ from .errors import EsmicpError, EsmicpWarning, OutputExistsError
 from .init.global_search import STRATEGIES
 from .io import READ_EXTENSIONS, WRITE_EXTENSIONS
 from .methods import METHODS
+from .cli_args import positive_float, positive_int
 from .cli_bench import add_parser as add_bench_parser
 from .cli_viz import add_parser as add_viz_parser
 
@@ -36,24 +37,8 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return value
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text!r}")
-    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -78,11 +63,11 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("target", type=Path, help="point cloud to align to")
     reg.add_argument("--method", choices=list(METHODS), default="esm", help=f"default esm. {methods_help}")
     reg.add_argument(
-        "--sigma", type=_positive_float,
+        "--sigma", type=positive_float,
         help="Gaussian kernel width in the clouds' units (default: esm chooses it from the data "
         "each iteration; esm-paper uses the paper's 1.0)",
     )
-    reg.add_argument("--max-iterations", type=_positive_int, default=100, help="default 100")
+    reg.add_argument("--max-iterations", type=positive_int, default=100, help="default 100")
     reg.add_argument("--tolerance", type=float, default=1e-8, help="convergence tolerance (default 1e-8)")
     reg.add_argument(
         "--init", default="global", metavar="FILE|STRATEGY",
@@ -91,11 +76,11 @@ def build_parser() -> argparse.ArgumentParser:
         "holding a 4x4 T_target_source to refine from",
     )
     reg.add_argument(
-        "--inlier-distance", type=_positive_float,
+        "--inlier-distance", type=positive_float,
         help="distance (cloud units) that counts as an inlier for fitness (default 3 target point spacings)",
     )
     reg.add_argument(
-        "--sample-points", type=_positive_int, metavar="N",
+        "--sample-points", type=positive_int, metavar="N",
         help="for mesh files (.off .obj .stl, .ply with faces): sample N points on the surface "
         "instead of taking the vertices (seeded by --seed)",
     )
@@ -119,10 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
         "of its size), 1 otherwise.",
     )
     demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    demo.add_argument("--points", type=_positive_int, default=2000, help="points per cloud (default 2000)")
+    demo.add_argument("--points", type=positive_int, default=2000, help="points per cloud (default 2000)")
     demo.add_argument("--method", choices=list(METHODS), default="esm", help="default esm")
     demo.add_argument(
-        "--max-angle", type=_positive_float, default=180.0,
+        "--max-angle", type=positive_float, default=180.0,
         help="largest initial rotation, degrees (default 180: uniform over all rotations)",
     )
     demo.add_argument(

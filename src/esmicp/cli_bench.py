@@ -10,6 +10,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from .cli_args import nonnegative_int, positive_int
+
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
@@ -31,14 +33,6 @@ def _names(text: str) -> tuple[str, ...]:
     return names
 
 
-def _count_or_zero(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
-    return value
 
 
 def _numbers(kind):
@@ -52,14 +46,6 @@ def _numbers(kind):
     return parse
 
 
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text!r}")
-    return value
 
 
 def add_parser(commands) -> argparse.ArgumentParser:
@@ -84,13 +70,13 @@ def add_parser(commands) -> argparse.ArgumentParser:
                        "bunny-scans, lidar-pair, or folders of point-cloud / mesh files")
     bench.add_argument("--methods", type=_names, help="comma-separated method names, or 'all' (default), 'ours', "
                        "'geometric' (all but the learned baselines)")
-    bench.add_argument("--trials", type=_count, help="trials per protocol, dataset and size (default 10; --paper 12)")
+    bench.add_argument("--trials", type=positive_int, help="trials per protocol, dataset and size (default 10; --paper 12)")
     bench.add_argument("--points", type=_numbers(int), help="cloud sizes, comma-separated (default 1024,2048)")
     bench.add_argument("--seed", type=int, help="base seed of every trial (default 0)")
-    bench.add_argument("--slow-trials", type=_count_or_zero, metavar="N",
+    bench.add_argument("--slow-trials", type=nonnegative_int, metavar="N",
                        help="run the slow methods (go-icp: seconds per trial) on the first N trials of each "
                        "randomised group only, and on every paper-table case (default 2; 0: every trial)")
-    bench.add_argument("--max-iterations", type=_count, help="iteration budget of every local method (default 40)")
+    bench.add_argument("--max-iterations", type=positive_int, help="iteration budget of every local method (default 40)")
     bench.add_argument("--init", choices=("identity", "perturbed"),
                        help="start of every local method: identity (default) or perturbed (the truth moved by "
                        "--init-angle degrees and --init-shift diagonals)")
@@ -103,7 +89,7 @@ def add_parser(commands) -> argparse.ArgumentParser:
                        "e.g. 0.005,0.01,0.02,0.05,0.1,0.2")
     bench.add_argument("--data", type=str, help="the shared data folder (default $ESMICP_SHARED_DATA or ../shared/data)")
     bench.add_argument("--out", type=Path, default=Path("bench-results"), help="results folder (default bench-results)")
-    bench.add_argument("--workers", type=_count, help="worker processes (default: every local core; 1 = serial)")
+    bench.add_argument("--workers", type=positive_int, help="worker processes (default: every local core; 1 = serial)")
     bench.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                        help="run on this existing Dask scheduler (default: a local Dask cluster)")
     bench.add_argument("--resume", action="store_true",

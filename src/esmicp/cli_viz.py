@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .cli_args import nonnegative_int, positive_float, positive_int
 from .errors import InvalidInputError, OutputExistsError
 from .methods import METHODS
 
@@ -29,20 +30,11 @@ def _nonnegative_angle(text: str) -> float:
     return value
 
 
-def _nonnegative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
-    return value
 
 
 def add_parser(commands) -> None:
     """Register the ``view``, ``heatmap`` and ``animate`` subcommands on ``commands`` (the
     subparsers object of :func:`esmicp.cli.build_parser`)."""
-    from .cli import _positive_float, _positive_int
 
     def common(parser, *, points_default, points_help, output_help):
         parser.add_argument("clouds", nargs="*", type=Path, metavar="CLOUD",
@@ -52,9 +44,9 @@ def add_parser(commands) -> None:
         parser.add_argument("--init", default="identity", metavar="identity|FILE",
                             help="where the local iterations start: 'identity' (default) or a file with "
                             "a 4x4 T_target_source (for instance one written by 'esmicp register --transform-out')")
-        parser.add_argument("--sigma", type=_positive_float, help="fixed Gaussian kernel width (cloud units)")
-        parser.add_argument("--max-iterations", type=_positive_int, default=100, help="default 100")
-        parser.add_argument("--points", type=_positive_int, default=points_default, metavar="N",
+        parser.add_argument("--sigma", type=positive_float, help="fixed Gaussian kernel width (cloud units)")
+        parser.add_argument("--max-iterations", type=positive_int, default=100, help="default 100")
+        parser.add_argument("--points", type=positive_int, default=points_default, metavar="N",
                             help=points_help)
         parser.add_argument("--angle", type=_nonnegative_angle, default=30.0, metavar="DEG",
                             help="rotation of the copy, with no file or one file (default 30 degrees)")
@@ -74,9 +66,9 @@ def add_parser(commands) -> None:
     view.add_argument("--method", choices=list(METHODS), default="esm", help="default esm")
     view.add_argument("--compare", choices=list(METHODS), metavar="OTHER_METHOD",
                       help=f"a second method shown side by side ({', '.join(METHODS)})")
-    view.add_argument("--max-display-points", type=_positive_int, default=2000, metavar="N",
+    view.add_argument("--max-display-points", type=positive_int, default=2000, metavar="N",
                       help="points drawn per cloud (default 2000; the page says when it subsamples)")
-    view.add_argument("--show-iteration", type=_nonnegative_int, default=0, metavar="K",
+    view.add_argument("--show-iteration", type=nonnegative_int, default=0, metavar="K",
                       help="iteration the page opens at (default 0, the start; a large K: the last)")
     view.set_defaults(handler=_run_view)
 
@@ -91,7 +83,7 @@ def add_parser(commands) -> None:
            output_help="the image (.png, .svg or .pdf)")
     heat.add_argument("--methods", default="esm-paper,esm",
                       help=f"comma-separated methods, one row each (default esm-paper,esm; from {', '.join(METHODS)})")
-    heat.add_argument("--columns", type=_positive_int, default=6, help="iterations shown per method (default 6)")
+    heat.add_argument("--columns", type=positive_int, default=6, help="iterations shown per method (default 6)")
     heat.set_defaults(handler=_run_heatmap)
 
     anim = commands.add_parser(
@@ -102,8 +94,8 @@ def add_parser(commands) -> None:
     common(anim, points_default=None, points_help="downsample each cloud to N well-spread points first "
            "(default: keep all)", output_help="the animation (.gif, or .mp4 where ffmpeg exists)")
     anim.add_argument("--method", choices=list(METHODS), default="esm", help="default esm")
-    anim.add_argument("--fps", type=_positive_float, default=4.0, help="frames per second (default 4)")
-    anim.add_argument("--max-display-points", type=_positive_int, default=1500, metavar="N",
+    anim.add_argument("--fps", type=positive_float, default=4.0, help="frames per second (default 4)")
+    anim.add_argument("--max-display-points", type=positive_int, default=1500, metavar="N",
                       help="points drawn per cloud (default 1500)")
     anim.set_defaults(handler=_run_animate)
 

@@ -1,0 +1,39 @@
+"""Argument types shared by the ``esmicp`` subcommands: each turns a flag's text into a checked
+value, or raises :class:`argparse.ArgumentTypeError` with a one-line reason."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+
+def whole_number(minimum: int):
+    """A parser of whole numbers >= ``minimum``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {text!r}")
+        return value
+
+    return parse
+
+
+#: Whole numbers >= 1 (counts, iterations, points).
+positive_int = whole_number(1)
+#: Whole numbers >= 0.
+nonnegative_int = whole_number(0)
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
