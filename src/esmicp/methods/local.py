@@ -4,6 +4,12 @@ Each iteration: nearest neighbours of the source as currently placed, one increm
 method's :class:`~esmicp.methods.base.StepEstimator`, composed on the left
 (``T = T_delta @ T``). It stops when the increment becomes negligible, or when the RMS
 correspondence distance stops changing, both relative to ``tolerance``.
+
+Speed: nearest neighbours come from :meth:`~esmicp.core.correspondence.NearestNeighbors.query_near`
+(exact, a voxel hash warm-started with the previous iteration's neighbours). With
+``coarse_points``, an estimator that has a coarse phase (``esm`` with the automatic sigma) runs
+that phase on an evenly strided subset of the source, and the full source from its fine phase on:
+the coarse phase only brings the clouds close, the full-resolution iterations decide the pose.
 """
 
 from __future__ import annotations
@@ -64,6 +70,7 @@ def refine(
     scale: float,
     callback: Callback | None = None,
     record_history: bool = False,
+    coarse_points: int | None = None,
 ) -> LocalOutcome:
     """Iterate ``estimator`` from ``init`` (4x4 ``T_target_source``).
 
@@ -71,7 +78,24 @@ def refine(
     the convergence test unit-free: the loop stops once an increment rotates by less than
     ``tolerance`` radians and translates by less than ``tolerance * scale``, or once the RMS
     correspondence distance changes by less than ``tolerance`` relative to itself.
+
+    ``coarse_points`` (optional): while ``estimator.accelerated`` is False (the coarse phase of
+    ``esm``'s automatic sigma), iterate on at most this many evenly strided source points; the
+    full source is used from the fine phase on, and the run never ends during the coarse phase
+    (its convergence moves it to the full source). Ignored when a ``callback`` is given, so that
+    callbacks always see the whole source.
     """
+    full_source = source
+    coarse = (
+        coarse_points is not None
+        and callback is None
+        and len(source) > coarse_points
+        and getattr(estimator, "accelerated", True) is False
+    )
+    if coarse:
+        source = full_source[np.linspace(0, len(full_source) - 1, coarse_points).astype(np.intp)]
+    query = getattr(target, "query_near", None)
+    indices = None
     transformation = init.copy()
     history: list[IterationRecord] | None = [] if record_history else None
     previous_rmse: float | None = None
@@ -80,15 +104,17 @@ def refine(
     fallback: np.ndarray | None = None  # the plain step, while an accelerated proposal is on trial
     objective_before = 0.0
     for iteration in range(1, max_iterations + 1):
+        if coarse and estimator.accelerated:
+            coarse, source, indices, previous_rmse = False, full_source, None, None
         moved = apply(transformation, source)
-        distances, indices = target.query(moved)
+        distances, indices = target.query(moved) if query is None else query(moved, warm=indices)
         if fallback is not None:
             if estimator.objective(distances) < objective_before:
                 # The accelerated proposal fits worse than the pose it came from: take the plain step.
                 transformation, fallback = fallback, None
                 accelerator.reset()
                 moved = apply(transformation, source)
-                distances, indices = target.query(moved)
+                distances, indices = target.query(moved) if query is None else query(moved, warm=indices)
             fallback = None
         step = estimator.step(moved, target.points, distances, indices)
         if not (np.isfinite(step.rotation).all() and np.isfinite(step.translation).all()):
@@ -123,7 +149,10 @@ def refine(
             rotation_angle(increment[:3, :3]) < tolerance and np.linalg.norm(increment[:3, 3]) < tolerance * scale
         )
         settled = previous_rmse is not None and abs(previous_rmse - rmse) <= tolerance * previous_rmse
-        if small_step or settled:
+        if coarse and (small_step or settled):
+            # Converged on the subset: continue on the full source, at the fine sigma.
+            estimator.fine = True
+        elif small_step or settled:
             reason = "increment below tolerance" if small_step else "RMS distance stopped changing"
             return LocalOutcome(
                 transformation, True, iteration, sigma, f"converged after {iteration} iterations ({reason})",
