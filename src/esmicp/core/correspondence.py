@@ -19,6 +19,10 @@ from . import voxel_hash
 #: than it saves (measured here: 500 points 0.21 ms on one thread, 0.39 ms on all; parity at ~2k).
 PARALLEL_QUERY_MIN = 4096
 
+#: Threads that ``workers=-1`` stands for (-1: every core). :func:`esmicp.register_many`'s worker
+#: processes set it to 1, the pool itself using the cores.
+DEFAULT_WORKERS = -1
+
 #: Cell edge of the voxel hash of :meth:`NearestNeighbors.query_near`, in target point spacings.
 #: Queries whose nearest target point is within one cell are answered by the hash. Measured on the
 #: bunny resampled to 100k points (CPU time of 100k queries, 0-10 degrees from the solution): 2, 3
@@ -57,9 +61,12 @@ class NearestNeighbors:
 
         ``distances`` are Euclidean, in the clouds' units; ``indices`` index ``self.points``.
         """
-        workers = self.workers if len(points) >= PARALLEL_QUERY_MIN else 1
+        workers = self._workers() if len(points) >= PARALLEL_QUERY_MIN else 1
         distances, indices = self._tree.query(points, k=1, workers=workers)
         return distances, indices
+
+    def _workers(self) -> int:
+        return DEFAULT_WORKERS if self.workers == -1 else self.workers
 
     def query_near(self, points: np.ndarray, warm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Exactly what :meth:`query` returns (up to ties), faster for points near the target.
@@ -97,7 +104,7 @@ class NearestNeighbors:
         """
         count = len(self.points)
         sample = self.points[np.linspace(0, count - 1, min(count, max_samples)).astype(np.intp)]
-        distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=self.workers)
+        distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=self._workers())
         distances = np.where(distances > 0, distances, np.inf).min(axis=1)
         positive = distances[np.isfinite(distances)]
         value = float(np.median(positive)) if len(positive) else 0.0
