@@ -27,6 +27,11 @@ from .acceleration import AndersonAccelerator
 from .base import StepEstimator
 
 
+#: From this many source points on (and without a callback), :func:`refine` visits the source in
+#: the target's spatial order (:meth:`~esmicp.core.correspondence.NearestNeighbors.spatial_order`).
+SPATIAL_ORDER_MIN = 2048
+
+
 @dataclass(frozen=True)
 class IterationState:
     """What a callback sees after each iteration (arrays are the solver's own: do not modify).
@@ -92,8 +97,18 @@ def refine(
         and len(source) > coarse_points
         and getattr(estimator, "accelerated", True) is False
     )
+    if (
+        callback is None
+        and len(source) >= SPATIAL_ORDER_MIN
+        and hasattr(target, "spatial_order")
+        and getattr(estimator, "order_invariant", True)
+    ):
+        # Visit the source points in spatial order (the result does not depend on the order).
+        full_source = source[target.spatial_order(apply(init, source))]
     if coarse:
         source = full_source[np.linspace(0, len(full_source) - 1, coarse_points).astype(np.intp)]
+    else:
+        source = full_source
     query = getattr(target, "query_near", None)
     indices = None
     transformation = init.copy()
