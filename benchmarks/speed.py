@@ -60,7 +60,7 @@ from esmicp.methods.local import refine
 SHARED = Path(os.environ.get("ESMICP_SHARED_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"))
 OFFSET_DEG = 10.0
 CORRESPONDENCE_FRACTION = 0.1  # of the target's diagonal, for Open3D and small_gicp
-ITERATIONS_K, ITERATIONS_N = 5, 20  # marginal cost: (time(k + n) - time(k)) / n
+ITERATIONS_K, ITERATIONS_N = 5, 20  # marginal cost: (time(k + n) - time(k)) / n; --skip sets k
 MAX_ITERATIONS = 100
 
 
@@ -211,7 +211,7 @@ class SmallGicp:
 
 
 # ------------------------------------------------------------------------------------ measuring
-def measure(cloud: str, size: int, repeats: int, with_global: bool) -> dict:
+def measure(cloud: str, size: int, repeats: int, with_global: bool, with_local: bool = True) -> dict:
     source, target, start, truth = CLOUDS[cloud](size)
     methods = [Esm(source, target, start), Open3dIcp(source, target, start), SmallGicp(source, target, start)]
     samples: dict[str, dict[str, list]] = {m.name: {} for m in methods}
@@ -229,7 +229,10 @@ def measure(cloud: str, size: int, repeats: int, with_global: bool) -> dict:
             add(method, "build_ms", 1e3 * build_s)
             short_s, done_short = _timed(lambda: method.iterations(ITERATIONS_K))
             long_s, done_long = _timed(lambda: method.iterations(ITERATIONS_K + ITERATIONS_N))
-            add(method, "iteration_ms", 1e3 * (long_s - short_s) / max(done_long - done_short, 1))
+            if done_long - done_short >= ITERATIONS_N // 2:  # small_gicp may still stop early
+                add(method, "iteration_ms", 1e3 * (long_s - short_s) / (done_long - done_short))
+            if not with_local:
+                continue
             local_s, (transformation, iterations) = _timed(method.local)
             add(method, "local_s", local_s)
             add(method, "local_error_deg", rotation_error_deg(transformation, truth))
@@ -240,6 +243,35 @@ def measure(cloud: str, size: int, repeats: int, with_global: bool) -> dict:
                 add(method, "global_s", global_s)
                 add(method, "global_error_deg", rotation_error_deg(transformation, truth))
     return {name: {key: float(np.median(values)) for key, values in keys.items()} for name, keys in samples.items()}
+
+
+def paper_speed(size: int, repeats: int) -> tuple[float, float]:
+    """Marginal ms per iteration of ``esm`` and ``esm-paper`` on the paper's protocol: the bunny
+    sampled at ``size`` points, the source a copy in the same order moved by the 10-degree offset
+    (interleaved, medians)."""
+    from esmicp.methods import EsmPaperEstimator
+
+    target, _, _, _ = _bunny(size)
+    axis = np.array([0.0, 0.6, 0.8])
+    rotation = Rotation.from_rotvec(np.radians(OFFSET_DEG) * axis).as_matrix()
+    source = (target - target.mean(axis=0)) @ rotation + target.mean(axis=0)
+    index = NearestNeighbors(target)
+    spacing = index.spacing()
+    diagonal = float(np.linalg.norm(np.ptp(target, axis=0)))
+    makers = {"esm": lambda: EsmEstimator(SigmaSchedule.auto(spacing, diagonal)),
+              "esm-paper": lambda: EsmPaperEstimator(0.1 * diagonal)}
+    costs: dict[str, list[float]] = {name: [] for name in makers}
+
+    def run(name, count):
+        return refine(source, index, makers[name](), init=np.eye(4), max_iterations=count, tolerance=0.0, scale=diagonal)
+
+    run("esm", 2)
+    for _ in range(repeats):
+        for name in makers:
+            short_s, _ = _timed(lambda: run(name, ITERATIONS_K))
+            long_s, _ = _timed(lambda: run(name, ITERATIONS_K + ITERATIONS_N))
+            costs[name].append(1e3 * (long_s - short_s) / ITERATIONS_N)
+    return float(np.median(costs["esm"])), float(np.median(costs["esm-paper"]))
 
 
 def memory_child(cloud: str, size: int, mode: str) -> None:
@@ -265,6 +297,11 @@ def _fmt(value, digits=3):
     return "n/a" if value is None else f"{value:.{digits}g}"
 
 
+def _ratio(row, method, peer, key="iteration_ms"):
+    a, b = row[method].get(key), row[peer].get(key)
+    return "n/a" if a is None or not b or b <= 0 else f"{a / b:.2f}"
+
+
 def report(results: dict) -> str:
     lines = [
         "| cloud | N | esm ms/iter | Open3D ms/iter | GICP ms/iter | esm / Open3D | esm / GICP "
@@ -275,13 +312,13 @@ def report(results: dict) -> str:
     for (cloud, size), row in results.items():
         esm, o3d, gicp = row["esm"], row["open3d-icp"], row["small_gicp-gicp"]
         lines.append(
-            f"| {cloud} | {size:,} | {_fmt(esm['iteration_ms'])} | {_fmt(o3d['iteration_ms'])} "
-            f"| {_fmt(gicp['iteration_ms'])} | {esm['iteration_ms'] / o3d['iteration_ms']:.2f} "
-            f"| {esm['iteration_ms'] / gicp['iteration_ms']:.2f} "
-            f"| {_fmt(esm['build_ms'])} / {_fmt(o3d['build_ms'])} / {_fmt(gicp['build_ms'])} "
-            f"| {_fmt(esm['local_s'])} ({_fmt(esm['local_error_deg'], 2)}, {esm.get('local_iterations', 0):.0f}) "
-            f"| {_fmt(o3d['local_s'])} ({_fmt(o3d['local_error_deg'], 2)}) "
-            f"| {_fmt(gicp['local_s'])} ({_fmt(gicp['local_error_deg'], 2)}) "
+            f"| {cloud} | {size:,} | {_fmt(esm.get('iteration_ms'))} | {_fmt(o3d.get('iteration_ms'))} "
+            f"| {_fmt(gicp.get('iteration_ms'))} | {_ratio(row, 'esm', 'open3d-icp')} "
+            f"| {_ratio(row, 'esm', 'small_gicp-gicp')} "
+            f"| {_fmt(esm.get('build_ms'))} / {_fmt(o3d.get('build_ms'))} / {_fmt(gicp.get('build_ms'))} "
+            f"| {_fmt(esm.get('local_s'))} ({_fmt(esm.get('local_error_deg'), 2)}, {esm.get('local_iterations', 0):.0f}) "
+            f"| {_fmt(o3d.get('local_s'))} ({_fmt(o3d.get('local_error_deg'), 2)}) "
+            f"| {_fmt(gicp.get('local_s'))} ({_fmt(gicp.get('local_error_deg'), 2)}) "
             f"| {_fmt(esm.get('global_s'))} ({_fmt(esm.get('global_error_deg'), 2)}) |"
         )
     return "\n".join(lines)
@@ -340,14 +377,46 @@ def main(argv=None) -> None:
     parser.add_argument("--sizes", nargs="+", type=int, default=[1_000, 10_000, 100_000, 1_000_000])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-global", action="store_true", help="skip the global registrations")
+    parser.add_argument("--skip", type=int, default=ITERATIONS_K,
+                        help="k: iterations run before the n = 20 timed ones (default 5; 30 times them near convergence)")
+    parser.add_argument("--iterations-only", action="store_true",
+                        help="time only the per-iteration costs and builds (no full registrations)")
     parser.add_argument("--memory", action="store_true", help="peak RSS at the largest size (child processes)")
     parser.add_argument("--plot", type=Path, help="write a log-log PNG of time against N")
     parser.add_argument("--json", type=Path, help="write the medians as JSON")
+    parser.add_argument("--paper", action="store_true",
+                        help="only time esm against esm-paper per iteration on index-aligned bunny copies")
+    parser.add_argument("--from-json", nargs="+", type=Path, metavar="JSON",
+                        help="print the tables (and --plot) from earlier --json outputs instead of measuring")
     parser.add_argument("--memory-child", nargs=3, metavar=("CLOUD", "SIZE", "MODE"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    global ITERATIONS_K
+    ITERATIONS_K = args.skip
     if args.memory_child:
         cloud, size, mode = args.memory_child
         memory_child(cloud, int(size), mode)
+        return
+
+    if args.from_json:
+        results = {}
+        for path in args.from_json:
+            for key, row in json.loads(path.read_text()).items():
+                cloud, size = key.rsplit(":", 1)
+                results[(cloud, int(size))] = row
+        results = dict(sorted(results.items()))
+        print(report(results))
+        print()
+        print(growth(results))
+        if args.plot:
+            plot(results, args.plot)
+        return
+
+    if args.paper:
+        print("| N | esm ms/iter | esm-paper ms/iter | esm-paper / esm |")
+        print("|---|---|---|---|")
+        for size in args.sizes:
+            esm, paper = paper_speed(size, args.repeats)
+            print(f"| {size:,} | {esm:.3g} | {paper:.3g} | {paper / esm:.2f} |", flush=True)
         return
 
     print(f"# esmicp {esmicp.__version__}, Python {platform.python_version()}, {os.cpu_count()} cores, "
@@ -355,7 +424,8 @@ def main(argv=None) -> None:
     results = {}
     for cloud in args.clouds:
         for size in args.sizes:
-            results[(cloud, size)] = measure(cloud, size, args.repeats, not args.no_global)
+            results[(cloud, size)] = measure(cloud, size, args.repeats, not (args.no_global or args.iterations_only),
+                                             not args.iterations_only)
             print(f"done {cloud} {size} (load {os.getloadavg()[0]:.1f})", file=sys.stderr, flush=True)
     print(report(results))
     print()

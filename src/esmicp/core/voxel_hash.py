@@ -19,12 +19,16 @@ The kernels are compiled by numba on first use (cached on disk) and run on all c
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 try:  # numba is a dependency, but the library still works (slower) without it.
     import numba
 except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
+
+_threads_started = False
 
 #: Fibonacci hashing multiplier (2^64 / golden ratio) for the cell keys.
 _HASH_MULTIPLIER = np.uint64(0x9E3779B97F4A7C15)
@@ -202,9 +206,19 @@ class VoxelHash:
             warm = np.full(len(points), -1, dtype=np.int64)
         distances = np.empty(len(points))
         indices = np.empty(len(points), dtype=np.int64)
-        _query(
+        arguments = (
             points, rotation, translation, np.asarray(warm, dtype=np.int64), self.rank, self.sorted_points,
             self.sorted_index, self.cell_starts, self.table_keys, self.table_cells, self.low,
             self.cell, self.dims, distances, indices,
         )
+        global _threads_started
+        if _threads_started:
+            _query(*arguments)
+        else:
+            # numba picks its threading layer on the first parallel call and warns when it finds
+            # an old TBB (which some wheels bring) before settling on OpenMP: not the user's concern.
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=".*TBB.*")
+                _query(*arguments)
+            _threads_started = True
         return distances, indices
