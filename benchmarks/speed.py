@@ -372,6 +372,7 @@ def plot(results: dict, path: Path) -> None:
 
 
 def main(argv=None) -> None:
+    global ITERATIONS_K
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--clouds", nargs="+", default=list(CLOUDS), choices=list(CLOUDS))
     parser.add_argument("--sizes", nargs="+", type=int, default=[1_000, 10_000, 100_000, 1_000_000])
@@ -390,7 +391,6 @@ def main(argv=None) -> None:
                         help="print the tables (and --plot) from earlier --json outputs instead of measuring")
     parser.add_argument("--memory-child", nargs=3, metavar=("CLOUD", "SIZE", "MODE"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    global ITERATIONS_K
     ITERATIONS_K = args.skip
     if args.memory_child:
         cloud, size, mode = args.memory_child
