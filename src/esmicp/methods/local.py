@@ -97,19 +97,31 @@ def refine(
         and len(source) > coarse_points
         and getattr(estimator, "accelerated", True) is False
     )
-    if (
-        callback is None
-        and len(source) >= SPATIAL_ORDER_MIN
-        and hasattr(target, "spatial_order")
-        and getattr(estimator, "order_invariant", True)
-    ):
-        # Visit the source points in spatial order (the result does not depend on the order).
-        full_source = source[target.spatial_order(apply(init, source))]
+    query_order = None
+    if len(source) >= SPATIAL_ORDER_MIN and hasattr(target, "spatial_order"):
+        order = target.spatial_order(apply(init, source))
+        if callback is None and getattr(estimator, "order_invariant", True):
+            # Visit the source points in spatial order (the result does not depend on the order).
+            full_source = source[order]
+        else:
+            # The source keeps its order; only the queries are made in spatial order.
+            query_order = order
     if coarse:
         source = full_source[np.linspace(0, len(full_source) - 1, coarse_points).astype(np.intp)]
     else:
         source = full_source
-    query = getattr(target, "query_near", None)
+    near = getattr(target, "query_near", None)
+
+    def query(points, warm):
+        if near is None:
+            return target.query(points)
+        if query_order is None:
+            return near(points, warm=warm)
+        found_distances, found_indices = near(points[query_order], warm=None if warm is None else warm[query_order])
+        distances, indices = np.empty_like(found_distances), np.empty_like(found_indices)
+        distances[query_order], indices[query_order] = found_distances, found_indices
+        return distances, indices
+
     indices = None
     transformation = init.copy()
     history: list[IterationRecord] | None = [] if record_history else None
@@ -122,14 +134,14 @@ def refine(
         if coarse and estimator.accelerated:
             coarse, source, indices, previous_rmse = False, full_source, None, None
         moved = apply(transformation, source)
-        distances, indices = target.query(moved) if query is None else query(moved, warm=indices)
+        distances, indices = query(moved, indices)
         if fallback is not None:
             if estimator.objective(distances) < objective_before:
                 # The accelerated proposal fits worse than the pose it came from: take the plain step.
                 transformation, fallback = fallback, None
                 accelerator.reset()
                 moved = apply(transformation, source)
-                distances, indices = target.query(moved) if query is None else query(moved, warm=indices)
+                distances, indices = query(moved, indices)
             fallback = None
         step = estimator.step(moved, target.points, distances, indices)
         if not (np.isfinite(step.rotation).all() and np.isfinite(step.translation).all()):
