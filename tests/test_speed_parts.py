@@ -164,3 +164,19 @@ def test_esm_paper_keeps_the_source_order_on_large_copies():
     source = (target - np.array([1.0, 2.0, 3.0])) @ rotation  # T_true = [R | t] maps it onto target
     result = esmicp.register(source, target, method="esm-paper", init="identity", max_iterations=100)
     assert np.degrees(rotation_angle(result.transformation[:3, :3].T @ rotation)) < 1e-6
+
+
+def test_callbacks_see_the_source_in_its_own_order_on_large_clouds():
+    """With a callback the source keeps its order (only the queries are permuted): each state's
+    indices are the KD-tree's nearest neighbours of its ``moved_source``, row by row."""
+    target = bunny()
+    source = target[::3] @ Rotation.from_rotvec([0.0, 0.1, 0.0]).as_matrix().T
+    index = NearestNeighbors(target)
+    states = []
+    result = esmicp.register(source, target, init="identity", max_iterations=3, callback=states.append)
+    assert result.num_iterations == 3 and len(states) == 3
+    placed_with = [np.eye(4)] + [state.transformation for state in states[:-1]]
+    for state, transformation in zip(states, placed_with):
+        np.testing.assert_allclose(state.moved_source, apply(transformation, source))
+        distances, _ = index.query(state.moved_source)
+        np.testing.assert_array_equal(state.distances, distances)

@@ -27,8 +27,10 @@ from .acceleration import AndersonAccelerator
 from .base import StepEstimator
 
 
-#: From this many source points on (and without a callback), :func:`refine` visits the source in
-#: the target's spatial order (:meth:`~esmicp.core.correspondence.NearestNeighbors.spatial_order`).
+#: From this many source points on, :func:`refine` queries the source in the target's spatial
+#: order (:meth:`~esmicp.core.correspondence.NearestNeighbors.spatial_order`): it visits the
+#: source in that order, or, for a callback or an order-dependent method (``esm-paper``), keeps
+#: the source's order and only permutes the queries.
 SPATIAL_ORDER_MIN = 2048
 
 
