@@ -426,7 +426,8 @@ def main(argv=None) -> None:
         for size in args.sizes:
             results[(cloud, size)] = measure(cloud, size, args.repeats, not (args.no_global or args.iterations_only),
                                              not args.iterations_only)
-            print(f"done {cloud} {size} (load {os.getloadavg()[0]:.1f})", file=sys.stderr, flush=True)
+            print(f"done {cloud} {size} (load {os.getloadavg()[0]:.1f}): {json.dumps(results[(cloud, size)])}",
+                  file=sys.stderr, flush=True)
     print(report(results))
     print()
     print(growth(results))
