@@ -6,6 +6,7 @@ the target frame (``target ~= source @ R.T + t``).
 
 from ._version import __version__
 from .api import register
+from .batch import RegistrationFailure, register_many
 from .errors import (
     EsmicpError,
     EsmicpWarning,
@@ -38,11 +39,13 @@ __all__ = [
     "NonFinitePointsWarning",
     "OutputExistsError",
     "PointCloudFileError",
+    "RegistrationFailure",
     "RegistrationResult",
     "__version__",
     "read_points",
     "read_transform",
     "register",
+    "register_many",
     "write_points",
     "write_transform",
 ]

@@ -13,6 +13,7 @@ from .core.correspondence import NearestNeighbors
 from .core.procrustes import apply
 from .errors import IndexAlignmentWarning, InvalidInputError
 from .methods import METHODS, EsmEstimator, EsmPaperEstimator, IcpEstimator, SigmaSchedule
+from .methods.esm import COARSE_POINTS
 from .methods.esm_paper import PAPER_SIGMA
 from .init.global_search import STRATEGIES, global_estimate
 from .methods.local import Callback
@@ -155,11 +156,12 @@ def register(
         scale=diagonal,
         callback=callback,
         record_history=record_history,
+        coarse_points=COARSE_POINTS if method == "esm" else None,
     )
 
     if inlier_distance is None:
         inlier_distance = INLIER_DISTANCE_SPACINGS * spacing if spacing > 0 else 1e-6 * diagonal
-    distances, indices = target_index.query(apply(outcome.transformation, source_points))
+    distances, indices = target_index.query_near(apply(outcome.transformation, source_points))
     inliers = distances <= inlier_distance
     fitness = float(inliers.mean())
     inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0

@@ -1,7 +1,10 @@
 """Nearest-neighbour correspondences against a target cloud.
 
 A :class:`NearestNeighbors` index is built once per target and queried every iteration (and, later,
-by every hypothesis of a global search).
+by every hypothesis of a global search). :meth:`NearestNeighbors.query` answers any query with the
+KD-tree; :meth:`NearestNeighbors.query_near` gives the same exact answers faster when most query
+points lie near the target (local registration), through a voxel hash
+(:mod:`esmicp.core.voxel_hash`) built on first use, the KD-tree answering only the rest.
 """
 
 from __future__ import annotations
@@ -9,10 +12,25 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from . import voxel_hash
+
 
 #: Queries of fewer points than this run on one thread: below it, starting threads costs more
 #: than it saves (measured here: 500 points 0.21 ms on one thread, 0.39 ms on all; parity at ~2k).
 PARALLEL_QUERY_MIN = 4096
+
+#: Threads that ``workers=-1`` stands for (-1: every core). :func:`esmicp.register_many`'s worker
+#: processes set it to 1, the pool itself using the cores.
+DEFAULT_WORKERS = -1
+
+#: Cell edge of the voxel hash of :meth:`NearestNeighbors.query_near`, in target point spacings.
+#: Queries whose nearest target point is within one cell are answered by the hash. Measured on the
+#: bunny resampled to 100k points (CPU time of 100k queries, 0-10 degrees from the solution): 2, 3
+#: and 5 spacings cost 80, 67 and 38 ms with warm starts, the KD-tree 127-255 ms.
+NEAR_CELL_SPACINGS = 5.0
+
+#: Below this many query points :meth:`NearestNeighbors.query_near` uses the KD-tree alone.
+NEAR_QUERY_MIN = 2048
 
 
 class NearestNeighbors:
@@ -32,6 +50,8 @@ class NearestNeighbors:
         # A sliding-midpoint tree without node compaction builds about twice as fast as scipy's
         # default for point clouds and queries as fast (measured on the bunny and the LiDAR pair).
         self._tree = cKDTree(target, balanced_tree=False, compact_nodes=False)
+        self._spacing: float | None = None
+        self._near: voxel_hash.VoxelHash | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -41,9 +61,52 @@ class NearestNeighbors:
 
         ``distances`` are Euclidean, in the clouds' units; ``indices`` index ``self.points``.
         """
-        workers = self.workers if len(points) >= PARALLEL_QUERY_MIN else 1
+        workers = self._workers() if len(points) >= PARALLEL_QUERY_MIN else 1
         distances, indices = self._tree.query(points, k=1, workers=workers)
         return distances, indices
+
+    def _workers(self) -> int:
+        return DEFAULT_WORKERS if self.workers == -1 else self.workers
+
+    def query_near(self, points: np.ndarray, warm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Exactly what :meth:`query` returns (up to ties), faster for points near the target.
+
+        ``warm`` (optional, (N,) target indices, e.g. last iteration's ``indices``) seeds each
+        search with that candidate's distance; any valid index is correct, only the speed changes.
+        Points whose nearest target point is farther than the voxel hash's cell (or every point,
+        without numba or for fewer than :data:`NEAR_QUERY_MIN` points) go to the KD-tree.
+        """
+        near = self._near_index() if len(points) >= NEAR_QUERY_MIN else None
+        if near is None:
+            return self.query(points)
+        distances, indices = near.query(points, warm=warm)
+        misses = np.flatnonzero(indices < 0)
+        if len(misses):
+            distances[misses], indices[misses] = self.query(points[misses])
+        return distances, indices
+
+    def spatial_order(self, points: np.ndarray) -> np.ndarray:
+        """A permutation of ``points`` (target frame) that sorts them by voxel-hash cell.
+
+        Queries in this order touch the target's memory coherently: measured on the bunny at
+        100k (1M) points, :meth:`query_near` then costs 37 (330) instead of 70 (800) ms of CPU.
+        """
+        near = self._near_index()
+        cell = near.cell if near is not None else max(NEAR_CELL_SPACINGS * self.spacing(), 1e-12)
+        low = self.points.min(axis=0)
+        ijk = np.floor((points - low) / cell).astype(np.int64)
+        ijk -= ijk.min(axis=0)
+        dims = ijk.max(axis=0) + 1
+        return np.argsort(ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2]), kind="stable")
+
+    def _near_index(self) -> "voxel_hash.VoxelHash | None":
+        if self._near is None and voxel_hash.available():
+            spacing = self.spacing() if self._spacing is None else self._spacing
+            diagonal = float(np.linalg.norm(np.ptp(self.points, axis=0)))
+            cell = max(NEAR_CELL_SPACINGS * spacing, 1e-6 * diagonal)
+            if cell > 0:
+                self._near = voxel_hash.VoxelHash(self.points, cell)
+        return self._near
 
     def spacing(self, max_samples: int = 5000, neighbours: int = 8) -> float:
         """Median distance from a target point to its nearest *distinct* target point (cloud units).
@@ -55,7 +118,10 @@ class NearestNeighbors:
         """
         count = len(self.points)
         sample = self.points[np.linspace(0, count - 1, min(count, max_samples)).astype(np.intp)]
-        distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=self.workers)
+        distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=self._workers())
         distances = np.where(distances > 0, distances, np.inf).min(axis=1)
         positive = distances[np.isfinite(distances)]
-        return float(np.median(positive)) if len(positive) else 0.0
+        value = float(np.median(positive)) if len(positive) else 0.0
+        if max_samples == 5000 and neighbours == 8:
+            self._spacing = value
+        return value

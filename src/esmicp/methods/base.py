@@ -27,6 +27,8 @@ class StepEstimator(Protocol):
     """A local registration method, iterated by :func:`esmicp.methods.local.refine`."""
 
     name: str
+    # Optional: ``order_invariant = False`` when the increment depends on the order of the source
+    # points (``esm-paper``); the loop may otherwise visit them in any order.
 
     def step(
         self, moved_source: np.ndarray, target: np.ndarray, distances: np.ndarray, indices: np.ndarray

@@ -49,6 +49,10 @@ SIGMA_MEDIAN_FACTOR = 3.0
 #: schedule enters its fine phase (sigma at the floor).
 FINE_PHASE_STEP = 1e-3
 
+#: Source points of the coarse phase (see ``coarse_points`` of :func:`esmicp.methods.local.refine`):
+#: larger sources run their coarse phase on this many evenly strided points, the fine phase on all.
+COARSE_POINTS = 20_000
+
 
 @dataclass(frozen=True)
 class SigmaSchedule:

@@ -76,16 +76,28 @@ def similarity_matrix(indices: np.ndarray, weights: np.ndarray, size: int) -> sc
 def paper_cross_covariance(
     source: np.ndarray, matched_target: np.ndarray, indices: np.ndarray, weights: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(H, s_bar, t_bar)`` of the paper: ``H = Src_c M^T TgtMatched_c^T`` in O(N).
+    """``(H, s_bar, t_bar)`` of the paper: ``H = Src_c M^T TgtMatched_c^T`` in O(N), without a sort.
 
-    An entry ``M[r, c] = v`` adds ``v (s_c - s_bar)(tm_r - t_bar)^T`` to ``H``.
+    An entry ``M[r, c] = v`` adds ``v (s_c - s_bar)(tm_r - t_bar)^T`` to ``H``. The entries of
+    :func:`similarity_entries` are found without sorting: ``M[c(i), i]`` and ``M[j, c(j)]`` fall on
+    the same place only when ``j = c(i)`` and ``c(j) = i`` (a mutual pair, ``i = j`` included),
+    and the reference's last write there is that of ``max(i, j)``. So every first entry
+    ``M[c(i), i]`` holds ``w_max(i, c(i))`` for a mutual pair and ``w_i`` otherwise, and the second
+    entry ``M[i, c(i)]`` of a mutual pair is the same place, counted once.
     """
+    count = len(source)
     source_centroid = source.mean(axis=0)
     target_centroid = matched_target.mean(axis=0)
-    rows, cols, values = similarity_entries(indices, weights, len(source))
-    cross_covariance = ((source[cols] - source_centroid) * values[:, None]).T @ (
-        matched_target[rows] - target_centroid
-    )
+    centred_source = source - source_centroid
+    centred_matched = matched_target - target_centroid
+    matched = np.asarray(indices, dtype=np.intp)
+    valid = np.flatnonzero(matched < count)  # entries with an index >= N have no column
+    partner = matched[valid]
+    mutual = matched[partner] == valid
+    first_values = np.where(mutual, weights[np.maximum(valid, partner)], weights[valid])
+    cross_covariance = (centred_source[valid] * first_values[:, None]).T @ centred_matched[partner]
+    single = valid[~mutual]
+    cross_covariance += (centred_source[matched[single]] * weights[single][:, None]).T @ centred_matched[single]
     return cross_covariance, source_centroid, target_centroid
 
 
@@ -93,6 +105,8 @@ class EsmPaperEstimator:
     """Increment of the paper's formulation (see the module docstring for its requirement)."""
 
     name = "esm-paper"
+    #: Source point i meets target point i in M: the loop must keep the source's order.
+    order_invariant = False
 
     def __init__(self, sigma: float = PAPER_SIGMA):
         self.sigma = as_positive(sigma, "sigma")

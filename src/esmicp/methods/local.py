@@ -4,6 +4,12 @@ Each iteration: nearest neighbours of the source as currently placed, one increm
 method's :class:`~esmicp.methods.base.StepEstimator`, composed on the left
 (``T = T_delta @ T``). It stops when the increment becomes negligible, or when the RMS
 correspondence distance stops changing, both relative to ``tolerance``.
+
+Speed: nearest neighbours come from :meth:`~esmicp.core.correspondence.NearestNeighbors.query_near`
+(exact, a voxel hash warm-started with the previous iteration's neighbours). With
+``coarse_points``, an estimator that has a coarse phase (``esm`` with the automatic sigma) runs
+that phase on an evenly strided subset of the source, and the full source from its fine phase on:
+the coarse phase only brings the clouds close, the full-resolution iterations decide the pose.
 """
 
 from __future__ import annotations
@@ -19,6 +25,13 @@ from ..core.procrustes import apply, project_to_rotation, rotation_angle, to_mat
 from ..result import IterationRecord
 from .acceleration import AndersonAccelerator
 from .base import StepEstimator
+
+
+#: From this many source points on, :func:`refine` queries the source in the target's spatial
+#: order (:meth:`~esmicp.core.correspondence.NearestNeighbors.spatial_order`): it visits the
+#: source in that order, or, for a callback or an order-dependent method (``esm-paper``), keeps
+#: the source's order and only permutes the queries.
+SPATIAL_ORDER_MIN = 2048
 
 
 @dataclass(frozen=True)
@@ -64,6 +77,7 @@ def refine(
     scale: float,
     callback: Callback | None = None,
     record_history: bool = False,
+    coarse_points: int | None = None,
 ) -> LocalOutcome:
     """Iterate ``estimator`` from ``init`` (4x4 ``T_target_source``).
 
@@ -71,7 +85,46 @@ def refine(
     the convergence test unit-free: the loop stops once an increment rotates by less than
     ``tolerance`` radians and translates by less than ``tolerance * scale``, or once the RMS
     correspondence distance changes by less than ``tolerance`` relative to itself.
+
+    ``coarse_points`` (optional): while ``estimator.accelerated`` is False (the coarse phase of
+    ``esm``'s automatic sigma), iterate on at most this many evenly strided source points; the
+    full source is used from the fine phase on, and the run never ends during the coarse phase
+    (its convergence moves it to the full source). Ignored when a ``callback`` is given, so that
+    callbacks always see the whole source.
     """
+    full_source = source
+    coarse = (
+        coarse_points is not None
+        and callback is None
+        and len(source) > coarse_points
+        and getattr(estimator, "accelerated", True) is False
+    )
+    query_order = None
+    if len(source) >= SPATIAL_ORDER_MIN and hasattr(target, "spatial_order"):
+        order = target.spatial_order(apply(init, source))
+        if callback is None and getattr(estimator, "order_invariant", True):
+            # Visit the source points in spatial order (the result does not depend on the order).
+            full_source = source[order]
+        else:
+            # The source keeps its order; only the queries are made in spatial order.
+            query_order = order
+    if coarse:
+        source = full_source[np.linspace(0, len(full_source) - 1, coarse_points).astype(np.intp)]
+    else:
+        source = full_source
+    near = getattr(target, "query_near", None)
+
+    def query(points, warm):
+        if near is None:
+            return target.query(points)
+        if query_order is None:
+            return near(points, warm=warm)
+        found_distances, found_indices = near(points[query_order], warm=None if warm is None else warm[query_order])
+        distances, indices = np.empty_like(found_distances), np.empty_like(found_indices)
+        distances[query_order], indices[query_order] = found_distances, found_indices
+        return distances, indices
+
+    indices = None
     transformation = init.copy()
     history: list[IterationRecord] | None = [] if record_history else None
     previous_rmse: float | None = None
@@ -80,15 +133,17 @@ def refine(
     fallback: np.ndarray | None = None  # the plain step, while an accelerated proposal is on trial
     objective_before = 0.0
     for iteration in range(1, max_iterations + 1):
+        if coarse and estimator.accelerated:
+            coarse, source, indices, previous_rmse = False, full_source, None, None
         moved = apply(transformation, source)
-        distances, indices = target.query(moved)
+        distances, indices = query(moved, indices)
         if fallback is not None:
             if estimator.objective(distances) < objective_before:
                 # The accelerated proposal fits worse than the pose it came from: take the plain step.
                 transformation, fallback = fallback, None
                 accelerator.reset()
                 moved = apply(transformation, source)
-                distances, indices = target.query(moved)
+                distances, indices = query(moved, indices)
             fallback = None
         step = estimator.step(moved, target.points, distances, indices)
         if not (np.isfinite(step.rotation).all() and np.isfinite(step.translation).all()):
@@ -123,7 +178,10 @@ def refine(
             rotation_angle(increment[:3, :3]) < tolerance and np.linalg.norm(increment[:3, 3]) < tolerance * scale
         )
         settled = previous_rmse is not None and abs(previous_rmse - rmse) <= tolerance * previous_rmse
-        if small_step or settled:
+        if coarse and (small_step or settled):
+            # Converged on the subset: continue on the full source, at the fine sigma.
+            estimator.fine = True
+        elif small_step or settled:
             reason = "increment below tolerance" if small_step else "RMS distance stopped changing"
             return LocalOutcome(
                 transformation, True, iteration, sigma, f"converged after {iteration} iterations ({reason})",

@@ -1,0 +1,156 @@
+"""``register_many()``: register many (source, target) pairs on all cores, or on a Dask cluster.
+
+Each pair is registered by :func:`esmicp.register` with the same keyword arguments, in a worker
+process (a local process pool) or a Dask worker (when a ``dask.distributed.Client`` is given).
+Results come back in input order. A pair that fails (bad input, or any error inside
+``register``) is returned as a :class:`RegistrationFailure` in its place, so one bad scan never
+costs the others. ``register`` is deterministic (its default global-search seed is fixed), so the
+results equal those of calling it pair by pair.
+
+Each local worker process runs its numerical kernels on one thread: the pool itself uses the cores.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from typing import Iterable, Sequence
+
+from .errors import InvalidInputError
+from .result import RegistrationResult
+
+logger = logging.getLogger(__name__)
+
+#: How to install the optional Dask scale-out.
+DASK_INSTALL_HINT = "pip install 'esmicp[dask]' (dask[distributed])"
+
+
+@dataclass(frozen=True)
+class RegistrationFailure:
+    """Stands in the results of :func:`register_many` for a pair whose registration raised.
+
+    ``index`` is the pair's position in the input, ``error_type`` the exception's class name and
+    ``message`` its text (e.g. ``"source: expected (N, 3) points, got (5, 2)"``).
+    """
+
+    index: int
+    error_type: str
+    message: str
+
+    def __str__(self) -> str:
+        return f"pair {self.index}: {self.error_type}: {self.message}"
+
+
+def _register_one(index: int, source, target, kwargs: dict) -> "RegistrationResult | RegistrationFailure":
+    from .api import register
+
+    try:
+        return register(source, target, **kwargs)
+    except Exception as exc:  # one failing pair must not lose the others: report it in its place
+        return RegistrationFailure(index, type(exc).__name__, str(exc))
+
+
+def _single_threaded_worker() -> None:
+    """Pool initializer: one thread per process for the KD-tree and the numba kernels."""
+    from .core import correspondence
+
+    correspondence.DEFAULT_WORKERS = 1
+    try:
+        import numba
+
+        numba.set_num_threads(1)
+    except ImportError:  # pragma: no cover - numba is a dependency
+        pass
+
+
+def register_many(
+    pairs: Iterable[Sequence],
+    *,
+    processes: int | None = None,
+    client=None,
+    **register_kwargs,
+) -> list["RegistrationResult | RegistrationFailure"]:
+    """Register every ``(source, target)`` pair; results (or failures) in input order.
+
+    Parameters
+    ----------
+    pairs : iterable of (source, target)
+        Each element is two (N, 3) / (M, 3) array-likes, as :func:`esmicp.register` takes them.
+    processes : int, optional
+        Local worker processes (default: all cores). 1 registers in this process, one pair after
+        the other. Ignored when ``client`` is given.
+    client : dask.distributed.Client, optional
+        Run the registrations on this Dask cluster instead (Dask is an optional dependency:
+        ``pip install 'esmicp[dask]'``); the clouds are sent to the workers with the tasks.
+    **register_kwargs
+        Passed to every :func:`esmicp.register` call (``method``, ``init``, ``max_iterations``,
+        ...). A callback must be picklable to reach worker processes.
+
+    Returns
+    -------
+    list
+        One :class:`~esmicp.result.RegistrationResult` per pair, or a :class:`RegistrationFailure`
+        where that pair's registration raised.
+
+    Raises
+    ------
+    InvalidInputError
+        When ``pairs`` is not a sequence of pairs, or ``processes`` is not a positive integer.
+    """
+    items = _as_pairs(pairs)
+    if client is not None:
+        return _on_dask(client, items, register_kwargs)
+    if processes is None:
+        processes = os.cpu_count() or 1
+    if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
+        raise InvalidInputError(f"processes: expected a positive integer, got {processes!r}")
+    processes = min(processes, max(len(items), 1))
+    if processes == 1:
+        results = [_register_one(i, source, target, register_kwargs) for i, (source, target) in enumerate(items)]
+    else:
+        # "spawn": forking a process whose OpenMP / numba threads are running can deadlock.
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(processes, mp_context=context, initializer=_single_threaded_worker) as pool:
+            futures = [
+                pool.submit(_register_one, i, source, target, register_kwargs)
+                for i, (source, target) in enumerate(items)
+            ]
+            results = [future.result() for future in futures]
+    _log_failures(results)
+    return results
+
+
+def _on_dask(client, items, register_kwargs):
+    try:
+        import distributed  # noqa: F401  (the client's own package; checked for a clear message)
+    except ImportError:  # pragma: no cover - a client cannot exist without it
+        from .baselines import MissingDependencyError
+
+        raise MissingDependencyError(f"register_many(client=...) needs Dask: {DASK_INSTALL_HINT}") from None
+    futures = [
+        client.submit(_register_one, i, source, target, register_kwargs, pure=False)
+        for i, (source, target) in enumerate(items)
+    ]
+    results = client.gather(futures)
+    _log_failures(results)
+    return list(results)
+
+
+def _as_pairs(pairs) -> list[tuple]:
+    try:
+        items = [tuple(pair) for pair in pairs]
+    except TypeError:
+        raise InvalidInputError(f"pairs: expected an iterable of (source, target) pairs, got {type(pairs).__name__}") from None
+    for index, item in enumerate(items):
+        if len(item) != 2:
+            raise InvalidInputError(f"pairs[{index}]: expected a (source, target) pair, got {len(item)} items")
+    return items
+
+
+def _log_failures(results) -> None:
+    for result in results:
+        if isinstance(result, RegistrationFailure):
+            logger.warning("register_many: %s", result)

@@ -1,0 +1,224 @@
+"""Exact nearest neighbours near the target, in O(1) per query, from a voxel hash (numba).
+
+Local registration asks, every iteration, for the nearest target point of every source point, and
+once the clouds are roughly aligned almost all of those lie within a few point spacings. A
+:class:`VoxelHash` sorts the target points into cubic cells of edge ``cell`` (cloud units), keeps
+the occupied cells in an open-addressing hash table, and answers a query by scanning the 3 x 3 x 3
+block of cells around the query point, nearest cells first and pruned by the best distance found
+so far (optionally seeded with a *warm start*: the distance to last iteration's neighbour).
+
+Exactness: every target point within ``cell`` of a query lies in that block, so a result found
+at a distance ``<= cell`` is THE nearest point (up to exact ties). Queries whose nearest point is
+farther are reported as misses; :class:`~esmicp.core.correspondence.NearestNeighbors` answers those
+with its KD-tree. The combination is therefore exact everywhere; the hash only makes the common
+case (a point near the target) cheap.
+
+The kernels are compiled by numba on first use (cached on disk) and run on all cores
+(``numba.prange``). Without numba, :func:`available` is False and callers use the KD-tree only.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+try:  # numba is a dependency, but the library still works (slower) without it.
+    import numba
+except ImportError:  # pragma: no cover - exercised only where numba is missing
+    numba = None
+
+_threads_started = False
+
+#: Fibonacci hashing multiplier (2^64 / golden ratio) for the cell keys.
+_HASH_MULTIPLIER = np.uint64(0x9E3779B97F4A7C15)
+
+
+def available() -> bool:
+    """True when numba is importable, i.e. when :class:`VoxelHash` can be used."""
+    return numba is not None
+
+
+if numba is not None:
+
+    @numba.njit(cache=True, nogil=True)
+    def _slot(key, shift):
+        return np.intp((np.uint64(key) * _HASH_MULTIPLIER) >> np.uint64(shift))
+
+    @numba.njit(cache=True, nogil=True)
+    def _build_table(cell_keys, table_bits):
+        size = 1 << table_bits
+        shift = 64 - table_bits
+        mask = size - 1
+        table_keys = np.full(size, -1, dtype=np.int64)
+        table_cells = np.empty(size, dtype=np.int64)
+        for cell in range(len(cell_keys)):
+            slot = _slot(cell_keys[cell], shift)
+            while table_keys[slot] != -1:
+                slot = (slot + 1) & mask
+            table_keys[slot] = cell_keys[cell]
+            table_cells[slot] = cell
+        return table_keys, table_cells
+
+    @numba.njit(cache=True, nogil=True)
+    def _find(table_keys, table_cells, key, shift, mask):
+        slot = _slot(key, shift)
+        while True:
+            stored = table_keys[slot]
+            if stored == key:
+                return table_cells[slot]
+            if stored == -1:
+                return -1
+            slot = (slot + 1) & mask
+
+    @numba.njit(cache=True, parallel=True, nogil=True)
+    def _query(
+        queries, rotation, translation, warm, rank, sorted_points, sorted_index, cell_starts,
+        table_keys, table_cells, low, cell, dims, out_distances, out_indices,
+    ):
+        """Nearest target point of ``queries @ rotation.T + translation`` (rows), exact when the
+        returned distance is ``<= cell``; ``-1`` index (a miss) otherwise. ``warm[i] >= 0`` is a
+        candidate target index whose distance seeds the search (warm start)."""
+        table_bits = 0
+        while (1 << table_bits) < len(table_keys):
+            table_bits += 1
+        shift = 64 - table_bits
+        mask = len(table_keys) - 1
+        inverse_cell = 1.0 / cell
+        limit = cell * cell
+        count = queries.shape[0]
+        for i in numba.prange(count):
+            qx = rotation[0, 0] * queries[i, 0] + rotation[0, 1] * queries[i, 1] + rotation[0, 2] * queries[i, 2] + translation[0]
+            qy = rotation[1, 0] * queries[i, 0] + rotation[1, 1] * queries[i, 1] + rotation[1, 2] * queries[i, 2] + translation[1]
+            qz = rotation[2, 0] * queries[i, 0] + rotation[2, 1] * queries[i, 1] + rotation[2, 2] * queries[i, 2] + translation[2]
+            best = np.inf
+            best_index = -1
+            if warm[i] >= 0:
+                # Seed the bound with last iteration's neighbour (any target point gives a bound).
+                k = rank[warm[i]]
+                ex = sorted_points[k, 0] - qx
+                ey = sorted_points[k, 1] - qy
+                ez = sorted_points[k, 2] - qz
+                best = ex * ex + ey * ey + ez * ez
+                best_index = k
+            fx = (qx - low[0]) * inverse_cell
+            fy = (qy - low[1]) * inverse_cell
+            fz = (qz - low[2]) * inverse_cell
+            cx = np.int64(np.floor(fx))
+            cy = np.int64(np.floor(fy))
+            cz = np.int64(np.floor(fz))
+            # Offsets of the query inside its cell, in cell units, for the box-distance bound.
+            ox = fx - cx
+            oy = fy - cy
+            oz = fz - cz
+            bound = limit if best > limit else best
+            for dz in range(-1, 2):
+                z = cz + dz
+                if z < 0 or z >= dims[2]:
+                    continue
+                gz = 0.0 if dz == 0 else ((oz if dz < 0 else 1.0 - oz) * cell)
+                for dy in range(-1, 2):
+                    y = cy + dy
+                    if y < 0 or y >= dims[1]:
+                        continue
+                    gy = 0.0 if dy == 0 else ((oy if dy < 0 else 1.0 - oy) * cell)
+                    for dx in range(-1, 2):
+                        x = cx + dx
+                        if x < 0 or x >= dims[0]:
+                            continue
+                        gx = 0.0 if dx == 0 else ((ox if dx < 0 else 1.0 - ox) * cell)
+                        if gx * gx + gy * gy + gz * gz > bound:
+                            continue
+                        found = _find(table_keys, table_cells, x + dims[0] * (y + dims[1] * z), shift, mask)
+                        if found < 0:
+                            continue
+                        for k in range(cell_starts[found], cell_starts[found + 1]):
+                            ex = sorted_points[k, 0] - qx
+                            ey = sorted_points[k, 1] - qy
+                            ez = sorted_points[k, 2] - qz
+                            squared = ex * ex + ey * ey + ez * ez
+                            if squared < best:
+                                best = squared
+                                best_index = k
+                                if squared < bound:
+                                    bound = squared
+            if best <= limit:
+                out_distances[i] = np.sqrt(best)
+                out_indices[i] = sorted_index[best_index]
+            else:
+                out_distances[i] = np.sqrt(best)
+                out_indices[i] = -1
+
+
+class VoxelHash:
+    """Voxel hash over a target cloud for exact near-field nearest-neighbour queries.
+
+    Parameters
+    ----------
+    target : (M, 3) float64 array
+        Target points (target frame); copied in cell order.
+    cell : float
+        Cell edge (cloud units, > 0): queries whose nearest target point is within ``cell`` are
+        answered exactly; farther ones are misses. A few target point spacings suits ICP.
+    """
+
+    def __init__(self, target: np.ndarray, cell: float):
+        if numba is None:  # pragma: no cover
+            raise RuntimeError("VoxelHash needs numba: pip install numba")
+        target = np.ascontiguousarray(target, dtype=np.float64)
+        self.cell = float(cell)
+        self.low = target.min(axis=0) - self.cell
+        extent = target.max(axis=0) + self.cell - self.low
+        self.dims = np.maximum(np.ceil(extent / self.cell).astype(np.int64), 1)
+        if float(np.prod(self.dims.astype(np.float64))) >= 2.0**62:
+            raise ValueError(f"VoxelHash: cell {cell!r} is too small for the target's extent")
+        ijk = np.floor((target - self.low) / self.cell).astype(np.int64)
+        keys = ijk[:, 0] + self.dims[0] * (ijk[:, 1] + self.dims[1] * ijk[:, 2])
+        order = np.argsort(keys, kind="stable")
+        sorted_keys = keys[order]
+        self.sorted_points = np.ascontiguousarray(target[order])
+        self.sorted_index = order.astype(np.int64)
+        self.rank = np.empty(len(target), dtype=np.int64)
+        self.rank[order] = np.arange(len(target))
+        boundaries = np.flatnonzero(np.diff(sorted_keys)) + 1
+        self.cell_starts = np.concatenate([[0], boundaries, [len(target)]]).astype(np.int64)
+        cell_keys = sorted_keys[self.cell_starts[:-1]]
+        table_bits = max(4, int(np.ceil(np.log2(2 * len(cell_keys)))))
+        self.table_keys, self.table_cells = _build_table(cell_keys, table_bits)
+        self.occupied_cells = len(cell_keys)
+
+    def query(
+        self,
+        points: np.ndarray,
+        transform: np.ndarray | None = None,
+        warm: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(distances, indices)`` of the nearest target point of each of ``points`` (mapped by
+        the 4x4 ``transform`` first, if given). ``indices`` is -1 where the nearest point is
+        farther than ``cell`` (a miss; ``distances`` is then meaningless)."""
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        if transform is None:
+            rotation, translation = np.eye(3), np.zeros(3)
+        else:
+            rotation = np.ascontiguousarray(transform[:3, :3], dtype=np.float64)
+            translation = np.ascontiguousarray(transform[:3, 3], dtype=np.float64)
+        if warm is None:
+            warm = np.full(len(points), -1, dtype=np.int64)
+        distances = np.empty(len(points))
+        indices = np.empty(len(points), dtype=np.int64)
+        arguments = (
+            points, rotation, translation, np.asarray(warm, dtype=np.int64), self.rank, self.sorted_points,
+            self.sorted_index, self.cell_starts, self.table_keys, self.table_cells, self.low,
+            self.cell, self.dims, distances, indices,
+        )
+        global _threads_started
+        if _threads_started:
+            _query(*arguments)
+        else:
+            # numba picks its threading layer on the first parallel call and warns when it finds
+            # an old TBB (which some wheels bring) before settling on OpenMP: not the user's concern.
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=".*TBB.*")
+                _query(*arguments)
+            _threads_started = True
+        return distances, indices
