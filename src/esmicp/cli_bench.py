@@ -75,7 +75,7 @@ def add_parser(commands) -> argparse.ArgumentParser:
     bench.add_argument("--seed", type=int, help="base seed of every trial (default 0)")
     bench.add_argument("--slow-trials", type=nonnegative_int, metavar="N",
                        help="run the slow methods (go-icp: seconds per trial) on the first N trials of each "
-                       "randomised group only, and on every paper-table case (default 2; 0: every trial)")
+                       "randomised group only, and on every paper-table case (default 1; 0: every trial)")
     bench.add_argument("--max-iterations", type=positive_int, help="iteration budget of every local method (default 40)")
     bench.add_argument("--init", choices=("identity", "perturbed"),
                        help="start of every local method: identity (default) or perturbed (the truth moved by "

@@ -83,7 +83,7 @@ class BenchConfig:
     sigma_sweep: tuple[float, ...] = ()
     paper_tables: bool = False
     data_dir: str = ""
-    slow_trials: int = 2
+    slow_trials: int = 1
 
     def __post_init__(self):
         _check_names("protocols", self.protocols, PROTOCOL_NAMES)
