@@ -266,6 +266,7 @@ def test_view_command_writes_html_and_refuses_to_overwrite(tmp_path, capsys):
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, argv, message):
+    require_plotting()  # without the plotting libraries, the commands refuse that first
     argv = [part.replace("{tmp}", str(tmp_path)) for part in argv]
     code, stdout, stderr = run(capsys, *argv)
     assert code == 2
@@ -274,6 +275,7 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, argv, messag
 
 
 def test_garbage_cloud_file_is_one_line(tmp_path, capsys):
+    require_plotting()
     bad = tmp_path / "bad.ply"
     bad.write_bytes(b"not a ply at all")
     code, _, stderr = run(capsys, "heatmap", str(bad), "-o", str(tmp_path / "m.png"))
