@@ -25,7 +25,7 @@ from esmicp.bench import BenchConfig, RunOptions, read_rows, run_bench
 from esmicp.bench.paper import PAPER_CASES, euler_zyx, paper_motion
 from esmicp.bench.trials import TrialSpec, build_trial
 from esmicp.core.procrustes import apply
-from esmicp.errors import EsmicpError, InvalidInputError
+from esmicp.errors import EsmicpError, InvalidInputError, PointCloudFileError
 
 #: The keys every row must carry (docs/bench.md; /work/helpers/bench_rows.md).
 SCHEMA = {
@@ -366,3 +366,10 @@ def test_slow_methods_run_on_their_trial_budget_only(tmp_path, monkeypatch):
 def read_rows_of(out_dir, config):
     run_bench(config, RunOptions(out_dir=out_dir, workers=1, progress=False))
     return read_rows(out_dir / "rows.jsonl")
+
+
+def test_a_row_that_is_not_utf8_is_one_clear_error(tmp_path):
+    path = tmp_path / "rows.jsonl"
+    path.write_bytes(b'{"a": 1}\n{"b": "\xff\xfe"}\n')
+    with pytest.raises(PointCloudFileError, match="line 2 is not UTF-8"):
+        read_rows(path)

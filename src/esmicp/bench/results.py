@@ -60,6 +60,8 @@ def read_rows(path) -> list[dict]:
             rows.append(json.loads(line))
         except json.JSONDecodeError as exc:
             raise PointCloudFileError(path, f"line {number} is not a JSON row ({exc.msg})") from None
+        except UnicodeDecodeError:
+            raise PointCloudFileError(path, f"line {number} is not UTF-8 text") from None
     return rows
 
 

@@ -14,7 +14,6 @@ all as PNG files. What counts:
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -67,24 +66,15 @@ def check_rows(rows: Iterable[dict]) -> list[dict]:
 
 
 def read_bench_rows(path) -> list[dict]:
-    """Read a JSON Lines file of benchmark rows (blank lines skipped); errors name the line."""
+    """Read the rows file of an ``esmicp bench`` run (its reader: blank lines and a torn last line
+    skipped, errors name the line), checked against the row schema."""
+    from ..bench.results import read_rows
+
     path = Path(path)
+    if not path.is_file():
+        raise PointCloudFileError(path, "no such file")
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except OSError as exc:
-        raise PointCloudFileError(path, f"cannot read: {exc.strerror or exc}") from None
-    except UnicodeDecodeError:
-        raise PointCloudFileError(path, "is not a UTF-8 text file of JSON lines") from None
-    rows = []
-    for number, line in enumerate(lines, start=1):
-        if not line.strip():
-            continue
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError as exc:
-            raise PointCloudFileError(path, f"line {number}: not valid JSON ({exc.msg})") from None
-    try:
-        return check_rows(rows)
+        return check_rows(read_rows(path))
     except InvalidInputError as exc:
         raise PointCloudFileError(path, str(exc)) from None
 
