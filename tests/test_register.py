@@ -425,7 +425,9 @@ def test_callback_returning_none_or_false_does_not_stop(easy_pair):
     for value in (None, False, 0):
         result = esmicp.register(source, target, method="icp", callback=lambda state, v=value: v, init="identity")
         assert result.num_iterations == reference.num_iterations
-        np.testing.assert_array_equal(result.transformation, reference.transformation)
+        # With a callback the step is formed from per-point arrays (the callback sees them),
+        # without one in a compiled pass: the same fit, summed in another order.
+        np.testing.assert_allclose(result.transformation, reference.transformation, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("method", ["esm", "icp", "esm-paper"])

@@ -8,10 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import require_shared
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 import esmicp
-from esmicp.core import voxel_hash
+from esmicp.core import compiled_tree, voxel_hash
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import apply, rotation_angle, to_matrix
 from esmicp.methods import EsmEstimator, SigmaSchedule
@@ -81,14 +82,36 @@ def test_query_near_equals_the_kd_tree_on_real_clouds(degrees):
         np.testing.assert_array_equal(warm_distances, exact_distances)
 
 
-def test_voxel_hash_reports_far_points_as_misses():
+def test_voxel_hash_hands_far_points_to_the_compiled_tree_and_counts_them():
+    """Points whose neighbour is beyond one cell are answered by the tree, exactly, hash or not."""
     target = bunny()
     cell = 0.002
     grid = voxel_hash.VoxelHash(target, cell)
-    far = target[:100] + np.array([0.0, 0.0, 1.0])
-    distances, indices = grid.query(np.vstack([target[:100], far]))
-    assert (indices[:100] >= 0).all() and np.allclose(distances[:100], 0.0)
-    assert (indices[100:] == -1).all()
+    tree = compiled_tree.CompiledTree(target)
+    rng = np.random.default_rng(3)
+    far = target[:100] + np.array([0.0, 0.0, 1.0]) + rng.normal(scale=0.05, size=(100, 3))
+    queries = np.vstack([target[:100], far])
+    exact_distances, _ = cKDTree(target).query(queries)
+    for use_hash in (True, False):
+        distances, indices, misses = grid.query(queries, tree, use_hash=use_hash)
+        assert misses == 100
+        assert np.allclose(distances[:100], 0.0) and (target[indices[:100]] == target[:100]).all()
+        np.testing.assert_allclose(distances, exact_distances, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(np.linalg.norm(queries - target[indices], axis=1), exact_distances, rtol=1e-12)
+
+
+def test_compiled_tree_is_exact_on_duplicates_lines_and_far_queries():
+    """Median splits on degenerate targets (every point repeated, all on a line) stay exact."""
+    rng = np.random.default_rng(4)
+    line = np.zeros((3000, 3))
+    line[:, 0] = rng.uniform(size=3000)
+    for target in (np.repeat(bunny()[:500], 7, axis=0), line, np.zeros((40, 3))):
+        queries = rng.normal(size=(2000, 3)) * np.ptp(target, axis=0).max() * 3 + target.mean(axis=0)
+        tree = compiled_tree.CompiledTree(target)
+        exact_distances, _ = cKDTree(target).query(queries)
+        distances, indices = tree.query(queries, warm=rng.integers(0, len(target), len(queries)))
+        np.testing.assert_allclose(distances, exact_distances, rtol=1e-12, atol=1e-300)
+        np.testing.assert_allclose(np.linalg.norm(queries - target[indices], axis=1), exact_distances, rtol=1e-12)
 
 
 def test_paper_cross_covariance_equals_the_similarity_matrix_entries():
@@ -179,4 +202,27 @@ def test_callbacks_see_the_source_in_its_own_order_on_large_clouds():
     for state, transformation in zip(states, placed_with):
         np.testing.assert_allclose(state.moved_source, apply(transformation, source))
         distances, _ = index.query(state.moved_source)
-        np.testing.assert_array_equal(state.distances, distances)
+        # (the solver maps each point inside its query kernel: the same distances up to rounding)
+        np.testing.assert_allclose(state.distances, distances, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e4])
+def test_placed_step_equals_the_step_on_per_point_arrays(offset):
+    """The compiled moments pass (no placed source, no weight array) gives the increment of the
+    per-point formulation, also for clouds far from the origin and a source far from the target."""
+    from esmicp.methods import IcpEstimator
+
+    target = bunny()[::4] + offset
+    placement = to_matrix(Rotation.from_rotvec([0.2, -0.1, 0.3]).as_matrix(), np.array([0.01, 0.0, -0.02]))
+    source = apply(np.linalg.inv(placement), target[::2] + 0.0003)
+    index = NearestNeighbors(target)
+    distances, indices = index.query(apply(placement, source))
+    diagonal = float(np.linalg.norm(np.ptp(target, axis=0)))
+    for make in (lambda: EsmEstimator(SigmaSchedule.auto(index.spacing(), diagonal)), IcpEstimator):
+        plain = make().step(apply(placement, source), target, distances, indices)
+        placed = make().step_placed(source, placement, target, distances, indices)
+        np.testing.assert_allclose(placed.rotation, plain.rotation, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(placed.translation, plain.translation, rtol=0, atol=1e-10 * (1 + offset))
+        if plain.weights is not None:
+            weights = plain.weights
+            assert placed.effective_pairs == pytest.approx(weights.sum() ** 2 / np.square(weights).sum(), rel=1e-9)

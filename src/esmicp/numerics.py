@@ -114,16 +114,28 @@ def rigidity_problem(transform: np.ndarray) -> str | None:
 
 
 class _LastWeights:
-    """A step estimator that remembers the weights of its last step (everything else delegated)."""
+    """A step estimator that remembers its last step's effective number of pairs (everything
+    else delegated)."""
 
     def __init__(self, estimator):
         self._estimator = estimator
-        self.last_weights = None
+        self.last_effective: float | None = None
+        self.last_count = 0
+        if hasattr(estimator, "step_placed"):
+            self.step_placed = self._watched(estimator.step_placed)
+        self.step = self._watched(estimator.step)
 
-    def step(self, *args, **kwargs):
-        step = self._estimator.step(*args, **kwargs)
-        self.last_weights = step.weights
-        return step
+    def _watched(self, function):
+        def watched(*args, **kwargs):
+            step = function(*args, **kwargs)
+            self.last_count = len(args[-1])  # the indices: one per pair
+            if step.weights is not None:
+                self.last_effective = effective_count(step.weights) if len(step.weights) else None
+            else:
+                self.last_effective = step.effective_pairs
+            return step
+
+        return watched
 
     def __getattr__(self, name):
         return getattr(self._estimator, name)
@@ -157,9 +169,9 @@ def checked_refine(source, target, estimator, *, init: np.ndarray, **kwargs) -> 
             converged=False,
             message=f"stopped: the refined pose was {problem}; the starting pose is returned instead",
         )
-    weights = watched.last_weights
+    effective = watched.last_effective
     # (Half the pairs at most: a 3-point cloud with unequal weights has fewer than 3 effective ones.)
-    if weights is not None and len(weights) and effective_count(weights) < min(MIN_EFFECTIVE_PAIRS, 0.5 * len(weights)):
+    if effective is not None and effective < min(MIN_EFFECTIVE_PAIRS, 0.5 * watched.last_count):
         sigma = "" if outcome.sigma is None else f" (sigma {outcome.sigma:.3g})"
         return dataclasses.replace(
             outcome,

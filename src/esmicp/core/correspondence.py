@@ -1,10 +1,12 @@
 """Nearest-neighbour correspondences against a target cloud.
 
 A :class:`NearestNeighbors` index is built once per target and queried every iteration (and, later,
-by every hypothesis of a global search). :meth:`NearestNeighbors.query` answers any query with the
-KD-tree; :meth:`NearestNeighbors.query_near` gives the same exact answers faster when most query
-points lie near the target (local registration), through a voxel hash
-(:mod:`esmicp.core.voxel_hash`) built on first use, the KD-tree answering only the rest.
+by every hypothesis of a global search). :meth:`NearestNeighbors.query` answers any query exactly
+with a KD-tree compiled by numba (:mod:`esmicp.core.compiled_tree`; scipy's ``cKDTree`` where
+numba is missing); :meth:`NearestNeighbors.query_near` gives the same exact answers faster when
+most query points lie near the target (local registration): warm-started with last iteration's
+neighbours, through a voxel hash (:mod:`esmicp.core.voxel_hash`) that hands the points it cannot
+answer to the compiled tree in the same compiled loop. Both are built on first use.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import voxel_hash
+from . import compiled_tree, voxel_hash
 
 
 #: Queries of fewer points than this run on one thread: below it, starting threads costs more
@@ -32,6 +34,11 @@ NEAR_CELL_SPACINGS = 5.0
 #: Below this many query points :meth:`NearestNeighbors.query_near` uses the KD-tree alone.
 NEAR_QUERY_MIN = 2048
 
+#: :meth:`NearestNeighbors.query_near` skips the voxel hash while more than this fraction of the
+#: last call's points had their neighbour beyond one cell (a LiDAR scan far from the sensor, or a
+#: start far from the solution): the hash would only delay the tree there.
+HASH_MISS_LIMIT = 0.5
+
 
 class NearestNeighbors:
     """KD-tree over a target cloud; queries run on all cores.
@@ -47,11 +54,26 @@ class NearestNeighbors:
     def __init__(self, target: np.ndarray, *, workers: int = -1):
         self.points = target
         self.workers = workers
-        # A sliding-midpoint tree without node compaction builds about twice as fast as scipy's
-        # default for point clouds and queries as fast (measured on the bunny and the LiDAR pair).
-        self._tree = cKDTree(target, balanced_tree=False, compact_nodes=False)
+        self._scipy_tree: cKDTree | None = None
+        self._compiled: compiled_tree.CompiledTree | None = None
         self._spacing: float | None = None
         self._near: voxel_hash.VoxelHash | None = None
+        self._hash_misses = 0.0  # fraction of the last near query's points beyond one hash cell
+
+    @property
+    def _tree(self) -> cKDTree:
+        """scipy's KD-tree (k nearest neighbours, and every query where numba is missing)."""
+        if self._scipy_tree is None:
+            # A sliding-midpoint tree without node compaction builds about twice as fast as scipy's
+            # default for point clouds and queries as fast (measured on the bunny and the LiDAR pair).
+            self._scipy_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+        return self._scipy_tree
+
+    def exact_tree(self) -> "compiled_tree.CompiledTree | None":
+        """The numba KD-tree of the target (built on first use), or None without numba."""
+        if self._compiled is None and compiled_tree.available():
+            self._compiled = compiled_tree.CompiledTree(self.points)
+        return self._compiled
 
     def __len__(self) -> int:
         return len(self.points)
@@ -61,6 +83,9 @@ class NearestNeighbors:
 
         ``distances`` are Euclidean, in the clouds' units; ``indices`` index ``self.points``.
         """
+        tree = self.exact_tree()
+        if tree is not None and self.workers == -1:
+            return tree.query(points)
         workers = self._workers() if len(points) >= PARALLEL_QUERY_MIN else 1
         distances, indices = self._tree.query(points, k=1, workers=workers)
         return distances, indices
@@ -68,21 +93,26 @@ class NearestNeighbors:
     def _workers(self) -> int:
         return DEFAULT_WORKERS if self.workers == -1 else self.workers
 
-    def query_near(self, points: np.ndarray, warm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def query_near(
+        self, points: np.ndarray, warm: np.ndarray | None = None, transform: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Exactly what :meth:`query` returns (up to ties), faster for points near the target.
 
-        ``warm`` (optional, (N,) target indices, e.g. last iteration's ``indices``) seeds each
-        search with that candidate's distance; any valid index is correct, only the speed changes.
-        Points whose nearest target point is farther than the voxel hash's cell (or every point,
-        without numba or for fewer than :data:`NEAR_QUERY_MIN` points) go to the KD-tree.
+        ``transform`` (optional 4x4 ``T_target_source``): query ``points`` as mapped by it (no
+        mapped copy is made). ``warm`` (optional, (N,) target indices, e.g. last iteration's
+        ``indices``) seeds each search with that candidate's distance; any valid index is correct,
+        only the speed changes. From :data:`NEAR_QUERY_MIN` points on, a voxel hash answers the
+        points whose neighbour is within a few spacings, the compiled tree the rest.
         """
+        tree = self.exact_tree()
+        if tree is None:  # no numba: scipy's tree for everything
+            return self.query(points if transform is None else points @ transform[:3, :3].T + transform[:3, 3])
         near = self._near_index() if len(points) >= NEAR_QUERY_MIN else None
         if near is None:
-            return self.query(points)
-        distances, indices = near.query(points, warm=warm)
-        misses = np.flatnonzero(indices < 0)
-        if len(misses):
-            distances[misses], indices[misses] = self.query(points[misses])
+            return tree.query(points, transform=transform, warm=warm)
+        use_hash = self._hash_misses <= HASH_MISS_LIMIT
+        distances, indices, misses = near.query(points, tree, transform=transform, warm=warm, use_hash=use_hash)
+        self._hash_misses = misses / len(points)
         return distances, indices
 
     def spatial_order(self, points: np.ndarray) -> np.ndarray:

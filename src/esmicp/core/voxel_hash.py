@@ -9,26 +9,25 @@ so far (optionally seeded with a *warm start*: the distance to last iteration's 
 
 Exactness: every target point within ``cell`` of a query lies in that block, so a result found
 at a distance ``<= cell`` is THE nearest point (up to exact ties). Queries whose nearest point is
-farther are reported as misses; :class:`~esmicp.core.correspondence.NearestNeighbors` answers those
-with its KD-tree. The combination is therefore exact everywhere; the hash only makes the common
-case (a point near the target) cheap.
+farther (misses) continue, in the same compiled loop, in a
+:class:`~esmicp.core.compiled_tree.CompiledTree` of the target, seeded with the best point the
+block gave. The answer is therefore exact everywhere; the hash only makes the common case (a point
+near the target) cheap.
 
 The kernels are compiled by numba on first use (cached on disk) and run on all cores
-(``numba.prange``). Without numba, :func:`available` is False and callers use the KD-tree only.
+(``numba.prange``). Without numba, :func:`available` is False and callers use scipy's KD-tree.
 """
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
+
+from . import compiled_tree
 
 try:  # numba is a dependency, but the library still works (slower) without it.
     import numba
 except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
-
-_threads_started = False
 
 #: Fibonacci hashing multiplier (2^64 / golden ratio) for the cell keys.
 _HASH_MULTIPLIER = np.uint64(0x9E3779B97F4A7C15)
@@ -71,83 +70,113 @@ if numba is not None:
                 return -1
             slot = (slot + 1) & mask
 
+    @numba.njit(cache=True, nogil=True)
+    def _hash_search(qx, qy, qz, best, best_index, sorted_points, cell_starts, table_keys, table_cells, low, cell,
+                     dims, shift, mask):
+        """Scan the 3 x 3 x 3 block of cells around ``(qx, qy, qz)``; returns the best
+        ``(squared distance, sorted row)`` found, seeded by ``best`` / ``best_index``."""
+        inverse_cell = 1.0 / cell
+        limit = cell * cell
+        fx = (qx - low[0]) * inverse_cell
+        fy = (qy - low[1]) * inverse_cell
+        fz = (qz - low[2]) * inverse_cell
+        cx = np.int64(np.floor(fx))
+        cy = np.int64(np.floor(fy))
+        cz = np.int64(np.floor(fz))
+        # Offsets of the query inside its cell, in cell units, for the box-distance bound.
+        ox = fx - cx
+        oy = fy - cy
+        oz = fz - cz
+        bound = limit if best > limit else best
+        for dz in range(-1, 2):
+            z = cz + dz
+            if z < 0 or z >= dims[2]:
+                continue
+            gz = 0.0 if dz == 0 else ((oz if dz < 0 else 1.0 - oz) * cell)
+            for dy in range(-1, 2):
+                y = cy + dy
+                if y < 0 or y >= dims[1]:
+                    continue
+                gy = 0.0 if dy == 0 else ((oy if dy < 0 else 1.0 - oy) * cell)
+                for dx in range(-1, 2):
+                    x = cx + dx
+                    if x < 0 or x >= dims[0]:
+                        continue
+                    gx = 0.0 if dx == 0 else ((ox if dx < 0 else 1.0 - ox) * cell)
+                    if gx * gx + gy * gy + gz * gz > bound:
+                        continue
+                    found = _find(table_keys, table_cells, x + dims[0] * (y + dims[1] * z), shift, mask)
+                    if found < 0:
+                        continue
+                    for k in range(cell_starts[found], cell_starts[found + 1]):
+                        ex = sorted_points[k, 0] - qx
+                        ey = sorted_points[k, 1] - qy
+                        ez = sorted_points[k, 2] - qz
+                        squared = ex * ex + ey * ey + ez * ez
+                        if squared < best:
+                            best = squared
+                            best_index = k
+                            if squared < bound:
+                                bound = squared
+        return best, best_index
+
     @numba.njit(cache=True, parallel=True, nogil=True)
     def _query(
         queries, rotation, translation, warm, rank, sorted_points, sorted_index, cell_starts,
-        table_keys, table_cells, low, cell, dims, out_distances, out_indices,
+        table_keys, table_cells, low, cell, dims, tree_points, tree_order, tree_rank, tree_starts, tree_ends,
+        tree_lefts, tree_boxes, use_hash, chunks, out_distances, out_indices,
     ):
-        """Nearest target point of ``queries @ rotation.T + translation`` (rows), exact when the
-        returned distance is ``<= cell``; ``-1`` index (a miss) otherwise. ``warm[i] >= 0`` is a
-        candidate target index whose distance seeds the search (warm start)."""
+        """Nearest target point of ``queries @ rotation.T + translation`` (rows), always exact:
+        the hash block when the neighbour is within ``cell`` (and ``use_hash``), otherwise the
+        compiled KD-tree, seeded with the best point seen. ``warm[i] >= 0`` is a candidate target
+        index whose distance seeds the search (warm start). Returns the number of queries whose
+        neighbour is farther than ``cell`` (those the hash cannot answer)."""
         table_bits = 0
         while (1 << table_bits) < len(table_keys):
             table_bits += 1
         shift = 64 - table_bits
         mask = len(table_keys) - 1
-        inverse_cell = 1.0 / cell
         limit = cell * cell
         count = queries.shape[0]
-        for i in numba.prange(count):
-            qx = rotation[0, 0] * queries[i, 0] + rotation[0, 1] * queries[i, 1] + rotation[0, 2] * queries[i, 2] + translation[0]
-            qy = rotation[1, 0] * queries[i, 0] + rotation[1, 1] * queries[i, 1] + rotation[1, 2] * queries[i, 2] + translation[1]
-            qz = rotation[2, 0] * queries[i, 0] + rotation[2, 1] * queries[i, 1] + rotation[2, 2] * queries[i, 2] + translation[2]
-            best = np.inf
-            best_index = -1
-            if warm[i] >= 0:
-                # Seed the bound with last iteration's neighbour (any target point gives a bound).
-                k = rank[warm[i]]
-                ex = sorted_points[k, 0] - qx
-                ey = sorted_points[k, 1] - qy
-                ez = sorted_points[k, 2] - qz
-                best = ex * ex + ey * ey + ez * ez
-                best_index = k
-            fx = (qx - low[0]) * inverse_cell
-            fy = (qy - low[1]) * inverse_cell
-            fz = (qz - low[2]) * inverse_cell
-            cx = np.int64(np.floor(fx))
-            cy = np.int64(np.floor(fy))
-            cz = np.int64(np.floor(fz))
-            # Offsets of the query inside its cell, in cell units, for the box-distance bound.
-            ox = fx - cx
-            oy = fy - cy
-            oz = fz - cz
-            bound = limit if best > limit else best
-            for dz in range(-1, 2):
-                z = cz + dz
-                if z < 0 or z >= dims[2]:
+        misses = 0
+        for chunk in numba.prange(chunks):
+            stack_nodes = np.empty(compiled_tree.STACK, dtype=np.int64)
+            stack_bounds = np.empty(compiled_tree.STACK, dtype=np.float64)
+            chunk_misses = 0
+            for i in range(chunk * count // chunks, (chunk + 1) * count // chunks):
+                qx = rotation[0, 0] * queries[i, 0] + rotation[0, 1] * queries[i, 1] + rotation[0, 2] * queries[i, 2] + translation[0]
+                qy = rotation[1, 0] * queries[i, 0] + rotation[1, 1] * queries[i, 1] + rotation[1, 2] * queries[i, 2] + translation[1]
+                qz = rotation[2, 0] * queries[i, 0] + rotation[2, 1] * queries[i, 1] + rotation[2, 2] * queries[i, 2] + translation[2]
+                best = np.inf
+                best_index = -1
+                if warm[i] >= 0:
+                    # Seed the bound with last iteration's neighbour (any target point gives a bound).
+                    k = rank[warm[i]]
+                    ex = sorted_points[k, 0] - qx
+                    ey = sorted_points[k, 1] - qy
+                    ez = sorted_points[k, 2] - qz
+                    best = ex * ex + ey * ey + ez * ez
+                    best_index = k
+                if use_hash:
+                    best, best_index = _hash_search(
+                        qx, qy, qz, best, best_index, sorted_points, cell_starts, table_keys, table_cells, low,
+                        cell, dims, shift, mask,
+                    )
+                if best <= limit and use_hash:
+                    out_distances[i] = np.sqrt(best)
+                    out_indices[i] = sorted_index[best_index]
                     continue
-                gz = 0.0 if dz == 0 else ((oz if dz < 0 else 1.0 - oz) * cell)
-                for dy in range(-1, 2):
-                    y = cy + dy
-                    if y < 0 or y >= dims[1]:
-                        continue
-                    gy = 0.0 if dy == 0 else ((oy if dy < 0 else 1.0 - oy) * cell)
-                    for dx in range(-1, 2):
-                        x = cx + dx
-                        if x < 0 or x >= dims[0]:
-                            continue
-                        gx = 0.0 if dx == 0 else ((ox if dx < 0 else 1.0 - ox) * cell)
-                        if gx * gx + gy * gy + gz * gz > bound:
-                            continue
-                        found = _find(table_keys, table_cells, x + dims[0] * (y + dims[1] * z), shift, mask)
-                        if found < 0:
-                            continue
-                        for k in range(cell_starts[found], cell_starts[found + 1]):
-                            ex = sorted_points[k, 0] - qx
-                            ey = sorted_points[k, 1] - qy
-                            ez = sorted_points[k, 2] - qz
-                            squared = ex * ex + ey * ey + ez * ez
-                            if squared < best:
-                                best = squared
-                                best_index = k
-                                if squared < bound:
-                                    bound = squared
-            if best <= limit:
+                slot = -1 if best_index < 0 else tree_rank[sorted_index[best_index]]
+                best, slot = compiled_tree.nearest(
+                    qx, qy, qz, best, slot, tree_points, tree_starts, tree_ends, tree_lefts, tree_boxes,
+                    stack_nodes, stack_bounds,
+                )
+                if best > limit:
+                    chunk_misses += 1
                 out_distances[i] = np.sqrt(best)
-                out_indices[i] = sorted_index[best_index]
-            else:
-                out_distances[i] = np.sqrt(best)
-                out_indices[i] = -1
+                out_indices[i] = tree_order[slot]
+            misses += chunk_misses
+        return misses
 
 
 class VoxelHash:
@@ -190,12 +219,16 @@ class VoxelHash:
     def query(
         self,
         points: np.ndarray,
+        tree: "compiled_tree.CompiledTree",
         transform: np.ndarray | None = None,
         warm: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """``(distances, indices)`` of the nearest target point of each of ``points`` (mapped by
-        the 4x4 ``transform`` first, if given). ``indices`` is -1 where the nearest point is
-        farther than ``cell`` (a miss; ``distances`` is then meaningless)."""
+        use_hash: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """``(distances, indices, misses)``: the nearest target point of each of ``points`` (mapped
+        by the 4x4 ``transform`` first, if given), exact for every point. ``tree`` (a
+        :class:`~esmicp.core.compiled_tree.CompiledTree` of the same target) answers the points
+        whose neighbour is farther than ``cell`` (``misses`` counts them, with or without the
+        hash), or every point when ``use_hash`` is False; ``warm`` (optional target indices) seeds each search."""
         points = np.ascontiguousarray(points, dtype=np.float64)
         if transform is None:
             rotation, translation = np.eye(3), np.zeros(3)
@@ -209,16 +242,8 @@ class VoxelHash:
         arguments = (
             points, rotation, translation, np.asarray(warm, dtype=np.int64), self.rank, self.sorted_points,
             self.sorted_index, self.cell_starts, self.table_keys, self.table_cells, self.low,
-            self.cell, self.dims, distances, indices,
+            self.cell, self.dims, tree.points, tree.order, tree.rank, tree.starts, tree.ends, tree.lefts,
+            tree.boxes, bool(use_hash), compiled_tree.chunk_count(len(points)), distances, indices,
         )
-        global _threads_started
-        if _threads_started:
-            _query(*arguments)
-        else:
-            # numba picks its threading layer on the first parallel call and warns when it finds
-            # an old TBB (which some wheels bring) before settling on OpenMP: not the user's concern.
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message=".*TBB.*")
-                _query(*arguments)
-            _threads_started = True
-        return distances, indices
+        misses = compiled_tree.run_parallel(_query, *arguments)
+        return distances, indices, int(misses)

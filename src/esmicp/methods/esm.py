@@ -34,8 +34,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core import moments
 from ..core.kernels import relative_gaussian_weights
-from ..core.procrustes import rotation_angle, weighted_procrustes
+from ..core.procrustes import rotation_angle, rotation_from_cross_covariance, weighted_procrustes
 from ..types import as_positive
 from .base import Step
 
@@ -121,9 +122,26 @@ class EsmEstimator:
         sigma = self.sigma(distances, fine=self.fine)
         weights = relative_gaussian_weights(distances, sigma)
         rotation, translation = weighted_procrustes(moved_source, target[indices], weights)
+        self._update_phase(rotation, translation)
+        return Step(rotation, translation, weights=weights, sigma=sigma)
+
+    if moments.available():
+
+        def step_placed(self, source, transformation, target, distances, indices) -> Step:
+            """:meth:`step` from the unmoved source and its placement, in one compiled pass."""
+            sigma = self.sigma(distances, fine=self.fine)
+            total, squares, source_mean, target_mean, cross = moments.pair_moments(
+                source, transformation, target, indices, distances, sigma
+            )
+            rotation = rotation_from_cross_covariance(cross)
+            translation = target_mean - rotation @ source_mean
+            self._update_phase(rotation, translation)
+            effective = total * total / squares if squares > 0 else 0.0
+            return Step(rotation, translation, sigma=sigma, effective_pairs=effective)
+
+    def _update_phase(self, rotation, translation) -> None:
         if not self.fine and self.sigma.fixed is None:
             self.fine = (
                 rotation_angle(rotation) < FINE_PHASE_STEP
                 and np.linalg.norm(translation) < FINE_PHASE_STEP * self.sigma.diameter
             )
-        return Step(rotation, translation, weights=weights, sigma=sigma)

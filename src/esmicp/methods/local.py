@@ -113,13 +113,18 @@ def refine(
     else:
         source = full_source
     near = getattr(target, "query_near", None)
+    # Without a callback or a history nothing needs the per-point arrays: the placed source is
+    # never formed, the query and the step map the source themselves.
+    placed_step = getattr(estimator, "step_placed", None) if callback is None and not record_history else None
 
-    def query(points, warm):
+    def query(points, transform, warm):
         if near is None:
-            return target.query(points)
+            return target.query(apply(transform, points))
         if query_order is None:
-            return near(points, warm=warm)
-        found_distances, found_indices = near(points[query_order], warm=None if warm is None else warm[query_order])
+            return near(points, warm=warm, transform=transform)
+        found_distances, found_indices = near(
+            points[query_order], warm=None if warm is None else warm[query_order], transform=transform
+        )
         distances, indices = np.empty_like(found_distances), np.empty_like(found_indices)
         distances[query_order], indices[query_order] = found_distances, found_indices
         return distances, indices
@@ -135,17 +140,20 @@ def refine(
     for iteration in range(1, max_iterations + 1):
         if coarse and estimator.accelerated:
             coarse, source, indices, previous_rmse = False, full_source, None, None
-        moved = apply(transformation, source)
-        distances, indices = query(moved, indices)
+        distances, indices = query(source, transformation, indices)
         if fallback is not None:
             if estimator.objective(distances) < objective_before:
                 # The accelerated proposal fits worse than the pose it came from: take the plain step.
                 transformation, fallback = fallback, None
                 accelerator.reset()
-                moved = apply(transformation, source)
-                distances, indices = query(moved, indices)
+                distances, indices = query(source, transformation, indices)
             fallback = None
-        step = estimator.step(moved, target.points, distances, indices)
+        if placed_step is not None:
+            moved = None
+            step = placed_step(source, transformation, target.points, distances, indices)
+        else:
+            moved = apply(transformation, source)
+            step = estimator.step(moved, target.points, distances, indices)
         if not (np.isfinite(step.rotation).all() and np.isfinite(step.translation).all()):
             return LocalOutcome(
                 transformation, False, iteration - 1, sigma,
