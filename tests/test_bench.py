@@ -141,10 +141,15 @@ def test_resume_refuses_a_different_configuration(tmp_path):
         run_bench(small(trials=1, max_iterations=5), serial(tmp_path, resume=True))
 
 
+#: Trials of the interrupted bench: enough that it cannot finish between its 4th row and the signal
+#: (12 could, once the iterations got faster).
+_INTERRUPTED_TRIALS = 100
+
+
 def _bench_command(out: Path, workers: str) -> list[str]:
     return [sys.executable, "-m", "esmicp.cli", "bench", "--datasets", "synthetic", "--protocols", "copy,shuffled",
-            "--methods", "esm,icp", "--trials", "12", "--points", "400", "--workers", workers, "--no-progress",
-            "--out", str(out)]
+            "--methods", "esm,icp", "--trials", str(_INTERRUPTED_TRIALS), "--points", "400", "--workers", workers,
+            "--no-progress", "--out", str(out)]
 
 
 @pytest.mark.parametrize("workers", ["1", "2"])
@@ -169,13 +174,13 @@ def test_sigint_keeps_finished_trials_and_resume_completes_them(tmp_path, worker
     assert process.returncode == 130, stderr
     assert "--resume" in stderr and "Traceback" not in stderr
     interrupted = read_rows(rows_path)
-    assert 4 <= len(interrupted) < 2 * 12 * 2
+    assert 4 <= len(interrupted) < 2 * _INTERRUPTED_TRIALS * 2
     assert rows_path.read_bytes().endswith(b"\n")  # every row on disk is whole
     done = subprocess.run([sys.executable, "-m", "esmicp.cli", "bench", "--out", str(out), "--resume",
                            "--no-progress", "--workers", "1"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     rows = read_rows(rows_path)
-    assert len(rows) == 2 * 12 * 2 and len({_key(r) for r in rows}) == len(rows)
+    assert len(rows) == 2 * _INTERRUPTED_TRIALS * 2 and len({_key(r) for r in rows}) == len(rows)
     assert rows[: len(interrupted)] == interrupted
 
 

@@ -130,9 +130,9 @@ def test_paper_cross_covariance_equals_the_similarity_matrix_entries():
         np.testing.assert_allclose(cross_covariance, expected, rtol=0, atol=1e-12)
 
 
-def _refine(source, index, start, *, coarse_points=None, diagonal, spacing, max_iterations=100):
+def _refine(source, index, start, *, coarse_points=None, diagonal, spacing, max_iterations=100, tolerance=1e-8):
     estimator = EsmEstimator(SigmaSchedule.auto(spacing, diagonal))
-    return refine(source, index, estimator, init=start, max_iterations=max_iterations, tolerance=1e-8,
+    return refine(source, index, estimator, init=start, max_iterations=max_iterations, tolerance=tolerance,
                   scale=diagonal, coarse_points=coarse_points)
 
 

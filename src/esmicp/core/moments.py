@@ -30,16 +30,31 @@ def available() -> bool:
 
 if numba is not None:
 
+    @numba.njit(cache=True, nogil=True)
+    def _smallest_square(distances):
+        smallest = np.inf
+        for value in distances:
+            smallest = min(smallest, value * value)
+        return smallest
+
     @numba.njit(cache=True, parallel=True, nogil=True)
-    def _moments(source, rotation, translation, target, indices, squared_distances, scale, shift, source_reference,
-                 target_reference, chunks):
+    def _moments(source, rotation, translation, target, indices, distances, scale, shift, chunks):
         count = source.shape[0]
+        # References: the first pair, so that no offset between or of the clouds cancels digits.
+        source_reference = np.empty(3)
+        target_reference = np.empty(3)
+        for a in range(3):
+            source_reference[a] = (rotation[a, 0] * source[0, 0] + rotation[a, 1] * source[0, 1]
+                                   + rotation[a, 2] * source[0, 2] + translation[a])
+            target_reference[a] = target[indices[0], a]
         partial = np.zeros((chunks, 17))
         for chunk in numba.prange(chunks):
-            acc = partial[chunk]
+            # Local accumulators (registers), written once per chunk: no false sharing.
+            w0 = w1 = ax = ay = az = bx = by = bz = 0.0
+            cxx = cxy = cxz = cyx = cyy = cyz = czx = czy = czz = 0.0
             for i in range(chunk * count // chunks, (chunk + 1) * count // chunks):
                 if scale > 0.0:
-                    w = np.exp(-(squared_distances[i] - shift) * scale)
+                    w = np.exp(-(distances[i] * distances[i] - shift) * scale)
                 else:
                     w = 1.0
                 sx = rotation[0, 0] * source[i, 0] + rotation[0, 1] * source[i, 1] + rotation[0, 2] * source[i, 2] + translation[0] - source_reference[0]
@@ -49,25 +64,39 @@ if numba is not None:
                 tx = target[j, 0] - target_reference[0]
                 ty = target[j, 1] - target_reference[1]
                 tz = target[j, 2] - target_reference[2]
-                acc[0] += w
-                acc[1] += w * w
-                acc[2] += w * sx
-                acc[3] += w * sy
-                acc[4] += w * sz
-                acc[5] += w * tx
-                acc[6] += w * ty
-                acc[7] += w * tz
+                w0 += w
+                w1 += w * w
                 wx, wy, wz = w * sx, w * sy, w * sz
-                acc[8] += wx * tx
-                acc[9] += wx * ty
-                acc[10] += wx * tz
-                acc[11] += wy * tx
-                acc[12] += wy * ty
-                acc[13] += wy * tz
-                acc[14] += wz * tx
-                acc[15] += wz * ty
-                acc[16] += wz * tz
-        return partial.sum(axis=0)
+                ax += wx
+                ay += wy
+                az += wz
+                bx += w * tx
+                by += w * ty
+                bz += w * tz
+                cxx += wx * tx
+                cxy += wx * ty
+                cxz += wx * tz
+                cyx += wy * tx
+                cyy += wy * ty
+                cyz += wy * tz
+                czx += wz * tx
+                czy += wz * ty
+                czz += wz * tz
+            row = partial[chunk]
+            row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7] = w0, w1, ax, ay, az, bx, by, bz
+            row[8], row[9], row[10], row[11], row[12], row[13] = cxx, cxy, cxz, cyx, cyy, cyz
+            row[14], row[15], row[16] = czx, czy, czz
+        sums = np.zeros(17)
+        for chunk in range(chunks):
+            sums += partial[chunk]
+        total = sums[0]
+        source_mean = sums[2:5] / total
+        target_mean = sums[5:8] / total
+        cross = np.empty((3, 3))
+        for a in range(3):
+            for b in range(3):
+                cross[a, b] = sums[8 + 3 * a + b] / total - source_mean[a] * target_mean[b]
+        return total, sums[1], source_mean + source_reference, target_mean + target_reference, cross
 
 
 def pair_moments(
@@ -89,23 +118,11 @@ def pair_moments(
     cross_covariance)``: weighted centroids of the placed source and of the matched target points
     (target frame), and ``H = sum_i w_i (s_i - s_bar)(t_i - t_bar)^T / sum_i w_i``.
     """
-    source = np.ascontiguousarray(source, dtype=np.float64)
-    squared = np.square(distances)
     if sigma is None:
         scale, shift = 0.0, 0.0
     else:
-        scale, shift = 1.0 / (2.0 * sigma * sigma), float(squared.min())
-    rotation = np.ascontiguousarray(transform[:3, :3], dtype=np.float64)
-    translation = np.ascontiguousarray(transform[:3, 3], dtype=np.float64)
-    source_reference = rotation @ source[0] + translation
-    target_reference = np.array(target[indices[0]], dtype=np.float64)
-    sums = run_parallel(
-        _moments,
-        source, rotation, translation, target, indices, squared, scale, shift, source_reference,
-        target_reference, chunk_count(len(source)),
+        scale, shift = 1.0 / (2.0 * sigma * sigma), _smallest_square(distances)
+    return run_parallel(
+        _moments, source, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
+        target, indices, distances, scale, shift, chunk_count(len(source), per_thread=1),
     )
-    total = sums[0]
-    source_mean = sums[2:5] / total
-    target_mean = sums[5:8] / total
-    cross = sums[8:17].reshape(3, 3) / total - np.outer(source_mean, target_mean)
-    return float(total), float(sums[1]), source_mean + source_reference, target_mean + target_reference, cross

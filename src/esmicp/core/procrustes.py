@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import pose_kernels
+
 
 def rotation_from_cross_covariance(cross_covariance: np.ndarray) -> np.ndarray:
     """Rotation ``R = V diag(1, 1, d) U^T`` maximising ``trace(R H)`` for ``H = U S V^T``.
@@ -14,11 +16,7 @@ def rotation_from_cross_covariance(cross_covariance: np.ndarray) -> np.ndarray:
     ``H`` is the 3x3 cross-covariance ``sum_i w_i (s_i - s_bar)(t_i - t_bar)^T``; ``d`` fixes a
     reflection so that ``det R = +1`` (the standard Kabsch/Umeyama correction).
     """
-    u, _, vt = np.linalg.svd(cross_covariance)
-    v = vt.T
-    correction = np.ones(3)
-    correction[2] = np.sign(np.linalg.det(v @ u.T)) or 1.0
-    return (v * correction) @ u.T
+    return pose_kernels.kabsch_rotation(np.asarray(cross_covariance, dtype=np.float64))
 
 
 def weighted_procrustes(
@@ -69,15 +67,9 @@ def rotation_angle(rotation: np.ndarray) -> float:
 
     Accurate for tiny angles too (uses ``atan2`` of the skew part and the trace).
     """
-    skew = np.array(
-        [rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]]
-    )
-    return float(np.arctan2(0.5 * np.linalg.norm(skew), 0.5 * (np.trace(rotation) - 1.0)))
+    return pose_kernels.angle_of(np.asarray(rotation, dtype=np.float64))
 
 
 def project_to_rotation(matrix: np.ndarray) -> np.ndarray:
     """Nearest rotation matrix (in Frobenius norm) to a 3x3 matrix; removes accumulated drift."""
-    u, _, vt = np.linalg.svd(matrix)
-    correction = np.ones(3)
-    correction[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
-    return (u * correction) @ vt
+    return pose_kernels.nearest_rotation(np.asarray(matrix, dtype=np.float64))

@@ -14,9 +14,7 @@ Poses are parametrised relative to the pose where acceleration started, as a rot
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
-
-from ..core.procrustes import project_to_rotation, to_matrix
+from ..core.pose_kernels import anderson_mix, pose_from_parameters, pose_parameters
 
 #: Past residuals combined by each proposal.
 WINDOW = 5
@@ -37,31 +35,27 @@ class AndersonAccelerator:
         self._images: list[np.ndarray] = []
 
     def _params(self, transform: np.ndarray) -> np.ndarray:
-        relative = transform @ np.linalg.inv(self._reference)
-        rotvec = Rotation.from_matrix(project_to_rotation(relative[:3, :3])).as_rotvec()
-        return np.concatenate([rotvec, relative[:3, 3] / self.scale])
+        return pose_parameters(transform, self._reference, self.scale)
 
     def _transform(self, params: np.ndarray) -> np.ndarray:
-        relative = to_matrix(Rotation.from_rotvec(params[:3]).as_matrix(), params[3:] * self.scale)
-        return relative @ self._reference
+        return pose_from_parameters(params, self._reference, self.scale)
 
     def propose(self, current: np.ndarray, plain: np.ndarray) -> np.ndarray:
         """The next pose: ``plain`` (= G(current)) itself until two steps are known, then the
         Anderson combination of the last ``window`` steps."""
         if self._reference is None:
-            self._reference = current.copy()
+            self._reference = np.ascontiguousarray(current, dtype=np.float64)
         image = self._params(plain)
         self._residuals.append(image - self._params(current))
         self._images.append(image)
         del self._residuals[: -self.window - 1], self._images[: -self.window - 1]
         if len(self._residuals) < 2:
             return plain
-        residuals = np.array(self._residuals)
-        images = np.array(self._images)
-        d_residuals = np.diff(residuals, axis=0).T
-        d_images = np.diff(images, axis=0).T
-        gamma, *_ = np.linalg.lstsq(d_residuals, residuals[-1], rcond=None)
-        proposal = images[-1] - d_images @ gamma
+        residuals, images = np.array(self._residuals), np.array(self._images)
+        if not (np.isfinite(residuals).all() and np.isfinite(images).all()):
+            self.reset()
+            return plain
+        proposal = anderson_mix(residuals, images)
         if not np.isfinite(proposal).all():
             self.reset()
             return plain

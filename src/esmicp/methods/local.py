@@ -21,7 +21,8 @@ import numpy as np
 
 from ..core.correspondence import NearestNeighbors
 from ..core.kernels import effective_count
-from ..core.procrustes import apply, project_to_rotation, rotation_angle, to_matrix
+from ..core.pose_kernels import compose, motion_between
+from ..core.procrustes import apply
 from ..result import IterationRecord
 from .acceleration import AndersonAccelerator
 from .base import StepEstimator
@@ -160,8 +161,7 @@ def refine(
                 f"stopped at iteration {iteration}: the increment was not finite", _freeze(history),
             )
         sigma = step.sigma
-        plain = to_matrix(step.rotation, step.translation) @ transformation
-        plain[:3, :3] = project_to_rotation(plain[:3, :3])
+        plain = compose(step.rotation, step.translation, transformation)
         following = plain
         if accelerator is not None:
             if estimator.accelerated:
@@ -171,7 +171,7 @@ def refine(
                     fallback = plain
             else:
                 accelerator.reset()
-        increment = following @ np.linalg.inv(transformation)
+        moved_angle, moved_distance = motion_between(transformation, following)
         transformation = following
         rmse = float(np.sqrt(np.mean(np.square(distances))))
         if history is not None:
@@ -182,9 +182,7 @@ def refine(
                 return LocalOutcome(
                     transformation, False, iteration, sigma, "stopped by the callback", _freeze(history)
                 )
-        small_step = (
-            rotation_angle(increment[:3, :3]) < tolerance and np.linalg.norm(increment[:3, 3]) < tolerance * scale
-        )
+        small_step = moved_angle < tolerance and moved_distance < tolerance * scale
         settled = previous_rmse is not None and abs(previous_rmse - rmse) <= tolerance * previous_rmse
         if coarse and (small_step or settled):
             # Converged on the subset: continue on the full source, at the fine sigma.
