@@ -150,8 +150,8 @@ def test_coarse_to_fine_converges_to_the_full_resolution_pose_on_lidar():
     diagonal = float(np.linalg.norm(np.ptp(target, axis=0)))
     common = {"diagonal": diagonal, "spacing": index.spacing()}
     start = yawed(truth, source, 5.0)
-    coarse = _refine(source, index, start, coarse_points=COARSE_POINTS, **common)
-    full = _refine(source, index, start, **common)
+    coarse = _refine(source, index, start, coarse_points=COARSE_POINTS, max_iterations=200, **common)
+    full = _refine(source, index, start, max_iterations=200, **common)
     assert coarse.converged and full.converged
     difference = coarse.transformation @ np.linalg.inv(full.transformation)
     assert np.degrees(rotation_angle(difference[:3, :3])) < 2e-3
