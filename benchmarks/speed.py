@@ -61,6 +61,14 @@ SHARED = Path(os.environ.get("ESMICP_SHARED_DATA", Path(__file__).resolve().pare
 OFFSET_DEG = 10.0
 CORRESPONDENCE_FRACTION = 0.1  # of the target's diagonal, for Open3D and small_gicp
 ITERATIONS_K, ITERATIONS_N = 5, 20  # marginal cost: (time(k + n) - time(k)) / n; --skip sets k
+MARGINAL_POINT_ITERATIONS = 2_000_000  # below 100k points n grows to this / N (200 at 1k, 20 from 100k)
+
+
+def marginal_iterations(size: int) -> int:
+    """n of the marginal cost at ``size`` points: 20, or more for small clouds, so that the timed
+    difference is not a few milliseconds of scheduler noise (at 1k, 20 iterations of an Open3D ICP
+    last 2 ms)."""
+    return max(ITERATIONS_N, min(200, MARGINAL_POINT_ITERATIONS // size))
 MAX_ITERATIONS = 100
 
 
@@ -227,9 +235,10 @@ def measure(cloud: str, size: int, repeats: int, with_global: bool, with_local: 
         for method in order:
             build_s, _ = _timed(method.build)
             add(method, "build_ms", 1e3 * build_s)
+            extra = marginal_iterations(size)
             short_s, done_short = _timed(lambda: method.iterations(ITERATIONS_K))
-            long_s, done_long = _timed(lambda: method.iterations(ITERATIONS_K + ITERATIONS_N))
-            if done_long - done_short >= ITERATIONS_N // 2:  # small_gicp may still stop early
+            long_s, done_long = _timed(lambda: method.iterations(ITERATIONS_K + extra))
+            if done_long - done_short >= extra // 2:  # small_gicp may still stop early
                 add(method, "iteration_ms", 1e3 * (long_s - short_s) / (done_long - done_short))
             if not with_local:
                 continue

@@ -118,6 +118,8 @@ def pair_moments(
     cross_covariance)``: weighted centroids of the placed source and of the matched target points
     (target frame), and ``H = sum_i w_i (s_i - s_bar)(t_i - t_bar)^T / sum_i w_i``.
     """
+    if len(source) == 0:
+        raise ValueError("pair_moments needs at least one pair")
     if sigma is None:
         scale, shift = 0.0, 0.0
     else:
@@ -125,4 +127,107 @@ def pair_moments(
     return run_parallel(
         _moments, source, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
         target, indices, distances, scale, shift, chunk_count(len(source), per_thread=1),
+    )
+
+
+if numba is not None:
+
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _placed(source, rotation, translation, i):
+        x = rotation[0, 0] * source[i, 0] + rotation[0, 1] * source[i, 1] + rotation[0, 2] * source[i, 2] + translation[0]
+        y = rotation[1, 0] * source[i, 0] + rotation[1, 1] * source[i, 1] + rotation[1, 2] * source[i, 2] + translation[1]
+        z = rotation[2, 0] * source[i, 0] + rotation[2, 1] * source[i, 1] + rotation[2, 2] * source[i, 2] + translation[2]
+        return x, y, z
+
+    @numba.njit(cache=True, parallel=True, nogil=True)
+    def _paper_moments(source, rotation, translation, target, indices, distances, scale, chunks):
+        count = source.shape[0]
+        # Pass 1: the unweighted centroids of the placed source and of the matched target points,
+        # and the weights' sums.
+        partial = np.zeros((chunks, 8))
+        for chunk in numba.prange(chunks):
+            sx = sy = sz = mx = my = mz = w0 = w1 = 0.0
+            for i in range(chunk * count // chunks, (chunk + 1) * count // chunks):
+                x, y, z = _placed(source, rotation, translation, i)
+                sx += x
+                sy += y
+                sz += z
+                j = indices[i]
+                mx += target[j, 0]
+                my += target[j, 1]
+                mz += target[j, 2]
+                w = np.exp(-distances[i] * distances[i] * scale)
+                w0 += w
+                w1 += w * w
+            row = partial[chunk]
+            row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7] = sx, sy, sz, mx, my, mz, w0, w1
+        sums = np.zeros(8)
+        for chunk in range(chunks):
+            sums += partial[chunk]
+        s_bar = sums[0:3] / count
+        t_bar = sums[3:6] / count
+        # Pass 2: H from M's entries (see esmicp.methods.esm_paper.paper_cross_covariance).
+        blocks = np.zeros((chunks, 9))
+        for chunk in numba.prange(chunks):
+            h = np.zeros(9)
+            for i in range(chunk * count // chunks, (chunk + 1) * count // chunks):
+                partner = indices[i]
+                if partner >= count:
+                    continue  # M[c(i), i] and M[i, c(i)] have no column to act on
+                w = np.exp(-distances[i] * distances[i] * scale)
+                mutual = indices[partner] == i
+                first = w
+                if mutual and partner > i:
+                    first = np.exp(-distances[partner] * distances[partner] * scale)
+                # M[c(i), i] = first: source i with the target matched to c(i).
+                x, y, z = _placed(source, rotation, translation, i)
+                k = indices[partner]
+                ax, ay, az = x - s_bar[0], y - s_bar[1], z - s_bar[2]
+                bx, by, bz = target[k, 0] - t_bar[0], target[k, 1] - t_bar[1], target[k, 2] - t_bar[2]
+                h[0] += first * ax * bx
+                h[1] += first * ax * by
+                h[2] += first * ax * bz
+                h[3] += first * ay * bx
+                h[4] += first * ay * by
+                h[5] += first * ay * bz
+                h[6] += first * az * bx
+                h[7] += first * az * by
+                h[8] += first * az * bz
+                if not mutual:
+                    # M[i, c(i)] = w_i: source c(i) with the target matched to i.
+                    x, y, z = _placed(source, rotation, translation, partner)
+                    j = indices[i]
+                    ax, ay, az = x - s_bar[0], y - s_bar[1], z - s_bar[2]
+                    bx, by, bz = target[j, 0] - t_bar[0], target[j, 1] - t_bar[1], target[j, 2] - t_bar[2]
+                    h[0] += w * ax * bx
+                    h[1] += w * ax * by
+                    h[2] += w * ax * bz
+                    h[3] += w * ay * bx
+                    h[4] += w * ay * by
+                    h[5] += w * ay * bz
+                    h[6] += w * az * bx
+                    h[7] += w * az * by
+                    h[8] += w * az * bz
+            blocks[chunk] = h
+        cross = np.zeros((3, 3))
+        for chunk in range(chunks):
+            for a in range(3):
+                for b in range(3):
+                    cross[a, b] += blocks[chunk, 3 * a + b]
+        return sums[6], sums[7], s_bar, t_bar, cross
+
+
+def paper_moments(
+    source: np.ndarray, transform: np.ndarray, target: np.ndarray, indices: np.ndarray, distances: np.ndarray,
+    sigma: float,
+) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
+    """The paper's ``(sum w, sum w^2, s_bar, t_bar, H)`` for the source placed by ``transform``
+    (4x4), in two compiled passes: exactly :func:`esmicp.methods.esm_paper.paper_cross_covariance`
+    on ``(T source, target[indices])`` with ``w_i = exp(-d_i^2 / (2 sigma^2))``, and the centroids
+    it uses (unweighted, of all placed source points and of all matched target points)."""
+    if len(source) == 0:
+        raise ValueError("paper_moments needs at least one pair")
+    return run_parallel(
+        _paper_moments, source, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
+        target, indices, distances, 1.0 / (2.0 * sigma * sigma), chunk_count(len(source), per_thread=1),
     )

@@ -174,7 +174,7 @@ if numba is not None:
                 if best > limit:
                     chunk_misses += 1
                 out_distances[i] = np.sqrt(best)
-                out_indices[i] = tree_order[slot]
+                out_indices[i] = tree_order[slot] if slot >= 0 else tree_order.shape[0]  # none: M
             misses += chunk_misses
         return misses
 

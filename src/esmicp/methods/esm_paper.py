@@ -32,6 +32,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse
 
+from ..core import moments
 from ..core.kernels import gaussian_weights
 from ..core.procrustes import rotation_from_cross_covariance
 from ..types import as_positive
@@ -118,3 +119,15 @@ class EsmPaperEstimator:
         )
         rotation = rotation_from_cross_covariance(cross_covariance)
         return Step(rotation, target_centroid - rotation @ source_centroid, weights=weights, sigma=self.sigma)
+
+    if moments.available():
+
+        def step_placed(self, source, transformation, target, distances, indices) -> Step:
+            """:meth:`step` from the unmoved source and its placement, in two compiled passes."""
+            total, squares, source_centroid, target_centroid, cross_covariance = moments.paper_moments(
+                source, transformation, target, indices, distances, self.sigma
+            )
+            rotation = rotation_from_cross_covariance(cross_covariance)
+            effective = total * total / squares if squares > 0 else 0.0
+            return Step(rotation, target_centroid - rotation @ source_centroid, sigma=self.sigma,
+                        effective_pairs=effective)
