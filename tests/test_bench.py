@@ -65,8 +65,10 @@ def _without_timings(row):
 
 
 def test_rows_follow_the_schema_and_the_paper_protocol_favours_esm_paper(tmp_path):
-    outcome = run_bench(small(protocols=("copy", "shuffled", "paper"), methods=(*LOCAL_OURS, "esm-global")),
-                        serial(tmp_path))
+    # The paper's 40 iterations: from some full rotations the first steps are degenerate (every
+    # Gaussian weight but one ~0), and its copies then take up to 34.
+    outcome = run_bench(small(protocols=("copy", "shuffled", "paper"), methods=(*LOCAL_OURS, "esm-global"),
+                              max_iterations=40), serial(tmp_path))
     rows = read_rows(tmp_path / "rows.jsonl")
     assert outcome.rows_written == len(rows) == 3 * 4 * 4
     for row in rows:
@@ -77,7 +79,7 @@ def test_rows_follow_the_schema_and_the_paper_protocol_favours_esm_paper(tmp_pat
         expected_kind = "global" if row["method"] == "esm-global" else "local"
         assert row["method_kind"] == expected_kind
         assert row["init"] == ("none (global)" if expected_kind == "global" else "identity")
-        assert row["max_iterations"] == (None if expected_kind == "global" else 30)
+        assert row["max_iterations"] == (None if expected_kind == "global" else 40)
     by = {(r["protocol"], r["method"]): [] for r in rows}
     for r in rows:
         by[(r["protocol"], r["method"])].append(r["success_strict"])

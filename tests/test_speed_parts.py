@@ -251,3 +251,37 @@ def test_placed_paper_step_equals_the_paper_cross_covariance():
         np.testing.assert_allclose(placed.translation, plain.translation, rtol=0, atol=1e-9)
         weights = plain.weights
         assert placed.effective_pairs == pytest.approx(weights.sum() ** 2 / np.square(weights).sum(), rel=1e-9)
+
+
+_INTERRUPT_LOOP = """
+import os, signal, sys, threading, time
+import numpy as np
+import esmicp
+rng = np.random.default_rng(0)
+target = rng.normal(size=(600, 3))
+source = target[::-1] + 0.01
+esmicp.register(source, target, init="identity")
+lost = 0
+for trial in range(12):
+    threading.Timer(0.01 + 0.004 * trial, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+    try:
+        start = time.perf_counter()
+        while time.perf_counter() - start < 0.25:
+            for method in ("esm", "icp", "esm-paper"):
+                esmicp.register(source, target, init="identity", method=method, max_iterations=5)
+        lost += 1
+    except KeyboardInterrupt:
+        pass
+print(lost)
+"""
+
+
+def test_ctrl_c_always_interrupts_the_compiled_iterations():
+    """A Ctrl-C arriving at any moment of the iterations raises KeyboardInterrupt (none is turned
+    into another error inside a compiled kernel, which a caller's ``except Exception`` would eat)."""
+    import subprocess
+    import sys
+
+    completed = subprocess.run([sys.executable, "-c", _INTERRUPT_LOOP], capture_output=True, text=True, timeout=120)
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    assert completed.stdout.strip() == "0", completed.stderr[-2000:]

@@ -148,7 +148,9 @@ class NearestNeighbors:
         """
         count = len(self.points)
         sample = self.points[np.linspace(0, count - 1, min(count, max_samples)).astype(np.intp)]
-        distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=self._workers())
+        # One thread: a Ctrl-C landing in scipy's threaded k-NN query can crash the process
+        # (seen here: std::bad_alloc in its worker threads, then a segfault); 5,000 queries are cheap.
+        distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=1)
         distances = np.where(distances > 0, distances, np.inf).min(axis=1)
         positive = distances[np.isfinite(distances)]
         value = float(np.median(positive)) if len(positive) else 0.0

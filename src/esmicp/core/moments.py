@@ -7,6 +7,11 @@ placed source, the gathered targets or the weights as arrays (one pass, on all c
 temporaries), and returns the weighted centroids and cross-covariance
 (:func:`esmicp.core.procrustes.weighted_procrustes` on the same pairs gives the same fit).
 
+The parallel kernels return nothing: they fill a result array the caller gives. (A parallel numba
+function that boxes a new array on return calls back into Python to do so, and a Ctrl-C landing
+in that call surfaces as a ``SystemError`` instead of ``KeyboardInterrupt``: measured, 1 in 2
+interrupts of a bench run were lost that way.)
+
 Sums are taken relative to one point of each side (the first pair), so that neither clouds far
 from the origin nor a source far from the target lose precision to cancellation.
 """
@@ -38,7 +43,7 @@ if numba is not None:
         return smallest
 
     @numba.njit(cache=True, parallel=True, nogil=True)
-    def _moments(source, rotation, translation, target, indices, distances, scale, shift, chunks):
+    def _moments(source, rotation, translation, target, indices, distances, scale, shift, chunks, out):
         count = source.shape[0]
         # References: the first pair, so that no offset between or of the clouds cancels digits.
         source_reference = np.empty(3)
@@ -90,13 +95,13 @@ if numba is not None:
         for chunk in range(chunks):
             sums += partial[chunk]
         total = sums[0]
-        source_mean = sums[2:5] / total
-        target_mean = sums[5:8] / total
-        cross = np.empty((3, 3))
+        out[0], out[1] = total, sums[1]
         for a in range(3):
             for b in range(3):
-                cross[a, b] = sums[8 + 3 * a + b] / total - source_mean[a] * target_mean[b]
-        return total, sums[1], source_mean + source_reference, target_mean + target_reference, cross
+                out[8 + 3 * a + b] = sums[8 + 3 * a + b] / total - (sums[2 + a] / total) * (sums[5 + b] / total)
+        for a in range(3):
+            out[2 + a] = sums[2 + a] / total + source_reference[a]
+            out[5 + a] = sums[5 + a] / total + target_reference[a]
 
 
 def pair_moments(
@@ -124,10 +129,16 @@ def pair_moments(
         scale, shift = 0.0, 0.0
     else:
         scale, shift = 1.0 / (2.0 * sigma * sigma), _smallest_square(distances)
-    return run_parallel(
+    out = np.empty(17)
+    run_parallel(
         _moments, source, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
-        target, indices, distances, scale, shift, chunk_count(len(source), per_thread=1),
+        target, indices, distances, scale, shift, chunk_count(len(source), per_thread=1), out,
     )
+    return _unpacked(out)
+
+
+def _unpacked(out: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
+    return float(out[0]), float(out[1]), out[2:5], out[5:8], out[8:17].reshape(3, 3)
 
 
 if numba is not None:
@@ -140,7 +151,7 @@ if numba is not None:
         return x, y, z
 
     @numba.njit(cache=True, parallel=True, nogil=True)
-    def _paper_moments(source, rotation, translation, target, indices, distances, scale, chunks):
+    def _paper_moments(source, rotation, translation, target, indices, distances, scale, chunks, out):
         count = source.shape[0]
         # Pass 1: the unweighted centroids of the placed source and of the matched target points,
         # and the weights' sums.
@@ -164,8 +175,11 @@ if numba is not None:
         sums = np.zeros(8)
         for chunk in range(chunks):
             sums += partial[chunk]
-        s_bar = sums[0:3] / count
-        t_bar = sums[3:6] / count
+        s_bar = np.empty(3)
+        t_bar = np.empty(3)
+        for a in range(3):
+            s_bar[a] = sums[a] / count
+            t_bar[a] = sums[3 + a] / count
         # Pass 2: H from M's entries (see esmicp.methods.esm_paper.paper_cross_covariance).
         blocks = np.zeros((chunks, 9))
         for chunk in numba.prange(chunks):
@@ -209,12 +223,13 @@ if numba is not None:
                     h[7] += w * az * by
                     h[8] += w * az * bz
             blocks[chunk] = h
-        cross = np.zeros((3, 3))
+        out[:] = 0.0
+        out[0], out[1] = sums[6], sums[7]
+        for a in range(3):
+            out[2 + a], out[5 + a] = s_bar[a], t_bar[a]
         for chunk in range(chunks):
-            for a in range(3):
-                for b in range(3):
-                    cross[a, b] += blocks[chunk, 3 * a + b]
-        return sums[6], sums[7], s_bar, t_bar, cross
+            for a in range(9):
+                out[8 + a] += blocks[chunk, a]
 
 
 def paper_moments(
@@ -227,7 +242,9 @@ def paper_moments(
     it uses (unweighted, of all placed source points and of all matched target points)."""
     if len(source) == 0:
         raise ValueError("paper_moments needs at least one pair")
-    return run_parallel(
+    out = np.empty(17)
+    run_parallel(
         _paper_moments, source, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
-        target, indices, distances, 1.0 / (2.0 * sigma * sigma), chunk_count(len(source), per_thread=1),
+        target, indices, distances, 1.0 / (2.0 * sigma * sigma), chunk_count(len(source), per_thread=1), out,
     )
+    return _unpacked(out)
