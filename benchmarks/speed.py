@@ -29,7 +29,7 @@ Per size, interleaved within each repeat (the order rotates), medians over repea
   iterations max, its default epsilons); each call includes its own tree builds;
 - a full global registration ``esmicp.register()`` (no initial guess);
 - peak memory (``--memory``): each registration at the largest size in a fresh child process,
-  ``resource.getrusage`` peak RSS, before (clouds loaded) and after.
+  peak RSS (``VmHWM``), before (clouds loaded) and after.
 
 Open3D and small_gicp get the same correspondence distance (10% of the target's bounding-box
 diagonal, enough for a 10-degree offset) and the same iteration count; all use both cores. The
@@ -141,8 +141,9 @@ class Esm:
     def iterations(self, count):
         diagonal = float(np.linalg.norm(np.ptp(self.target, axis=0)))
         estimator = EsmEstimator(SigmaSchedule.auto(self.spacing, diagonal))
+        # tolerance -1: never stop early (with 0 a run stops once its RMS distance repeats exactly).
         outcome = refine(self.source, self.index, estimator, init=self.start, max_iterations=count,
-                         tolerance=0.0, scale=diagonal)
+                         tolerance=-1.0, scale=diagonal)
         return outcome.num_iterations
 
     def local(self):
@@ -273,7 +274,8 @@ def paper_speed(size: int, repeats: int) -> tuple[float, float]:
     costs: dict[str, list[float]] = {name: [] for name in makers}
 
     def run(name, count):
-        return refine(source, index, makers[name](), init=np.eye(4), max_iterations=count, tolerance=0.0, scale=diagonal)
+        return refine(source, index, makers[name](), init=np.eye(4), max_iterations=count, tolerance=-1.0,
+                      scale=diagonal)
 
     run("esm", 2)
     for _ in range(repeats):
@@ -284,12 +286,26 @@ def paper_speed(size: int, repeats: int) -> tuple[float, float]:
     return float(np.median(costs["esm"])), float(np.median(costs["esm-paper"]))
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (MB): ``VmHWM`` of ``/proc/self/status``, which starts
+    afresh with the process image. (``getrusage``'s ``ru_maxrss`` does not: on Linux a child
+    started by a large parent reports the parent's peak, which hid the child's own in earlier runs.)"""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def memory_child(cloud: str, size: int, mode: str) -> None:
     """Run in a fresh process: print peak RSS (MB) with the clouds loaded, then after registering."""
     source, target, start, truth = CLOUDS[cloud](size)
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    before = peak_rss_mb()
     elapsed, result = _timed(lambda: esmicp.register(source, target, init=None if mode == "global" else start))
-    after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    after = peak_rss_mb()
     print(json.dumps({"before_mb": before, "after_mb": after, "seconds": elapsed,
                       "error_deg": rotation_error_deg(result.transformation, truth)}))
 
