@@ -285,3 +285,18 @@ def test_ctrl_c_always_interrupts_the_compiled_iterations():
     completed = subprocess.run([sys.executable, "-c", _INTERRUPT_LOOP], capture_output=True, text=True, timeout=120)
     assert completed.returncode == 0, completed.stderr[-2000:]
     assert completed.stdout.strip() == "0", completed.stderr[-2000:]
+
+
+def test_a_system_error_caused_by_an_interrupt_is_raised_as_the_interrupt():
+    from esmicp.interrupts import keeps_keyboard_interrupt
+
+    def boxed():
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as interrupt:
+            raise SystemError("returned a result with an exception set") from interrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        keeps_keyboard_interrupt(boxed)()
+    with pytest.raises(SystemError):  # any other SystemError stays what it is
+        keeps_keyboard_interrupt(lambda: (_ for _ in ()).throw(SystemError("other")))()

@@ -16,6 +16,7 @@ from .methods import METHODS, EsmEstimator, EsmPaperEstimator, IcpEstimator, Sig
 from .methods.esm import COARSE_POINTS
 from .methods.esm_paper import PAPER_SIGMA
 from .init.global_search import STRATEGIES, global_estimate
+from .interrupts import keeps_keyboard_interrupt
 from .methods.local import Callback
 from .numerics import checked_refine, from_working, to_working, uncentred_callback, uncentred_history, working_origin
 from .result import RegistrationResult
@@ -32,6 +33,7 @@ INLIER_DISTANCE_SPACINGS = 3.0
 INDEX_ALIGNED_FRACTION = 0.5
 
 
+@keeps_keyboard_interrupt
 def register(
     source,
     target,

@@ -236,6 +236,20 @@ def run_parallel(kernel, *arguments):
     return value
 
 
+def query_arguments(points: np.ndarray, transform: np.ndarray | None, warm: np.ndarray | None):
+    """``(points, rotation, translation, warm, distances, indices)`` as the query kernels take them:
+    contiguous float64 points, the rotation and translation of the 4x4 ``transform`` (identity for
+    None), the warm-start indices (-1: none) and the two output arrays."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if transform is None:
+        rotation, translation = np.eye(3), np.zeros(3)
+    else:
+        rotation = np.ascontiguousarray(transform[:3, :3], dtype=np.float64)
+        translation = np.ascontiguousarray(transform[:3, 3], dtype=np.float64)
+    warm = np.full(len(points), -1, dtype=np.int64) if warm is None else np.asarray(warm, dtype=np.int64)
+    return points, rotation, translation, warm, np.empty(len(points)), np.empty(len(points), dtype=np.int64)
+
+
 def chunk_count(count: int, per_thread: int = 4) -> int:
     """How many pieces a parallel pass over ``count`` points is cut into: one below
     :data:`PARALLEL_MIN` (no thread is woken), otherwise ``per_thread`` per thread (several for
@@ -270,17 +284,8 @@ class CompiledTree:
         """``(distances, indices)`` of the nearest target point of each of ``points`` (mapped by the
         4x4 ``transform`` first, if given; cloud units, indices into the target as given).
         ``warm`` (optional, (N,) target indices or -1) seeds each search; it changes only the speed."""
-        points = np.ascontiguousarray(points, dtype=np.float64)
-        if transform is None:
-            rotation, translation = np.eye(3), np.zeros(3)
-        else:
-            rotation = np.ascontiguousarray(transform[:3, :3], dtype=np.float64)
-            translation = np.ascontiguousarray(transform[:3, 3], dtype=np.float64)
-        if warm is None:
-            warm = np.full(len(points), -1, dtype=np.int64)
-        distances = np.empty(len(points))
-        indices = np.empty(len(points), dtype=np.int64)
-        run_parallel(_query, points, rotation, translation, np.asarray(warm, dtype=np.int64), self.rank, self.points,
+        points, rotation, translation, warm, distances, indices = query_arguments(points, transform, warm)
+        run_parallel(_query, points, rotation, translation, warm, self.rank, self.points,
                self.order, self.starts, self.ends, self.lefts, self.boxes, distances, indices,
                chunk_count(len(points)))
         return distances, indices

@@ -150,6 +150,19 @@ if numba is not None:
         z = rotation[2, 0] * source[i, 0] + rotation[2, 1] * source[i, 1] + rotation[2, 2] * source[i, 2] + translation[2]
         return x, y, z
 
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _add_outer(h, weight, ax, ay, az, bx, by, bz):
+        """``h += weight * a b^T`` (3x3, row-major in 9 entries)."""
+        h[0] += weight * ax * bx
+        h[1] += weight * ax * by
+        h[2] += weight * ax * bz
+        h[3] += weight * ay * bx
+        h[4] += weight * ay * by
+        h[5] += weight * ay * bz
+        h[6] += weight * az * bx
+        h[7] += weight * az * by
+        h[8] += weight * az * bz
+
     @numba.njit(cache=True, parallel=True, nogil=True)
     def _paper_moments(source, rotation, translation, target, indices, distances, scale, chunks, out):
         count = source.shape[0]
@@ -198,30 +211,14 @@ if numba is not None:
                 k = indices[partner]
                 ax, ay, az = x - s_bar[0], y - s_bar[1], z - s_bar[2]
                 bx, by, bz = target[k, 0] - t_bar[0], target[k, 1] - t_bar[1], target[k, 2] - t_bar[2]
-                h[0] += first * ax * bx
-                h[1] += first * ax * by
-                h[2] += first * ax * bz
-                h[3] += first * ay * bx
-                h[4] += first * ay * by
-                h[5] += first * ay * bz
-                h[6] += first * az * bx
-                h[7] += first * az * by
-                h[8] += first * az * bz
+                _add_outer(h, first, ax, ay, az, bx, by, bz)
                 if not mutual:
                     # M[i, c(i)] = w_i: source c(i) with the target matched to i.
                     x, y, z = _placed(source, rotation, translation, partner)
                     j = indices[i]
                     ax, ay, az = x - s_bar[0], y - s_bar[1], z - s_bar[2]
                     bx, by, bz = target[j, 0] - t_bar[0], target[j, 1] - t_bar[1], target[j, 2] - t_bar[2]
-                    h[0] += w * ax * bx
-                    h[1] += w * ax * by
-                    h[2] += w * ax * bz
-                    h[3] += w * ay * bx
-                    h[4] += w * ay * by
-                    h[5] += w * ay * bz
-                    h[6] += w * az * bx
-                    h[7] += w * az * by
-                    h[8] += w * az * bz
+                    _add_outer(h, w, ax, ay, az, bx, by, bz)
             blocks[chunk] = h
         out[:] = 0.0
         out[0], out[1] = sums[6], sums[7]

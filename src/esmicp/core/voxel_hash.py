@@ -229,18 +229,9 @@ class VoxelHash:
         :class:`~esmicp.core.compiled_tree.CompiledTree` of the same target) answers the points
         whose neighbour is farther than ``cell`` (``misses`` counts them, with or without the
         hash), or every point when ``use_hash`` is False; ``warm`` (optional target indices) seeds each search."""
-        points = np.ascontiguousarray(points, dtype=np.float64)
-        if transform is None:
-            rotation, translation = np.eye(3), np.zeros(3)
-        else:
-            rotation = np.ascontiguousarray(transform[:3, :3], dtype=np.float64)
-            translation = np.ascontiguousarray(transform[:3, 3], dtype=np.float64)
-        if warm is None:
-            warm = np.full(len(points), -1, dtype=np.int64)
-        distances = np.empty(len(points))
-        indices = np.empty(len(points), dtype=np.int64)
+        points, rotation, translation, warm, distances, indices = compiled_tree.query_arguments(points, transform, warm)
         arguments = (
-            points, rotation, translation, np.asarray(warm, dtype=np.int64), self.rank, self.sorted_points,
+            points, rotation, translation, warm, self.rank, self.sorted_points,
             self.sorted_index, self.cell_starts, self.table_keys, self.table_cells, self.low,
             self.cell, self.dims, tree.points, tree.order, tree.rank, tree.starts, tree.ends, tree.lefts,
             tree.boxes, bool(use_hash), compiled_tree.chunk_count(len(points)), distances, indices,

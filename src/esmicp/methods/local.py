@@ -14,6 +14,7 @@ the coarse phase only brings the clouds close, the full-resolution iterations de
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -22,6 +23,7 @@ import numpy as np
 from ..core.correspondence import NearestNeighbors
 from ..core.kernels import effective_count
 from ..core.pose_kernels import compose, motion_between
+from ..interrupts import keeps_keyboard_interrupt
 from ..core.procrustes import apply
 from ..result import IterationRecord
 from .acceleration import AndersonAccelerator
@@ -67,6 +69,7 @@ class LocalOutcome:
     history: tuple[IterationRecord, ...] | None
 
 
+@keeps_keyboard_interrupt
 def refine(
     source: np.ndarray,
     target: NearestNeighbors,
@@ -142,10 +145,12 @@ def refine(
         if coarse and estimator.accelerated:
             coarse, source, indices, previous_rmse = False, full_source, None, None
         distances, indices = query(source, transformation, indices)
+        objective = None  # the estimator's objective at this pose, once computed
         if fallback is not None:
-            if estimator.objective(distances) < objective_before:
+            objective = estimator.objective(distances)
+            if objective < objective_before:
                 # The accelerated proposal fits worse than the pose it came from: take the plain step.
-                transformation, fallback = fallback, None
+                transformation, fallback, objective = fallback, None, None
                 accelerator.reset()
                 distances, indices = query(source, transformation, indices)
             fallback = None
@@ -165,7 +170,7 @@ def refine(
         following = plain
         if accelerator is not None:
             if estimator.accelerated:
-                objective_before = estimator.objective(distances)
+                objective_before = estimator.objective(distances) if objective is None else objective
                 following = accelerator.propose(transformation, plain)
                 if following is not plain:
                     fallback = plain
@@ -173,7 +178,7 @@ def refine(
                 accelerator.reset()
         moved_angle, moved_distance = motion_between(transformation, following)
         transformation = following
-        rmse = float(np.sqrt(np.mean(np.square(distances))))
+        rmse = math.sqrt(float(distances @ distances) / len(distances))
         if history is not None:
             history.append(_record(iteration, transformation, rmse, step.weights, sigma, len(distances)))
         if callback is not None:
