@@ -41,6 +41,14 @@ def available() -> bool:
 
 if numba is not None:
 
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def mapped(points, i, rotation, translation):
+        """``rotation @ points[i] + translation`` as three floats (the point placed by a pose)."""
+        x = rotation[0, 0] * points[i, 0] + rotation[0, 1] * points[i, 1] + rotation[0, 2] * points[i, 2] + translation[0]
+        y = rotation[1, 0] * points[i, 0] + rotation[1, 1] * points[i, 1] + rotation[1, 2] * points[i, 2] + translation[1]
+        z = rotation[2, 0] * points[i, 0] + rotation[2, 1] * points[i, 1] + rotation[2, 2] * points[i, 2] + translation[2]
+        return x, y, z
+
     @numba.njit(cache=True, nogil=True)
     def _select(order, coordinates, start, end, nth):
         """Reorder ``order[start:end]`` so that ``order[nth]`` holds the element of rank ``nth`` by
@@ -191,9 +199,7 @@ if numba is not None:
     @numba.njit(cache=True, nogil=True, inline="always")
     def _query_one(i, queries, rotation, translation, warm, rank, tree_points, order, starts, ends, lefts, boxes,
                    out_distances, out_indices, stack_nodes, stack_bounds):
-        x = rotation[0, 0] * queries[i, 0] + rotation[0, 1] * queries[i, 1] + rotation[0, 2] * queries[i, 2] + translation[0]
-        y = rotation[1, 0] * queries[i, 0] + rotation[1, 1] * queries[i, 1] + rotation[1, 2] * queries[i, 2] + translation[1]
-        z = rotation[2, 0] * queries[i, 0] + rotation[2, 1] * queries[i, 1] + rotation[2, 2] * queries[i, 2] + translation[2]
+        x, y, z = mapped(queries, i, rotation, translation)
         best, slot = np.inf, -1
         if warm[i] >= 0:
             slot = rank[warm[i]]

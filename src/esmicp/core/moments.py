@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import compiled_tree
 from .compiled_tree import chunk_count, run_parallel
 
 try:  # numba is a dependency, but the library still works (slower) without it.
@@ -62,9 +63,8 @@ if numba is not None:
                     w = np.exp(-(distances[i] * distances[i] - shift) * scale)
                 else:
                     w = 1.0
-                sx = rotation[0, 0] * source[i, 0] + rotation[0, 1] * source[i, 1] + rotation[0, 2] * source[i, 2] + translation[0] - source_reference[0]
-                sy = rotation[1, 0] * source[i, 0] + rotation[1, 1] * source[i, 1] + rotation[1, 2] * source[i, 2] + translation[1] - source_reference[1]
-                sz = rotation[2, 0] * source[i, 0] + rotation[2, 1] * source[i, 1] + rotation[2, 2] * source[i, 2] + translation[2] - source_reference[2]
+                sx, sy, sz = compiled_tree.mapped(source, i, rotation, translation)
+                sx, sy, sz = sx - source_reference[0], sy - source_reference[1], sz - source_reference[2]
                 j = indices[i]
                 tx = target[j, 0] - target_reference[0]
                 ty = target[j, 1] - target_reference[1]
@@ -144,13 +144,6 @@ def _unpacked(out: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray, np
 if numba is not None:
 
     @numba.njit(cache=True, nogil=True, inline="always")
-    def _placed(source, rotation, translation, i):
-        x = rotation[0, 0] * source[i, 0] + rotation[0, 1] * source[i, 1] + rotation[0, 2] * source[i, 2] + translation[0]
-        y = rotation[1, 0] * source[i, 0] + rotation[1, 1] * source[i, 1] + rotation[1, 2] * source[i, 2] + translation[1]
-        z = rotation[2, 0] * source[i, 0] + rotation[2, 1] * source[i, 1] + rotation[2, 2] * source[i, 2] + translation[2]
-        return x, y, z
-
-    @numba.njit(cache=True, nogil=True, inline="always")
     def _add_outer(h, weight, ax, ay, az, bx, by, bz):
         """``h += weight * a b^T`` (3x3, row-major in 9 entries)."""
         h[0] += weight * ax * bx
@@ -172,7 +165,7 @@ if numba is not None:
         for chunk in numba.prange(chunks):
             sx = sy = sz = mx = my = mz = w0 = w1 = 0.0
             for i in range(chunk * count // chunks, (chunk + 1) * count // chunks):
-                x, y, z = _placed(source, rotation, translation, i)
+                x, y, z = compiled_tree.mapped(source, i, rotation, translation)
                 sx += x
                 sy += y
                 sz += z
@@ -207,14 +200,14 @@ if numba is not None:
                 if mutual and partner > i:
                     first = np.exp(-distances[partner] * distances[partner] * scale)
                 # M[c(i), i] = first: source i with the target matched to c(i).
-                x, y, z = _placed(source, rotation, translation, i)
+                x, y, z = compiled_tree.mapped(source, i, rotation, translation)
                 k = indices[partner]
                 ax, ay, az = x - s_bar[0], y - s_bar[1], z - s_bar[2]
                 bx, by, bz = target[k, 0] - t_bar[0], target[k, 1] - t_bar[1], target[k, 2] - t_bar[2]
                 _add_outer(h, first, ax, ay, az, bx, by, bz)
                 if not mutual:
                     # M[i, c(i)] = w_i: source c(i) with the target matched to i.
-                    x, y, z = _placed(source, rotation, translation, partner)
+                    x, y, z = compiled_tree.mapped(source, partner, rotation, translation)
                     j = indices[i]
                     ax, ay, az = x - s_bar[0], y - s_bar[1], z - s_bar[2]
                     bx, by, bz = target[j, 0] - t_bar[0], target[j, 1] - t_bar[1], target[j, 2] - t_bar[2]

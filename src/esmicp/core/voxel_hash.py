@@ -144,9 +144,7 @@ if numba is not None:
             stack_bounds = np.empty(compiled_tree.STACK, dtype=np.float64)
             chunk_misses = 0
             for i in range(chunk * count // chunks, (chunk + 1) * count // chunks):
-                qx = rotation[0, 0] * queries[i, 0] + rotation[0, 1] * queries[i, 1] + rotation[0, 2] * queries[i, 2] + translation[0]
-                qy = rotation[1, 0] * queries[i, 0] + rotation[1, 1] * queries[i, 1] + rotation[1, 2] * queries[i, 2] + translation[1]
-                qz = rotation[2, 0] * queries[i, 0] + rotation[2, 1] * queries[i, 1] + rotation[2, 2] * queries[i, 2] + translation[2]
+                qx, qy, qz = compiled_tree.mapped(queries, i, rotation, translation)
                 best = np.inf
                 best_index = -1
                 if warm[i] >= 0:

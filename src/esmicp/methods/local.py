@@ -14,7 +14,6 @@ the coarse phase only brings the clouds close, the full-resolution iterations de
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -178,7 +177,9 @@ def refine(
                 accelerator.reset()
         moved_angle, moved_distance = motion_between(transformation, following)
         transformation = following
-        rmse = math.sqrt(float(distances @ distances) / len(distances))
+        # (Not ``distances @ distances``: BLAS would wake its own threads, which then spin and
+        # take the cores from the compiled kernels: measured 3x slower iterations at 100k points.)
+        rmse = float(np.sqrt(np.mean(np.square(distances))))
         if history is not None:
             history.append(_record(iteration, transformation, rmse, step.weights, sigma, len(distances)))
         if callback is not None:
