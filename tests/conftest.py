@@ -8,6 +8,7 @@ developer's machine, but FAIL in CI (``CI=true``), where their absence is a brok
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -43,3 +44,13 @@ def shared_data() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+def interruptible_child() -> None:
+    """``preexec_fn`` for a child process a test will interrupt: Ctrl-C's signal as in a terminal.
+
+    A shell starts a background job (``cmd &`` without job control, as in a CI script or under
+    ``nohup``) with SIGINT ignored; its children inherit that, Python then installs no
+    ``KeyboardInterrupt`` handler, and an interrupt test would see its SIGINT ignored.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import require_shared
+from conftest import interruptible_child, require_shared
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -161,7 +161,7 @@ def test_sigint_keeps_finished_trials_and_resume_completes_them(tmp_path, worker
     out = tmp_path / "run"
     # Its own process group, which gets the SIGINT as from Ctrl-C in a terminal (workers included).
     process = subprocess.Popen(_bench_command(out, workers), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True, start_new_session=True)
+                               text=True, start_new_session=True, preexec_fn=interruptible_child)
     rows_path = out / "rows.jsonl"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import interruptible_child
 
 import esmicp
 from esmicp.core.procrustes import apply, to_matrix
@@ -96,7 +97,7 @@ def interrupt(clouds: Path, out: Path, where: str, sig: int, *extra: str, force:
             "--output", str(out), *extra, *(["--force"] if force else [])]
     process = subprocess.Popen(
         [sys.executable, "-c", CHILD, where, str(ready), *argv],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=interruptible_child,
     )
     deadline = time.monotonic() + 60
     while not ready.exists():

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import require_shared
+from conftest import interruptible_child, require_shared
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -282,7 +282,8 @@ def test_ctrl_c_always_interrupts_the_compiled_iterations():
     import subprocess
     import sys
 
-    completed = subprocess.run([sys.executable, "-c", _INTERRUPT_LOOP], capture_output=True, text=True, timeout=120)
+    completed = subprocess.run([sys.executable, "-c", _INTERRUPT_LOOP], capture_output=True, text=True, timeout=120,
+                               preexec_fn=interruptible_child)
     assert completed.returncode == 0, completed.stderr[-2000:]
     assert completed.stdout.strip() == "0", completed.stderr[-2000:]
 
