@@ -28,7 +28,7 @@ DEFAULT_WORKERS = -1
 #: Cell edge of the voxel hash of :meth:`NearestNeighbors.query_near`, in target point spacings.
 #: Queries whose nearest target point is within one cell are answered by the hash. Measured on the
 #: bunny resampled to 100k points (CPU time of 100k queries, 0-10 degrees from the solution): 2, 3
-#: and 5 spacings cost 80, 67 and 38 ms with warm starts, the KD-tree 127-255 ms.
+#: and 5 spacings cost 80, 67 and 38 ms with warm starts, scipy's KD-tree 127-255 ms.
 NEAR_CELL_SPACINGS = 5.0
 
 #: Below this many query points :meth:`NearestNeighbors.query_near` uses the KD-tree alone.

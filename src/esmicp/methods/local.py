@@ -6,7 +6,8 @@ method's :class:`~esmicp.methods.base.StepEstimator`, composed on the left
 correspondence distance stops changing, both relative to ``tolerance``.
 
 Speed: nearest neighbours come from :meth:`~esmicp.core.correspondence.NearestNeighbors.query_near`
-(exact, a voxel hash warm-started with the previous iteration's neighbours). With
+(exact: a compiled KD-tree and, near the target, a voxel hash in front of it, both warm-started
+with the previous iteration's neighbours); the step gets its sums from one compiled pass. With
 ``coarse_points``, an estimator that has a coarse phase (``esm`` with the automatic sigma) runs
 that phase on an evenly strided subset of the source, and the full source from its fine phase on:
 the coarse phase only brings the clouds close, the full-resolution iterations decide the pose.
