@@ -23,6 +23,7 @@ import dataclasses
 import numpy as np
 
 from .core.kernels import effective_count
+from .methods.base import Step
 from .methods.local import LocalOutcome, refine
 
 __all__ = [
@@ -114,13 +115,12 @@ def rigidity_problem(transform: np.ndarray) -> str | None:
 
 
 class _LastWeights:
-    """A step estimator that remembers its last step's effective number of pairs (everything
-    else delegated)."""
+    """A step estimator that remembers its last step (everything else delegated);
+    :meth:`effective_pairs` counts that step's effective pairs once the run is over."""
 
     def __init__(self, estimator):
         self._estimator = estimator
-        self.last_effective: float | None = None
-        self.last_count = 0
+        self._last: tuple[Step, int] | None = None  # the step and its number of pairs
         if hasattr(estimator, "step_placed"):
             self.step_placed = self._watched(estimator.step_placed)
         self.step = self._watched(estimator.step)
@@ -128,14 +128,20 @@ class _LastWeights:
     def _watched(self, function):
         def watched(*args, **kwargs):
             step = function(*args, **kwargs)
-            self.last_count = len(args[-1])  # the indices: one per pair
-            if step.weights is not None:
-                self.last_effective = effective_count(step.weights) if len(step.weights) else None
-            else:
-                self.last_effective = step.effective_pairs
+            self._last = (step, len(args[-1]))  # args[-1]: the indices, one per pair
             return step
 
         return watched
+
+    def effective_pairs(self) -> tuple[float | None, int]:
+        """Kish's effective number of pairs of the last step (None where it has no weights) and
+        its number of pairs."""
+        if self._last is None:
+            return None, 0
+        step, count = self._last
+        if step.weights is not None:
+            return (effective_count(step.weights) if count else None), count
+        return step.effective_pairs, count
 
     def __getattr__(self, name):
         return getattr(self._estimator, name)
@@ -169,9 +175,9 @@ def checked_refine(source, target, estimator, *, init: np.ndarray, **kwargs) -> 
             converged=False,
             message=f"stopped: the refined pose was {problem}; the starting pose is returned instead",
         )
-    effective = watched.last_effective
+    effective, count = watched.effective_pairs()
     # (Half the pairs at most: a 3-point cloud with unequal weights has fewer than 3 effective ones.)
-    if effective is not None and effective < min(MIN_EFFECTIVE_PAIRS, 0.5 * watched.last_count):
+    if effective is not None and effective < min(MIN_EFFECTIVE_PAIRS, 0.5 * count):
         sigma = "" if outcome.sigma is None else f" (sigma {outcome.sigma:.3g})"
         return dataclasses.replace(
             outcome,

@@ -22,6 +22,7 @@ import numpy as np
 
 from . import compiled_tree
 from .compiled_tree import chunk_count, run_parallel
+from .pose_kernels import kabsch_rotation
 
 try:  # numba is a dependency, but the library still works (slower) without it.
     import numba
@@ -139,6 +140,16 @@ def pair_moments(
 
 def _unpacked(out: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
     return float(out[0]), float(out[1]), out[2:5], out[5:8], out[8:17].reshape(3, 3)
+
+
+def rigid_fit(moments: tuple[float, float, np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(rotation, translation, effective_pairs)`` from :func:`pair_moments` or
+    :func:`paper_moments`: the Kabsch rotation of the cross-covariance, ``t = t_bar - R s_bar``,
+    and Kish's effective number of pairs ``(sum w)^2 / sum w^2``."""
+    total, squares, source_mean, target_mean, cross = moments
+    rotation = kabsch_rotation(cross)
+    effective = total * total / squares if squares > 0 else 0.0
+    return rotation, target_mean - rotation @ source_mean, effective
 
 
 if numba is not None:

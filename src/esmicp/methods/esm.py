@@ -36,7 +36,7 @@ import numpy as np
 
 from ..core import moments
 from ..core.kernels import relative_gaussian_weights
-from ..core.procrustes import rotation_angle, rotation_from_cross_covariance, weighted_procrustes
+from ..core.procrustes import rotation_angle, weighted_procrustes
 from ..types import as_positive
 from .base import Step
 
@@ -130,13 +130,10 @@ class EsmEstimator:
         def step_placed(self, source, transformation, target, distances, indices) -> Step:
             """:meth:`step` from the unmoved source and its placement, in one compiled pass."""
             sigma = self.sigma(distances, fine=self.fine)
-            total, squares, source_mean, target_mean, cross = moments.pair_moments(
-                source, transformation, target, indices, distances, sigma
+            rotation, translation, effective = moments.rigid_fit(
+                moments.pair_moments(source, transformation, target, indices, distances, sigma)
             )
-            rotation = rotation_from_cross_covariance(cross)
-            translation = target_mean - rotation @ source_mean
             self._update_phase(rotation, translation)
-            effective = total * total / squares if squares > 0 else 0.0
             return Step(rotation, translation, sigma=sigma, effective_pairs=effective)
 
     def _update_phase(self, rotation, translation) -> None:

@@ -124,10 +124,7 @@ class EsmPaperEstimator:
 
         def step_placed(self, source, transformation, target, distances, indices) -> Step:
             """:meth:`step` from the unmoved source and its placement, in two compiled passes."""
-            total, squares, source_centroid, target_centroid, cross_covariance = moments.paper_moments(
-                source, transformation, target, indices, distances, self.sigma
+            rotation, translation, effective = moments.rigid_fit(
+                moments.paper_moments(source, transformation, target, indices, distances, self.sigma)
             )
-            rotation = rotation_from_cross_covariance(cross_covariance)
-            effective = total * total / squares if squares > 0 else 0.0
-            return Step(rotation, target_centroid - rotation @ source_centroid, sigma=self.sigma,
-                        effective_pairs=effective)
+            return Step(rotation, translation, sigma=self.sigma, effective_pairs=effective)

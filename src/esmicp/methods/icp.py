@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core import moments
-from ..core.procrustes import rotation_from_cross_covariance, weighted_procrustes
+from ..core.procrustes import weighted_procrustes
 from .base import Step
 
 
@@ -21,8 +21,8 @@ class IcpEstimator:
     if moments.available():
 
         def step_placed(self, source, transformation, target, distances, indices) -> Step:
-            total, squares, source_mean, target_mean, cross = moments.pair_moments(
-                source, transformation, target, indices, distances, None
+            """:meth:`step` from the unmoved source and its placement, in one compiled pass."""
+            rotation, translation, effective = moments.rigid_fit(
+                moments.pair_moments(source, transformation, target, indices, distances, None)
             )
-            rotation = rotation_from_cross_covariance(cross)
-            return Step(rotation, target_mean - rotation @ source_mean, effective_pairs=float(len(indices)))
+            return Step(rotation, translation, effective_pairs=effective)

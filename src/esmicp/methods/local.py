@@ -23,8 +23,8 @@ import numpy as np
 from ..core.correspondence import NearestNeighbors
 from ..core.kernels import effective_count
 from ..core.pose_kernels import compose, motion_between
-from ..interrupts import keeps_keyboard_interrupt
 from ..core.procrustes import apply
+from ..interrupts import keeps_keyboard_interrupt
 from ..result import IterationRecord
 from .acceleration import AndersonAccelerator
 from .base import StepEstimator
