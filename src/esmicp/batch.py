@@ -54,16 +54,10 @@ def _register_one(index: int, source, target, kwargs: dict) -> "RegistrationResu
 
 
 def _single_threaded_worker() -> None:
-    """Pool initializer: one thread per process for the KD-tree and the numba kernels."""
+    """Pool initializer: one thread per process for the KD-tree and the compiled kernels."""
     from .core import correspondence
 
     correspondence.DEFAULT_WORKERS = 1
-    try:
-        import numba
-
-        numba.set_num_threads(1)
-    except ImportError:  # pragma: no cover - numba is a dependency
-        pass
 
 
 def register_many(

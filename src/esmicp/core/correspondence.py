@@ -2,8 +2,7 @@
 
 A :class:`NearestNeighbors` index is built once per target and queried every iteration (and, later,
 by every hypothesis of a global search). :meth:`NearestNeighbors.query` answers any query exactly
-with a KD-tree compiled by numba (:mod:`esmicp.core.compiled_tree`; scipy's ``cKDTree`` where
-numba is missing); :meth:`NearestNeighbors.query_near` gives the same exact answers faster when
+with a compiled KD-tree (:mod:`esmicp.core.compiled_tree`, C++ built at install time); :meth:`NearestNeighbors.query_near` gives the same exact answers faster when
 most query points lie near the target (local registration): warm-started with last iteration's
 neighbours, through a voxel hash (:mod:`esmicp.core.voxel_hash`) that hands the points it cannot
 answer to the compiled tree in the same compiled loop. Both are built on first use.
@@ -70,7 +69,7 @@ class NearestNeighbors:
         return self._scipy_tree
 
     def exact_tree(self) -> "compiled_tree.CompiledTree | None":
-        """The numba KD-tree of the target (built on first use), or None without numba."""
+        """The compiled KD-tree of the target (built on first use)."""
         if self._compiled is None and compiled_tree.available():
             self._compiled = compiled_tree.CompiledTree(self.points)
         return self._compiled
@@ -84,8 +83,8 @@ class NearestNeighbors:
         ``distances`` are Euclidean, in the clouds' units; ``indices`` index ``self.points``.
         """
         tree = self.exact_tree()
-        if tree is not None and self.workers == -1:
-            return tree.query(points)
+        if tree is not None:
+            return tree.query(points, workers=self.workers)
         workers = self._workers() if len(points) >= PARALLEL_QUERY_MIN else 1
         distances, indices = self._tree.query(points, k=1, workers=workers)
         return distances, indices
@@ -109,9 +108,10 @@ class NearestNeighbors:
             return self.query(points if transform is None else points @ transform[:3, :3].T + transform[:3, 3])
         near = self._near_index() if len(points) >= NEAR_QUERY_MIN else None
         if near is None:
-            return tree.query(points, transform=transform, warm=warm)
+            return tree.query(points, transform=transform, warm=warm, workers=self.workers)
         use_hash = self._hash_misses <= HASH_MISS_LIMIT
-        distances, indices, misses = near.query(points, tree, transform=transform, warm=warm, use_hash=use_hash)
+        distances, indices, misses = near.query(points, tree, transform=transform, warm=warm, use_hash=use_hash,
+                                                workers=self.workers)
         self._hash_misses = misses / len(points)
         return distances, indices
 

@@ -7,10 +7,8 @@ placed source, the gathered targets or the weights as arrays (one pass, on all c
 temporaries), and returns the weighted centroids and cross-covariance
 (:func:`esmicp.core.procrustes.weighted_procrustes` on the same pairs gives the same fit).
 
-The parallel kernels return nothing: they fill a result array the caller gives. (A parallel numba
-function that boxes a new array on return calls back into Python to do so, and a Ctrl-C landing
-in that call surfaces as a ``SystemError`` instead of ``KeyboardInterrupt``: measured, 1 in 2
-interrupts of a bench run were lost that way.)
+The kernels are C++ (:mod:`esmicp._kernels`): they fill a result array the caller gives, in pieces
+of fixed size summed in order, so the result does not depend on the number of threads.
 
 Sums are taken relative to one point of each side (the first pair), so that neither clouds far
 from the origin nor a source far from the target lose precision to cancellation.
@@ -20,89 +18,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import compiled_tree
-from .compiled_tree import chunk_count, run_parallel
+from .. import _kernels
+from .compiled_tree import threads
 from .pose_kernels import kabsch_rotation
 
-try:  # numba is a dependency, but the library still works (slower) without it.
-    import numba
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    numba = None
-
-
 def available() -> bool:
-    """True when the compiled pass can run (numba importable)."""
-    return numba is not None
-
-
-if numba is not None:
-
-    @numba.njit(cache=True, nogil=True)
-    def _smallest_square(distances):
-        smallest = np.inf
-        for value in distances:
-            smallest = min(smallest, value * value)
-        return smallest
-
-    @numba.njit(cache=True, parallel=True, nogil=True)
-    def _moments(source, rotation, translation, target, indices, distances, scale, shift, chunks, out):
-        count = source.shape[0]
-        # References: the first pair, so that no offset between or of the clouds cancels digits.
-        source_reference = np.empty(3)
-        target_reference = np.empty(3)
-        for a in range(3):
-            source_reference[a] = (rotation[a, 0] * source[0, 0] + rotation[a, 1] * source[0, 1]
-                                   + rotation[a, 2] * source[0, 2] + translation[a])
-            target_reference[a] = target[indices[0], a]
-        partial = np.zeros((chunks, 17))
-        for chunk in numba.prange(chunks):
-            # Local accumulators (registers), written once per chunk: no false sharing.
-            w0 = w1 = ax = ay = az = bx = by = bz = 0.0
-            cxx = cxy = cxz = cyx = cyy = cyz = czx = czy = czz = 0.0
-            for i in range(chunk * count // chunks, (chunk + 1) * count // chunks):
-                if scale > 0.0:
-                    w = np.exp(-(distances[i] * distances[i] - shift) * scale)
-                else:
-                    w = 1.0
-                sx, sy, sz = compiled_tree.mapped(source, i, rotation, translation)
-                sx, sy, sz = sx - source_reference[0], sy - source_reference[1], sz - source_reference[2]
-                j = indices[i]
-                tx = target[j, 0] - target_reference[0]
-                ty = target[j, 1] - target_reference[1]
-                tz = target[j, 2] - target_reference[2]
-                w0 += w
-                w1 += w * w
-                wx, wy, wz = w * sx, w * sy, w * sz
-                ax += wx
-                ay += wy
-                az += wz
-                bx += w * tx
-                by += w * ty
-                bz += w * tz
-                cxx += wx * tx
-                cxy += wx * ty
-                cxz += wx * tz
-                cyx += wy * tx
-                cyy += wy * ty
-                cyz += wy * tz
-                czx += wz * tx
-                czy += wz * ty
-                czz += wz * tz
-            row = partial[chunk]
-            row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7] = w0, w1, ax, ay, az, bx, by, bz
-            row[8], row[9], row[10], row[11], row[12], row[13] = cxx, cxy, cxz, cyx, cyy, cyz
-            row[14], row[15], row[16] = czx, czy, czz
-        sums = np.zeros(17)
-        for chunk in range(chunks):
-            sums += partial[chunk]
-        total = sums[0]
-        out[0], out[1] = total, sums[1]
-        for a in range(3):
-            for b in range(3):
-                out[8 + 3 * a + b] = sums[8 + 3 * a + b] / total - (sums[2 + a] / total) * (sums[5 + b] / total)
-        for a in range(3):
-            out[2 + a] = sums[2 + a] / total + source_reference[a]
-            out[5 + a] = sums[5 + a] / total + target_reference[a]
+    """True: the compiled kernels are built with the package."""
+    return True
 
 
 def pair_moments(
@@ -129,11 +51,10 @@ def pair_moments(
     if sigma is None:
         scale, shift = 0.0, 0.0
     else:
-        scale, shift = 1.0 / (2.0 * sigma * sigma), _smallest_square(distances)
+        scale, shift = 1.0 / (2.0 * sigma * sigma), float(np.min(distances * distances))
     out = np.empty(17)
-    run_parallel(
-        _moments, source, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
-        target, indices, distances, scale, shift, chunk_count(len(source), per_thread=1), out,
+    _kernels.pair_moments(
+        *_contiguous(source, transform, target, indices, distances), scale, shift, out, threads(),
     )
     return _unpacked(out)
 
@@ -152,85 +73,12 @@ def rigid_fit(moments: tuple[float, float, np.ndarray, np.ndarray, np.ndarray]) 
     return rotation, target_mean - rotation @ source_mean, effective
 
 
-if numba is not None:
-
-    @numba.njit(cache=True, nogil=True, inline="always")
-    def _add_outer(h, weight, ax, ay, az, bx, by, bz):
-        """``h += weight * a b^T`` (3x3, row-major in 9 entries)."""
-        h[0] += weight * ax * bx
-        h[1] += weight * ax * by
-        h[2] += weight * ax * bz
-        h[3] += weight * ay * bx
-        h[4] += weight * ay * by
-        h[5] += weight * ay * bz
-        h[6] += weight * az * bx
-        h[7] += weight * az * by
-        h[8] += weight * az * bz
-
-    @numba.njit(cache=True, parallel=True, nogil=True)
-    def _paper_moments(source, rotation, translation, target, indices, distances, scale, chunks, out):
-        count = source.shape[0]
-        # Pass 1: the unweighted centroids of the placed source and of the matched target points,
-        # and the weights' sums.
-        partial = np.zeros((chunks, 8))
-        for chunk in numba.prange(chunks):
-            sx = sy = sz = mx = my = mz = w0 = w1 = 0.0
-            for i in range(chunk * count // chunks, (chunk + 1) * count // chunks):
-                x, y, z = compiled_tree.mapped(source, i, rotation, translation)
-                sx += x
-                sy += y
-                sz += z
-                j = indices[i]
-                mx += target[j, 0]
-                my += target[j, 1]
-                mz += target[j, 2]
-                w = np.exp(-distances[i] * distances[i] * scale)
-                w0 += w
-                w1 += w * w
-            row = partial[chunk]
-            row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7] = sx, sy, sz, mx, my, mz, w0, w1
-        sums = np.zeros(8)
-        for chunk in range(chunks):
-            sums += partial[chunk]
-        s_bar = np.empty(3)
-        t_bar = np.empty(3)
-        for a in range(3):
-            s_bar[a] = sums[a] / count
-            t_bar[a] = sums[3 + a] / count
-        # Pass 2: H from M's entries (see esmicp.methods.esm_paper.paper_cross_covariance).
-        blocks = np.zeros((chunks, 9))
-        for chunk in numba.prange(chunks):
-            h = np.zeros(9)
-            for i in range(chunk * count // chunks, (chunk + 1) * count // chunks):
-                partner = indices[i]
-                if partner >= count:
-                    continue  # M[c(i), i] and M[i, c(i)] have no column to act on
-                w = np.exp(-distances[i] * distances[i] * scale)
-                mutual = indices[partner] == i
-                first = w
-                if mutual and partner > i:
-                    first = np.exp(-distances[partner] * distances[partner] * scale)
-                # M[c(i), i] = first: source i with the target matched to c(i).
-                x, y, z = compiled_tree.mapped(source, i, rotation, translation)
-                k = indices[partner]
-                ax, ay, az = x - s_bar[0], y - s_bar[1], z - s_bar[2]
-                bx, by, bz = target[k, 0] - t_bar[0], target[k, 1] - t_bar[1], target[k, 2] - t_bar[2]
-                _add_outer(h, first, ax, ay, az, bx, by, bz)
-                if not mutual:
-                    # M[i, c(i)] = w_i: source c(i) with the target matched to i.
-                    x, y, z = compiled_tree.mapped(source, partner, rotation, translation)
-                    j = indices[i]
-                    ax, ay, az = x - s_bar[0], y - s_bar[1], z - s_bar[2]
-                    bx, by, bz = target[j, 0] - t_bar[0], target[j, 1] - t_bar[1], target[j, 2] - t_bar[2]
-                    _add_outer(h, w, ax, ay, az, bx, by, bz)
-            blocks[chunk] = h
-        out[:] = 0.0
-        out[0], out[1] = sums[6], sums[7]
-        for a in range(3):
-            out[2 + a], out[5 + a] = s_bar[a], t_bar[a]
-        for chunk in range(chunks):
-            for a in range(9):
-                out[8 + a] += blocks[chunk, a]
+def _contiguous(source, transform, target, indices, distances):
+    return (
+        np.ascontiguousarray(source, dtype=np.float64), np.ascontiguousarray(transform[:3, :3], dtype=np.float64),
+        np.ascontiguousarray(transform[:3, 3], dtype=np.float64), np.ascontiguousarray(target, dtype=np.float64),
+        np.ascontiguousarray(indices, dtype=np.int64), np.ascontiguousarray(distances, dtype=np.float64),
+    )
 
 
 def paper_moments(
@@ -244,8 +92,7 @@ def paper_moments(
     if len(source) == 0:
         raise ValueError("paper_moments needs at least one pair")
     out = np.empty(17)
-    run_parallel(
-        _paper_moments, source, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
-        target, indices, distances, 1.0 / (2.0 * sigma * sigma), chunk_count(len(source), per_thread=1), out,
+    _kernels.paper_moments(
+        *_contiguous(source, transform, target, indices, distances), 1.0 / (2.0 * sigma * sigma), out, threads(),
     )
     return _unpacked(out)

@@ -1,4 +1,4 @@
-"""The small per-iteration pose arithmetic of a local registration, compiled by numba.
+"""The small per-iteration pose arithmetic of a local registration, in plain NumPy.
 
 Every iteration turns a 3x3 cross-covariance into a rotation (:func:`kabsch_rotation`), composes
 the increment with the current pose (:func:`compose`) and measures how far it moved
@@ -18,13 +18,9 @@ import math
 
 import numpy as np
 
-try:  # numba is a dependency, but the library still works (slower) without it.
-    import numba
-
-    _compiled = numba.njit(cache=True, nogil=True)
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    def _compiled(function):
-        return function
+def _compiled(function):
+    """Marks the functions that are candidates for the compiled extension (plain NumPy for now)."""
+    return function
 
 
 @_compiled

@@ -1,0 +1,561 @@
+// Compiled kernels of esmicp: the KD-tree, the voxel hash and the pair moments.
+//
+// Threads: a small pool of std::thread per call (no persistent runtime, so a fork() after a call
+// is safe), sized by the caller's `threads`. The GIL is released during the work; the calling
+// thread checks for signals every few milliseconds (PyErr_CheckSignals with the GIL taken back),
+// and a pending Ctrl-C stops every thread at its next piece and raises KeyboardInterrupt.
+// Work is cut into pieces of fixed size (independent of the thread count), and partial sums are
+// added in piece order: results are bitwise the same whatever the number of threads.
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <thread>
+#include <vector>
+
+namespace nb = nanobind;
+
+using CArr2 = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using CArr1 = nb::ndarray<const double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using Arr1 = nb::ndarray<double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using Arr2 = nb::ndarray<double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using CIdx = nb::ndarray<const int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using Idx = nb::ndarray<int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+
+namespace {
+
+constexpr int STACK = 96;
+constexpr double INF = std::numeric_limits<double>::infinity();
+constexpr uint64_t HASH_MULTIPLIER = 0x9E3779B97F4A7C15ULL;
+
+// ---------------------------------------------------------------------------------------------
+// Parallel loop over pieces [0, pieces), interruptible.
+template <class F>
+void parallel_pieces(int64_t pieces, int threads, F &&work) {
+    if (pieces <= 0) return;
+    unsigned hw = std::max(1u, std::thread::hardware_concurrency());
+    if (threads <= 0) threads = int(hw);
+    threads = int(std::min<int64_t>(threads, pieces));
+    std::atomic<int64_t> next{0};
+    std::atomic<bool> cancel{false};
+    bool interrupted = false;
+    {
+        nb::gil_scoped_release release;
+        auto runner = [&]() {
+            while (!cancel.load(std::memory_order_relaxed)) {
+                int64_t piece = next.fetch_add(1);
+                if (piece >= pieces) break;
+                work(piece);
+            }
+        };
+        std::vector<std::thread> pool;
+        pool.reserve(threads - 1);
+        for (int t = 1; t < threads; ++t) pool.emplace_back(runner);
+        auto last_check = std::chrono::steady_clock::now();
+        while (!cancel.load(std::memory_order_relaxed)) {
+            int64_t piece = next.fetch_add(1);
+            if (piece >= pieces) break;
+            work(piece);
+            auto now = std::chrono::steady_clock::now();
+            if (now - last_check > std::chrono::milliseconds(5)) {
+                last_check = now;
+                nb::gil_scoped_acquire acquire;
+                if (PyErr_CheckSignals() != 0) {
+                    interrupted = true;
+                    cancel.store(true);
+                }
+            }
+        }
+        for (auto &thread : pool) thread.join();
+    }
+    if (interrupted) throw nb::python_error();
+}
+
+inline int64_t piece_count(int64_t count, int64_t size) { return (count + size - 1) / size; }
+
+// ---------------------------------------------------------------------------------------------
+// KD-tree.
+struct Tree {
+    const double *points;  // (M, 3) in tree order
+    const int64_t *order;  // tree slot -> target index
+    const int64_t *starts, *ends, *lefts;
+    const double *boxes;  // (nodes, 6): low xyz, high xyz
+    int64_t count;
+};
+
+inline double box_distance(const double *box, double x, double y, double z) {
+    double total = 0.0, gap;
+    const double q[3] = {x, y, z};
+    for (int a = 0; a < 3; ++a) {
+        gap = box[a] - q[a];
+        if (gap > 0.0) {
+            total += gap * gap;
+        } else {
+            gap = q[a] - box[3 + a];
+            if (gap > 0.0) total += gap * gap;
+        }
+    }
+    return total;
+}
+
+inline void nearest(const Tree &t, double x, double y, double z, double &best, int64_t &best_slot) {
+    int64_t stack_nodes[STACK];
+    double stack_bounds[STACK];
+    stack_nodes[0] = 0;
+    stack_bounds[0] = box_distance(t.boxes, x, y, z);
+    int depth = 1;
+    while (depth > 0) {
+        --depth;
+        int64_t node = stack_nodes[depth];
+        if (stack_bounds[depth] >= best) continue;
+        int64_t left = t.lefts[node];
+        if (left < 0) {
+            for (int64_t k = t.starts[node]; k < t.ends[node]; ++k) {
+                double ex = t.points[3 * k] - x, ey = t.points[3 * k + 1] - y, ez = t.points[3 * k + 2] - z;
+                double squared = ex * ex + ey * ey + ez * ez;
+                if (squared < best) {
+                    best = squared;
+                    best_slot = k;
+                }
+            }
+            continue;
+        }
+        double near_bound = box_distance(t.boxes + 6 * left, x, y, z);
+        double far_bound = box_distance(t.boxes + 6 * (left + 1), x, y, z);
+        int64_t near_node = left, far_node = left + 1;
+        if (far_bound < near_bound) {
+            std::swap(near_node, far_node);
+            std::swap(near_bound, far_bound);
+        }
+        if (far_bound < best) {
+            stack_nodes[depth] = far_node;
+            stack_bounds[depth] = far_bound;
+            ++depth;
+        }
+        if (near_bound < best) {
+            stack_nodes[depth] = near_node;
+            stack_bounds[depth] = near_bound;
+            ++depth;
+        }
+    }
+}
+
+// Three-way quickselect of order[start:end] by coordinates (runs of equal values: linear).
+void select_nth(int64_t *order, const double *coordinates, int64_t start, int64_t end, int64_t nth) {
+    int64_t low = start, high = end - 1;
+    while (high > low) {
+        double a = coordinates[order[low]], b = coordinates[order[(low + high) / 2]], c = coordinates[order[high]];
+        double pivot = std::max(std::min(a, b), std::min(std::max(a, b), c));
+        int64_t less = low, i = low, greater = high;
+        while (i <= greater) {
+            double value = coordinates[order[i]];
+            if (value < pivot) {
+                std::swap(order[less], order[i]);
+                ++less;
+                ++i;
+            } else if (value > pivot) {
+                std::swap(order[greater], order[i]);
+                --greater;
+            } else {
+                ++i;
+            }
+        }
+        if (nth < less) high = less - 1;
+        else if (nth > greater) low = greater + 1;
+        else return;
+    }
+}
+
+// Builds the tree into the caller's arrays (capacity nodes); returns the number of nodes.
+int64_t build_tree(CArr2 points, int64_t leaf_size, Arr2 tree_points, Idx order, Idx starts, Idx ends, Idx lefts,
+                   Arr2 boxes) {
+    const int64_t count = int64_t(points.shape(0));
+    const double *p = points.data();
+    int64_t *ord = order.data();
+    int64_t *st = starts.data(), *en = ends.data(), *lf = lefts.data();
+    double *bx = boxes.data();
+    const int64_t capacity = int64_t(starts.shape(0));
+    int64_t nodes = 1;
+    {
+        nb::gil_scoped_release release;
+        std::vector<double> columns(3 * count);
+        for (int64_t k = 0; k < count; ++k) {
+            ord[k] = k;
+            for (int a = 0; a < 3; ++a) columns[a * count + k] = p[3 * k + a];
+        }
+        for (int64_t n = 0; n < capacity; ++n) lf[n] = -1;
+        std::vector<int64_t> stack;
+        stack.push_back(0);
+        st[0] = 0;
+        en[0] = count;
+        while (!stack.empty()) {
+            int64_t node = stack.back();
+            stack.pop_back();
+            int64_t start = st[node], end = en[node];
+            for (int a = 0; a < 3; ++a) {
+                double low = INF, high = -INF;
+                for (int64_t k = start; k < end; ++k) {
+                    double value = columns[a * count + ord[k]];
+                    low = std::min(low, value);
+                    high = std::max(high, value);
+                }
+                bx[6 * node + a] = low;
+                bx[6 * node + 3 + a] = high;
+            }
+            if (end - start <= leaf_size) continue;
+            int axis = 0;
+            for (int c = 1; c < 3; ++c)
+                if (bx[6 * node + 3 + c] - bx[6 * node + c] > bx[6 * node + 3 + axis] - bx[6 * node + axis]) axis = c;
+            int64_t middle = (start + end) / 2;
+            select_nth(ord, columns.data() + axis * count, start, end, middle);
+            int64_t left = nodes;
+            nodes += 2;
+            lf[node] = left;
+            st[left] = start;
+            en[left] = middle;
+            st[left + 1] = middle;
+            en[left + 1] = end;
+            stack.push_back(left);
+            stack.push_back(left + 1);
+        }
+        double *tp = tree_points.data();
+        for (int64_t k = 0; k < count; ++k)
+            for (int a = 0; a < 3; ++a) tp[3 * k + a] = p[3 * ord[k] + a];
+    }
+    return nodes;
+}
+
+inline void mapped(const double *q, int64_t i, const double *r, const double *t, double &x, double &y, double &z) {
+    const double a = q[3 * i], b = q[3 * i + 1], c = q[3 * i + 2];
+    x = r[0] * a + r[1] * b + r[2] * c + t[0];
+    y = r[3] * a + r[4] * b + r[5] * c + t[1];
+    z = r[6] * a + r[7] * b + r[8] * c + t[2];
+}
+
+constexpr int64_t QUERY_PIECE = 1024;
+
+void tree_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, CIdx rank, CArr2 tree_points,
+                CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, Arr1 out_distances, Idx out_indices,
+                int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t count = int64_t(queries.shape(0));
+    const double *q = queries.data(), *r = rotation.data(), *tr = translation.data();
+    const int64_t *w = warm.data(), *rk = rank.data();
+    double *od = out_distances.data();
+    int64_t *oi = out_indices.data();
+    if (count < 512) threads = 1;
+    parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
+        int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
+        for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
+            double x, y, z;
+            mapped(q, i, r, tr, x, y, z);
+            double best = INF;
+            int64_t slot = -1;
+            if (w[i] >= 0) {
+                slot = rk[w[i]];
+                double ex = t.points[3 * slot] - x, ey = t.points[3 * slot + 1] - y, ez = t.points[3 * slot + 2] - z;
+                best = ex * ex + ey * ey + ez * ez;
+            }
+            nearest(t, x, y, z, best, slot);
+            od[i] = std::sqrt(best);
+            oi[i] = slot >= 0 ? t.order[slot] : t.count;
+        }
+    });
+}
+
+// ---------------------------------------------------------------------------------------------
+// Voxel hash.
+inline int64_t hash_slot(int64_t key, int shift) {
+    return int64_t((uint64_t(key) * HASH_MULTIPLIER) >> uint64_t(shift));
+}
+
+void build_table(CIdx cell_keys, Idx table_keys, Idx table_cells) {
+    const int64_t size = int64_t(table_keys.shape(0));
+    int bits = 0;
+    while ((int64_t(1) << bits) < size) ++bits;
+    const int shift = 64 - bits;
+    const int64_t mask = size - 1;
+    int64_t *tk = table_keys.data(), *tc = table_cells.data();
+    const int64_t *ck = cell_keys.data();
+    for (int64_t s = 0; s < size; ++s) tk[s] = -1;
+    for (int64_t cell = 0; cell < int64_t(cell_keys.shape(0)); ++cell) {
+        int64_t slot = hash_slot(ck[cell], shift);
+        while (tk[slot] != -1) slot = (slot + 1) & mask;
+        tk[slot] = ck[cell];
+        tc[slot] = cell;
+    }
+}
+
+//: Cells holding more distinct points than this are not scanned: the query goes to the tree
+//: (exact, logarithmic), so that no dense cell makes the hash quadratic.
+constexpr int64_t CELL_SCAN_MAX = 256;
+
+int64_t hash_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, CIdx rank, CArr2 sorted_points,
+                   CIdx sorted_index, CIdx cell_starts, CIdx table_keys, CIdx table_cells, CArr1 low_, double cell,
+                   CIdx dims_, CArr2 tree_points, CIdx tree_order, CIdx tree_rank, CIdx tree_starts, CIdx tree_ends,
+                   CIdx tree_lefts, CArr2 tree_boxes, bool use_hash, Arr1 out_distances, Idx out_indices,
+                   int threads) {
+    Tree t{tree_points.data(), tree_order.data(), tree_starts.data(), tree_ends.data(), tree_lefts.data(),
+           tree_boxes.data(), int64_t(tree_points.shape(0))};
+    const int64_t size = int64_t(table_keys.shape(0));
+    int bits = 0;
+    while ((int64_t(1) << bits) < size) ++bits;
+    const int shift = 64 - bits;
+    const int64_t mask = size - 1;
+    const double limit = cell * cell;
+    const int64_t count = int64_t(queries.shape(0));
+    const double *q = queries.data(), *r = rotation.data(), *tr = translation.data();
+    const int64_t *w = warm.data(), *rk = rank.data(), *si = sorted_index.data(), *cs = cell_starts.data();
+    const int64_t *tk = table_keys.data(), *tc = table_cells.data(), *dims = dims_.data(), *trank = tree_rank.data();
+    const double *sp = sorted_points.data(), *low = low_.data();
+    double *od = out_distances.data();
+    int64_t *oi = out_indices.data();
+    const int64_t pieces = piece_count(count, QUERY_PIECE);
+    std::vector<int64_t> misses(pieces, 0);
+    if (count < 512) threads = 1;
+    const double inverse_cell = 1.0 / cell;
+    parallel_pieces(pieces, threads, [&](int64_t piece) {
+        int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
+        int64_t piece_misses = 0;
+        for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
+            double qx, qy, qz;
+            mapped(q, i, r, tr, qx, qy, qz);
+            double best = INF;
+            int64_t best_index = -1;
+            if (w[i] >= 0) {
+                int64_t k = rk[w[i]];
+                double ex = sp[3 * k] - qx, ey = sp[3 * k + 1] - qy, ez = sp[3 * k + 2] - qz;
+                best = ex * ex + ey * ey + ez * ez;
+                best_index = k;
+            }
+            bool dense = false;
+            if (use_hash) {
+                double fx = (qx - low[0]) * inverse_cell, fy = (qy - low[1]) * inverse_cell,
+                       fz = (qz - low[2]) * inverse_cell;
+                // Beyond the grid (or NaN): no cell to scan.
+                bool inside = fx > -2.0 && fy > -2.0 && fz > -2.0 && fx < double(dims[0]) + 2.0 &&
+                              fy < double(dims[1]) + 2.0 && fz < double(dims[2]) + 2.0;
+                if (inside) {
+                    int64_t cx = int64_t(std::floor(fx)), cy = int64_t(std::floor(fy)), cz = int64_t(std::floor(fz));
+                    double ox = fx - cx, oy = fy - cy, oz = fz - cz;
+                    double bound = best > limit ? limit : best;
+                    for (int dz = -1; dz <= 1 && !dense; ++dz) {
+                        int64_t z = cz + dz;
+                        if (z < 0 || z >= dims[2]) continue;
+                        double gz = dz == 0 ? 0.0 : ((dz < 0 ? oz : 1.0 - oz) * cell);
+                        for (int dy = -1; dy <= 1 && !dense; ++dy) {
+                            int64_t y = cy + dy;
+                            if (y < 0 || y >= dims[1]) continue;
+                            double gy = dy == 0 ? 0.0 : ((dy < 0 ? oy : 1.0 - oy) * cell);
+                            for (int dx = -1; dx <= 1; ++dx) {
+                                int64_t x = cx + dx;
+                                if (x < 0 || x >= dims[0]) continue;
+                                double gx = dx == 0 ? 0.0 : ((dx < 0 ? ox : 1.0 - ox) * cell);
+                                if (gx * gx + gy * gy + gz * gz > bound) continue;
+                                int64_t key = x + dims[0] * (y + dims[1] * z);
+                                int64_t slot = hash_slot(key, shift), found = -1;
+                                while (true) {
+                                    int64_t stored = tk[slot];
+                                    if (stored == key) {
+                                        found = tc[slot];
+                                        break;
+                                    }
+                                    if (stored == -1) break;
+                                    slot = (slot + 1) & mask;
+                                }
+                                if (found < 0) continue;
+                                if (cs[found + 1] - cs[found] > CELL_SCAN_MAX) {
+                                    dense = true;
+                                    break;
+                                }
+                                for (int64_t k = cs[found]; k < cs[found + 1]; ++k) {
+                                    double ex = sp[3 * k] - qx, ey = sp[3 * k + 1] - qy, ez = sp[3 * k + 2] - qz;
+                                    double squared = ex * ex + ey * ey + ez * ez;
+                                    if (squared < best) {
+                                        best = squared;
+                                        best_index = k;
+                                        if (squared < bound) bound = squared;
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+                if (!dense && best <= limit) {
+                    od[i] = std::sqrt(best);
+                    oi[i] = si[best_index];
+                    continue;
+                }
+            }
+            int64_t slot = best_index < 0 ? -1 : trank[si[best_index]];
+            nearest(t, qx, qy, qz, best, slot);
+            if (best > limit) ++piece_misses;
+            od[i] = std::sqrt(best);
+            oi[i] = slot >= 0 ? t.order[slot] : t.count;
+        }
+        misses[piece] = piece_misses;
+    });
+    int64_t total = 0;
+    for (int64_t m : misses) total += m;
+    return total;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Pair moments.
+constexpr int64_t SUM_PIECE = 4096;
+
+void pair_moments(CArr2 source, CArr2 rotation, CArr1 translation, CArr2 target, CIdx indices, CArr1 distances,
+                  double scale, double shift, Arr1 out, int threads) {
+    const int64_t count = int64_t(source.shape(0));
+    const double *s = source.data(), *r = rotation.data(), *tr = translation.data(), *tg = target.data();
+    const int64_t *ix = indices.data();
+    const double *d = distances.data();
+    double sref[3], tref[3];
+    for (int a = 0; a < 3; ++a) {
+        sref[a] = r[3 * a] * s[0] + r[3 * a + 1] * s[1] + r[3 * a + 2] * s[2] + tr[a];
+        tref[a] = tg[3 * ix[0] + a];
+    }
+    const int64_t pieces = piece_count(count, SUM_PIECE);
+    std::vector<double> partial(17 * pieces, 0.0);
+    if (count < 8192) threads = 1;
+    parallel_pieces(pieces, threads, [&](int64_t piece) {
+        double w0 = 0, w1 = 0, ax = 0, ay = 0, az = 0, bx = 0, by = 0, bz = 0;
+        double c[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+        int64_t end = std::min(count, (piece + 1) * SUM_PIECE);
+        for (int64_t i = piece * SUM_PIECE; i < end; ++i) {
+            double w = scale > 0.0 ? std::exp(-(d[i] * d[i] - shift) * scale) : 1.0;
+            double sx, sy, sz;
+            mapped(s, i, r, tr, sx, sy, sz);
+            sx -= sref[0];
+            sy -= sref[1];
+            sz -= sref[2];
+            int64_t j = ix[i];
+            double tx = tg[3 * j] - tref[0], ty = tg[3 * j + 1] - tref[1], tz = tg[3 * j + 2] - tref[2];
+            w0 += w;
+            w1 += w * w;
+            double wx = w * sx, wy = w * sy, wz = w * sz;
+            ax += wx;
+            ay += wy;
+            az += wz;
+            bx += w * tx;
+            by += w * ty;
+            bz += w * tz;
+            c[0] += wx * tx; c[1] += wx * ty; c[2] += wx * tz;
+            c[3] += wy * tx; c[4] += wy * ty; c[5] += wy * tz;
+            c[6] += wz * tx; c[7] += wz * ty; c[8] += wz * tz;
+        }
+        double *row = partial.data() + 17 * piece;
+        row[0] = w0; row[1] = w1; row[2] = ax; row[3] = ay; row[4] = az; row[5] = bx; row[6] = by; row[7] = bz;
+        for (int k = 0; k < 9; ++k) row[8 + k] = c[k];
+    });
+    double sums[17] = {0};
+    for (int64_t p = 0; p < pieces; ++p)
+        for (int k = 0; k < 17; ++k) sums[k] += partial[17 * p + k];
+    double *o = out.data();
+    const double total = sums[0];
+    o[0] = total;
+    o[1] = sums[1];
+    for (int a = 0; a < 3; ++a)
+        for (int b = 0; b < 3; ++b)
+            o[8 + 3 * a + b] = sums[8 + 3 * a + b] / total - (sums[2 + a] / total) * (sums[5 + b] / total);
+    for (int a = 0; a < 3; ++a) {
+        o[2 + a] = sums[2 + a] / total + sref[a];
+        o[5 + a] = sums[5 + a] / total + tref[a];
+    }
+}
+
+inline void add_outer(double *h, double w, double ax, double ay, double az, double bx, double by, double bz) {
+    h[0] += w * ax * bx; h[1] += w * ax * by; h[2] += w * ax * bz;
+    h[3] += w * ay * bx; h[4] += w * ay * by; h[5] += w * ay * bz;
+    h[6] += w * az * bx; h[7] += w * az * by; h[8] += w * az * bz;
+}
+
+void paper_moments(CArr2 source, CArr2 rotation, CArr1 translation, CArr2 target, CIdx indices, CArr1 distances,
+                   double scale, Arr1 out, int threads) {
+    const int64_t count = int64_t(source.shape(0));
+    const double *s = source.data(), *r = rotation.data(), *tr = translation.data(), *tg = target.data();
+    const int64_t *ix = indices.data();
+    const double *d = distances.data();
+    const int64_t pieces = piece_count(count, SUM_PIECE);
+    if (count < 8192) threads = 1;
+    std::vector<double> partial(8 * pieces, 0.0);
+    parallel_pieces(pieces, threads, [&](int64_t piece) {
+        double acc[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+        int64_t end = std::min(count, (piece + 1) * SUM_PIECE);
+        for (int64_t i = piece * SUM_PIECE; i < end; ++i) {
+            double x, y, z;
+            mapped(s, i, r, tr, x, y, z);
+            acc[0] += x; acc[1] += y; acc[2] += z;
+            int64_t j = ix[i];
+            acc[3] += tg[3 * j]; acc[4] += tg[3 * j + 1]; acc[5] += tg[3 * j + 2];
+            double w = std::exp(-d[i] * d[i] * scale);
+            acc[6] += w;
+            acc[7] += w * w;
+        }
+        for (int k = 0; k < 8; ++k) partial[8 * piece + k] = acc[k];
+    });
+    double sums[8] = {0};
+    for (int64_t p = 0; p < pieces; ++p)
+        for (int k = 0; k < 8; ++k) sums[k] += partial[8 * p + k];
+    double sb[3], tb[3];
+    for (int a = 0; a < 3; ++a) {
+        sb[a] = sums[a] / double(count);
+        tb[a] = sums[3 + a] / double(count);
+    }
+    std::vector<double> blocks(9 * pieces, 0.0);
+    parallel_pieces(pieces, threads, [&](int64_t piece) {
+        double h[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+        int64_t end = std::min(count, (piece + 1) * SUM_PIECE);
+        for (int64_t i = piece * SUM_PIECE; i < end; ++i) {
+            int64_t partner = ix[i];
+            if (partner >= count) continue;
+            double w = std::exp(-d[i] * d[i] * scale);
+            bool mutual = ix[partner] == i;
+            double first = w;
+            if (mutual && partner > i) first = std::exp(-d[partner] * d[partner] * scale);
+            double x, y, z;
+            mapped(s, i, r, tr, x, y, z);
+            int64_t k = ix[partner];
+            add_outer(h, first, x - sb[0], y - sb[1], z - sb[2], tg[3 * k] - tb[0], tg[3 * k + 1] - tb[1],
+                      tg[3 * k + 2] - tb[2]);
+            if (!mutual) {
+                mapped(s, partner, r, tr, x, y, z);
+                int64_t j = ix[i];
+                add_outer(h, w, x - sb[0], y - sb[1], z - sb[2], tg[3 * j] - tb[0], tg[3 * j + 1] - tb[1],
+                          tg[3 * j + 2] - tb[2]);
+            }
+        }
+        for (int k = 0; k < 9; ++k) blocks[9 * piece + k] = h[k];
+    });
+    double *o = out.data();
+    for (int k = 0; k < 17; ++k) o[k] = 0.0;
+    o[0] = sums[6];
+    o[1] = sums[7];
+    for (int a = 0; a < 3; ++a) {
+        o[2 + a] = sb[a];
+        o[5 + a] = tb[a];
+    }
+    for (int64_t p = 0; p < pieces; ++p)
+        for (int k = 0; k < 9; ++k) o[8 + k] += blocks[9 * p + k];
+}
+
+}  // namespace
+
+NB_MODULE(_kernels, m) {
+    m.doc() = "esmicp's compiled kernels (KD-tree, voxel hash, pair moments); std::thread, GIL released.";
+    m.attr("STACK") = STACK;
+    m.attr("CELL_SCAN_MAX") = CELL_SCAN_MAX;
+    m.def("build_tree", &build_tree);
+    m.def("tree_query", &tree_query);
+    m.def("build_table", &build_table);
+    m.def("hash_query", &hash_query);
+    m.def("pair_moments", &pair_moments);
+    m.def("paper_moments", &paper_moments);
+    m.def("hardware_threads", []() { return int(std::max(1u, std::thread::hardware_concurrency())); });
+}
