@@ -18,7 +18,7 @@ from ..metrics import (
     translation_error,
     up_to_symmetry_success,
 )
-from ..protocols import Trial
+from .protocols import Trial
 from .methods import Unavailable, method_kind, run_method
 from .trials import TrialSpec
 
