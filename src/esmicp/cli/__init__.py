@@ -49,6 +49,14 @@ def main(argv=None) -> int:
         except KeyboardInterrupt:
             print(f"esmicp {args.command}: interrupted; no partial output was written", file=sys.stderr)
             return EXIT_INTERRUPTED
+        except MemoryError:
+            print(f"esmicp {args.command}: error: out of memory (the clouds are too large for this "
+                  "machine; downsample them or use a smaller --sample-points)", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        except OSError as exc:  # a full disk, a folder that vanished: no traceback, one line
+            where = f"{exc.filename}: " if exc.filename else ""
+            print(f"esmicp {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
