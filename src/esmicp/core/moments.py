@@ -20,6 +20,7 @@ import numpy as np
 
 from .. import _kernels
 from .compiled_tree import threads
+from .weights import kernel_scale
 from .pose_kernels import kabsch_rotation
 
 def available() -> bool:
@@ -39,7 +40,7 @@ def pair_moments(
 
     ``T`` is the 4x4 current placement (``T_target_source``); ``distances`` the pairs' lengths
     (cloud units). Weights: ``exp(-(d_i^2 - d_min^2) / (2 sigma^2))`` (the Gaussian weights relative
-    to the closest pair, :func:`esmicp.core.kernels.relative_gaussian_weights`), or 1 when
+    to the closest pair, :func:`esmicp.core.weights.relative_gaussian_weights`), or 1 when
     ``sigma`` is None.
 
     Returns ``(total_weight, total_squared_weight, source_centroid, target_centroid,
@@ -51,7 +52,7 @@ def pair_moments(
     if sigma is None:
         scale, shift = 0.0, 0.0
     else:
-        scale, shift = 1.0 / (2.0 * sigma * sigma), float(np.min(distances * distances))
+        scale, shift = kernel_scale(sigma), float(np.min(distances * distances))
     out = np.empty(17)
     _kernels.pair_moments(
         *_contiguous(source, transform, target, indices, distances), scale, shift, out, threads(),
@@ -93,6 +94,6 @@ def paper_moments(
         raise ValueError("paper_moments needs at least one pair")
     out = np.empty(17)
     _kernels.paper_moments(
-        *_contiguous(source, transform, target, indices, distances), 1.0 / (2.0 * sigma * sigma), out, threads(),
+        *_contiguous(source, transform, target, indices, distances), kernel_scale(sigma), out, threads(),
     )
     return _unpacked(out)

@@ -10,12 +10,14 @@ cylinder) are skipped.
 
 from __future__ import annotations
 
-from pathlib import Path
+from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import PointCloudFileError
+from ..types import as_generator
+from ._files import check_input_file
 from ._messages import excerpt
 
 _MESH_KEYWORDS = ("bmesh", "mesh")
@@ -41,11 +43,21 @@ def _pose(path, line_number: int, words: list[str]) -> np.ndarray:
     return pose
 
 
+def _check_inside(path: Path, line_number: int, file_name: str) -> None:
+    """A scan file must be a plain name or a relative path below the conf's folder: a conf handed
+    over with a dataset must not make esmicp read files elsewhere (``/etc/...``, ``../../``)."""
+    parts = PurePath(file_name).parts
+    if PurePosixPath(file_name).is_absolute() or PureWindowsPath(file_name).is_absolute() or ".." in parts \
+            or "\\" in file_name or PureWindowsPath(file_name).drive:
+        raise PointCloudFileError(
+            path, f"line {line_number}: scan file {excerpt(file_name)} is not inside the conf's folder"
+        )
+
+
 def _entries(path: Path) -> list[tuple[str, str, np.ndarray]]:
     """``(name, file, T_world_scan)`` per scan line, in file order; name = the file's stem."""
-    from . import _check_input_file
 
-    _check_input_file(path)
+    check_input_file(path)
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
@@ -71,6 +83,7 @@ def _entries(path: Path) -> list[tuple[str, str, np.ndarray]]:
         file_name = words[1]
         if "cybcyl" in file_name:
             continue
+        _check_inside(path, line_number, file_name)
         pose = _pose(path, line_number, words)
         name = Path(file_name).stem
         if name in seen:
@@ -116,9 +129,9 @@ def load_scans(folder, *, max_points: int | None = None, rng=None) -> dict[str, 
     from . import read_points
 
     conf = _conf_path(Path(folder))
-    generator = np.random.default_rng(rng)
+    generator = as_generator(rng)
     scans = {}
-    for name, file_name, pose in _entries(conf):
+    for name, file_name, pose in _entries(conf):  # file names checked to stay inside the folder
         points = read_points(conf.parent / file_name)
         if max_points is not None and len(points) > max_points:
             points = points[np.sort(generator.choice(len(points), size=max_points, replace=False))]
