@@ -21,6 +21,7 @@ from .methods import METHODS
 from .cli_args import positive_float, positive_int
 from .cli_bench import add_parser as add_bench_parser
 from .cli_viz import add_parser as add_viz_parser
+from .cli_merge import add_parser as add_merge_parser
 
 #: ``--init`` values that name a strategy rather than a file.
 INIT_NAMES = ("global", *STRATEGIES, "identity", "none")
@@ -123,6 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(handler=_run_demo)
     add_bench_parser(commands)  # bench
     add_viz_parser(commands)  # view, heatmap, animate
+    add_merge_parser(commands)  # merge
     return parser
 
 
