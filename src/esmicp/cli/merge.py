@@ -9,8 +9,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .cli_args import positive_float, positive_int
-from .errors import EsmicpError, InvalidInputError, OutputExistsError
+from .args import positive_float, positive_int
+from ..errors import EsmicpError, InvalidInputError, OutputExistsError
 
 #: Colours of the scans in the HTML view (cycled).
 SCAN_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
@@ -58,7 +58,7 @@ def _progress(enabled: bool):
 
 
 def _write_poses(path: Path, names, result, force: bool) -> None:
-    from .io.atomic import atomic_write
+    from ..io.atomic import atomic_write
 
     with atomic_write(path, force, mode="w") as handle:
         handle.write(f"# T_world_scan per scan (world = scan {result.reference}), row-major 4x4; nan: not placed\n")
@@ -67,8 +67,8 @@ def _write_poses(path: Path, names, result, force: bool) -> None:
 
 
 def _write_view(path: Path, points, labels, names, force: bool) -> None:
-    from .viz._deps import require
-    from .viz.view import _scatter, display_subset, write_view
+    from ..viz._deps import require
+    from ..viz.view import _scatter, display_subset, write_view
 
     go = require("plotly.graph_objects")
     figure = go.Figure()
@@ -82,8 +82,8 @@ def _write_view(path: Path, points, labels, names, force: bool) -> None:
 
 
 def run_merge(args) -> int:
-    from . import io
-    from .multiview import register_scans
+    from .. import io
+    from ..multiview import register_scans
 
     outputs = [(args.output, "points"), (args.poses_out, "transform"), (args.view, "transform")]
     for path, kind in outputs:
@@ -111,7 +111,7 @@ def run_merge(args) -> int:
         raise InvalidInputError(f"--reference: expected a scan index in [0, {len(clouds)}), got {args.reference}")
     client = None
     if args.scheduler:
-        from .viz._deps import require
+        from ..viz._deps import require
 
         client = require("distributed").Client(args.scheduler)
     progress, close = _progress(not args.no_progress)
