@@ -13,7 +13,7 @@ import warnings
 
 from .. import __version__
 from ..errors import EsmicpError, EsmicpWarning
-from . import bench, demo, register, viz
+from . import bench, demo, merge, register, viz
 from .args import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, Parser
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "build_parser", "main"]
@@ -32,6 +32,7 @@ def build_parser() -> Parser:
     demo.add_parser(commands)
     bench.add_parser(commands)
     viz.add_parser(commands)  # view, heatmap, animate
+    merge.add_parser(commands)  # merge
     return parser
 
 
