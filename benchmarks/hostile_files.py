@@ -8,8 +8,16 @@ process capped at 2 GB of address space above its imports and 20 s (Open3D's C++
 invisible to tracemalloc; the cap makes an attempt to allocate the claimed size fail visibly).
 
     python benchmarks/hostile_files.py [--no-open3d]
+    python benchmarks/hostile_files.py --memory [--peer-src /path/to/other/checkout/src]
 
 Prints one Markdown table; figures are measured in this run, never stored.
+
+``--memory`` measures what big files cost (issue 16, items 10 and 11): sparse 2 GB tails behind
+declared content (ascii PCD, ascii PLY, ``.xyz``) and 10 MB PLY files whose list element comes
+before the vertices. Each read runs in a fresh child, capped at 3 GB of address space above its
+imports; the table gives its read time and the growth of its peak resident memory (VmHWM) over
+the read. ``--peer-src`` runs the same reads against another checkout's ``src`` in the same run
+(e.g. the code before the fix), as the peer.
 """
 
 from __future__ import annotations
@@ -64,10 +72,121 @@ def open3d_outcome(path: Path) -> str:
     return result + (", with a warning" if warned else ", silently")
 
 
+MEMORY_CHILD = r"""
+import json, resource, sys, time
+import esmicp.io, pypcd4, lzf, plyfile  # noqa: F401  (imports before the cap and the measure)
+
+def status(key):
+    with open("/proc/self/status") as handle:
+        for line in handle:
+            if line.startswith(key):
+                return int(line.split()[1]) * 1024
+
+cap = status("VmSize:") + 3 * 2**30
+resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+before = status("VmHWM:")
+start = time.perf_counter()
+try:
+    outcome = f"read {len(esmicp.io.read_points(sys.argv[1]))} points"
+except BaseException as exc:  # noqa: BLE001 - reported as measured
+    outcome = f"{type(exc).__name__}: {str(exc)[len(sys.argv[1]) + 2:][:70]}"
+print(json.dumps({"seconds": time.perf_counter() - start, "peak_growth": status("VmHWM:") - before,
+                  "outcome": outcome}))
+"""
+
+
+def _sparse(path: Path, content: bytes, size: int = 2 * 2**30) -> Path:
+    with open(path, "wb") as handle:
+        handle.write(content)
+        handle.truncate(size)
+    return path
+
+
+def _lists_first_ply(path: Path, lengths, text: bool = False) -> Path:
+    import numpy as np
+
+    header = (f"ply\nformat {'ascii' if text else 'binary_little_endian'} 1.0\nelement face {len(lengths)}\n"
+              "property list uchar int vertex_indices\nelement vertex 500\nproperty float x\nproperty float y\n"
+              "property float z\nend_header\n").encode()
+    points = np.random.default_rng(0).normal(size=(500, 3)).astype("<f4")
+    with open(path, "wb") as handle:
+        handle.write(header)
+        if text:
+            handle.write("".join(f"{n}" + " 0" * n + "\n" for n in lengths).encode())
+            np.savetxt(handle, points)
+        else:
+            handle.write(b"".join(bytes([n]) + bytes(4 * n) for n in lengths))
+            handle.write(points.tobytes())
+    return path
+
+
+def memory_cases(directory: Path) -> dict[str, Path]:
+    import numpy as np
+
+    rows = "".join(f"{i} {i % 7} {i % 5}\n" for i in range(1000)).encode()
+    pcd_header = ("VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1000\nHEIGHT 1\n"
+                  "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 1000\nDATA ascii\n").encode()
+    ply_header = (b"ply\nformat ascii 1.0\nelement vertex 1000\nproperty float x\nproperty float y\n"
+                  b"property float z\nend_header\n")
+    rng = np.random.default_rng(1)
+    return {
+        "ascii PCD, 1,000 points + 2 GB sparse tail": _sparse(directory / "tail.pcd", pcd_header + rows),
+        "ascii PLY, 1,000 points + 2 GB sparse tail": _sparse(directory / "tail.ply", ply_header + rows),
+        ".xyz, 2 GB sparse (all NUL)": _sparse(directory / "sparse.xyz", b""),
+        ".xyz, 1,000 points + 2 GB sparse tail": _sparse(directory / "tail.xyz", rows),
+        "binary PLY 10 MB, face list (3 each) before 500 vertices": _lists_first_ply(
+            directory / "uniform.ply", [3] * (10_000_000 // 13)),
+        "binary PLY 10 MB, face list (3 or 4, random) before 500 vertices": _lists_first_ply(
+            directory / "mixed.ply", list(rng.choice([3, 4], 10_000_000 // 15))),
+        "binary PLY 10 MB, 10M empty lists before 500 vertices": _lists_first_ply(
+            directory / "empty.ply", [0] * 10_000_000),
+        "ascii PLY 10 MB, face list (3 each) before 500 vertices": _lists_first_ply(
+            directory / "ascii-lists.ply", [3] * (10_000_000 // 8), text=True),
+    }
+
+
+def _measure(path: Path, src: str | None) -> str:
+    import json
+    import os
+
+    env = dict(os.environ)
+    if src:
+        env["PYTHONPATH"] = src
+    try:
+        process = subprocess.run([sys.executable, "-c", MEMORY_CHILD, str(path)], capture_output=True, text=True,
+                                 timeout=300, env=env)
+    except subprocess.TimeoutExpired:
+        return "still running after 300 s (killed) | - | -"
+    if process.returncode != 0:
+        return f"crashed (exit {process.returncode}) | - | -"
+    result = json.loads(process.stdout.strip().splitlines()[-1])
+    return f"{result['outcome']} | {result['seconds']:.2f} s | {result['peak_growth'] / 2**20:.0f} MB"
+
+
+def memory_main(peer_src: str | None) -> None:
+    directory = Path(tempfile.mkdtemp(prefix="esmicp-hostile-memory-"))
+    columns = "| file | esmicp: outcome | time | peak RSS growth |"
+    if peer_src:
+        columns += " peer: outcome | time | peak RSS growth |"
+    print(columns)
+    print("|" + "---|" * (columns.count("|") - 1))
+    for label, path in memory_cases(directory).items():
+        cells = _measure(path, None)
+        if peer_src:
+            cells += " | " + _measure(path, peer_src)
+        print(f"| {label} | {cells} |", flush=True)
+        path.unlink()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--no-open3d", action="store_true", help="skip the Open3D peer")
+    parser.add_argument("--memory", action="store_true", help="big files: time and peak memory (issue 16)")
+    parser.add_argument("--peer-src", help="with --memory: also run another checkout's src as the peer")
     args = parser.parse_args()
+    if args.memory:
+        memory_main(args.peer_src)
+        return
     import pypcd4  # noqa: F401  (imported before timing, as read_points would on first use)
     import trimesh  # noqa: F401
 

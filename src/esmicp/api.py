@@ -110,6 +110,8 @@ def register(
     if method not in METHODS:
         raise InvalidInputError(f"method: unknown method {method!r}; choose one of {', '.join(METHODS)}")
     init_name, initial = _resolve_init(init)
+    if initial is not None:
+        _check_start_representable(initial, source_points)
     if sigma is not None:
         sigma = as_positive(sigma, "sigma")
     if inlier_distance is not None:
@@ -195,6 +197,19 @@ def register(
         ),
         global_candidates=0 if estimate is None else estimate.candidates,
     )
+
+
+def _check_start_representable(initial: np.ndarray, source_points: np.ndarray) -> None:
+    """Refuse a start that moves the source beyond float64 geometry (a translation of 1e200 used to
+    overflow in silence and end ``converged=True`` at a wrong pose)."""
+    from .types import MAX_COORDINATE
+
+    reach = float(np.abs(initial[:3, 3]).max()) + float(np.abs(source_points).max()) * 3 ** 0.5
+    if not reach <= MAX_COORDINATE:
+        raise InvalidInputError(
+            f"init: its translation ({float(np.abs(initial[:3, 3]).max()):.3g}) moves the source beyond the "
+            f"{MAX_COORDINATE:g} that float64 squared distances allow; is it in the clouds' units?"
+        )
 
 
 def _make_estimator(method: str, sigma: float | None, spacing: float, diagonal: float, *, start_fine: bool = False):

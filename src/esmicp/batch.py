@@ -5,7 +5,8 @@ process (a local process pool) or a Dask worker (when a ``dask.distributed.Clien
 Results come back in input order. A pair that fails (bad input, or any error inside
 ``register``) is returned as a :class:`RegistrationFailure` in its place, so one bad scan never
 costs the others. ``register`` is deterministic (its default global-search seed is fixed), so the
-results equal those of calling it pair by pair.
+results equal those of calling it pair by pair to within 1e-12 (not bitwise: a worker's kernels run
+on one thread, and a different summation order moves the last bits, e.g. 1.3e-15).
 
 Each local worker process runs its numerical kernels on one thread: the pool itself uses the cores.
 """

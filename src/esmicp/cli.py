@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -139,6 +140,14 @@ def main(argv=None) -> int:
         except KeyboardInterrupt:
             print(f"esmicp {args.command}: interrupted; no partial output was written", file=sys.stderr)
             return EXIT_INTERRUPTED
+        except MemoryError:
+            print(f"esmicp {args.command}: error: out of memory (the clouds are too large for this "
+                  "machine; downsample them or use a smaller --sample-points)", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        except OSError as exc:  # a full disk, a folder that vanished: no traceback, one line
+            where = f"{exc.filename}: " if exc.filename else ""
+            print(f"esmicp {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
@@ -152,8 +161,24 @@ def _check_output(path: Path | None, force: bool, kind: str) -> None:
     from .io import check_writable
 
     check_writable(path, kind=kind)
+    if path.is_symlink() and not path.exists():
+        raise EsmicpError(f"{path}: is a dangling symbolic link (to {os.readlink(path)!r}); remove it or "
+                          "give another output path")
     if path.exists() and not force:
         raise OutputExistsError(path)
+
+
+def _check_distinct_outputs(**paths) -> None:
+    """Refuse two outputs that are one file (before any work: the second would replace the first)."""
+    given = [(flag, path) for flag, path in paths.items() if path is not None]
+    for index, (flag, path) in enumerate(given):
+        for other_flag, other in given[index + 1:]:
+            same = Path(os.path.abspath(path)) == Path(os.path.abspath(other))
+            if not same and path.exists() and other.exists():
+                same = os.path.samefile(path, other)
+            if same:
+                raise EsmicpError(f"--{other_flag.replace('_', '-')} {other}: is the same file as --{flag} "
+                                  f"{path}; give two different files")
 
 
 def _run_register(args) -> int:
@@ -161,6 +186,7 @@ def _run_register(args) -> int:
     from .api import register
     from .core.procrustes import apply
 
+    _check_distinct_outputs(output=args.output, transform_out=args.transform_out)
     _check_output(args.output, args.force, "points")
     _check_output(args.transform_out, args.force, "transform")
     source = io.read_points(args.source, sample_points=args.sample_points, rng=args.seed)

@@ -10,6 +10,7 @@ removed before appending again.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -41,8 +42,31 @@ def library_versions() -> dict:
             "packages": versions}
 
 
+def row_key(row: dict) -> tuple:
+    """What identifies a row for ``--resume``: (trial_id, method, sigma)."""
+    sigma = row.get("sigma")
+    return (row["trial_id"], row["method"], None if sigma is None else float(sigma))
+
+
+def _unique(rows: list) -> list:
+    """The first row of each key, in file order (two runs that appended the same trials, as two
+    ``--resume`` sessions did before the folder lock, count once)."""
+    seen, unique = set(), []
+    for row in rows:
+        try:
+            key = row_key(row)
+        except (TypeError, KeyError, ValueError, AttributeError):
+            unique.append(row)  # not a well-formed row: left for the caller's checks
+            continue
+        if key not in seen:
+            seen.add(key)
+            unique.append(row)
+    return unique
+
+
 def read_rows(path) -> list[dict]:
-    """Every complete row of a rows file, in file order (a torn last line is skipped)."""
+    """Every complete row of a rows file, in file order (a torn last line is skipped); a row whose
+    key (:func:`row_key`) appeared before is dropped."""
     path = Path(path)
     try:
         data = path.read_bytes()
@@ -62,7 +86,7 @@ def read_rows(path) -> list[dict]:
             raise PointCloudFileError(path, f"line {number} is not a JSON row ({exc.msg})") from None
         except UnicodeDecodeError:
             raise PointCloudFileError(path, f"line {number} is not UTF-8 text") from None
-    return rows
+    return _unique(rows)
 
 
 class RowWriter:
@@ -105,6 +129,40 @@ def _drop_torn_tail(path: Path) -> None:
     if data and not data.endswith(b"\n"):
         with open(path, "r+b") as handle:
             handle.truncate(data.rfind(b"\n") + 1)
+
+
+LOCK = ".esmicp-bench.lock"
+
+
+@contextlib.contextmanager
+def folder_lock(out_dir: Path):
+    """Hold an exclusive lock on a results folder for the duration of a run.
+
+    A second run on the same folder (two ``--resume`` in two terminals) is refused at once instead
+    of running the same trials again. The lock is an ``flock`` on :data:`LOCK` inside the folder:
+    the system releases it when the process ends, however it ends (no stale lock after a kill).
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock
+        yield
+        return
+    path = Path(out_dir) / LOCK
+    try:
+        descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError as exc:
+        raise PointCloudFileError(path, f"cannot create the folder lock: {exc.strerror or exc}") from None
+    try:
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InvalidInputError(
+                f"{out_dir}: another esmicp bench is running on this folder (it holds {path}); wait for it "
+                "to finish, or give another --out"
+            ) from None
+        yield
+    finally:
+        os.close(descriptor)  # releases the lock
 
 
 def write_json(path: Path, data, *, overwrite: bool) -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InvalidInputError
+from ..errors import InvalidInputError, PointCloudFileError
 from . import results, tables
 from .config import PAPER_PROTOCOLS, SCAN_PROTOCOL, BenchConfig, RunOptions
 from .datasets import POINTS_INDEPENDENT, load_dataset
@@ -205,6 +205,15 @@ def run_bench(config: BenchConfig, options: RunOptions = RunOptions()) -> BenchO
     out_dir = Path(options.out_dir)
     results.check_folder(out_dir, resume=options.resume, force=options.force)
     planned = plan(config)  # before anything is written or replaced: a bad dataset changes nothing
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PointCloudFileError(out_dir, f"cannot create the folder: {exc.strerror or exc}") from None
+    with results.folder_lock(out_dir):  # one run per folder at a time
+        return _run_locked(config, options, out_dir, planned)
+
+
+def _run_locked(config: BenchConfig, options: RunOptions, out_dir: Path, planned) -> BenchOutcome:
     results.prepare_folder(out_dir, resume=options.resume, force=options.force)
     _save_config(config, out_dir, options.resume)
     rows_path = out_dir / results.ROWS
@@ -292,6 +301,16 @@ def _sigint_ignored():
         signal.signal(signal.SIGINT, previous)
 
 
+def _inside(out_dir: Path, name: str) -> Path:
+    """``out_dir / name``, checked to be a plain file name that stays inside ``out_dir`` (table
+    names carry row content, and a results folder may come from someone else)."""
+    path = out_dir / name
+    if Path(name).name != name or name in (".", "..") or "\\" in name or \
+            os.path.dirname(os.path.abspath(path)) != os.path.abspath(out_dir):
+        raise InvalidInputError(f"{out_dir}: refusing to write the table {name!r} outside the folder")
+    return path
+
+
 def write_tables(out_dir: Path) -> tuple[Path, ...]:
     """(Re)write the tables of ``out_dir`` from its rows file: they are derived, never edited."""
     from ..io.atomic import atomic_write
@@ -303,7 +322,7 @@ def write_tables(out_dir: Path) -> tuple[Path, ...]:
              **tables.paper_tables(rows)}
     written = []
     for name, text in texts.items():
-        path = out_dir / name
+        path = _inside(out_dir, name)
         with atomic_write(path, overwrite=True, mode="w") as handle:
             handle.write(text)
         written.append(path)

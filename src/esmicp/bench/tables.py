@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import io
+import re
 import statistics
 from collections import defaultdict
 
@@ -193,6 +194,13 @@ def summary_csv(rows: list[dict]) -> str:
     return out.getvalue()
 
 
+def _file_word(text) -> str:
+    """``text`` as a safe piece of a file name: letters, digits and ``.-_=+``, nothing else (a
+    ``case`` of ``x/../../tmp/y`` from a handed-over rows file must not become a path)."""
+    word = re.sub(r"[^A-Za-z0-9._=+-]+", "_", str(text)).strip(".")
+    return word[:80] or "unnamed"
+
+
 def paper_tables(rows: list[dict]) -> dict[str, str]:
     """One Markdown file per paper table: ``paper-table-<case>.md`` for each printed transform and
     ``paper-<protocol>-t<range>.md`` for each randomised paper protocol; rows = methods, columns =
@@ -200,7 +208,7 @@ def paper_tables(rows: list[dict]) -> dict[str, str]:
     files = {}
     paper_rows = [r for r in rows if r["protocol"].startswith("paper")]
     for label, group in _groups(paper_rows, protocol_label).items():
-        name = "paper-table-" + group[0]["case"] if group[0].get("case") else label
+        name = "paper-table-" + _file_word(group[0]["case"]) if group[0].get("case") else _file_word(label)
         parts = [f"# {label}\n", _describe(group) + "\n"]
         if group[0].get("case"):
             parts.append(f"One trial per cloud size: {group[0]['cloud']} under the transform the paper prints "

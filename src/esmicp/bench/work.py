@@ -20,6 +20,7 @@ from ..metrics import (
 )
 from ..protocols import Trial
 from .methods import Unavailable, method_kind, run_method
+from .results import row_key  # noqa: F401  (re-exported: where the runner looks for it)
 from .trials import TrialSpec
 
 #: The processes' methods already called once (their first call, untimed, pays the imports).
@@ -40,12 +41,6 @@ class WorkItem:
     max_iterations: int
     init: np.ndarray
     init_label: str
-
-
-def row_key(row: dict) -> tuple:
-    """What identifies a row for ``--resume``: (trial_id, method, sigma)."""
-    sigma = row.get("sigma")
-    return (row["trial_id"], row["method"], None if sigma is None else float(sigma))
 
 
 def run_item(item: WorkItem) -> list[dict]:

@@ -8,6 +8,18 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Sigmas below this are computed as this one. ``1 / (2 sigma^2)`` overflows to inf near 1e-154
+#: (and 2 sigma^2 is 0 near 1e-162); at 1e-150 every distance a representable cloud can hold
+#: (clouds span at least 1e-100, see :mod:`esmicp.types`) other than 0 already weighs exactly 0,
+#: so any smaller sigma gives the same weights.
+SIGMA_FLOOR = 1e-150
+
+
+def kernel_scale(sigma: float) -> float:
+    """``1 / (2 sigma^2)``, finite for every positive sigma (see :data:`SIGMA_FLOOR`)."""
+    sigma = max(float(sigma), SIGMA_FLOOR)
+    return 1.0 / (2.0 * sigma * sigma)
+
 
 def gaussian_weights(distances: np.ndarray, sigma: float) -> np.ndarray:
     """The paper's weights ``exp(-d^2 / (2 sigma^2))``, exactly (values in ``(0, 1]``).
@@ -15,7 +27,8 @@ def gaussian_weights(distances: np.ndarray, sigma: float) -> np.ndarray:
     These can all underflow to 0 when every distance is much larger than ``sigma``; use
     :func:`relative_gaussian_weights` where only weight ratios matter.
     """
-    return np.exp(-np.square(distances) / (2.0 * sigma * sigma))
+    with np.errstate(over="ignore"):  # d^2 * scale may be inf: weight 0
+        return np.exp(-np.square(distances) * kernel_scale(sigma))
 
 
 def relative_gaussian_weights(distances: np.ndarray, sigma: float) -> np.ndarray:
@@ -26,7 +39,8 @@ def relative_gaussian_weights(distances: np.ndarray, sigma: float) -> np.ndarray
     closest pair always weighs 1.
     """
     squared = np.square(distances)
-    return np.exp(-(squared - squared.min()) / (2.0 * sigma * sigma))
+    with np.errstate(over="ignore"):  # (d^2 - d_min^2) * scale may be inf: weight 0
+        return np.exp(-(squared - squared.min()) * kernel_scale(sigma))
 
 
 def effective_count(weights: np.ndarray) -> float:

@@ -22,6 +22,7 @@ import numpy as np
 
 from . import compiled_tree
 from .compiled_tree import chunk_count, run_parallel
+from .kernels import kernel_scale
 from .pose_kernels import kabsch_rotation
 
 try:  # numba is a dependency, but the library still works (slower) without it.
@@ -129,7 +130,7 @@ def pair_moments(
     if sigma is None:
         scale, shift = 0.0, 0.0
     else:
-        scale, shift = 1.0 / (2.0 * sigma * sigma), _smallest_square(distances)
+        scale, shift = kernel_scale(sigma), _smallest_square(distances)
     out = np.empty(17)
     run_parallel(
         _moments, source, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
@@ -246,6 +247,6 @@ def paper_moments(
     out = np.empty(17)
     run_parallel(
         _paper_moments, source, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
-        target, indices, distances, 1.0 / (2.0 * sigma * sigma), chunk_count(len(source), per_thread=1), out,
+        target, indices, distances, kernel_scale(sigma), chunk_count(len(source), per_thread=1), out,
     )
     return _unpacked(out)

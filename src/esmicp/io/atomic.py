@@ -238,8 +238,15 @@ def atomic_write(path, overwrite: bool = False, *, mode: str = "wb"):
     except OSError as exc:
         raise PointCloudFileError(path, f"cannot write: {_describe_os_error(exc)}") from None
 
+    # Replacing a file keeps its permission bits (a mode-600 output stays 600 under --force).
+    try:
+        replaced_mode = os.stat(path).st_mode & 0o7777 if overwrite else None
+    except OSError:
+        replaced_mode = None
     published = False
     try:
+        if replaced_mode is not None and hasattr(os, "fchmod"):
+            os.fchmod(descriptor, replaced_mode)
         try:
             if mode == "w":
                 handle = os.fdopen(descriptor, "w", encoding="utf-8", newline="\n")

@@ -48,6 +48,8 @@ _MAX_HEADER_BYTES = 1 << 16
 #: LZF turns at most 3 input bytes into 264 output bytes (a ratio of 88); anything claiming more is
 #: corrupt, and is refused before any allocation.
 _MAX_LZF_RATIO = 100
+#: Bytes of an ascii body read at a time.
+_ASCII_BLOCK_BYTES = 1 << 20
 
 
 @dataclasses.dataclass
@@ -183,6 +185,26 @@ def _truncated(path, header: _PcdHeader, needed: int, what: str = "bytes of data
     )
 
 
+def _check_lzf(path, compressed: bytes, uncompressed_size: int) -> None:
+    """Refuse an LZF block that does not unpack to exactly its declared size (pypcd4 would fail
+    with ``object of type 'NoneType' has no len()`` when it unpacks to more)."""
+    import lzf
+
+    if len(compressed) == 0 and uncompressed_size == 0:
+        return
+    try:
+        unpacked = lzf.decompress(compressed, uncompressed_size + 1)
+    except ValueError as exc:
+        raise PointCloudFileError(path, f"malformed PCD binary_compressed data: {one_line(exc, 160)}") from None
+    if unpacked is None or len(unpacked) != uncompressed_size:
+        got = f"more than {uncompressed_size} bytes" if unpacked is None else f"{len(unpacked)} bytes"
+        raise PointCloudFileError(
+            path,
+            f"malformed PCD binary_compressed data: the compressed block unpacks to {got}, but its "
+            f"size field declares {uncompressed_size}",
+        )
+
+
 def _data_block(path, handle, header: _PcdHeader) -> bytes:
     """The data bytes pypcd4 needs, after checking the file really holds them."""
     if header.data == "binary":
@@ -208,22 +230,18 @@ def _data_block(path, handle, header: _PcdHeader) -> bytes:
                 path,
                 f"corrupt PCD file: a {compressed_size}-byte compressed block cannot unpack to {uncompressed_size} bytes",
             )
-        return struct.pack("<II", compressed_size, uncompressed_size) + handle.read(compressed_size)
+        compressed = handle.read(compressed_size)
+        _check_lzf(path, compressed, uncompressed_size)
+        return struct.pack("<II", compressed_size, uncompressed_size) + compressed
     # ascii: at least one character and one separator per value on each row.
     needed = header.points * 2 * header.values_per_row - 1
     if needed > header.data_bytes:
         raise _truncated(path, header, needed, "bytes of text at least")
-    try:
-        text = handle.read().decode("ascii")
-    except UnicodeDecodeError:
-        raise PointCloudFileError(path, "malformed ascii PCD data: it contains non-text bytes") from None
     rows = []
-    for line in text.splitlines():
+    for line in _ascii_lines(path, handle) if header.points else ():
         words = line.split()
         if not words:
             continue
-        if len(rows) == header.points:
-            break
         if len(words) != header.values_per_row:
             raise PointCloudFileError(
                 path,
@@ -231,12 +249,33 @@ def _data_block(path, handle, header: _PcdHeader) -> bytes:
                 f"declares {header.values_per_row} per point",
             )
         rows.append(" ".join(words))
+        if len(rows) == header.points:
+            break  # what follows the declared points is never read
     if len(rows) < header.points:
         raise PointCloudFileError(
             path,
             f"truncated PCD file: its header declares {header.points} points, but only {len(rows)} data lines follow",
         )
     return ("\n".join(rows) + "\n").encode("ascii")
+
+
+def _ascii_lines(path, handle):
+    """The lines of an ascii PCD body, read block by block (never more than one block beyond the
+    line being parsed, whatever follows the declared points)."""
+    carry = b""
+    while True:
+        block = handle.read(_ASCII_BLOCK_BYTES)
+        lines = (carry + block).split(b"\n")
+        carry = lines.pop() if block else b""
+        if len(carry) > _ASCII_BLOCK_BYTES:
+            raise PointCloudFileError(path, "malformed ascii PCD data: a data line longer than 1 MiB")
+        for line in lines:
+            try:
+                yield from line.decode("ascii").splitlines()
+            except UnicodeDecodeError:
+                raise PointCloudFileError(path, "malformed ascii PCD data: it contains non-text bytes") from None
+        if not block:
+            return
 
 
 def _normalized_header(header: _PcdHeader) -> str:

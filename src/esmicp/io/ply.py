@@ -16,7 +16,6 @@ import dataclasses
 import io
 import itertools
 import os
-import tempfile
 import warnings
 
 import numpy as np
@@ -319,6 +318,9 @@ def _vertex_element(path, header: PlyHeader) -> tuple[int, _Element]:
         names = _shortened([excerpt(e.name, 20) for e in header.elements]) or "none"
         raise PointCloudFileError(path, f"PLY file has no 'vertex' element (elements: {names})")
     by_name = {p.name: p for p in element.properties}
+    for axis in "xyz":
+        if element.property_names().count(axis) > 1:
+            raise PointCloudFileError(path, f"malformed PLY header: vertex property {axis!r} appears twice")
     missing = [axis for axis in "xyz" if axis not in by_name]
     if missing:
         found = _shortened([excerpt(name, 20) for name in element.property_names()]) or "none"
@@ -359,54 +361,168 @@ def _plyfile_read(path, stream, **kwargs) -> plyfile.PlyData:
 
 
 def _read_ascii(path, handle, header: PlyHeader, needed: list[_Element]) -> np.ndarray:
-    """Vertex coordinates of an ascii PLY file whose header was checked."""
-    rows = sum(e.count for e in needed)
+    """Vertex coordinates of an ascii PLY file whose header was checked.
+
+    One line per row: the rows of the elements before the vertices are counted, not parsed, and
+    plyfile parses the vertex rows alone.
+    """
+    vertex = needed[-1]
+    before = sum(e.count for e in needed[:-1])
     text = io.TextIOWrapper(handle, encoding="ascii", newline=None)
     try:
-        lines = list(itertools.islice(text, rows))
+        skipped = sum(1 for _ in itertools.islice(text, before))
+        lines = list(itertools.islice(text, vertex.count)) if skipped == before else []
     except UnicodeDecodeError:
         raise PointCloudFileError(path, "malformed ascii PLY data: it contains non-ASCII bytes") from None
     finally:
         text.detach()
-    if len(lines) < rows:
-        vertex = needed[-1]
+    if skipped + len(lines) < before + vertex.count:
         raise PointCloudFileError(
             path,
             f"truncated PLY file: its header declares {vertex.count} vertices, but the data ends after "
-            f"{len(lines)} lines",
+            f"{skipped + len(lines)} lines",
         )
-    return _coordinates(_plyfile_read(path, io.StringIO(_rewritten_header(header, needed) + "".join(lines))))
+    return _coordinates(_plyfile_read(path, io.StringIO(_rewritten_header(header, [vertex]) + "".join(lines))))
+
+
+#: numpy type codes of the PLY scalar types.
+_NUMPY_CODES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+#: Bytes read at a time from a binary PLY body (bounds the memory a read needs beyond its result).
+_BLOCK_BYTES = 1 << 24
+
+
+def _changed(path) -> PointCloudFileError:
+    return PointCloudFileError(
+        path, "truncated PLY file: the data ends before what its header declares (did the file change while it was read?)"
+    )
+
+
+class _Blocks:
+    """Sequential reads of a binary PLY body, block by block, from the current position of a handle.
+
+    The file is read, never memory-mapped: a file that shrinks while it is read (another process
+    rewriting it) is then a short read, reported as a truncated file, not a SIGBUS that kills the
+    process.
+    """
+
+    def __init__(self, path, handle, size: int):
+        self.path = path
+        self.handle = handle
+        self.size = size  # bytes after the header when it was read
+        self.buffer = b""
+        self.start = 0  # position of buffer[0] relative to where reading began
+
+    def need(self, position: int, size: int) -> memoryview:
+        """``size`` bytes at ``position`` (relative; positions only move forwards)."""
+        end = position + size
+        if position < self.start:  # pragma: no cover - a programming error, never the file's
+            raise RuntimeError("PLY blocks are read forwards only")
+        if end > self.size:
+            raise PointCloudFileError(
+                self.path,
+                f"truncated or corrupt PLY file: its lists need more than the {self.size} bytes of data that follow the header",
+            )
+        if end > self.start + len(self.buffer):
+            keep = self.buffer[position - self.start:] if position < self.start + len(self.buffer) else b""
+            skip = position - self.start - len(self.buffer)
+            if skip > 0:
+                self.handle.seek(skip, os.SEEK_CUR)
+            more = self.handle.read(min(max(_BLOCK_BYTES, end - position - len(keep)), self.size - position - len(keep)))
+            self.buffer, self.start = keep + more, position
+            if end > self.start + len(self.buffer):
+                raise _changed(self.path)
+        return memoryview(self.buffer)[position - self.start:end - self.start]
+
+
+def _skip_rows(path, blocks: _Blocks, position: int, element: _Element, byte_order: str) -> int:
+    """Walk past the rows of an element with list properties; return the position after them."""
+    steps = []  # per property: (fixed size, None) or (length size, (length dtype, value size))
+    for prop in element.properties:
+        if prop.is_list:
+            length_type = np.dtype(byte_order + _NUMPY_CODES[prop.list_length_type])
+            steps.append((length_type.itemsize, (length_type, _SCALAR_SIZES[prop.value_type])))
+        else:
+            steps.append((_SCALAR_SIZES[prop.value_type], None))
+    lists = [index for index, (_, kind) in enumerate(steps) if kind is not None]
+    remaining = element.count
+    if len(lists) == 1:
+        # One list per row (faces, range grids): rows whose lists have equal lengths are found in
+        # runs, checked together with NumPy; only changes of length cost a step in Python.
+        index = lists[0]
+        before = sum(size for size, _ in steps[:index])
+        after = sum(size for size, _ in steps[index + 1:])
+        length_size, (length_type, value_size) = steps[index]
+        order = "little" if byte_order == "<" else "big"
+        signed = length_type.kind == "i"
+        while remaining:
+            length = int.from_bytes(blocks.need(position, before + length_size)[before:], order, signed=signed)
+            if length < 0:
+                raise PointCloudFileError(path, f"malformed PLY data: a negative list length ({length})")
+            row = before + length_size + length * value_size + after
+            run = min(remaining, max(1, (len(blocks.buffer) - (position - blocks.start)) // row))
+            window = blocks.need(position, run * row)
+            lengths = np.frombuffer(window, dtype=np.uint8).reshape(run, row)[:, before:before + length_size]
+            same = np.frombuffer(lengths.tobytes(), dtype=length_type) == length
+            equal = run if same.all() else int(np.argmin(same))
+            position += equal * row
+            remaining -= equal
+            if equal < 8:  # lengths change often here: a few rows one by one, without NumPy
+                for _ in range(min(remaining, 256)):
+                    length = int.from_bytes(blocks.need(position, before + length_size)[before:], order, signed=signed)
+                    if length < 0:
+                        raise PointCloudFileError(path, f"malformed PLY data: a negative list length ({length})")
+                    position += before + length_size + length * value_size + after
+                    remaining -= 1
+        return position
+    for _ in range(remaining):  # several lists per row: one step per property (rare)
+        for size, kind in steps:
+            if kind is None:
+                position += size
+                continue
+            length_type, value_size = kind
+            length = int(np.frombuffer(blocks.need(position, size), dtype=length_type)[0])
+            if length < 0:
+                raise PointCloudFileError(path, f"malformed PLY data: a negative list length ({length})")
+            position += size + int(length) * value_size
+    return position
 
 
 def _read_binary(path, handle, header: PlyHeader, needed: list[_Element]) -> np.ndarray:
-    """Vertex coordinates of a binary PLY file whose header was checked."""
-    if not any(e.has_lists for e in header.elements):
-        # Fixed-size rows everywhere: plyfile memory-maps the file itself, no copy.
+    """Vertex coordinates of a binary PLY file whose header was checked.
+
+    The elements before the vertices are skipped (fixed-size rows by arithmetic, rows with lists by
+    walking their lengths), then the vertex rows are read block by block and only x, y, z kept: the
+    memory needed is the result plus one block, whatever the file's other content.
+    """
+    byte_order = "<" if header.format == "binary_little_endian" else ">"
+    vertex = needed[-1]
+    if vertex.has_lists:
+        # Lists inside the vertex rows (very unusual): let plyfile parse them, from a copy in memory.
         handle.seek(0)
-        return _coordinates(_plyfile_read(path, handle, mmap="c"))
-    if not any(e.has_lists for e in needed):
-        # A face list (or similar) after the vertices: copy just the rows we need to a temporary
-        # file with a shortened header, which plyfile memory-maps. Reading the face list would make
-        # plyfile loop in Python over every face.
-        size = sum(e.count * e.min_binary_row_bytes() for e in needed)
-        with tempfile.TemporaryFile() as scratch:
-            scratch.write(_rewritten_header(header, needed).encode("ascii"))
-            remaining = size
-            while remaining:
-                chunk = handle.read(min(remaining, 1 << 24))
-                if not chunk:  # pragma: no cover - the size check ran before
-                    raise PointCloudFileError(path, "truncated PLY file: the vertex data ends early")
-                scratch.write(chunk)
-                remaining -= len(chunk)
-            scratch.flush()
-            scratch.seek(0)
-            data = _plyfile_read(path, scratch, mmap="c")
-            points = _coordinates(data)
-            del data  # release the memory map before the scratch file goes
-            return points
-    # Variable-length lists before the vertices (unusual): let plyfile parse everything.
-    handle.seek(0)
-    return _coordinates(_plyfile_read(path, handle, mmap="c"))
+        return _coordinates(_plyfile_read(path, io.BytesIO(handle.read())))
+    blocks = _Blocks(path, handle, header.data_bytes)
+    position = 0
+    for element in needed[:-1]:
+        if element.has_lists:
+            position = _skip_rows(path, blocks, position, element, byte_order)
+        else:
+            position += element.count * element.min_binary_row_bytes()
+    row_type = np.dtype([(p.name if p.name in ("x", "y", "z") else f"_{i}", byte_order + _NUMPY_CODES[p.value_type])
+                         for i, p in enumerate(vertex.properties)])  # x, y, z appear once (checked)
+    points = np.empty((vertex.count, 3), dtype=np.float64)
+    rows_per_block = max(1, _BLOCK_BYTES // row_type.itemsize)
+    with np.errstate(invalid="ignore"):  # a signalling NaN in float32 data: dropped later
+        for first in range(0, vertex.count, rows_per_block):
+            rows = min(rows_per_block, vertex.count - first)
+            table = np.frombuffer(blocks.need(position, rows * row_type.itemsize), dtype=row_type)
+            for column, axis in enumerate("xyz"):
+                points[first:first + rows, column] = table[axis]
+            position += rows * row_type.itemsize
+    return points
 
 
 def _coordinates(data: plyfile.PlyData) -> np.ndarray:

@@ -10,7 +10,7 @@ cylinder) are skipped.
 
 from __future__ import annotations
 
-from pathlib import Path
+from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -39,6 +39,17 @@ def _pose(path, line_number: int, words: list[str]) -> np.ndarray:
     pose[:3, :3] = Rotation.from_quat(quaternion / norm).as_matrix().T
     pose[:3, 3] = translation
     return pose
+
+
+def _check_inside(path: Path, line_number: int, file_name: str) -> None:
+    """A scan file must be a plain name or a relative path below the conf's folder: a conf handed
+    over with a dataset must not make esmicp read files elsewhere (``/etc/...``, ``../../``)."""
+    parts = PurePath(file_name).parts
+    if PurePosixPath(file_name).is_absolute() or PureWindowsPath(file_name).is_absolute() or ".." in parts \
+            or "\\" in file_name or PureWindowsPath(file_name).drive:
+        raise PointCloudFileError(
+            path, f"line {line_number}: scan file {excerpt(file_name)} is not inside the conf's folder"
+        )
 
 
 def _entries(path: Path) -> list[tuple[str, str, np.ndarray]]:
@@ -71,6 +82,7 @@ def _entries(path: Path) -> list[tuple[str, str, np.ndarray]]:
         file_name = words[1]
         if "cybcyl" in file_name:
             continue
+        _check_inside(path, line_number, file_name)
         pose = _pose(path, line_number, words)
         name = Path(file_name).stem
         if name in seen:
@@ -118,7 +130,7 @@ def load_scans(folder, *, max_points: int | None = None, rng=None) -> dict[str, 
     conf = _conf_path(Path(folder))
     generator = np.random.default_rng(rng)
     scans = {}
-    for name, file_name, pose in _entries(conf):
+    for name, file_name, pose in _entries(conf):  # file names checked to stay inside the folder
         points = read_points(conf.parent / file_name)
         if max_points is not None and len(points) > max_points:
             points = points[np.sort(generator.choice(len(points), size=max_points, replace=False))]

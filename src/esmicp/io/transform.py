@@ -6,6 +6,7 @@ clouds' units. Written with 17 significant digits, so a write/read round trip is
 
 from __future__ import annotations
 
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ from ._messages import excerpt
 from .atomic import atomic_write
 from .text import read_text_file
 
-__all__ = ["read_transform", "write_transform"]
+__all__ = ["MAX_TRANSFORM_BYTES", "read_transform", "write_transform"]
 
 _SEPARATORS = str.maketrans({",": " ", ";": " ", "\t": " ", "[": " ", "]": " "})
 
@@ -33,11 +34,28 @@ def _as_path(path) -> Path:
         raise InvalidInputError(f"expected a file path, got {path!r}") from None
 
 
+#: Largest transform file read: 16 numbers with comments fit in far less. A bigger "transform" is
+#: not one (a link to /dev/zero, a point cloud given by mistake) and is refused unread.
+MAX_TRANSFORM_BYTES = 64 * 1024
+
+
 def _check_readable(path: Path) -> None:
-    if path.is_dir():
+    """Refuse a missing, non-regular (FIFO, device: reading one may block forever or never end) or
+    oversized file before opening it."""
+    try:
+        info = path.stat()
+    except FileNotFoundError:
+        raise PointCloudFileError(path, "no such file") from None
+    except OSError as exc:
+        raise PointCloudFileError(path, f"cannot access: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(info.st_mode):
         raise PointCloudFileError(path, "is a directory, not a file")
-    if not path.exists():
-        raise PointCloudFileError(path, "no such file")
+    if not stat.S_ISREG(info.st_mode):
+        raise PointCloudFileError(path, "is not a regular file")
+    if info.st_size > MAX_TRANSFORM_BYTES:
+        raise PointCloudFileError(
+            path, f"too large for a 4x4 transform: {info.st_size} bytes (at most {MAX_TRANSFORM_BYTES})"
+        )
 
 
 def read_transform(path) -> np.ndarray:
@@ -58,13 +76,14 @@ def read_transform(path) -> np.ndarray:
     Raises
     ------
     PointCloudFileError
-        The file is missing, unreadable, does not hold exactly 16 numbers, or the matrix is not a
-        rigid transform.
+        The file is missing, not a regular file (a FIFO, a device), larger than
+        :data:`MAX_TRANSFORM_BYTES`, unreadable, does not hold exactly 16 numbers, or the matrix is
+        not a rigid transform.
     """
     path = _as_path(path)
     _check_readable(path)
     try:
-        text = read_text_file(path)
+        text = read_text_file(path, max_bytes=MAX_TRANSFORM_BYTES)  # the cap again: it may grow
     except OSError as exc:
         raise PointCloudFileError(path, f"cannot read: {exc.strerror or exc}") from None
     words: list[str] = []

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core import moments
-from ..core.kernels import relative_gaussian_weights
+from ..core.kernels import kernel_scale, relative_gaussian_weights
 from ..core.procrustes import rotation_angle, weighted_procrustes
 from ..types import as_positive
 from .base import Step
@@ -116,7 +116,8 @@ class EsmEstimator:
         """The ESM similarity at the current sigma: mean of ``exp(-d^2 / (2 sigma^2))`` (higher is
         better); meaningful only while :attr:`accelerated` (sigma fixed)."""
         sigma = self.sigma(distances, fine=True)
-        return float(np.mean(np.exp(-np.square(distances) / (2.0 * sigma * sigma))))
+        with np.errstate(over="ignore"):
+            return float(np.mean(np.exp(-np.square(distances) * kernel_scale(sigma))))
 
     def step(self, moved_source, target, distances, indices) -> Step:
         sigma = self.sigma(distances, fine=self.fine)

@@ -1,0 +1,211 @@
+"""Careless and hostile use of issue 16: tiny sigmas, far starts, outputs that collide or dangle,
+permissions lost by --force, out of memory, full disks, two runs on one results folder, and
+results folders whose rows would make table names escape the folder.
+
+Each test here failed on the code before the fix (see docs/reliability.md, "Issue 16").
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import esmicp
+from esmicp.bench import BenchConfig, RunOptions, read_rows, run_bench
+from esmicp.cli import EXIT_BAD_INPUT, EXIT_OK, main
+from esmicp.errors import InvalidInputError
+from esmicp.io import write_points
+
+
+def _pair(seed: int = 0, points: int = 300):
+    rng = np.random.default_rng(seed)
+    target = rng.normal(size=(points, 3)) * [3.0, 2.0, 1.0]
+    return target + [0.01, -0.02, 0.005], target
+
+
+@pytest.fixture
+def files(tmp_path):
+    source, target = _pair()
+    write_points(tmp_path / "s.xyz", source)
+    write_points(tmp_path / "t.xyz", target)
+    return tmp_path / "s.xyz", tmp_path / "t.xyz"
+
+
+def _one_line(capsys, prefix: str) -> str:
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(prefix), err
+    return err
+
+
+# --- Item 5: tiny sigmas ------------------------------------------------------------------------
+
+@pytest.mark.parametrize("method", ["esm", "esm-paper", "icp"])
+def test_every_positive_sigma_ends_like_a_small_one(method):
+    source, target = _pair()
+    outcomes = set()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow / divide warning either
+        for sigma in (1e-30, 1e-155, 1e-200, 1e-300, 5e-324):
+            result = esmicp.register(source, target, method=method, init="identity", sigma=sigma)
+            assert np.isfinite(result.transformation).all(), sigma
+            outcomes.add((result.converged, result.message.split(" (")[0].split(":")[0]))
+    assert len(outcomes) == 1, outcomes
+
+
+def test_tiny_sigma_on_the_command_line_is_not_a_traceback(files, capsys):
+    source, target = files
+    assert main(["register", str(source), str(target), "--init", "identity", "--sigma", "1e-200", "--json"]) == EXIT_OK
+    report = json.loads(capsys.readouterr().out)
+    assert np.isfinite(report["transformation"]).all()
+
+
+# --- Minor: a start translation of 1e200 ----------------------------------------------------------
+
+def test_a_start_beyond_float64_geometry_is_refused_not_converged_wrong():
+    source, target = _pair()
+    start = np.eye(4)
+    start[0, 3] = 1e200
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InvalidInputError, match=r"^init: its translation \(1e\+200\)"):
+            esmicp.register(source, target, init=start)
+    start[0, 3] = 1e3  # far, but representable: still registered
+    assert esmicp.register(source, target, init=start, method="icp").transformation.shape == (4, 4)
+
+
+# --- Item 8 and minors: outputs ---------------------------------------------------------------
+
+@pytest.mark.parametrize("force", [False, True])
+def test_transform_out_equal_to_output_is_refused_before_any_work(files, capsys, monkeypatch, force):
+    source, target = files
+    out = source.parent / "aligned.xyz"
+    called = []
+    monkeypatch.setattr("esmicp.api.register", lambda *a, **k: called.append(1))
+    argv = ["register", str(source), str(target), "--output", str(out),
+            "--transform-out", str(source.parent / "." / "aligned.xyz")] + (["--force"] if force else [])
+    assert main(argv) == EXIT_BAD_INPUT
+    _one_line(capsys, "esmicp register: error: --transform-out ")
+    assert not out.exists() and not called
+
+
+def test_transform_out_hard_linked_to_output_is_refused(files, capsys):
+    source, target = files
+    out, link = source.parent / "aligned.xyz", source.parent / "T.txt"
+    out.write_text("old\n")
+    os.link(out, link)
+    assert main(["register", str(source), str(target), "--output", str(out), "--transform-out", str(link),
+                 "--force"]) == EXIT_BAD_INPUT
+    _one_line(capsys, "esmicp register: error: --transform-out ")
+    assert out.read_text() == "old\n"
+
+
+def test_dangling_symlink_output_is_refused_before_the_registration(files, capsys, monkeypatch):
+    source, target = files
+    out = source.parent / "aligned.xyz"
+    out.symlink_to(source.parent / "missing" / "x.xyz")
+    called = []
+    monkeypatch.setattr("esmicp.api.register", lambda *a, **k: called.append(1))
+    assert main(["register", str(source), str(target), "--output", str(out)]) == EXIT_BAD_INPUT
+    _one_line(capsys, f"esmicp register: error: {out}: is a dangling symbolic link")
+    assert not called and out.is_symlink()
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX permission bits")
+def test_force_keeps_the_mode_of_the_file_it_replaces(files, capsys):
+    source, target = files
+    out = source.parent / "aligned.xyz"
+    out.write_text("old\n")
+    os.chmod(out, 0o600)
+    assert main(["register", str(source), str(target), "--init", "identity", "--output", str(out),
+                 "--force"]) == EXIT_OK
+    assert (out.stat().st_mode & 0o777) == 0o600
+    assert len(esmicp.read_points(out)) == 300
+
+
+def test_out_of_memory_in_the_registration_is_one_line_exit_2(files, capsys, monkeypatch):
+    source, target = files
+
+    def exhausted(*args, **kwargs):
+        raise MemoryError("Unable to allocate 4.00 GiB for an array with shape (179000000, 3)")
+
+    monkeypatch.setattr("esmicp.api.register", exhausted)
+    assert main(["register", str(source), str(target)]) == EXIT_BAD_INPUT
+    _one_line(capsys, "esmicp register: error: out of memory")
+
+
+# --- Item 6, item 7 and the full disk: esmicp bench ------------------------------------------
+
+def small(**changes) -> BenchConfig:
+    values = dict(protocols=("copy",), datasets=("synthetic",), methods=("icp",), trials=2, points=(100,),
+                  max_iterations=10)
+    values.update(changes)
+    return BenchConfig(**values)
+
+
+def serial(out: Path, **changes) -> RunOptions:
+    return RunOptions(out_dir=out, workers=1, progress=False, **changes)
+
+
+def test_a_second_run_on_a_locked_folder_is_refused(tmp_path):
+    import fcntl
+
+    from esmicp.bench.results import LOCK
+
+    run_bench(small(), serial(tmp_path))
+    rows_path = tmp_path / "rows.jsonl"
+    rows_path.write_bytes(rows_path.read_bytes().splitlines(keepends=True)[0])  # one trial left to resume
+    before = rows_path.read_bytes()
+    with open(tmp_path / LOCK, "a") as held:  # another run holds the folder
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(InvalidInputError, match="another esmicp bench is running on this folder"):
+            run_bench(small(), serial(tmp_path, resume=True))
+    assert rows_path.read_bytes() == before
+    outcome = run_bench(small(), serial(tmp_path, resume=True))  # released: resumes
+    assert outcome.rows_written == 1 and outcome.rows_total == 2
+
+
+def test_rows_appended_twice_count_once(tmp_path):
+    run_bench(small(), serial(tmp_path))
+    rows_path = tmp_path / "rows.jsonl"
+    rows_path.write_bytes(rows_path.read_bytes() * 2)  # what two concurrent --resume left
+    rows = read_rows(rows_path)
+    assert len(rows) == 2
+    from esmicp.bench import write_tables
+
+    write_tables(tmp_path)
+    assert "(2 trials)" in (tmp_path / "summary.md").read_text()
+    assert ",2,2," in (tmp_path / "summary.csv").read_text()  # rows, ok
+
+
+def test_resumed_rows_cannot_write_tables_outside_the_folder(tmp_path):
+    out = tmp_path / "results"
+    run_bench(small(protocols=("paper",)), serial(out))
+    escape = tmp_path / "escaped"
+    rows = read_rows(out / "rows.jsonl")
+    rows[0]["case"] = f"x/../../{escape.name}"  # a handed-over folder with a crafted row
+    (out / "rows.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
+    from esmicp.bench import write_tables
+
+    written = write_tables(out)
+    assert not list(tmp_path.glob("escaped*")) and not list(tmp_path.glob("*.md"))
+    for path in written:
+        assert path.parent == out, path
+
+
+def test_bench_on_a_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
+    from esmicp.bench import results
+
+    def full(self, row):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(results.RowWriter, "write", full)
+    code = main(["bench", "--datasets", "synthetic", "--protocols", "copy", "--methods", "icp", "--trials", "1",
+                 "--points", "100", "--workers", "1", "--no-progress", "--out", str(tmp_path / "out")])
+    assert code == EXIT_BAD_INPUT
+    assert "No space left on device" in _one_line(capsys, "esmicp bench: error: ")
