@@ -9,12 +9,13 @@ from scipy.spatial import cKDTree
 import esmicp
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.nearest_grid import NearestGrid
-from esmicp.init import global_search
-from esmicp.init.rotation_search import batched_esm, batched_rotation_from_cross_covariance, so3_grid
+from esmicp.globalreg import search as global_search
+from esmicp.core.procrustes import batched_rotation_from_cross_covariance
+from esmicp.globalreg.rotation_search import batched_esm, so3_grid
 from esmicp.methods import EsmEstimator, SigmaSchedule
 from esmicp.methods.local import refine
 from esmicp.metrics import random_rotation, rotation_error_deg
-from esmicp.protocols import make_trial
+from esmicp.bench.protocols import make_trial
 from esmicp.shapes import asymmetric_shape
 
 

@@ -17,6 +17,7 @@ from .errors import (
     PointCloudFileError,
 )
 from .methods import METHODS
+from .multiview import MultiRegistrationResult, register_scans
 from .result import IterationRecord, RegistrationResult
 
 
@@ -36,6 +37,7 @@ __all__ = [
     "IndexAlignmentWarning",
     "InvalidInputError",
     "IterationRecord",
+    "MultiRegistrationResult",
     "NonFinitePointsWarning",
     "OutputExistsError",
     "PointCloudFileError",
@@ -46,6 +48,7 @@ __all__ = [
     "read_transform",
     "register",
     "register_many",
+    "register_scans",
     "write_points",
     "write_transform",
 ]

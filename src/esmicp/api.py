@@ -3,27 +3,30 @@
 from __future__ import annotations
 
 import dataclasses
-import logging
 import time
 import warnings
 
 import numpy as np
 
 from .core.correspondence import NearestNeighbors
-from .core.procrustes import apply
+from .core.procrustes import apply, bounding_box_diagonal
 from .errors import IndexAlignmentWarning, InvalidInputError
 from .methods import METHODS, EsmEstimator, EsmPaperEstimator, IcpEstimator, SigmaSchedule
 from .methods.esm import COARSE_POINTS
 from .methods.esm_paper import PAPER_SIGMA
-from .init.global_search import STRATEGIES, global_estimate
+from .globalreg.search import STRATEGIES, global_estimate
 from .interrupts import keeps_keyboard_interrupt
 from .methods.local import Callback
 from .numerics import checked_refine, from_working, to_working, uncentred_callback, uncentred_history, working_origin
 from .result import RegistrationResult
-from .types import as_count, as_points, as_positive, as_real, as_transform, check_not_degenerate
+from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, check_not_degenerate
 from .types import check_representable
 
-logger = logging.getLogger(__name__)
+#: ``init`` strings meaning "no global search: start from the identity".
+IDENTITY_NAMES = ("identity", "none")
+
+#: Every ``init`` string :func:`register` accepts (anything else must be a 4x4 matrix).
+INIT_NAMES = ("global", *STRATEGIES, *IDENTITY_NAMES)
 
 #: Default inlier distance for ``fitness`` / ``inlier_rmse``, in target point spacings.
 INLIER_DISTANCE_SPACINGS = 3.0
@@ -65,7 +68,7 @@ def register(
         Where to start. None or ``"global"`` (the default): find the pose globally, from any
         rotation and translation, with the best measured strategy (``"auto"``: both strategies
         below, every candidate verified the same way). ``"rotation-search"`` or ``"features"``:
-        global with that strategy only (see :mod:`esmicp.init.global_search`). ``"identity"`` (or
+        global with that strategy only (see :mod:`esmicp.globalreg.search`). ``"identity"`` (or
         ``"none"``): pure local refinement from the identity. A 4x4 ``T_target_source``: pure local
         refinement from there.
     sigma : float, optional
@@ -118,7 +121,7 @@ def register(
         inlier_distance = as_positive(inlier_distance, "inlier_distance")
     max_iterations = as_count(max_iterations, "max_iterations")
     tolerance = _as_tolerance(tolerance)
-    generator = _as_generator(rng)
+    generator = as_generator(rng, default_seed=DEFAULT_SEED)
 
     # Far from the origin (UTM / ECEF coordinates), register in a frame shifted onto the target and
     # map the result back: rounding noise would otherwise exceed the tolerance (see esmicp.numerics).
@@ -130,7 +133,7 @@ def register(
 
     target_index = NearestNeighbors(target_points)
     spacing = target_index.spacing()
-    diagonal = float(np.linalg.norm(target_points.max(axis=0) - target_points.min(axis=0)))
+    diagonal = bounding_box_diagonal(target_points)
 
     if method == "esm-paper" and len(source_points) != len(target_points):
         warnings.warn(
@@ -239,8 +242,6 @@ def _warn_if_not_index_aligned(indices: np.ndarray) -> None:
 #: Seed of the global search when ``rng`` is None (results are reproducible by default).
 DEFAULT_SEED = 0
 
-#: ``init`` strings meaning "no global search: start from the identity".
-IDENTITY_NAMES = ("identity", "none")
 
 
 def _resolve_init(init) -> tuple[str, np.ndarray | None]:
@@ -253,17 +254,10 @@ def _resolve_init(init) -> tuple[str, np.ndarray | None]:
             return name, None
         if name in IDENTITY_NAMES:
             return "identity", np.eye(4)
-        choices = ", ".join(("global",) + STRATEGIES + IDENTITY_NAMES)
-        raise InvalidInputError(f"init: unknown strategy {init!r}; choose one of {choices}, or give a 4x4 matrix")
+        raise InvalidInputError(
+            f"init: unknown strategy {init!r}; choose one of {', '.join(INIT_NAMES)}, or give a 4x4 matrix"
+        )
     return "given", as_transform(init, "init")
-
-
-def _as_generator(rng) -> np.random.Generator:
-    """A Generator from ``rng`` (None: the fixed :data:`DEFAULT_SEED`)."""
-    try:
-        return np.random.default_rng(DEFAULT_SEED if rng is None else rng)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"rng: expected None, a seed >= 0 or a numpy Generator, got {rng!r} ({exc})") from None
 
 
 def _as_tolerance(value) -> float:

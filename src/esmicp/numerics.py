@@ -22,7 +22,8 @@ import dataclasses
 
 import numpy as np
 
-from .core.kernels import effective_count
+from .core.procrustes import bounding_box_diagonal
+from .core.weights import effective_count
 from .methods.base import Step
 from .methods.local import LocalOutcome, refine
 
@@ -52,7 +53,7 @@ RESULT_RIGID_TOLERANCE = 1e-6
 def working_origin(target: np.ndarray) -> np.ndarray | None:
     """The point to shift both clouds by (the target's centroid), or None when no shift is needed."""
     centroid = target.mean(axis=0)
-    diagonal = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
+    diagonal = bounding_box_diagonal(target)
     if float(np.linalg.norm(centroid)) > FAR_FROM_ORIGIN * diagonal:
         return centroid
     return None

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from typing import NoReturn
 
-from . import WeightsNotAvailableError
+from .base import WeightsNotAvailableError
 from ._common import checked_inputs
 from .weights import find_weights
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core import moments
-from ..core.kernels import kernel_scale, relative_gaussian_weights
+from ..core.weights import kernel_scale, relative_gaussian_weights
 from ..core.procrustes import rotation_angle, weighted_procrustes
 from ..types import as_positive
 from .base import Step
@@ -96,7 +96,7 @@ class EsmEstimator:
     """ESM-ICP increment on nearest-neighbour pairs with Gaussian weights.
 
     Weights are computed relative to the closest pair (see
-    :func:`esmicp.core.kernels.relative_gaussian_weights`): the fit is exactly the one the
+    :func:`esmicp.core.weights.relative_gaussian_weights`): the fit is exactly the one the
     paper's weights give, but it never breaks down when all of them would underflow to zero.
     """
 

@@ -33,7 +33,7 @@ import numpy as np
 import scipy.sparse
 
 from ..core import moments
-from ..core.kernels import gaussian_weights
+from ..core.weights import gaussian_weights
 from ..core.procrustes import rotation_from_cross_covariance
 from ..types import as_positive
 from .base import Step

@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from ..core.correspondence import NearestNeighbors
-from ..core.kernels import effective_count
+from ..core.weights import effective_count
 from ..core.pose_kernels import compose, motion_between
 from ..core.procrustes import apply
 from ..interrupts import keeps_keyboard_interrupt

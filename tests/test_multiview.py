@@ -1,0 +1,213 @@
+"""register_scans(): many scans into one model (issue 17)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from esmicp.errors import InvalidInputError
+from esmicp.multiview import register_scans, scans as scans_module
+from esmicp.multiview import pose_graph
+
+from conftest import require_shared
+
+BUNNY = ("bun000", "bun045", "bun315", "top3")
+
+
+def _errors(T_estimate, T_truth):
+    E = np.linalg.inv(T_truth) @ T_estimate
+    return float(np.degrees(np.linalg.norm(Rotation.from_matrix(E[:3, :3]).as_rotvec()))), float(np.linalg.norm(E[:3, 3]))
+
+
+@pytest.fixture(scope="module")
+def bunny():
+    from esmicp.io.stanford_conf import load_scans
+
+    scans = load_scans(require_shared("bunny_scans"), max_points=4000, rng=7)
+    return [scans[name][0] for name in BUNNY], [scans[name][1] for name in BUNNY]
+
+
+@pytest.fixture(scope="module")
+def bunny_result(bunny):
+    clouds, _ = bunny
+    return register_scans(clouds, pair_points=600, processes=1)
+
+
+def test_bunny_scans_recover_the_stanford_poses(bunny, bunny_result):
+    _, truth = bunny
+    result = bunny_result
+    assert result.unplaced == ()
+    np.testing.assert_allclose(result.poses[0], np.eye(4))
+    for k in range(len(truth)):
+        angle, shift = _errors(result.poses[k], np.linalg.inv(truth[0]) @ truth[k])
+        # 4000-point subsets (the docs' full-resolution run is held to 1 deg / 1 mm)
+        assert angle < 1.0 and shift < 0.002, (BUNNY[k], angle, shift)
+    assert all(e.reason for e in result.edges)
+    assert result.to_dict()["unplaced"] == []
+
+
+def test_input_order_does_not_matter(bunny, bunny_result):
+    clouds, _ = bunny
+    order = [2, 0, 3, 1]
+    shuffled = register_scans([clouds[k] for k in order], reference=order.index(0), pair_points=600, processes=1)
+    for position, k in enumerate(order):
+        np.testing.assert_allclose(shuffled.poses[position], bunny_result.poses[k], atol=1e-6)
+
+
+def _truth(n, rng):
+    poses = [np.eye(4)]
+    for _ in range(n - 1):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+        T[:3, 3] = rng.normal(size=3)
+        poses.append(T)
+    return poses
+
+
+def _fake_pairwise(truth, *, wrong=(), low=()):
+    """Stand-in for the pairwise registrations: exact relative poses, except the listed pairs."""
+
+    def run(jobs, kwargs, processes, client, progress, *, pairs):
+        out = []
+        for i, j in pairs:
+            T = np.linalg.inv(truth[i]) @ truth[j]
+            fitness = 0.9
+            if (i, j) in wrong or (j, i) in wrong:
+                bad = np.eye(4)
+                bad[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 0.7]).as_matrix()
+                T = T @ bad
+                fitness = 0.95  # the wrong edge is the most confident one
+            if i in low or j in low:
+                fitness = 0.05
+            out.append(SimpleNamespace(transformation=T, fitness=fitness, inlier_distance=0.05, ambiguous=False))
+        return out
+
+    return run
+
+
+def _patch(monkeypatch, truth, clouds, **kwargs):
+    fake = _fake_pairwise(truth, **kwargs)
+    captured = {}
+    original = scans_module._pairwise
+
+    def wrapper(jobs, register_kwargs, processes, client, progress):
+        # recover which (i, j) each job is from the subsampled clouds' identity
+        index = {id(c): k for k, c in enumerate(captured["small"])}
+        pairs = [(index[id(t)], index[id(s)]) for s, t in jobs]
+        return fake(jobs, register_kwargs, processes, client, progress, pairs=pairs)
+
+    real_subsample = scans_module._subsample
+
+    def subsample(points, count):
+        out = real_subsample(points, count)
+        captured.setdefault("small", []).append(out)
+        return out
+
+    monkeypatch.setattr(scans_module, "_pairwise", wrapper)
+    monkeypatch.setattr(scans_module, "_subsample", subsample)
+    # reverse fitness comes from the clouds: make every cloud the same shape in its own frame
+    assert original is not None
+
+
+def _clouds(truth, rng):
+    world = rng.uniform(-1, 1, size=(300, 3))
+    return [(world - T[:3, 3]) @ T[:3, :3] for T in truth]  # scan k sees the world in its frame
+
+
+def test_a_wrong_edge_is_rejected_by_the_robust_graph(monkeypatch):
+    rng = np.random.default_rng(3)
+    truth = _truth(5, rng)
+    clouds = _clouds(truth, rng)
+    _patch(monkeypatch, truth, clouds, wrong={(1, 3)})
+    # min_overlap=0: the wrong edge passes the overlap test, so only the graph can reject it
+    result = register_scans(clouds, refine_rounds=0, processes=1, min_overlap=0.0)
+    assert result.unplaced == ()
+    assert [sorted((e.i, e.j)) for e in result.rejected_edges] == [[1, 3]]
+    assert "cycle inconsistent" in result.rejected_edges[0].reason
+    assert len(result.kept_edges) == 9
+    for k in range(5):
+        angle, shift = _errors(result.poses[k], truth[k])
+        assert angle < 1e-6 and shift < 1e-6
+
+
+def test_an_unplaceable_scan_is_reported_not_forced_in(monkeypatch):
+    rng = np.random.default_rng(4)
+    truth = _truth(4, rng)
+    clouds = _clouds(truth, rng)
+    _patch(monkeypatch, truth, clouds, low={2})
+    result = register_scans(clouds, refine_rounds=0, processes=1)
+    assert result.unplaced == (2,)
+    assert result.placed == (True, True, False, True)
+    assert np.isnan(result.poses[2]).all()
+    assert any("scan 2" in note for note in result.notes)
+    points, labels = result.merged(clouds)
+    assert set(labels.tolist()) == {0, 1, 3}
+
+
+def test_consensus_tree_outvotes_a_confident_wrong_edge():
+    rng = np.random.default_rng(5)
+    truth = _truth(4, rng)
+    edges = [(i, j, np.linalg.inv(truth[i]) @ truth[j], 0.5) for i in range(4) for j in range(i + 1, 4)]
+    wrong = np.linalg.inv(truth[0]) @ truth[2] @ np.diag([1.0, -1.0, -1.0, 1.0])
+    edges[1] = (0, 2, wrong, 1.0)
+    poses = pose_graph.consensus_tree(edges, 0, max_angle_deg=2.0, max_shift=lambda m: 0.1)
+    for k in range(4):
+        assert _errors(poses[k], truth[k])[0] < 1e-6
+
+
+def test_merged_voxel_and_bad_arguments():
+    rng = np.random.default_rng(6)
+    cloud = rng.uniform(size=(500, 3))
+    result = register_scans([cloud], processes=1)
+    assert result.placed == (True,) and result.edges == ()
+    points, labels = result.merged([cloud], voxel=0.25)
+    assert len(points) <= 64 and (labels == 0).all()
+    with pytest.raises(InvalidInputError, match="reference"):
+        register_scans([cloud, cloud], reference=2)
+    with pytest.raises(InvalidInputError, match="voxel"):
+        result.merged([cloud], voxel=0)
+
+
+@pytest.fixture
+def bunny_files(tmp_path, bunny):
+    from esmicp import write_points
+
+    clouds, _ = bunny
+    paths = []
+    for name, cloud in zip(BUNNY[:3], clouds[:3]):
+        path = tmp_path / f"{name}.ply"
+        write_points(path, cloud[::2])
+        paths.append(path)
+    return paths
+
+
+def test_cli_merge_end_to_end(tmp_path, bunny_files):
+    from esmicp.cli import main
+
+    out, poses, view = tmp_path / "merged.ply", tmp_path / "poses.txt", tmp_path / "merged.html"
+    argv = [*map(str, bunny_files), "-o", str(out), "--poses-out", str(poses), "--view", str(view),
+            "--voxel", "0.002", "--processes", "1", "--pair-points", "500", "--no-progress"]
+    assert main(["merge", *argv]) == 0
+    assert out.exists() and view.exists()
+    rows = [line.split() for line in poses.read_text().splitlines() if not line.startswith("#")]
+    assert [row[1] for row in rows] == [p.name for p in bunny_files]
+    np.testing.assert_allclose(np.array(rows[0][2:], float).reshape(4, 4), np.eye(4))
+    assert main(["merge", *argv]) == 2  # no overwrite without --force
+
+
+def test_cli_merge_bad_scan_writes_nothing_unless_skip_bad(tmp_path, bunny_files, capsys):
+    from esmicp.cli import main
+
+    bad = tmp_path / "broken.ply"
+    bad.write_text("not a cloud\n")
+    out = tmp_path / "merged.ply"
+    argv = [str(bunny_files[0]), str(bad), str(bunny_files[1]), "-o", str(out), "--processes", "1",
+            "--pair-points", "500", "--no-progress"]
+    assert main(["merge", *argv]) == 2
+    assert "broken.ply" in capsys.readouterr().err
+    assert not out.exists()
+    assert main(["merge", *argv, "--skip-bad"]) == 0
+    assert out.exists()
