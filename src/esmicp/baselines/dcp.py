@@ -34,8 +34,9 @@ import time
 
 import numpy as np
 
-from . import BaselineResult
-from ._common import TORCH_HINT, apply, checked_inputs, require
+from ..core.procrustes import apply
+from ._common import TORCH_HINT, checked_inputs, require
+from .base import BaselineResult
 from .weights import find_weights
 
 NAME = "dcp-v1"
