@@ -32,12 +32,9 @@ Pipeline of :func:`feature_hypotheses` (all lengths scale with the ``voxel`` arg
    they produce (fraction of source keypoints within ``inlier_distance`` of a target keypoint),
    which tells the true pose from a wrong one better than the count of correspondences does.
 
-The default radii (normals 4, FPFH 7, filter 2 voxels) come from measurements on ModelNet objects
-(2,000 points a side, ``voxel = diagonal / 40``, 20 trials each): with Open3D's usual 2 and 5
-voxels and no filter, the best hypothesis is within 10 degrees for 1/20 (chair), 6/20 (airplane)
-and 5/20 (bunny) trials of the ESM-ICP paper's ``outliers-60`` protocol, against 19/20, 18/20 and
-20/20 with these defaults (all 20/20 on clean halves either way). On the Stanford bunny scan pairs
-both settings get 42 of 46 pairs.
+The default radii (normals 4, FPFH 7, filter 2 voxels) are wider than Open3D's usual 2 and 5
+voxels because they measured better on the outlier protocols (``docs/measured-global.md``, "Why
+these choices").
 
 Transforms are ``T_target_source``: ``target ~= source @ R.T + t``. Randomness comes only from
 the ``rng`` argument, so a seed gives identical hypotheses.

@@ -25,12 +25,9 @@ decide.
 its result is not confident (see :func:`global_estimate`), together with the *twins* of its best
 pose (turned by 180 degrees about each principal axis of the target): under heavy noise a
 near-symmetric object (a box-like night stand) otherwise ends on a twin of the truth that neither
-strategy proposes. Measured on the library's protocols (``docs/measured-global.md``): the rotation
-search alone and the features alone each miss cases the other catches (outliers-60: 88.5% each on
-26 trials, 92.3% together; bunny scan pairs at 3,000 points: 52% and 63% strict, 74% together), so
-the default uses both; the twins and the two-way decision took the night stand's outliers-60
-trials from 7 to 10 of 10 (130 trials: 89% to 90% up to symmetry, 96% to 100% strict on the objects
-without symmetry).
+strategy proposes. The rotation search alone and the features alone each miss cases the other
+catches, so the default uses both (the measurements: ``docs/measured-global.md``, "Why these
+choices").
 """
 
 from __future__ import annotations
