@@ -85,7 +85,7 @@ def cell(outcomes: list[tuple[str, float]]) -> str:
 
 def compare_shift(shape: np.ndarray) -> None:
     """1e8 coordinates, 10 degrees off: register with and without the shifted working frame."""
-    import esmicp.numerics
+    import esmicp.working_frame
 
     target = shape + [1e8, -2e8, 5e7]
     rng = np.random.default_rng(0)
@@ -93,9 +93,9 @@ def compare_shift(shape: np.ndarray) -> None:
     print("A 2.4-unit object 2.3e8 units from the origin, 10 degrees off: converged, iterations, rotation error\n")
     print("| | " + " | ".join(label for _, _, label in CONFIGS) + " |")
     print("|---" * (len(CONFIGS) + 1) + "|")
-    default = esmicp.numerics.FAR_FROM_ORIGIN
+    default = esmicp.working_frame.FAR_FROM_ORIGIN
     for label, threshold in (("without the shifted frame", float("inf")), ("with it (default)", default)):
-        esmicp.numerics.FAR_FROM_ORIGIN = threshold
+        esmicp.working_frame.FAR_FROM_ORIGIN = threshold
         cells = []
         for method, init, _ in CONFIGS:
             order = np.arange(len(target)) if method == "esm-paper" else rng.permutation(len(target))
@@ -104,7 +104,7 @@ def compare_shift(shape: np.ndarray) -> None:
             state = "converged" if result.converged else "not converged"
             cells.append(f"{state}, {result.num_iterations}, {rotation_error_deg(result.transformation, truth):.2g} deg")
         print(f"| {label} | " + " | ".join(cells) + " |")
-    esmicp.numerics.FAR_FROM_ORIGIN = default
+    esmicp.working_frame.FAR_FROM_ORIGIN = default
     try:
         import open3d as o3d
     except ImportError:

@@ -55,7 +55,7 @@ from scipy.spatial.transform import Rotation
 import esmicp
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import rotation_angle, to_matrix
-from esmicp.methods import EsmEstimator, SigmaSchedule
+from esmicp.methods import ConvergenceCriteria, EsmEstimator, SigmaSchedule
 from esmicp.methods.local import refine
 
 SHARED = Path(os.environ.get("ESMICP_SHARED_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"))
@@ -142,8 +142,8 @@ class Esm:
         diagonal = float(np.linalg.norm(np.ptp(self.target, axis=0)))
         estimator = EsmEstimator(SigmaSchedule.auto(self.spacing, diagonal))
         # tolerance -1: never stop early (with 0 a run stops once its RMS distance repeats exactly).
-        outcome = refine(self.source, self.index, estimator, init=self.start, max_iterations=count,
-                         tolerance=-1.0, scale=diagonal)
+        outcome = refine(self.source, self.index, estimator, init=self.start,
+                         criteria=ConvergenceCriteria(count, tolerance=-1.0), scale=diagonal)
         return outcome.num_iterations
 
     def local(self):
@@ -274,8 +274,8 @@ def paper_speed(size: int, repeats: int) -> tuple[float, float]:
     costs: dict[str, list[float]] = {name: [] for name in makers}
 
     def run(name, count):
-        return refine(source, index, makers[name](), init=np.eye(4), max_iterations=count, tolerance=-1.0,
-                      scale=diagonal)
+        return refine(source, index, makers[name](), init=np.eye(4),
+                      criteria=ConvergenceCriteria(count, tolerance=-1.0), scale=diagonal)
 
     run("esm", 2)
     for _ in range(repeats):

@@ -1,5 +1,5 @@
-"""Local shape features (:mod:`esmicp.init.features`) and the feature-based global hypotheses
-(:mod:`esmicp.init.feature_matching`)."""
+"""Local shape features (:mod:`esmicp.globalreg.features`) and the feature-based global hypotheses
+(:mod:`esmicp.globalreg.feature_matching`)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from scipy.spatial.transform import Rotation
 
 from esmicp.core.procrustes import apply, to_matrix
 from esmicp.errors import InvalidInputError
-from esmicp.init import feature_matching
-from esmicp.init.feature_matching import Hypothesis, feature_hypotheses, match_features
-from esmicp.init.features import (
+from esmicp.globalreg import feature_matching
+from esmicp.globalreg.feature_matching import Hypothesis, feature_hypotheses, match_features
+from esmicp.globalreg.features import (
     FPFH_BINS,
     FPFH_BLOCK_SUM,
     FPFH_DIMENSION,
@@ -26,7 +26,7 @@ from esmicp.init.features import (
     voxel_grid,
 )
 from esmicp.metrics import rotation_error_deg
-from esmicp.protocols import make_trial, scan_pairs
+from esmicp.bench.protocols import make_trial, scan_pairs
 
 CHAIR = "modelnet40/chair/chair_0848.txt"
 

@@ -11,9 +11,9 @@ import pytest
 
 import esmicp
 from conftest import require_shared
-from esmicp.init.rotation_search import so3_grid
+from esmicp.globalreg.rotation_search import so3_grid
 from esmicp.metrics import rotation_error_deg, strict_success, up_to_symmetry_success
-from esmicp.protocols import make_trial
+from esmicp.bench.protocols import make_trial
 
 ASYMMETRIC = ("airplane_0126", "chair_0848", "guitar_0165", "person_0025", "piano_0226")
 

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 import esmicp
 import esmicp.api
-import esmicp.numerics
+import esmicp.methods.guard
 from esmicp.core.procrustes import apply, to_matrix
 from esmicp.errors import IndexAlignmentWarning, InvalidInputError
 from esmicp.metrics import rotation_error_deg, translation_error
@@ -130,7 +130,7 @@ def test_source_entirely_outside_the_target_local(method, sizes_away):
         truth = motion(SHAPE, angle, shift)
         source = pair(SHAPE, truth, method)
         result = run(source, SHAPE, method, "identity")
-        assert esmicp.numerics.rigidity_problem(result.transformation) is None, result.transformation
+        assert esmicp.methods.guard.rigidity_problem(result.transformation) is None, result.transformation
         assert np.isfinite([result.fitness, result.inlier_rmse]).all() and result.message
         if method == "esm-paper" or sizes_away <= 3:
             assert_pose(result, truth, source, SHAPE, rotation_deg=1e-5, translation=1e-6)
@@ -197,7 +197,7 @@ def test_far_from_origin_callback_and_history_are_in_the_original_frame():
 
 def test_a_non_finite_refinement_result_is_reported_and_never_returned(monkeypatch):
     """The last guard: a refinement that produced NaN gives back the start, converged=False."""
-    real_refine = esmicp.numerics.refine
+    real_refine = esmicp.methods.guard.refine
 
     def nan_refine(*args, **kwargs):
         outcome = real_refine(*args, **kwargs)
@@ -205,7 +205,7 @@ def test_a_non_finite_refinement_result_is_reported_and_never_returned(monkeypat
             np.full((4, 4), np.nan), True, outcome.num_iterations, outcome.sigma, "converged", outcome.history
         )
 
-    monkeypatch.setattr(esmicp.numerics, "refine", nan_refine)
+    monkeypatch.setattr(esmicp.methods.guard, "refine", nan_refine)
     truth = motion(SHAPE, 10.0, [0.05, 0.0, 0.0])
     result = run(pair(SHAPE, truth, "esm"), SHAPE, "esm", "identity")
     np.testing.assert_array_equal(result.transformation, np.eye(4))

@@ -563,7 +563,7 @@ def test_unreadable_file_simulated(tmp_path, monkeypatch):
     """The same refusal as a root-proof test: opening the file fails with EACCES."""
     import builtins
 
-    import esmicp.io
+    import esmicp.io._files
 
     path = tmp_path / "secret.ply"
     write_points(path, random_cloud(0, 5))
@@ -574,7 +574,7 @@ def test_unreadable_file_simulated(tmp_path, monkeypatch):
             raise PermissionError(13, "Permission denied", str(file))
         return real_open(file, *args, **kwargs)
 
-    monkeypatch.setattr(esmicp.io, "open", refusing_open, raising=False)
+    monkeypatch.setattr(esmicp.io._files, "open", refusing_open, raising=False)
     with pytest.raises(PointCloudFileError) as excinfo:
         read_points(path)
     assert_file_error(excinfo, path, "permission denied")

@@ -169,3 +169,45 @@ def test_merged_voxel_and_bad_arguments():
         register_scans([cloud, cloud], reference=2)
     with pytest.raises(InvalidInputError, match="voxel"):
         result.merged([cloud], voxel=0)
+
+
+@pytest.fixture
+def bunny_files(tmp_path, bunny):
+    from esmicp import write_points
+
+    clouds, _ = bunny
+    paths = []
+    for name, cloud in zip(BUNNY[:3], clouds[:3]):
+        path = tmp_path / f"{name}.ply"
+        write_points(path, cloud[::2])
+        paths.append(path)
+    return paths
+
+
+def test_cli_merge_end_to_end(tmp_path, bunny_files):
+    from esmicp.cli import main
+
+    out, poses, view = tmp_path / "merged.ply", tmp_path / "poses.txt", tmp_path / "merged.html"
+    argv = [*map(str, bunny_files), "-o", str(out), "--poses-out", str(poses), "--view", str(view),
+            "--voxel", "0.002", "--processes", "1", "--pair-points", "500", "--no-progress"]
+    assert main(["merge", *argv]) == 0
+    assert out.exists() and view.exists()
+    rows = [line.split() for line in poses.read_text().splitlines() if not line.startswith("#")]
+    assert [row[1] for row in rows] == [p.name for p in bunny_files]
+    np.testing.assert_allclose(np.array(rows[0][2:], float).reshape(4, 4), np.eye(4))
+    assert main(["merge", *argv]) == 2  # no overwrite without --force
+
+
+def test_cli_merge_bad_scan_writes_nothing_unless_skip_bad(tmp_path, bunny_files, capsys):
+    from esmicp.cli import main
+
+    bad = tmp_path / "broken.ply"
+    bad.write_text("not a cloud\n")
+    out = tmp_path / "merged.ply"
+    argv = [str(bunny_files[0]), str(bad), str(bunny_files[1]), "-o", str(out), "--processes", "1",
+            "--pair-points", "500", "--no-progress"]
+    assert main(["merge", *argv]) == 2
+    assert "broken.ply" in capsys.readouterr().err
+    assert not out.exists()
+    assert main(["merge", *argv, "--skip-bad"]) == 0
+    assert out.exists()

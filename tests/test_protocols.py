@@ -1,4 +1,4 @@
-"""Evaluation protocols (esmicp.protocols), success metrics, and the Stanford .conf reader."""
+"""Evaluation protocols (esmicp.bench.protocols), success metrics, and the Stanford .conf reader."""
 
 from __future__ import annotations
 
@@ -18,10 +18,10 @@ from esmicp.metrics import (
     symmetric_placement_error,
     up_to_symmetry_success,
 )
-from esmicp.protocols import (
+from esmicp.core.procrustes import bounding_box_diagonal
+from esmicp.bench.protocols import (
     PAPER_NOISE_MIXTURE,
     PROTOCOLS,
-    bounding_box_diagonal,
     copy_trial,
     make_trial,
     make_trials,

@@ -9,12 +9,13 @@ from scipy.spatial import cKDTree
 import esmicp
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.nearest_grid import NearestGrid
-from esmicp.init import global_search
-from esmicp.init.rotation_search import batched_esm, batched_rotation_from_cross_covariance, so3_grid
-from esmicp.methods import EsmEstimator, SigmaSchedule
+from esmicp.globalreg import search as global_search
+from esmicp.core.procrustes import batched_rotation_from_cross_covariance
+from esmicp.globalreg.rotation_search import batched_esm, so3_grid
+from esmicp.methods import ConvergenceCriteria, EsmEstimator, SigmaSchedule
 from esmicp.methods.local import refine
 from esmicp.metrics import random_rotation, rotation_error_deg
-from esmicp.protocols import make_trial
+from esmicp.bench.protocols import make_trial
 from esmicp.shapes import asymmetric_shape
 
 
@@ -59,9 +60,7 @@ def test_batched_esm_pulls_every_nearby_start_to_the_truth():
 class _PlainEsm(EsmEstimator):
     """ESM without Anderson acceleration, for comparison."""
 
-    @property
-    def accelerated(self) -> bool:
-        return False
+    accelerable = False
 
 
 def test_anderson_acceleration_reaches_an_equally_good_pose_in_fewer_iterations():
@@ -71,7 +70,7 @@ def test_anderson_acceleration_reaches_an_equally_good_pose_in_fewer_iterations(
     source = asymmetric_shape(3000, rng) @ truth  # resampled: the optimum is flat near the truth
     index = NearestNeighbors(target)
     schedule = SigmaSchedule.constant(2 * index.spacing())
-    common = dict(init=np.eye(4), max_iterations=400, tolerance=1e-10, scale=3.0)
+    common = dict(init=np.eye(4), criteria=ConvergenceCriteria(400, 1e-10), scale=3.0)
     fast = refine(source, index, EsmEstimator(schedule), **common)
     plain = refine(source, index, _PlainEsm(schedule), **common)
     assert fast.converged and plain.converged

@@ -15,8 +15,8 @@ import esmicp
 from esmicp.core import compiled_tree, voxel_hash
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import apply, rotation_angle, to_matrix
-from esmicp.methods import EsmEstimator, SigmaSchedule
-from esmicp.methods.esm import COARSE_POINTS
+from esmicp.methods import ConvergenceCriteria, EsmEstimator, SigmaSchedule
+from esmicp.methods.esm import COARSE_POINTS, SIGMA_FLOOR_SPACINGS
 from esmicp.methods.esm_paper import paper_cross_covariance, similarity_entries
 from esmicp.methods.local import refine
 
@@ -55,8 +55,11 @@ class KdTreeOnly:
         self._index = NearestNeighbors(target)
         self.points = target
 
-    def query(self, points):
-        return self._index.query(points)
+    def query_near(self, points, *, warm=None, transform=None):
+        return self._index.query(apply(transform, points))
+
+    def spatial_order(self, points):
+        return np.arange(len(points))  # the source keeps its own order
 
 
 def test_voxel_hash_is_available():
@@ -132,7 +135,7 @@ def test_paper_cross_covariance_equals_the_similarity_matrix_entries():
 
 def _refine(source, index, start, *, coarse_points=None, diagonal, spacing, max_iterations=100, tolerance=1e-8):
     estimator = EsmEstimator(SigmaSchedule.auto(spacing, diagonal))
-    return refine(source, index, estimator, init=start, max_iterations=max_iterations, tolerance=tolerance,
+    return refine(source, index, estimator, init=start, criteria=ConvergenceCriteria(max_iterations, tolerance),
                   scale=diagonal, coarse_points=coarse_points)
 
 
@@ -301,3 +304,30 @@ def test_a_system_error_caused_by_an_interrupt_is_raised_as_the_interrupt():
         keeps_keyboard_interrupt(boxed)()
     with pytest.raises(SystemError):  # any other SystemError stays what it is
         keeps_keyboard_interrupt(lambda: (_ for _ in ()).throw(SystemError("other")))()
+
+
+def test_register_leaves_the_coarse_phase_as_soon_as_the_subset_has_converged():
+    """Issue 12: once the coarse phase (on a strided subset) meets the tolerance, the next iteration
+    runs on the full source at the fine sigma (the floor). The loop used to write the switch on a
+    proxy of the estimator, where it was lost: the coarse phase went on until the estimator's own
+    fine-phase test fired (measured on this pair at tolerance 1e-2: met at iteration 12, switched at 18).
+    LiDAR pair, 40k random points of each scan, 5 degrees of yaw."""
+    source, target, truth = lidar_pair()
+    rng = np.random.default_rng(0)
+    source = source[rng.choice(len(source), 40_000, replace=False)]
+    target = target[rng.choice(len(target), 40_000, replace=False)]
+    tolerance = 1e-2  # loose, so that the coarse phase settles before the estimator's own switch
+    floor = SIGMA_FLOOR_SPACINGS * NearestNeighbors(target).spacing()
+    diagonal = float(np.linalg.norm(np.ptp(target, axis=0)))
+    result = esmicp.register(source, target, init=yawed(truth, source, 5.0), tolerance=tolerance, record_history=True)
+    history = result.history
+    met = []
+    for previous, record, following in zip(history, history[1:], history[2:]):
+        step = record.transformation @ np.linalg.inv(previous.transformation)
+        small_step = rotation_angle(step[:3, :3]) < tolerance and np.linalg.norm(step[:3, 3]) < tolerance * diagonal
+        settled = abs(previous.rmse - record.rmse) <= tolerance * previous.rmse
+        if record.sigma > floor * (1 + 1e-9) and (small_step or settled):
+            met.append((record.iteration, following.sigma))
+    assert met, "the coarse phase never met the tolerance: the test does not exercise the switch"
+    iteration, next_sigma = met[0]
+    assert next_sigma == pytest.approx(floor, rel=1e-12), f"coarse phase met the tolerance at {iteration}, went on"

@@ -1,29 +1,33 @@
-"""``register()``: validate inputs, pick the method, run it, evaluate the result."""
+"""``register()``: one registration as its stages: validate, move to a working frame, start (a
+global search unless a pose is given), refine, evaluate."""
 
 from __future__ import annotations
 
-import dataclasses
-import logging
 import time
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 
 from .core.correspondence import NearestNeighbors
-from .core.procrustes import apply
+from .core.procrustes import apply, bounding_box_diagonal
 from .errors import IndexAlignmentWarning, InvalidInputError
-from .methods import METHODS, EsmEstimator, EsmPaperEstimator, IcpEstimator, SigmaSchedule
-from .methods.esm import COARSE_POINTS
-from .methods.esm_paper import PAPER_SIGMA
-from .init.global_search import STRATEGIES, global_estimate
+from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
+from .methods import METHODS, ConvergenceCriteria, make_estimator
+from .methods.esm import COARSE_POINTS
+from .methods.guard import guarded_refine
 from .methods.local import Callback
-from .numerics import checked_refine, from_working, to_working, uncentred_callback, uncentred_history, working_origin
 from .result import RegistrationResult
-from .types import as_count, as_points, as_positive, as_real, as_transform, check_not_degenerate
+from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, check_not_degenerate
 from .types import check_representable
+from .working_frame import WorkingFrame
 
-logger = logging.getLogger(__name__)
+#: ``init`` strings meaning "no global search: start from the identity".
+IDENTITY_NAMES = ("identity", "none")
+
+#: Every ``init`` string :func:`register` accepts (anything else must be a 4x4 matrix).
+INIT_NAMES = ("global", *STRATEGIES, *IDENTITY_NAMES)
 
 #: Default inlier distance for ``fitness`` / ``inlier_rmse``, in target point spacings.
 INLIER_DISTANCE_SPACINGS = 3.0
@@ -31,6 +35,24 @@ INLIER_DISTANCE_SPACINGS = 3.0
 #: Below this fraction of source points matched to the target point of the same index, an
 #: ``esm-paper`` run is reported as not index-aligned.
 INDEX_ALIGNED_FRACTION = 0.5
+
+#: Seed of the global search when ``rng`` is None (results are reproducible by default).
+DEFAULT_SEED = 0
+
+
+@dataclass(frozen=True, eq=False)
+class _Request:
+    """The validated arguments of one :func:`register` call."""
+
+    source: np.ndarray
+    target: np.ndarray
+    method: str
+    init_name: str
+    initial: np.ndarray | None  # None: a global search finds the start
+    sigma: float | None
+    criteria: ConvergenceCriteria
+    rng: np.random.Generator
+    inlier_distance: float | None
 
 
 @keeps_keyboard_interrupt
@@ -65,7 +87,7 @@ def register(
         Where to start. None or ``"global"`` (the default): find the pose globally, from any
         rotation and translation, with the best measured strategy (``"auto"``: both strategies
         below, every candidate verified the same way). ``"rotation-search"`` or ``"features"``:
-        global with that strategy only (see :mod:`esmicp.init.global_search`). ``"identity"`` (or
+        global with that strategy only (see :mod:`esmicp.globalreg.search`). ``"identity"`` (or
         ``"none"``): pure local refinement from the identity. A 4x4 ``T_target_source``: pure local
         refinement from there.
     sigma : float, optional
@@ -100,91 +122,30 @@ def register(
         :func:`esmicp.types.check_representable`), an unknown method, a malformed or non-rigid ``init``,
         or non-positive ``sigma``, ``max_iterations`` or ``inlier_distance``.
     """
-    start = time.perf_counter()
-    source_points = as_points(source, "source")
-    target_points = as_points(target, "target")
-    check_not_degenerate(source_points, "source")
-    check_not_degenerate(target_points, "target")
-    check_representable(source_points, "source")
-    check_representable(target_points, "target")
-    if method not in METHODS:
-        raise InvalidInputError(f"method: unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    init_name, initial = _resolve_init(init)
-    if initial is not None:
-        _check_start_representable(initial, source_points)
-    if sigma is not None:
-        sigma = as_positive(sigma, "sigma")
-    if inlier_distance is not None:
-        inlier_distance = as_positive(inlier_distance, "inlier_distance")
-    max_iterations = as_count(max_iterations, "max_iterations")
-    tolerance = _as_tolerance(tolerance)
-    generator = _as_generator(rng)
-
-    # Far from the origin (UTM / ECEF coordinates), register in a frame shifted onto the target and
-    # map the result back: rounding noise would otherwise exceed the tolerance (see esmicp.numerics).
-    origin = working_origin(target_points)
-    if origin is not None:
-        source_points, target_points = source_points - origin, target_points - origin
-        initial = None if initial is None else to_working(initial, origin)
-        callback = uncentred_callback(callback, origin)
-
+    started = time.perf_counter()
+    request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance)
+    frame = WorkingFrame.for_target(request.target)
+    source_points, target_points = frame.points(request.source), frame.points(request.target)
     target_index = NearestNeighbors(target_points)
-    spacing = target_index.spacing()
-    diagonal = float(np.linalg.norm(target_points.max(axis=0) - target_points.min(axis=0)))
-
-    if method == "esm-paper" and len(source_points) != len(target_points):
-        warnings.warn(
-            f"esm-paper needs index-aligned clouds of equal size, got {len(source_points)} source "
-            f"and {len(target_points)} target points; its result is not meaningful here: use method='esm'",
-            IndexAlignmentWarning,
-            stacklevel=2,
-        )
-    estimate = None
-    if initial is None:
-        estimate = global_estimate(
-            source_points, target_points, strategy=init_name, rng=generator, target_index=target_index,
-            target_spacing=spacing,
-        )
-        initial = estimate.transformation
-        init_name = f"global:{estimate.strategies[0]}"
+    diagonal = bounding_box_diagonal(target_points)
+    initial, init_name, estimate = _start(request, source_points, target_points, target_index, frame)
     # After a global search (which ends at the finest sigma) the pose is already close: start in
     # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
-    estimator = _make_estimator(method, sigma, spacing, diagonal, start_fine=estimate is not None)
-    outcome = checked_refine(
-        source_points,
-        target_index,
-        estimator,
-        init=initial,
-        max_iterations=max_iterations,
-        tolerance=tolerance,
-        scale=diagonal,
-        callback=callback,
-        record_history=record_history,
-        coarse_points=COARSE_POINTS if method == "esm" else None,
+    estimator = make_estimator(method, request.sigma, target_index.spacing(), diagonal, start_fine=estimate is not None)
+    outcome = guarded_refine(
+        source_points, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal,
+        callback=frame.callback(callback), record_history=record_history, coarse_points=COARSE_POINTS,
     )
-
-    if inlier_distance is None:
-        inlier_distance = INLIER_DISTANCE_SPACINGS * spacing if spacing > 0 else 1e-6 * diagonal
-    distances, indices = target_index.query_near(apply(outcome.transformation, source_points))
-    inliers = distances <= inlier_distance
-    fitness = float(inliers.mean())
-    inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
-    if method == "esm-paper" and len(source_points) == len(target_points):
-        _warn_if_not_index_aligned(indices)
-    if origin is not None:
-        outcome = dataclasses.replace(
-            outcome, transformation=from_working(outcome.transformation, origin),
-            history=uncentred_history(outcome.history, origin),
-        )
-
+    fitness, inlier_rmse, inlier_distance = _evaluate(source_points, target_index, outcome.transformation, request)
+    outcome = frame.outcome(outcome)
     return RegistrationResult(
         transformation=outcome.transformation,
         converged=outcome.converged,
         num_iterations=outcome.num_iterations,
         fitness=fitness,
         inlier_rmse=inlier_rmse,
-        inlier_distance=float(inlier_distance),
-        runtime_s=time.perf_counter() - start,
+        inlier_distance=inlier_distance,
+        runtime_s=time.perf_counter() - started,
         method=method,
         sigma=outcome.sigma,
         message=outcome.message,
@@ -197,6 +158,62 @@ def register(
         ),
         global_candidates=0 if estimate is None else estimate.candidates,
     )
+
+
+def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance) -> _Request:
+    """Stage 1: every argument checked (one clear :class:`InvalidInputError` otherwise)."""
+    source_points = as_points(source, "source")
+    target_points = as_points(target, "target")
+    for points, name in ((source_points, "source"), (target_points, "target")):
+        check_not_degenerate(points, name)
+        check_representable(points, name)
+    if method not in METHODS:
+        raise InvalidInputError(f"method: unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    init_name, initial = _resolve_init(init)
+    if initial is not None:
+        _check_start_representable(initial, source_points)
+    request = _Request(
+        source_points, target_points, method, init_name, initial,
+        sigma=None if sigma is None else as_positive(sigma, "sigma"),
+        criteria=ConvergenceCriteria(as_count(max_iterations, "max_iterations"), _as_tolerance(tolerance)),
+        rng=as_generator(rng, default_seed=DEFAULT_SEED),
+        inlier_distance=None if inlier_distance is None else as_positive(inlier_distance, "inlier_distance"),
+    )
+    if method == "esm-paper" and len(source_points) != len(target_points):
+        warnings.warn(
+            f"esm-paper needs index-aligned clouds of equal size, got {len(source_points)} source "
+            f"and {len(target_points)} target points; its result is not meaningful here: use method='esm'",
+            IndexAlignmentWarning,
+            stacklevel=3,
+        )
+    return request
+
+
+def _start(request: _Request, source, target, target_index, frame) -> tuple[np.ndarray, str, GlobalEstimate | None]:
+    """Stage 3: the starting pose (working frame), its name, and the global estimate if one was made."""
+    if request.initial is not None:
+        return frame.transform_in(request.initial), request.init_name, None
+    estimate = global_estimate(
+        source, target, strategy=request.init_name, rng=request.rng, target_index=target_index,
+        target_spacing=target_index.spacing(),
+    )
+    return estimate.transformation, f"global:{estimate.strategies[0]}", estimate
+
+
+def _evaluate(source, target_index, transformation, request: _Request) -> tuple[float, float, float]:
+    """Stage 5: ``(fitness, inlier_rmse, inlier_distance)`` of the final pose, in Open3D's meaning
+    (and, for ``esm-paper``, a warning when the clouds were not index-aligned)."""
+    inlier_distance = request.inlier_distance
+    if inlier_distance is None:
+        spacing = target_index.spacing()
+        inlier_distance = INLIER_DISTANCE_SPACINGS * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target_index.points)
+    distances, indices = target_index.query_near(apply(transformation, source))
+    inliers = distances <= inlier_distance
+    fitness = float(inliers.mean())
+    inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
+    if request.method == "esm-paper" and len(source) == len(target_index.points):
+        _warn_if_not_index_aligned(indices)
+    return fitness, inlier_rmse, float(inlier_distance)
 
 
 def _check_start_representable(initial: np.ndarray, source_points: np.ndarray) -> None:
@@ -212,15 +229,6 @@ def _check_start_representable(initial: np.ndarray, source_points: np.ndarray) -
         )
 
 
-def _make_estimator(method: str, sigma: float | None, spacing: float, diagonal: float, *, start_fine: bool = False):
-    if method == "icp":
-        return IcpEstimator()
-    if method == "esm-paper":
-        return EsmPaperEstimator(PAPER_SIGMA if sigma is None else sigma)
-    schedule = SigmaSchedule.auto(spacing, diagonal) if sigma is None else SigmaSchedule.constant(sigma)
-    return EsmEstimator(schedule, start_fine=start_fine)
-
-
 def _warn_if_not_index_aligned(indices: np.ndarray) -> None:
     own = float(np.mean(indices == np.arange(len(indices))))
     if own < INDEX_ALIGNED_FRACTION:
@@ -230,17 +238,8 @@ def _warn_if_not_index_aligned(indices: np.ndarray) -> None:
             f"their own index; the clouds are probably not index-aligned and the result is likely "
             f"wrong: use method='esm'",
             IndexAlignmentWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
-
-
-
-
-#: Seed of the global search when ``rng`` is None (results are reproducible by default).
-DEFAULT_SEED = 0
-
-#: ``init`` strings meaning "no global search: start from the identity".
-IDENTITY_NAMES = ("identity", "none")
 
 
 def _resolve_init(init) -> tuple[str, np.ndarray | None]:
@@ -253,17 +252,10 @@ def _resolve_init(init) -> tuple[str, np.ndarray | None]:
             return name, None
         if name in IDENTITY_NAMES:
             return "identity", np.eye(4)
-        choices = ", ".join(("global",) + STRATEGIES + IDENTITY_NAMES)
-        raise InvalidInputError(f"init: unknown strategy {init!r}; choose one of {choices}, or give a 4x4 matrix")
+        raise InvalidInputError(
+            f"init: unknown strategy {init!r}; choose one of {', '.join(INIT_NAMES)}, or give a 4x4 matrix"
+        )
     return "given", as_transform(init, "init")
-
-
-def _as_generator(rng) -> np.random.Generator:
-    """A Generator from ``rng`` (None: the fixed :data:`DEFAULT_SEED`)."""
-    try:
-        return np.random.default_rng(DEFAULT_SEED if rng is None else rng)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"rng: expected None, a seed >= 0 or a numpy Generator, got {rng!r} ({exc})") from None
 
 
 def _as_tolerance(value) -> float:

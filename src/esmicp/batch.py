@@ -128,7 +128,7 @@ def _on_dask(client, items, register_kwargs):
     try:
         import distributed  # noqa: F401  (the client's own package; checked for a clear message)
     except ImportError:  # pragma: no cover - a client cannot exist without it
-        from .baselines import MissingDependencyError
+        from .errors import MissingDependencyError
 
         raise MissingDependencyError(f"register_many(client=...) needs Dask: {DASK_INSTALL_HINT}") from None
     futures = [

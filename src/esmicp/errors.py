@@ -35,6 +35,11 @@ class OutputExistsError(EsmicpError):
         super().__init__(f"{self.path}: already exists (pass --force / overwrite=True to replace it)")
 
 
+class MissingDependencyError(EsmicpError):
+    """An optional library (a baseline's, Dask, matplotlib, plotly) is not installed or fails to
+    import; the message says how to install it."""
+
+
 class EsmicpWarning(UserWarning):
     """Base class of the warnings esmicp emits."""
 

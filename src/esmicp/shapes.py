@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .types import as_generator
+
 
 def _sphere_directions(rng: np.random.Generator, count: int) -> np.ndarray:
     directions = rng.normal(size=(count, 3))
@@ -34,7 +36,7 @@ def asymmetric_shape(num_points: int = 2000, rng=None) -> np.ndarray:
     """
     if num_points < 4:
         raise ValueError(f"num_points: need at least 4, got {num_points}")
-    rng = np.random.default_rng(rng)
+    rng = as_generator(rng)
     parts = [_ellipsoid, _head, _arm, _box]
     areas = np.array([8.0, 1.54, 0.7, 0.54])
     counts = rng.multinomial(num_points, areas / areas.sum())

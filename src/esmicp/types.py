@@ -166,3 +166,16 @@ def as_positive(value, name: str) -> float:
     if not np.isfinite(number) or number <= 0:
         raise InvalidInputError(f"{name}: must be a finite number > 0, got {value!r}")
     return number
+
+
+def as_generator(rng, name: str = "rng", *, default_seed: int | None = None) -> np.random.Generator:
+    """``rng`` as a :class:`numpy.random.Generator` (the one place randomness is coerced, like
+    scikit-learn's ``check_random_state``): a Generator is used as is, an int (or a
+    :class:`numpy.random.SeedSequence`) seeds a new one, None seeds one from ``default_seed`` (None:
+    fresh entropy)."""
+    try:
+        return np.random.default_rng(default_seed if rng is None else rng)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(
+            f"{name}: expected None, a seed >= 0 or a numpy Generator, got {rng!r} ({exc})"
+        ) from None

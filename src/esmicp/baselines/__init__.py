@@ -21,79 +21,15 @@ settings and install commands: ``docs/baselines.md``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Protocol
-
-import numpy as np
-
-from ..errors import EsmicpError, InvalidInputError
-
-#: What to tell a user whose baseline library is missing.
-INSTALL_HINT = (
-    "pip install 'esmicp[baselines]' (and on Debian/Ubuntu: apt-get install libusb-1.0-0, "
-    "which open3d-cpu needs at import)"
-)
-
-
-class MissingDependencyError(EsmicpError):
-    """A baseline's optional library is not installed (or fails to import)."""
-
-
-@dataclass(frozen=True)
-class BaselineResult:
-    """Outcome of a baseline adapter.
-
-    Attributes
-    ----------
-    transformation : (4, 4) float64 array
-        ``T_target_source``: ``target ~= source @ R.T + t``.
-    runtime_s : float
-        Wall time (``time.perf_counter``) of the registration itself: downsampling, features,
-        global step and refinement; not the library import nor input validation.
-    method : str
-        The adapter's name (a key of :data:`BASELINES`).
-    converged : bool or None
-        The library's own success flag where it gives one (RANSAC found a model, KISS-Matcher's
-        ``valid``, GICP's ``converged``); None when unknown.
-    notes : str
-        Settings used and the library's figures (voxel size, fitness, inliers, ...).
-    """
-
-    transformation: np.ndarray
-    runtime_s: float
-    method: str
-    converged: bool | None
-    notes: str = ""
-
-
-class WeightsNotAvailableError(MissingDependencyError):
-    """A learned baseline's pretrained weights are not found (the message says where they were
-    looked for, and how to supply them)."""
-
-
-class BaselineTimeoutError(EsmicpError, TimeoutError):
-    """A baseline did not finish within its time limit (Go-ICP's ``timeout_s``). Also a
-    :class:`TimeoutError`, which is what ``esmicp bench`` records as status ``timeout``."""
-
-
-class Baseline(Protocol):
-    def __call__(
-        self,
-        source,
-        target,
-        *,
-        init=None,
-        max_iterations: int = ...,
-        voxel_size: float | None = None,
-        rng=None,
-    ) -> BaselineResult: ...
-
+from ..errors import InvalidInputError, MissingDependencyError
+from .base import INSTALL_HINT, Baseline, BaselineResult, BaselineTimeoutError, WeightsNotAvailableError
 
 def _registry() -> tuple[dict[str, Baseline], dict[str, str]]:
     from functools import partial, update_wrapper
 
     from . import (
         cpd,
+        dcp,
         go_icp,
         icp_nl,
         kiss_matcher,
@@ -119,7 +55,7 @@ def _registry() -> tuple[dict[str, Baseline], dict[str, str]]:
         kiss_matcher.NAME_ALONE: (refined(kiss_matcher.register, "none"), "global"),
         open3d_fgr.NAME: (open3d_fgr.register, "global"),
         go_icp.NAME: (go_icp.register, "global"),
-        learned.DCP: (learned.dcp, "global"),
+        dcp.NAME: (dcp.register, "global"),
         learned.RPM_NET: (learned.rpm_net, "global"),
         learned.DEEPGMR: (learned.deepgmr, "global"),
         # Local: start from init, at most max_iterations iterations.

@@ -8,8 +8,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InvalidInputError
-from ..types import as_count, as_points, as_positive, as_transform, check_not_degenerate
-from . import INSTALL_HINT, MissingDependencyError
+from ..types import as_count, as_generator, as_points, as_positive, as_transform, check_not_degenerate
+from ..core.procrustes import apply, bounding_box_diagonal
+from ..errors import MissingDependencyError
+from .base import INSTALL_HINT
 
 #: Default voxel size, as a fraction of the target's bounding-box diagonal. ModelNet40 objects
 #: (diagonal 2.2-3) get 0.05-0.08, the Stanford bunny (0.25 m) 6 mm, a bunny range scan ~5 mm.
@@ -23,7 +25,7 @@ VOXEL_FRACTION_OF_DIAGONAL = 1.0 / 40.0
 ICP_DISTANCE_VOXELS = 1.5
 
 #: Normal-estimation radius, in voxels (Open3D's tutorial value).
-NORMAL_RADIUS_VOXELS = 2.0
+OPEN3D_NORMAL_RADIUS_VOXELS = 2.0
 
 #: Default cap on the ICP refinement's iterations.
 ICP_MAX_ITERATIONS = 50
@@ -67,14 +69,10 @@ def prepare(source, target) -> tuple[np.ndarray, np.ndarray]:
     return source_points, target_points
 
 
-def diagonal(points: np.ndarray) -> float:
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-
-
 def voxel_for(target: np.ndarray, voxel_size: float | None) -> float:
     """``voxel_size`` checked, or :data:`VOXEL_FRACTION_OF_DIAGONAL` of the target's diagonal."""
     if voxel_size is None:
-        return VOXEL_FRACTION_OF_DIAGONAL * diagonal(target)
+        return VOXEL_FRACTION_OF_DIAGONAL * bounding_box_diagonal(target)
     return as_positive(voxel_size, "voxel_size")
 
 
@@ -112,11 +110,6 @@ def checked_init(init) -> np.ndarray:
     return as_transform(init, "init")
 
 
-def apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``points`` (source frame) mapped by ``transform``: ``points @ R.T + t``."""
-    return points @ transform[:3, :3].T + transform[:3, 3]
-
-
 def local_distance(source: np.ndarray, target: np.ndarray, init: np.ndarray) -> float:
     """The max correspondence distance of the local methods: ``diag(source) + diag(target) +
     |centroid(init * source) - centroid(target)|`` (cloud units).
@@ -128,7 +121,7 @@ def local_distance(source: np.ndarray, target: np.ndarray, init: np.ndarray) -> 
     clouds do not even touch.
     """
     offset = float(np.linalg.norm(apply(init, source).mean(axis=0) - target.mean(axis=0)))
-    return diagonal(source) + diagonal(target) + offset
+    return bounding_box_diagonal(source) + bounding_box_diagonal(target) + offset
 
 
 def seed_from(rng) -> int:
@@ -136,11 +129,7 @@ def seed_from(rng) -> int:
 
     The same int gives the same seed; None gives a fresh one.
     """
-    try:
-        generator = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"rng: expected None, a seed >= 0 or a numpy Generator, got {rng!r} ({exc})") from None
-    return int(generator.integers(0, 2**31 - 1))
+    return int(as_generator(rng).integers(0, 2**31 - 1))
 
 
 def o3d_cloud(o3d, points: np.ndarray):
@@ -208,7 +197,7 @@ def refine(
         ICP_DISTANCE_VOXELS * voxel,
         max_iterations,
         refinement=refinement,
-        normal_radius=NORMAL_RADIUS_VOXELS * voxel,
+        normal_radius=OPEN3D_NORMAL_RADIUS_VOXELS * voxel,
     )
     note = f"{refinement} icp fitness={fine.fitness:.3f} rmse={fine.inlier_rmse:.3g}"
     return np.array(fine.transformation, dtype=np.float64), note

@@ -27,8 +27,9 @@ import time
 
 import numpy as np
 
-from . import BaselineResult
-from ._common import PROBREG_HINT, apply, checked_inputs, require
+from .base import BaselineResult
+from ..core.procrustes import apply
+from ._common import PROBREG_HINT, checked_inputs, require
 
 NAME = "cpd"
 

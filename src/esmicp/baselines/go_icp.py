@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import BaselineResult, BaselineTimeoutError
+from .base import BaselineResult, BaselineTimeoutError
 from ._common import GOICP_HINT, checked_inputs, require
 from ..errors import InvalidInputError
 from ..types import as_positive

@@ -30,8 +30,9 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from . import BaselineResult
-from ._common import apply, checked_inputs, diagonal, local_distance
+from .base import BaselineResult
+from ..core.procrustes import apply, bounding_box_diagonal
+from ._common import checked_inputs, local_distance
 from ..types import as_positive
 
 NAME = "icp-nl"
@@ -134,7 +135,7 @@ def register(
     )
     tree = cKDTree(target_points)
     spacing = float(np.median(tree.query(target_points[: min(len(target_points), 5000)], k=2)[0][:, 1]))
-    scale = diagonal(target_points)
+    scale = bounding_box_diagonal(target_points)
     transform = inputs.init.copy()
     converged = False
     iterations = 0

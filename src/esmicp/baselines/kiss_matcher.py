@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from . import BaselineResult
+from .base import BaselineResult
 from ._common import (
     ICP_MAX_ITERATIONS,
     OPEN3D_PACKAGE,

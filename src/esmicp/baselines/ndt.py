@@ -39,8 +39,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from . import BaselineResult
-from ._common import apply, checked_inputs, diagonal
+from .base import BaselineResult
+from ..core.procrustes import apply, bounding_box_diagonal
+from ._common import checked_inputs
 from ..types import as_positive
 
 NAME = "ndt"
@@ -210,7 +211,7 @@ def register(
     """
     inputs = checked_inputs(source, target, voxel_size, max_iterations, rng, init)
     cell = (
-        CELL_FRACTION_OF_DIAGONAL * diagonal(inputs.target)
+        CELL_FRACTION_OF_DIAGONAL * bounding_box_diagonal(inputs.target)
         if voxel_size is None
         else as_positive(voxel_size, "voxel_size")
     )

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from . import BaselineResult
+from .base import BaselineResult
 from ._common import OPEN3D_PACKAGE, checked_inputs, o3d_cloud, require
 from .open3d_ransac import fpfh
 

@@ -17,9 +17,9 @@ import time
 
 import numpy as np
 
-from . import BaselineResult
+from .base import BaselineResult
 from ._common import (
-    NORMAL_RADIUS_VOXELS,
+    OPEN3D_NORMAL_RADIUS_VOXELS,
     OPEN3D_PACKAGE,
     checked_inputs,
     local_distance,
@@ -59,7 +59,7 @@ def _register(
     start = time.perf_counter()
     source_cloud = o3d_cloud(o3d, inputs.source)
     target_cloud = o3d_cloud(o3d, inputs.target)
-    search = o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS_VOXELS * inputs.voxel, max_nn=30)
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=OPEN3D_NORMAL_RADIUS_VOXELS * inputs.voxel, max_nn=30)
     estimation = getattr(registration, _ESTIMATIONS[name])()
     if name == NAME_GICP:
         source_cloud.estimate_covariances(search)
@@ -78,7 +78,7 @@ def _register(
         method=name,
         converged=None,  # Open3D does not say whether the criteria or the cap stopped it
         notes=(
-            f"voxel={inputs.voxel:.6g} (normals/covariances radius {NORMAL_RADIUS_VOXELS:g}v); "
+            f"voxel={inputs.voxel:.6g} (normals/covariances radius {OPEN3D_NORMAL_RADIUS_VOXELS:g}v); "
             f"max_correspondence_distance={distance:.6g}; max_iterations={inputs.max_iterations}; "
             f"fitness={result.fitness:.3f} rmse={result.inlier_rmse:.3g}"
         ),

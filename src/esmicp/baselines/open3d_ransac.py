@@ -27,10 +27,10 @@ import time
 
 import numpy as np
 
-from . import BaselineResult
+from .base import BaselineResult
 from ._common import (
     ICP_MAX_ITERATIONS,
-    NORMAL_RADIUS_VOXELS,
+    OPEN3D_NORMAL_RADIUS_VOXELS,
     OPEN3D_PACKAGE,
     check_refinement,
     checked_inputs,
@@ -45,7 +45,7 @@ NAME_PLANE = "open3d-ransac-fpfh-p2l"
 #: The name of RANSAC + FPFH alone (no refinement).
 NAME_ALONE = "open3d-ransac-fpfh"
 
-#: Radii in voxels (Open3D's tutorial values); the normal radius, 2, is NORMAL_RADIUS_VOXELS.
+#: Radii in voxels (Open3D's tutorial values); the normal radius, 2, is OPEN3D_NORMAL_RADIUS_VOXELS.
 FPFH_RADIUS_VOXELS = 5.0
 RANSAC_DISTANCE_VOXELS = 1.5
 EDGE_LENGTH_RATIO = 0.9
@@ -57,7 +57,7 @@ def fpfh(o3d, cloud, voxel: float):
     """Downsample ``cloud`` (an Open3D PointCloud), estimate normals, compute FPFH."""
     geometry = o3d.geometry
     down = cloud.voxel_down_sample(voxel)
-    down.estimate_normals(geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS_VOXELS * voxel, max_nn=30))
+    down.estimate_normals(geometry.KDTreeSearchParamHybrid(radius=OPEN3D_NORMAL_RADIUS_VOXELS * voxel, max_nn=30))
     feature = o3d.pipelines.registration.compute_fpfh_feature(
         down, geometry.KDTreeSearchParamHybrid(radius=FPFH_RADIUS_VOXELS * voxel, max_nn=100)
     )

@@ -28,8 +28,9 @@ import time
 
 import numpy as np
 
-from . import BaselineResult
-from ._common import TORCH_HINT, apply, checked_inputs, require
+from .base import BaselineResult
+from ..core.procrustes import apply
+from ._common import TORCH_HINT, checked_inputs, require
 from .weights import find_weights
 
 NAME = "pointnetlk"

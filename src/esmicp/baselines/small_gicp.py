@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from . import BaselineResult
+from .base import BaselineResult
 from ._common import checked_inputs, local_distance, require
 from ..errors import InvalidInputError
 from ..types import as_positive

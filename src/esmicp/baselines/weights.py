@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from . import WeightsNotAvailableError
+from .base import WeightsNotAvailableError
 
 #: The environment variable naming a weights folder.
 WEIGHTS_ENV = "ESMICP_WEIGHTS_DIR"

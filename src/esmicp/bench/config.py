@@ -14,7 +14,7 @@ from pathlib import Path
 
 from ..errors import InvalidInputError
 
-#: Object protocols of :mod:`esmicp.protocols` plus the bench's own ``partial``.
+#: Object protocols of :mod:`esmicp.bench.protocols` plus the bench's own ``partial``.
 HONEST_OBJECT_PROTOCOLS = ("copy", "shuffled", "resampled", "outliers-30", "outliers-60", "partial")
 #: Protocol on datasets of scans with known poses.
 SCAN_PROTOCOL = "scan-pairs"

@@ -35,8 +35,7 @@ from ..errors import InvalidInputError
 
 #: Names of the built-in / shared datasets.
 BUILTIN = ("synthetic", "modelnet40", "bunny", "bunny-scans", "lidar-pair")
-#: Datasets made of scans with known poses (protocol ``scan-pairs`` only).
-SCAN_DATASETS = ("bunny-scans", "lidar-pair")
+#: Mesh files a dataset folder may hold (sampled to the requested size).
 MESH_EXTENSIONS = (".off", ".obj", ".stl")
 #: Datasets whose clouds do not depend on the requested size (no meshes to sample).
 POINTS_INDEPENDENT = ("synthetic", "bunny", "bunny-scans", "lidar-pair")

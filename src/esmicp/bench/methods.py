@@ -10,7 +10,6 @@ hidden: :class:`Unavailable`.
 
 from __future__ import annotations
 
-import inspect
 import time
 import warnings
 from dataclasses import dataclass
@@ -19,10 +18,6 @@ import numpy as np
 
 #: Our methods and their kinds.
 OUR_METHODS = {"esm": "local", "esm-paper": "local", "icp": "local", "esm-global": "global"}
-
-#: Kinds of the adapters that existed before ``esmicp.baselines.BASELINE_KINDS``: every one is
-#: global but ``small-gicp`` (GICP from the identity).
-_FALLBACK_LOCAL = frozenset({"small-gicp"})
 
 #: Substrings of learned baselines' names (excluded from the geometric default of ``--paper``).
 LEARNED_MARKERS = ("pointnetlk", "dcp", "rpm", "deepgmr", "learned")
@@ -62,10 +57,7 @@ def method_kind(name: str) -> str:
     """``local`` or ``global``."""
     if name in OUR_METHODS:
         return OUR_METHODS[name]
-    kinds = getattr(_baselines(), "BASELINE_KINDS", None) or {}
-    if name in kinds:
-        return kinds[name]
-    return "local" if name in _FALLBACK_LOCAL else "global"
+    return _baselines().BASELINE_KINDS.get(name, "global")
 
 
 #: Methods that take seconds per trial (measured: Go-ICP 5-25 s at 300 data points), run on a
@@ -128,10 +120,7 @@ def _run_baseline(name, source, target, init, max_iterations, seed) -> MethodOut
     kwargs = {"rng": seed}
     if method_kind(name) == "local":
         kwargs["max_iterations"] = max_iterations
-        if _accepts(adapter, "init"):
-            kwargs["init"] = init
-        elif not np.allclose(init, np.eye(4)):
-            raise TypeError(f"{name} takes no initial guess (this version of its adapter starts from the identity)")
+        kwargs["init"] = init
     start = time.perf_counter()
     try:
         result = adapter(source, target, **kwargs)
@@ -140,10 +129,3 @@ def _run_baseline(name, source, target, init, max_iterations, seed) -> MethodOut
     elapsed = time.perf_counter() - start
     return MethodOutcome(np.asarray(result.transformation, dtype=np.float64), elapsed, None, result.converged,
                          result.notes)
-
-
-def _accepts(adapter, parameter: str) -> bool:
-    try:
-        return parameter in inspect.signature(adapter).parameters
-    except (TypeError, ValueError):
-        return False

@@ -5,7 +5,7 @@ moved by ``G``: roll, pitch, yaw each uniform in ``[-pi, pi]``, composed ``R = R
 Rx(roll)`` (the paper's sampling: Euler angles drawn uniformly are NOT uniform rotations), and
 each translation component uniform in ``[-range, range]`` (cloud units: ModelNet objects are about
 2 units across, so ranges of 100 and 1000 put the source 50-500 object sizes away). Optionally
-30 % / 60 % of the source points get the paper's noise (:func:`esmicp.protocols.paper_noise`,
+30 % / 60 % of the source points get the paper's noise (:func:`esmicp.bench.protocols.paper_noise`,
 scaled by the object's half-diagonal) in the object's frame, before the move. The truth is
 ``T_target_source = G^-1``.
 
@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.procrustes import apply, to_matrix
-from ..protocols import Trial, bounding_box_diagonal, paper_noise, rigid_inverse
+from ..core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
+from .protocols import Trial, paper_noise
 
 #: Fraction of noisy source points of each noisy paper protocol.
 PAPER_NOISE_FRACTIONS = {"paper": 0.0, "paper-noise-30": 0.3, "paper-noise-60": 0.6}

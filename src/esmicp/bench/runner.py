@@ -122,7 +122,7 @@ def plan(config: BenchConfig) -> list[_Planned]:
 
 
 def _scan_plan(dataset, points: int, config: BenchConfig) -> list[_Planned]:
-    from ..protocols import scan_pairs
+    from .protocols import scan_pairs
 
     seed = group_seeds(config.seed, SCAN_PROTOCOL, dataset.name, points, 1)[0]
     pairs = scan_pairs(dataset.scans, seed, max_points=points)
@@ -255,7 +255,7 @@ def _run_dask(todo, config, options, workers, writer, bar) -> None:
     try:
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError as exc:
-        from ..baselines import MissingDependencyError
+        from ..errors import MissingDependencyError
 
         raise MissingDependencyError(
             f"parallel runs need dask.distributed ({exc}); install it with {BENCH_HINT}, or run serially with --workers 1"

@@ -18,7 +18,7 @@ from ..metrics import (
     translation_error,
     up_to_symmetry_success,
 )
-from ..protocols import Trial
+from .protocols import Trial
 from .methods import Unavailable, method_kind, run_method
 from .results import row_key  # noqa: F401  (re-exported: where the runner looks for it)
 from .trials import TrialSpec

@@ -22,7 +22,7 @@ import numpy as np
 
 from . import compiled_tree
 from .compiled_tree import chunk_count, run_parallel
-from .kernels import kernel_scale
+from .weights import kernel_scale
 from .pose_kernels import kabsch_rotation
 
 try:  # numba is a dependency, but the library still works (slower) without it.
@@ -118,7 +118,7 @@ def pair_moments(
 
     ``T`` is the 4x4 current placement (``T_target_source``); ``distances`` the pairs' lengths
     (cloud units). Weights: ``exp(-(d_i^2 - d_min^2) / (2 sigma^2))`` (the Gaussian weights relative
-    to the closest pair, :func:`esmicp.core.kernels.relative_gaussian_weights`), or 1 when
+    to the closest pair, :func:`esmicp.core.weights.relative_gaussian_weights`), or 1 when
     ``sigma`` is None.
 
     Returns ``(total_weight, total_squared_weight, source_centroid, target_centroid,

@@ -1,4 +1,5 @@
-"""Closed-form rigid fits (Kabsch / weighted Procrustes) and small SE(3) helpers.
+"""Closed-form rigid fits (Kabsch / weighted Procrustes, one and batched), small SE(3) helpers, and
+the size of a cloud (its bounding-box diagonal): the one home of each.
 
 All transforms are ``T_target_source``: ``target ~= source @ R.T + t``.
 """
@@ -17,6 +18,19 @@ def rotation_from_cross_covariance(cross_covariance: np.ndarray) -> np.ndarray:
     reflection so that ``det R = +1`` (the standard Kabsch/Umeyama correction).
     """
     return pose_kernels.kabsch_rotation(np.asarray(cross_covariance, dtype=np.float64))
+
+
+def batched_rotation_from_cross_covariance(cross_covariances: np.ndarray) -> np.ndarray:
+    """Kabsch rotations ``(K, 3, 3)`` maximising ``trace(R H_k)`` for each ``H_k`` (reflection-fixed),
+    as :func:`rotation_from_cross_covariance` does for one."""
+    u, _, vt = np.linalg.svd(cross_covariances)
+    v = np.swapaxes(vt, -1, -2)
+    ut = np.swapaxes(u, -1, -2)
+    sign = np.sign(np.linalg.det(v @ ut))
+    sign[sign == 0] = 1.0
+    v = v.copy()
+    v[:, :, 2] *= sign[:, None]
+    return v @ ut
 
 
 def weighted_procrustes(
@@ -60,6 +74,19 @@ def to_matrix(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
 def apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Map ``(N, 3)`` points through a 4x4 transform: ``points @ R.T + t`` (a new array)."""
     return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def rigid_inverse(transform: np.ndarray) -> np.ndarray:
+    """Inverse of a 4x4 rigid transform: ``[R^T | -R^T t]``."""
+    rotation = transform[:3, :3]
+    return to_matrix(rotation.T, -rotation.T @ transform[:3, 3])
+
+
+def bounding_box_diagonal(points: np.ndarray) -> float:
+    """Length of the diagonal of the axis-aligned bounding box of ``(N, 3)`` points (the size of a
+    cloud, in its units)."""
+    points = np.asarray(points, dtype=np.float64)
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
 
 def rotation_angle(rotation: np.ndarray) -> float:

@@ -24,16 +24,16 @@ from __future__ import annotations
 
 import logging
 import os
-import stat
 from pathlib import Path
 from types import MappingProxyType
 
 import numpy as np
 
 from ..errors import EsmicpError, InvalidInputError, PointCloudFileError
-from ..types import as_points
+from ..types import as_generator, as_points
 from . import npy, off, pcd, ply, text
 from ._messages import one_line
+from ._files import as_path, check_input_file
 from .atomic import atomic_write
 from .transform import read_transform, write_transform
 
@@ -51,7 +51,6 @@ __all__ = [
     "write_transform",
 ]
 
-_TEXT_EXTENSIONS = (".xyz", ".txt", ".csv", ".pts")
 _MESH_ONLY_EXTENSIONS = (".off", ".obj", ".stl")
 
 #: Extensions :func:`read_points` accepts.
@@ -64,13 +63,6 @@ SUPPORTED_EXTENSIONS = MappingProxyType({"read": READ_EXTENSIONS, "write": WRITE
 _PLY_FORMATS = ("ascii", "binary")
 
 
-def _as_path(path) -> Path:
-    try:
-        return Path(path)
-    except TypeError:
-        raise InvalidInputError(f"expected a file path, got {path!r}") from None
-
-
 def _strip_name(exc: Exception, name: str) -> str:
     return str(exc).removeprefix(f"{name}: ")
 
@@ -81,48 +73,12 @@ def _unsupported(path: Path, supported: tuple[str, ...], action: str) -> PointCl
     return PointCloudFileError(path, f"{what}; supported for {action}: {', '.join(supported)}")
 
 
-def _check_input_file(path: Path) -> None:
-    """Refuse a missing, non-regular, empty or unreadable input file, in plain words."""
-    try:
-        info = path.stat()
-    except FileNotFoundError:
-        raise PointCloudFileError(path, "no such file") from None
-    except NotADirectoryError:
-        raise PointCloudFileError(path, "no such file (a part of the path is not a folder)") from None
-    except PermissionError:
-        raise PointCloudFileError(path, "permission denied") from None
-    except OSError as exc:
-        raise PointCloudFileError(path, f"cannot access: {exc.strerror or exc}") from None
-    if stat.S_ISDIR(info.st_mode):
-        raise PointCloudFileError(path, "is a directory, not a file")
-    if not stat.S_ISREG(info.st_mode):
-        raise PointCloudFileError(path, "is not a regular file")
-    if info.st_size == 0:
-        raise PointCloudFileError(path, "file is empty")
-    try:
-        with open(path, "rb"):
-            pass
-    except PermissionError:
-        raise PointCloudFileError(path, "permission denied (the file is not readable)") from None
-    except OSError as exc:
-        raise PointCloudFileError(path, f"cannot open: {exc.strerror or exc}") from None
-
-
 def _sample_count(sample_points) -> int:
     if isinstance(sample_points, (bool, np.bool_)) or not isinstance(sample_points, (int, np.integer)):
         raise InvalidInputError(f"sample_points: expected a positive integer, got {sample_points!r}")
     if sample_points < 1:
         raise InvalidInputError(f"sample_points: expected a positive integer, got {sample_points}")
     return int(sample_points)
-
-
-def _generator(rng) -> np.random.Generator:
-    try:
-        return np.random.default_rng(rng)
-    except (TypeError, ValueError):
-        raise InvalidInputError(
-            f"rng: expected None, an integer seed or a numpy Generator, got {rng!r}"
-        ) from None
 
 
 def _read_raw(path: Path, reader) -> np.ndarray:
@@ -182,20 +138,20 @@ def read_points(path, *, sample_points: int | None = None, rng=None) -> np.ndarr
     InvalidInputError
         ``sample_points`` or ``rng`` is invalid.
     """
-    path = _as_path(path)
+    path = as_path(path)
     extension = path.suffix.lower()
     if extension not in READ_EXTENSIONS:
         raise _unsupported(path, READ_EXTENSIONS, "reading")
     if sample_points is not None:
         count = _sample_count(sample_points)
-        generator = _generator(rng)
+        generator = as_generator(rng)
         if extension not in off.MESH_EXTENSIONS:
             raise PointCloudFileError(
                 path,
                 f"sample_points needs a mesh file ({', '.join(off.MESH_EXTENSIONS)}), "
                 f"but {extension} holds a point cloud",
             )
-    _check_input_file(path)
+    check_input_file(path)
 
     if sample_points is not None:
         raw = _read_raw(path, lambda: off.read_mesh(path, sample_points=count, rng=generator))
@@ -224,7 +180,7 @@ def check_writable(path, *, kind: str = "points") -> None:
     PointCloudFileError
         The output cannot be written there.
     """
-    path = _as_path(path)
+    path = as_path(path)
     if kind not in ("points", "transform"):
         raise InvalidInputError(f"kind: expected 'points' or 'transform', got {kind!r}")
     if kind == "points" and path.suffix.lower() not in WRITE_EXTENSIONS:
@@ -271,7 +227,7 @@ def write_points(
     OutputExistsError
         ``path`` exists and ``overwrite`` is False.
     """
-    path = _as_path(path)
+    path = as_path(path)
     extension = path.suffix.lower()
     if extension not in WRITE_EXTENSIONS:
         raise _unsupported(path, WRITE_EXTENSIONS, "writing")

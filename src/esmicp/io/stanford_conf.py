@@ -16,6 +16,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import PointCloudFileError
+from ..types import as_generator
+from ._files import check_input_file
 from ._messages import excerpt
 
 _MESH_KEYWORDS = ("bmesh", "mesh")
@@ -54,9 +56,8 @@ def _check_inside(path: Path, line_number: int, file_name: str) -> None:
 
 def _entries(path: Path) -> list[tuple[str, str, np.ndarray]]:
     """``(name, file, T_world_scan)`` per scan line, in file order; name = the file's stem."""
-    from . import _check_input_file
 
-    _check_input_file(path)
+    check_input_file(path)
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
@@ -128,7 +129,7 @@ def load_scans(folder, *, max_points: int | None = None, rng=None) -> dict[str, 
     from . import read_points
 
     conf = _conf_path(Path(folder))
-    generator = np.random.default_rng(rng)
+    generator = as_generator(rng)
     scans = {}
     for name, file_name, pose in _entries(conf):  # file names checked to stay inside the folder
         points = read_points(conf.parent / file_name)

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import InvalidInputError, PointCloudFileError
 from ..types import as_transform
+from ._files import as_path
 from ._messages import excerpt
 from .atomic import atomic_write
 from .text import read_text_file
@@ -25,13 +26,6 @@ _SEPARATORS = str.maketrans({",": " ", ";": " ", "\t": " ", "[": " ", "]": " "})
 def _problem(exc: InvalidInputError, name: str) -> str:
     """The message of ``exc`` without its leading ``name: `` (PointCloudFileError adds the path)."""
     return str(exc).removeprefix(f"{name}: ")
-
-
-def _as_path(path) -> Path:
-    try:
-        return Path(path)
-    except TypeError:
-        raise InvalidInputError(f"expected a file path, got {path!r}") from None
 
 
 #: Largest transform file read: 16 numbers with comments fit in far less. A bigger "transform" is
@@ -80,7 +74,7 @@ def read_transform(path) -> np.ndarray:
         :data:`MAX_TRANSFORM_BYTES`, unreadable, does not hold exactly 16 numbers, or the matrix is
         not a rigid transform.
     """
-    path = _as_path(path)
+    path = as_path(path)
     _check_readable(path)
     try:
         text = read_text_file(path, max_bytes=MAX_TRANSFORM_BYTES)  # the cap again: it may grow
@@ -136,7 +130,7 @@ def write_transform(path, T, *, overwrite: bool = False) -> None:
     PointCloudFileError
         The file cannot be written.
     """
-    path = _as_path(path)
+    path = as_path(path)
     matrix = as_transform(T, name="T")
     text = "".join(" ".join(f"{value:.17g}" for value in row) + "\n" for row in matrix)
     with atomic_write(path, overwrite, mode="w") as handle:

@@ -1,13 +1,13 @@
 """Local registration methods: one module each, pure numpy, no I/O.
 
-Each method is a *step estimator*: given the source as currently placed and its nearest-neighbour
+Each method is an :class:`~esmicp.methods.base.Estimator`: given the source as currently placed and its nearest-neighbour
 correspondences, it returns the rigid increment that moves it toward the target. The shared loop
 in :mod:`esmicp.methods.local` iterates it.
 """
 
-from .base import Step, StepEstimator
+from .base import ConvergenceCriteria, Estimator, Step
 from .esm import EsmEstimator, SigmaSchedule
-from .esm_paper import EsmPaperEstimator, similarity_matrix
+from .esm_paper import PAPER_SIGMA, EsmPaperEstimator, similarity_matrix
 from .icp import IcpEstimator
 
 #: Names accepted by ``esmicp.register(method=...)``, with a one-line description each.
@@ -17,13 +17,31 @@ METHODS = {
     "icp": "classic point-to-point ICP (all weights 1)",
 }
 
+
+
+def make_estimator(
+    method: str, sigma: float | None, spacing: float, diagonal: float, *, start_fine: bool = False
+) -> Estimator:
+    """A fresh estimator for ``method`` (a key of :data:`METHODS`): ``sigma`` None lets ``esm``
+    choose it from the data (a floor of target point spacings, ``diagonal`` as a backstop) and
+    gives ``esm-paper`` the paper's 1.0; ``start_fine`` starts ``esm`` in its fine phase."""
+    if method == "icp":
+        return IcpEstimator()
+    if method == "esm-paper":
+        return EsmPaperEstimator(PAPER_SIGMA if sigma is None else sigma)
+    schedule = SigmaSchedule.auto(spacing, diagonal) if sigma is None else SigmaSchedule.constant(sigma)
+    return EsmEstimator(schedule, start_fine=start_fine)
+
+
 __all__ = [
     "METHODS",
+    "ConvergenceCriteria",
+    "Estimator",
     "EsmEstimator",
     "EsmPaperEstimator",
     "IcpEstimator",
     "SigmaSchedule",
     "Step",
-    "StepEstimator",
+    "make_estimator",
     "similarity_matrix",
 ]

@@ -22,9 +22,8 @@ weighs about 0.9 and pairs several spacings off (outliers, non-overlapping parts
 nothing. When many points are outliers the median stays large, so the schedule has a second,
 fine phase: once an increment rotates by less than ``FINE_PHASE_STEP`` radians and translates by
 less than ``FINE_PHASE_STEP`` times the target's diagonal, sigma drops to the floor and stays there
-until convergence. Measured on ModelNet chair halves (2,000 vs 2,000 points, 20 trials per cell): from
-60-degree offsets a factor of 1, 2 and 3 on the median recovered 13, 18 and 20 of 20; from
-90-degree offsets 4, 7 and 13 of 20 (ICP: 15). The floor makes the choice unit-free:
+until convergence. The factor 3 on the median is the best of those measured
+(``docs/measured-global.md``, "Why these choices"). The floor makes the choice unit-free:
 the same default serves a unit-size ModelNet object, the bunny in metres and a LiDAR scan.
 """
 
@@ -35,10 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core import moments
-from ..core.kernels import kernel_scale, relative_gaussian_weights
+from ..core.weights import kernel_scale, relative_gaussian_weights
 from ..core.procrustes import rotation_angle, weighted_procrustes
 from ..types import as_positive
-from .base import Step
+from .base import COMPILED, Estimator, Step
 
 #: The automatic sigma never falls below this many target point spacings.
 SIGMA_FLOOR_SPACINGS = 2.0
@@ -92,19 +91,30 @@ class SigmaSchedule:
         return max(self.floor, SIGMA_MEDIAN_FACTOR * float(np.median(distances)))
 
 
-class EsmEstimator:
+class EsmEstimator(Estimator):
     """ESM-ICP increment on nearest-neighbour pairs with Gaussian weights.
 
     Weights are computed relative to the closest pair (see
-    :func:`esmicp.core.kernels.relative_gaussian_weights`): the fit is exactly the one the
+    :func:`esmicp.core.weights.relative_gaussian_weights`): the fit is exactly the one the
     paper's weights give, but it never breaks down when all of them would underflow to zero.
     """
 
     name = "esm"
+    compiled_step = COMPILED
+    accelerable = True
 
     def __init__(self, sigma: SigmaSchedule, *, start_fine: bool = False):
         self.sigma = sigma
+        #: The phase of the automatic schedule: True once sigma has dropped to its floor.
         self.fine = start_fine
+
+    @property
+    def coarse(self) -> bool:
+        """True in the coarse phase of the automatic sigma (not with a fixed sigma)."""
+        return not self.fine and self.sigma.fixed is None
+
+    def end_coarse_phase(self) -> None:
+        self.fine = True
 
     @property
     def accelerated(self) -> bool:
@@ -126,19 +136,17 @@ class EsmEstimator:
         self._update_phase(rotation, translation)
         return Step(rotation, translation, weights=weights, sigma=sigma)
 
-    if moments.available():
-
-        def step_placed(self, source, transformation, target, distances, indices) -> Step:
-            """:meth:`step` from the unmoved source and its placement, in one compiled pass."""
-            sigma = self.sigma(distances, fine=self.fine)
-            rotation, translation, effective = moments.rigid_fit(
-                moments.pair_moments(source, transformation, target, indices, distances, sigma)
-            )
-            self._update_phase(rotation, translation)
-            return Step(rotation, translation, sigma=sigma, effective_pairs=effective)
+    def step_placed(self, source, transformation, target, distances, indices) -> Step:
+        """:meth:`step` from the unmoved source and its placement, in one compiled pass."""
+        sigma = self.sigma(distances, fine=self.fine)
+        rotation, translation, effective = moments.rigid_fit(
+            moments.pair_moments(source, transformation, target, indices, distances, sigma)
+        )
+        self._update_phase(rotation, translation)
+        return Step(rotation, translation, sigma=sigma, effective_pairs=effective)
 
     def _update_phase(self, rotation, translation) -> None:
-        if not self.fine and self.sigma.fixed is None:
+        if self.coarse:
             self.fine = (
                 rotation_angle(rotation) < FINE_PHASE_STEP
                 and np.linalg.norm(translation) < FINE_PHASE_STEP * self.sigma.diameter

@@ -33,10 +33,10 @@ import numpy as np
 import scipy.sparse
 
 from ..core import moments
-from ..core.kernels import gaussian_weights
+from ..core.weights import gaussian_weights
 from ..core.procrustes import rotation_from_cross_covariance
 from ..types import as_positive
-from .base import Step
+from .base import COMPILED, Estimator, Step
 
 #: The paper's sigma (in the clouds' units; its experiments use unit-size objects).
 PAPER_SIGMA = 1.0
@@ -102,12 +102,13 @@ def paper_cross_covariance(
     return cross_covariance, source_centroid, target_centroid
 
 
-class EsmPaperEstimator:
+class EsmPaperEstimator(Estimator):
     """Increment of the paper's formulation (see the module docstring for its requirement)."""
 
     name = "esm-paper"
     #: Source point i meets target point i in M: the loop must keep the source's order.
     order_invariant = False
+    compiled_step = COMPILED
 
     def __init__(self, sigma: float = PAPER_SIGMA):
         self.sigma = as_positive(sigma, "sigma")
@@ -120,11 +121,9 @@ class EsmPaperEstimator:
         rotation = rotation_from_cross_covariance(cross_covariance)
         return Step(rotation, target_centroid - rotation @ source_centroid, weights=weights, sigma=self.sigma)
 
-    if moments.available():
-
-        def step_placed(self, source, transformation, target, distances, indices) -> Step:
-            """:meth:`step` from the unmoved source and its placement, in two compiled passes."""
-            rotation, translation, effective = moments.rigid_fit(
-                moments.paper_moments(source, transformation, target, indices, distances, self.sigma)
-            )
-            return Step(rotation, translation, sigma=self.sigma, effective_pairs=effective)
+    def step_placed(self, source, transformation, target, distances, indices) -> Step:
+        """:meth:`step` from the unmoved source and its placement, in two compiled passes."""
+        rotation, translation, effective = moments.rigid_fit(
+            moments.paper_moments(source, transformation, target, indices, distances, self.sigma)
+        )
+        return Step(rotation, translation, sigma=self.sigma, effective_pairs=effective)

@@ -6,23 +6,22 @@ import numpy as np
 
 from ..core import moments
 from ..core.procrustes import weighted_procrustes
-from .base import Step
+from .base import COMPILED, Estimator, Step
 
 
-class IcpEstimator:
+class IcpEstimator(Estimator):
     """Point-to-point ICP increment: unweighted Procrustes on nearest-neighbour pairs."""
 
     name = "icp"
+    compiled_step = COMPILED
 
     def step(self, moved_source, target, distances, indices) -> Step:
         rotation, translation = weighted_procrustes(moved_source, target[indices], np.ones(len(indices)))
         return Step(rotation, translation)
 
-    if moments.available():
-
-        def step_placed(self, source, transformation, target, distances, indices) -> Step:
-            """:meth:`step` from the unmoved source and its placement, in one compiled pass."""
-            rotation, translation, effective = moments.rigid_fit(
-                moments.pair_moments(source, transformation, target, indices, distances, None)
-            )
-            return Step(rotation, translation, effective_pairs=effective)
+    def step_placed(self, source, transformation, target, distances, indices) -> Step:
+        """:meth:`step` from the unmoved source and its placement, in one compiled pass."""
+        rotation, translation, effective = moments.rigid_fit(
+            moments.pair_moments(source, transformation, target, indices, distances, None)
+        )
+        return Step(rotation, translation, effective_pairs=effective)

@@ -1,9 +1,9 @@
 """The iteration loop shared by every local method.
 
 Each iteration: nearest neighbours of the source as currently placed, one increment from the
-method's :class:`~esmicp.methods.base.StepEstimator`, composed on the left
-(``T = T_delta @ T``). It stops when the increment becomes negligible, or when the RMS
-correspondence distance stops changing, both relative to ``tolerance``.
+method's :class:`~esmicp.methods.base.Estimator`, composed on the left (``T = T_delta @ T``),
+until the :class:`~esmicp.methods.base.ConvergenceCriteria` are met. The loop reads the
+estimator's declared capabilities (compiled step, point order, coarse phase, acceleration).
 
 Speed: nearest neighbours come from :meth:`~esmicp.core.correspondence.NearestNeighbors.query_near`
 (exact: a compiled KD-tree and, near the target, a voxel hash in front of it, both warm-started
@@ -21,13 +21,13 @@ from typing import Callable
 import numpy as np
 
 from ..core.correspondence import NearestNeighbors
-from ..core.kernels import effective_count
+from ..core.weights import effective_count
 from ..core.pose_kernels import compose, motion_between
 from ..core.procrustes import apply
 from ..interrupts import keeps_keyboard_interrupt
 from ..result import IterationRecord
 from .acceleration import AndersonAccelerator
-from .base import StepEstimator
+from .base import ConvergenceCriteria, Estimator, Step
 
 
 #: From this many source points on, :func:`refine` queries the source in the target's spatial
@@ -60,53 +60,61 @@ Callback = Callable[[IterationState], "bool | None"]
 
 
 @dataclass(frozen=True)
-class LocalOutcome:
+class RefinementOutcome:
+    """What :func:`refine` ends with (:func:`esmicp.register` turns it into a
+    :class:`~esmicp.result.RegistrationResult`).
+
+    ``effective_pairs`` is Kish's effective number of pairs of the last step (None where it is not
+    known, or there were no pairs), ``pairs`` that step's number of pairs (0: no step).
+    """
+
     transformation: np.ndarray
     converged: bool
     num_iterations: int
     sigma: float | None
     message: str
     history: tuple[IterationRecord, ...] | None
+    effective_pairs: float | None = None
+    pairs: int = 0
 
 
 @keeps_keyboard_interrupt
 def refine(
     source: np.ndarray,
     target: NearestNeighbors,
-    estimator: StepEstimator,
+    estimator: Estimator,
     *,
     init: np.ndarray,
-    max_iterations: int,
-    tolerance: float,
+    criteria: ConvergenceCriteria,
     scale: float,
     callback: Callback | None = None,
     record_history: bool = False,
     coarse_points: int | None = None,
-) -> LocalOutcome:
-    """Iterate ``estimator`` from ``init`` (4x4 ``T_target_source``).
+) -> RefinementOutcome:
+    """Iterate ``estimator`` from ``init`` (4x4 ``T_target_source``) until ``criteria`` are met.
 
-    ``scale`` (cloud units, e.g. the target's bounding-box diagonal) makes the translation part of
-    the convergence test unit-free: the loop stops once an increment rotates by less than
-    ``tolerance`` radians and translates by less than ``tolerance * scale``, or once the RMS
-    correspondence distance changes by less than ``tolerance`` relative to itself.
+    ``target`` is the target's index (:class:`~esmicp.core.correspondence.NearestNeighbors`, or
+    anything with its ``points``, ``query_near`` and ``spatial_order``). ``scale`` (cloud units,
+    e.g. the target's bounding-box diagonal) makes the translation part of the convergence test
+    unit-free.
 
-    ``coarse_points`` (optional): while ``estimator.accelerated`` is False (the coarse phase of
-    ``esm``'s automatic sigma), iterate on at most this many evenly strided source points; the
-    full source is used from the fine phase on, and the run never ends during the coarse phase
-    (its convergence moves it to the full source). Ignored when a ``callback`` is given, so that
-    callbacks always see the whole source.
+    ``coarse_points`` (optional): while ``estimator.coarse`` (the coarse phase of ``esm``'s
+    automatic sigma), iterate on at most this many evenly strided source points; the run never
+    ends there: once the coarse iterations converge, the loop ends the estimator's coarse phase
+    (:meth:`~esmicp.methods.base.Estimator.end_coarse_phase`) and continues on the full source.
+    Ignored when a ``callback`` is given, so that callbacks always see the whole source.
     """
     full_source = source
     coarse = (
         coarse_points is not None
         and callback is None
         and len(source) > coarse_points
-        and getattr(estimator, "accelerated", True) is False
+        and estimator.coarse
     )
     query_order = None
-    if len(source) >= SPATIAL_ORDER_MIN and hasattr(target, "spatial_order"):
+    if len(source) >= SPATIAL_ORDER_MIN:
         order = target.spatial_order(apply(init, source))
-        if callback is None and getattr(estimator, "order_invariant", True):
+        if callback is None and estimator.order_invariant:
             # Visit the source points in spatial order (the result does not depend on the order).
             full_source = source[order]
         else:
@@ -116,17 +124,14 @@ def refine(
         source = full_source[np.linspace(0, len(full_source) - 1, coarse_points).astype(np.intp)]
     else:
         source = full_source
-    near = getattr(target, "query_near", None)
     # Without a callback or a history nothing needs the per-point arrays: the placed source is
     # never formed, the query and the step map the source themselves.
-    placed_step = getattr(estimator, "step_placed", None) if callback is None and not record_history else None
+    placed = estimator.compiled_step and callback is None and not record_history
 
     def query(points, transform, warm):
-        if near is None:
-            return target.query(apply(transform, points))
         if query_order is None:
-            return near(points, warm=warm, transform=transform)
-        found_distances, found_indices = near(
+            return target.query_near(points, warm=warm, transform=transform)
+        found_distances, found_indices = target.query_near(
             points[query_order], warm=None if warm is None else warm[query_order], transform=transform
         )
         distances, indices = np.empty_like(found_distances), np.empty_like(found_indices)
@@ -138,11 +143,17 @@ def refine(
     history: list[IterationRecord] | None = [] if record_history else None
     previous_rmse: float | None = None
     sigma: float | None = None
-    accelerator = AndersonAccelerator(scale) if getattr(estimator, "accelerated", None) is not None else None
+    accelerator = AndersonAccelerator(scale) if estimator.accelerable else None
     fallback: np.ndarray | None = None  # the plain step, while an accelerated proposal is on trial
     objective_before = 0.0
-    for iteration in range(1, max_iterations + 1):
-        if coarse and estimator.accelerated:
+    step: Step | None = None
+
+    def outcome(transformation, converged, iterations, message) -> RefinementOutcome:
+        effective, pairs = _last_pairs(step, len(source))
+        return RefinementOutcome(transformation, converged, iterations, sigma, message, _freeze(history), effective, pairs)
+
+    for iteration in range(1, criteria.max_iterations + 1):
+        if coarse and not estimator.coarse:
             coarse, source, indices, previous_rmse = False, full_source, None, None
         distances, indices = query(source, transformation, indices)
         objective = None  # the estimator's objective at this pose, once computed
@@ -154,17 +165,14 @@ def refine(
                 accelerator.reset()
                 distances, indices = query(source, transformation, indices)
             fallback = None
-        if placed_step is not None:
+        if placed:
             moved = None
-            step = placed_step(source, transformation, target.points, distances, indices)
+            step = estimator.step_placed(source, transformation, target.points, distances, indices)
         else:
             moved = apply(transformation, source)
             step = estimator.step(moved, target.points, distances, indices)
         if not (np.isfinite(step.rotation).all() and np.isfinite(step.translation).all()):
-            return LocalOutcome(
-                transformation, False, iteration - 1, sigma,
-                f"stopped at iteration {iteration}: the increment was not finite", _freeze(history),
-            )
+            return outcome(transformation, False, iteration - 1, f"stopped at iteration {iteration}: the increment was not finite")
         sigma = step.sigma
         plain = compose(step.rotation, step.translation, transformation)
         following = plain
@@ -186,25 +194,28 @@ def refine(
         if callback is not None:
             state = IterationState(iteration, transformation.copy(), moved, indices, distances, step.weights, sigma)
             if callback(state):
-                return LocalOutcome(
-                    transformation, False, iteration, sigma, "stopped by the callback", _freeze(history)
-                )
-        small_step = moved_angle < tolerance and moved_distance < tolerance * scale
-        settled = previous_rmse is not None and abs(previous_rmse - rmse) <= tolerance * previous_rmse
-        if coarse and (small_step or settled):
+                return outcome(transformation, False, iteration, "stopped by the callback")
+        reason = criteria.reason(moved_angle, moved_distance, scale, previous_rmse, rmse)
+        if coarse and reason is not None:
             # Converged on the subset: continue on the full source, at the fine sigma.
-            estimator.fine = True
-        elif small_step or settled:
-            reason = "increment below tolerance" if small_step else "RMS distance stopped changing"
-            return LocalOutcome(
-                transformation, True, iteration, sigma, f"converged after {iteration} iterations ({reason})",
-                _freeze(history),
-            )
+            estimator.end_coarse_phase()
+        elif reason is not None:
+            return outcome(transformation, True, iteration, f"converged after {iteration} iterations ({reason})")
         previous_rmse = rmse
-    return LocalOutcome(
-        transformation, False, max_iterations, sigma,
-        f"reached max_iterations={max_iterations} before the tolerance {tolerance:g}", _freeze(history),
+    return outcome(
+        transformation, False, criteria.max_iterations,
+        f"reached max_iterations={criteria.max_iterations} before the tolerance {criteria.tolerance:g}",
     )
+
+
+def _last_pairs(step: Step | None, count: int) -> tuple[float | None, int]:
+    """Kish's effective number of pairs of the last step (None where it has no weights and no
+    count) and its number of pairs."""
+    if step is None:
+        return None, 0
+    if step.weights is not None:
+        return (effective_count(step.weights) if count else None), count
+    return step.effective_pairs, count
 
 
 def _record(iteration, transformation, rmse, weights, sigma, count) -> IterationRecord:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import importlib
 
-from ..baselines import MissingDependencyError
+from ..errors import MissingDependencyError
 
 #: What to tell a user whose plotting library is missing.
 VIZ_INSTALL_HINT = "pip install 'esmicp[viz]' (matplotlib and plotly)"

@@ -11,9 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..core.procrustes import apply, to_matrix
+from ..core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
 from ..errors import InvalidInputError
-from ..protocols import bounding_box_diagonal, rigid_inverse
 from ..shapes import asymmetric_shape
 from ..types import as_count, as_points, as_real
 

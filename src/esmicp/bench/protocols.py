@@ -30,8 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .core.procrustes import apply, to_matrix
-from .metrics import random_rotation
+from ..core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
+from ..metrics import random_rotation
 
 #: Names of the single-object protocols :func:`make_trials` builds.
 PROTOCOLS = ("copy", "shuffled", "resampled", "outliers-30", "outliers-60")
@@ -107,18 +107,6 @@ def _trial(protocol, cloud, source, target, truth, seed, clean=None) -> Trial:
         diagonal=bounding_box_diagonal(target),
         clean=clean,
     )
-
-
-def bounding_box_diagonal(points: np.ndarray) -> float:
-    """Length of the diagonal of the axis-aligned bounding box of ``(N, 3)`` points."""
-    points = np.asarray(points, dtype=np.float64)
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-
-
-def rigid_inverse(transform: np.ndarray) -> np.ndarray:
-    """Inverse of a 4x4 rigid transform: ``[R^T | -R^T t]``."""
-    rotation = transform[:3, :3]
-    return to_matrix(rotation.T, -rotation.T @ transform[:3, 3])
 
 
 def random_rigid_transform(

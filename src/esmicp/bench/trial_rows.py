@@ -7,7 +7,7 @@ uniform on SO(3) would put most trials near 180 degrees) and rotate the source a
 centroid with a small shift, so that local methods started from the identity are tested on the
 rotation they must undo.
 
-``python -m esmicp.viz.trial_rows OUT_DIR [--rows-out rows.jsonl]`` writes the plots in OUT_DIR
+``python -m esmicp.bench.trial_rows OUT_DIR [--rows-out rows.jsonl]`` writes the plots in OUT_DIR
 (and the rows, when asked).
 """
 
@@ -26,8 +26,8 @@ import numpy as np
 from ..api import register
 from ..errors import EsmicpError, EsmicpWarning
 from ..metrics import paper_errors, rotation_error_deg, strict_success, translation_error, up_to_symmetry_success
-from ..core.procrustes import apply, to_matrix
-from ..protocols import Trial, bounding_box_diagonal, rigid_inverse
+from ..core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
+from .protocols import Trial
 from ..shapes import asymmetric_shape
 
 #: Methods, protocols and sigmas (fractions of the target's diagonal) of :func:`local_trial_rows`.
@@ -36,7 +36,7 @@ DEFAULT_PROTOCOLS = ("copy", "resampled")
 DEFAULT_SIGMA_FRACTIONS = (0.01, 0.03, 0.1, 0.3, 1.0)
 
 
-#: Protocols :func:`angle_trial` builds (their meaning as in :mod:`esmicp.protocols`).
+#: Protocols :func:`angle_trial` builds (their meaning as in :mod:`esmicp.bench.protocols`).
 ANGLE_PROTOCOLS = ("copy", "shuffled", "resampled")
 
 
@@ -74,7 +74,7 @@ def _about(axis, angle_deg: float) -> np.ndarray:
 
 
 def trial_row(trial, method: str, *, dataset: str, index: int, seed: int, sigma=None, max_iterations: int = 100) -> dict:
-    """One schema row: ``method`` run from the identity on ``trial`` (a :class:`~esmicp.protocols.Trial`).
+    """One schema row: ``method`` run from the identity on ``trial`` (a :class:`~esmicp.bench.protocols.Trial`).
 
     The library's warnings (e.g. ``esm-paper`` on clouds that are not index-aligned) go to the
     extra key ``warnings`` (a list of messages) instead of the console."""
@@ -153,10 +153,10 @@ def local_trial_rows(
 
 
 def main(argv=None) -> int:
-    from .bench_plots import write_bench_plots
+    from ..viz.bench_plots import write_bench_plots
     from ..io.atomic import atomic_write
 
-    parser = argparse.ArgumentParser(prog="python -m esmicp.viz.trial_rows", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m esmicp.bench.trial_rows", description=__doc__)
     parser.add_argument("out_dir", type=Path)
     parser.add_argument("--trials", type=int, default=12)
     parser.add_argument("--points", type=int, default=600)

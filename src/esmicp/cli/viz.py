@@ -12,12 +12,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .cli_args import nonnegative_int, positive_float, positive_int
-from .errors import InvalidInputError, OutputExistsError
-from .methods import METHODS
+from .args import nonnegative_int, positive_float, positive_int
+from ..errors import InvalidInputError, OutputExistsError
+from ..api import IDENTITY_NAMES
+from ..methods import METHODS
 
-#: Where the local iterations start (``--init``), besides a 4x4 text file.
-START_NAMES = ("identity",)
 
 
 def _nonnegative_angle(text: str) -> float:
@@ -103,8 +102,8 @@ def add_parser(commands) -> None:
 def _check_output(path: Path, force: bool, allowed: tuple[str, ...], what: str) -> None:
     """Refuse, before any work, an output with the wrong extension, in a missing folder, or that
     exists without --force."""
-    from .errors import PointCloudFileError
-    from .viz.files import check_extension
+    from ..errors import PointCloudFileError
+    from ..viz.files import check_extension
 
     check_extension(path, allowed, what)
     if path.is_dir():
@@ -117,7 +116,7 @@ def _check_output(path: Path, force: bool, allowed: tuple[str, ...], what: str) 
 
 def _require(*modules: str) -> None:
     """Fail before any work when a plotting library is missing (one line, with the install hint)."""
-    from .viz._deps import require
+    from ..viz._deps import require
 
     for module in modules:
         require(module)
@@ -125,12 +124,12 @@ def _require(*modules: str) -> None:
 
 def _inputs(args):
     """``(source, target, description, truth, init)`` from the positional clouds and options."""
-    from . import io
-    from .viz.inputs import builtin_pair, downsample, moved_copy
+    from .. import io
+    from ..viz.inputs import builtin_pair, downsample, moved_copy
 
     if len(args.clouds) > 2:
         raise InvalidInputError(f"CLOUD: give at most two files (SOURCE TARGET), got {len(args.clouds)}")
-    init = "identity" if args.init in START_NAMES else io.read_transform(Path(args.init))
+    init = "identity" if args.init in IDENTITY_NAMES else io.read_transform(Path(args.init))
     if not args.clouds:
         pair = builtin_pair(points=args.points, angle_deg=args.angle, seed=args.seed)
         return pair.source, pair.target, pair.description, pair.T_target_source, init
@@ -145,7 +144,7 @@ def _inputs(args):
 
 
 def _run_view(args) -> int:
-    from .viz.view import view_html, write_view
+    from ..viz.view import view_html, write_view
 
     _check_output(args.output, args.force, (".html", ".htm"), "viewer")
     _require("plotly.graph_objects", "plotly.subplots")
@@ -162,8 +161,8 @@ def _run_view(args) -> int:
 
 
 def _run_heatmap(args) -> int:
-    from .viz.files import IMAGE_EXTENSIONS, save_figure
-    from .viz.heatmap import heatmap
+    from ..viz.files import IMAGE_EXTENSIONS, save_figure
+    from ..viz.heatmap import heatmap
 
     _check_output(args.output, args.force, IMAGE_EXTENSIONS, "image")
     _require("matplotlib.figure", "matplotlib.backends.backend_agg")
@@ -182,8 +181,8 @@ def _run_heatmap(args) -> int:
 
 
 def _run_animate(args) -> int:
-    from .viz.animate import ANIMATION_EXTENSIONS, animation_figure, write_animation
-    from .viz.trace import trace_registration
+    from ..viz.animate import ANIMATION_EXTENSIONS, animation_figure, write_animation
+    from ..viz.trace import trace_registration
 
     _check_output(args.output, args.force, ANIMATION_EXTENSIONS, "animation")
     _require("matplotlib.figure", "matplotlib.backends.backend_agg", "matplotlib.animation")

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.correspondence import NearestNeighbors
-from ..core.procrustes import to_matrix
+from ..core.procrustes import batched_rotation_from_cross_covariance, to_matrix
 
 #: Constants of the super-Fibonacci spiral (Alexa, "Super-Fibonacci Spirals", CVPR 2022).
 _PHI = np.sqrt(2.0)
@@ -49,18 +49,6 @@ def quaternions_to_matrices(quaternions: np.ndarray) -> np.ndarray:
         ],
         axis=-2,
     )
-
-
-def batched_rotation_from_cross_covariance(cross_covariances: np.ndarray) -> np.ndarray:
-    """Kabsch rotations ``(K, 3, 3)`` maximising ``trace(R H_k)`` for each ``H_k`` (reflection-fixed)."""
-    u, _, vt = np.linalg.svd(cross_covariances)
-    v = np.swapaxes(vt, -1, -2)
-    ut = np.swapaxes(u, -1, -2)
-    sign = np.sign(np.linalg.det(v @ ut))
-    sign[sign == 0] = 1.0
-    v = v.copy()
-    v[:, :, 2] *= sign[:, None]
-    return v @ ut
 
 
 @dataclass(frozen=True)

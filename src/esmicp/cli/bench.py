@@ -10,11 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .cli_args import nonnegative_int, positive_int
-
-EXIT_OK = 0
-EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
+from .args import EXIT_INTERRUPTED, EXIT_OK, nonnegative_int, positive_int
 
 #: Flags that take part in the configuration, and the BenchConfig field each one sets.
 _CONFIG_FLAGS = {
@@ -63,7 +59,7 @@ def add_parser(commands) -> argparse.ArgumentParser:
     bench.add_argument("--paper", action="store_true",
                        help="the paper's experiments: protocols paper, paper-noise-30, paper-noise-60 at translation "
                        "ranges 1,100,1000 plus the paper's printed transforms, on modelnet40, with our methods and "
-                       "the geometric baselines, 40 iterations (other flags override)")
+                       "the geometric baselines and dcp-v1, 40 iterations (other flags override)")
     bench.add_argument("--protocols", type=_names, help="comma-separated (default: copy,shuffled,resampled,"
                        "outliers-30,outliers-60,partial,scan-pairs)")
     bench.add_argument("--datasets", type=_names, help="comma-separated: synthetic (default), modelnet40, bunny, "
@@ -103,22 +99,22 @@ def add_parser(commands) -> argparse.ArgumentParser:
 
 
 def _defaults(paper: bool) -> dict:
-    from .bench.config import HONEST_OBJECT_PROTOCOLS, SCAN_PROTOCOL
-    from .bench.datasets import default_data_dir
-    from .bench.paper import PAPER_ITERATIONS, PAPER_TRANSLATION_RANGES
+    from ..bench.config import HONEST_OBJECT_PROTOCOLS, SCAN_PROTOCOL
+    from ..bench.datasets import default_data_dir
+    from ..bench.paper import PAPER_ITERATIONS, PAPER_TRANSLATION_RANGES
 
     common = dict(points=(1024, 2048), seed=0, init="identity", init_perturbation_deg=30.0,
                   init_perturbation_fraction=0.1, sigma_sweep=(), data_dir=str(default_data_dir()))
     if paper:
         return dict(common, protocols=("paper", "paper-noise-30", "paper-noise-60"), datasets=("modelnet40",),
-                    methods=("geometric",), trials=12, max_iterations=PAPER_ITERATIONS,
+                    methods=("geometric", "dcp-v1"), trials=12, max_iterations=PAPER_ITERATIONS,
                     translation_ranges=PAPER_TRANSLATION_RANGES, paper_tables=True)
     return dict(common, protocols=(*HONEST_OBJECT_PROTOCOLS, SCAN_PROTOCOL), datasets=("synthetic",),
                 methods=("all",), trials=10, max_iterations=40, translation_ranges=(1000.0,), paper_tables=False)
 
 
 def _expand_methods(names) -> tuple[str, ...]:
-    from .bench.methods import OUR_METHODS, is_learned, method_names
+    from ..bench.methods import OUR_METHODS, is_learned, method_names
 
     expanded = []
     for name in names:
@@ -136,14 +132,14 @@ def _expand_methods(names) -> tuple[str, ...]:
 def build_config(args):
     """The :class:`~esmicp.bench.BenchConfig` of ``args``: with ``--resume``, the saved one with the
     flags given on top; otherwise the defaults (``--paper``'s or the honest ones) with the flags."""
-    from .bench import BenchConfig
-    from .bench.results import CONFIG, read_json
+    from ..bench import BenchConfig
+    from ..bench.results import CONFIG, read_json
 
     values = None
     if args.resume:
         values = read_json(args.out / CONFIG)
         if values is None:
-            from .errors import InvalidInputError
+            from ..errors import InvalidInputError
 
             raise InvalidInputError(f"{args.out / CONFIG}: not found, nothing to resume")
         values = {key: tuple(value) if isinstance(value, list) else value for key, value in values.items()}
@@ -160,12 +156,12 @@ def build_config(args):
 
 
 def run(args) -> int:
-    from .bench import Interrupted, RunOptions, run_bench, read_rows
-    from .bench.results import ROWS
+    from ..bench import Interrupted, RunOptions, run_bench, read_rows
+    from ..bench.results import ROWS
 
     if args.plots:
         # Before the run, not after it: a missing plotting library must not cost a whole run.
-        from .viz._deps import require
+        from ..viz._deps import require
 
         require("matplotlib")
     config = build_config(args)
@@ -182,7 +178,7 @@ def run(args) -> int:
     for path in outcome.files:
         print(f"table written to {path}")
     if args.plots:
-        from .viz.bench_plots import write_bench_plots
+        from ..viz.bench_plots import write_bench_plots
 
         # The plots are derived from every row on disk, so a resumed run redraws them.
         paths = write_bench_plots(read_rows(outcome.out_dir / ROWS), outcome.out_dir,

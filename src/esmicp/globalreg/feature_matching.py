@@ -4,10 +4,10 @@ Pipeline of :func:`feature_hypotheses` (all lengths scale with the ``voxel`` arg
 
 1. Voxel-downsample each cloud (the keypoints), and drop isolated keypoints, with their points:
    fewer occupied voxels within ``2 voxel`` than 0.3 x the cloud's 75th percentile
-   (:func:`~esmicp.init.features.dense_point_mask`). This removes scattered outliers, which
+   (:func:`~esmicp.globalreg.features.dense_point_mask`). This removes scattered outliers, which
    otherwise corrupt the normals and histograms of the clean points near them.
 2. PCA normals at the keypoints from the remaining dense points (at most 60 within ``4 voxel``),
-   oriented away from the centroid; FPFH within ``7 voxel`` (:mod:`esmicp.init.features`).
+   oriented away from the centroid; FPFH within ``7 voxel`` (:mod:`esmicp.globalreg.features`).
 3. Mutual nearest neighbours in feature space (:func:`match_features`).
 4. A robust estimator over the correspondences, ``method``:
 
@@ -32,12 +32,9 @@ Pipeline of :func:`feature_hypotheses` (all lengths scale with the ``voxel`` arg
    they produce (fraction of source keypoints within ``inlier_distance`` of a target keypoint),
    which tells the true pose from a wrong one better than the count of correspondences does.
 
-The default radii (normals 4, FPFH 7, filter 2 voxels) come from measurements on ModelNet objects
-(2,000 points a side, ``voxel = diagonal / 40``, 20 trials each): with Open3D's usual 2 and 5
-voxels and no filter, the best hypothesis is within 10 degrees for 1/20 (chair), 6/20 (airplane)
-and 5/20 (bunny) trials of the ESM-ICP paper's ``outliers-60`` protocol, against 19/20, 18/20 and
-20/20 with these defaults (all 20/20 on clean halves either way). On the Stanford bunny scan pairs
-both settings get 42 of 46 pairs.
+The default radii (normals 4, FPFH 7, filter 2 voxels) are wider than Open3D's usual 2 and 5
+voxels because they measured better on the outlier protocols (``docs/measured-global.md``, "Why
+these choices").
 
 Transforms are ``T_target_source``: ``target ~= source @ R.T + t``. Randomness comes only from
 the ``rng`` argument, so a seed gives identical hypotheses.
@@ -51,9 +48,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core.procrustes import to_matrix
+from ..core.procrustes import batched_rotation_from_cross_covariance, to_matrix
 from ..errors import InvalidInputError
-from ..types import as_count, as_points, as_positive, as_real
+from ..types import as_count, as_generator, as_points, as_positive, as_real
+from . import DISTINCT_ROTATION_DEG
 from .features import dense_point_mask, estimate_normals, fpfh, voxel_grid
 
 #: Below this many mutual matches, :func:`match_features` falls back to one-way matches.
@@ -62,9 +60,8 @@ MIN_MUTUAL_MATCHES = 30
 #: Relative tolerance of the edge-length consistency check on RANSAC samples.
 EDGE_TOLERANCE = 0.1
 
-#: Two hypotheses are distinct when their rotations differ by more than this (degrees) ...
-DISTINCT_ROTATION_DEG = 10.0
-#: ... or their translations by more than this many voxels.
+#: Two hypotheses are distinct when their rotations differ by more than
+#: :data:`esmicp.globalreg.DISTINCT_ROTATION_DEG`, or their translations by more than this many voxels.
 DISTINCT_TRANSLATION_VOXELS = 2.0
 
 #: Feature-space problems up to this many (source x target) pairs use brute force, not a KD-tree.
@@ -76,13 +73,14 @@ _SCORE_CHUNK = 2_000_000
 #: Size of the first RANSAC batch (later ones double, up to the ``batch`` argument).
 _FIRST_BATCH = 256
 
-METHODS = ("ransac", "clique")
+#: Ways of turning matched features into hypotheses (``method`` of :func:`feature_hypotheses`).
+MATCHING_METHODS = ("ransac", "clique")
 
 #: Neighbours (at most) of a normal's PCA.
 _NORMAL_NEIGHBOURS = 60
 
 #: Default radii, in voxels: normals (PCA), FPFH, and the isolated-point filter.
-NORMAL_RADIUS_VOXELS = 4.0
+FEATURE_NORMAL_RADIUS_VOXELS = 4.0
 FEATURE_RADIUS_VOXELS = 7.0
 FILTER_RADIUS_VOXELS = 2.0
 
@@ -234,13 +232,7 @@ def _kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None =
         cross -= total[:, None, None] * (
             (source_centroid - source_mean)[:, :, None] * (target_centroid - target_mean)[:, None, :]
         )
-    u, _, vt = np.linalg.svd(cross)
-    # R = V diag(1, 1, d) U^T with d = det(V U^T), the reflection fix.
-    v = np.swapaxes(vt, 1, 2)
-    d = np.sign(np.linalg.det(v @ np.swapaxes(u, 1, 2)))
-    d[d == 0] = 1.0
-    v[:, :, 2] *= d[:, None]
-    rotations = v @ np.swapaxes(u, 1, 2)
+    rotations = batched_rotation_from_cross_covariance(cross)
     translations = target_centroid - np.einsum("bij,bj->bi", rotations, source_centroid)
     return rotations, translations
 
@@ -501,21 +493,21 @@ def feature_hypotheses(
     target = as_points(target, "target")
     voxel = as_positive(voxel, "voxel")
     threshold = 1.5 * voxel if inlier_distance is None else as_positive(inlier_distance, "inlier_distance")
-    if method not in METHODS:
-        raise InvalidInputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+    if method not in MATCHING_METHODS:
+        raise InvalidInputError(f"method: expected one of {', '.join(MATCHING_METHODS)}, got {method!r}")
     if rng is None:
         raise InvalidInputError("rng: a numpy Generator or an integer seed is required (results must be reproducible)")
     confidence = as_real(confidence, "confidence")
     if not 0.0 < confidence < 1.0:
         raise InvalidInputError(f"confidence: must be in (0, 1), got {confidence!r}")
-    rng = np.random.default_rng(rng)
+    rng = as_generator(rng)
     max_hypotheses = as_count(max_hypotheses, "max_hypotheses", 1)
     max_trials = as_count(max_trials, "max_trials", 0)
     min_trials = as_count(min_trials, "min_trials", 0)
     batch = as_count(batch, "batch", 1)
 
     if normal_radius is None:
-        normal_radius = NORMAL_RADIUS_VOXELS * voxel
+        normal_radius = FEATURE_NORMAL_RADIUS_VOXELS * voxel
     normal_radius = as_positive(normal_radius, "normal_radius")
     if feature_radius is None:
         feature_radius = FEATURE_RADIUS_VOXELS * voxel

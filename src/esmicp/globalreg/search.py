@@ -3,16 +3,16 @@
 Candidate poses come from one or both strategies:
 
 ``rotation-search``
-    :func:`~esmicp.init.rotation_search.rotation_search`: ``SEARCH_ROTATIONS`` starting rotations
+    :func:`~esmicp.globalreg.rotation_search.rotation_search`: ``SEARCH_ROTATIONS`` starting rotations
     spread over SO(3), centroids aligned, all refined together by a short batched ESM on a few
     hundred points, through an O(1) nearest-neighbour lookup table.
 ``features``
     FPFH features matched between the clouds and pruned by geometric consistency
-    (:mod:`esmicp.init.feature_matching`); suited to partial overlap, where centroids differ.
+    (:mod:`esmicp.globalreg.feature_matching`); suited to partial overlap, where centroids differ.
 
 Every candidate is then *verified* the same way (successive halving, ``VERIFY_ROUNDS``): batched
 ESM at the data's resolution on a subsample, scored by the soft fraction of source points lying on
-the target (:func:`~esmicp.init.rotation_search.gaussian_overlap_score`). Poses that still score
+the target (:func:`~esmicp.globalreg.rotation_search.gaussian_overlap_score`). Poses that still score
 alike (runner-up within ``DECIDE_RATIO``) are *decided* on (up to) the full clouds: ESM at a
 finer sigma on up to ``DECIDE_POINTS`` points, scored both ways, source on target and target on
 source (the target's own points are clean, while up to 60% of a noisy source is not, and a
@@ -25,12 +25,9 @@ decide.
 its result is not confident (see :func:`global_estimate`), together with the *twins* of its best
 pose (turned by 180 degrees about each principal axis of the target): under heavy noise a
 near-symmetric object (a box-like night stand) otherwise ends on a twin of the truth that neither
-strategy proposes. Measured on the library's protocols (``docs/measured-global.md``): the rotation
-search alone and the features alone each miss cases the other catches (outliers-60: 88.5% each on
-26 trials, 92.3% together; bunny scan pairs at 3,000 points: 52% and 63% strict, 74% together), so
-the default uses both; the twins and the two-way decision took the night stand's outliers-60
-trials from 7 to 10 of 10 (130 trials: 89% to 90% up to symmetry, 96% to 100% strict on the objects
-without symmetry).
+strategy proposes. The rotation search alone and the features alone each miss cases the other
+catches, so the default uses both (the measurements: ``docs/measured-global.md``, "Why these
+choices").
 """
 
 from __future__ import annotations
@@ -41,7 +38,8 @@ import numpy as np
 
 from ..core.correspondence import NearestNeighbors
 from ..core.nearest_grid import NearestGrid
-from ..core.procrustes import rotation_angle, to_matrix
+from ..core.procrustes import bounding_box_diagonal, rotation_angle, to_matrix
+from . import DISTINCT_ROTATION_DEG
 from .rotation_search import batched_esm, gaussian_overlap_score, rotation_search
 
 #: Names accepted as ``init=`` strategies for global registration.
@@ -77,9 +75,6 @@ SCORE_WIDTH_SPACINGS = 2.0
 #: search alone was right in all 130, scoring 0.58-0.78 (5th percentile 0.63); on outliers-60,
 #: where it was wrong in 25 trials, its best score reached 0.62 only once.
 CONFIDENT_SCORE = 0.6
-
-#: Two poses are distinct when their rotations differ by more than this (degrees).
-DISTINCT_ROTATION_DEG = 10.0
 
 #: A distinct runner-up scoring at least this fraction of the best score makes the result ambiguous.
 AMBIGUITY_RATIO = 0.97
@@ -192,7 +187,7 @@ def global_estimate(
     else:
         index = NearestNeighbors(_subsample(target, TARGET_POINTS, rng))
     spacing = target_spacing if target_spacing is not None and index is full_index else index.spacing()
-    width = SCORE_WIDTH_SPACINGS * spacing if spacing > 0 else 1e-6 * _diagonal(target)
+    width = SCORE_WIDTH_SPACINGS * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target)
     work = _Workspace(source, target, rng, full_index, index, spacing, width)
 
     candidates: list[np.ndarray] = []
@@ -232,7 +227,7 @@ def global_estimate(
 
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
     target = work.index.points
-    diagonal = _diagonal(target)
+    diagonal = bounding_box_diagonal(target)
     grid = NearestGrid(target, SEARCH_GRID_CELL * diagonal, margin=SEARCH_GRID_MARGIN * diagonal)
     found = rotation_search(
         _subsample(work.source, SEARCH_POINTS, work.rng), grid,
@@ -321,8 +316,6 @@ def _contenders(transformations: np.ndarray, scores: np.ndarray) -> list[int]:
     return distinct[: min(close + 1, MAX_CONTENDERS + 1)]
 
 
-def _diagonal(points: np.ndarray) -> float:
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
 
 #: Twins of the rotation search's best pose join the candidates when ``"auto"`` is not confident:
@@ -353,4 +346,4 @@ FEATURE_VOXEL_FRACTION = 1.0 / 40.0
 
 
 def _feature_voxel(target: np.ndarray) -> float:
-    return FEATURE_VOXEL_FRACTION * _diagonal(target)
+    return FEATURE_VOXEL_FRACTION * bounding_box_diagonal(target)

@@ -1,0 +1,65 @@
+"""The ``esmicp`` command line: a thin layer that parses arguments, reads files, calls the library
+and prints. Bad input ends in one line on stderr and exit status 2; nothing is written then.
+
+One module per command family: :mod:`.register`, :mod:`.demo`, :mod:`.bench` (``esmicp bench``),
+:mod:`.viz` (``view``, ``heatmap``, ``animate``); :mod:`.args` holds the shared argument types,
+the exit codes and the parser class.
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+
+from .. import __version__
+from ..errors import EsmicpError, EsmicpWarning
+from . import bench, demo, merge, register, viz
+from .args import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, Parser
+
+__all__ = ["EXIT_BAD_INPUT", "EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "build_parser", "main"]
+
+
+def build_parser() -> Parser:
+    parser = Parser(
+        prog="esmicp",
+        description="Rigid registration of 3D point clouds with ESM-ICP. Transforms are "
+        "T_target_source: 4x4 matrices that map source coordinates into the target frame.",
+    )
+    parser.add_argument("--version", action="version", version=f"esmicp {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    commands.required = True
+    register.add_parser(commands)
+    demo.add_parser(commands)
+    bench.add_parser(commands)
+    viz.add_parser(commands)  # view, heatmap, animate
+    merge.add_parser(commands)  # merge
+    return parser
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``esmicp`` console script; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", EsmicpWarning)
+        warnings.showwarning = _show_warning
+        try:
+            return args.handler(args)
+        except EsmicpError as exc:
+            print(f"esmicp {args.command}: error: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        except KeyboardInterrupt:
+            print(f"esmicp {args.command}: interrupted; no partial output was written", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        except MemoryError:
+            print(f"esmicp {args.command}: error: out of memory (the clouds are too large for this "
+                  "machine; downsample them or use a smaller --sample-points)", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        except OSError as exc:  # a full disk, a folder that vanished: no traceback, one line
+            where = f"{exc.filename}: " if exc.filename else ""
+            print(f"esmicp {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"esmicp: warning: {message}", file=sys.stderr)
+

@@ -1,1 +1,0 @@
-"""Global initialisation: coarse poses from local shape features (no initial guess needed)."""
