@@ -43,7 +43,7 @@ NEEDS = {
     "kiss-matcher": ("kiss_matcher",),
     "fgr": ("open3d",),
     "go-icp": ("py_goicp",),
-    "dcp": (),
+    "dcp-v1": ("torch",),
     "rpm-net": (),
     "deepgmr": (),
     "small-gicp": ("small_gicp",),
@@ -66,7 +66,7 @@ HINTS = {
     "small_gicp": "esmicp[baselines]",
 }
 LOCAL = sorted(name for name, kind in BASELINE_KINDS.items() if kind == "local")
-LEARNED_UNAVAILABLE = ("dcp", "rpm-net", "deepgmr")
+LEARNED_UNAVAILABLE = ("rpm-net", "deepgmr")
 #: Global methods without a refinement: their pose is coarser.
 COARSE = ("open3d-ransac-fpfh", "kiss-matcher", "fgr", "go-icp")
 WEIGHTS = "pointnetlk/best_model.t7"

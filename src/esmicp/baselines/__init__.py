@@ -29,6 +29,7 @@ def _registry() -> tuple[dict[str, Baseline], dict[str, str]]:
 
     from . import (
         cpd,
+        dcp,
         go_icp,
         icp_nl,
         kiss_matcher,
@@ -54,7 +55,7 @@ def _registry() -> tuple[dict[str, Baseline], dict[str, str]]:
         kiss_matcher.NAME_ALONE: (refined(kiss_matcher.register, "none"), "global"),
         open3d_fgr.NAME: (open3d_fgr.register, "global"),
         go_icp.NAME: (go_icp.register, "global"),
-        learned.DCP: (learned.dcp, "global"),
+        dcp.NAME: (dcp.register, "global"),
         learned.RPM_NET: (learned.rpm_net, "global"),
         learned.DEEPGMR: (learned.deepgmr, "global"),
         # Local: start from init, at most max_iterations iterations.

@@ -59,7 +59,7 @@ def add_parser(commands) -> argparse.ArgumentParser:
     bench.add_argument("--paper", action="store_true",
                        help="the paper's experiments: protocols paper, paper-noise-30, paper-noise-60 at translation "
                        "ranges 1,100,1000 plus the paper's printed transforms, on modelnet40, with our methods and "
-                       "the geometric baselines, 40 iterations (other flags override)")
+                       "the geometric baselines and dcp-v1, 40 iterations (other flags override)")
     bench.add_argument("--protocols", type=_names, help="comma-separated (default: copy,shuffled,resampled,"
                        "outliers-30,outliers-60,partial,scan-pairs)")
     bench.add_argument("--datasets", type=_names, help="comma-separated: synthetic (default), modelnet40, bunny, "
@@ -107,7 +107,7 @@ def _defaults(paper: bool) -> dict:
                   init_perturbation_fraction=0.1, sigma_sweep=(), data_dir=str(default_data_dir()))
     if paper:
         return dict(common, protocols=("paper", "paper-noise-30", "paper-noise-60"), datasets=("modelnet40",),
-                    methods=("geometric",), trials=12, max_iterations=PAPER_ITERATIONS,
+                    methods=("geometric", "dcp-v1"), trials=12, max_iterations=PAPER_ITERATIONS,
                     translation_ranges=PAPER_TRANSLATION_RANGES, paper_tables=True)
     return dict(common, protocols=(*HONEST_OBJECT_PROTOCOLS, SCAN_PROTOCOL), datasets=("synthetic",),
                 methods=("all",), trials=10, max_iterations=40, translation_ranges=(1000.0,), paper_tables=False)

@@ -438,6 +438,28 @@ class _Blocks:
         return memoryview(self.buffer)[position - self.start:end - self.start]
 
 
+def _step_rows(path, blocks: _Blocks, position, count, remaining, before, length_size, value_size, after,
+               order, signed):
+    """Walk up to ``count`` rows of one list each, in the bytes already read (a tight loop)."""
+    buffer, base = blocks.buffer, blocks.start
+    end = base + len(buffer)
+    fixed = before + length_size + after
+    byte_lengths = length_size == 1 and not signed
+    for _ in range(count):
+        at = position + before
+        if at + length_size > end:
+            break  # the caller reads the next block
+        if byte_lengths:
+            length = buffer[at - base]
+        else:
+            length = int.from_bytes(buffer[at - base:at - base + length_size], order, signed=signed)
+            if length < 0:
+                raise PointCloudFileError(path, f"malformed PLY data: a negative list length ({length})")
+        position += fixed + length * value_size
+        remaining -= 1
+    return position, remaining
+
+
 def _skip_rows(path, blocks: _Blocks, position: int, element: _Element, byte_order: str) -> int:
     """Walk past the rows of an element with list properties; return the position after them."""
     steps = []  # per property: (fixed size, None) or (length size, (length dtype, value size))
@@ -470,13 +492,10 @@ def _skip_rows(path, blocks: _Blocks, position: int, element: _Element, byte_ord
             equal = run if same.all() else int(np.argmin(same))
             position += equal * row
             remaining -= equal
-            if equal < 8:  # lengths change often here: a few rows one by one, without NumPy
-                for _ in range(min(remaining, 256)):
-                    length = int.from_bytes(blocks.need(position, before + length_size)[before:], order, signed=signed)
-                    if length < 0:
-                        raise PointCloudFileError(path, f"malformed PLY data: a negative list length ({length})")
-                    position += before + length_size + length * value_size + after
-                    remaining -= 1
+            if equal < 8 and remaining:  # lengths change often here: rows one by one, without NumPy
+                blocks.need(position, before + length_size)
+                position, remaining = _step_rows(path, blocks, position, min(remaining, 4096), remaining,
+                                                 before, length_size, value_size, after, order, signed)
         return position
     for _ in range(remaining):  # several lists per row: one step per property (rare)
         for size, kind in steps:
