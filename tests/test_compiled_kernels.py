@@ -84,3 +84,62 @@ def test_fork_after_register_works(executor):
             results = list(pool.map(_register_small, [1, 2], timeout=120))
     for transform in results:
         np.testing.assert_allclose(transform[:3, 3], [-0.01, -0.01, -0.01], atol=1e-6)
+
+
+def _bunny_like(count, seed):
+    """A smooth closed surface (an ellipsoid with bumps), so that the registration has work to do."""
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(count, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    radius = 1.0 + 0.2 * np.sin(3 * directions[:, 0]) * np.cos(2 * directions[:, 1])
+    return directions * radius[:, None] * [1.0, 0.7, 0.5]
+
+
+@pytest.mark.parametrize("init", ["identity", None])
+def test_register_is_the_same_on_one_and_two_threads(init):
+    """``workers=`` reaches every kernel call (global search and refinement), and the kernels sum
+    in pieces of fixed size: one thread and two give the same pose, to the last bit."""
+    target = _bunny_like(30000, 1)
+    angle = 0.15
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    source = _bunny_like(25000, 2) @ rotation.T + [0.05, 0.0, -0.02]
+    one = esmicp.register(source, target, init=init, workers=1)
+    two = esmicp.register(source, target, init=init, workers=2)
+    assert one.num_iterations == two.num_iterations > 1
+    np.testing.assert_allclose(two.transformation, one.transformation, rtol=0, atol=1e-12)
+    assert one.fitness == two.fitness
+
+
+def test_workers_reach_the_kernels(monkeypatch):
+    """Every compiled call of a registration gets the thread count given to ``register``."""
+    from esmicp import _kernels
+
+    seen = []
+    for name in ("tree_query", "hash_query", "pair_moments"):
+        original = getattr(_kernels, name)
+
+        def spy(*args, _original=original):
+            seen.append(args[-1])
+            return _original(*args)
+
+        monkeypatch.setattr(_kernels, name, spy)
+    target = _bunny_like(5000, 3)
+    esmicp.register(target[::2] + 0.01, target, workers=1)
+    assert seen and set(seen) == {1}
+    seen.clear()
+    esmicp.register(target[::2] + 0.01, target, init="identity")
+    assert set(seen) == {0}  # 0: every core, as the kernels read it
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, "2", True])
+def test_a_bad_workers_value_is_a_clear_error(bad):
+    target = _bunny_like(500, 4)
+    with pytest.raises(ValueError, match=r"^workers: expected a whole number of threads >= 1, or None"):
+        esmicp.register(target, target, workers=bad)
+
+
+def test_register_many_runs_one_thread_per_process():
+    from esmicp.batch import per_process_kwargs
+
+    assert per_process_kwargs({"init": "identity"}) == {"init": "identity", "workers": 1}
+    assert per_process_kwargs({"workers": 2}) == {"workers": 2}

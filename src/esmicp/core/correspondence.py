@@ -16,14 +16,6 @@ from scipy.spatial import cKDTree
 from . import compiled_tree, voxel_hash
 
 
-#: Queries of fewer points than this run on one thread: below it, starting threads costs more
-#: than it saves (measured here: 500 points 0.21 ms on one thread, 0.39 ms on all; parity at ~2k).
-PARALLEL_QUERY_MIN = 4096
-
-#: Threads that ``workers=-1`` stands for (-1: every core). :func:`esmicp.register_many`'s worker
-#: processes set it to 1, the pool itself using the cores.
-DEFAULT_WORKERS = -1
-
 #: Cell edge of the voxel hash of :meth:`NearestNeighbors.query_near`, in target point spacings.
 #: Queries whose nearest target point is within one cell are answered by the hash. Measured on the
 #: bunny resampled to 100k points (CPU time of 100k queries, 0-10 degrees from the solution): 2, 3
@@ -40,17 +32,18 @@ HASH_MISS_LIMIT = 0.5
 
 
 class NearestNeighbors:
-    """KD-tree over a target cloud; queries run on all cores.
+    """KD-tree over a target cloud; queries run on ``workers`` threads.
 
     Parameters
     ----------
     target : (M, 3) float64 array
         The cloud to search in (target frame). Kept by reference: do not mutate it afterwards.
-    workers : int
-        Threads for queries; -1 uses every core.
+    workers : int or None
+        Threads of every compiled call made through this index (queries, and the steps of the
+        local loop that uses it); None uses every core.
     """
 
-    def __init__(self, target: np.ndarray, *, workers: int = -1):
+    def __init__(self, target: np.ndarray, *, workers: int | None = None):
         self.points = target
         self.workers = workers
         self._scipy_tree: cKDTree | None = None
@@ -61,16 +54,16 @@ class NearestNeighbors:
 
     @property
     def _tree(self) -> cKDTree:
-        """scipy's KD-tree (k nearest neighbours, and every query where numba is missing)."""
+        """scipy's KD-tree (k nearest neighbours, for :meth:`spacing`)."""
         if self._scipy_tree is None:
             # A sliding-midpoint tree without node compaction builds about twice as fast as scipy's
             # default for point clouds and queries as fast (measured on the bunny and the LiDAR pair).
             self._scipy_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
         return self._scipy_tree
 
-    def exact_tree(self) -> "compiled_tree.CompiledTree | None":
+    def exact_tree(self) -> "compiled_tree.CompiledTree":
         """The compiled KD-tree of the target (built on first use)."""
-        if self._compiled is None and compiled_tree.available():
+        if self._compiled is None:
             self._compiled = compiled_tree.CompiledTree(self.points)
         return self._compiled
 
@@ -82,15 +75,7 @@ class NearestNeighbors:
 
         ``distances`` are Euclidean, in the clouds' units; ``indices`` index ``self.points``.
         """
-        tree = self.exact_tree()
-        if tree is not None:
-            return tree.query(points, workers=self.workers)
-        workers = self._workers() if len(points) >= PARALLEL_QUERY_MIN else 1
-        distances, indices = self._tree.query(points, k=1, workers=workers)
-        return distances, indices
-
-    def _workers(self) -> int:
-        return DEFAULT_WORKERS if self.workers == -1 else self.workers
+        return self.exact_tree().query(points, workers=self.workers)
 
     def query_near(
         self, points: np.ndarray, warm: np.ndarray | None = None, transform: np.ndarray | None = None
@@ -104,8 +89,6 @@ class NearestNeighbors:
         points whose neighbour is within a few spacings, the compiled tree the rest.
         """
         tree = self.exact_tree()
-        if tree is None:  # no numba: scipy's tree for everything
-            return self.query(points if transform is None else points @ transform[:3, :3].T + transform[:3, 3])
         near = self._near_index() if len(points) >= NEAR_QUERY_MIN else None
         if near is None:
             return tree.query(points, transform=transform, warm=warm, workers=self.workers)
@@ -130,7 +113,7 @@ class NearestNeighbors:
         return np.argsort(ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2]), kind="stable")
 
     def _near_index(self) -> "voxel_hash.VoxelHash | None":
-        if self._near is None and voxel_hash.available():
+        if self._near is None:
             spacing = self.spacing() if self._spacing is None else self._spacing
             diagonal = float(np.linalg.norm(np.ptp(self.points, axis=0)))
             cell = max(NEAR_CELL_SPACINGS * spacing, 1e-6 * diagonal)

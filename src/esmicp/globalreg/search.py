@@ -168,24 +168,26 @@ def global_estimate(
     rng: np.random.Generator,
     target_index: NearestNeighbors | None = None,
     target_spacing: float | None = None,
+    workers: int | None = None,
 ) -> GlobalEstimate:
     """Find ``T_target_source`` from any initial pose (see the module docstring).
 
     ``source`` and ``target`` are validated ``(N, 3)`` / ``(M, 3)`` float64 arrays; ``rng`` drives
     every random subsample, so a seeded generator makes the result reproducible. ``target_index``
     (a :class:`NearestNeighbors` over ``target``) is reused when given, and so is
-    ``target_spacing`` (its :meth:`~NearestNeighbors.spacing`, cloud units).
+    ``target_spacing`` (its :meth:`~NearestNeighbors.spacing`, cloud units). ``workers``: threads
+    of the compiled kernels (None: every core; a given ``target_index`` keeps its own).
 
     ``"auto"`` runs the rotation search first; when its verified best pose already puts at least
     ``CONFIDENT_SCORE`` of the source on the target and no distinct pose comes close, that is
     final (clouds that overlap fully, as most objects do). Otherwise the feature candidates and
     the twins of that pose (:func:`_twins`) join, and everything is verified together.
     """
-    full_index = target_index if target_index is not None else NearestNeighbors(target)
+    full_index = target_index if target_index is not None else NearestNeighbors(target, workers=workers)
     if len(target) <= TARGET_POINTS:
         index = full_index
     else:
-        index = NearestNeighbors(_subsample(target, TARGET_POINTS, rng))
+        index = NearestNeighbors(_subsample(target, TARGET_POINTS, rng), workers=full_index.workers)
     spacing = target_spacing if target_spacing is not None and index is full_index else index.spacing()
     width = SCORE_WIDTH_SPACINGS * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target)
     work = _Workspace(source, target, rng, full_index, index, spacing, width)
@@ -218,7 +220,8 @@ def global_estimate(
         # Only the feature strategy can come back empty (too few feature matches): fall back to
         # the rotation search rather than fail.
         return global_estimate(
-            source, target, strategy="rotation-search", rng=rng, target_index=full_index, target_spacing=target_spacing
+            source, target, strategy="rotation-search", rng=rng, target_index=full_index,
+            target_spacing=target_spacing, workers=full_index.workers,
         )
     estimate = _decide(work, _verify(work, candidates, origins, carried=carried))
     # Count each candidate pose once (the carried rotation-search contenders are not new ones).
@@ -239,7 +242,9 @@ def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
 def _feature_candidates(work: _Workspace) -> list[np.ndarray]:
     from .feature_matching import feature_hypotheses
 
-    hypotheses = feature_hypotheses(work.source, work.target, voxel=_feature_voxel(work.target), rng=work.rng)
+    hypotheses = feature_hypotheses(
+        work.source, work.target, voxel=_feature_voxel(work.target), rng=work.rng, workers=work.full_index.workers
+    )
     return [hypothesis.transformation for hypothesis in hypotheses]
 
 
@@ -297,7 +302,7 @@ def _decide(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     # Coverage the other way: the target points (clean, unlike a noisy source) lying on the placed
     # source. A symmetric twin leaves the target's asymmetric details uncovered.
     target_points = _subsample(work.target, DECIDE_POINTS, work.rng)
-    source_index = NearestNeighbors(work.source)
+    source_index = NearestNeighbors(work.source, workers=work.full_index.workers)
     # Target points in the source frame under each pose: rows (t - translation) @ R = R^T (t - translation).
     in_source = np.matmul(target_points[None] - refined[:, None, :3, 3], refined[:, :3, :3])
     backward, _ = source_index.query(in_source.reshape(-1, 3))

@@ -78,9 +78,10 @@ class Estimator(ABC):
         """Increment from the source as placed now (``moved_source``, target frame), the target
         cloud, and each moved source point's nearest-neighbour ``distances`` / ``indices``."""
 
-    def step_placed(self, source, transformation, target, distances, indices) -> Step:
+    def step_placed(self, source, transformation, target, distances, indices, workers=None) -> Step:
         """:meth:`step` from the unmoved ``source`` and its placement ``transformation`` (4x4), in
-        one compiled pass that builds no per-point array (only where :attr:`compiled_step`)."""
+        one compiled pass that builds no per-point array (only where :attr:`compiled_step`), on
+        ``workers`` threads (None: every core)."""
         raise NotImplementedError(f"{self.name} has no compiled step")
 
     @property

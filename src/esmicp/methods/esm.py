@@ -136,11 +136,11 @@ class EsmEstimator(Estimator):
         self._update_phase(rotation, translation)
         return Step(rotation, translation, weights=weights, sigma=sigma)
 
-    def step_placed(self, source, transformation, target, distances, indices) -> Step:
+    def step_placed(self, source, transformation, target, distances, indices, workers=None) -> Step:
         """:meth:`step` from the unmoved source and its placement, in one compiled pass."""
         sigma = self.sigma(distances, fine=self.fine)
         rotation, translation, effective = moments.rigid_fit(
-            moments.pair_moments(source, transformation, target, indices, distances, sigma)
+            moments.pair_moments(source, transformation, target, indices, distances, sigma, workers)
         )
         self._update_phase(rotation, translation)
         return Step(rotation, translation, sigma=sigma, effective_pairs=effective)

@@ -94,7 +94,8 @@ def refine(
     """Iterate ``estimator`` from ``init`` (4x4 ``T_target_source``) until ``criteria`` are met.
 
     ``target`` is the target's index (:class:`~esmicp.core.correspondence.NearestNeighbors`, or
-    anything with its ``points``, ``query_near`` and ``spatial_order``). ``scale`` (cloud units,
+    anything with its ``points``, ``query_near`` and ``spatial_order``); every compiled call of
+    the loop runs on its ``workers`` threads (None, or no such attribute: every core). ``scale`` (cloud units,
     e.g. the target's bounding-box diagonal) makes the translation part of the convergence test
     unit-free.
 
@@ -127,6 +128,7 @@ def refine(
     # Without a callback or a history nothing needs the per-point arrays: the placed source is
     # never formed, the query and the step map the source themselves.
     placed = estimator.compiled_step and callback is None and not record_history
+    workers = getattr(target, "workers", None)
 
     def query(points, transform, warm):
         if query_order is None:
@@ -167,7 +169,7 @@ def refine(
             fallback = None
         if placed:
             moved = None
-            step = estimator.step_placed(source, transformation, target.points, distances, indices)
+            step = estimator.step_placed(source, transformation, target.points, distances, indices, workers)
         else:
             moved = apply(transformation, source)
             step = estimator.step(moved, target.points, distances, indices)
