@@ -19,7 +19,7 @@ from .methods.esm import COARSE_POINTS
 from .methods.guard import guarded_refine
 from .methods.local import Callback
 from .result import RegistrationResult
-from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, check_not_degenerate
+from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
 from .types import check_representable
 from .working_frame import WorkingFrame
 
@@ -53,6 +53,7 @@ class _Request:
     criteria: ConvergenceCriteria
     rng: np.random.Generator
     inlier_distance: float | None
+    workers: int | None  # threads of every compiled kernel (None: every core)
 
 
 @keeps_keyboard_interrupt
@@ -69,6 +70,7 @@ def register(
     callback: Callback | None = None,
     record_history: bool = False,
     inlier_distance: float | None = None,
+    workers: int | None = None,
 ) -> RegistrationResult:
     """Rigidly register ``source`` onto ``target``.
 
@@ -87,7 +89,9 @@ def register(
         Where to start. None or ``"global"`` (the default): find the pose globally, from any
         rotation and translation, with the best measured strategy (``"auto"``: both strategies
         below, every candidate verified the same way). ``"rotation-search"`` or ``"features"``:
-        global with that strategy only (see :mod:`esmicp.globalreg.search`). ``"identity"`` (or
+        global with that strategy only (see :mod:`esmicp.globalreg.search`). ``"scan"``: global
+        for partially overlapping scans (RGB-D fragments, LiDAR): FPFH correspondences pruned by
+        second-order compatibility, verified on the overlap (:mod:`esmicp.globalreg.scan`). ``"identity"`` (or
         ``"none"``): pure local refinement from the identity. A 4x4 ``T_target_source``: pure local
         refinement from there.
     sigma : float, optional
@@ -110,6 +114,11 @@ def register(
     inlier_distance : float, optional
         Distance (cloud units) within which a source point counts as an inlier for ``fitness`` and
         ``inlier_rmse``. Default: 3 x the target's median point spacing.
+    workers : int, optional
+        Threads of the compiled kernels (nearest neighbours, moments), in the global search and
+        the refinement alike. None (the default) uses every core; pass 1 when registering many
+        pairs in parallel processes (as :func:`esmicp.register_many` does). The result is the same
+        for every value (the kernels sum in a fixed order).
 
     Returns
     -------
@@ -120,13 +129,13 @@ def register(
     InvalidInputError
         On malformed or degenerate clouds (or beyond float64 geometry, see
         :func:`esmicp.types.check_representable`), an unknown method, a malformed or non-rigid ``init``,
-        or non-positive ``sigma``, ``max_iterations`` or ``inlier_distance``.
+        or non-positive ``sigma``, ``max_iterations``, ``inlier_distance`` or ``workers``.
     """
     started = time.perf_counter()
-    request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance)
+    request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers)
     frame = WorkingFrame.for_target(request.target)
     source_points, target_points = frame.points(request.source), frame.points(request.target)
-    target_index = NearestNeighbors(target_points)
+    target_index = NearestNeighbors(target_points, workers=request.workers)
     diagonal = bounding_box_diagonal(target_points)
     initial, init_name, estimate = _start(request, source_points, target_points, target_index, frame)
     # After a global search (which ends at the finest sigma) the pose is already close: start in
@@ -160,7 +169,7 @@ def register(
     )
 
 
-def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance) -> _Request:
+def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers) -> _Request:
     """Stage 1: every argument checked (one clear :class:`InvalidInputError` otherwise)."""
     source_points = as_points(source, "source")
     target_points = as_points(target, "target")
@@ -178,6 +187,7 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
         criteria=ConvergenceCriteria(as_count(max_iterations, "max_iterations"), _as_tolerance(tolerance)),
         rng=as_generator(rng, default_seed=DEFAULT_SEED),
         inlier_distance=None if inlier_distance is None else as_positive(inlier_distance, "inlier_distance"),
+        workers=as_workers(workers),
     )
     if method == "esm-paper" and len(source_points) != len(target_points):
         warnings.warn(
@@ -195,7 +205,7 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
         return frame.transform_in(request.initial), request.init_name, None
     estimate = global_estimate(
         source, target, strategy=request.init_name, rng=request.rng, target_index=target_index,
-        target_spacing=target_index.spacing(),
+        target_spacing=target_index.spacing(), workers=request.workers,
     )
     return estimate.transformation, f"global:{estimate.strategies[0]}", estimate
 

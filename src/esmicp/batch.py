@@ -5,10 +5,12 @@ process (a local process pool) or a Dask worker (when a ``dask.distributed.Clien
 Results come back in input order. A pair that fails (bad input, or any error inside
 ``register``) is returned as a :class:`RegistrationFailure` in its place, so one bad scan never
 costs the others. ``register`` is deterministic (its default global-search seed is fixed), so the
-results equal those of calling it pair by pair to within 1e-12 (not bitwise: a worker's kernels run
-on one thread, and a different summation order moves the last bits, e.g. 1.3e-15).
+results equal those of calling it pair by pair (the compiled kernels sum in a fixed order, so their
+number of threads does not change a bit).
 
-Each local worker process runs its numerical kernels on one thread: the pool itself uses the cores.
+Each worker runs its kernels on one thread (``workers=1`` of :func:`esmicp.register`, unless the
+caller's keyword arguments say otherwise): the processes themselves use the cores, and a pool of
+processes each starting a thread per core would oversubscribe them.
 """
 
 from __future__ import annotations
@@ -54,11 +56,12 @@ def _register_one(index: int, source, target, kwargs: dict) -> "RegistrationResu
         return RegistrationFailure(index, type(exc).__name__, str(exc))
 
 
-def _single_threaded_worker() -> None:
-    """Pool initializer: one thread per process for the KD-tree and the compiled kernels."""
-    from .core import correspondence
-
-    correspondence.DEFAULT_WORKERS = 1
+def per_process_kwargs(register_kwargs: dict) -> dict:
+    """``register_kwargs`` for a registration in one of several parallel processes (or Dask
+    tasks): ``workers=1`` unless the caller chose a number of threads."""
+    if "workers" in register_kwargs:
+        return register_kwargs
+    return {**register_kwargs, "workers": 1}
 
 
 def register_many(
@@ -82,7 +85,8 @@ def register_many(
         ``pip install 'esmicp[dask]'``); the clouds are sent to the workers with the tasks.
     **register_kwargs
         Passed to every :func:`esmicp.register` call (``method``, ``init``, ``max_iterations``,
-        ...). A callback must be picklable to reach worker processes.
+        ...). A callback must be picklable to reach worker processes. ``workers`` (threads per
+        registration) defaults to 1 with several processes or a Dask client, every core otherwise.
 
     Returns
     -------
@@ -97,7 +101,7 @@ def register_many(
     """
     items = _as_pairs(pairs)
     if client is not None:
-        return _on_dask(client, items, register_kwargs)
+        return _on_dask(client, items, per_process_kwargs(register_kwargs))
     if processes is None:
         processes = os.cpu_count() or 1
     if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
@@ -106,11 +110,12 @@ def register_many(
     if processes == 1:
         results = [_register_one(i, source, target, register_kwargs) for i, (source, target) in enumerate(items)]
     else:
-        # "spawn": forking a process whose OpenMP / numba threads are running can deadlock.
+        # "spawn": the caller may hold threads of other libraries (BLAS, torch) that fork() would not survive.
         context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(processes, mp_context=context, initializer=_single_threaded_worker) as pool:
+        kwargs = per_process_kwargs(register_kwargs)
+        with ProcessPoolExecutor(processes, mp_context=context) as pool:
             futures = [
-                pool.submit(_register_one, i, source, target, register_kwargs)
+                pool.submit(_register_one, i, source, target, kwargs)
                 for i, (source, target) in enumerate(items)
             ]
             results = [future.result() for future in futures]

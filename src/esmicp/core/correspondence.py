@@ -13,16 +13,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .. import _kernels
 from . import compiled_tree, voxel_hash
 
-
-#: Queries of fewer points than this run on one thread: below it, starting threads costs more
-#: than it saves (measured here: 500 points 0.21 ms on one thread, 0.39 ms on all; parity at ~2k).
-PARALLEL_QUERY_MIN = 4096
-
-#: Threads that ``workers=-1`` stands for (-1: every core). :func:`esmicp.register_many`'s worker
-#: processes set it to 1, the pool itself using the cores.
-DEFAULT_WORKERS = -1
 
 #: Cell edge of the voxel hash of :meth:`NearestNeighbors.query_near`, in target point spacings.
 #: Queries whose nearest target point is within one cell are answered by the hash. Measured on the
@@ -30,8 +23,10 @@ DEFAULT_WORKERS = -1
 #: and 5 spacings cost 80, 67 and 38 ms with warm starts, scipy's KD-tree 127-255 ms.
 NEAR_CELL_SPACINGS = 5.0
 
-#: Below this many query points :meth:`NearestNeighbors.query_near` uses the KD-tree alone.
-NEAR_QUERY_MIN = 2048
+#: Below this many query points :meth:`NearestNeighbors.query_near` uses the KD-tree alone (a
+#: few queries do not pay for building the hash). Measured on the bunny at 1,000 points, near the
+#: solution, one thread: the compiled step 137 us of CPU with the hash, 230 us with the tree alone.
+NEAR_QUERY_MIN = 256
 
 #: :meth:`NearestNeighbors.query_near` skips the voxel hash while more than this fraction of the
 #: last call's points had their neighbour beyond one cell (a LiDAR scan far from the sensor, or a
@@ -40,17 +35,18 @@ HASH_MISS_LIMIT = 0.5
 
 
 class NearestNeighbors:
-    """KD-tree over a target cloud; queries run on all cores.
+    """KD-tree over a target cloud; queries run on ``workers`` threads.
 
     Parameters
     ----------
     target : (M, 3) float64 array
         The cloud to search in (target frame). Kept by reference: do not mutate it afterwards.
-    workers : int
-        Threads for queries; -1 uses every core.
+    workers : int or None
+        Threads of every compiled call made through this index (queries, and the steps of the
+        local loop that uses it); None uses every core.
     """
 
-    def __init__(self, target: np.ndarray, *, workers: int = -1):
+    def __init__(self, target: np.ndarray, *, workers: int | None = None):
         self.points = target
         self.workers = workers
         self._scipy_tree: cKDTree | None = None
@@ -58,19 +54,21 @@ class NearestNeighbors:
         self._spacing: float | None = None
         self._near: voxel_hash.VoxelHash | None = None
         self._hash_misses = 0.0  # fraction of the last near query's points beyond one hash cell
+        self._index: "_kernels.Index | None" = None  # the compiled index of :meth:`step`
+        self._index_hashed = False
 
     @property
     def _tree(self) -> cKDTree:
-        """scipy's KD-tree (k nearest neighbours, and every query where numba is missing)."""
+        """scipy's KD-tree (k nearest neighbours, for :meth:`spacing`)."""
         if self._scipy_tree is None:
             # A sliding-midpoint tree without node compaction builds about twice as fast as scipy's
             # default for point clouds and queries as fast (measured on the bunny and the LiDAR pair).
             self._scipy_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
         return self._scipy_tree
 
-    def exact_tree(self) -> "compiled_tree.CompiledTree | None":
+    def exact_tree(self) -> "compiled_tree.CompiledTree":
         """The compiled KD-tree of the target (built on first use)."""
-        if self._compiled is None and compiled_tree.available():
+        if self._compiled is None:
             self._compiled = compiled_tree.CompiledTree(self.points)
         return self._compiled
 
@@ -82,15 +80,7 @@ class NearestNeighbors:
 
         ``distances`` are Euclidean, in the clouds' units; ``indices`` index ``self.points``.
         """
-        tree = self.exact_tree()
-        if tree is not None:
-            return tree.query(points, workers=self.workers)
-        workers = self._workers() if len(points) >= PARALLEL_QUERY_MIN else 1
-        distances, indices = self._tree.query(points, k=1, workers=workers)
-        return distances, indices
-
-    def _workers(self) -> int:
-        return DEFAULT_WORKERS if self.workers == -1 else self.workers
+        return self.exact_tree().query(points, workers=self.workers)
 
     def query_near(
         self, points: np.ndarray, warm: np.ndarray | None = None, transform: np.ndarray | None = None
@@ -104,8 +94,6 @@ class NearestNeighbors:
         points whose neighbour is within a few spacings, the compiled tree the rest.
         """
         tree = self.exact_tree()
-        if tree is None:  # no numba: scipy's tree for everything
-            return self.query(points if transform is None else points @ transform[:3, :3].T + transform[:3, 3])
         near = self._near_index() if len(points) >= NEAR_QUERY_MIN else None
         if near is None:
             return tree.query(points, transform=transform, warm=warm, workers=self.workers)
@@ -114,6 +102,45 @@ class NearestNeighbors:
                                                 workers=self.workers)
         self._hash_misses = misses / len(points)
         return distances, indices
+
+    def step(self, source: np.ndarray, transformation: np.ndarray, indices: np.ndarray, distances: np.ndarray,
+             out: np.ndarray, *, warm: bool, weighting: np.ndarray, objective_sigma: float) -> np.ndarray:
+        """One local iteration in one compiled call: the nearest target point of each source point
+        as placed by ``transformation`` (exactly what :meth:`query_near` returns, written into
+        ``indices`` and ``distances``; ``warm``: ``indices`` holds last iteration's neighbours), the
+        weights, the pair moments, the Kabsch increment and the composed pose, into ``out``.
+
+        ``source`` (N, 3) and ``transformation`` (4, 4) are C-contiguous float64; ``indices`` (N,)
+        int64 and ``distances`` (N,) float64 are filled in place. ``weighting`` is
+        ``(fixed sigma or 0, sigma floor, factor on the median distance, 1 in the fine phase, 1 for
+        Gaussian weights / 0 for weights of 1)``; ``objective_sigma`` > 0 asks for the mean
+        Gaussian similarity at that sigma too. ``out`` (``_kernels.STEP_OUT``): sigma, RMS
+        distance, objective, misses, effective pairs, increment angle and translation norm,
+        increment rotation (9) and translation (3), the composed pose (16), its motion (angle,
+        translation norm), sum of weights, sum of squared weights.
+        """
+        near = len(source) >= NEAR_QUERY_MIN
+        index = self._compiled_index(near)
+        use_hash = bool(near and self._index_hashed and self._hash_misses <= HASH_MISS_LIMIT)
+        index.step(source, transformation, indices, distances, warm, use_hash, weighting, objective_sigma, out,
+                   compiled_tree.threads(self.workers))
+        if near and self._index_hashed:
+            self._hash_misses = float(out[3]) / len(source)
+        return out
+
+    def _compiled_index(self, hashed: bool) -> "_kernels.Index":
+        if self._index is None:
+            tree = self.exact_tree()
+            self._target_c = np.ascontiguousarray(self.points, dtype=np.float64)
+            self._index = _kernels.Index(self._target_c, tree.points, tree.order, tree.rank, tree.starts, tree.ends,
+                                         tree.lefts, tree.boxes)
+        if hashed and not self._index_hashed:
+            near = self._near_index()
+            if near is not None:
+                self._index.set_hash(near.sorted_points, near.sorted_index, near.rank, near.cell_starts,
+                                     near.table_keys, near.table_cells, near.low, near.cell, near.dims)
+                self._index_hashed = True
+        return self._index
 
     def spatial_order(self, points: np.ndarray) -> np.ndarray:
         """A permutation of ``points`` (target frame) that sorts them by voxel-hash cell.
@@ -130,7 +157,7 @@ class NearestNeighbors:
         return np.argsort(ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2]), kind="stable")
 
     def _near_index(self) -> "voxel_hash.VoxelHash | None":
-        if self._near is None and voxel_hash.available():
+        if self._near is None:
             spacing = self.spacing() if self._spacing is None else self._spacing
             diagonal = float(np.linalg.norm(np.ptp(self.points, axis=0)))
             cell = max(NEAR_CELL_SPACINGS * spacing, 1e-6 * diagonal)

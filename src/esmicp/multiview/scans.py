@@ -144,11 +144,12 @@ def _normals(points: np.ndarray, k: int = 12) -> np.ndarray:
 
 
 def _pairwise(jobs, register_kwargs, processes, client, progress):
-    from ..batch import _register_one, _single_threaded_worker
+    from ..batch import _register_one, per_process_kwargs
 
     results = [None] * len(jobs)
     total = len(jobs)
     if client is not None:
+        register_kwargs = per_process_kwargs(register_kwargs)
         from distributed import as_completed as dask_completed
 
         futures = {client.submit(_register_one, n, s, t, register_kwargs, pure=False): n for n, (s, t) in enumerate(jobs)}
@@ -165,7 +166,8 @@ def _pairwise(jobs, register_kwargs, processes, client, progress):
                 progress(n + 1, total)
         return results
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(processes, mp_context=context, initializer=_single_threaded_worker) as pool:
+    register_kwargs = per_process_kwargs(register_kwargs)
+    with ProcessPoolExecutor(processes, mp_context=context) as pool:
         futures = {pool.submit(_register_one, n, s, t, register_kwargs): n for n, (s, t) in enumerate(jobs)}
         for done, future in enumerate(as_completed(futures), 1):
             results[futures[future]] = future.result()
@@ -258,7 +260,8 @@ def register_scans(
     refine_rounds : int
         Correspondence distances of the joint refinement (each used for two Gauss-Newton steps).
     processes, client
-        Where the pairwise registrations run, as in :func:`esmicp.register_many`.
+        Where the pairwise registrations run, as in :func:`esmicp.register_many` (each on one
+        thread, ``workers=1``, when several run at once, unless ``workers`` is given).
     progress : callable, optional
         ``progress(done, total)`` after every pairwise registration.
     **register_kwargs
