@@ -65,7 +65,7 @@ def add_parser(commands) -> argparse.ArgumentParser:
                          help="the paper's 1,000-transform tables against KISS-Matcher: 1,000 trials (--trials) "
                          "of protocol paper-1000 on airplane, person, stool and paper-1000-noise-30 on stool, "
                          "translations in [-1000, 1000], the whole 10,000-point clouds, 100 iterations, methods "
-                         "esm-paper, esm-global, kiss-matcher, kiss-matcher-icp (about 15 minutes on 2 cores)")
+                         "esm-paper, esm-global, kiss-matcher, kiss-matcher-icp (15-20 minutes on a quiet 2-core machine)")
     bench.add_argument("--protocols", type=_names, help="comma-separated (default: copy,shuffled,resampled,"
                        "outliers-30,outliers-60,partial,shuffled-45,scan-pairs)")
     bench.add_argument("--datasets", type=_names, help="comma-separated: synthetic (default), modelnet40, bunny, "
