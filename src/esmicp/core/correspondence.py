@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .. import _kernels
 from . import compiled_tree, voxel_hash
 
 
@@ -22,8 +23,10 @@ from . import compiled_tree, voxel_hash
 #: and 5 spacings cost 80, 67 and 38 ms with warm starts, scipy's KD-tree 127-255 ms.
 NEAR_CELL_SPACINGS = 5.0
 
-#: Below this many query points :meth:`NearestNeighbors.query_near` uses the KD-tree alone.
-NEAR_QUERY_MIN = 2048
+#: Below this many query points :meth:`NearestNeighbors.query_near` uses the KD-tree alone (a
+#: few queries do not pay for building the hash). Measured on the bunny at 1,000 points, near the
+#: solution, one thread: the compiled step 137 us of CPU with the hash, 230 us with the tree alone.
+NEAR_QUERY_MIN = 256
 
 #: :meth:`NearestNeighbors.query_near` skips the voxel hash while more than this fraction of the
 #: last call's points had their neighbour beyond one cell (a LiDAR scan far from the sensor, or a
@@ -51,6 +54,8 @@ class NearestNeighbors:
         self._spacing: float | None = None
         self._near: voxel_hash.VoxelHash | None = None
         self._hash_misses = 0.0  # fraction of the last near query's points beyond one hash cell
+        self._index: "_kernels.Index | None" = None  # the compiled index of :meth:`step`
+        self._index_hashed = False
 
     @property
     def _tree(self) -> cKDTree:
@@ -97,6 +102,45 @@ class NearestNeighbors:
                                                 workers=self.workers)
         self._hash_misses = misses / len(points)
         return distances, indices
+
+    def step(self, source: np.ndarray, transformation: np.ndarray, indices: np.ndarray, distances: np.ndarray,
+             out: np.ndarray, *, warm: bool, weighting: np.ndarray, objective_sigma: float) -> np.ndarray:
+        """One local iteration in one compiled call: the nearest target point of each source point
+        as placed by ``transformation`` (exactly what :meth:`query_near` returns, written into
+        ``indices`` and ``distances``; ``warm``: ``indices`` holds last iteration's neighbours), the
+        weights, the pair moments, the Kabsch increment and the composed pose, into ``out``.
+
+        ``source`` (N, 3) and ``transformation`` (4, 4) are C-contiguous float64; ``indices`` (N,)
+        int64 and ``distances`` (N,) float64 are filled in place. ``weighting`` is
+        ``(fixed sigma or 0, sigma floor, factor on the median distance, 1 in the fine phase, 1 for
+        Gaussian weights / 0 for weights of 1)``; ``objective_sigma`` > 0 asks for the mean
+        Gaussian similarity at that sigma too. ``out`` (``_kernels.STEP_OUT``): sigma, RMS
+        distance, objective, misses, effective pairs, increment angle and translation norm,
+        increment rotation (9) and translation (3), the composed pose (16), its motion (angle,
+        translation norm), sum of weights, sum of squared weights.
+        """
+        near = len(source) >= NEAR_QUERY_MIN
+        index = self._compiled_index(near)
+        use_hash = bool(near and self._index_hashed and self._hash_misses <= HASH_MISS_LIMIT)
+        index.step(source, transformation, indices, distances, warm, use_hash, weighting, objective_sigma, out,
+                   compiled_tree.threads(self.workers))
+        if near and self._index_hashed:
+            self._hash_misses = float(out[3]) / len(source)
+        return out
+
+    def _compiled_index(self, hashed: bool) -> "_kernels.Index":
+        if self._index is None:
+            tree = self.exact_tree()
+            self._target_c = np.ascontiguousarray(self.points, dtype=np.float64)
+            self._index = _kernels.Index(self._target_c, tree.points, tree.order, tree.rank, tree.starts, tree.ends,
+                                         tree.lefts, tree.boxes)
+        if hashed and not self._index_hashed:
+            near = self._near_index()
+            if near is not None:
+                self._index.set_hash(near.sorted_points, near.sorted_index, near.rank, near.cell_starts,
+                                     near.table_keys, near.table_cells, near.low, near.cell, near.dims)
+                self._index_hashed = True
+        return self._index
 
     def spatial_order(self, points: np.ndarray) -> np.ndarray:
         """A permutation of ``points`` (target frame) that sorts them by voxel-hash cell.

@@ -14,6 +14,10 @@ class IcpEstimator(Estimator):
 
     name = "icp"
     compiled_step = COMPILED
+    fused_step = True
+
+    def weighting(self) -> tuple[float, float, float, bool, bool]:
+        return 0.0, 0.0, 0.0, False, False
 
     def step(self, moved_source, target, distances, indices) -> Step:
         rotation, translation = weighted_procrustes(moved_source, target[indices], np.ones(len(indices)))
