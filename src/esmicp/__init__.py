@@ -9,6 +9,7 @@ from .api import register
 from .batch import RegistrationFailure, register_many
 from .errors import (
     EsmicpError,
+    CoincidentPointsWarning,
     EsmicpWarning,
     IndexAlignmentWarning,
     InvalidInputError,
@@ -33,6 +34,7 @@ def __getattr__(name):
 __all__ = [
     "METHODS",
     "EsmicpError",
+    "CoincidentPointsWarning",
     "EsmicpWarning",
     "IndexAlignmentWarning",
     "InvalidInputError",
