@@ -70,7 +70,7 @@ def _truth(n, rng):
 def _fake_pairwise(truth, *, wrong=(), low=()):
     """Stand-in for the pairwise registrations: exact relative poses, except the listed pairs."""
 
-    def run(jobs, kwargs, processes, client, progress, *, pairs):
+    def run(jobs, *, pairs):
         out = []
         for i, j in pairs:
             T = np.linalg.inv(truth[i]) @ truth[j]
@@ -91,13 +91,12 @@ def _fake_pairwise(truth, *, wrong=(), low=()):
 def _patch(monkeypatch, truth, clouds, **kwargs):
     fake = _fake_pairwise(truth, **kwargs)
     captured = {}
-    original = scans_module._pairwise
 
-    def wrapper(jobs, register_kwargs, processes, client, progress):
+    def wrapper(jobs, *, processes, client, progress, **register_kwargs):
         # recover which (i, j) each job is from the subsampled clouds' identity
         index = {id(c): k for k, c in enumerate(captured["small"])}
         pairs = [(index[id(t)], index[id(s)]) for s, t in jobs]
-        return fake(jobs, register_kwargs, processes, client, progress, pairs=pairs)
+        return fake(jobs, pairs=pairs)
 
     real_subsample = scans_module._subsample
 
@@ -106,10 +105,9 @@ def _patch(monkeypatch, truth, clouds, **kwargs):
         captured.setdefault("small", []).append(out)
         return out
 
-    monkeypatch.setattr(scans_module, "_pairwise", wrapper)
+    monkeypatch.setattr(scans_module, "register_many", wrapper)
     monkeypatch.setattr(scans_module, "_subsample", subsample)
     # reverse fitness comes from the clouds: make every cloud the same shape in its own frame
-    assert original is not None
 
 
 def _clouds(truth, rng):

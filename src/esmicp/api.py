@@ -94,7 +94,9 @@ def register(
         Where to start. None or ``"global"`` (the default): find the pose globally, from any
         rotation and translation, with the best measured strategy (``"auto"``: both strategies
         below, every candidate verified the same way). ``"rotation-search"`` or ``"features"``:
-        global with that strategy only (see :mod:`esmicp.globalreg.search`). ``"identity"`` (or
+        global with that strategy only (see :mod:`esmicp.globalreg.search`). ``"scan"``: global
+        for partially overlapping scans (RGB-D fragments, LiDAR): FPFH correspondences pruned by
+        second-order compatibility, verified on the overlap (:mod:`esmicp.globalreg.scan`). ``"identity"`` (or
         ``"none"``): pure local refinement from the identity. A 4x4 ``T_target_source``: pure local
         refinement from there.
     sigma : float, optional

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from .args import positive_float, positive_int
+from ..batch import dask_client
 from ..errors import EsmicpError, InvalidInputError, OutputExistsError
 
 #: Colours of the scans in the HTML view (cycled).
@@ -67,15 +68,14 @@ def _write_poses(path: Path, names, result, force: bool) -> None:
 
 
 def _write_view(path: Path, points, labels, names, force: bool) -> None:
-    from ..viz._deps import require
-    from ..viz.view import _scatter, display_subset, write_view
+    from ..viz import display_subset, require, scatter_trace, write_view
 
     go = require("plotly.graph_objects")
     figure = go.Figure()
     for k in sorted(set(labels.tolist())):
         mine = points[labels == k]
         shown = display_subset(len(mine), 3000, seed=k)
-        figure.add_trace(_scatter(go, mine[shown], f"{k}: {names[k]}", SCAN_COLOURS[k % len(SCAN_COLOURS)], "scene"))
+        figure.add_trace(scatter_trace(go, mine[shown], f"{k}: {names[k]}", SCAN_COLOURS[k % len(SCAN_COLOURS)], "scene"))
     figure.update_layout(title="esmicp merge: merged model coloured by scan (subsampled for display)",
                          scene={"aspectmode": "data"})
     write_view(figure, path, overwrite=force)
@@ -111,9 +111,7 @@ def run_merge(args) -> int:
         raise InvalidInputError(f"--reference: expected a scan index in [0, {len(clouds)}), got {args.reference}")
     client = None
     if args.scheduler:
-        from ..viz._deps import require
-
-        client = require("distributed").Client(args.scheduler)
+        client = dask_client(args.scheduler)
     progress, close = _progress(not args.no_progress)
     try:
         result = register_scans(clouds, reference=args.reference, pair_points=args.pair_points,

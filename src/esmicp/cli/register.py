@@ -41,7 +41,8 @@ def add_parser(commands) -> None:
     reg.add_argument(
         "--init", default="global", metavar="FILE|STRATEGY",
         help="where to start: 'global' (default: find the pose from anywhere), 'rotation-search' or "
-        "'features' (global with one strategy), 'identity' (local refinement only), or a file "
+        "'features' (global with one strategy), 'scan' (global, for partially overlapping scans: "
+        "RGB-D fragments, LiDAR), 'identity' (local refinement only), or a file "
         "holding a 4x4 T_target_source to refine from",
     )
     reg.add_argument(

@@ -9,6 +9,10 @@ Candidate poses come from one or both strategies:
 ``features``
     FPFH features matched between the clouds and pruned by geometric consistency
     (:mod:`esmicp.globalreg.feature_matching`); suited to partial overlap, where centroids differ.
+``scan``
+    :mod:`esmicp.globalreg.scan`, on its own: correspondences pruned by second-order spatial
+    compatibility and verified on the overlap, both ways (partially overlapping scans); its
+    scores are its own overlap scores, not the verification below.
 
 Every candidate is then *verified* the same way (successive halving, ``VERIFY_ROUNDS``): batched
 ESM at the data's resolution on a subsample, scored by the soft fraction of source points lying on
@@ -43,7 +47,7 @@ from . import DISTINCT_ROTATION_DEG
 from .rotation_search import batched_esm, gaussian_overlap_score, rotation_search
 
 #: Names accepted as ``init=`` strategies for global registration.
-STRATEGIES = ("auto", "rotation-search", "features")
+STRATEGIES = ("auto", "rotation-search", "features", "scan")
 
 #: Points of the source used to search / verify, and of the target indexed for both.
 SEARCH_POINTS = 200
@@ -184,6 +188,8 @@ def global_estimate(
     the twins of that pose (:func:`_twins`) join, and everything is verified together.
     """
     full_index = target_index if target_index is not None else NearestNeighbors(target, workers=workers)
+    if strategy == "scan":
+        return _scan(source, target, full_index, target_spacing)
     if len(target) <= TARGET_POINTS:
         index = full_index
     else:
@@ -226,6 +232,15 @@ def global_estimate(
     estimate = _decide(work, _verify(work, candidates, origins, carried=carried))
     # Count each candidate pose once (the carried rotation-search contenders are not new ones).
     return replace(estimate, candidates=searched + found_count)
+
+
+def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | None) -> GlobalEstimate:
+    """The ``"scan"`` strategy (:mod:`esmicp.globalreg.scan`): its poses and overlap scores."""
+    from .scan import scan_estimate
+
+    spacing = full_index.spacing() if target_spacing is None else target_spacing
+    found = scan_estimate(source, target, spacing=spacing, workers=full_index.workers)
+    return GlobalEstimate(found.transformations, found.scores, ("scan",) * len(found.scores), candidates=len(found.scores))
 
 
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
