@@ -101,6 +101,20 @@ def add_parser(commands) -> argparse.ArgumentParser:
     bench.add_argument("--force", action="store_true", help="replace the results in --out")
     bench.add_argument("--no-progress", action="store_true", help="no progress bar")
     bench.add_argument("--plots", action="store_true", help="also draw the figures (needs esmicp.viz: the viz extra)")
+    scans = bench.add_argument_group(
+        "scan benchmark (--datasets real-pairs and/or partial-overlap; see docs/real-scans.md)",
+        "Every global method on the real pairs of a folder (variants as-recorded and turned) and on "
+        "ModelNet40 objects cut to 70%% and 50%% (protocols partial-70, partial-50): writes OUT/rows.jsonl and "
+        "OUT/real-scans.md. --methods: esm-global, kiss-matcher-icp, open3d-ransac-fpfh-icp, fgr-icp (default "
+        "all); --protocols: as-recorded, turned, partial-70, partial-50; --trials: partial trials per fraction "
+        "(default 24).",
+    )
+    scans.add_argument("--real-pairs-dir", type=Path, metavar="DIR",
+                       help="a folder laid out like shared/data/real_pairs (pairs.csv; default <data>/real_pairs)")
+    scans.add_argument("--pairs", type=_names, metavar="DATASET/PAIR,...", help="only these pairs of pairs.csv")
+    scans.add_argument("--bin-columns", type=int, choices=(3, 4), default=3,
+                       help="float32 columns of the pairs' .bin scans (default 3, as in the shared folder; "
+                       "KITTI's own files: 4)")
     bench.set_defaults(handler=run)
     return bench
 
@@ -183,13 +197,77 @@ def build_config(args):
     return BenchConfig.from_dict(values)
 
 
+#: ``--datasets`` names that select the scan benchmark (:mod:`esmicp.bench.scans`).
+SCAN_DATASETS = ("real-pairs", "partial-overlap")
+_SCAN_PROTOCOLS = ("as-recorded", "turned", "partial-70", "partial-50")
+
+
+def run_scans(args) -> int:
+    """``esmicp bench --datasets real-pairs[,partial-overlap]``: the scan benchmark."""
+    from ..bench.datasets import default_data_dir
+    from ..bench.scans import SCAN_METHODS, ScanBenchConfig, partial_markdown, real_pairs_markdown, run_scan_bench
+    from ..errors import InvalidInputError, OutputExistsError
+    from ..io.atomic import atomic_write
+
+    unknown = [name for name in args.datasets if name not in SCAN_DATASETS]
+    if unknown:
+        raise InvalidInputError(f"datasets: {', '.join(unknown)} cannot be mixed with {', '.join(SCAN_DATASETS)} "
+                                "(the scan benchmark runs alone)")
+    protocols = args.protocols or _SCAN_PROTOCOLS
+    for name in protocols:
+        if name not in _SCAN_PROTOCOLS:
+            raise InvalidInputError(f"protocols: {name!r} is not a scan-benchmark protocol; choose from "
+                                    f"{', '.join(_SCAN_PROTOCOLS)}")
+    data_dir = Path(args.data) if args.data else default_data_dir()
+    real_dir = args.real_pairs_dir or data_dir / "real_pairs"
+    variants = tuple(p for p in protocols if p in ("as-recorded", "turned"))
+    keeps = tuple(k for p, k in (("partial-70", 0.7), ("partial-50", 0.5)) if p in protocols)
+    methods = SCAN_METHODS if args.methods in (None, ("all",)) else args.methods
+    config = ScanBenchConfig(
+        real_pairs_dir=str(real_dir) if "real-pairs" in args.datasets and variants else None,
+        data_dir=str(data_dir), methods=tuple(methods), variants=variants or ("as-recorded",),
+        partial_keeps=keeps, partial_trials=(args.trials or 24) if "partial-overlap" in args.datasets and keeps else 0,
+        seed=args.seed or 0, bin_columns=args.bin_columns, pairs=args.pairs or (),
+    )
+    if config.real_pairs_dir is None and not config.partial_trials:
+        raise InvalidInputError("nothing to run: the protocols given apply to none of the datasets given")
+    out = args.out
+    rows_path = out / "rows.jsonl"
+    if rows_path.exists() and not args.force:
+        raise OutputExistsError(rows_path)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def progress(row):
+        if not args.no_progress:
+            what = row.get("pair") or f"{row.get('cloud')}#{row.get('trial_index')}"
+            state = "ok" if row.get("success") else ("failed" if row["status"] != "ok" else "no")
+            print(f"{row['protocol']} {what} {row.get('variant', '')} {row['method']}: {state} "
+                  f"{row['time_s']:.2f} s", file=sys.stderr, flush=True)
+
+    rows = run_scan_bench(config, rows_path, progress)
+    text = ""
+    if config.real_pairs_dir is not None:
+        text += f"## Real pairs ({real_dir})\n\n" + real_pairs_markdown(rows) + "\n"
+    if config.partial_trials:
+        text += "## Partial overlap (ModelNet40)\n\n" + partial_markdown(rows)
+    tables = out / "real-scans.md"
+    with atomic_write(tables, overwrite=True, mode="w") as handle:
+        handle.write(text)
+    print(text)
+    print(f"{len(rows)} rows in {rows_path}; tables written to {tables}")
+    return EXIT_OK
+
+
 def run(args) -> int:
     from ..bench import Interrupted, RunOptions, run_bench, read_rows
     from ..bench.results import ROWS
 
+    if args.datasets and any(name in SCAN_DATASETS for name in args.datasets):
+        return run_scans(args)
+
     if args.plots:
         # Before the run, not after it: a missing plotting library must not cost a whole run.
-        from ..viz._deps import require
+        from ..viz import require
 
         require("matplotlib")
     config = build_config(args)
