@@ -84,3 +84,142 @@ def test_fork_after_register_works(executor):
             results = list(pool.map(_register_small, [1, 2], timeout=120))
     for transform in results:
         np.testing.assert_allclose(transform[:3, 3], [-0.01, -0.01, -0.01], atol=1e-6)
+
+
+def _bunny_like(count, seed):
+    """A smooth closed surface (an ellipsoid with bumps), so that the registration has work to do."""
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(count, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    radius = 1.0 + 0.2 * np.sin(3 * directions[:, 0]) * np.cos(2 * directions[:, 1])
+    return directions * radius[:, None] * [1.0, 0.7, 0.5]
+
+
+@pytest.mark.parametrize("init", ["identity", None])
+def test_register_is_the_same_on_one_and_two_threads(init):
+    """``workers=`` reaches every kernel call (global search and refinement), and the kernels sum
+    in pieces of fixed size: one thread and two give the same pose, to the last bit."""
+    target = _bunny_like(30000, 1)
+    angle = 0.15
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    source = _bunny_like(25000, 2) @ rotation.T + [0.05, 0.0, -0.02]
+    one = esmicp.register(source, target, init=init, workers=1)
+    two = esmicp.register(source, target, init=init, workers=2)
+    assert one.num_iterations == two.num_iterations > 1
+    np.testing.assert_allclose(two.transformation, one.transformation, rtol=0, atol=1e-12)
+    assert one.fitness == two.fitness
+
+
+def test_workers_reach_the_kernels(monkeypatch):
+    """Every compiled call of a registration gets the thread count given to ``register``."""
+    from esmicp import _kernels
+
+    seen = []
+    for name in ("tree_query", "hash_query", "pair_moments"):
+        original = getattr(_kernels, name)
+
+        def spy(*args, _original=original):
+            seen.append(args[-1])
+            return _original(*args)
+
+        monkeypatch.setattr(_kernels, name, spy)
+    target = _bunny_like(5000, 3)
+    esmicp.register(target[::2] + 0.01, target, workers=1)
+    assert seen and set(seen) == {1}
+    seen.clear()
+    esmicp.register(target[::2] + 0.01, target, init="identity")
+    assert set(seen) == {0}  # 0: every core, as the kernels read it
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, "2", True])
+def test_a_bad_workers_value_is_a_clear_error(bad):
+    target = _bunny_like(500, 4)
+    with pytest.raises(ValueError, match=r"^workers: expected a whole number of threads >= 1, or None"):
+        esmicp.register(target, target, workers=bad)
+
+
+def test_register_many_runs_one_thread_per_process():
+    from esmicp.batch import per_process_kwargs
+
+    assert per_process_kwargs({"init": "identity"}) == {"init": "identity", "workers": 1}
+    assert per_process_kwargs({"workers": 2}) == {"workers": 2}
+
+
+def test_compiled_kabsch_matches_numpy_svd():
+    """The compiled rotation (Horn's quaternion method) against the SVD formula, on random
+    cross-covariances over ten orders of magnitude, a third of them of rank 2 (planar clouds)."""
+    from esmicp.core.pose_kernels import kabsch_rotation, nearest_rotation
+
+    rng = np.random.default_rng(7)
+    for trial in range(500):
+        cross = rng.normal(size=(3, 3)) * 10.0 ** rng.uniform(-5, 5)
+        if trial % 3 == 0:
+            cross[:, 2] = 0.0
+        u, _, vt = np.linalg.svd(cross)
+        d = np.sign(np.linalg.det(vt.T @ u.T))
+        np.testing.assert_allclose(kabsch_rotation(cross), vt.T @ np.diag([1.0, 1.0, d]) @ u.T, rtol=0, atol=1e-9)
+    drifted = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    drifted *= np.sign(np.linalg.det(drifted))
+    drifted += 1e-9 * rng.normal(size=(3, 3))
+    u, _, vt = np.linalg.svd(drifted)
+    np.testing.assert_allclose(nearest_rotation(drifted), u @ vt, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("method", ["esm", "icp"])
+@pytest.mark.parametrize("count", [1000, 30000])
+def test_the_one_call_iteration_gives_the_pose_of_the_numpy_step(method, count):
+    """The fused compiled iteration (query, weights, moments, Kabsch, composition in one call)
+    against the loop's NumPy path (taken when a history is recorded: weighted Procrustes on the
+    gathered pairs, NumPy SVD): the same pose to 1e-9, the same number of iterations."""
+    target = _bunny_like(count, 5)
+    angle = 0.2
+    rotation = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
+    source = _bunny_like(count, 6) @ rotation.T + [0.02, 0.01, 0.0]
+    fused = esmicp.register(source, target, method=method, init="identity")
+    plain = esmicp.register(source, target, method=method, init="identity", record_history=True)
+    assert fused.num_iterations == plain.num_iterations > 2
+    np.testing.assert_allclose(fused.transformation, plain.transformation, rtol=0, atol=1e-9)
+
+
+def test_coincident_points_are_counted_exactly():
+    from esmicp.core.correspondence import coincident_points
+
+    rng = np.random.default_rng(8)
+    points = np.round(rng.normal(size=(20000, 3)), 1)  # many exact repeats
+    points[:5] = [-0.0, 0.0, 0.0]  # -0.0 and 0.0 are the same point
+    repeats, most, most_count, first = coincident_points(points)
+    unique, counts = np.unique(points + 0.0, axis=0, return_counts=True)
+    assert repeats == len(points) - len(unique) == len(points) - first.sum()
+    assert most_count == counts.max()
+    np.testing.assert_array_equal(np.unique(points[first] + 0.0, axis=0), unique)
+
+
+def test_a_cloud_full_of_zero_points_warns_and_says_what_to_do():
+    """Issue 16 item 1: a depth sensor's invalid pixels stored as (0, 0, 0); the registration
+    runs (near-linear) and warns, naming the share, the place and the fix."""
+    cloud = _bunny_like(4000, 9)
+    zeros = np.zeros((1000, 3))
+    with pytest.warns(esmicp.CoincidentPointsWarning) as caught:
+        result = esmicp.register(np.vstack([cloud + 0.01, zeros]), np.vstack([zeros, cloud]), init="identity")
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 2
+    assert messages[0].startswith("source: 999 of its 5,000 points (20.0%) are copies of other points (the most repeated: 1,000 at (0, 0, 0))")
+    assert "deduplicate" in messages[0] and "(0, 0, 0) points: depth sensors store invalid pixels" in messages[0]
+    assert messages[1].startswith("target: 999 of its 5,000 points")
+    assert np.isfinite(result.transformation).all()
+
+
+def test_few_coincident_points_do_not_warn(recwarn):
+    cloud = _bunny_like(4000, 10)
+    repeated = np.vstack([cloud, cloud[:300]])  # 7% copies: below the 10% of the warning
+    esmicp.register(repeated + 0.01, repeated, init="identity")
+    assert not [w for w in recwarn if issubclass(w.category, esmicp.CoincidentPointsWarning)]
+    assert len(repeated) * 0.1 > 300
+
+
+def test_repeated_points_warn_without_the_zero_advice():
+    cloud = _bunny_like(3000, 11)
+    doubled = np.vstack([cloud, cloud])
+    with pytest.warns(esmicp.CoincidentPointsWarning, match=r"^target: 3,000 of its 6,000 points \(50\.0%\)") as caught:
+        esmicp.register(cloud + 0.01, doubled, init="identity")
+    assert "depth sensors" not in str(caught[0].message)

@@ -11,7 +11,8 @@ import numpy as np
 
 from .core.correspondence import NearestNeighbors
 from .core.procrustes import apply, bounding_box_diagonal
-from .errors import IndexAlignmentWarning, InvalidInputError
+from .core.correspondence import coincident_points
+from .errors import CoincidentPointsWarning, IndexAlignmentWarning, InvalidInputError
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
 from .methods import METHODS, ConvergenceCriteria, make_estimator
@@ -19,7 +20,7 @@ from .methods.esm import COARSE_POINTS
 from .methods.guard import guarded_refine
 from .methods.local import Callback
 from .result import RegistrationResult
-from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, check_not_degenerate
+from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
 from .types import check_representable
 from .working_frame import WorkingFrame
 
@@ -35,6 +36,10 @@ INLIER_DISTANCE_SPACINGS = 3.0
 #: Below this fraction of source points matched to the target point of the same index, an
 #: ``esm-paper`` run is reported as not index-aligned.
 INDEX_ALIGNED_FRACTION = 0.5
+
+#: From this fraction of a cloud's points being exact copies of other points on, :func:`register`
+#: warns (:class:`~esmicp.errors.CoincidentPointsWarning`).
+COINCIDENT_WARNING_FRACTION = 0.1
 
 #: Seed of the global search when ``rng`` is None (results are reproducible by default).
 DEFAULT_SEED = 0
@@ -53,6 +58,7 @@ class _Request:
     criteria: ConvergenceCriteria
     rng: np.random.Generator
     inlier_distance: float | None
+    workers: int | None  # threads of every compiled kernel (None: every core)
 
 
 @keeps_keyboard_interrupt
@@ -69,6 +75,7 @@ def register(
     callback: Callback | None = None,
     record_history: bool = False,
     inlier_distance: float | None = None,
+    workers: int | None = None,
 ) -> RegistrationResult:
     """Rigidly register ``source`` onto ``target``.
 
@@ -87,7 +94,9 @@ def register(
         Where to start. None or ``"global"`` (the default): find the pose globally, from any
         rotation and translation, with the best measured strategy (``"auto"``: both strategies
         below, every candidate verified the same way). ``"rotation-search"`` or ``"features"``:
-        global with that strategy only (see :mod:`esmicp.globalreg.search`). ``"identity"`` (or
+        global with that strategy only (see :mod:`esmicp.globalreg.search`). ``"scan"``: global
+        for partially overlapping scans (RGB-D fragments, LiDAR): FPFH correspondences pruned by
+        second-order compatibility, verified on the overlap (:mod:`esmicp.globalreg.scan`). ``"identity"`` (or
         ``"none"``): pure local refinement from the identity. A 4x4 ``T_target_source``: pure local
         refinement from there.
     sigma : float, optional
@@ -110,6 +119,11 @@ def register(
     inlier_distance : float, optional
         Distance (cloud units) within which a source point counts as an inlier for ``fitness`` and
         ``inlier_rmse``. Default: 3 x the target's median point spacing.
+    workers : int, optional
+        Threads of the compiled kernels (nearest neighbours, moments), in the global search and
+        the refinement alike. None (the default) uses every core; pass 1 when registering many
+        pairs in parallel processes (as :func:`esmicp.register_many` does). The result is the same
+        for every value (the kernels sum in a fixed order).
 
     Returns
     -------
@@ -120,13 +134,15 @@ def register(
     InvalidInputError
         On malformed or degenerate clouds (or beyond float64 geometry, see
         :func:`esmicp.types.check_representable`), an unknown method, a malformed or non-rigid ``init``,
-        or non-positive ``sigma``, ``max_iterations`` or ``inlier_distance``.
+        or non-positive ``sigma``, ``max_iterations``, ``inlier_distance`` or ``workers``.
     """
     started = time.perf_counter()
-    request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance)
+    request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers)
     frame = WorkingFrame.for_target(request.target)
     source_points, target_points = frame.points(request.source), frame.points(request.target)
-    target_index = NearestNeighbors(target_points)
+    target_index = NearestNeighbors(target_points, workers=request.workers)
+    _warn_if_coincident(request.source, "source", coincident_points(request.source))
+    _warn_if_coincident(request.target, "target", target_index.coincident())
     diagonal = bounding_box_diagonal(target_points)
     initial, init_name, estimate = _start(request, source_points, target_points, target_index, frame)
     # After a global search (which ends at the finest sigma) the pose is already close: start in
@@ -160,7 +176,7 @@ def register(
     )
 
 
-def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance) -> _Request:
+def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers) -> _Request:
     """Stage 1: every argument checked (one clear :class:`InvalidInputError` otherwise)."""
     source_points = as_points(source, "source")
     target_points = as_points(target, "target")
@@ -178,6 +194,7 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
         criteria=ConvergenceCriteria(as_count(max_iterations, "max_iterations"), _as_tolerance(tolerance)),
         rng=as_generator(rng, default_seed=DEFAULT_SEED),
         inlier_distance=None if inlier_distance is None else as_positive(inlier_distance, "inlier_distance"),
+        workers=as_workers(workers),
     )
     if method == "esm-paper" and len(source_points) != len(target_points):
         warnings.warn(
@@ -195,7 +212,7 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
         return frame.transform_in(request.initial), request.init_name, None
     estimate = global_estimate(
         source, target, strategy=request.init_name, rng=request.rng, target_index=target_index,
-        target_spacing=target_index.spacing(),
+        target_spacing=target_index.spacing(), workers=request.workers,
     )
     return estimate.transformation, f"global:{estimate.strategies[0]}", estimate
 
@@ -207,13 +224,36 @@ def _evaluate(source, target_index, transformation, request: _Request) -> tuple[
     if inlier_distance is None:
         spacing = target_index.spacing()
         inlier_distance = INLIER_DISTANCE_SPACINGS * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target_index.points)
-    distances, indices = target_index.query_near(apply(transformation, source))
+    distances, indices = target_index.query_near(apply(transformation, source, target_index.workers))
     inliers = distances <= inlier_distance
     fitness = float(inliers.mean())
     inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
     if request.method == "esm-paper" and len(source) == len(target_index.points):
         _warn_if_not_index_aligned(indices)
     return fitness, inlier_rmse, float(inlier_distance)
+
+
+def _warn_if_coincident(points: np.ndarray, name: str, coincident) -> None:
+    """Warn when at least :data:`COINCIDENT_WARNING_FRACTION` of ``points`` are exact copies of
+    other points (``coincident``: :func:`~esmicp.core.correspondence.coincident_points` of them)."""
+    repeats, most, most_count, _ = coincident
+    if repeats < COINCIDENT_WARNING_FRACTION * len(points):
+        return
+    location = points[most]
+    where = ", ".join(f"{value:.6g}" for value in location)
+    advice = "deduplicate it (e.g. numpy.unique(points, axis=0))"
+    if not location.any():
+        advice += (
+            " and drop the (0, 0, 0) points: depth sensors store invalid pixels there "
+            "(e.g. points[(points != 0).any(axis=1)])"
+        )
+    warnings.warn(
+        f"{name}: {repeats:,} of its {len(points):,} points ({100.0 * repeats / len(points):.1f}%) are copies of "
+        f"other points (the most repeated: {most_count:,} at ({where})); copies add no information, and many "
+        f"at one place pull the fit toward it: {advice}",
+        CoincidentPointsWarning,
+        stacklevel=4,  # the caller of register (through its interrupt wrapper)
+    )
 
 
 def _check_start_representable(initial: np.ndarray, source_points: np.ndarray) -> None:

@@ -160,6 +160,18 @@ def as_count(value, name: str, minimum: int = 1) -> int:
     return int(value)
 
 
+def as_workers(value, name: str = "workers") -> int | None:
+    """Return the number of threads ``value`` asks for: None (every core) or a whole number >= 1,
+    or raise :class:`InvalidInputError`."""
+    if value is None:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise InvalidInputError(
+            f"{name}: expected a whole number of threads >= 1, or None for every core, got {value!r}"
+        )
+    return int(value)
+
+
 def as_positive(value, name: str) -> float:
     """Return ``value`` as a finite float > 0, or raise :class:`InvalidInputError`."""
     number = as_real(value, name)

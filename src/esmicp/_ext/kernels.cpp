@@ -14,6 +14,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <thread>
 #include <vector>
@@ -237,7 +238,26 @@ inline void mapped(const double *q, int64_t i, const double *r, const double *t,
     z = r[6] * a + r[7] * b + r[8] * c + t[2];
 }
 
-constexpr int64_t QUERY_PIECE = 1024;
+constexpr int64_t QUERY_PIECE = 256;
+
+//: Queries of fewer points than this run on the calling thread alone.
+constexpr int64_t PARALLEL_QUERY_MIN = 2048;
+
+// Nearest point of the tree to (x, y, z), seeded with the target point `warm` (-1: none): its
+// distance and target index (t.count when the tree is empty of candidates).
+inline void tree_nearest(const Tree &t, const int64_t *tree_rank, double x, double y, double z, int64_t warm,
+                         double &distance, int64_t &index) {
+    double best = INF;
+    int64_t slot = -1;
+    if (warm >= 0) {
+        slot = tree_rank[warm];
+        double ex = t.points[3 * slot] - x, ey = t.points[3 * slot + 1] - y, ez = t.points[3 * slot + 2] - z;
+        best = ex * ex + ey * ey + ez * ez;
+    }
+    nearest(t, x, y, z, best, slot);
+    distance = std::sqrt(best);
+    index = slot >= 0 ? t.order[slot] : t.count;
+}
 
 void tree_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, CIdx rank, CArr2 tree_points,
                 CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, Arr1 out_distances, Idx out_indices,
@@ -249,22 +269,13 @@ void tree_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, CId
     const int64_t *w = warm.data(), *rk = rank.data();
     double *od = out_distances.data();
     int64_t *oi = out_indices.data();
-    if (count < 512) threads = 1;
+    if (count < PARALLEL_QUERY_MIN) threads = 1;
     parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
         int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
         for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
             double x, y, z;
             mapped(q, i, r, tr, x, y, z);
-            double best = INF;
-            int64_t slot = -1;
-            if (w[i] >= 0) {
-                slot = rk[w[i]];
-                double ex = t.points[3 * slot] - x, ey = t.points[3 * slot + 1] - y, ez = t.points[3 * slot + 2] - z;
-                best = ex * ex + ey * ey + ez * ez;
-            }
-            nearest(t, x, y, z, best, slot);
-            od[i] = std::sqrt(best);
-            oi[i] = slot >= 0 ? t.order[slot] : t.count;
+            tree_nearest(t, rk, x, y, z, w[i], od[i], oi[i]);
         }
     });
 }
@@ -296,6 +307,106 @@ void build_table(CIdx cell_keys, Idx table_keys, Idx table_cells) {
 //: (exact, logarithmic), so that no dense cell makes the hash quadratic.
 constexpr int64_t CELL_SCAN_MAX = 256;
 
+struct Hash {
+    const double *sorted_points;
+    const int64_t *sorted_index, *rank, *cell_starts, *table_keys, *table_cells, *dims;
+    const double *low;
+    double cell, inverse_cell, limit;
+    int shift;
+    int64_t mask;
+};
+
+Hash make_hash(CArr2 sorted_points, CIdx sorted_index, CIdx rank, CIdx cell_starts, CIdx table_keys, CIdx table_cells,
+               CArr1 low, double cell, CIdx dims) {
+    const int64_t size = int64_t(table_keys.shape(0));
+    int bits = 0;
+    while ((int64_t(1) << bits) < size) ++bits;
+    return Hash{sorted_points.data(), sorted_index.data(), rank.data(), cell_starts.data(), table_keys.data(),
+                table_cells.data(), dims.data(), low.data(), cell, 1.0 / cell, cell * cell, 64 - bits, size - 1};
+}
+
+// Nearest target point to (qx, qy, qz), seeded with target point `warm` (-1: none): the 3 x 3 x 3
+// cells around it when `use_hash` (exact within one cell), otherwise (or beyond one cell, or at a
+// dense cell) the tree. Returns true when the nearest point is farther than one cell (a miss).
+inline bool hash_nearest(const Hash &h, const Tree &t, const int64_t *tree_rank, double qx, double qy, double qz,
+                         int64_t warm, bool use_hash, double &distance, int64_t &index) {
+    const double *sp = h.sorted_points;
+    const int64_t *cs = h.cell_starts, *dims = h.dims;
+    const double cell = h.cell, limit = h.limit;
+    double best = INF;
+    int64_t best_index = -1;
+    if (warm >= 0) {
+        int64_t k = h.rank[warm];
+        double ex = sp[3 * k] - qx, ey = sp[3 * k + 1] - qy, ez = sp[3 * k + 2] - qz;
+        best = ex * ex + ey * ey + ez * ez;
+        best_index = k;
+    }
+    bool dense = false;
+    if (use_hash) {
+        double fx = (qx - h.low[0]) * h.inverse_cell, fy = (qy - h.low[1]) * h.inverse_cell,
+               fz = (qz - h.low[2]) * h.inverse_cell;
+        // Beyond the grid (or NaN): no cell to scan.
+        bool inside = fx > -2.0 && fy > -2.0 && fz > -2.0 && fx < double(dims[0]) + 2.0 &&
+                      fy < double(dims[1]) + 2.0 && fz < double(dims[2]) + 2.0;
+        if (inside) {
+            int64_t cx = int64_t(std::floor(fx)), cy = int64_t(std::floor(fy)), cz = int64_t(std::floor(fz));
+            double ox = fx - cx, oy = fy - cy, oz = fz - cz;
+            double bound = best > limit ? limit : best;
+            for (int dz = -1; dz <= 1 && !dense; ++dz) {
+                int64_t z = cz + dz;
+                if (z < 0 || z >= dims[2]) continue;
+                double gz = dz == 0 ? 0.0 : ((dz < 0 ? oz : 1.0 - oz) * cell);
+                for (int dy = -1; dy <= 1 && !dense; ++dy) {
+                    int64_t y = cy + dy;
+                    if (y < 0 || y >= dims[1]) continue;
+                    double gy = dy == 0 ? 0.0 : ((dy < 0 ? oy : 1.0 - oy) * cell);
+                    for (int dx = -1; dx <= 1; ++dx) {
+                        int64_t x = cx + dx;
+                        if (x < 0 || x >= dims[0]) continue;
+                        double gx = dx == 0 ? 0.0 : ((dx < 0 ? ox : 1.0 - ox) * cell);
+                        if (gx * gx + gy * gy + gz * gz > bound) continue;
+                        int64_t key = x + dims[0] * (y + dims[1] * z);
+                        int64_t slot = hash_slot(key, h.shift), found = -1;
+                        while (true) {
+                            int64_t stored = h.table_keys[slot];
+                            if (stored == key) {
+                                found = h.table_cells[slot];
+                                break;
+                            }
+                            if (stored == -1) break;
+                            slot = (slot + 1) & h.mask;
+                        }
+                        if (found < 0) continue;
+                        if (cs[found + 1] - cs[found] > CELL_SCAN_MAX) {
+                            dense = true;
+                            break;
+                        }
+                        for (int64_t k = cs[found]; k < cs[found + 1]; ++k) {
+                            double ex = sp[3 * k] - qx, ey = sp[3 * k + 1] - qy, ez = sp[3 * k + 2] - qz;
+                            double squared = ex * ex + ey * ey + ez * ez;
+                            if (squared < best) {
+                                best = squared;
+                                best_index = k;
+                                if (squared < bound) bound = squared;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        if (!dense && best <= limit) {
+            distance = std::sqrt(best);
+            index = h.sorted_index[best_index];
+            return false;
+        }
+    }
+    int64_t slot = best_index < 0 ? -1 : tree_rank[h.sorted_index[best_index]];
+    nearest(t, qx, qy, qz, best, slot);
+    distance = std::sqrt(best);
+    index = slot >= 0 ? t.order[slot] : t.count;
+    return best > limit;
+}
+
 int64_t hash_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, CIdx rank, CArr2 sorted_points,
                    CIdx sorted_index, CIdx cell_starts, CIdx table_keys, CIdx table_cells, CArr1 low_, double cell,
                    CIdx dims_, CArr2 tree_points, CIdx tree_order, CIdx tree_rank, CIdx tree_starts, CIdx tree_ends,
@@ -303,101 +414,22 @@ int64_t hash_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, 
                    int threads) {
     Tree t{tree_points.data(), tree_order.data(), tree_starts.data(), tree_ends.data(), tree_lefts.data(),
            tree_boxes.data(), int64_t(tree_points.shape(0))};
-    const int64_t size = int64_t(table_keys.shape(0));
-    int bits = 0;
-    while ((int64_t(1) << bits) < size) ++bits;
-    const int shift = 64 - bits;
-    const int64_t mask = size - 1;
-    const double limit = cell * cell;
+    const Hash h = make_hash(sorted_points, sorted_index, rank, cell_starts, table_keys, table_cells, low_, cell, dims_);
     const int64_t count = int64_t(queries.shape(0));
     const double *q = queries.data(), *r = rotation.data(), *tr = translation.data();
-    const int64_t *w = warm.data(), *rk = rank.data(), *si = sorted_index.data(), *cs = cell_starts.data();
-    const int64_t *tk = table_keys.data(), *tc = table_cells.data(), *dims = dims_.data(), *trank = tree_rank.data();
-    const double *sp = sorted_points.data(), *low = low_.data();
+    const int64_t *w = warm.data(), *trank = tree_rank.data();
     double *od = out_distances.data();
     int64_t *oi = out_indices.data();
     const int64_t pieces = piece_count(count, QUERY_PIECE);
     std::vector<int64_t> misses(pieces, 0);
-    if (count < 512) threads = 1;
-    const double inverse_cell = 1.0 / cell;
+    if (count < PARALLEL_QUERY_MIN) threads = 1;
     parallel_pieces(pieces, threads, [&](int64_t piece) {
         int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
         int64_t piece_misses = 0;
         for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
             double qx, qy, qz;
             mapped(q, i, r, tr, qx, qy, qz);
-            double best = INF;
-            int64_t best_index = -1;
-            if (w[i] >= 0) {
-                int64_t k = rk[w[i]];
-                double ex = sp[3 * k] - qx, ey = sp[3 * k + 1] - qy, ez = sp[3 * k + 2] - qz;
-                best = ex * ex + ey * ey + ez * ez;
-                best_index = k;
-            }
-            bool dense = false;
-            if (use_hash) {
-                double fx = (qx - low[0]) * inverse_cell, fy = (qy - low[1]) * inverse_cell,
-                       fz = (qz - low[2]) * inverse_cell;
-                // Beyond the grid (or NaN): no cell to scan.
-                bool inside = fx > -2.0 && fy > -2.0 && fz > -2.0 && fx < double(dims[0]) + 2.0 &&
-                              fy < double(dims[1]) + 2.0 && fz < double(dims[2]) + 2.0;
-                if (inside) {
-                    int64_t cx = int64_t(std::floor(fx)), cy = int64_t(std::floor(fy)), cz = int64_t(std::floor(fz));
-                    double ox = fx - cx, oy = fy - cy, oz = fz - cz;
-                    double bound = best > limit ? limit : best;
-                    for (int dz = -1; dz <= 1 && !dense; ++dz) {
-                        int64_t z = cz + dz;
-                        if (z < 0 || z >= dims[2]) continue;
-                        double gz = dz == 0 ? 0.0 : ((dz < 0 ? oz : 1.0 - oz) * cell);
-                        for (int dy = -1; dy <= 1 && !dense; ++dy) {
-                            int64_t y = cy + dy;
-                            if (y < 0 || y >= dims[1]) continue;
-                            double gy = dy == 0 ? 0.0 : ((dy < 0 ? oy : 1.0 - oy) * cell);
-                            for (int dx = -1; dx <= 1; ++dx) {
-                                int64_t x = cx + dx;
-                                if (x < 0 || x >= dims[0]) continue;
-                                double gx = dx == 0 ? 0.0 : ((dx < 0 ? ox : 1.0 - ox) * cell);
-                                if (gx * gx + gy * gy + gz * gz > bound) continue;
-                                int64_t key = x + dims[0] * (y + dims[1] * z);
-                                int64_t slot = hash_slot(key, shift), found = -1;
-                                while (true) {
-                                    int64_t stored = tk[slot];
-                                    if (stored == key) {
-                                        found = tc[slot];
-                                        break;
-                                    }
-                                    if (stored == -1) break;
-                                    slot = (slot + 1) & mask;
-                                }
-                                if (found < 0) continue;
-                                if (cs[found + 1] - cs[found] > CELL_SCAN_MAX) {
-                                    dense = true;
-                                    break;
-                                }
-                                for (int64_t k = cs[found]; k < cs[found + 1]; ++k) {
-                                    double ex = sp[3 * k] - qx, ey = sp[3 * k + 1] - qy, ez = sp[3 * k + 2] - qz;
-                                    double squared = ex * ex + ey * ey + ez * ez;
-                                    if (squared < best) {
-                                        best = squared;
-                                        best_index = k;
-                                        if (squared < bound) bound = squared;
-                                    }
-                                }
-                            }
-                        }
-                    }
-                }
-                if (!dense && best <= limit) {
-                    od[i] = std::sqrt(best);
-                    oi[i] = si[best_index];
-                    continue;
-                }
-            }
-            int64_t slot = best_index < 0 ? -1 : trank[si[best_index]];
-            nearest(t, qx, qy, qz, best, slot);
-            if (best > limit) ++piece_misses;
-            od[i] = std::sqrt(best);
-            oi[i] = slot >= 0 ? t.order[slot] : t.count;
+            piece_misses += hash_nearest(h, t, trank, qx, qy, qz, w[i], use_hash, od[i], oi[i]);
         }
         misses[piece] = piece_misses;
     });
@@ -410,12 +442,11 @@ int64_t hash_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, 
 // Pair moments.
 constexpr int64_t SUM_PIECE = 4096;
 
-void pair_moments(CArr2 source, CArr2 rotation, CArr1 translation, CArr2 target, CIdx indices, CArr1 distances,
-                  double scale, double shift, Arr1 out, int threads) {
-    const int64_t count = int64_t(source.shape(0));
-    const double *s = source.data(), *r = rotation.data(), *tr = translation.data(), *tg = target.data();
-    const int64_t *ix = indices.data();
-    const double *d = distances.data();
+// The 17 moments of the pairs (R x_i + t, target[indices[i]]) with weights
+// exp(-(d_i^2 - shift) * scale) (1 where scale is 0): sum w, sum w^2, the weighted centroids and
+// the weighted cross-covariance (see esmicp.core.moments.pair_moments).
+void moments_of_pairs(const double *s, int64_t count, const double *r, const double *tr, const double *tg,
+                      const int64_t *ix, const double *d, double scale, double shift, double *o, int threads) {
     double sref[3], tref[3];
     for (int a = 0; a < 3; ++a) {
         sref[a] = r[3 * a] * s[0] + r[3 * a + 1] * s[1] + r[3 * a + 2] * s[2] + tr[a];
@@ -457,7 +488,6 @@ void pair_moments(CArr2 source, CArr2 rotation, CArr1 translation, CArr2 target,
     double sums[17] = {0};
     for (int64_t p = 0; p < pieces; ++p)
         for (int k = 0; k < 17; ++k) sums[k] += partial[17 * p + k];
-    double *o = out.data();
     const double total = sums[0];
     o[0] = total;
     o[1] = sums[1];
@@ -469,6 +499,92 @@ void pair_moments(CArr2 source, CArr2 rotation, CArr1 translation, CArr2 target,
         o[5 + a] = sums[5 + a] / total + tref[a];
     }
 }
+
+void pair_moments(CArr2 source, CArr2 rotation, CArr1 translation, CArr2 target, CIdx indices, CArr1 distances,
+                  double scale, double shift, Arr1 out, int threads) {
+    moments_of_pairs(source.data(), int64_t(source.shape(0)), rotation.data(), translation.data(), target.data(),
+                     indices.data(), distances.data(), scale, shift, out.data(), threads);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Rotations from 3x3 matrices: Horn's quaternion method. The rotation R maximising trace(R H)
+// (H = sum s t^T: the Kabsch rotation taking s onto t, reflection excluded) is the rotation of the
+// eigenvector of the largest eigenvalue of a symmetric 4x4 matrix, found by cyclic Jacobi sweeps
+// (accurate to rounding, no special case for rank-deficient H).
+void best_rotation(const double *h, double *r) {
+    double scale = 0.0;
+    for (int k = 0; k < 9; ++k) scale = std::max(scale, std::fabs(h[k]));
+    if (!(scale > 0.0) || !std::isfinite(scale)) {
+        if (std::isfinite(scale)) {  // H = 0: the identity, as the SVD gives
+            for (int k = 0; k < 9; ++k) r[k] = (k % 4 == 0) ? 1.0 : 0.0;
+        } else {
+            for (int k = 0; k < 9; ++k) r[k] = std::numeric_limits<double>::quiet_NaN();
+        }
+        return;
+    }
+    const double xx = h[0] / scale, xy = h[1] / scale, xz = h[2] / scale, yx = h[3] / scale, yy = h[4] / scale,
+                 yz = h[5] / scale, zx = h[6] / scale, zy = h[7] / scale, zz = h[8] / scale;
+    double a[4][4] = {{xx + yy + zz, yz - zy, zx - xz, xy - yx},
+                      {yz - zy, xx - yy - zz, xy + yx, zx + xz},
+                      {zx - xz, xy + yx, -xx + yy - zz, yz + zy},
+                      {xy - yx, zx + xz, yz + zy, -xx - yy + zz}};
+    double v[4][4] = {{1, 0, 0, 0}, {0, 1, 0, 0}, {0, 0, 1, 0}, {0, 0, 0, 1}};
+    for (int sweep = 0; sweep < 64; ++sweep) {
+        double off = 0.0, diagonal = 0.0;
+        for (int i = 0; i < 4; ++i) {
+            diagonal += a[i][i] * a[i][i];
+            for (int j = i + 1; j < 4; ++j) off += a[i][j] * a[i][j];
+        }
+        if (off <= 1e-36 * diagonal || off == 0.0) break;
+        for (int p = 0; p < 3; ++p) {
+            for (int q = p + 1; q < 4; ++q) {
+                if (a[p][q] == 0.0) continue;
+                double theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
+                double t = (theta >= 0 ? 1.0 : -1.0) / (std::fabs(theta) + std::sqrt(theta * theta + 1.0));
+                double c = 1.0 / std::sqrt(t * t + 1.0), sn = t * c;
+                for (int k = 0; k < 4; ++k) {  // columns p, q of A
+                    double akp = a[k][p], akq = a[k][q];
+                    a[k][p] = c * akp - sn * akq;
+                    a[k][q] = sn * akp + c * akq;
+                }
+                for (int k = 0; k < 4; ++k) {  // rows p, q of A
+                    double apk = a[p][k], aqk = a[q][k];
+                    a[p][k] = c * apk - sn * aqk;
+                    a[q][k] = sn * apk + c * aqk;
+                }
+                for (int k = 0; k < 4; ++k) {
+                    double vkp = v[k][p], vkq = v[k][q];
+                    v[k][p] = c * vkp - sn * vkq;
+                    v[k][q] = sn * vkp + c * vkq;
+                }
+            }
+        }
+    }
+    int top = 0;
+    for (int i = 1; i < 4; ++i)
+        if (a[i][i] > a[top][top]) top = i;
+    double w = v[0][top], x = v[1][top], y = v[2][top], z = v[3][top];
+    const double norm = std::sqrt(w * w + x * x + y * y + z * z);
+    w /= norm; x /= norm; y /= norm; z /= norm;
+    r[0] = w * w + x * x - y * y - z * z; r[1] = 2 * (x * y - w * z);         r[2] = 2 * (x * z + w * y);
+    r[3] = 2 * (x * y + w * z);         r[4] = w * w - x * x + y * y - z * z; r[5] = 2 * (y * z - w * x);
+    r[6] = 2 * (x * z - w * y);         r[7] = 2 * (y * z + w * x);         r[8] = w * w - x * x - y * y + z * z;
+}
+
+// The rotation nearest (Frobenius) to the 3x3 matrix m: the one maximising trace(R^T m).
+inline void nearest_rotation(const double *m, double *r) {
+    const double transposed[9] = {m[0], m[3], m[6], m[1], m[4], m[7], m[2], m[5], m[8]};
+    best_rotation(transposed, r);
+}
+
+inline double angle_of(const double *r) {
+    const double sx = r[7] - r[5], sy = r[2] - r[6], sz = r[3] - r[1];
+    return std::atan2(0.5 * std::sqrt(sx * sx + sy * sy + sz * sz), 0.5 * (r[0] + r[4] + r[8] - 1.0));
+}
+
+void kabsch(CArr2 cross_covariance, Arr2 out) { best_rotation(cross_covariance.data(), out.data()); }
+
+void closest_rotation(CArr2 matrix, Arr2 out) { nearest_rotation(matrix.data(), out.data()); }
 
 inline void add_outer(double *h, double w, double ax, double ay, double az, double bx, double by, double bz) {
     h[0] += w * ax * bx; h[1] += w * ax * by; h[2] += w * ax * bz;
@@ -545,6 +661,234 @@ void paper_moments(CArr2 source, CArr2 rotation, CArr1 translation, CArr2 target
         for (int k = 0; k < 9; ++k) o[8 + k] += blocks[9 * p + k];
 }
 
+// ---------------------------------------------------------------------------------------------
+// One iteration of the local loop in one call: nearest neighbours (hash and tree, warm-started),
+// the weights' sigma, the pair moments, the Kabsch increment and the composed pose.
+//
+// Weighting (`weighting`, 5 numbers): fixed sigma (> 0) or 0; the sigma floor; the factor on the
+// median distance; 1 in the fine phase (sigma = floor) else 0; 1 for Gaussian weights, 0 for
+// weights of 1 (icp). Objective sigma (> 0: also return the mean of exp(-d^2 / (2 s^2))).
+//
+// out (STEP_OUT numbers): sigma, rmse, objective, misses, effective pairs, increment angle,
+// increment translation norm, R (9), t (3), the composed pose (16, re-orthonormalised), the motion
+// of the pose (angle, translation norm).
+constexpr int STEP_OUT = 40;
+
+struct Index {
+    CArr2 target;
+    CArr2 tree_points;
+    CIdx tree_order, tree_rank, tree_starts, tree_ends, tree_lefts;
+    CArr2 tree_boxes;
+    bool has_hash = false;
+    CArr2 sorted_points;
+    CIdx sorted_index, hash_rank, cell_starts, table_keys, table_cells, dims;
+    CArr1 low;
+    double cell = 0.0;
+
+    Index(CArr2 target_, CArr2 points, CIdx order, CIdx rank, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes)
+        : target(target_), tree_points(points), tree_order(order), tree_rank(rank), tree_starts(starts),
+          tree_ends(ends), tree_lefts(lefts), tree_boxes(boxes) {}
+
+    void set_hash(CArr2 sorted_points_, CIdx sorted_index_, CIdx rank_, CIdx cell_starts_, CIdx table_keys_,
+                  CIdx table_cells_, CArr1 low_, double cell_, CIdx dims_) {
+        sorted_points = sorted_points_;
+        sorted_index = sorted_index_;
+        hash_rank = rank_;
+        cell_starts = cell_starts_;
+        table_keys = table_keys_;
+        table_cells = table_cells_;
+        low = low_;
+        cell = cell_;
+        dims = dims_;
+        has_hash = true;
+    }
+
+    void step(CArr2 source, CArr2 pose, Idx indices, Arr1 distances, bool warm, bool use_hash, CArr1 weighting_,
+              double objective_sigma, Arr1 out_, int threads) {
+        const int64_t count = int64_t(source.shape(0));
+        if (count == 0) throw nb::value_error("step needs at least one source point");
+        if (int64_t(indices.shape(0)) != count || int64_t(distances.shape(0)) != count)
+            throw nb::value_error("step: indices and distances must have one entry per source point");
+        if (pose.shape(0) != 4 || pose.shape(1) != 4) throw nb::value_error("step: pose must be 4x4");
+        const double *T = pose.data(), *s = source.data(), *weighting = weighting_.data();
+        const double r0[9] = {T[0], T[1], T[2], T[4], T[5], T[6], T[8], T[9], T[10]};
+        const double t0[3] = {T[3], T[7], T[11]};
+        double *out = out_.data();
+        Tree t{tree_points.data(), tree_order.data(), tree_starts.data(), tree_ends.data(), tree_lefts.data(),
+               tree_boxes.data(), int64_t(tree_points.shape(0))};
+        const int64_t *trank = tree_rank.data();
+        const bool hashed = has_hash && use_hash;
+        Hash h{};
+        if (has_hash) h = make_hash(sorted_points, sorted_index, hash_rank, cell_starts, table_keys, table_cells, low,
+                                    cell, dims);
+        int64_t *ix = indices.data();
+        double *d = distances.data();
+        const double objective_scale =
+            objective_sigma > 0.0 ? 1.0 / (2.0 * std::max(objective_sigma, 1e-150) * std::max(objective_sigma, 1e-150))
+                                  : 0.0;
+        // Pass 1: the queries; per piece the misses, sum d^2, min d^2 and the objective's sum.
+        const int64_t pieces = piece_count(count, QUERY_PIECE);
+        std::vector<double> partial(4 * pieces, 0.0);
+        int query_threads = count < PARALLEL_QUERY_MIN ? 1 : threads;
+        parallel_pieces(pieces, query_threads, [&](int64_t piece) {
+            int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
+            double misses = 0.0, squares = 0.0, least = INF, objective = 0.0;
+            for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
+                double x, y, z;
+                mapped(s, i, r0, t0, x, y, z);
+                int64_t seed = warm ? ix[i] : -1;
+                if (has_hash) {
+                    misses += hash_nearest(h, t, trank, x, y, z, seed, hashed, d[i], ix[i]);
+                } else {
+                    tree_nearest(t, trank, x, y, z, seed, d[i], ix[i]);
+                }
+                double squared = d[i] * d[i];
+                squares += squared;
+                least = std::min(least, squared);
+                if (objective_scale > 0.0) objective += std::exp(-squared * objective_scale);
+            }
+            double *row = partial.data() + 4 * piece;
+            row[0] = misses; row[1] = squares; row[2] = least; row[3] = objective;
+        });
+        double misses = 0.0, squares = 0.0, least = INF, objective = 0.0;
+        for (int64_t p = 0; p < pieces; ++p) {
+            misses += partial[4 * p];
+            squares += partial[4 * p + 1];
+            least = std::min(least, partial[4 * p + 2]);
+            objective += partial[4 * p + 3];
+        }
+        // The sigma of this step.
+        const double fixed = weighting[0], floor = weighting[1], factor = weighting[2];
+        const bool fine = weighting[3] != 0.0, gaussian = weighting[4] != 0.0;
+        double sigma = std::numeric_limits<double>::quiet_NaN(), scale = 0.0;
+        if (gaussian) {
+            if (fixed > 0.0) {
+                sigma = fixed;
+            } else if (fine) {
+                sigma = floor;
+            } else {
+                std::vector<double> copy(d, d + count);
+                const int64_t middle = count / 2;
+                std::nth_element(copy.begin(), copy.begin() + middle, copy.end());
+                double median = copy[middle];
+                if (count % 2 == 0) median = (*std::max_element(copy.begin(), copy.begin() + middle) + median) / 2.0;
+                sigma = std::max(floor, factor * median);
+            }
+            const double bounded = std::max(sigma, 1e-150);
+            scale = 1.0 / (2.0 * bounded * bounded);
+        }
+        // Pass 2: the moments, and the increment.
+        double m[17];
+        moments_of_pairs(s, count, r0, t0, target.data(), ix, d, scale, gaussian ? least : 0.0, m, threads);
+        double r[9], tr[3];
+        best_rotation(m + 8, r);
+        for (int a = 0; a < 3; ++a) tr[a] = m[5 + a] - (r[3 * a] * m[2] + r[3 * a + 1] * m[3] + r[3 * a + 2] * m[4]);
+        // The composed pose [R | t] @ T, its rotation re-orthonormalised.
+        double product[9], rotation[9], translation[3];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                product[3 * i + j] = r[3 * i] * r0[j] + r[3 * i + 1] * r0[3 + j] + r[3 * i + 2] * r0[6 + j];
+        nearest_rotation(product, rotation);
+        for (int i = 0; i < 3; ++i) translation[i] = r[3 * i] * t0[0] + r[3 * i + 1] * t0[1] + r[3 * i + 2] * t0[2] + tr[i];
+        // Its motion from T: rotation part rotation @ r0^T, translation translation - (that) t0.
+        double relative[9], moved[3];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                relative[3 * i + j] = rotation[3 * i] * r0[3 * j] + rotation[3 * i + 1] * r0[3 * j + 1] +
+                                      rotation[3 * i + 2] * r0[3 * j + 2];
+        for (int i = 0; i < 3; ++i)
+            moved[i] = translation[i] - (relative[3 * i] * t0[0] + relative[3 * i + 1] * t0[1] + relative[3 * i + 2] * t0[2]);
+        out[0] = sigma;
+        out[1] = std::sqrt(squares / double(count));
+        out[2] = objective / double(count);
+        out[3] = misses;
+        out[4] = m[1] > 0.0 ? m[0] * m[0] / m[1] : 0.0;
+        out[5] = angle_of(r);
+        out[6] = std::sqrt(tr[0] * tr[0] + tr[1] * tr[1] + tr[2] * tr[2]);
+        for (int k = 0; k < 9; ++k) out[7 + k] = r[k];
+        for (int k = 0; k < 3; ++k) out[16 + k] = tr[k];
+        double *composed = out + 19;
+        for (int i = 0; i < 3; ++i) {
+            for (int j = 0; j < 3; ++j) composed[4 * i + j] = rotation[3 * i + j];
+            composed[4 * i + 3] = translation[i];
+        }
+        composed[12] = composed[13] = composed[14] = 0.0;
+        composed[15] = 1.0;
+        out[35] = angle_of(relative);
+        out[36] = std::sqrt(moved[0] * moved[0] + moved[1] * moved[1] + moved[2] * moved[2]);
+        out[37] = m[0];
+        out[38] = m[1];
+        out[39] = 0.0;
+    }
+};
+
+// ---------------------------------------------------------------------------------------------
+// Coincident points: one pass with a hash table of exact coordinates (-0.0 counts as 0.0).
+// Marks first[i] = 1 for the first occurrence of each distinct point, 0 for a repeat; returns
+// (repeats, index of the most repeated point, its number of occurrences).
+inline uint64_t coordinate_bits(double value) {
+    value += 0.0;  // -0.0 -> +0.0
+    uint64_t bits;
+    std::memcpy(&bits, &value, sizeof bits);
+    return bits;
+}
+
+nb::tuple coincident(CArr2 points_, nb::ndarray<uint8_t, nb::ndim<1>, nb::c_contig, nb::device::cpu> first_) {
+    const int64_t count = int64_t(points_.shape(0));
+    const double *p = points_.data();
+    uint8_t *first = first_.data();
+    int bits = 4;
+    while ((int64_t(1) << bits) < 2 * count) ++bits;
+    const int64_t size = int64_t(1) << bits, mask = size - 1;
+    const int shift = 64 - bits;
+    struct Slot {
+        int64_t index = -1, count = 0;
+    };
+    std::vector<Slot> slots(size);
+    int64_t repeats = 0, most = 0, most_count = count > 0 ? 1 : 0;
+    for (int64_t i = 0; i < count; ++i) {
+        if ((i & ((int64_t(1) << 16) - 1)) == 0 && i > 0 && PyErr_CheckSignals() != 0) throw nb::python_error();
+        const uint64_t x = coordinate_bits(p[3 * i]), y = coordinate_bits(p[3 * i + 1]), z = coordinate_bits(p[3 * i + 2]);
+        uint64_t key = x * HASH_MULTIPLIER;
+        key = (key ^ (key >> 29) ^ y) * HASH_MULTIPLIER;
+        key = (key ^ (key >> 29) ^ z) * HASH_MULTIPLIER;
+        int64_t slot = int64_t(key >> uint64_t(shift));
+        while (true) {
+            const int64_t stored = slots[slot].index;
+            if (stored < 0) {
+                slots[slot].index = i;
+                slots[slot].count = 1;
+                first[i] = 1;
+                break;
+            }
+            if (p[3 * stored] == p[3 * i] && p[3 * stored + 1] == p[3 * i + 1] && p[3 * stored + 2] == p[3 * i + 2]) {
+                first[i] = 0;
+                ++repeats;
+                if (++slots[slot].count > most_count) {
+                    most_count = slots[slot].count;
+                    most = stored;
+                }
+                break;
+            }
+            slot = (slot + 1) & mask;
+        }
+    }
+    return nb::make_tuple(repeats, most, most_count);
+}
+
+// points @ R^T + t into out (N, 3), on `threads` threads (NumPy would call BLAS, whose own
+// threads then compete with the kernels').
+void transform_points(CArr2 points, CArr2 rotation, CArr1 translation, Arr2 out_, int threads) {
+    const int64_t count = int64_t(points.shape(0));
+    const double *q = points.data(), *r = rotation.data(), *t = translation.data();
+    double *o = out_.data();
+    if (count < 65536) threads = 1;
+    parallel_pieces(piece_count(count, SUM_PIECE), threads, [&](int64_t piece) {
+        int64_t end = std::min(count, (piece + 1) * SUM_PIECE);
+        for (int64_t i = piece * SUM_PIECE; i < end; ++i) mapped(q, i, r, t, o[3 * i], o[3 * i + 1], o[3 * i + 2]);
+    });
+}
+
 }  // namespace
 
 NB_MODULE(_kernels, m) {
@@ -557,5 +901,14 @@ NB_MODULE(_kernels, m) {
     m.def("hash_query", &hash_query);
     m.def("pair_moments", &pair_moments);
     m.def("paper_moments", &paper_moments);
+    m.def("kabsch", &kabsch);
+    m.def("transform_points", &transform_points);
+    m.def("coincident", &coincident);
+    m.def("nearest_rotation", &closest_rotation);
+    m.attr("STEP_OUT") = STEP_OUT;
+    nb::class_<Index>(m, "Index")
+        .def(nb::init<CArr2, CArr2, CIdx, CIdx, CIdx, CIdx, CIdx, CArr2>())
+        .def("set_hash", &Index::set_hash)
+        .def("step", &Index::step);
     m.def("hardware_threads", []() { return int(std::max(1u, std::thread::hardware_concurrency())); });
 }

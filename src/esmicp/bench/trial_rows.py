@@ -7,19 +7,15 @@ uniform on SO(3) would put most trials near 180 degrees) and rotate the source a
 centroid with a small shift, so that local methods started from the identity are tested on the
 rotation they must undo.
 
-``python -m esmicp.bench.trial_rows OUT_DIR [--rows-out rows.jsonl]`` writes the plots in OUT_DIR
-(and the rows, when asked).
+``benchmarks/bench_plot_rows.py OUT_DIR [--rows-out rows.jsonl]`` writes the plots from these rows
+(the library holds no command line).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 import time
 import warnings
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
@@ -150,32 +146,3 @@ def local_trial_rows(
                     sigma = float(f"{fraction * diagonal:.4g}")
                     rows.append(trial_row(trial, sweep_method, dataset=dataset, index=index, seed=seed, sigma=sigma))
     return rows
-
-
-def main(argv=None) -> int:
-    from ..viz.bench_plots import write_bench_plots
-    from ..io.atomic import atomic_write
-
-    parser = argparse.ArgumentParser(prog="python -m esmicp.bench.trial_rows", description=__doc__)
-    parser.add_argument("out_dir", type=Path)
-    parser.add_argument("--trials", type=int, default=12)
-    parser.add_argument("--points", type=int, default=600)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--rows-out", type=Path, metavar="FILE", help="also write the rows here (JSON Lines)")
-    parser.add_argument("--force", action="store_true", help="overwrite existing files")
-    args = parser.parse_args(argv)
-    try:
-        rows = local_trial_rows(trials=args.trials, points=args.points, seed=args.seed)
-        if args.rows_out is not None:
-            with atomic_write(args.rows_out, args.force, mode="w") as handle:
-                handle.writelines(json.dumps(row) + "\n" for row in rows)
-        for path in write_bench_plots(rows, args.out_dir, overwrite=args.force):
-            print(path)
-    except EsmicpError as exc:
-        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -41,7 +41,8 @@ def add_parser(commands) -> None:
     reg.add_argument(
         "--init", default="global", metavar="FILE|STRATEGY",
         help="where to start: 'global' (default: find the pose from anywhere), 'rotation-search' or "
-        "'features' (global with one strategy), 'identity' (local refinement only), or a file "
+        "'features' (global with one strategy), 'scan' (global, for partially overlapping scans: "
+        "RGB-D fragments, LiDAR), 'identity' (local refinement only), or a file "
         "holding a 4x4 T_target_source to refine from",
     )
     reg.add_argument(
@@ -52,6 +53,11 @@ def add_parser(commands) -> None:
         "--sample-points", type=positive_int, metavar="N",
         help="for mesh files (.off .obj .stl, .ply with faces): sample N points on the surface "
         "instead of taking the vertices (seeded by --seed)",
+    )
+    reg.add_argument(
+        "--bin-columns", type=int, choices=(3, 4), metavar="{3,4}",
+        help="for headerless float32 .bin scans: floats per point, 4 for KITTI velodyne (x y z "
+        "intensity), 3 for x y z (default: from the file size; a size that fits both is refused)",
     )
     reg.add_argument("--seed", type=int, default=0, help="seed of the global search and --sample-points (default 0)")
     reg.add_argument(
@@ -100,8 +106,10 @@ def _run_register(args) -> int:
     _check_distinct_outputs(output=args.output, transform_out=args.transform_out)
     _check_output(args.output, args.force, "points")
     _check_output(args.transform_out, args.force, "transform")
-    source = io.read_points(args.source, sample_points=args.sample_points, rng=args.seed)
-    target = io.read_points(args.target, sample_points=args.sample_points, rng=args.seed + 1)
+    source = io.read_points(args.source, sample_points=args.sample_points, rng=args.seed, bin_columns=args.bin_columns)
+    target = io.read_points(
+        args.target, sample_points=args.sample_points, rng=args.seed + 1, bin_columns=args.bin_columns
+    )
     init = args.init if args.init in INIT_NAMES else io.read_transform(Path(args.init))
     result = register(
         source, target, method=args.method, init=init, sigma=args.sigma, rng=args.seed,

@@ -35,13 +35,9 @@ def available() -> bool:
 
 
 def threads(workers: int | None = None) -> int:
-    """Threads for a kernel call: ``workers`` (None or -1: :data:`esmicp.core.correspondence.DEFAULT_WORKERS`,
-    whose -1 means every core; 0 is passed to the kernels for "every core")."""
-    if workers is None or workers == -1:
-        from .correspondence import DEFAULT_WORKERS
-
-        workers = DEFAULT_WORKERS
-    return 0 if workers is None or workers < 1 else int(workers)
+    """Threads for a kernel call: ``workers`` (a whole number >= 1), or 0 ("every core", as the
+    kernels read it) for None. The number is always an argument, never a module setting."""
+    return 0 if workers is None else int(workers)
 
 
 def query_arguments(points: np.ndarray, transform: np.ndarray | None, warm: np.ndarray | None):

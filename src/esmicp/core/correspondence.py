@@ -13,16 +13,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .. import _kernels
 from . import compiled_tree, voxel_hash
 
-
-#: Queries of fewer points than this run on one thread: below it, starting threads costs more
-#: than it saves (measured here: 500 points 0.21 ms on one thread, 0.39 ms on all; parity at ~2k).
-PARALLEL_QUERY_MIN = 4096
-
-#: Threads that ``workers=-1`` stands for (-1: every core). :func:`esmicp.register_many`'s worker
-#: processes set it to 1, the pool itself using the cores.
-DEFAULT_WORKERS = -1
 
 #: Cell edge of the voxel hash of :meth:`NearestNeighbors.query_near`, in target point spacings.
 #: Queries whose nearest target point is within one cell are answered by the hash. Measured on the
@@ -30,8 +23,10 @@ DEFAULT_WORKERS = -1
 #: and 5 spacings cost 80, 67 and 38 ms with warm starts, scipy's KD-tree 127-255 ms.
 NEAR_CELL_SPACINGS = 5.0
 
-#: Below this many query points :meth:`NearestNeighbors.query_near` uses the KD-tree alone.
-NEAR_QUERY_MIN = 2048
+#: Below this many query points :meth:`NearestNeighbors.query_near` uses the KD-tree alone (a
+#: few queries do not pay for building the hash). Measured on the bunny at 1,000 points, near the
+#: solution, one thread: the compiled step 137 us of CPU with the hash, 230 us with the tree alone.
+NEAR_QUERY_MIN = 256
 
 #: :meth:`NearestNeighbors.query_near` skips the voxel hash while more than this fraction of the
 #: last call's points had their neighbour beyond one cell (a LiDAR scan far from the sensor, or a
@@ -39,18 +34,29 @@ NEAR_QUERY_MIN = 2048
 HASH_MISS_LIMIT = 0.5
 
 
+def coincident_points(points: np.ndarray) -> tuple[int, int, int, np.ndarray]:
+    """``(repeats, most_index, most_count, first)`` of ``(N, 3)`` points, in one O(N) pass (a hash
+    of exact coordinates): how many points equal an earlier one, the index of the most repeated
+    point and its number of occurrences, and a boolean mask of the first occurrence of each
+    distinct point."""
+    first = np.empty(len(points), dtype=np.uint8)
+    repeats, most, most_count = _kernels.coincident(np.ascontiguousarray(points, dtype=np.float64), first)
+    return int(repeats), int(most), int(most_count), first.view(bool)
+
+
 class NearestNeighbors:
-    """KD-tree over a target cloud; queries run on all cores.
+    """KD-tree over a target cloud; queries run on ``workers`` threads.
 
     Parameters
     ----------
     target : (M, 3) float64 array
         The cloud to search in (target frame). Kept by reference: do not mutate it afterwards.
-    workers : int
-        Threads for queries; -1 uses every core.
+    workers : int or None
+        Threads of every compiled call made through this index (queries, and the steps of the
+        local loop that uses it); None uses every core.
     """
 
-    def __init__(self, target: np.ndarray, *, workers: int = -1):
+    def __init__(self, target: np.ndarray, *, workers: int | None = None):
         self.points = target
         self.workers = workers
         self._scipy_tree: cKDTree | None = None
@@ -58,19 +64,22 @@ class NearestNeighbors:
         self._spacing: float | None = None
         self._near: voxel_hash.VoxelHash | None = None
         self._hash_misses = 0.0  # fraction of the last near query's points beyond one hash cell
+        self._index: "_kernels.Index | None" = None  # the compiled index of :meth:`step`
+        self._coincident: tuple[int, int, int, np.ndarray] | None = None
+        self._index_hashed = False
 
     @property
     def _tree(self) -> cKDTree:
-        """scipy's KD-tree (k nearest neighbours, and every query where numba is missing)."""
+        """scipy's KD-tree (k nearest neighbours, for :meth:`spacing`)."""
         if self._scipy_tree is None:
             # A sliding-midpoint tree without node compaction builds about twice as fast as scipy's
             # default for point clouds and queries as fast (measured on the bunny and the LiDAR pair).
             self._scipy_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
         return self._scipy_tree
 
-    def exact_tree(self) -> "compiled_tree.CompiledTree | None":
+    def exact_tree(self) -> "compiled_tree.CompiledTree":
         """The compiled KD-tree of the target (built on first use)."""
-        if self._compiled is None and compiled_tree.available():
+        if self._compiled is None:
             self._compiled = compiled_tree.CompiledTree(self.points)
         return self._compiled
 
@@ -82,15 +91,7 @@ class NearestNeighbors:
 
         ``distances`` are Euclidean, in the clouds' units; ``indices`` index ``self.points``.
         """
-        tree = self.exact_tree()
-        if tree is not None:
-            return tree.query(points, workers=self.workers)
-        workers = self._workers() if len(points) >= PARALLEL_QUERY_MIN else 1
-        distances, indices = self._tree.query(points, k=1, workers=workers)
-        return distances, indices
-
-    def _workers(self) -> int:
-        return DEFAULT_WORKERS if self.workers == -1 else self.workers
+        return self.exact_tree().query(points, workers=self.workers)
 
     def query_near(
         self, points: np.ndarray, warm: np.ndarray | None = None, transform: np.ndarray | None = None
@@ -104,8 +105,6 @@ class NearestNeighbors:
         points whose neighbour is within a few spacings, the compiled tree the rest.
         """
         tree = self.exact_tree()
-        if tree is None:  # no numba: scipy's tree for everything
-            return self.query(points if transform is None else points @ transform[:3, :3].T + transform[:3, 3])
         near = self._near_index() if len(points) >= NEAR_QUERY_MIN else None
         if near is None:
             return tree.query(points, transform=transform, warm=warm, workers=self.workers)
@@ -114,6 +113,45 @@ class NearestNeighbors:
                                                 workers=self.workers)
         self._hash_misses = misses / len(points)
         return distances, indices
+
+    def step(self, source: np.ndarray, transformation: np.ndarray, indices: np.ndarray, distances: np.ndarray,
+             out: np.ndarray, *, warm: bool, weighting: np.ndarray, objective_sigma: float) -> np.ndarray:
+        """One local iteration in one compiled call: the nearest target point of each source point
+        as placed by ``transformation`` (exactly what :meth:`query_near` returns, written into
+        ``indices`` and ``distances``; ``warm``: ``indices`` holds last iteration's neighbours), the
+        weights, the pair moments, the Kabsch increment and the composed pose, into ``out``.
+
+        ``source`` (N, 3) and ``transformation`` (4, 4) are C-contiguous float64; ``indices`` (N,)
+        int64 and ``distances`` (N,) float64 are filled in place. ``weighting`` is
+        ``(fixed sigma or 0, sigma floor, factor on the median distance, 1 in the fine phase, 1 for
+        Gaussian weights / 0 for weights of 1)``; ``objective_sigma`` > 0 asks for the mean
+        Gaussian similarity at that sigma too. ``out`` (``_kernels.STEP_OUT``): sigma, RMS
+        distance, objective, misses, effective pairs, increment angle and translation norm,
+        increment rotation (9) and translation (3), the composed pose (16), its motion (angle,
+        translation norm), sum of weights, sum of squared weights.
+        """
+        near = len(source) >= NEAR_QUERY_MIN
+        index = self._compiled_index(near)
+        use_hash = bool(near and self._index_hashed and self._hash_misses <= HASH_MISS_LIMIT)
+        index.step(source, transformation, indices, distances, warm, use_hash, weighting, objective_sigma, out,
+                   compiled_tree.threads(self.workers))
+        if near and self._index_hashed:
+            self._hash_misses = float(out[3]) / len(source)
+        return out
+
+    def _compiled_index(self, hashed: bool) -> "_kernels.Index":
+        if self._index is None:
+            tree = self.exact_tree()
+            self._target_c = np.ascontiguousarray(self.points, dtype=np.float64)
+            self._index = _kernels.Index(self._target_c, tree.points, tree.order, tree.rank, tree.starts, tree.ends,
+                                         tree.lefts, tree.boxes)
+        if hashed and not self._index_hashed:
+            near = self._near_index()
+            if near is not None:
+                self._index.set_hash(near.sorted_points, near.sorted_index, near.rank, near.cell_starts,
+                                     near.table_keys, near.table_cells, near.low, near.cell, near.dims)
+                self._index_hashed = True
+        return self._index
 
     def spatial_order(self, points: np.ndarray) -> np.ndarray:
         """A permutation of ``points`` (target frame) that sorts them by voxel-hash cell.
@@ -130,7 +168,7 @@ class NearestNeighbors:
         return np.argsort(ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2]), kind="stable")
 
     def _near_index(self) -> "voxel_hash.VoxelHash | None":
-        if self._near is None and voxel_hash.available():
+        if self._near is None:
             spacing = self.spacing() if self._spacing is None else self._spacing
             diagonal = float(np.linalg.norm(np.ptp(self.points, axis=0)))
             cell = max(NEAR_CELL_SPACINGS * spacing, 1e-6 * diagonal)
@@ -138,22 +176,44 @@ class NearestNeighbors:
                 self._near = voxel_hash.VoxelHash(self.points, cell)
         return self._near
 
+    def coincident(self) -> tuple[int, int, int, np.ndarray]:
+        """:func:`coincident_points` of the target (computed once)."""
+        if self._coincident is None:
+            self._coincident = coincident_points(self.points)
+        return self._coincident
+
     def spacing(self, max_samples: int = 5000, neighbours: int = 8) -> float:
         """Median distance from a target point to its nearest *distinct* target point (cloud units).
 
         Uses an evenly strided subset of at most ``max_samples`` points, so the value is
-        deterministic and cheap on large clouds. Duplicated points are looked past: each sampled
-        point contributes its nearest neighbour at a positive distance among its ``neighbours``
-        nearest. Returns 0.0 only if no sampled point has a distinct neighbour among them.
+        deterministic and cheap on large clouds. Duplicated points are looked past: without exact
+        copies, each sampled point contributes its nearest neighbour at a positive distance among
+        its ``neighbours`` nearest; with copies, its nearest neighbour among the distinct target
+        points (so that a cloud full of coincident points costs no more than one without).
+        Returns 0.0 only if no sampled point has a distinct neighbour. Computed once for the
+        default arguments.
         """
+        default = max_samples == 5000 and neighbours == 8
+        if default and self._spacing is not None:
+            return self._spacing
         count = len(self.points)
         sample = self.points[np.linspace(0, count - 1, min(count, max_samples)).astype(np.intp)]
+        repeats, _, _, first = self.coincident()
         # One thread: a Ctrl-C landing in scipy's threaded k-NN query can crash the process
         # (seen here: std::bad_alloc in its worker threads, then a segfault); 5,000 queries are cheap.
-        distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=1)
-        distances = np.where(distances > 0, distances, np.inf).min(axis=1)
-        positive = distances[np.isfinite(distances)]
-        value = float(np.median(positive)) if len(positive) else 0.0
-        if max_samples == 5000 and neighbours == 8:
+        if repeats:
+            distinct = self.points[first]
+            if len(distinct) < 2:
+                return self._keep_spacing(0.0, default)
+            tree = cKDTree(distinct, balanced_tree=False, compact_nodes=False)
+            distances = tree.query(sample, k=2, workers=1)[0][:, 1]
+        else:
+            distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=1)
+            distances = np.where(distances > 0, distances, np.inf).min(axis=1)
+        positive = distances[np.isfinite(distances) & (distances > 0)]
+        return self._keep_spacing(float(np.median(positive)) if len(positive) else 0.0, default)
+
+    def _keep_spacing(self, value: float, default: bool) -> float:
+        if default:
             self._spacing = value
         return value

@@ -35,6 +35,7 @@ def pair_moments(
     indices: np.ndarray,
     distances: np.ndarray,
     sigma: float | None,
+    workers: int | None = None,
 ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
     """Moments of the pairs ``(T x_i, target[indices[i]])``, ``x_i`` = ``source[i]``.
 
@@ -45,7 +46,8 @@ def pair_moments(
 
     Returns ``(total_weight, total_squared_weight, source_centroid, target_centroid,
     cross_covariance)``: weighted centroids of the placed source and of the matched target points
-    (target frame), and ``H = sum_i w_i (s_i - s_bar)(t_i - t_bar)^T / sum_i w_i``.
+    (target frame), and ``H = sum_i w_i (s_i - s_bar)(t_i - t_bar)^T / sum_i w_i``. ``workers``:
+    threads (None: every core); the result is bitwise the same for any number.
     """
     if len(source) == 0:
         raise ValueError("pair_moments needs at least one pair")
@@ -55,7 +57,7 @@ def pair_moments(
         scale, shift = kernel_scale(sigma), float(np.min(distances * distances))
     out = np.empty(17)
     _kernels.pair_moments(
-        *_contiguous(source, transform, target, indices, distances), scale, shift, out, threads(),
+        *_contiguous(source, transform, target, indices, distances), scale, shift, out, threads(workers),
     )
     return _unpacked(out)
 
@@ -84,7 +86,7 @@ def _contiguous(source, transform, target, indices, distances):
 
 def paper_moments(
     source: np.ndarray, transform: np.ndarray, target: np.ndarray, indices: np.ndarray, distances: np.ndarray,
-    sigma: float,
+    sigma: float, workers: int | None = None,
 ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
     """The paper's ``(sum w, sum w^2, s_bar, t_bar, H)`` for the source placed by ``transform``
     (4x4), in two compiled passes: exactly :func:`esmicp.methods.esm_paper.paper_cross_covariance`
@@ -94,6 +96,6 @@ def paper_moments(
         raise ValueError("paper_moments needs at least one pair")
     out = np.empty(17)
     _kernels.paper_moments(
-        *_contiguous(source, transform, target, indices, distances), kernel_scale(sigma), out, threads(),
+        *_contiguous(source, transform, target, indices, distances), kernel_scale(sigma), out, threads(workers),
     )
     return _unpacked(out)

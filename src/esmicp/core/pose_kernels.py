@@ -2,11 +2,11 @@
 
 Every iteration turns a 3x3 cross-covariance into a rotation (:func:`kabsch_rotation`), composes
 the increment with the current pose (:func:`compose`) and measures how far it moved
-(:func:`motion_between`); Anderson acceleration maps poses to rotation vectors
-and back. Each of these is a handful of 3x3 operations, so in NumPy their cost is the calls, not
-the arithmetic (about 150 us per iteration, more than a 1,000-point nearest-neighbour query). Here
-each is one compiled call. The functions are plain NumPy code: without numba they run as they
-are (slower, same results).
+(:func:`motion_between`); Anderson acceleration maps poses to rotation vectors and back. Each is a
+handful of 3x3 operations, so their cost is the calls, not the arithmetic: the local loop's
+compiled step (:meth:`esmicp.core.correspondence.NearestNeighbors.step`) does the Kabsch rotation
+and the composition inside the kernel; these functions serve the path with callbacks and the
+acceleration (the Kabsch and nearest rotations call the same compiled routine).
 
 All transforms are 4x4 ``T_target_source`` matrices; angles are in radians, rotation vectors are
 axis times angle (radians).
@@ -18,51 +18,30 @@ import math
 
 import numpy as np
 
-def _compiled(function):
-    """Marks the functions that are candidates for the compiled extension (plain NumPy for now)."""
-    return function
+from .. import _kernels
+
+def _mul(a, b):
+    """``a @ b`` for 3x3 matrices and 3-vectors (NumPy's own small-matrix loop: no BLAS threads)."""
+    return np.matmul(a, b)
 
 
-@_compiled
-def _product(a, b):
-    """3x3 times 3x3 (or 3-vector) in plain loops: for such sizes a BLAS call costs more."""
-    if b.ndim == 1:
-        out = np.zeros(3)
-        for i in range(3):
-            for k in range(3):
-                out[i] += a[i, k] * b[k]
-        return out
-    out = np.zeros((3, b.shape[1]))
-    for i in range(3):
-        for j in range(b.shape[1]):
-            for k in range(3):
-                out[i, j] += a[i, k] * b[k, j]
-    return out
-
-
-@_compiled
 def kabsch_rotation(cross_covariance):
     """``R = V diag(1, 1, d) U^T`` maximising ``trace(R H)`` for ``H = U S V^T`` (``d`` makes
-    ``det R = +1``); see :func:`esmicp.core.procrustes.rotation_from_cross_covariance`."""
-    u, _, vt = np.linalg.svd(np.ascontiguousarray(cross_covariance))
-    v = np.ascontiguousarray(vt.T)
-    ut = np.ascontiguousarray(u.T)
-    if np.linalg.det(_product(v, ut)) < 0.0:
-        v[:, 2] = -v[:, 2]
-    return _product(v, ut)
+    ``det R = +1``); see :func:`esmicp.core.procrustes.rotation_from_cross_covariance`. Computed
+    by the compiled kernel (Horn's quaternion method: the same rotation, to rounding, wherever it
+    is unique; tested against NumPy's SVD)."""
+    rotation = np.empty((3, 3))
+    _kernels.kabsch(np.ascontiguousarray(cross_covariance, dtype=np.float64), rotation)
+    return rotation
 
 
-@_compiled
 def nearest_rotation(matrix):
     """The rotation nearest to a 3x3 matrix (Frobenius norm): removes accumulated rounding drift."""
-    u, _, vt = np.linalg.svd(np.ascontiguousarray(matrix))
-    if np.linalg.det(_product(u, vt)) < 0.0:
-        u = u.copy()
-        u[:, 2] = -u[:, 2]
-    return _product(u, vt)
+    rotation = np.empty((3, 3))
+    _kernels.nearest_rotation(np.ascontiguousarray(matrix, dtype=np.float64), rotation)
+    return rotation
 
 
-@_compiled
 def angle_of(rotation):
     """Geodesic angle of a 3x3 rotation in ``[0, pi]`` (accurate for tiny angles)."""
     sx = rotation[2, 1] - rotation[1, 2]
@@ -72,26 +51,23 @@ def angle_of(rotation):
     return math.atan2(0.5 * math.sqrt(sx * sx + sy * sy + sz * sz), 0.5 * (trace - 1.0))
 
 
-@_compiled
 def compose(rotation, translation, transformation):
     """``[rotation | translation] @ transformation`` (4x4), its rotation re-orthonormalised (an
     increment composed on the left, as every iteration does, without accumulating drift)."""
     pose = np.eye(4)
-    pose[:3, :3] = nearest_rotation(_product(rotation, transformation[:3, :3]))
-    pose[:3, 3] = _product(rotation, transformation[:3, 3]) + translation
+    pose[:3, :3] = nearest_rotation(_mul(rotation, transformation[:3, :3]))
+    pose[:3, 3] = _mul(rotation, transformation[:3, 3]) + translation
     return pose
 
 
-@_compiled
 def motion_between(before, after):
     """``(angle, translation_norm)`` of the rigid motion ``after @ inv(before)`` (radians, cloud
     units): how far one iteration moved the pose."""
-    rotation = _product(after[:3, :3], before[:3, :3].T)
-    translation = after[:3, 3] - _product(rotation, before[:3, 3])
+    rotation = _mul(after[:3, :3], before[:3, :3].T)
+    translation = after[:3, 3] - _mul(rotation, before[:3, 3])
     return angle_of(rotation), math.sqrt(translation @ translation)
 
 
-@_compiled
 def rotation_log(rotation):
     """Rotation vector (axis x angle, radians) of a 3x3 rotation, for every angle in ``[0, pi]``."""
     skew = np.array([
@@ -117,7 +93,6 @@ def rotation_log(rotation):
     return angle * axis / math.sqrt(axis @ axis)
 
 
-@_compiled
 def rotation_exp(vector):
     """3x3 rotation of a rotation vector (axis x angle, radians): Rodrigues' formula."""
     angle = math.sqrt(vector @ vector)
@@ -132,32 +107,29 @@ def rotation_exp(vector):
     else:
         a = math.sin(angle) / angle
         b = (1.0 - math.cos(angle)) / (angle * angle)
-    return np.eye(3) + a * k + b * _product(k, k)
+    return np.eye(3) + a * k + b * _mul(k, k)
 
 
-@_compiled
 def pose_parameters(transform, reference, scale):
     """6-vector of ``transform @ inv(reference)`` (4x4 each): its rotation vector (radians) and its
     translation divided by ``scale`` (cloud units), as :mod:`esmicp.methods.acceleration` uses."""
-    rotation = _product(transform[:3, :3], np.ascontiguousarray(reference[:3, :3].T))
-    translation = transform[:3, 3] - _product(rotation, reference[:3, 3])
+    rotation = _mul(transform[:3, :3], np.ascontiguousarray(reference[:3, :3].T))
+    translation = transform[:3, 3] - _mul(rotation, reference[:3, 3])
     parameters = np.empty(6)
     parameters[:3] = rotation_log(rotation)
     parameters[3:] = translation / scale
     return parameters
 
 
-@_compiled
 def pose_from_parameters(parameters, reference, scale):
     """Inverse of :func:`pose_parameters`: the 4x4 pose ``[exp(r) | scale u] @ reference``."""
     rotation = rotation_exp(np.ascontiguousarray(parameters[:3]))
     pose = np.eye(4)
-    pose[:3, :3] = _product(rotation, np.ascontiguousarray(reference[:3, :3]))
-    pose[:3, 3] = _product(rotation, np.ascontiguousarray(reference[:3, 3])) + parameters[3:] * scale
+    pose[:3, :3] = _mul(rotation, np.ascontiguousarray(reference[:3, :3]))
+    pose[:3, 3] = _mul(rotation, np.ascontiguousarray(reference[:3, 3])) + parameters[3:] * scale
     return pose
 
 
-@_compiled
 def anderson_mix(residuals, images):
     """Anderson's combination of fixed-point images: ``images[-1] - dG gamma`` with ``gamma`` the
     least-squares solution of ``dF gamma = residuals[-1]`` (``dF``, ``dG``: successive differences

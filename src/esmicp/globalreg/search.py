@@ -9,6 +9,10 @@ Candidate poses come from one or both strategies:
 ``features``
     FPFH features matched between the clouds and pruned by geometric consistency
     (:mod:`esmicp.globalreg.feature_matching`); suited to partial overlap, where centroids differ.
+``scan``
+    :mod:`esmicp.globalreg.scan`, on its own: correspondences pruned by second-order spatial
+    compatibility and verified on the overlap, both ways (partially overlapping scans); its
+    scores are its own overlap scores, not the verification below.
 
 Every candidate is then *verified* the same way (successive halving, ``VERIFY_ROUNDS``): batched
 ESM at the data's resolution on a subsample, scored by the soft fraction of source points lying on
@@ -43,7 +47,7 @@ from . import DISTINCT_ROTATION_DEG
 from .rotation_search import batched_esm, gaussian_overlap_score, rotation_search
 
 #: Names accepted as ``init=`` strategies for global registration.
-STRATEGIES = ("auto", "rotation-search", "features")
+STRATEGIES = ("auto", "rotation-search", "features", "scan")
 
 #: Points of the source used to search / verify, and of the target indexed for both.
 SEARCH_POINTS = 200
@@ -168,24 +172,28 @@ def global_estimate(
     rng: np.random.Generator,
     target_index: NearestNeighbors | None = None,
     target_spacing: float | None = None,
+    workers: int | None = None,
 ) -> GlobalEstimate:
     """Find ``T_target_source`` from any initial pose (see the module docstring).
 
     ``source`` and ``target`` are validated ``(N, 3)`` / ``(M, 3)`` float64 arrays; ``rng`` drives
     every random subsample, so a seeded generator makes the result reproducible. ``target_index``
     (a :class:`NearestNeighbors` over ``target``) is reused when given, and so is
-    ``target_spacing`` (its :meth:`~NearestNeighbors.spacing`, cloud units).
+    ``target_spacing`` (its :meth:`~NearestNeighbors.spacing`, cloud units). ``workers``: threads
+    of the compiled kernels (None: every core; a given ``target_index`` keeps its own).
 
     ``"auto"`` runs the rotation search first; when its verified best pose already puts at least
     ``CONFIDENT_SCORE`` of the source on the target and no distinct pose comes close, that is
     final (clouds that overlap fully, as most objects do). Otherwise the feature candidates and
     the twins of that pose (:func:`_twins`) join, and everything is verified together.
     """
-    full_index = target_index if target_index is not None else NearestNeighbors(target)
+    full_index = target_index if target_index is not None else NearestNeighbors(target, workers=workers)
+    if strategy == "scan":
+        return _scan(source, target, full_index, target_spacing)
     if len(target) <= TARGET_POINTS:
         index = full_index
     else:
-        index = NearestNeighbors(_subsample(target, TARGET_POINTS, rng))
+        index = NearestNeighbors(_subsample(target, TARGET_POINTS, rng), workers=full_index.workers)
     spacing = target_spacing if target_spacing is not None and index is full_index else index.spacing()
     width = SCORE_WIDTH_SPACINGS * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target)
     work = _Workspace(source, target, rng, full_index, index, spacing, width)
@@ -218,11 +226,21 @@ def global_estimate(
         # Only the feature strategy can come back empty (too few feature matches): fall back to
         # the rotation search rather than fail.
         return global_estimate(
-            source, target, strategy="rotation-search", rng=rng, target_index=full_index, target_spacing=target_spacing
+            source, target, strategy="rotation-search", rng=rng, target_index=full_index,
+            target_spacing=target_spacing, workers=full_index.workers,
         )
     estimate = _decide(work, _verify(work, candidates, origins, carried=carried))
     # Count each candidate pose once (the carried rotation-search contenders are not new ones).
     return replace(estimate, candidates=searched + found_count)
+
+
+def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | None) -> GlobalEstimate:
+    """The ``"scan"`` strategy (:mod:`esmicp.globalreg.scan`): its poses and overlap scores."""
+    from .scan import scan_estimate
+
+    spacing = full_index.spacing() if target_spacing is None else target_spacing
+    found = scan_estimate(source, target, spacing=spacing, workers=full_index.workers)
+    return GlobalEstimate(found.transformations, found.scores, ("scan",) * len(found.scores), candidates=len(found.scores))
 
 
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
@@ -239,7 +257,9 @@ def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
 def _feature_candidates(work: _Workspace) -> list[np.ndarray]:
     from .feature_matching import feature_hypotheses
 
-    hypotheses = feature_hypotheses(work.source, work.target, voxel=_feature_voxel(work.target), rng=work.rng)
+    hypotheses = feature_hypotheses(
+        work.source, work.target, voxel=_feature_voxel(work.target), rng=work.rng, workers=work.full_index.workers
+    )
     return [hypothesis.transformation for hypothesis in hypotheses]
 
 
@@ -297,7 +317,7 @@ def _decide(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     # Coverage the other way: the target points (clean, unlike a noisy source) lying on the placed
     # source. A symmetric twin leaves the target's asymmetric details uncovered.
     target_points = _subsample(work.target, DECIDE_POINTS, work.rng)
-    source_index = NearestNeighbors(work.source)
+    source_index = NearestNeighbors(work.source, workers=work.full_index.workers)
     # Target points in the source frame under each pose: rows (t - translation) @ R = R^T (t - translation).
     in_source = np.matmul(target_points[None] - refined[:, None, :3, 3], refined[:, :3, :3])
     backward, _ = source_index.query(in_source.reshape(-1, 3))

@@ -10,6 +10,8 @@ extension                 format                                                
 ``.pcd``                  PCD, ascii / binary / binary_compressed; fields x y z    float64
 ``.xyz .txt .csv .pts``   text, one point per line, first three columns            17 digits
 ``.npy``                  NumPy ``(N, 3)`` array (never unpickled)                 float64
+``.bin``                  headerless float32 scan (KITTI velodyne), 3 or 4 cols   (read only)
+``.las .laz``             LAS / LAZ through laspy (extra ``las``): scaled x/y/z    (read only)
 ``.off .obj .stl``        triangle mesh: its vertices, or ``sample_points`` on it  (read only)
 ========================  =======================================================  =========
 
@@ -31,7 +33,7 @@ import numpy as np
 
 from ..errors import EsmicpError, InvalidInputError, PointCloudFileError
 from ..types import as_generator, as_points
-from . import npy, off, pcd, ply, text
+from . import las, npy, off, pcd, ply, text, velodyne
 from ._messages import one_line
 from ._files import as_path, check_input_file
 from .atomic import atomic_write
@@ -54,7 +56,9 @@ __all__ = [
 _MESH_ONLY_EXTENSIONS = (".off", ".obj", ".stl")
 
 #: Extensions :func:`read_points` accepts.
-READ_EXTENSIONS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".pts", ".npy", ".off", ".obj", ".stl")
+READ_EXTENSIONS = (
+    ".ply", ".pcd", ".xyz", ".txt", ".csv", ".pts", ".npy", ".bin", ".las", ".laz", ".off", ".obj", ".stl",
+)
 #: Extensions :func:`write_points` accepts.
 WRITE_EXTENSIONS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy")
 #: Both lists, for help texts: ``SUPPORTED_EXTENSIONS["read"]`` and ``SUPPORTED_EXTENSIONS["write"]``.
@@ -110,7 +114,7 @@ def _finish(path: Path, raw: np.ndarray) -> np.ndarray:
         raise PointCloudFileError(path, _strip_name(exc, str(path))) from None
 
 
-def read_points(path, *, sample_points: int | None = None, rng=None) -> np.ndarray:
+def read_points(path, *, sample_points: int | None = None, rng=None, bin_columns: int | None = None) -> np.ndarray:
     """Read a point cloud (or a mesh's vertices / surface samples) from a file.
 
     Parameters
@@ -123,6 +127,11 @@ def read_points(path, *, sample_points: int | None = None, rng=None) -> np.ndarr
     rng : int or numpy.random.Generator, optional
         Seed or generator for ``sample_points`` (a seed makes the samples deterministic).
         Ignored without ``sample_points``.
+    bin_columns : {3, 4}, optional
+        For ``.bin`` scans: float32 values per point, 4 for KITTI velodyne (``x y z intensity``),
+        3 for ``x y z``. None (default) takes the layout from the file size when only one fits and
+        refuses a size that fits both (a multiple of 48 bytes): see :mod:`esmicp.io.velodyne`.
+        Ignored for other formats (so one value can serve a ``.bin`` and a ``.ply`` of a pair).
 
     Returns
     -------
@@ -134,11 +143,15 @@ def read_points(path, *, sample_points: int | None = None, rng=None) -> np.ndarr
     ------
     PointCloudFileError
         The file is missing, a directory, empty, unreadable, of an unsupported extension,
-        malformed or truncated, has no x/y/z, or fewer than 3 finite points.
+        malformed or truncated, has no x/y/z, or fewer than 3 finite points; a ``.bin`` whose
+        size fits neither layout, or both without ``bin_columns``.
     InvalidInputError
-        ``sample_points`` or ``rng`` is invalid.
+        ``sample_points``, ``rng`` or ``bin_columns`` is invalid.
+    MissingDependencyError
+        A ``.las`` / ``.laz`` file and laspy (or a LAZ backend) is not installed.
     """
     path = as_path(path)
+    columns = velodyne.bin_columns(bin_columns)
     extension = path.suffix.lower()
     if extension not in READ_EXTENSIONS:
         raise _unsupported(path, READ_EXTENSIONS, "reading")
@@ -163,6 +176,10 @@ def read_points(path, *, sample_points: int | None = None, rng=None) -> np.ndarr
         raw = _read_raw(path, lambda: pcd.read_pcd(path))
     elif extension == ".npy":
         raw = _read_raw(path, lambda: npy.read_npy(path))
+    elif extension == ".bin":
+        raw = _read_raw(path, lambda: velodyne.read_bin(path, columns))
+    elif extension in (".las", ".laz"):
+        raw = _read_raw(path, lambda: las.read_las(path))
     else:
         raw = _read_raw(path, lambda: text.read_text(path))
     return _finish(path, raw)

@@ -69,6 +69,11 @@ class Estimator(ABC):
     #: True when :meth:`step_placed` gives the increment in one compiled pass
     #: (:mod:`esmicp.core.moments`); the loop then uses it when no per-point array is needed.
     compiled_step: ClassVar[bool] = False
+    #: True when :meth:`weighting` describes the weights of :meth:`step` to the compiled iteration
+    #: kernel (:meth:`esmicp.core.correspondence.NearestNeighbors.step`), which then finds the
+    #: pairs and computes the increment in one call; the loop hands the increment back through
+    #: :meth:`took_step`.
+    fused_step: ClassVar[bool] = False
     #: True when the loop may apply Anderson acceleration (:mod:`esmicp.methods.acceleration`)
     #: against :meth:`objective` while :attr:`accelerated` is True.
     accelerable: ClassVar[bool] = False
@@ -78,10 +83,27 @@ class Estimator(ABC):
         """Increment from the source as placed now (``moved_source``, target frame), the target
         cloud, and each moved source point's nearest-neighbour ``distances`` / ``indices``."""
 
-    def step_placed(self, source, transformation, target, distances, indices) -> Step:
+    def step_placed(self, source, transformation, target, distances, indices, workers=None) -> Step:
         """:meth:`step` from the unmoved ``source`` and its placement ``transformation`` (4x4), in
-        one compiled pass that builds no per-point array (only where :attr:`compiled_step`)."""
+        one compiled pass that builds no per-point array (only where :attr:`compiled_step`), on
+        ``workers`` threads (None: every core)."""
         raise NotImplementedError(f"{self.name} has no compiled step")
+
+    def weighting(self) -> tuple[float, float, float, bool, bool]:
+        """This iteration's weights, for the fused kernel (only where :attr:`fused_step`):
+        ``(fixed sigma or 0, sigma floor, factor on the median distance, fine phase, Gaussian)``;
+        the sigma is the fixed one, else the floor in the fine phase, else
+        ``max(floor, factor * median distance)``; not Gaussian: every weight 1."""
+        raise NotImplementedError(f"{self.name} has no fused step")
+
+    def took_step(self, step: Step) -> None:
+        """Called by the loop with the fused kernel's increment (the default keeps no state)."""
+
+    @property
+    def objective_sigma(self) -> float:
+        """The sigma of :meth:`objective` (cloud units), for the fused kernel (only where
+        :attr:`accelerable` and :attr:`fused_step`)."""
+        raise NotImplementedError(f"{self.name} has no objective")
 
     @property
     def coarse(self) -> bool:

@@ -101,6 +101,7 @@ class EsmEstimator(Estimator):
 
     name = "esm"
     compiled_step = COMPILED
+    fused_step = True
     accelerable = True
 
     def __init__(self, sigma: SigmaSchedule, *, start_fine: bool = False):
@@ -136,14 +137,25 @@ class EsmEstimator(Estimator):
         self._update_phase(rotation, translation)
         return Step(rotation, translation, weights=weights, sigma=sigma)
 
-    def step_placed(self, source, transformation, target, distances, indices) -> Step:
+    def step_placed(self, source, transformation, target, distances, indices, workers=None) -> Step:
         """:meth:`step` from the unmoved source and its placement, in one compiled pass."""
         sigma = self.sigma(distances, fine=self.fine)
         rotation, translation, effective = moments.rigid_fit(
-            moments.pair_moments(source, transformation, target, indices, distances, sigma)
+            moments.pair_moments(source, transformation, target, indices, distances, sigma, workers)
         )
         self._update_phase(rotation, translation)
         return Step(rotation, translation, sigma=sigma, effective_pairs=effective)
+
+    def weighting(self) -> tuple[float, float, float, bool, bool]:
+        fixed = self.sigma.fixed
+        return (0.0 if fixed is None else fixed), self.sigma.floor, SIGMA_MEDIAN_FACTOR, self.fine, True
+
+    def took_step(self, step: Step) -> None:
+        self._update_phase(step.rotation, step.translation)
+
+    @property
+    def objective_sigma(self) -> float:
+        return self.sigma.fixed if self.sigma.fixed is not None else self.sigma.floor
 
     def _update_phase(self, rotation, translation) -> None:
         if self.coarse:

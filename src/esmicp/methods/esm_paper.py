@@ -121,9 +121,9 @@ class EsmPaperEstimator(Estimator):
         rotation = rotation_from_cross_covariance(cross_covariance)
         return Step(rotation, target_centroid - rotation @ source_centroid, weights=weights, sigma=self.sigma)
 
-    def step_placed(self, source, transformation, target, distances, indices) -> Step:
+    def step_placed(self, source, transformation, target, distances, indices, workers=None) -> Step:
         """:meth:`step` from the unmoved source and its placement, in two compiled passes."""
         rotation, translation, effective = moments.rigid_fit(
-            moments.paper_moments(source, transformation, target, indices, distances, self.sigma)
+            moments.paper_moments(source, transformation, target, indices, distances, self.sigma, workers)
         )
         return Step(rotation, translation, sigma=self.sigma, effective_pairs=effective)

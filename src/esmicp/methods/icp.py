@@ -14,14 +14,18 @@ class IcpEstimator(Estimator):
 
     name = "icp"
     compiled_step = COMPILED
+    fused_step = True
+
+    def weighting(self) -> tuple[float, float, float, bool, bool]:
+        return 0.0, 0.0, 0.0, False, False
 
     def step(self, moved_source, target, distances, indices) -> Step:
         rotation, translation = weighted_procrustes(moved_source, target[indices], np.ones(len(indices)))
         return Step(rotation, translation)
 
-    def step_placed(self, source, transformation, target, distances, indices) -> Step:
+    def step_placed(self, source, transformation, target, distances, indices, workers=None) -> Step:
         """:meth:`step` from the unmoved source and its placement, in one compiled pass."""
         rotation, translation, effective = moments.rigid_fit(
-            moments.pair_moments(source, transformation, target, indices, distances, None)
+            moments.pair_moments(source, transformation, target, indices, distances, None, workers)
         )
         return Step(rotation, translation, effective_pairs=effective)

@@ -20,6 +20,7 @@ from typing import Callable
 
 import numpy as np
 
+from .. import _kernels
 from ..core.correspondence import NearestNeighbors
 from ..core.weights import effective_count
 from ..core.pose_kernels import compose, motion_between
@@ -94,7 +95,8 @@ def refine(
     """Iterate ``estimator`` from ``init`` (4x4 ``T_target_source``) until ``criteria`` are met.
 
     ``target`` is the target's index (:class:`~esmicp.core.correspondence.NearestNeighbors`, or
-    anything with its ``points``, ``query_near`` and ``spatial_order``). ``scale`` (cloud units,
+    anything with its ``points``, ``query_near`` and ``spatial_order``); every compiled call of
+    the loop runs on its ``workers`` threads (None, or no such attribute: every core). ``scale`` (cloud units,
     e.g. the target's bounding-box diagonal) makes the translation part of the convergence test
     unit-free.
 
@@ -111,9 +113,10 @@ def refine(
         and len(source) > coarse_points
         and estimator.coarse
     )
+    workers = getattr(target, "workers", None)
     query_order = None
     if len(source) >= SPATIAL_ORDER_MIN:
-        order = target.spatial_order(apply(init, source))
+        order = target.spatial_order(apply(init, source, workers))
         if callback is None and estimator.order_invariant:
             # Visit the source points in spatial order (the result does not depend on the order).
             full_source = source[order]
@@ -127,6 +130,9 @@ def refine(
     # Without a callback or a history nothing needs the per-point arrays: the placed source is
     # never formed, the query and the step map the source themselves.
     placed = estimator.compiled_step and callback is None and not record_history
+    # With no per-point array needed and the queries in the source's order, one compiled call per
+    # iteration finds the pairs and computes the increment (``NearestNeighbors.step``).
+    fused = placed and estimator.fused_step and query_order is None and hasattr(target, "step")
 
     def query(points, transform, warm):
         if query_order is None:
@@ -152,6 +158,8 @@ def refine(
         effective, pairs = _last_pairs(step, len(source))
         return RefinementOutcome(transformation, converged, iterations, sigma, message, _freeze(history), effective, pairs)
 
+    if fused:
+        return _refine_fused(full_source, source, target, estimator, coarse, init, criteria, scale, accelerator)
     for iteration in range(1, criteria.max_iterations + 1):
         if coarse and not estimator.coarse:
             coarse, source, indices, previous_rmse = False, full_source, None, None
@@ -167,7 +175,7 @@ def refine(
             fallback = None
         if placed:
             moved = None
-            step = estimator.step_placed(source, transformation, target.points, distances, indices)
+            step = estimator.step_placed(source, transformation, target.points, distances, indices, workers)
         else:
             moved = apply(transformation, source)
             step = estimator.step(moved, target.points, distances, indices)
@@ -203,6 +211,83 @@ def refine(
             return outcome(transformation, True, iteration, f"converged after {iteration} iterations ({reason})")
         previous_rmse = rmse
     return outcome(
+        transformation, False, criteria.max_iterations,
+        f"reached max_iterations={criteria.max_iterations} before the tolerance {criteria.tolerance:g}",
+    )
+
+
+def _refine_fused(full_source, source, target, estimator, coarse, init, criteria, scale, accelerator) -> RefinementOutcome:
+    """:func:`refine`'s loop with one compiled call per iteration (no callback, no history, the
+    source in the order it is queried): the same decisions on the same numbers as the loop above."""
+    full_source = np.ascontiguousarray(full_source, dtype=np.float64)
+    source = np.ascontiguousarray(source, dtype=np.float64)
+    out = np.empty(_kernels.STEP_OUT)
+    indices, distances, warm = np.empty(len(source), dtype=np.int64), np.empty(len(source)), False
+    objective_sigma = estimator.objective_sigma if accelerator is not None else 0.0
+    transformation = np.ascontiguousarray(init, dtype=np.float64).copy()
+    previous_rmse: float | None = None
+    fallback: np.ndarray | None = None
+    objective_before = 0.0
+    sigma = None
+    effective = None
+    done = 0
+
+    weighting = np.empty(5)
+
+    def iterate(pose):
+        weighting[:] = estimator.weighting()
+        return target.step(source, pose, indices, distances, out, warm=warm, weighting=weighting,
+                           objective_sigma=objective_sigma)
+
+    def finish(transformation, converged, iterations, message):
+        return RefinementOutcome(transformation, converged, iterations, sigma, message, None,
+                                 effective if done else None, len(source) if done else 0)
+
+    for iteration in range(1, criteria.max_iterations + 1):
+        if coarse and not estimator.coarse:
+            coarse, source, previous_rmse, warm = False, full_source, None, False
+            indices, distances = np.empty(len(source), dtype=np.int64), np.empty(len(source))
+        iterate(transformation)
+        warm = True
+        if fallback is not None:
+            if out[2] < objective_before:
+                # The accelerated proposal fits worse than the pose it came from: take the plain step.
+                transformation, fallback = fallback, None
+                accelerator.reset()
+                iterate(transformation)
+            fallback = None
+        done += 1
+        effective = float(out[4])
+        rotation, translation = out[7:16].reshape(3, 3).copy(), out[16:19].copy()
+        if not (np.isfinite(rotation).all() and np.isfinite(translation).all()):
+            return finish(transformation, False, iteration - 1,
+                          f"stopped at iteration {iteration}: the increment was not finite")
+        sigma = None if np.isnan(out[0]) else float(out[0])
+        estimator.took_step(Step(rotation, translation, sigma=sigma, effective_pairs=effective))
+        plain = out[19:35].reshape(4, 4).copy()
+        following = plain
+        if accelerator is not None:
+            if estimator.accelerated:
+                objective_before = float(out[2])
+                following = accelerator.propose(transformation, plain)
+                if following is not plain:
+                    fallback = plain
+            else:
+                accelerator.reset()
+        if following is plain:
+            moved_angle, moved_distance = float(out[35]), float(out[36])
+        else:
+            moved_angle, moved_distance = motion_between(transformation, following)
+            following = np.ascontiguousarray(following, dtype=np.float64)
+        transformation = following
+        rmse = float(out[1])
+        reason = criteria.reason(moved_angle, moved_distance, scale, previous_rmse, rmse)
+        if coarse and reason is not None:
+            estimator.end_coarse_phase()
+        elif reason is not None:
+            return finish(transformation, True, iteration, f"converged after {iteration} iterations ({reason})")
+        previous_rmse = rmse
+    return finish(
         transformation, False, criteria.max_iterations,
         f"reached max_iterations={criteria.max_iterations} before the tolerance {criteria.tolerance:g}",
     )

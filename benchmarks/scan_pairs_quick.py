@@ -1,0 +1,139 @@
+"""Quick check of global registration on real scan pairs (a stop-gap until ``esmicp bench
+--datasets real-pairs`` exists): every pair of ``pairs.csv``, as recorded and turned.
+
+The folder is laid out like ``shared/data/real_pairs`` (``pairs.csv``: dataset, pair, kind,
+target, source, T_target_source; ``target ~= R @ source + t``). ``.bin`` files are headerless
+float32 ``x y z`` (3 columns); ``.ply`` / ``.npy`` go through :func:`esmicp.read_points`.
+
+Variants: ``as-recorded``, and ``turned``: the source turned by a random rotation (uniform on
+SO(3), seeded per pair) about its centroid, the truth composed accordingly.
+
+Success: 3DMatch rotation error < 15 deg and translation error < 0.30 m; LiDAR < 5 deg and
+< 0.6 m. Methods (``--methods``): ``esm`` (``esmicp.register(source, target)`` with every
+default, or ``--init``), and any name of :data:`esmicp.baselines.BASELINES`, which get the voxel
+their documentation recommends (0.05 m indoor, 0.3 m LiDAR). Methods take turns pair by pair;
+only the registration call is timed. Prints one line per (pair, variant, method), a summary, and
+the median time ratio of each method to the first baseline.
+
+    PYTHONPATH=src python benchmarks/scan_pairs_quick.py --methods esm,kiss-matcher-icp
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+import esmicp
+from esmicp.metrics import rotation_error_deg
+
+DEFAULT_FOLDER = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_pairs"
+
+#: (rotation deg, translation m) success thresholds per kind.
+CRITERIA = {"3DMatch": (15.0, 0.30), "LiDAR": (5.0, 0.6), "LiDAR-coarse-GT": (5.0, 0.6)}
+
+#: Voxel the peers' documentation recommends, per kind (metres).
+PEER_VOXEL = {"3DMatch": 0.05, "LiDAR": 0.3, "LiDAR-coarse-GT": 0.3}
+
+
+def load_cloud(path: Path) -> np.ndarray:
+    if path.suffix == ".bin":
+        raw = np.fromfile(path, dtype=np.float32)
+        if raw.size % 3:
+            raise SystemExit(f"{path}: {raw.size} float32 values is not a whole number of x y z rows")
+        return raw.reshape(-1, 3).astype(np.float64)
+    return esmicp.read_points(path)
+
+
+def turn(source: np.ndarray, truth: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The source turned about its centroid by a seeded uniform rotation, and the new truth."""
+    rotation = Rotation.random(random_state=seed).as_matrix()
+    centre = source.mean(axis=0)
+    move = np.eye(4)
+    move[:3, :3] = rotation
+    move[:3, 3] = centre - rotation @ centre
+    return (source - centre) @ rotation.T + centre, truth @ np.linalg.inv(move)
+
+
+def errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    rotation = rotation_error_deg(estimate[:3, :3], truth[:3, :3])
+    return float(rotation), float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))
+
+
+def run_method(name: str, source, target, kind: str, seed: int, init: str | None):
+    if name == "esm":
+        started = time.perf_counter()
+        result = esmicp.register(source, target, init=init, rng=seed)
+        return result.transformation, time.perf_counter() - started, result
+    from esmicp.baselines import get_baseline
+
+    result = get_baseline(name)(source, target, voxel_size=PEER_VOXEL[kind], rng=seed)
+    return result.transformation, result.runtime_s, result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--folder", type=Path, default=DEFAULT_FOLDER)
+    parser.add_argument("--methods", default="esm,kiss-matcher-icp")
+    parser.add_argument("--init", default=None, help="esm's init (default: register()'s default)")
+    parser.add_argument("--variants", default="as-recorded,turned")
+    parser.add_argument("--pairs", default=None, help="comma-separated pair names (dataset/pair or pair)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    methods = args.methods.split(",")
+    variants = args.variants.split(",")
+    wanted = None if args.pairs is None else set(args.pairs.split(","))
+    rows = []
+    with open(args.folder / "pairs.csv", newline="") as handle:
+        records = list(csv.DictReader(handle))
+    for number, record in enumerate(records):
+        label = f"{record['dataset']}/{record['pair']}"
+        if wanted is not None and label not in wanted and record["pair"] not in wanted:
+            continue
+        kind = record["kind"]
+        target = load_cloud(args.folder / record["target"])
+        source0 = load_cloud(args.folder / record["source"])
+        truth0 = np.loadtxt(args.folder / record["T_target_source"]).reshape(4, 4)
+        max_rot, max_trans = CRITERIA[kind]
+        for variant in variants:
+            seed = args.seed * 1000 + number
+            source, truth = (source0, truth0) if variant == "as-recorded" else turn(source0, truth0, seed)
+            for name in methods:
+                estimate, seconds, result = run_method(name, source, target, kind, seed, args.init)
+                rot, trans = errors(estimate, truth)
+                ok = rot < max_rot and trans < max_trans
+                extra = ""
+                if name == "esm":
+                    extra = f" init={result.init} ambiguous={result.ambiguous} fitness={result.fitness:.3f}"
+                    confidence = getattr(result, "confidence", None)
+                    if confidence is not None:
+                        extra += f" confidence={confidence:.2f}"
+                print(
+                    f"{label:32s} {variant:11s} {name:18s} {'ok  ' if ok else 'FAIL'} "
+                    f"rot {rot:7.2f} deg  t {trans:7.3f} m  {seconds:6.2f} s{extra}",
+                    flush=True,
+                )
+                rows.append((label, variant, name, ok, rot, trans, seconds))
+    print()
+    for name in methods:
+        mine = [row for row in rows if row[2] == name]
+        successes = sum(row[3] for row in mine)
+        print(f"{name:18s} {successes}/{len(mine)} successes, median time {statistics.median(r[6] for r in mine):.2f} s")
+        if name != methods[-1] and len(methods) > 1:
+            peer = methods[-1]
+            ratios = [
+                row[6] / other[6]
+                for row in mine
+                for other in rows
+                if other[2] == peer and other[0] == row[0] and other[1] == row[1]
+            ]
+            print(f"{'':18s} time ratio to {peer}: median {statistics.median(ratios):.2f}, max {max(ratios):.2f}")
+
+
+if __name__ == "__main__":
+    main()

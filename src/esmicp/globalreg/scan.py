@@ -1,0 +1,385 @@
+"""Global registration of partially overlapping scans: FPFH correspondences pruned by second-order
+spatial compatibility, verified on the overlap.
+
+The pipeline of :func:`scan_estimate` (every length is a multiple of one voxel the data chooses,
+so a pair scaled by 1000 gives the same pose):
+
+1. **Scale.** :func:`keypoint_voxel`: the voxel edge at which the target has about
+   ``KEYPOINTS`` occupied voxels (found from the voxel counts, which scale as the inverse square of
+   the edge on a surface), never below ``MIN_VOXEL_SPACINGS`` target point spacings.
+2. **Keypoints and descriptors.** Voxel centroids of each cloud, isolated ones dropped; PCA
+   normals from the dense points, FPFH within ``FEATURE_RADIUS_VOXELS``
+   (:mod:`esmicp.globalreg.feature_matching`'s keypoints).
+3. **Correspondences.** Each source keypoint's nearest target descriptor and each target
+   keypoint's nearest source descriptor (the union: a partial overlap leaves too few mutual
+   matches), ranked by Lowe's ratio, at most ``MAX_CORRESPONDENCES``.
+4. **Pruning** (the idea of SC2-PCR, re-derived here). Two correspondences are compatible when
+   a rigid motion could map both: their source and target lengths agree to within
+   ``COMPATIBILITY_VOXELS``. The second-order compatibility of a compatible pair counts the
+   correspondences compatible with both; it separates inliers from the outliers that happen to be
+   compatible with one, and survives 95-99% outliers. Seeds (the ``SEEDS`` correspondences of
+   highest leading-eigenvector score of the compatibility matrix, spread apart) each grow a group
+   of their ``GROUP_SIZE`` most second-order-compatible partners; each group is solved by a
+   Kabsch fit weighted by the leading eigenvector of its own second-order matrix.
+5. **Hypotheses.** Each fit is scored by the correspondences it maps within the compatibility
+   distance; the best distinct ones are refit on their inliers.
+6. **Verification on the overlap** (:func:`overlap_counts`). A few ICP steps on the keypoints,
+   then the keypoints lying within ``VERIFY_VOXELS`` of the other cloud, counted both ways (source
+   on target and target on source): the overlap, not the whole source. When two distinct poses
+   count alike (a corridor, a road), each is scored by the inliers whose target normal points
+   along the displacement between the two poses: only that geometry constrains the slide.
+
+Transforms are ``T_target_source`` (``target ~= source @ R.T + t``).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
+
+from ..core.procrustes import rotation_angle, to_matrix
+from . import DISTINCT_ROTATION_DEG
+from .feature_matching import _kabsch, _keypoints, _inlier_mask, _distinct_order
+from .features import estimate_normals, voxel_grid
+
+#: Occupied voxels of the target the keypoint voxel aims at.
+KEYPOINTS = 5000
+
+#: The keypoint voxel is at least this many target point spacings.
+MIN_VOXEL_SPACINGS = 1.5
+
+#: Radii, in keypoint voxels: normals, FPFH, the isolated-keypoint filter.
+NORMAL_RADIUS_VOXELS = 3.0
+FEATURE_RADIUS_VOXELS = 6.0
+FILTER_RADIUS_VOXELS = 2.0
+
+#: Correspondences kept for pruning (best Lowe ratio first).
+MAX_CORRESPONDENCES = 2500
+
+#: Two correspondences are compatible when their lengths agree to within this many voxels.
+COMPATIBILITY_VOXELS = 1.5
+
+#: Seeds, their spread (a seed's source keypoint at least this many voxels from every better
+#: seed's), and the size of the group each grows.
+SEEDS = 64
+SEED_SPREAD_VOXELS = 3.0
+GROUP_SIZE = 30
+
+#: Distinct hypotheses verified on the overlap; two hypotheses are distinct when their rotations
+#: differ by more than :data:`DISTINCT_ROTATION_DEG` or their translations by ``DISTINCT_VOXELS``;
+#: two verified poses are reported as different ones (contenders, which make a result ambiguous)
+#: from ``CONTENDER_VOXELS`` on (closer ones end in the same place after refinement).
+HYPOTHESES = 6
+DISTINCT_VOXELS = 3.0
+CONTENDER_VOXELS = 6.0
+
+#: ICP steps (on the keypoints, pairs within ``ICP_VOXELS``) before verification.
+ICP_STEPS = 6
+ICP_VOXELS = 2.0
+
+#: A keypoint lies on the other cloud when within this many voxels of one of its keypoints.
+VERIFY_VOXELS = 1.0
+
+#: A pose of about the leader's rotation scoring at least this fraction of its overlap score
+#: challenges it on the slide-constraining inliers (:func:`rank_poses`).
+TIE_RATIO = 0.5
+
+
+@dataclass(frozen=True)
+class ScanEstimate:
+    """Verified poses, best first (each distinct from those before it), their overlap scores (the
+    fraction of keypoints of both clouds lying on the other cloud, 0-1), and the voxel used."""
+
+    transformations: np.ndarray
+    scores: np.ndarray
+    voxel: float
+    correspondences: int
+    inlier_counts: np.ndarray
+
+
+def keypoint_voxel(points: np.ndarray, spacing: float, count: int = KEYPOINTS) -> float:
+    """The voxel edge (cloud units) at which ``points`` occupy about ``count`` voxels (at least
+    ``MIN_VOXEL_SPACINGS * spacing``)."""
+    floor = MIN_VOXEL_SPACINGS * spacing
+    extent = np.ptp(points, axis=0)
+    # Start from a surface guess (the bounding box's largest face) and correct by the 1/v^2 law.
+    faces = np.sort(extent)[1:]
+    voxel = max(float(np.sqrt(faces[0] * faces[1] / count)), floor, 1e-12)
+    for _ in range(4):
+        occupied = _occupied(points, voxel)
+        if abs(occupied - count) <= 0.1 * count:
+            break
+        voxel = max(voxel * float(np.sqrt(occupied / count)), floor)
+        if voxel == floor:
+            break
+    return voxel
+
+
+def _occupied(points: np.ndarray, voxel: float) -> int:
+    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    extent = keys.max(axis=0) + 1
+    linear = (keys[:, 0] * extent[1] + keys[:, 1]) * extent[2] + keys[:, 2]
+    return int(len(np.unique(linear)))
+
+
+def _correspondences(source_features: np.ndarray, target_features: np.ndarray, limit: int) -> np.ndarray:
+    """``(K, 2)`` (source, target) keypoint indices: nearest descriptors both ways, best ratio first."""
+    forward_i, forward_r, backward_i, backward_r = _nearest_both_ways(source_features, target_features)
+    pairs = np.concatenate([
+        np.stack([np.arange(len(source_features)), forward_i], axis=1),
+        np.stack([backward_i, np.arange(len(target_features))], axis=1),
+    ])
+    order = np.argsort(np.concatenate([forward_r, backward_r]), kind="stable")
+    pairs = pairs[order]
+    _, first = np.unique(pairs[:, 0] * (len(target_features) + 1) + pairs[:, 1], return_index=True)
+    pairs = pairs[np.sort(first)]
+    return pairs[:limit].astype(np.intp)
+
+
+#: Rows of the descriptor distance matrix computed at once.
+_CHUNK_ROWS = 1024
+
+
+def _nearest_both_ways(source: np.ndarray, target: np.ndarray):
+    """Nearest target row of every source row and nearest source row of every target row
+    (Euclidean, float32 Gram matrices in row chunks), each with Lowe's ratio (nearest over
+    second-nearest distance)."""
+    source32, target32 = source.astype(np.float32), target.astype(np.float32)
+    target_squares = np.einsum("ij,ij->i", target32, target32)
+    forward_i = np.empty(len(source), dtype=np.intp)
+    forward_r = np.empty(len(source))
+    column_best = np.full((2, len(target)), np.inf, dtype=np.float32)
+    column_index = np.zeros(len(target), dtype=np.intp)
+    columns = np.arange(len(target))
+    for start in range(0, len(source), _CHUNK_ROWS):
+        block = source32[start:start + _CHUNK_ROWS]
+        squared = block @ target32.T
+        squared *= -2.0
+        squared += target_squares[None, :]
+        squared += np.einsum("ij,ij->i", block, block)[:, None]
+        np.maximum(squared, 0.0, out=squared)
+        rows = np.arange(len(block))
+        nearest = squared.argmin(axis=1)
+        best = squared[rows, nearest]
+        nearest_row = squared.argmin(axis=0)
+        best_column = squared[nearest_row, columns]
+        squared[rows, nearest] = np.inf
+        second = squared.min(axis=1)
+        squared[rows, nearest] = best
+        squared[nearest_row, columns] = np.inf
+        second_column = squared.min(axis=0)
+        forward_i[start:start + len(block)] = nearest
+        forward_r[start:start + len(block)] = np.sqrt(best / np.maximum(second, 1e-30))
+        # Columns: the two smallest of the running pair and this block's pair.
+        better = best_column < column_best[0]
+        new_second = np.minimum(np.maximum(column_best[0], best_column), np.minimum(column_best[1], second_column))
+        column_best[0] = np.minimum(column_best[0], best_column)
+        column_best[1] = new_second
+        column_index = np.where(better, nearest_row + start, column_index)
+    backward_r = np.sqrt(column_best[0] / np.maximum(column_best[1], 1e-30))
+    return forward_i, forward_r, column_index, backward_r
+
+
+def _leading_vector(matrices: np.ndarray, iterations: int = 20) -> np.ndarray:
+    """Leading eigenvectors (non-negative) of symmetric non-negative ``(..., n, n)`` matrices, by
+    power iteration."""
+    vector = np.ones(matrices.shape[:-1], dtype=matrices.dtype)
+    for _ in range(iterations):
+        vector = np.einsum("...ij,...j->...i", matrices, vector)
+        norm = np.linalg.norm(vector, axis=-1, keepdims=True)
+        vector = vector / np.where(norm > 0, norm, 1.0)
+    return vector
+
+
+def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: int = SEEDS,
+          group_size: int = GROUP_SIZE, spread: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pose fits of paired points ``source[k] <-> target[k]`` (most of them possibly wrong) by
+    second-order spatial compatibility (see the module docstring, step 4).
+
+    ``tolerance``: the length disagreement (cloud units) two inlier correspondences may have.
+    ``spread``: seeds' minimum source distance (default ``2 tolerance``). Returns rotations
+    ``(S, 3, 3)`` and translations ``(S, 3)``, one per seed group of at least 3 members.
+    """
+    count = len(source)
+    if count < 3:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3))
+    difference = cdist(source, source)
+    difference -= cdist(target, target)
+    compatible = (np.abs(difference) <= tolerance).astype(np.float32)
+    del difference
+    np.fill_diagonal(compatible, 0.0)
+    score = _leading_vector(compatible[None])[0]
+    spread = 2.0 * tolerance if spread is None else spread
+    chosen: list[int] = []
+    for index in np.argsort(-score, kind="stable"):
+        if score[index] <= 0 or len(chosen) == seeds:
+            break
+        if chosen and np.min(np.linalg.norm(source[chosen] - source[index], axis=1)) < spread:
+            continue
+        chosen.append(int(index))
+    if not chosen:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3))
+    seed_rows = compatible[chosen]
+    # Second order: for each seed and each correspondence compatible with it, how many
+    # correspondences are compatible with both.
+    second = seed_rows * (seed_rows @ compatible)
+    size = min(group_size, count - 1)
+    partners = np.argsort(-second, axis=1, kind="stable")[:, :size]
+    groups = np.concatenate([np.asarray(chosen)[:, None], partners], axis=1)
+    valid = np.concatenate([np.ones((len(chosen), 1), bool), np.take_along_axis(second, partners, axis=1) > 0], axis=1)
+    local = compatible[groups[:, :, None], groups[:, None, :]] * (valid[:, :, None] & valid[:, None, :])
+    local_second = local * np.matmul(local, local)
+    weights = _leading_vector(local_second.astype(np.float64)) * valid
+    enough = (weights > 1e-9).sum(axis=1) >= 3
+    if not enough.any():
+        return np.zeros((0, 3, 3)), np.zeros((0, 3))
+    groups, weights = groups[enough], weights[enough]
+    return _group_kabsch(source, target, groups, weights)
+
+
+def _group_kabsch(source, target, groups, weights):
+    from ..core.procrustes import batched_rotation_from_cross_covariance
+
+    weights = weights / weights.sum(axis=1, keepdims=True)
+    src, tgt = source[groups], target[groups]
+    src_c = np.einsum("gk,gki->gi", weights, src)
+    tgt_c = np.einsum("gk,gki->gi", weights, tgt)
+    cross = np.einsum("gk,gki,gkj->gij", weights, src - src_c[:, None], tgt - tgt_c[:, None])
+    rotations = batched_rotation_from_cross_covariance(cross)
+    return rotations, tgt_c - np.einsum("gij,gj->gi", rotations, src_c)
+
+
+def overlap_counts(transformations: np.ndarray, source: np.ndarray, target: np.ndarray,
+                   source_tree: cKDTree, target_tree: cKDTree, distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(C,)`` source points within ``distance`` of the target under each pose, and ``(C,)``
+    target points within ``distance`` of the placed source."""
+    forward = np.empty(len(transformations), dtype=np.intp)
+    backward = np.empty(len(transformations), dtype=np.intp)
+    for k, matrix in enumerate(transformations):
+        rotation, translation = matrix[:3, :3], matrix[:3, 3]
+        d_forward, _ = target_tree.query(source @ rotation.T + translation, distance_upper_bound=distance)
+        d_backward, _ = source_tree.query((target - translation) @ rotation, distance_upper_bound=distance)
+        forward[k] = int(np.count_nonzero(d_forward <= distance))
+        backward[k] = int(np.count_nonzero(d_backward <= distance))
+    return forward, backward
+
+
+def _icp(matrix, source, target_tree, target, distance, steps):
+    """A few point-to-point ICP steps on keypoints (pairs within ``distance``)."""
+    for _ in range(steps):
+        moved = source @ matrix[:3, :3].T + matrix[:3, 3]
+        gaps, nearest = target_tree.query(moved, distance_upper_bound=distance)
+        close = gaps <= distance
+        if close.sum() < 3:
+            break
+        rotation, translation = _kabsch(source[close][None], target[nearest[close]][None])
+        matrix = to_matrix(rotation[0], translation[0])
+    return matrix
+
+
+def _slide_votes(first, second, source, target_tree, target_normals, distance) -> tuple[float, float]:
+    """Inliers of each pose weighted by how much their target normal points along the
+    displacement between the two poses (at the source keypoints' centroid)."""
+    centre = source.mean(axis=0)
+    direction = (first[:3, :3] @ centre + first[:3, 3]) - (second[:3, :3] @ centre + second[:3, 3])
+    length = np.linalg.norm(direction)
+    if length == 0:
+        return 0.0, 0.0
+    direction /= length
+    votes = []
+    for matrix in (first, second):
+        gaps, nearest = target_tree.query(source @ matrix[:3, :3].T + matrix[:3, 3], distance_upper_bound=distance)
+        close = gaps <= distance
+        votes.append(float(np.abs(target_normals[nearest[close]] @ direction).sum()))
+    return votes[0], votes[1]
+
+
+def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, workers: int | None = None) -> ScanEstimate:
+    """Poses ``T_target_source`` of two partially overlapping scans, best first (the module
+    docstring). ``spacing``: the target's median point spacing (cloud units). Deterministic."""
+    voxel = keypoint_voxel(target, spacing)
+    normal_radius, feature_radius = NORMAL_RADIUS_VOXELS * voxel, FEATURE_RADIUS_VOXELS * voxel
+    filter_radius = FILTER_RADIUS_VOXELS * voxel
+    with ThreadPoolExecutor(max_workers=1 if workers == 1 else 2) as pool:
+        jobs = [pool.submit(_keypoints, cloud, voxel, normal_radius, feature_radius, filter_radius)
+                for cloud in (source, target)]
+        (source_keys, source_features), (target_keys, target_features) = (job.result() for job in jobs)
+    empty = ScanEstimate(np.eye(4)[None], np.zeros(1), voxel, 0, np.zeros(1, dtype=np.intp))
+    if len(source_keys) < 3 or len(target_keys) < 3:
+        return empty
+    pairs = _correspondences(source_features, target_features, MAX_CORRESPONDENCES)
+    paired_source, paired_target = source_keys[pairs[:, 0]], target_keys[pairs[:, 1]]
+    tolerance = COMPATIBILITY_VOXELS * voxel
+    rotations, translations = prune(paired_source, paired_target, tolerance, spread=SEED_SPREAD_VOXELS * voxel)
+    if len(rotations) == 0:
+        return empty
+    counts = _inlier_mask(rotations, translations, paired_source, paired_target, tolerance).sum(axis=1)
+    keep = _distinct_order(rotations, translations, counts, HYPOTHESES, DISTINCT_VOXELS * voxel)
+    rotations, translations = rotations[keep], translations[keep]
+    # Refit each on its own inliers (twice).
+    for _ in range(2):
+        mask = _inlier_mask(rotations, translations, paired_source, paired_target, tolerance)
+        enough = mask.sum(axis=1) >= 3
+        if enough.any():
+            rotations, translations = rotations.copy(), translations.copy()
+            rotations[enough], translations[enough] = _kabsch(paired_source, paired_target, mask[enough].astype(float))
+    counts = _inlier_mask(rotations, translations, paired_source, paired_target, tolerance).sum(axis=1)
+
+    target_tree = cKDTree(target_keys)
+    poses = np.stack([
+        _icp(to_matrix(r, t), source_keys, target_tree, target_keys, ICP_VOXELS * voxel, ICP_STEPS)
+        for r, t in zip(rotations, translations)
+    ])
+    order, scores = rank_poses(poses, source_keys, target_keys, voxel, target_tree=target_tree)
+    return ScanEstimate(poses[order], scores[order], voxel, len(pairs), counts[order])
+
+
+def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel: float, *,
+               target_tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Verification on the overlap (module docstring, step 6): the indices of the mutually
+    distinct ``poses`` ``(C, 4, 4)``, best first, and every pose's overlap score (the fraction of
+    ``source`` and ``target`` keypoints within ``VERIFY_VOXELS`` of the other cloud).
+
+    A pose of about the same rotation as the leader (within :data:`DISTINCT_ROTATION_DEG`) and a
+    score of at least ``TIE_RATIO`` of its score challenges it on the slide: both count their
+    inliers weighted by ``|n . u|``, with ``n`` the target normal and ``u`` the direction between
+    the two poses, and the higher count leads. On a corridor the slid pose can overlap *more*
+    (it slides the source further along), while only the true one aligns the geometry across it.
+    """
+    target_tree = cKDTree(target) if target_tree is None else target_tree
+    distance = VERIFY_VOXELS * voxel
+    forward, backward = overlap_counts(poses, source, target, cKDTree(source), target_tree, distance)
+    scores = (forward + backward) / float(len(source) + len(target))
+    order = _distinct_poses(poses, list(np.argsort(-scores, kind="stable")), CONTENDER_VOXELS * voxel)
+    normals = None
+    leader = 0
+    for position in range(1, len(order)):
+        challenger, best = order[position], order[leader]
+        if scores[challenger] < TIE_RATIO * scores[best]:
+            break
+        turn = np.degrees(rotation_angle(poses[challenger, :3, :3].T @ poses[best, :3, :3]))
+        if turn > DISTINCT_ROTATION_DEG:
+            continue
+        if normals is None:
+            normals = estimate_normals(target, k=20, radius=NORMAL_RADIUS_VOXELS * voxel)
+        best_votes, challenger_votes = _slide_votes(poses[best], poses[challenger], source, target_tree, normals, distance)
+        if challenger_votes > best_votes:
+            leader = position
+    order.insert(0, order.pop(leader))
+    return np.asarray(order, dtype=np.intp), scores
+
+
+def _distinct_poses(poses: np.ndarray, order: list[int], min_translation: float) -> list[int]:
+    kept: list[int] = []
+    for index in order:
+        if all(
+            np.degrees(rotation_angle(poses[index, :3, :3].T @ poses[other, :3, :3])) > DISTINCT_ROTATION_DEG
+            or np.linalg.norm(poses[index, :3, 3] - poses[other, :3, 3]) > min_translation
+            for other in kept
+        ):
+            kept.append(int(index))
+    return kept
