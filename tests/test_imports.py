@@ -77,3 +77,24 @@ def test_every_public_name_resolves_lazily():
     assert esmicp.register.__module__ == "esmicp.api"
     with pytest.raises(AttributeError, match="no attribute 'regster'"):
         esmicp.regster
+
+
+@pytest.mark.parametrize("beside", ["open3d", "torch"])
+def test_no_warning_at_import_or_first_call_beside(beside):
+    # With numba, Open3D's TBB made every import warn (NumbaWarning: TBB threading layer ...).
+    import importlib.util
+    import os
+
+    if importlib.util.find_spec(beside) is None:
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(f"{beside} is missing (bash .ci/run installs it)")
+        pytest.skip(f"{beside} is not installed")
+    code = (
+        f"import {beside}, esmicp, numpy as np\n"
+        "from esmicp.shapes import asymmetric_shape\n"
+        "rng = np.random.default_rng(0)\n"
+        "target = asymmetric_shape(3000, rng)\n"
+        "esmicp.register(asymmetric_shape(3000, rng)[::-1] + 0.3, target, rng=0)\n"
+    )
+    done = subprocess.run([sys.executable, "-W", "error", "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0 and "Warning" not in done.stderr, done.stderr[-2000:]
