@@ -209,3 +209,25 @@ def test_cli_merge_bad_scan_writes_nothing_unless_skip_bad(tmp_path, bunny_files
     assert not out.exists()
     assert main(["merge", *argv, "--skip-bad"]) == 0
     assert out.exists()
+
+
+def test_cli_merge_reads_three_column_bin_scans_with_bin_columns(tmp_path, bunny, capsys):
+    """A headerless x y z float32 .bin whose size also fits 4 columns is refused (named) unless
+    --bin-columns says the layout; with it the scans merge."""
+    from esmicp.cli import main
+
+    clouds, _ = bunny
+    paths = []
+    for name, cloud in zip(BUNNY[:3], clouds[:3]):
+        points = cloud[::2][:1996].astype(np.float32)
+        assert (points.size * 4) % 48 == 0  # ambiguous: fits 3 and 4 columns
+        path = tmp_path / f"{name}.bin"
+        points.tofile(path)
+        paths.append(path)
+    out = tmp_path / "merged.ply"
+    argv = ["merge", *map(str, paths), "-o", str(out), "--processes", "1", "--pair-points", "500", "--no-progress"]
+    assert main(argv) == 2
+    assert not out.exists()
+    assert "bun000.bin" in capsys.readouterr().err
+    assert main([*argv, "--bin-columns", "3"]) == 0
+    assert out.exists()

@@ -29,6 +29,9 @@ def add_parser(commands) -> None:
     merge.add_argument("--poses-out", type=Path, help="write T_world_scan per scan (text: index, file, 16 numbers)")
     merge.add_argument("--voxel", type=positive_float, help="voxel size of the merged cloud (cloud units)")
     merge.add_argument("--view", type=Path, help="write an HTML view of the merged model coloured by scan")
+    merge.add_argument("--bin-columns", type=int, choices=(3, 4), metavar="{3,4}",
+                       help=".bin scans: float32 values per point (4: KITTI x y z intensity, 3: x y z); "
+                       "needed when a file's size fits both")
     merge.add_argument("--reference", type=int, default=0, help="index of the scan whose frame is the world (default 0)")
     merge.add_argument("--skip-bad", action="store_true", help="merge the readable scans when some cannot be read")
     merge.add_argument("--pair-points", type=positive_int, default=800, help="points per scan for the pairwise registrations")
@@ -97,7 +100,7 @@ def run_merge(args) -> int:
     clouds, names, bad = [], [], []
     for path in args.scans:
         try:
-            clouds.append(io.read_points(path))
+            clouds.append(io.read_points(path, bin_columns=args.bin_columns))
             names.append(path.name)
         except EsmicpError as exc:
             print(f"esmicp merge: error: {exc}", file=sys.stderr)
