@@ -67,7 +67,7 @@ def not_leading(rows) -> list[str]:
     return lines or ["- nowhere in this run."]
 
 
-def page(rows, command: str) -> str:
+def page(rows, command: str, objects: str | None = None, objects_command: str = "") -> str:
     real = [r for r in rows if r["protocol"] == "real-pairs"]
     partial = [r for r in rows if r["protocol"].startswith("partial-")]
     parts = [
@@ -93,7 +93,7 @@ def page(rows, command: str) -> str:
         "(uniform on SO(3)) about its centroid, the ground truth composed accordingly and the estimate mapped "
         "back before it is judged. `overlap`: fraction of the source within 3 target spacings of the target "
         "under the ground truth. The KITTI pair's ground truth is coarse (about 0.18 m, see the data README): "
-        "judge it by the 0.6 m criterion only.",
+        "judge it by the 0.6 m criterion only; the summary's LiDAR rows count it with the 7 Newer College pairs.",
         "",
     ]
     if real:
@@ -112,6 +112,20 @@ def page(rows, command: str) -> str:
             partial_markdown(rows),
         ]
     parts += ["## Where we do not lead (computed from this run)", "", *not_leading(rows), ""]
+    if objects:
+        parts += [
+            "## Object protocols, re-measured the same day",
+            "",
+            "No-regression check of the object-protocol table of `docs/measured-global.md` (which has 130 trials "
+            "per protocol), fewer trials, as `benchmarks/global_protocols.py` printed it:",
+            "",
+            "```bash",
+            objects_command,
+            "```",
+            "",
+            objects.strip(),
+            "",
+        ]
     return "\n".join(parts)
 
 
@@ -120,9 +134,12 @@ def main() -> None:
     parser.add_argument("results", type=Path, help="the --out folder of the scan benchmark")
     parser.add_argument("--command", default="esmicp bench --datasets real-pairs,partial-overlap --trials 24 "
                         "--out bench-scans", help="the command shown on the page")
+    parser.add_argument("--objects", type=Path, help="the output of benchmarks/global_protocols.py to include")
+    parser.add_argument("--objects-command", default="python benchmarks/global_protocols.py --trials 13 --scan-trials 6")
     args = parser.parse_args()
     rows = [json.loads(line) for line in (args.results / "rows.jsonl").read_text().splitlines() if line.strip()]
-    print(page(rows, args.command), end="")
+    objects = args.objects.read_text() if args.objects else None
+    print(page(rows, args.command, objects, args.objects_command), end="")
 
 
 if __name__ == "__main__":
