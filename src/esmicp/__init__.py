@@ -11,6 +11,7 @@ NumPy, SciPy and the file readers load when something needs them.
 from ._version import __version__
 from .errors import (
     EsmicpError,
+    CoincidentPointsWarning,
     EsmicpWarning,
     IndexAlignmentWarning,
     InvalidInputError,
@@ -55,6 +56,7 @@ def __dir__():
 __all__ = [
     "METHODS",
     "EsmicpError",
+    "CoincidentPointsWarning",
     "EsmicpWarning",
     "IndexAlignmentWarning",
     "InvalidInputError",

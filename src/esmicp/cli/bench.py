@@ -239,7 +239,7 @@ def run(args) -> int:
 
     if args.plots:
         # Before the run, not after it: a missing plotting library must not cost a whole run.
-        from ..viz._deps import require
+        from ..viz import require
 
         require("matplotlib")
     config = build_config(args)
