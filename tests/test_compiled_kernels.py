@@ -148,7 +148,17 @@ def test_register_many_runs_one_thread_per_process():
 def test_compiled_kabsch_matches_numpy_svd():
     """The compiled rotation (Horn's quaternion method) against the SVD formula, on random
     cross-covariances over ten orders of magnitude, a third of them of rank 2 (planar clouds)."""
-    from esmicp.core.pose_kernels import kabsch_rotation, nearest_rotation
+    from esmicp import _kernels
+
+    def kabsch_rotation(cross):
+        rotation = np.empty((3, 3))
+        _kernels.kabsch(np.ascontiguousarray(cross), rotation)
+        return rotation
+
+    def nearest_rotation(matrix):
+        rotation = np.empty((3, 3))
+        _kernels.nearest_rotation(np.ascontiguousarray(matrix), rotation)
+        return rotation
 
     rng = np.random.default_rng(7)
     for trial in range(500):

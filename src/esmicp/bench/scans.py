@@ -90,11 +90,11 @@ def run_global(name: str, source, target, voxel: float | None, seed: int):
     from .. import baselines
 
     if name == "fgr-icp":
-        from ..baselines._common import o3d_cloud, refine, require
+        from ..baselines._common import o3d_cloud, refine, require, voxel_for
 
         coarse = baselines.get_baseline("fgr")(source, target, voxel_size=voxel, rng=seed)
         o3d = require("open3d", "open3d")
-        used = voxel if voxel is not None else float(coarse.notes.split("voxel=")[1].split(",")[0])
+        used = voxel_for(np.asarray(target, dtype=np.float64), voxel)  # the voxel FGR used
         fine, note = refine(o3d, o3d_cloud(o3d, np.asarray(source, dtype=np.float64)),
                             o3d_cloud(o3d, np.asarray(target, dtype=np.float64)), coarse.transformation, used,
                             FGR_ICP_ITERATIONS, "point-to-point")
