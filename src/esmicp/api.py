@@ -12,6 +12,7 @@ import numpy as np
 from .core.correspondence import NearestNeighbors
 from .core.procrustes import apply, bounding_box_diagonal
 from .errors import IndexAlignmentWarning, InvalidInputError
+from .globalreg.scan import Keypoints, overlap_confidence
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
 from .methods import METHODS, ConvergenceCriteria, make_estimator
@@ -146,6 +147,10 @@ def register(
         callback=frame.callback(callback), record_history=record_history, coarse_points=COARSE_POINTS,
     )
     fitness, inlier_rmse, inlier_distance = _evaluate(source_points, target_index, outcome.transformation, request)
+    keypoints = estimate.keypoints if estimate is not None and estimate.keypoints is not None else None
+    if keypoints is None:
+        keypoints = Keypoints.of(source_points, target_points, target_index.spacing())
+    confidence = overlap_confidence(outcome.transformation, keypoints)
     outcome = frame.outcome(outcome)
     return RegistrationResult(
         transformation=outcome.transformation,
@@ -166,6 +171,7 @@ def register(
             else estimate.runner_up_score / max(estimate.score, 1e-300)
         ),
         global_candidates=0 if estimate is None else estimate.candidates,
+        confidence=confidence,
     )
 
 
