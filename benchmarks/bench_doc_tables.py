@@ -11,19 +11,35 @@ of ``esmicp bench`` (its rows.jsonl), so that the docs can be regenerated exactl
         --sigma-sweep 0.005,0.01,0.02,0.05,0.1,0.2,0.5,1 --out bench-sigma
     python benchmarks/bench_doc_tables.py sigma bench-sigma
 
+    esmicp bench --paper-1000 --out bench-paper-1000
+    python benchmarks/bench_doc_tables.py paper-1000 bench-paper-1000     # docs/bench-paper-1000.md
+
 Figures are measured in the run, never stored in the repository.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import sys
 from collections import defaultdict
 from pathlib import Path
 
 from esmicp.bench import read_rows
-from esmicp.bench.tables import metrics_table, overview_table, protocol_label
+from esmicp.bench.tables import (
+    PAPER_METRICS,
+    metrics_table,
+    overview_table,
+    paper_1000_markdown,
+    paper_1000_stats,
+    protocol_label,
+)
+
+#: The paper's published tables (``--data`` / esm_icp_paper / this file).
+PAPER_TABLES = Path("esm_icp_paper") / "paper_tables.json"
+#: Which of our methods stands beside each method of the paper's 1,000-transform tables.
+PAPER_1000_PEERS = {"ESM-ICP": ("esm-paper", "esm-global"), "KISS-Matcher": ("kiss-matcher", "kiss-matcher-icp")}
 
 
 def _median_times(rows, protocol_filter) -> dict:
@@ -75,14 +91,94 @@ def sigma(rows) -> str:
     return metrics_table(rows)
 
 
+def _g(value) -> str:
+    return "-" if value is None else f"{value:.3g}"
+
+
+def _paper_rows(data_dir: Path) -> dict:
+    """``{(table id, class, method): row}`` of the paper's 1,000-transform tables."""
+    path = data_dir / PAPER_TABLES
+    try:
+        tables = json.loads(path.read_text())["tables"]
+    except (OSError, ValueError, KeyError) as exc:
+        sys.exit(f"{path}: cannot read the paper's tables ({exc})")
+    found = {}
+    for table in tables:
+        for row in table["rows"]:
+            if "(" in row["method"]:  # "Airplane (KISS-Matcher)"
+                name, method = row["method"].rstrip(")").split(" (")
+                found[(table["id"], name.lower(), method)] = row
+    return found
+
+
+def _beside_the_paper(records, data_dir: Path) -> str:
+    """Per paper table and object: the paper's means, then ours (means over the same number of
+    trials), each of our methods under the paper's method it stands for."""
+    paper_rows = _paper_rows(data_dir)
+    by_key = {(r["table"], r["cloud"].split("_")[0], r["method"]): r for r in records}
+    names = " | ".join(label for _, label in PAPER_METRICS)
+    parts = []
+    for table in dict.fromkeys(r["table"] for r in records):
+        lines = [f"#### {table}: the paper's means and ours\n", f"| object | method | trials | {names} |",
+                 "|" + "---|" * (3 + len(PAPER_METRICS))]
+        for cloud in dict.fromkeys(r["cloud"].split("_")[0] for r in records if r["table"] == table):
+            for paper_method, ours in PAPER_1000_PEERS.items():
+                published = paper_rows.get((table, cloud, paper_method))
+                if published is not None:
+                    cells = " | ".join(_g(published[label]) for _, label in PAPER_METRICS)
+                    lines.append(f"| {cloud} | paper: {paper_method} | 1000 | {cells} |")
+                for method in ours:
+                    record = by_key.get((table, cloud, method))
+                    if record is None:
+                        continue
+                    cells = " | ".join(_g(record[f"mean_{key}"]) for key, _ in PAPER_METRICS)
+                    lines.append(f"| {cloud} | ours: {method} | {record['ok']} | {cells} |")
+        parts.append("\n".join(lines) + "\n")
+    return "\n".join(parts)
+
+
+def _failures_dominate(records) -> str:
+    """One sentence per (table, object, method) with strict failures: how much of the mean they make."""
+    lines = []
+    for r in records:
+        trials = r["ok"] + r["failed"] + r["timeout"]
+        if not trials:
+            continue
+        mean, median = r["mean_mse_t"], r["median_mse_t"]
+        ratio = f"{mean / median:.3g}x the median" if mean and median else "-"
+        if r["strict_failures"]:
+            lines.append(
+                f"- {r['table']}, {r['cloud']}, `{r['method']}`: {r['strict_failures']} of {trials} trials are strict "
+                f"failures ({100 * r['strict_failures'] / trials:.3g}%); they make {_g(r['failures_share_mse_t_pct'])}% "
+                f"of the sum behind its mean MSE(t) and {_g(r['failures_share_mse_r_pct'])}% of its mean MSE(R). "
+                f"Mean MSE(t) {_g(mean)}, median {_g(median)} ({ratio}).")
+        else:
+            lines.append(f"- {r['table']}, {r['cloud']}, `{r['method']}`: no strict failure in {trials} trials; "
+                         f"mean MSE(t) {_g(mean)}, median {_g(median)} ({ratio}).")
+    return "\n".join(lines) + "\n"
+
+
+def paper_1000(rows, data_dir: Path) -> str:
+    records = paper_1000_stats(rows)
+    ours = paper_1000_markdown(rows).split("\n", 2)[2]  # without its title
+    return "\n".join([ours, "### How much of each mean the failures make\n", _failures_dominate(records),
+                       "### Beside the paper's figures (means)\n", _beside_the_paper(records, data_dir),
+                       ratios(rows, lambda r: True, reference="esm-paper")])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("kind", choices=("paper", "honest", "sigma"))
+    parser.add_argument("kind", choices=("paper", "honest", "sigma", "paper-1000"))
     parser.add_argument("results", type=Path, help="the --out folder of the run")
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
+                        help="the shared data folder (paper-1000: the paper's tables; default ../shared/data)")
     args = parser.parse_args(argv)
     rows = read_rows(args.results / "rows.jsonl")
     if not rows:
         sys.exit(f"{args.results / 'rows.jsonl'}: no rows")
+    if args.kind == "paper-1000":
+        print(paper_1000(rows, args.data))
+        return 0
     print({"paper": paper, "honest": honest, "sigma": sigma}[args.kind](rows))
     return 0
 

@@ -50,6 +50,13 @@ def test_process_pool_equals_sequential_register_in_input_order():
     _assert_same(register_many(pairs, processes=1, **KWARGS), expected)
 
 
+@pytest.mark.parametrize("processes", [1, 2])
+def test_progress_is_reported_after_every_pair(processes):
+    calls = []
+    register_many(_pairs(3), processes=processes, progress=lambda done, total: calls.append((done, total)), **KWARGS)
+    assert calls == [(1, 3), (2, 3), (3, 3)]
+
+
 def test_failing_pair_is_reported_in_place_and_the_others_survive():
     pairs = _pairs(3)
     pairs.insert(1, (np.zeros((5, 2)), pairs[0][1]))  # malformed source
@@ -69,6 +76,8 @@ def test_bad_arguments_raise_one_clear_error():
         register_many([(np.zeros((4, 3)),)])
     with pytest.raises(InvalidInputError, match="pairs"):
         register_many(5)
+    with pytest.raises(InvalidInputError, match="progress"):
+        register_many(_pairs(1), progress=3)
     assert register_many([], processes=2) == []
 
 
@@ -87,9 +96,11 @@ def test_dask_client_equals_sequential_register():
     pairs = _pairs(3)
     pairs.append((np.full((10, 3), 1.0), pairs[0][1]))  # degenerate: all points identical
     expected = [esmicp.register(source, target, **KWARGS) for source, target in pairs[:3]]
+    calls = []
     with distributed.Client(
         n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
     ) as client:
-        results = register_many(pairs, client=client, **KWARGS)
+        results = register_many(pairs, client=client, progress=lambda done, total: calls.append((done, total)), **KWARGS)
     _assert_same(results[:3], expected)
+    assert calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
     assert isinstance(results[3], RegistrationFailure) and results[3].index == 3

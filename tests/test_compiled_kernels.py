@@ -148,7 +148,17 @@ def test_register_many_runs_one_thread_per_process():
 def test_compiled_kabsch_matches_numpy_svd():
     """The compiled rotation (Horn's quaternion method) against the SVD formula, on random
     cross-covariances over ten orders of magnitude, a third of them of rank 2 (planar clouds)."""
-    from esmicp.core.pose_kernels import kabsch_rotation, nearest_rotation
+    from esmicp import _kernels
+
+    def kabsch_rotation(cross):
+        rotation = np.empty((3, 3))
+        _kernels.kabsch(np.ascontiguousarray(cross), rotation)
+        return rotation
+
+    def nearest_rotation(matrix):
+        rotation = np.empty((3, 3))
+        _kernels.nearest_rotation(np.ascontiguousarray(matrix), rotation)
+        return rotation
 
     rng = np.random.default_rng(7)
     for trial in range(500):
@@ -179,3 +189,47 @@ def test_the_one_call_iteration_gives_the_pose_of_the_numpy_step(method, count):
     plain = esmicp.register(source, target, method=method, init="identity", record_history=True)
     assert fused.num_iterations == plain.num_iterations > 2
     np.testing.assert_allclose(fused.transformation, plain.transformation, rtol=0, atol=1e-9)
+
+
+def test_coincident_points_are_counted_exactly():
+    from esmicp.core.correspondence import coincident_points
+
+    rng = np.random.default_rng(8)
+    points = np.round(rng.normal(size=(20000, 3)), 1)  # many exact repeats
+    points[:5] = [-0.0, 0.0, 0.0]  # -0.0 and 0.0 are the same point
+    repeats, most, most_count, first = coincident_points(points)
+    unique, counts = np.unique(points + 0.0, axis=0, return_counts=True)
+    assert repeats == len(points) - len(unique) == len(points) - first.sum()
+    assert most_count == counts.max()
+    np.testing.assert_array_equal(np.unique(points[first] + 0.0, axis=0), unique)
+
+
+def test_a_cloud_full_of_zero_points_warns_and_says_what_to_do():
+    """Issue 16 item 1: a depth sensor's invalid pixels stored as (0, 0, 0); the registration
+    runs (near-linear) and warns, naming the share, the place and the fix."""
+    cloud = _bunny_like(4000, 9)
+    zeros = np.zeros((1000, 3))
+    with pytest.warns(esmicp.CoincidentPointsWarning) as caught:
+        result = esmicp.register(np.vstack([cloud + 0.01, zeros]), np.vstack([zeros, cloud]), init="identity")
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 2
+    assert messages[0].startswith("source: 999 of its 5,000 points (20.0%) are copies of other points (the most repeated: 1,000 at (0, 0, 0))")
+    assert "deduplicate" in messages[0] and "(0, 0, 0) points: depth sensors store invalid pixels" in messages[0]
+    assert messages[1].startswith("target: 999 of its 5,000 points")
+    assert np.isfinite(result.transformation).all()
+
+
+def test_few_coincident_points_do_not_warn(recwarn):
+    cloud = _bunny_like(4000, 10)
+    repeated = np.vstack([cloud, cloud[:300]])  # 7% copies: below the 10% of the warning
+    esmicp.register(repeated + 0.01, repeated, init="identity")
+    assert not [w for w in recwarn if issubclass(w.category, esmicp.CoincidentPointsWarning)]
+    assert len(repeated) * 0.1 > 300
+
+
+def test_repeated_points_warn_without_the_zero_advice():
+    cloud = _bunny_like(3000, 11)
+    doubled = np.vstack([cloud, cloud])
+    with pytest.warns(esmicp.CoincidentPointsWarning, match=r"^target: 3,000 of its 6,000 points \(50\.0%\)") as caught:
+        esmicp.register(cloud + 0.01, doubled, init="identity")
+    assert "depth sensors" not in str(caught[0].message)

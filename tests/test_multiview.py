@@ -70,7 +70,7 @@ def _truth(n, rng):
 def _fake_pairwise(truth, *, wrong=(), low=()):
     """Stand-in for the pairwise registrations: exact relative poses, except the listed pairs."""
 
-    def run(jobs, kwargs, processes, client, progress, *, pairs):
+    def run(jobs, *, pairs):
         out = []
         for i, j in pairs:
             T = np.linalg.inv(truth[i]) @ truth[j]
@@ -91,13 +91,12 @@ def _fake_pairwise(truth, *, wrong=(), low=()):
 def _patch(monkeypatch, truth, clouds, **kwargs):
     fake = _fake_pairwise(truth, **kwargs)
     captured = {}
-    original = scans_module._pairwise
 
-    def wrapper(jobs, register_kwargs, processes, client, progress):
+    def wrapper(jobs, *, processes, client, progress, **register_kwargs):
         # recover which (i, j) each job is from the subsampled clouds' identity
         index = {id(c): k for k, c in enumerate(captured["small"])}
         pairs = [(index[id(t)], index[id(s)]) for s, t in jobs]
-        return fake(jobs, register_kwargs, processes, client, progress, pairs=pairs)
+        return fake(jobs, pairs=pairs)
 
     real_subsample = scans_module._subsample
 
@@ -106,10 +105,9 @@ def _patch(monkeypatch, truth, clouds, **kwargs):
         captured.setdefault("small", []).append(out)
         return out
 
-    monkeypatch.setattr(scans_module, "_pairwise", wrapper)
+    monkeypatch.setattr(scans_module, "register_many", wrapper)
     monkeypatch.setattr(scans_module, "_subsample", subsample)
     # reverse fitness comes from the clouds: make every cloud the same shape in its own frame
-    assert original is not None
 
 
 def _clouds(truth, rng):
@@ -210,4 +208,26 @@ def test_cli_merge_bad_scan_writes_nothing_unless_skip_bad(tmp_path, bunny_files
     assert "broken.ply" in capsys.readouterr().err
     assert not out.exists()
     assert main(["merge", *argv, "--skip-bad"]) == 0
+    assert out.exists()
+
+
+def test_cli_merge_reads_three_column_bin_scans_with_bin_columns(tmp_path, bunny, capsys):
+    """A headerless x y z float32 .bin whose size also fits 4 columns is refused (named) unless
+    --bin-columns says the layout; with it the scans merge."""
+    from esmicp.cli import main
+
+    clouds, _ = bunny
+    paths = []
+    for name, cloud in zip(BUNNY[:3], clouds[:3]):
+        points = cloud[::2][:1996].astype(np.float32)
+        assert (points.size * 4) % 48 == 0  # ambiguous: fits 3 and 4 columns
+        path = tmp_path / f"{name}.bin"
+        points.tofile(path)
+        paths.append(path)
+    out = tmp_path / "merged.ply"
+    argv = ["merge", *map(str, paths), "-o", str(out), "--processes", "1", "--pair-points", "500", "--no-progress"]
+    assert main(argv) == 2
+    assert not out.exists()
+    assert "bun000.bin" in capsys.readouterr().err
+    assert main([*argv, "--bin-columns", "3"]) == 0
     assert out.exists()

@@ -2,13 +2,16 @@
 
 Frames: every transform is ``T_target_source``, a 4x4 matrix that maps source coordinates into
 the target frame (``target ~= source @ R.T + t``).
+
+``import esmicp`` loads only the version and the error types; each public name below is imported
+on first use (PEP 562, as SciPy does), so the command line and ``import esmicp`` start fast and
+NumPy, SciPy and the file readers load when something needs them.
 """
 
 from ._version import __version__
-from .api import register
-from .batch import RegistrationFailure, register_many
 from .errors import (
     EsmicpError,
+    CoincidentPointsWarning,
     EsmicpWarning,
     IndexAlignmentWarning,
     InvalidInputError,
@@ -16,23 +19,44 @@ from .errors import (
     OutputExistsError,
     PointCloudFileError,
 )
-from .methods import METHODS
-from .multiview import MultiRegistrationResult, register_scans
-from .result import IterationRecord, RegistrationResult
+
+#: Public name -> the submodule that defines it (loaded on first access).
+_LAZY = {
+    "register": ".api",
+    "RegistrationFailure": ".batch",
+    "register_many": ".batch",
+    "METHODS": ".methods",
+    "MultiRegistrationResult": ".multiview",
+    "register_scans": ".multiview",
+    "IterationRecord": ".result",
+    "RegistrationResult": ".result",
+    # The file readers pull in plyfile / pypcd4 / trimesh.
+    "read_points": ".io",
+    "write_points": ".io",
+    "read_transform": ".io",
+    "write_transform": ".io",
+}
 
 
 def __getattr__(name):
-    # The file readers pull in plyfile / pypcd4 / trimesh: load them on first use only.
-    if name in ("read_points", "write_points", "read_transform", "write_transform"):
-        from . import io
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'esmicp' has no attribute {name!r}")
+    from importlib import import_module
 
-        return getattr(io, name)
-    raise AttributeError(f"module 'esmicp' has no attribute {name!r}")
+    value = getattr(import_module(module, __name__), name)
+    globals()[name] = value  # later look-ups skip this hook
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
 
 
 __all__ = [
     "METHODS",
     "EsmicpError",
+    "CoincidentPointsWarning",
     "EsmicpWarning",
     "IndexAlignmentWarning",
     "InvalidInputError",

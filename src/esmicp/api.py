@@ -11,7 +11,8 @@ import numpy as np
 
 from .core.correspondence import NearestNeighbors
 from .core.procrustes import apply, bounding_box_diagonal
-from .errors import IndexAlignmentWarning, InvalidInputError
+from .core.correspondence import coincident_points
+from .errors import CoincidentPointsWarning, IndexAlignmentWarning, InvalidInputError
 from .globalreg.scan import Keypoints, overlap_confidence
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
@@ -36,6 +37,10 @@ INLIER_DISTANCE_SPACINGS = 3.0
 #: Below this fraction of source points matched to the target point of the same index, an
 #: ``esm-paper`` run is reported as not index-aligned.
 INDEX_ALIGNED_FRACTION = 0.5
+
+#: From this fraction of a cloud's points being exact copies of other points on, :func:`register`
+#: warns (:class:`~esmicp.errors.CoincidentPointsWarning`).
+COINCIDENT_WARNING_FRACTION = 0.1
 
 #: Seed of the global search when ``rng`` is None (results are reproducible by default).
 DEFAULT_SEED = 0
@@ -137,6 +142,8 @@ def register(
     frame = WorkingFrame.for_target(request.target)
     source_points, target_points = frame.points(request.source), frame.points(request.target)
     target_index = NearestNeighbors(target_points, workers=request.workers)
+    _warn_if_coincident(request.source, "source", coincident_points(request.source))
+    _warn_if_coincident(request.target, "target", target_index.coincident())
     diagonal = bounding_box_diagonal(target_points)
     initial, init_name, estimate = _start(request, source_points, target_points, target_index, frame)
     # After a global search (which ends at the finest sigma) the pose is already close: start in
@@ -223,13 +230,36 @@ def _evaluate(source, target_index, transformation, request: _Request) -> tuple[
     if inlier_distance is None:
         spacing = target_index.spacing()
         inlier_distance = INLIER_DISTANCE_SPACINGS * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target_index.points)
-    distances, indices = target_index.query_near(apply(transformation, source))
+    distances, indices = target_index.query_near(apply(transformation, source, target_index.workers))
     inliers = distances <= inlier_distance
     fitness = float(inliers.mean())
     inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
     if request.method == "esm-paper" and len(source) == len(target_index.points):
         _warn_if_not_index_aligned(indices)
     return fitness, inlier_rmse, float(inlier_distance)
+
+
+def _warn_if_coincident(points: np.ndarray, name: str, coincident) -> None:
+    """Warn when at least :data:`COINCIDENT_WARNING_FRACTION` of ``points`` are exact copies of
+    other points (``coincident``: :func:`~esmicp.core.correspondence.coincident_points` of them)."""
+    repeats, most, most_count, _ = coincident
+    if repeats < COINCIDENT_WARNING_FRACTION * len(points):
+        return
+    location = points[most]
+    where = ", ".join(f"{value:.6g}" for value in location)
+    advice = "deduplicate it (e.g. numpy.unique(points, axis=0))"
+    if not location.any():
+        advice += (
+            " and drop the (0, 0, 0) points: depth sensors store invalid pixels there "
+            "(e.g. points[(points != 0).any(axis=1)])"
+        )
+    warnings.warn(
+        f"{name}: {repeats:,} of its {len(points):,} points ({100.0 * repeats / len(points):.1f}%) are copies of "
+        f"other points (the most repeated: {most_count:,} at ({where})); copies add no information, and many "
+        f"at one place pull the fit toward it: {advice}",
+        CoincidentPointsWarning,
+        stacklevel=4,  # the caller of register (through its interrupt wrapper)
+    )
 
 
 def _check_start_representable(initial: np.ndarray, source_points: np.ndarray) -> None:

@@ -18,9 +18,9 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 from .errors import InvalidInputError
 from .result import RegistrationResult
@@ -69,6 +69,7 @@ def register_many(
     *,
     processes: int | None = None,
     client=None,
+    progress: Callable[[int, int], None] | None = None,
     **register_kwargs,
 ) -> list["RegistrationResult | RegistrationFailure"]:
     """Register every ``(source, target)`` pair; results (or failures) in input order.
@@ -83,6 +84,9 @@ def register_many(
     client : dask.distributed.Client, optional
         Run the registrations on this Dask cluster instead (Dask is an optional dependency:
         ``pip install 'esmicp[dask]'``); the clouds are sent to the workers with the tasks.
+    progress : callable, optional
+        ``progress(done, total)`` in this process after every finished pair (in finishing order);
+        for a progress bar.
     **register_kwargs
         Passed to every :func:`esmicp.register` call (``method``, ``init``, ``max_iterations``,
         ...). A callback must be picklable to reach worker processes. ``workers`` (threads per
@@ -100,43 +104,78 @@ def register_many(
         When ``pairs`` is not a sequence of pairs, or ``processes`` is not a positive integer.
     """
     items = _as_pairs(pairs)
+    if progress is not None and not callable(progress):
+        raise InvalidInputError(f"progress: expected a callable(done, total), got {type(progress).__name__}")
+    report = progress or (lambda done, total: None)
     if client is not None:
-        return _on_dask(client, items, per_process_kwargs(register_kwargs))
+        return _on_dask(client, items, per_process_kwargs(register_kwargs), report)
     if processes is None:
         processes = os.cpu_count() or 1
     if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
         raise InvalidInputError(f"processes: expected a positive integer, got {processes!r}")
     processes = min(processes, max(len(items), 1))
     if processes == 1:
-        results = [_register_one(i, source, target, register_kwargs) for i, (source, target) in enumerate(items)]
+        results = []
+        for i, (source, target) in enumerate(items):
+            results.append(_register_one(i, source, target, register_kwargs))
+            report(i + 1, len(items))
     else:
         # "spawn": the caller may hold threads of other libraries (BLAS, torch) that fork() would not survive.
         context = multiprocessing.get_context("spawn")
         kwargs = per_process_kwargs(register_kwargs)
         with ProcessPoolExecutor(processes, mp_context=context) as pool:
-            futures = [
-                pool.submit(_register_one, i, source, target, kwargs)
+            futures = {
+                pool.submit(_register_one, i, source, target, kwargs): i
                 for i, (source, target) in enumerate(items)
-            ]
-            results = [future.result() for future in futures]
+            }
+            results = [None] * len(items)
+            for done, future in enumerate(as_completed(futures), 1):
+                results[futures[future]] = future.result()
+                report(done, len(items))
     _log_failures(results)
     return results
 
 
-def _on_dask(client, items, register_kwargs):
+def dask_client(address: str, *, timeout_s: float = 30.0):
+    """A ``dask.distributed.Client`` connected to the running scheduler at ``address`` (for the
+    ``client=`` of :func:`register_many` and :func:`esmicp.register_scans`; the caller closes it).
+
+    Raises
+    ------
+    MissingDependencyError
+        Dask is not installed (the message has the install hint).
+    InvalidInputError
+        No scheduler answers at ``address`` within ``timeout_s``.
+    """
     try:
-        import distributed  # noqa: F401  (the client's own package; checked for a clear message)
+        from distributed import Client
+    except ImportError as exc:
+        from .errors import MissingDependencyError
+
+        raise MissingDependencyError(f"a Dask scheduler needs dask.distributed ({exc}): {DASK_INSTALL_HINT}") from None
+    try:
+        return Client(address, timeout=timeout_s)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise InvalidInputError(f"scheduler: cannot connect to {address!r} ({exc})") from None
+
+
+def _on_dask(client, items, register_kwargs, report):
+    try:
+        from distributed import as_completed as dask_completed  # the client's own package
     except ImportError:  # pragma: no cover - a client cannot exist without it
         from .errors import MissingDependencyError
 
         raise MissingDependencyError(f"register_many(client=...) needs Dask: {DASK_INSTALL_HINT}") from None
-    futures = [
-        client.submit(_register_one, i, source, target, register_kwargs, pure=False)
+    futures = {
+        client.submit(_register_one, i, source, target, register_kwargs, pure=False): i
         for i, (source, target) in enumerate(items)
-    ]
-    results = client.gather(futures)
+    }
+    results = [None] * len(items)
+    for done, future in enumerate(dask_completed(futures), 1):
+        results[futures[future]] = future.result()
+        report(done, len(items))
     _log_failures(results)
-    return list(results)
+    return results
 
 
 def _as_pairs(pairs) -> list[tuple]:

@@ -48,5 +48,10 @@ class NonFinitePointsWarning(EsmicpWarning):
     """Some points had NaN or infinite coordinates and were dropped."""
 
 
+class CoincidentPointsWarning(EsmicpWarning):
+    """A large share of a cloud's points are exact copies of other points (repeated points, or a
+    depth sensor's invalid pixels stored as (0, 0, 0))."""
+
+
 class IndexAlignmentWarning(EsmicpWarning):
     """`esm-paper` was run on clouds that cannot be index-aligned (different sizes)."""

@@ -1,12 +1,12 @@
-"""Ctrl-C stays a ``KeyboardInterrupt`` through numba's compiled code.
+"""Ctrl-C stays a ``KeyboardInterrupt`` through compiled code.
 
-A numba function that returns a new array calls back into Python to box it. A Ctrl-C that lands
-in that call (the pending signal is raised there) comes out of the compiled function as
+An extension function that calls back into Python while a Ctrl-C is pending can end in
 ``SystemError: ... returned a result with an exception set``, with the ``KeyboardInterrupt`` only
-in its cause chain; a caller's ``except Exception`` then swallows the user's interrupt (measured:
-``esmicp bench`` ignored 4 of 8 interrupts). :func:`keeps_keyboard_interrupt` turns such an error
-back into the ``KeyboardInterrupt`` it is; the library's entry points (:func:`esmicp.register`,
-:func:`esmicp.methods.local.refine`) carry it.
+in its cause chain; a caller's ``except Exception`` then swallows the user's interrupt (measured
+with the earlier JIT-compiled kernels: ``esmicp bench`` ignored 4 of 8 interrupts).
+:func:`keeps_keyboard_interrupt` turns such an error back into the ``KeyboardInterrupt`` it is;
+the library's entry points (:func:`esmicp.register`, :func:`esmicp.methods.local.refine`) carry
+it. (The compiled kernels of :mod:`esmicp._kernels` raise the ``KeyboardInterrupt`` itself.)
 """
 
 from __future__ import annotations

@@ -14,13 +14,17 @@ from pathlib import Path
 
 from ..errors import InvalidInputError
 
-#: Object protocols of :mod:`esmicp.bench.protocols` plus the bench's own ``partial``.
-HONEST_OBJECT_PROTOCOLS = ("copy", "shuffled", "resampled", "outliers-30", "outliers-60", "partial")
+#: Object protocols of :mod:`esmicp.bench.protocols` plus the bench's own ``partial`` and
+#: ``shuffled-45`` (DCP's training distribution: :func:`esmicp.bench.trials.small_rotation_trial`).
+HONEST_OBJECT_PROTOCOLS = ("copy", "shuffled", "resampled", "outliers-30", "outliers-60", "partial", "shuffled-45")
 #: Protocol on datasets of scans with known poses.
 SCAN_PROTOCOL = "scan-pairs"
 #: The paper's randomised protocol: ``paper`` (noise-free) and its noisy variants.
 PAPER_PROTOCOLS = ("paper", "paper-noise-30", "paper-noise-60")
-#: Every protocol name ``--protocols`` accepts (``paper-table`` is only run by ``--paper``).
+#: The 1,000-transform tables' protocols (run only by ``paper_1000_trials`` / ``--paper-1000``).
+PAPER_1000_PROTOCOLS = ("paper-1000", "paper-1000-noise-30")
+#: Every protocol name ``--protocols`` accepts (``paper-table`` is only run by ``--paper``, the
+#: :data:`PAPER_1000_PROTOCOLS` only by ``--paper-1000``).
 PROTOCOL_NAMES = (*HONEST_OBJECT_PROTOCOLS, SCAN_PROTOCOL, *PAPER_PROTOCOLS)
 #: The local-method starts the bench offers.
 INIT_MODES = ("identity", "perturbed")
@@ -60,6 +64,12 @@ class BenchConfig:
         once with their default; every other method runs once.
     paper_tables : bool
         Also run the paper's printed transforms (protocol ``paper-table``).
+    paper_1000_trials : int
+        When > 0, also run the paper's 1,000-transform tables (:data:`esmicp.bench.paper.PAPER_1000_GROUPS`:
+        protocols ``paper-1000`` on airplane, person and stool and ``paper-1000-noise-30`` on stool,
+        translations in [-1000, 1000] whatever ``translation_ranges`` says) with this many trials per
+        group, on every object dataset holding those classes. The paper's setting is 1,000 trials
+        and ``max_iterations=100`` (``esmicp bench --paper-1000``).
     slow_trials : int
         Methods of :data:`esmicp.bench.methods.SLOW_METHODS` (seconds per trial: Go-ICP's
         branch-and-bound) run only on the first ``slow_trials`` trials of each randomised
@@ -82,6 +92,7 @@ class BenchConfig:
     translation_ranges: tuple[float, ...] = (1000.0,)
     sigma_sweep: tuple[float, ...] = ()
     paper_tables: bool = False
+    paper_1000_trials: int = 0
     data_dir: str = ""
     slow_trials: int = 1
 
@@ -95,8 +106,10 @@ class BenchConfig:
             raise InvalidInputError(f"methods: a method is listed twice in {','.join(self.methods)}")
         _check_positive_int("trials", self.trials)
         _check_positive_int("max_iterations", self.max_iterations)
-        if isinstance(self.slow_trials, bool) or not isinstance(self.slow_trials, int) or self.slow_trials < 0:
-            raise InvalidInputError(f"slow_trials: expected a whole number >= 0, got {self.slow_trials!r}")
+        for name in ("slow_trials", "paper_1000_trials"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise InvalidInputError(f"{name}: expected a whole number >= 0, got {value!r}")
         if not self.points:
             raise InvalidInputError("points: give at least one cloud size")
         for count in self.points:
@@ -112,7 +125,7 @@ class BenchConfig:
         for sigma in self.sigma_sweep:
             if not isinstance(sigma, (int, float)) or not 0 < sigma < float("inf"):
                 raise InvalidInputError(f"sigma_sweep: every sigma must be a finite number > 0, got {sigma!r}")
-        if not self.protocols and not self.paper_tables:
+        if not self.protocols and not self.paper_tables and not self.paper_1000_trials:
             raise InvalidInputError("protocols: give at least one protocol (or run the paper's tables)")
 
     def to_dict(self) -> dict:

@@ -21,14 +21,31 @@ import numpy as np
 from ..core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
 from .protocols import Trial, paper_noise
 
-#: Fraction of noisy source points of each noisy paper protocol.
-PAPER_NOISE_FRACTIONS = {"paper": 0.0, "paper-noise-30": 0.3, "paper-noise-60": 0.6}
+#: Fraction of noisy source points of each paper protocol (the 1,000-transform ones included).
+PAPER_NOISE_FRACTIONS = {"paper": 0.0, "paper-noise-30": 0.3, "paper-noise-60": 0.6,
+                         "paper-1000": 0.0, "paper-1000-noise-30": 0.3}
 
 #: Iterations the paper's tables give every method.
 PAPER_ITERATIONS = 40
 
 #: The paper's translation ranges (cloud units).
 PAPER_TRANSLATION_RANGES = (1.0, 100.0, 1000.0)
+
+#: The paper's two 1,000-transform tables (ESM-ICP against KISS-Matcher), as groups of trials:
+#: ``(table id in paper_tables.json, ModelNet40 class, protocol)``. Each group is
+#: :data:`PAPER_1000_TRIALS` trials of the paper's motion (Euler angles uniform in [-pi, pi],
+#: translations uniform in [-1000, 1000]) on that one object, the noisy one with
+#: :func:`esmicp.bench.protocols.paper_noise` on 30 % of the source, as ``paper-noise-30`` does.
+PAPER_1000_GROUPS = (
+    ("kiss-matcher-1000", "airplane", "paper-1000"),
+    ("kiss-matcher-1000", "person", "paper-1000"),
+    ("kiss-matcher-1000", "stool", "paper-1000"),
+    ("kiss-matcher-1000-stool-outliers-30", "stool", "paper-1000-noise-30"),
+)
+#: Trials per group, iterations and translation range of the 1,000-transform tables.
+PAPER_1000_TRIALS = 1000
+PAPER_1000_ITERATIONS = 100
+PAPER_1000_TRANSLATION_RANGE = 1000.0
 
 
 def euler_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -42,11 +59,19 @@ def euler_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
     return rz @ ry @ rx
 
 
+def paper_motion_parameters(rng: np.random.Generator, translation_range: float) -> tuple[np.ndarray, np.ndarray]:
+    """The draws of :func:`paper_motion`: ``(roll, pitch, yaw)`` each uniform in [-pi, pi], then
+    ``(tx, ty, tz)`` each uniform in ``[-translation_range, translation_range]``."""
+    angles = rng.uniform(-np.pi, np.pi, size=3)
+    translation = rng.uniform(-translation_range, translation_range, size=3)
+    return angles, translation
+
+
 def paper_motion(rng: np.random.Generator, translation_range: float) -> np.ndarray:
     """The paper's random ``G`` (4x4): Euler angles uniform in [-pi, pi], ZYX; translation
-    components uniform in ``[-translation_range, translation_range]``."""
-    roll, pitch, yaw = rng.uniform(-np.pi, np.pi, size=3)
-    translation = rng.uniform(-translation_range, translation_range, size=3)
+    components uniform in ``[-translation_range, translation_range]``
+    (:func:`paper_motion_parameters`)."""
+    (roll, pitch, yaw), translation = paper_motion_parameters(rng, translation_range)
     return to_matrix(euler_zyx(roll, pitch, yaw), translation)
 
 

@@ -209,8 +209,8 @@ def prepare_folder(out_dir: Path, *, resume: bool, force: bool) -> None:
     if force:
         from .tables import TABLE_FILES_GLOB
 
-        for path in [rows, out_dir / CONFIG, out_dir / VERSIONS, *out_dir.glob(TABLE_FILES_GLOB[0]),
-                     *out_dir.glob(TABLE_FILES_GLOB[1])]:
+        tables = [path for pattern in TABLE_FILES_GLOB for path in out_dir.glob(pattern)]
+        for path in [rows, out_dir / CONFIG, out_dir / VERSIONS, *tables]:
             if path.is_file():
                 path.unlink()
     try:

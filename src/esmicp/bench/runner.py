@@ -29,6 +29,7 @@ from .trials import (
     build_trial,
     group_seeds,
     object_specs,
+    paper_1000_specs,
     paper_case_specs,
     perturbed_init,
 )
@@ -113,6 +114,10 @@ def plan(config: BenchConfig) -> list[_Planned]:
                 for spec in paper_case_specs(dataset.name, clouds, points, config.seed):
                     cloud = dataset.clouds[spec.cloud]
                     planned.append(_Planned(spec, lambda s=spec, c=cloud: build_case_trial(s, c, data_dir)))
+            if config.paper_1000_trials:
+                for spec in paper_1000_specs(dataset.name, clouds, points, config.paper_1000_trials, config.seed):
+                    cloud = dataset.clouds[spec.cloud]
+                    planned.append(_Planned(spec, lambda s=spec, c=cloud: build_trial(s, c)))
     if not planned:
         raise InvalidInputError(
             "nothing to run: no protocol applies to these datasets (scan datasets take only scan-pairs; "
@@ -320,6 +325,9 @@ def write_tables(out_dir: Path) -> tuple[Path, ...]:
         return ()
     texts = {tables.SUMMARY_MD: tables.summary_markdown(rows), tables.SUMMARY_CSV: tables.summary_csv(rows),
              **tables.paper_tables(rows)}
+    if any(tables.paper_1000_table(row) for row in rows):
+        texts[tables.PAPER_1000_MD] = tables.paper_1000_markdown(rows)
+        texts[tables.PAPER_1000_CSV] = tables.paper_1000_csv(rows)
     written = []
     for name, text in texts.items():
         path = _inside(out_dir, name)

@@ -20,8 +20,11 @@ from collections import defaultdict
 
 SUMMARY_MD = "summary.md"
 SUMMARY_CSV = "summary.csv"
+#: The 1,000-transform tables (rows of the ``paper-1000*`` protocols), Markdown and CSV.
+PAPER_1000_MD = "paper-1000.md"
+PAPER_1000_CSV = "paper-1000.csv"
 #: Globs of every table file a run writes (``--force`` removes them).
-TABLE_FILES_GLOB = ("summary.*", "paper-*.md")
+TABLE_FILES_GLOB = ("summary.*", "paper-*.md", "paper-*.csv")
 
 PAPER_METRICS = (("mse_r", "MSE(R)"), ("rmse_r", "RMSE(R)"), ("mae_r", "MAE(R)"),
                  ("mse_t", "MSE(t)"), ("rmse_t", "RMSE(t)"), ("mae_t", "MAE(t)"))
@@ -206,7 +209,7 @@ def paper_tables(rows: list[dict]) -> dict[str, str]:
     ``paper-<protocol>-t<range>.md`` for each randomised paper protocol; rows = methods, columns =
     the paper's metrics; one table per cloud size."""
     files = {}
-    paper_rows = [r for r in rows if r["protocol"].startswith("paper")]
+    paper_rows = [r for r in rows if r["protocol"].startswith("paper") and not r["protocol"].startswith("paper-1000")]
     for label, group in _groups(paper_rows, protocol_label).items():
         name = "paper-table-" + _file_word(group[0]["case"]) if group[0].get("case") else _file_word(label)
         parts = [f"# {label}\n", _describe(group) + "\n"]
@@ -217,3 +220,95 @@ def paper_tables(rows: list[dict]) -> dict[str, str]:
             parts.append(f"## {points} points\n\n{metrics_table(sized)}")
         files[f"{name}.md"] = "\n".join(parts)
     return files
+
+
+#: Columns of :data:`PAPER_1000_CSV` / records of :func:`paper_1000_stats`, one per (table, cloud,
+#: method): the trial counts, the success rates, the mean (as the paper reports) and the median of
+#: each of the paper's metrics over the ``ok`` rows, the share (%) of each mean's sum that comes
+#: from the trials that are not strict successes, and the median time.
+PAPER_1000_COLUMNS = (
+    "table", "protocol", "cloud", "method", "points", "max_iterations", "rows", "ok", "failed", "timeout",
+    "unavailable", "strict_failures", "success_strict_pct", "success_symmetry_pct",
+    *[f"{kind}_{key}" for key, _ in PAPER_METRICS for kind in ("mean", "median")],
+    *[f"failures_share_{key}_pct" for key, _ in PAPER_METRICS],
+    "median_time_s", "reason",
+)
+
+
+def paper_1000_table(row: dict) -> str | None:
+    """The id (in ``paper_tables.json``) of the 1,000-transform table ``row`` belongs to, or None."""
+    from .paper import PAPER_1000_GROUPS
+
+    cloud = row.get("cloud") or ""
+    for table, name, protocol in PAPER_1000_GROUPS:
+        if row["protocol"] == protocol and (cloud == name or cloud.split("_")[0] == name):
+            return table
+    return None
+
+
+def paper_1000_stats(rows: list[dict]) -> list[dict]:
+    """One record (:data:`PAPER_1000_COLUMNS`) per (table, cloud, method, points) of the
+    ``paper-1000*`` rows, in the order the rows first name them."""
+    groups = _groups([r for r in rows if paper_1000_table(r)],
+                     lambda r: (paper_1000_table(r), r["protocol"], r["cloud"], method_label(r), r.get("points")))
+    records = []
+    for (table, protocol, cloud, method, points), group in groups.items():
+        stats = group_stats(group)
+        ok = [r for r in group if r["status"] == "ok"]
+        failures = [r for r in ok if not r["success_strict"]]
+        record = {"table": table, "protocol": protocol, "cloud": cloud, "method": method, "points": points,
+                  "strict_failures": len(failures) + stats["failed"] + stats["timeout"],
+                  **{key: stats[key] for key in PAPER_1000_COLUMNS if key in stats}}
+        for key, _ in PAPER_METRICS:
+            values = [r[key] for r in ok if r[key] is not None]
+            record[f"mean_{key}"] = statistics.fmean(values) if values else None
+            record[f"median_{key}"] = statistics.median(values) if values else None
+            total = sum(values)
+            failed = sum(r[key] for r in failures if r[key] is not None)
+            record[f"failures_share_{key}_pct"] = 100.0 * failed / total if total > 0 else None
+        records.append(record)
+    return records
+
+
+def paper_1000_markdown(rows: list[dict]) -> str:
+    """The 1,000-transform tables: per paper table, rows = (object, method), cells of the paper's
+    metrics ``mean / median`` over the trials, with the success rates and the share of the mean
+    MSE(t) that the strict failures make."""
+    records = paper_1000_stats(rows)
+    parts = ["# The paper's 1,000-transform tables\n",
+             "Cells of the metrics: mean / median over the trials that ran (the paper reports the mean). "
+             "strict %: rotation error < 2 deg and translation error < 2% of the diagonal; symmetry %: "
+             "placed within 2% of the diagonal as a point set. Failure share: the part (%) of the sum "
+             "behind each mean that comes from the trials that are not strict successes.\n"]
+    names = " | ".join(label for _, label in PAPER_METRICS)
+    for table, group in _groups(records, lambda r: r["table"]).items():
+        first = [r for r in rows if paper_1000_table(r) == table]
+        parts.append(f"## {table}\n\n{_describe(first)}\n")
+        lines = [f"| object | method | points | ran / crashed | strict % | symmetry % | {names} | "
+                 "failure share of mean MSE(R) / MSE(t) (%) | median time (ms) |", "|" + "---|" * 14]
+        for record in group:
+            if record["unavailable"] == record["rows"]:
+                lines.append(f"| {record['cloud']} | {record['method']} | {record['points']} | unavailable: "
+                             f"{_short(record['reason'])} |" + " - |" * 10)
+                continue
+            cells = " | ".join(f"{_fmt(record[f'mean_{key}'])} / {_fmt(record[f'median_{key}'])}"
+                               for key, _ in PAPER_METRICS)
+            crashed = record["failed"] + record["timeout"]
+            time_ms = None if record["median_time_s"] is None else 1000 * record["median_time_s"]
+            lines.append(
+                f"| {record['cloud']} | {record['method']} | {record['points']} | {record['ok'] + crashed} / {crashed} | "
+                f"{_fmt(record['success_strict_pct'])} | {_fmt(record['success_symmetry_pct'])} | {cells} | "
+                f"{_fmt(record['failures_share_mse_r_pct'])} / {_fmt(record['failures_share_mse_t_pct'])} | "
+                f"{_fmt(time_ms)} |"
+            )
+        parts.append("\n".join(lines) + "\n")
+    return "\n".join(parts)
+
+
+def paper_1000_csv(rows: list[dict]) -> str:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=PAPER_1000_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for record in paper_1000_stats(rows):
+        writer.writerow({key: record.get(key) for key in PAPER_1000_COLUMNS})
+    return out.getvalue()

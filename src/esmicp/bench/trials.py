@@ -15,12 +15,25 @@ import numpy as np
 
 from ..core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
 from .protocols import PROTOCOLS, Trial, make_trial, random_rigid_transform
-from .config import PAPER_PROTOCOLS
+from .config import PAPER_1000_PROTOCOLS, PAPER_PROTOCOLS
 from .datasets import name_seed
-from .paper import PAPER_CASES, PaperCase, case_protocol, paper_motion, paper_trial
+from .paper import (
+    PAPER_1000_GROUPS,
+    PAPER_1000_TRANSLATION_RANGE,
+    PAPER_CASES,
+    PaperCase,
+    case_protocol,
+    paper_motion,
+    paper_trial,
+)
 
 #: Fraction of each half a ``partial`` crop keeps.
 PARTIAL_KEEP = 0.7
+#: ``shuffled-45``: the largest angle of each Euler angle (degrees) and the largest translation
+#: per axis as a fraction of the cloud's radius about its centroid (DCP's ModelNet40 training
+#: setting: 45 degrees and 0.5 on objects in the unit sphere).
+SMALL_ROTATION_MAX_DEG = 45.0
+SMALL_ROTATION_SHIFT = 0.5
 PAPER_TABLE = "paper-table"
 
 
@@ -83,12 +96,31 @@ def paper_case_specs(dataset: str, clouds: list[str], points: int, seed: int) ->
     return specs
 
 
-def find_class(case: PaperCase, clouds: list[str]) -> str | None:
-    """The first cloud named ``<class>`` or ``<class>_<number>``."""
+def find_class(case: PaperCase | str, clouds: list[str]) -> str | None:
+    """The first cloud named ``<class>`` or ``<class>_<number>`` (``case``: a class name or a
+    :class:`PaperCase`, whose ``cloud`` is the class)."""
+    name = case if isinstance(case, str) else case.cloud
     for cloud in clouds:
-        if cloud == case.cloud or (cloud.startswith(case.cloud + "_") and cloud[len(case.cloud) + 1 :].isdigit()):
+        if cloud == name or (cloud.startswith(name + "_") and cloud[len(name) + 1 :].isdigit()):
             return cloud
     return None
+
+
+def paper_1000_specs(dataset: str, clouds: list[str], points: int, trials: int, seed: int) -> list[TrialSpec]:
+    """``trials`` trials of each :data:`esmicp.bench.paper.PAPER_1000_GROUPS` group whose class is
+    in ``clouds``: ids ``<dataset>/<cloud>/n<points>/<protocol>-t1000/<index>``, seeds spawned per
+    (protocol, dataset/cloud, points, range) as :func:`group_seeds` does."""
+    specs = []
+    for _, name, protocol in PAPER_1000_GROUPS:
+        cloud = find_class(name, clouds)
+        if cloud is None:
+            continue
+        label = f"{protocol}-{_range_label(PAPER_1000_TRANSLATION_RANGE)}"
+        seeds = group_seeds(seed, protocol, f"{dataset}/{cloud}", points, trials, PAPER_1000_TRANSLATION_RANGE)
+        for index, trial_seed in enumerate(seeds):
+            specs.append(TrialSpec(f"{dataset}/{cloud}/n{points}/{label}/{index}", protocol, dataset, cloud,
+                                   trial_seed, index, points, PAPER_1000_TRANSLATION_RANGE))
+    return specs
 
 
 def _subsample(cloud: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -118,6 +150,25 @@ def partial_trial(cloud: np.ndarray, rng: np.random.Generator, *, name: str, see
                  _frozen(rigid_inverse(moved_by)), seed, bounding_box_diagonal(target))
 
 
+def small_rotation_trial(cloud: np.ndarray, rng: np.random.Generator, *, name: str, seed, points: int) -> Trial:
+    """``shuffled-45``, DCP's ModelNet40 training distribution: the cloud subsampled to ``points``;
+    source = those points, target = the same points moved by ``[R | t]``, each cloud in its own
+    random order; ``R = Rotation.from_euler("zyx", angles)`` with the three angles uniform in
+    ``[0, SMALL_ROTATION_MAX_DEG]`` degrees, ``t`` uniform in ``[-s, s]`` per axis with ``s =
+    SMALL_ROTATION_SHIFT x`` the cloud's radius about its centroid. Truth ``[R | t]``."""
+    from scipy.spatial.transform import Rotation
+
+    cloud = _subsample(np.asarray(cloud, dtype=np.float64), points, rng)
+    rotation = Rotation.from_euler("zyx", rng.uniform(0.0, np.radians(SMALL_ROTATION_MAX_DEG), 3)).as_matrix()
+    radius = float(np.max(np.linalg.norm(cloud - cloud.mean(axis=0), axis=1)))
+    shift = rng.uniform(-SMALL_ROTATION_SHIFT * radius, SMALL_ROTATION_SHIFT * radius, 3)
+    truth = to_matrix(rotation, shift)
+    source = cloud[rng.permutation(len(cloud))]
+    target = apply(truth, cloud)[rng.permutation(len(cloud))]
+    return Trial("shuffled-45", name, _frozen(source), _frozen(target), _frozen(truth), seed,
+                 bounding_box_diagonal(target))
+
+
 def _frozen(array) -> np.ndarray:
     array = np.array(array, dtype=np.float64, copy=True)
     array.setflags(write=False)
@@ -131,7 +182,9 @@ def build_trial(spec: TrialSpec, cloud: np.ndarray) -> Trial:
     rng = np.random.default_rng(spec.seed)
     if spec.protocol == "partial":
         return partial_trial(cloud, rng, name=spec.cloud, seed=spec.seed, points=spec.points)
-    if spec.protocol in PAPER_PROTOCOLS:
+    if spec.protocol == "shuffled-45":
+        return small_rotation_trial(cloud, rng, name=spec.cloud, seed=spec.seed, points=spec.points)
+    if spec.protocol in PAPER_PROTOCOLS or spec.protocol in PAPER_1000_PROTOCOLS:
         target = _subsample(np.asarray(cloud, dtype=np.float64), spec.points, rng)
         moved_by = paper_motion(rng, spec.translation_range)
         return paper_trial(spec.protocol, target, moved_by, rng, name=spec.cloud, seed=spec.seed)
@@ -172,7 +225,9 @@ __all__ = [
     "build_case_trial",
     "build_trial",
     "object_specs",
+    "paper_1000_specs",
     "paper_case_specs",
     "partial_trial",
+    "small_rotation_trial",
     "perturbed_init",
 ]

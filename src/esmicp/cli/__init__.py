@@ -11,15 +11,17 @@ from __future__ import annotations
 import sys
 import warnings
 
-from .. import __version__
+from .._version import __version__
 from ..errors import EsmicpError, EsmicpWarning
-from . import bench, demo, merge, register, viz
 from .args import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, Parser
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "build_parser", "main"]
 
 
 def build_parser() -> Parser:
+    # The command modules load NumPy and the library: imported here, so `esmicp --version` does not.
+    from . import bench, demo, merge, register, viz
+
     parser = Parser(
         prog="esmicp",
         description="Rigid registration of 3D point clouds with ESM-ICP. Transforms are "
@@ -38,6 +40,10 @@ def build_parser() -> Parser:
 
 def main(argv=None) -> int:
     """Entry point of the ``esmicp`` console script; returns the exit status."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["--version"]:  # the fast path: no parser, no NumPy (what argparse would print)
+        print(f"esmicp {__version__}")
+        return EXIT_OK
     args = build_parser().parse_args(argv)
     with warnings.catch_warnings():
         warnings.simplefilter("always", EsmicpWarning)

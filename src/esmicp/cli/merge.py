@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from .args import positive_float, positive_int
+from ..batch import dask_client
 from ..errors import EsmicpError, InvalidInputError, OutputExistsError
 
 #: Colours of the scans in the HTML view (cycled).
@@ -28,6 +29,9 @@ def add_parser(commands) -> None:
     merge.add_argument("--poses-out", type=Path, help="write T_world_scan per scan (text: index, file, 16 numbers)")
     merge.add_argument("--voxel", type=positive_float, help="voxel size of the merged cloud (cloud units)")
     merge.add_argument("--view", type=Path, help="write an HTML view of the merged model coloured by scan")
+    merge.add_argument("--bin-columns", type=int, choices=(3, 4), metavar="{3,4}",
+                       help=".bin scans: float32 values per point (4: KITTI x y z intensity, 3: x y z); "
+                       "needed when a file's size fits both")
     merge.add_argument("--reference", type=int, default=0, help="index of the scan whose frame is the world (default 0)")
     merge.add_argument("--skip-bad", action="store_true", help="merge the readable scans when some cannot be read")
     merge.add_argument("--pair-points", type=positive_int, default=800, help="points per scan for the pairwise registrations")
@@ -67,15 +71,14 @@ def _write_poses(path: Path, names, result, force: bool) -> None:
 
 
 def _write_view(path: Path, points, labels, names, force: bool) -> None:
-    from ..viz._deps import require
-    from ..viz.view import _scatter, display_subset, write_view
+    from ..viz import display_subset, require, scatter_trace, write_view
 
     go = require("plotly.graph_objects")
     figure = go.Figure()
     for k in sorted(set(labels.tolist())):
         mine = points[labels == k]
         shown = display_subset(len(mine), 3000, seed=k)
-        figure.add_trace(_scatter(go, mine[shown], f"{k}: {names[k]}", SCAN_COLOURS[k % len(SCAN_COLOURS)], "scene"))
+        figure.add_trace(scatter_trace(go, mine[shown], f"{k}: {names[k]}", SCAN_COLOURS[k % len(SCAN_COLOURS)], "scene"))
     figure.update_layout(title="esmicp merge: merged model coloured by scan (subsampled for display)",
                          scene={"aspectmode": "data"})
     write_view(figure, path, overwrite=force)
@@ -97,7 +100,7 @@ def run_merge(args) -> int:
     clouds, names, bad = [], [], []
     for path in args.scans:
         try:
-            clouds.append(io.read_points(path))
+            clouds.append(io.read_points(path, bin_columns=args.bin_columns))
             names.append(path.name)
         except EsmicpError as exc:
             print(f"esmicp merge: error: {exc}", file=sys.stderr)
@@ -111,9 +114,7 @@ def run_merge(args) -> int:
         raise InvalidInputError(f"--reference: expected a scan index in [0, {len(clouds)}), got {args.reference}")
     client = None
     if args.scheduler:
-        from ..viz._deps import require
-
-        client = require("distributed").Client(args.scheduler)
+        client = dask_client(args.scheduler)
     progress, close = _progress(not args.no_progress)
     try:
         result = register_scans(clouds, reference=args.reference, pair_points=args.pair_points,

@@ -116,7 +116,7 @@ def _check_output(path: Path, force: bool, allowed: tuple[str, ...], what: str) 
 
 def _require(*modules: str) -> None:
     """Fail before any work when a plotting library is missing (one line, with the install hint)."""
-    from ..viz._deps import require
+    from ..viz import require
 
     for module in modules:
         require(module)

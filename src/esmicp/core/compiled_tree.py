@@ -21,10 +21,6 @@ from .. import _kernels
 #: Points per leaf (at most).
 LEAF_SIZE = 8
 
-#: Queries of fewer points than this run on one thread. Measured here on the bunny (warm
-#: starts): 1,000 points 100 us on one thread, 52 us on both.
-PARALLEL_MIN = 512
-
 #: Depth of the search stack: median splits give depth log2(M / LEAF_SIZE) + 1 (27 for 1e9 points).
 STACK = 96
 

@@ -34,6 +34,16 @@ NEAR_QUERY_MIN = 256
 HASH_MISS_LIMIT = 0.5
 
 
+def coincident_points(points: np.ndarray) -> tuple[int, int, int, np.ndarray]:
+    """``(repeats, most_index, most_count, first)`` of ``(N, 3)`` points, in one O(N) pass (a hash
+    of exact coordinates): how many points equal an earlier one, the index of the most repeated
+    point and its number of occurrences, and a boolean mask of the first occurrence of each
+    distinct point."""
+    first = np.empty(len(points), dtype=np.uint8)
+    repeats, most, most_count = _kernels.coincident(np.ascontiguousarray(points, dtype=np.float64), first)
+    return int(repeats), int(most), int(most_count), first.view(bool)
+
+
 class NearestNeighbors:
     """KD-tree over a target cloud; queries run on ``workers`` threads.
 
@@ -55,6 +65,7 @@ class NearestNeighbors:
         self._near: voxel_hash.VoxelHash | None = None
         self._hash_misses = 0.0  # fraction of the last near query's points beyond one hash cell
         self._index: "_kernels.Index | None" = None  # the compiled index of :meth:`step`
+        self._coincident: tuple[int, int, int, np.ndarray] | None = None
         self._index_hashed = False
 
     @property
@@ -165,22 +176,44 @@ class NearestNeighbors:
                 self._near = voxel_hash.VoxelHash(self.points, cell)
         return self._near
 
+    def coincident(self) -> tuple[int, int, int, np.ndarray]:
+        """:func:`coincident_points` of the target (computed once)."""
+        if self._coincident is None:
+            self._coincident = coincident_points(self.points)
+        return self._coincident
+
     def spacing(self, max_samples: int = 5000, neighbours: int = 8) -> float:
         """Median distance from a target point to its nearest *distinct* target point (cloud units).
 
         Uses an evenly strided subset of at most ``max_samples`` points, so the value is
-        deterministic and cheap on large clouds. Duplicated points are looked past: each sampled
-        point contributes its nearest neighbour at a positive distance among its ``neighbours``
-        nearest. Returns 0.0 only if no sampled point has a distinct neighbour among them.
+        deterministic and cheap on large clouds. Duplicated points are looked past: without exact
+        copies, each sampled point contributes its nearest neighbour at a positive distance among
+        its ``neighbours`` nearest; with copies, its nearest neighbour among the distinct target
+        points (so that a cloud full of coincident points costs no more than one without).
+        Returns 0.0 only if no sampled point has a distinct neighbour. Computed once for the
+        default arguments.
         """
+        default = max_samples == 5000 and neighbours == 8
+        if default and self._spacing is not None:
+            return self._spacing
         count = len(self.points)
         sample = self.points[np.linspace(0, count - 1, min(count, max_samples)).astype(np.intp)]
+        repeats, _, _, first = self.coincident()
         # One thread: a Ctrl-C landing in scipy's threaded k-NN query can crash the process
         # (seen here: std::bad_alloc in its worker threads, then a segfault); 5,000 queries are cheap.
-        distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=1)
-        distances = np.where(distances > 0, distances, np.inf).min(axis=1)
-        positive = distances[np.isfinite(distances)]
-        value = float(np.median(positive)) if len(positive) else 0.0
-        if max_samples == 5000 and neighbours == 8:
+        if repeats:
+            distinct = self.points[first]
+            if len(distinct) < 2:
+                return self._keep_spacing(0.0, default)
+            tree = cKDTree(distinct, balanced_tree=False, compact_nodes=False)
+            distances = tree.query(sample, k=2, workers=1)[0][:, 1]
+        else:
+            distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=1)
+            distances = np.where(distances > 0, distances, np.inf).min(axis=1)
+        positive = distances[np.isfinite(distances) & (distances > 0)]
+        return self._keep_spacing(float(np.median(positive)) if len(positive) else 0.0, default)
+
+    def _keep_spacing(self, value: float, default: bool) -> float:
+        if default:
             self._spacing = value
         return value

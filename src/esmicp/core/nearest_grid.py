@@ -13,7 +13,6 @@ the border cell they project onto.
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 
 
 class NearestGrid:
@@ -45,6 +44,8 @@ class NearestGrid:
         occupied[cells] = True
         representative = np.empty(len(occupied), dtype=np.intp)
         representative[cells] = np.arange(len(target))
+        from scipy.ndimage import distance_transform_edt  # only a global search needs it (30 ms to import)
+
         nearest = distance_transform_edt(
             ~occupied.reshape(self.shape), return_distances=False, return_indices=True
         )

@@ -5,8 +5,8 @@ the increment with the current pose (:func:`compose`) and measures how far it mo
 (:func:`motion_between`); Anderson acceleration maps poses to rotation vectors and back. Each is a
 handful of 3x3 operations, so their cost is the calls, not the arithmetic: the local loop's
 compiled step (:meth:`esmicp.core.correspondence.NearestNeighbors.step`) does the Kabsch rotation
-and the composition inside the kernel; these functions serve the path with callbacks and the
-acceleration (the Kabsch and nearest rotations call the same compiled routine).
+and the composition inside the kernel; these functions serve the path with callbacks, ``esm-paper``
+and the acceleration.
 
 All transforms are 4x4 ``T_target_source`` matrices; angles are in radians, rotation vectors are
 axis times angle (radians).
@@ -18,8 +18,6 @@ import math
 
 import numpy as np
 
-from .. import _kernels
-
 def _mul(a, b):
     """``a @ b`` for 3x3 matrices and 3-vectors (NumPy's own small-matrix loop: no BLAS threads)."""
     return np.matmul(a, b)
@@ -27,19 +25,26 @@ def _mul(a, b):
 
 def kabsch_rotation(cross_covariance):
     """``R = V diag(1, 1, d) U^T`` maximising ``trace(R H)`` for ``H = U S V^T`` (``d`` makes
-    ``det R = +1``); see :func:`esmicp.core.procrustes.rotation_from_cross_covariance`. Computed
-    by the compiled kernel (Horn's quaternion method: the same rotation, to rounding, wherever it
-    is unique; tested against NumPy's SVD)."""
-    rotation = np.empty((3, 3))
-    _kernels.kabsch(np.ascontiguousarray(cross_covariance, dtype=np.float64), rotation)
-    return rotation
+    ``det R = +1``); see :func:`esmicp.core.procrustes.rotation_from_cross_covariance`. NumPy's
+    SVD: where the rotation is not unique (a rank-1 ``H``, every weight but one ~0 in
+    ``esm-paper``'s first steps from a full turn) its choice is the one the measured protocols
+    were run with. (The one-call iteration of ``esm`` / ``icp`` uses Horn's method in the kernel:
+    the same rotation, to rounding, wherever it is unique.)"""
+    u, _, vt = np.linalg.svd(np.ascontiguousarray(cross_covariance))
+    v = np.ascontiguousarray(vt.T)
+    ut = np.ascontiguousarray(u.T)
+    if np.linalg.det(_mul(v, ut)) < 0.0:
+        v[:, 2] = -v[:, 2]
+    return _mul(v, ut)
 
 
 def nearest_rotation(matrix):
     """The rotation nearest to a 3x3 matrix (Frobenius norm): removes accumulated rounding drift."""
-    rotation = np.empty((3, 3))
-    _kernels.nearest_rotation(np.ascontiguousarray(matrix, dtype=np.float64), rotation)
-    return rotation
+    u, _, vt = np.linalg.svd(np.ascontiguousarray(matrix))
+    if np.linalg.det(_mul(u, vt)) < 0.0:
+        u = u.copy()
+        u[:, 2] = -u[:, 2]
+    return _mul(u, vt)
 
 
 def angle_of(rotation):

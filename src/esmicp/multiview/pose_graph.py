@@ -12,14 +12,18 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 
-def _pose(vector: np.ndarray) -> np.ndarray:
+def pose_from_vector(vector: np.ndarray) -> np.ndarray:
+    """The 4x4 rigid transform of a 6-vector ``(rotation vector (rad), translation)``: the pose
+    parameters of :func:`optimise`, and the increments of the joint refinement (applied on the
+    left, ``T = pose_from_vector(step) @ T``). Inverse of :func:`vector_from_pose`."""
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(vector[:3]).as_matrix()
     T[:3, 3] = vector[3:]
     return T
 
 
-def _vector(T: np.ndarray) -> np.ndarray:
+def vector_from_pose(T: np.ndarray) -> np.ndarray:
+    """The 6-vector ``(rotation vector (rad), translation)`` of a 4x4 rigid transform."""
     return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
 
 
@@ -121,7 +125,7 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
     rotation_unit = np.radians(rotation_scale_deg)
 
     def current(x, k):
-        return np.eye(4) if k == reference else _pose(x[6 * slot[k]: 6 * slot[k] + 6])
+        return np.eye(4) if k == reference else pose_from_vector(x[6 * slot[k]: 6 * slot[k] + 6])
 
     def residuals(x):
         out = np.empty(6 * len(used))
@@ -132,7 +136,7 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
             out[6 * n + 3: 6 * n + 6] = root * E[:3, 3] / translation_scale
         return out
 
-    x0 = np.concatenate([_vector(poses[k]) for k in free])
+    x0 = np.concatenate([vector_from_pose(poses[k]) for k in free])
     solution = least_squares(residuals, x0, loss=loss, f_scale=1.0, x_scale="jac", max_nfev=200)
     result = {reference: np.eye(4)}
     for k in free:

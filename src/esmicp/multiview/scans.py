@@ -17,16 +17,14 @@ Scans that no kept edge connects to the reference are reported in ``unplaced``, 
 from __future__ import annotations
 
 import logging
-import multiprocessing
-import os
 import zlib
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..batch import register_many
 from ..errors import InvalidInputError
 from ..types import as_points
 from . import pose_graph
@@ -143,39 +141,6 @@ def _normals(points: np.ndarray, k: int = 12) -> np.ndarray:
     return np.linalg.eigh(covariances)[1][:, :, 0]
 
 
-def _pairwise(jobs, register_kwargs, processes, client, progress):
-    from ..batch import _register_one, per_process_kwargs
-
-    results = [None] * len(jobs)
-    total = len(jobs)
-    if client is not None:
-        register_kwargs = per_process_kwargs(register_kwargs)
-        from distributed import as_completed as dask_completed
-
-        futures = {client.submit(_register_one, n, s, t, register_kwargs, pure=False): n for n, (s, t) in enumerate(jobs)}
-        for done, future in enumerate(dask_completed(futures), 1):
-            results[futures[future]] = future.result()
-            if progress:
-                progress(done, total)
-        return results
-    processes = min(processes or os.cpu_count() or 1, max(total, 1))
-    if processes == 1:
-        for n, (s, t) in enumerate(jobs):
-            results[n] = _register_one(n, s, t, register_kwargs)
-            if progress:
-                progress(n + 1, total)
-        return results
-    context = multiprocessing.get_context("spawn")
-    register_kwargs = per_process_kwargs(register_kwargs)
-    with ProcessPoolExecutor(processes, mp_context=context) as pool:
-        futures = {pool.submit(_register_one, n, s, t, register_kwargs): n for n, (s, t) in enumerate(jobs)}
-        for done, future in enumerate(as_completed(futures), 1):
-            results[futures[future]] = future.result()
-            if progress:
-                progress(done, total)
-    return results
-
-
 def _refine(poses, clouds, normals, edges, reference, distances, rounds_per_distance=2):
     """Multi-view point-to-plane: all placed poses jointly, over the kept edges (Gauss-Newton with
     Huber weights, the reference held fixed)."""
@@ -220,7 +185,7 @@ def _refine(poses, clouds, normals, edges, reference, distances, rounds_per_dist
             rmse = float(np.sqrt(squares / count))
             step = np.linalg.solve(H + 1e-9 * np.trace(H) / len(H) * np.eye(len(H)), -g)
             for k in free:
-                poses[k] = pose_graph._pose(step[6 * slot[k]: 6 * slot[k] + 6]) @ poses[k]
+                poses[k] = pose_graph.pose_from_vector(step[6 * slot[k]: 6 * slot[k] + 6]) @ poses[k]
     return poses, rmse
 
 
@@ -287,7 +252,7 @@ def register_scans(
     # scans give the same registration whatever their input positions.
     oriented = [(i, j) if (keys[i], i) <= (keys[j], j) else (j, i) for i, j in pairs]
     jobs = [(small[j], small[i]) for i, j in oriented]  # source j onto target i: T_i_j
-    outcomes = _pairwise(jobs, register_kwargs, processes, client, progress)
+    outcomes = register_many(jobs, processes=processes, client=client, progress=progress, **register_kwargs)
 
     edges: list[Edge] = []
     for (i, j), outcome in zip(oriented, outcomes):

@@ -5,6 +5,7 @@ picture is drawn. Every function returns the figure object (a matplotlib ``Figur
 ``FuncAnimation``, a plotly ``Figure``), for notebooks; the ``write_*`` helpers save them atomically.
 """
 
+from ._deps import require
 from .animate import animate, animation_figure, write_animation
 from .bench_plots import (
     error_boxplots_figure,
@@ -19,10 +20,13 @@ from .heatmap import heatmap, heatmap_figure
 from .inputs import builtin_pair, downsample, farthest_point_subset, moved_copy
 from .similarity import similarity_matrix
 from .trace import RegistrationTrace, trace_registration
-from .view import view_figure, view_html, view_page, write_view
+from .view import display_subset, scatter_trace, view_figure, view_html, view_page, write_view
 
 __all__ = [
     "RegistrationTrace",
+    "display_subset",
+    "require",
+    "scatter_trace",
     "animate",
     "animation_figure",
     "builtin_pair",

@@ -11,7 +11,10 @@ VIZ_INSTALL_HINT = "pip install 'esmicp[viz]' (matplotlib and plotly)"
 
 
 def require(module: str):
-    """Import ``module`` now, or raise :class:`~esmicp.baselines.MissingDependencyError`."""
+    """Import an optional plotting module (``"plotly.graph_objects"``, ``"matplotlib"``) now and
+    return it, or raise :class:`~esmicp.errors.MissingDependencyError` with the install hint of the
+    ``viz`` extra. Public as :func:`esmicp.viz.require` (call it before long work, so a missing
+    plotting library fails first)."""
     try:
         return importlib.import_module(module)
     except ImportError as exc:

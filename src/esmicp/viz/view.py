@@ -35,7 +35,10 @@ def display_subset(count: int, limit: int, seed: int = 0) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(count, size=limit, replace=False))
 
 
-def _scatter(go, points, name, colour, scene, size=2.0, opacity=0.8, showlegend=True):
+def scatter_trace(go, points, name, colour, scene, size=2.0, opacity=0.8, showlegend=True):
+    """A plotly ``Scatter3d`` of ``(N, 3)`` points as markers of one colour, in the 3D ``scene``
+    named (``"scene"``, ``"scene2"``, ...); ``go`` is ``plotly.graph_objects`` (imported by the
+    caller through :func:`esmicp.viz.require`). Legend entries are grouped by ``name``."""
     points = np.asarray(points, dtype=np.float32)
     return go.Scatter3d(
         x=points[:, 0], y=points[:, 1], z=points[:, 2], mode="markers", name=name, scene=scene,
@@ -99,12 +102,12 @@ def view_figure(
     for column, trace in enumerate(traces, start=1):
         scene = "scene" if column == 1 else f"scene{column}"
         legend = column == 1
-        figure.add_trace(_scatter(go, first.target[target_shown], "target", TARGET_COLOUR, scene, showlegend=legend), 1, column)
+        figure.add_trace(scatter_trace(go, first.target[target_shown], "target", TARGET_COLOUR, scene, showlegend=legend), 1, column)
         figure.add_trace(
-            _scatter(go, first.source[source_shown], "source (start)", START_COLOUR, scene, 1.5, 0.35, legend), 1, column
+            scatter_trace(go, first.source[source_shown], "source (start)", START_COLOUR, scene, 1.5, 0.35, legend), 1, column
         )
         figure.add_trace(
-            _scatter(go, trace.aligned(min(opened, trace.iterations))[source_shown], "source (aligned)",
+            scatter_trace(go, trace.aligned(min(opened, trace.iterations))[source_shown], "source (aligned)",
                      ALIGNED_COLOUR, scene, showlegend=legend),
             1, column,
         )

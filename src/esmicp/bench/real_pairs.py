@@ -1,0 +1,252 @@
+"""Real scan pairs with ground truth, and partial-overlap object trials: the pure parts.
+
+A real-pairs folder is laid out like ``shared/data/real_pairs``: a ``pairs.csv`` with the columns
+``kind, target, source, T_target_source`` (paths relative to the folder; ``dataset`` and ``pair``
+name the row, an optional ``bin_columns`` says the layout of ``.bin`` scans), each transform a
+4x4 text file with ``target ~= R @ source + t``.
+
+Each kind has its criteria (:data:`KIND_CRITERIA`), from the folder's README: 3DMatch fragments
+succeed with a rotation error < 15 deg and a translation error < 0.30 m (the convention of
+SC2-PCR, MAC, DGR); LiDAR scans with < 5 deg and < 0.6 m. Errors are measured in the pair's own
+frame: for the ``turned`` variant (:func:`turn_source`) the estimate is first mapped back
+(:func:`estimate_in_pair_frame`), so both variants are judged against the recorded truth.
+
+The partial-overlap protocol (:func:`partial_trial`) cuts two disjoint random halves of an object
+by one random plane each, keeping a fraction of each half's points, and reports the overlap the
+trial actually has.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..core.procrustes import apply, rigid_inverse, to_matrix
+from ..errors import InvalidInputError, PointCloudFileError
+from ..metrics import random_rotation, rotation_error_deg
+from .protocols import random_rigid_transform
+
+__all__ = [
+    "KIND_CRITERIA",
+    "PAIRS_FILE",
+    "Criteria",
+    "RealPair",
+    "criteria_for",
+    "estimate_in_pair_frame",
+    "load_pair",
+    "pair_errors",
+    "partial_trial",
+    "plane_cut",
+    "read_pairs",
+    "turn_source",
+]
+
+PAIRS_FILE = "pairs.csv"
+_REQUIRED = ("kind", "target", "source", "T_target_source")
+
+
+@dataclass(frozen=True)
+class Criteria:
+    """Success thresholds of a kind of pair, and the voxel the peers' documentation recommends.
+
+    ``voxel_m`` is what the baselines get (KISS-Matcher, Open3D RANSAC / FGR): 0.05 m indoor,
+    0.3 m LiDAR. esmicp's default gets none.
+    """
+
+    rotation_deg: float
+    translation_m: float
+    voxel_m: float
+
+    def success(self, rotation_error: float, translation_error: float) -> bool:
+        return bool(rotation_error < self.rotation_deg and translation_error < self.translation_m)
+
+
+#: Criteria by kind (the ``kind`` column of ``pairs.csv``).
+KIND_CRITERIA = {
+    "3DMatch": Criteria(15.0, 0.30, 0.05),
+    "3DLoMatch": Criteria(15.0, 0.30, 0.05),
+    "LiDAR": Criteria(5.0, 0.6, 0.3),
+    "LiDAR-coarse-GT": Criteria(5.0, 0.6, 0.3),
+}
+
+
+def criteria_for(kind: str) -> Criteria:
+    """The :class:`Criteria` of ``kind``; raises :class:`KeyError` for an unknown kind."""
+    return KIND_CRITERIA[kind]
+
+
+@dataclass(frozen=True)
+class RealPair:
+    """One row of ``pairs.csv``: files resolved against the folder."""
+
+    dataset: str
+    pair: str
+    kind: str
+    target: Path
+    source: Path
+    transform: Path
+    line: int
+    bin_columns: int | None = None
+
+    @property
+    def name(self) -> str:
+        return f"{self.dataset}/{self.pair}"
+
+    @property
+    def criteria(self) -> Criteria:
+        return criteria_for(self.kind)
+
+
+def read_pairs(folder) -> list[RealPair]:
+    """The pairs listed in ``folder/pairs.csv``, in file order.
+
+    Raises
+    ------
+    PointCloudFileError
+        ``pairs.csv`` is missing, empty, lacks a column, or a line has the wrong number of
+        fields, an unknown kind, an empty or missing file, or a bad ``bin_columns``; the message
+        names ``pairs.csv`` and the line.
+    """
+    folder = Path(folder)
+    path = folder / PAIRS_FILE
+    if not path.is_file():
+        raise PointCloudFileError(path, f"no such file: a real-pairs folder needs a {PAIRS_FILE}")
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as handle:
+            lines = list(csv.reader(handle))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise PointCloudFileError(path, f"cannot read: {exc}") from None
+    rows = [(number, fields) for number, fields in enumerate(lines, start=1) if any(f.strip() for f in fields)]
+    if not rows:
+        raise PointCloudFileError(path, "file is empty (expected a header line: kind,target,source,T_target_source)")
+    header_line, header = rows[0]
+    header = [name.strip() for name in header]
+    missing = [name for name in _REQUIRED if name not in header]
+    if missing:
+        raise PointCloudFileError(path, f"line {header_line}: the header lacks the column(s) {', '.join(missing)}")
+    pairs = []
+    for number, fields in rows[1:]:
+        if len(fields) != len(header):
+            raise PointCloudFileError(path, f"line {number}: {len(fields)} fields, the header has {len(header)}")
+        record = {name: value.strip() for name, value in zip(header, fields)}
+        kind = record["kind"]
+        if kind not in KIND_CRITERIA:
+            raise PointCloudFileError(
+                path, f"line {number}: unknown kind {kind!r}; known: {', '.join(KIND_CRITERIA)}"
+            )
+        files = {}
+        for column in ("target", "source", "T_target_source"):
+            if not record[column]:
+                raise PointCloudFileError(path, f"line {number}: the {column} column is empty")
+            files[column] = folder / record[column]
+            if not files[column].is_file():
+                raise PointCloudFileError(path, f"line {number}: {column} file {record[column]!r} not found in {folder}")
+        columns = record.get("bin_columns") or None
+        if columns is not None:
+            if columns not in ("3", "4"):
+                raise PointCloudFileError(path, f"line {number}: bin_columns must be 3 or 4, got {columns!r}")
+            columns = int(columns)
+        pairs.append(RealPair(
+            dataset=record.get("dataset") or folder.name, pair=record.get("pair") or f"line{number}", kind=kind,
+            target=files["target"], source=files["source"], transform=files["T_target_source"], line=number,
+            bin_columns=columns,
+        ))
+    if not pairs:
+        raise PointCloudFileError(path, "lists no pairs (only a header line)")
+    return pairs
+
+
+def load_pair(pair: RealPair, bin_columns: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(source, target, T_target_source)`` of ``pair``; ``.bin`` scans read with the pair's own
+    ``bin_columns``, else ``bin_columns``."""
+    from .. import io
+
+    columns = pair.bin_columns if pair.bin_columns is not None else bin_columns
+    source = io.read_points(pair.source, bin_columns=columns)
+    target = io.read_points(pair.target, bin_columns=columns)
+    return source, target, io.read_transform(pair.transform)
+
+
+def pair_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """Rotation error (degrees) and translation error (``|t_estimate - t_truth|``, the pair's
+    units) of two ``T_target_source``: the 3DMatch / KITTI convention."""
+    estimate = np.asarray(estimate, dtype=np.float64)
+    truth = np.asarray(truth, dtype=np.float64)
+    return rotation_error_deg(estimate, truth), float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))
+
+
+def turn_source(source: np.ndarray, truth: np.ndarray, rng: np.random.Generator):
+    """The ``turned`` variant: ``source`` rotated about its centroid by a rotation uniform on SO(3).
+
+    Returns ``(turned_source, turned_truth, M)``: ``turned_source = apply(M, source)`` and
+    ``turned_truth = truth @ M^-1``, so ``apply(turned_truth, turned_source) = apply(truth, source)``.
+    """
+    source = np.asarray(source, dtype=np.float64)
+    rotation = random_rotation(rng)
+    centroid = source.mean(axis=0)
+    moved_by = to_matrix(rotation, centroid - rotation @ centroid)
+    return apply(moved_by, source), np.asarray(truth, dtype=np.float64) @ rigid_inverse(moved_by), moved_by
+
+
+def estimate_in_pair_frame(estimate: np.ndarray, moved_by: np.ndarray | None) -> np.ndarray:
+    """An estimate made on a turned source (:func:`turn_source`'s ``M``), as a pose of the
+    recorded source: ``estimate @ M`` (``estimate`` itself when ``moved_by`` is None)."""
+    estimate = np.asarray(estimate, dtype=np.float64)
+    return estimate if moved_by is None else estimate @ np.asarray(moved_by, dtype=np.float64)
+
+
+def plane_cut(points: np.ndarray, keep: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+    """The points on one side of a random plane, ``round(keep * N)`` of them.
+
+    The plane's normal is uniform on the sphere; its offset the quantile that keeps ``keep`` of
+    the points. Returns ``(mask, normal, offset)``: kept points satisfy ``points @ normal >= offset``.
+    """
+    if not 0.0 < keep <= 1.0:
+        raise InvalidInputError(f"keep: expected a fraction in (0, 1], got {keep!r}")
+    points = np.asarray(points, dtype=np.float64)
+    normal = rng.normal(size=3)
+    normal /= np.linalg.norm(normal)
+    heights = points @ normal
+    count = max(3, round(keep * len(points)))
+    order = np.argsort(-heights, kind="stable")
+    mask = np.zeros(len(points), dtype=bool)
+    mask[order[:count]] = True
+    return mask, normal, float(heights[order[count - 1]])
+
+
+@dataclass(frozen=True, eq=False)
+class PartialTrial:
+    """A partial-overlap trial: ``apply(T_target_source, source)`` lies on ``target`` where they overlap.
+
+    ``overlap`` is the fraction of the source's points (in the object's frame) that lie in the
+    target's part of the object (on the kept side of the target's plane); ``source_object`` the
+    source before it was moved (for up-to-symmetry checks).
+    """
+
+    source: np.ndarray
+    target: np.ndarray
+    T_target_source: np.ndarray
+    overlap: float
+    keep: float
+
+
+def partial_trial(cloud: np.ndarray, keep: float, rng: np.random.Generator, points: int | None = 2000) -> PartialTrial:
+    """Split ``cloud`` into two disjoint random halves (``points`` each at most), cut each by its
+    own random plane (:func:`plane_cut`) to ``keep`` of its points; the target is one, the
+    other, moved by a random rigid transform (:func:`~esmicp.bench.protocols.random_rigid_transform`),
+    the source."""
+    cloud = np.asarray(cloud, dtype=np.float64)
+    order = rng.permutation(len(cloud))
+    half = len(cloud) // 2 if points is None else min(len(cloud) // 2, points)
+    target_half, source_half = cloud[order[:half]], cloud[order[half : 2 * half]]
+    target_mask, normal, offset = plane_cut(target_half, keep, rng)
+    source_mask, _, _ = plane_cut(source_half, keep, rng)
+    target, source_object = target_half[target_mask], source_half[source_mask]
+    overlap = float(np.mean(source_object @ normal >= offset))
+    from ..core.procrustes import bounding_box_diagonal
+
+    moved_by = random_rigid_transform(rng, bounding_box_diagonal(target))
+    return PartialTrial(apply(moved_by, source_object), target, rigid_inverse(moved_by), overlap, keep)

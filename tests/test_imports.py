@@ -1,0 +1,79 @@
+"""Import stays light (issue 14): ``import esmicp`` and ``esmicp --version`` load neither NumPy nor
+any optional library; the registration path loads no plotting, Dask, torch, Open3D or file readers.
+
+Each check runs in a fresh interpreter and reads its ``sys.modules``."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+import esmicp
+
+#: Top-level packages that must never load with the library itself.
+OPTIONAL = ("matplotlib", "plotly", "dask", "distributed", "torch", "open3d", "tqdm", "small_gicp",
+            "kiss_matcher", "probreg")
+#: Needed by the registration path, but not by `import esmicp` or `esmicp --version`.
+NUMERIC = ("numpy", "scipy")
+#: The file readers' libraries: loaded by reading a file, not by registering arrays.
+READERS = ("plyfile", "pypcd4", "trimesh", "lzf")
+
+
+def loaded_after(code: str, *args: str) -> tuple[set[str], str]:
+    """The top-level packages loaded after running ``code`` in a new interpreter, and its stdout."""
+    probe = (
+        f"{code}\nimport sys, json\n"
+        "print(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))"
+    )
+    done = subprocess.run([sys.executable, "-c", probe, *args], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    *output, modules = done.stdout.strip().splitlines()
+    return set(json.loads(modules)), "\n".join(output)
+
+
+def test_import_esmicp_loads_neither_numpy_nor_optional_libraries():
+    loaded, _ = loaded_after("import esmicp")
+    assert not loaded & {*OPTIONAL, *NUMERIC, *READERS}, sorted(loaded & {*OPTIONAL, *NUMERIC, *READERS})
+
+
+def test_version_fast_path_loads_no_numpy():
+    loaded, output = loaded_after("from esmicp.cli import main\nmain(['--version'])")
+    assert output == f"esmicp {esmicp.__version__}"
+    assert not loaded & {*OPTIONAL, *NUMERIC, *READERS}, sorted(loaded & {*OPTIONAL, *NUMERIC, *READERS})
+
+
+def test_a_registration_loads_no_optional_library_nor_file_reader():
+    code = (
+        "import numpy as np, esmicp\n"
+        "rng = np.random.default_rng(0)\n"
+        "target = rng.normal(size=(3000, 3)) * [3, 2, 1]\n"
+        "esmicp.register(target[::-1] + 0.01, target)\n"  # the default global start included
+    )
+    loaded, _ = loaded_after(code)
+    assert {"numpy", "scipy"} <= loaded
+    assert not loaded & {*OPTIONAL, *READERS}, sorted(loaded & {*OPTIONAL, *READERS})
+
+
+def test_the_demo_command_loads_no_optional_library():
+    loaded, output = loaded_after("from esmicp.cli import main\nmain(['demo', '--json'])")
+    assert json.loads(output)["recovered"]
+    assert not loaded & set(OPTIONAL), sorted(loaded & set(OPTIONAL))
+
+
+@pytest.mark.parametrize("module", ["esmicp", "esmicp.cli"])
+def test_python_dash_m_runs_the_command(module):
+    done = subprocess.run([sys.executable, "-m", module, "--version"], capture_output=True, text=True)
+    assert done.returncode == 0 and done.stdout.strip() == f"esmicp {esmicp.__version__}", done.stderr
+
+
+def test_every_public_name_resolves_lazily():
+    code = "import esmicp\nprint(' '.join(n for n in esmicp.__all__ if getattr(esmicp, n, None) is None))"
+    _, missing = loaded_after(code)
+    assert missing == ""
+    assert set(esmicp.__all__) <= set(dir(esmicp))
+    assert esmicp.register.__module__ == "esmicp.api"
+    with pytest.raises(AttributeError, match="no attribute 'regster'"):
+        esmicp.regster
