@@ -154,7 +154,7 @@ def register(
         callback=frame.callback(callback), record_history=record_history, coarse_points=COARSE_POINTS,
     )
     fitness, inlier_rmse, inlier_distance = _evaluate(source_points, target_index, outcome.transformation, request)
-    keypoints = estimate.keypoints if estimate is not None and estimate.keypoints is not None else None
+    keypoints = getattr(estimate, "keypoints", None)
     if keypoints is None:
         keypoints = Keypoints.of(source_points, target_points, target_index.spacing())
     confidence = overlap_confidence(outcome.transformation, keypoints)

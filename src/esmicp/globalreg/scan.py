@@ -57,6 +57,9 @@ NORMAL_RADIUS_VOXELS = 3.0
 FEATURE_RADIUS_VOXELS = 6.0
 FILTER_RADIUS_VOXELS = 2.0
 
+#: Below this many occupied voxels in either cloud the scan strategy proposes nothing.
+MIN_KEYPOINTS = 10
+
 #: Correspondences kept for pruning (best Lowe ratio first).
 MAX_CORRESPONDENCES = 2500
 
@@ -145,6 +148,8 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints) -> floa
     (``T_target_source``), 0-1: of the keypoints within ``OVERLAP_VOXELS`` of the other cloud,
     the fraction within ``VERIFY_VOXELS``, the smaller of the two directions, mapped from
     ``SHARPNESS_RANGE``. 0 when nothing overlaps."""
+    if not np.isfinite(transformation).all():
+        return 0.0
     rotation, translation = transformation[:3, :3], transformation[:3, 3]
     voxel = keypoints.voxel
     sharpness = []
@@ -362,6 +367,10 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     """Poses ``T_target_source`` of two partially overlapping scans, best first (the module
     docstring). ``spacing``: the target's median point spacing (cloud units). Deterministic."""
     voxel = keypoint_voxel(target, spacing)
+    if min(_occupied(source, voxel), _occupied(target, voxel)) < MIN_KEYPOINTS:
+        # Too few distinct places to describe (e.g. a few points repeated): no hypothesis.
+        keypoints = Keypoints(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
+        return ScanEstimate(np.eye(4)[None], np.zeros(1), keypoints, 0, np.zeros(1, dtype=np.intp))
     normal_radius, feature_radius = NORMAL_RADIUS_VOXELS * voxel, FEATURE_RADIUS_VOXELS * voxel
     filter_radius = FILTER_RADIUS_VOXELS * voxel
     with ThreadPoolExecutor(max_workers=1 if workers == 1 else 2) as pool:
