@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation
 import esmicp
 from esmicp.core.procrustes import to_matrix
 from esmicp.globalreg.feature_matching import _inlier_mask
-from esmicp.globalreg.scan import prune, rank_poses
+from esmicp.core.correspondence import NearestNeighbors
+from esmicp.globalreg.scan import CONFIDENT, Keypoints, overlap_confidence, prune, rank_poses
 from esmicp.metrics import rotation_error_deg
 
 from conftest import require_shared
@@ -103,3 +104,21 @@ def test_a_real_3dmatch_pair_succeeds_as_recorded_and_turned(real_pair, turned):
     assert rotation_error_deg(result.rotation, truth[:3, :3]) < 15.0  # the 3DMatch criteria
     assert np.linalg.norm(result.translation - truth[:3, 3]) < 0.30
     assert result.init == "global:scan"
+    assert result.confidence >= CONFIDENT
+
+
+@pytest.mark.parametrize("angle_deg", [45.0, 90.0, 180.0])
+def test_a_wrong_pose_does_not_come_back_confident(real_pair, angle_deg):
+    source, target, truth = real_pair
+    turn = Rotation.from_euler("z", angle_deg, degrees=True).as_matrix()
+    centre = source.mean(axis=0) @ truth[:3, :3].T + truth[:3, 3]
+    wrong = to_matrix(turn, centre - turn @ centre) @ truth
+    result = esmicp.register(source, target, init=wrong, max_iterations=3)
+    assert rotation_error_deg(result.rotation, truth[:3, :3]) > 15.0, "the refinement found the truth: no test"
+    assert result.confidence < CONFIDENT
+    assert overlap_confidence(wrong, Keypoints.of(source, target, NearestNeighbors(target).spacing())) < CONFIDENT
+
+
+def test_confidence_is_high_at_the_truth(real_pair):
+    source, target, truth = real_pair
+    assert overlap_confidence(truth, Keypoints.of(source, target, NearestNeighbors(target).spacing())) >= CONFIDENT

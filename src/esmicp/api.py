@@ -13,6 +13,7 @@ from .core.correspondence import NearestNeighbors
 from .core.procrustes import apply, bounding_box_diagonal
 from .core.correspondence import coincident_points
 from .errors import CoincidentPointsWarning, IndexAlignmentWarning, InvalidInputError
+from .globalreg.scan import Keypoints, overlap_confidence
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
 from .methods import METHODS, ConvergenceCriteria, make_estimator
@@ -153,6 +154,10 @@ def register(
         callback=frame.callback(callback), record_history=record_history, coarse_points=COARSE_POINTS,
     )
     fitness, inlier_rmse, inlier_distance = _evaluate(source_points, target_index, outcome.transformation, request)
+    keypoints = getattr(estimate, "keypoints", None)
+    if keypoints is None:
+        keypoints = Keypoints.of(source_points, target_points, target_index.spacing())
+    confidence = overlap_confidence(outcome.transformation, keypoints)
     outcome = frame.outcome(outcome)
     return RegistrationResult(
         transformation=outcome.transformation,
@@ -173,6 +178,7 @@ def register(
             else estimate.runner_up_score / max(estimate.score, 1e-300)
         ),
         global_candidates=0 if estimate is None else estimate.candidates,
+        confidence=confidence,
     )
 
 

@@ -81,6 +81,13 @@ class RegistrationResult:
         confident); None without a global search or without a distinct runner-up.
     global_candidates : int
         Number of candidate poses the global search verified (0 without one).
+    confidence : float or None
+        How sharply the clouds coincide *where they overlap* under the final pose, 0-1, whatever
+        the overlap's size (:func:`esmicp.globalreg.scan.overlap_confidence`): of the points (voxel
+        centroids at the scale the data chooses) lying within 3 voxels of the other cloud, the
+        fraction within 1 voxel, the worse of the two directions, mapped from 0.5-0.8 onto 0-1.
+        Below 0.5 (:data:`esmicp.globalreg.scan.CONFIDENT`): do not trust the pose. Measured
+        figures: ``docs/measured-global.md``, "Scans".
     """
 
     transformation: np.ndarray
@@ -98,6 +105,7 @@ class RegistrationResult:
     ambiguous: bool = False
     runner_up_ratio: float | None = None
     global_candidates: int = 0
+    confidence: float | None = None
 
     @property
     def rotation(self) -> np.ndarray:
@@ -126,6 +134,7 @@ class RegistrationResult:
             "ambiguous": self.ambiguous,
             "runner_up_ratio": self.runner_up_ratio,
             "global_candidates": self.global_candidates,
+            "confidence": self.confidence,
         }
         if include_history and self.history is not None:
             data["history"] = [record.to_dict() for record in self.history]

@@ -57,6 +57,9 @@ NORMAL_RADIUS_VOXELS = 3.0
 FEATURE_RADIUS_VOXELS = 6.0
 FILTER_RADIUS_VOXELS = 2.0
 
+#: Below this many occupied voxels in either cloud the scan strategy proposes nothing.
+MIN_KEYPOINTS = 10
+
 #: Correspondences kept for pruning (best Lowe ratio first).
 MAX_CORRESPONDENCES = 2500
 
@@ -89,16 +92,78 @@ VERIFY_VOXELS = 1.0
 TIE_RATIO = 0.5
 
 
+#: :func:`overlap_confidence`: the overlap is what lies within ``OVERLAP_VOXELS`` of the other
+#: cloud; of it, the part within ``VERIFY_VOXELS`` coincides. That fraction (the smaller of the two
+#: directions) maps linearly from ``SHARPNESS_RANGE`` onto confidence 0-1.
+OVERLAP_VOXELS = 3.0
+SHARPNESS_RANGE = (0.5, 0.8)
+
+#: A confidence below this means the pose should not be trusted (``docs/measured-global.md``).
+CONFIDENT = 0.5
+
+
+@dataclass(frozen=True)
+class Keypoints:
+    """The keypoint clouds of a pair (voxel centroids, cloud units) and their voxel."""
+
+    source: np.ndarray
+    target: np.ndarray
+    voxel: float
+
+    @classmethod
+    def of(cls, source: np.ndarray, target: np.ndarray, spacing: float) -> "Keypoints":
+        """Both clouds voxel-downsampled at :func:`keypoint_voxel` of the target."""
+        voxel = keypoint_voxel(target, spacing) if spacing > 0 else keypoint_voxel(target, 0.0)
+        return cls(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
+
+
 @dataclass(frozen=True)
 class ScanEstimate:
     """Verified poses, best first (each distinct from those before it), their overlap scores (the
-    fraction of keypoints of both clouds lying on the other cloud, 0-1), and the voxel used."""
+    fraction of keypoints of both clouds lying on the other cloud, 0-1), and the keypoints."""
 
     transformations: np.ndarray
     scores: np.ndarray
-    voxel: float
+    keypoints: Keypoints
     correspondences: int
     inlier_counts: np.ndarray
+
+    @property
+    def voxel(self) -> float:
+        return self.keypoints.voxel
+
+
+def overlap_score(transformation: np.ndarray, keypoints: Keypoints) -> float:
+    """The fraction of both clouds' keypoints within ``VERIFY_VOXELS`` of the other cloud under
+    ``transformation`` (the verification's score, :func:`rank_poses`)."""
+    forward, backward = overlap_counts(
+        transformation[None], keypoints.source, keypoints.target, cKDTree(keypoints.source),
+        cKDTree(keypoints.target), VERIFY_VOXELS * keypoints.voxel,
+    )
+    return float(forward[0] + backward[0]) / (len(keypoints.source) + len(keypoints.target))
+
+
+def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints) -> float:
+    """How sharply the clouds coincide where they overlap under ``transformation``
+    (``T_target_source``), 0-1: of the keypoints within ``OVERLAP_VOXELS`` of the other cloud,
+    the fraction within ``VERIFY_VOXELS``, the smaller of the two directions, mapped from
+    ``SHARPNESS_RANGE``. 0 when nothing overlaps."""
+    if not np.isfinite(transformation).all():
+        return 0.0
+    rotation, translation = transformation[:3, :3], transformation[:3, 3]
+    voxel = keypoints.voxel
+    sharpness = []
+    for moved, fixed in (
+        (keypoints.source @ rotation.T + translation, keypoints.target),
+        ((keypoints.target - translation) @ rotation, keypoints.source),
+    ):
+        distances, _ = cKDTree(fixed).query(moved, distance_upper_bound=OVERLAP_VOXELS * voxel)
+        overlap = np.count_nonzero(distances <= OVERLAP_VOXELS * voxel)
+        if overlap < 3:
+            return 0.0
+        sharpness.append(np.count_nonzero(distances <= VERIFY_VOXELS * voxel) / overlap)
+    low, high = SHARPNESS_RANGE
+    return float(np.clip((min(sharpness) - low) / (high - low), 0.0, 1.0))
 
 
 def keypoint_voxel(points: np.ndarray, spacing: float, count: int = KEYPOINTS) -> float:
@@ -302,13 +367,18 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     """Poses ``T_target_source`` of two partially overlapping scans, best first (the module
     docstring). ``spacing``: the target's median point spacing (cloud units). Deterministic."""
     voxel = keypoint_voxel(target, spacing)
+    if min(_occupied(source, voxel), _occupied(target, voxel)) < MIN_KEYPOINTS:
+        # Too few distinct places to describe (e.g. a few points repeated): no hypothesis.
+        keypoints = Keypoints(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
+        return ScanEstimate(np.eye(4)[None], np.zeros(1), keypoints, 0, np.zeros(1, dtype=np.intp))
     normal_radius, feature_radius = NORMAL_RADIUS_VOXELS * voxel, FEATURE_RADIUS_VOXELS * voxel
     filter_radius = FILTER_RADIUS_VOXELS * voxel
     with ThreadPoolExecutor(max_workers=1 if workers == 1 else 2) as pool:
         jobs = [pool.submit(_keypoints, cloud, voxel, normal_radius, feature_radius, filter_radius)
                 for cloud in (source, target)]
         (source_keys, source_features), (target_keys, target_features) = (job.result() for job in jobs)
-    empty = ScanEstimate(np.eye(4)[None], np.zeros(1), voxel, 0, np.zeros(1, dtype=np.intp))
+    empty = ScanEstimate(np.eye(4)[None], np.zeros(1), Keypoints(source_keys, target_keys, voxel), 0,
+                         np.zeros(1, dtype=np.intp))
     if len(source_keys) < 3 or len(target_keys) < 3:
         return empty
     pairs = _correspondences(source_features, target_features, MAX_CORRESPONDENCES)
@@ -335,7 +405,8 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
         for r, t in zip(rotations, translations)
     ])
     order, scores = rank_poses(poses, source_keys, target_keys, voxel, target_tree=target_tree)
-    return ScanEstimate(poses[order], scores[order], voxel, len(pairs), counts[order])
+    keypoints = Keypoints(source_keys, target_keys, voxel)
+    return ScanEstimate(poses[order], scores[order], keypoints, len(pairs), counts[order])
 
 
 def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel: float, *,

@@ -25,8 +25,9 @@ pose (rotation more than ``DISTINCT_ROTATION_DEG`` away) scores within ``AMBIGUI
 the result is flagged ambiguous: the object is probably symmetric, or the overlap too small to
 decide.
 
-``"auto"`` (the default) runs the rotation search first and adds the feature candidates only when
-its result is not confident (see :func:`global_estimate`), together with the *twins* of its best
+``"auto"`` (the default) runs the rotation search first; when its result is not confident (see
+:func:`global_estimate`) the scan strategy runs, and its pose wins outright when it is confident on
+the overlap and overlaps clearly more (``SCAN_MARGIN``); otherwise the feature candidates join, with the *twins* of its best
 pose (turned by 180 degrees about each principal axis of the target): under heavy noise a
 near-symmetric object (a box-like night stand) otherwise ends on a twin of the truth that neither
 strategy proposes. The rotation search alone and the features alone each miss cases the other
@@ -93,6 +94,11 @@ DECIDE_POINTS = 2000
 DECIDE_ITERATIONS = 10
 DECIDE_SIGMA_SPACINGS = 1.0
 
+#: ``"auto"``: the scan strategy's pose is final before the feature strategy runs when it overlaps
+#: more than this times the rotation search's best pose (on a cup under 30% outliers, a scan pose
+#: turned 18 degrees about the cup's axis overlapped as much as the exact one).
+SCAN_MARGIN = 1.1
+
 #: The full-resolution decision runs when the runner-up scores at least this fraction of the best.
 DECIDE_RATIO = 0.9
 
@@ -111,6 +117,7 @@ class GlobalEstimate:
     scores: np.ndarray
     strategies: tuple[str, ...]
     candidates: int
+    keypoints: object = None  # the scan strategy's :class:`~esmicp.globalreg.scan.Keypoints`, for confidence
 
     @property
     def transformation(self) -> np.ndarray:
@@ -184,8 +191,12 @@ def global_estimate(
 
     ``"auto"`` runs the rotation search first; when its verified best pose already puts at least
     ``CONFIDENT_SCORE`` of the source on the target and no distinct pose comes close, that is
-    final (clouds that overlap fully, as most objects do). Otherwise the feature candidates and
-    the twins of that pose (:func:`_twins`) join, and everything is verified together.
+    final (clouds that overlap fully, as most objects do). Otherwise the scan strategy runs
+    (:mod:`esmicp.globalreg.scan`, for partial overlaps); its pose is final when it is confident on
+    the overlap and overlaps clearly more than the rotation search's best. Otherwise the feature
+    candidates and the twins of that pose (:func:`_twins`) join, and everything is verified
+    together; the scan pose still wins if it is confident and overlaps strictly more than the
+    winner. The scan's keypoints come back in ``keypoints`` either way, for the confidence.
     """
     full_index = target_index if target_index is not None else NearestNeighbors(target, workers=workers)
     if strategy == "scan":
@@ -209,6 +220,11 @@ def global_estimate(
         estimate = _verify(work, candidates, origins)
         if estimate.score >= CONFIDENT_SCORE and not estimate.ambiguous:
             return _decide(work, estimate)
+        # Not confident: probably a partial overlap. The scan strategy's pose wins at once when it
+        # is confident on the overlap and overlaps clearly more than the rotation search's.
+        scanned = _scan(source, target, full_index, target_spacing)
+        if _scan_leads(scanned, estimate.transformation, margin=SCAN_MARGIN):
+            return replace(scanned, candidates=searched + scanned.candidates)
         # The rotation search's verified contenders join the feature candidates in the last round.
         carried = (estimate.transformations, estimate.scores, list(estimate.strategies))
         candidates = _twins(work.index.points, estimate.transformation)
@@ -231,7 +247,12 @@ def global_estimate(
         )
     estimate = _decide(work, _verify(work, candidates, origins, carried=carried))
     # Count each candidate pose once (the carried rotation-search contenders are not new ones).
-    return replace(estimate, candidates=searched + found_count)
+    estimate = replace(estimate, candidates=searched + found_count)
+    if strategy == "auto":
+        if _scan_leads(scanned, estimate.transformation):
+            return replace(scanned, candidates=estimate.candidates + scanned.candidates)
+        return replace(estimate, candidates=estimate.candidates + scanned.candidates, keypoints=scanned.keypoints)
+    return estimate
 
 
 def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | None) -> GlobalEstimate:
@@ -240,7 +261,23 @@ def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | 
 
     spacing = full_index.spacing() if target_spacing is None else target_spacing
     found = scan_estimate(source, target, spacing=spacing, workers=full_index.workers)
-    return GlobalEstimate(found.transformations, found.scores, ("scan",) * len(found.scores), candidates=len(found.scores))
+    return GlobalEstimate(
+        found.transformations, found.scores, ("scan",) * len(found.scores), candidates=len(found.scores),
+        keypoints=found.keypoints,
+    )
+
+
+def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1.0) -> bool:
+    """True when the scan strategy's best pose is confident on the overlap
+    (:func:`~esmicp.globalreg.scan.overlap_confidence`) and its overlap score (keypoints of both
+    clouds on the other cloud) is above ``margin`` times that of ``other``."""
+    from .scan import CONFIDENT, overlap_confidence, overlap_score
+
+    keypoints = scanned.keypoints
+    if overlap_confidence(scanned.transformation, keypoints) < CONFIDENT:
+        return False
+    mine, theirs = overlap_score(scanned.transformation, keypoints), overlap_score(other, keypoints)
+    return mine > margin * theirs
 
 
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
