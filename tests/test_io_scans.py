@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 
 import numpy as np
@@ -137,7 +138,10 @@ def test_shared_scans_read_with_three_columns():
 
 # ---- LAS / LAZ ---------------------------------------------------------------------------------------
 
-laspy = pytest.importorskip("laspy")
+if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+    import laspy  # CI installs the `las` extra: its absence there is a broken setup, not a skip
+else:
+    laspy = pytest.importorskip("laspy")
 
 
 def write_las(path, points: np.ndarray, scale: float = 0.001, offset=(1000.0, 2000.0, 10.0)) -> np.ndarray:
