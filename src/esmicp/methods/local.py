@@ -203,17 +203,12 @@ def refine(
             state = IterationState(iteration, transformation.copy(), moved, indices, distances, step.weights, sigma)
             if callback(state):
                 return outcome(transformation, False, iteration, "stopped by the callback")
-        reason = criteria.reason(moved_angle, moved_distance, scale, previous_rmse, rmse)
-        if coarse and reason is not None:
-            # Converged on the subset: continue on the full source, at the fine sigma.
-            estimator.end_coarse_phase()
-        elif reason is not None:
-            return outcome(transformation, True, iteration, f"converged after {iteration} iterations ({reason})")
+        message = _converged(criteria, estimator, coarse, iteration, moved_angle, moved_distance, scale,
+                             previous_rmse, rmse)
+        if message is not None:
+            return outcome(transformation, True, iteration, message)
         previous_rmse = rmse
-    return outcome(
-        transformation, False, criteria.max_iterations,
-        f"reached max_iterations={criteria.max_iterations} before the tolerance {criteria.tolerance:g}",
-    )
+    return outcome(transformation, False, criteria.max_iterations, _budget_spent(criteria))
 
 
 def _refine_fused(full_source, source, target, estimator, coarse, init, criteria, scale, accelerator) -> RefinementOutcome:
@@ -281,16 +276,12 @@ def _refine_fused(full_source, source, target, estimator, coarse, init, criteria
             following = np.ascontiguousarray(following, dtype=np.float64)
         transformation = following
         rmse = float(out[1])
-        reason = criteria.reason(moved_angle, moved_distance, scale, previous_rmse, rmse)
-        if coarse and reason is not None:
-            estimator.end_coarse_phase()
-        elif reason is not None:
-            return finish(transformation, True, iteration, f"converged after {iteration} iterations ({reason})")
+        message = _converged(criteria, estimator, coarse, iteration, moved_angle, moved_distance, scale,
+                             previous_rmse, rmse)
+        if message is not None:
+            return finish(transformation, True, iteration, message)
         previous_rmse = rmse
-    return finish(
-        transformation, False, criteria.max_iterations,
-        f"reached max_iterations={criteria.max_iterations} before the tolerance {criteria.tolerance:g}",
-    )
+    return finish(transformation, False, criteria.max_iterations, _budget_spent(criteria))
 
 
 def _last_pairs(step: Step | None, count: int) -> tuple[float | None, int]:
@@ -317,3 +308,22 @@ def _record(iteration, transformation, rmse, weights, sigma, count) -> Iteration
 
 def _freeze(history):
     return tuple(history) if history is not None else None
+
+
+def _converged(criteria, estimator, coarse, iteration, moved_angle, moved_distance, scale, previous_rmse, rmse):
+    """The stop message when the criteria are met on the full source, else None.
+
+    Met during the coarse phase, they end it instead (the loop continues on the full source at the
+    fine sigma), so both loops switch phases the same way.
+    """
+    reason = criteria.reason(moved_angle, moved_distance, scale, previous_rmse, rmse)
+    if reason is None:
+        return None
+    if coarse:
+        estimator.end_coarse_phase()
+        return None
+    return f"converged after {iteration} iterations ({reason})"
+
+
+def _budget_spent(criteria) -> str:
+    return f"reached max_iterations={criteria.max_iterations} before the tolerance {criteria.tolerance:g}"
