@@ -285,6 +285,13 @@ def _run_dask(todo, config, options, workers, writer, bar) -> None:
                    for item, remaining in todo]
         for future in as_completed(futures):
             _write(writer, bar, future.result())
+    except KeyboardInterrupt:
+        # Closing a client whose event loop was interrupted mid-call can make distributed's own
+        # cancel callback fail (a NameError inside distributed.utils.sync), which tornado logs as a
+        # traceback on stderr; the interruption is reported by the caller in one line instead.
+        for name in ("tornado.application", "distributed"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
+        raise
     finally:
         for future in futures:
             future.cancel()
