@@ -269,6 +269,20 @@ def test_scan_bench_on_a_tiny_folder(tmp_path):
     assert "demo/p0" in table and "esmicp default" in table
 
 
+def test_scan_bench_cropped_variant_reports_the_cropped_overlap(tmp_path):
+    from esmicp.bench.scans import CROPPED_OVERLAP
+
+    make_folder(tmp_path)
+    config = ScanBenchConfig(real_pairs_dir=str(tmp_path), methods=("esm-global",), partial_trials=0,
+                             variants=("as-recorded", "cropped"))
+    recorded, cropped = run_scan_bench(config)
+    assert cropped["variant"] == "cropped" and recorded["overlap"] > 0.9
+    assert abs(cropped["overlap"] - CROPPED_OVERLAP) < 0.05
+    assert cropped["points_source"] < recorded["points_source"]
+    assert cropped["status"] == "ok" and cropped["rotation_error_deg"] is not None
+    assert "cropped" in real_pairs_markdown([recorded, cropped])
+
+
 def test_scan_bench_judges_a_wrong_pose_as_failure(tmp_path, monkeypatch):
     import esmicp.bench.scans as scans
 
