@@ -11,6 +11,7 @@ from conftest import require_shared
 
 from esmicp.bench.real_pairs import (
     KIND_CRITERIA,
+    crop_to_overlap,
     estimate_in_pair_frame,
     load_pair,
     pair_errors,
@@ -195,6 +196,54 @@ def test_partial_trial_truth_and_overlap(keep):
     assert abs(measured - trial.overlap) < 0.15
 
 
+def _plane_pair(rng):
+    """Two overlapping patches of a wavy surface (metres): target x in [0, 2], source x in [1, 3]
+    in the target frame, the source moved by a known pose."""
+    grid = np.stack(np.meshgrid(np.linspace(0, 3, 121), np.linspace(0, 1, 41)), axis=-1).reshape(-1, 2)
+    surface = np.column_stack([grid, 0.1 * np.sin(3 * grid[:, 0]) * np.cos(2 * grid[:, 1])])
+    target = surface[surface[:, 0] <= 2.0]
+    truth = to_matrix(rotation_about_z(30.0), np.array([0.5, -0.2, 0.1]))
+    source = apply(rigid_inverse(truth), surface[surface[:, 0] >= 1.0])
+    return source, target, truth
+
+
+@pytest.mark.parametrize("overlap", [0.3, 0.2, 0.1])
+def test_crop_to_overlap_reaches_the_overlap_it_reports(overlap):
+    source, target, truth = _plane_pair(np.random.default_rng(0))
+    cropped = crop_to_overlap(source, target, truth, overlap, np.random.default_rng(3))
+    # kept points are subsets of the originals, and each cloud lost points
+    from scipy.spatial import cKDTree
+
+    assert np.all(cKDTree(source).query(cropped.source)[0] == 0.0)
+    assert np.all(cKDTree(target).query(cropped.target)[0] == 0.0)
+    assert len(cropped.source) < len(source) and len(cropped.target) <= len(target)
+    # the reported overlap is the fraction measured independently, and close to the request
+    spacing = np.median(cKDTree(cropped.target).query(cropped.target, k=2)[0][:, 1])
+    near, _ = cKDTree(cropped.target).query(apply(truth, cropped.source))
+    measured = float(np.mean(near <= 3 * spacing))
+    assert abs(measured - cropped.source_overlap) < 0.02
+    assert abs(cropped.source_overlap - overlap) < 0.05
+    back, _ = cKDTree(apply(truth, cropped.source)).query(cropped.target)
+    assert 0.0 < cropped.target_overlap <= 1.0
+    assert abs(float(np.mean(back <= 3 * np.median(cKDTree(cropped.source).query(cropped.source, k=2)[0][:, 1])))
+               - cropped.target_overlap) < 0.02
+    # the cut: the kept source lies above the slab's lower face, the kept target below its upper face
+    assert np.all(apply(truth, cropped.source) @ cropped.normal >= cropped.offset - 0.5 * cropped.width - 1e-9)
+    assert np.all(cropped.target @ cropped.normal <= cropped.offset + 0.5 * cropped.width + 1e-9)
+
+
+def test_crop_to_overlap_is_seeded_and_rejects_bad_input():
+    source, target, truth = _plane_pair(np.random.default_rng(0))
+    first = crop_to_overlap(source, target, truth, 0.2, np.random.default_rng(5))
+    again = crop_to_overlap(source, target, truth, 0.2, np.random.default_rng(5))
+    assert np.array_equal(first.source, again.source) and np.array_equal(first.target, again.target)
+    with pytest.raises(InvalidInputError, match="overlap"):
+        crop_to_overlap(source, target, truth, 1.2, np.random.default_rng(5))
+    far = to_matrix(np.eye(3), np.array([100.0, 0.0, 0.0])) @ truth
+    with pytest.raises(InvalidInputError, match="overlaps nowhere"):
+        crop_to_overlap(source, target, far, 0.2, np.random.default_rng(5))
+
+
 def test_partial_overlaps_vary_and_are_lower_at_50():
     cloud = asymmetric_shape(8000, np.random.default_rng(4))
     overlaps = {keep: [partial_trial(cloud, keep, np.random.default_rng(s)).overlap for s in range(20)]
@@ -218,6 +267,20 @@ def test_scan_bench_on_a_tiny_folder(tmp_path):
     assert len((tmp_path / "rows.jsonl").read_text().splitlines()) == 2
     table = real_pairs_markdown(rows)
     assert "demo/p0" in table and "esmicp default" in table
+
+
+def test_scan_bench_cropped_variant_reports_the_cropped_overlap(tmp_path):
+    from esmicp.bench.scans import CROPPED_OVERLAP
+
+    make_folder(tmp_path)
+    config = ScanBenchConfig(real_pairs_dir=str(tmp_path), methods=("esm-global",), partial_trials=0,
+                             variants=("as-recorded", "cropped"))
+    recorded, cropped = run_scan_bench(config)
+    assert cropped["variant"] == "cropped" and recorded["overlap"] > 0.9
+    assert abs(cropped["overlap"] - CROPPED_OVERLAP) < 0.05
+    assert cropped["points_source"] < recorded["points_source"]
+    assert cropped["status"] == "ok" and cropped["rotation_error_deg"] is not None
+    assert "cropped" in real_pairs_markdown([recorded, cropped])
 
 
 def test_scan_bench_judges_a_wrong_pose_as_failure(tmp_path, monkeypatch):

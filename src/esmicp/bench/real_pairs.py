@@ -14,6 +14,11 @@ frame: for the ``turned`` variant (:func:`turn_source`) the estimate is first ma
 The partial-overlap protocol (:func:`partial_trial`) cuts two disjoint random halves of an object
 by one random plane each, keeping a fraction of each half's points, and reports the overlap the
 trial actually has.
+
+The low-overlap check (:func:`crop_to_overlap`) crops a real pair by one seeded plane, the source
+kept on one side and the target on the other, with a slab between them where both remain, so that
+the pair's true overlap falls to a chosen fraction (3DLoMatch's 10-30%); it reports the overlap
+each way as measured after the crop.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..core.procrustes import apply, rigid_inverse, to_matrix
 from ..errors import InvalidInputError, PointCloudFileError
@@ -32,9 +38,11 @@ from .protocols import random_rigid_transform
 __all__ = [
     "KIND_CRITERIA",
     "PAIRS_FILE",
+    "CroppedPair",
     "Criteria",
     "RealPair",
     "criteria_for",
+    "crop_to_overlap",
     "estimate_in_pair_frame",
     "load_pair",
     "pair_errors",
@@ -250,3 +258,87 @@ def partial_trial(cloud: np.ndarray, keep: float, rng: np.random.Generator, poin
 
     moved_by = random_rigid_transform(rng, bounding_box_diagonal(target))
     return PartialTrial(apply(moved_by, source_object), target, rigid_inverse(moved_by), overlap, keep)
+
+
+@dataclass(frozen=True, eq=False)
+class CroppedPair:
+    """A real pair cropped to a low overlap (:func:`crop_to_overlap`).
+
+    ``source`` and ``target`` are the kept points (in their own frames; the pose between them is
+    unchanged); ``source_overlap`` is the fraction of the kept source lying on the kept target
+    under the true pose (:func:`~esmicp.bench.protocols.scan_overlap`), ``target_overlap`` the same
+    the other way; ``normal`` the cut direction (target frame) and ``offset`` / ``width`` the slab
+    (target units) where both clouds remain.
+    """
+
+    source: np.ndarray
+    target: np.ndarray
+    source_overlap: float
+    target_overlap: float
+    normal: np.ndarray
+    offset: float
+    width: float
+
+
+#: Bisection steps on the slab width of :func:`crop_to_overlap`.
+CROP_STEPS = 24
+
+
+def crop_to_overlap(source: np.ndarray, target: np.ndarray, T_target_source: np.ndarray, overlap: float,
+                    rng: np.random.Generator) -> CroppedPair:
+    """Crop a pair so that about ``overlap`` of the kept source lies on the kept target.
+
+    A direction ``n`` uniform on the sphere (target frame) and the median height ``c`` (along
+    ``n``) of the source points that lie on the target under ``T_target_source`` define the cut:
+    the source keeps its points with ``height >= c - width / 2``, the target those with
+    ``height <= c + width / 2``, and ``width`` (target units) is bisected until the kept source's
+    overlap (:func:`~esmicp.bench.protocols.scan_overlap`, 3 target spacings) is as close to
+    ``overlap`` as the data allows. Both clouds keep at least 3 points.
+
+    Raises
+    ------
+    InvalidInputError
+        ``overlap`` is not in (0, 1), or the pair overlaps nowhere under ``T_target_source``.
+    """
+    from .protocols import median_spacing, scan_overlap
+
+    if not 0.0 < overlap < 1.0:
+        raise InvalidInputError(f"overlap: expected a fraction in (0, 1), got {overlap!r}")
+    source = np.asarray(source, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    truth = np.asarray(T_target_source, dtype=np.float64)
+    distance = 3.0 * median_spacing(target)
+    moved = apply(truth, source)
+    gaps, _ = cKDTree(target).query(moved, distance_upper_bound=distance)
+    on_target = gaps <= distance
+    if not on_target.any():
+        raise InvalidInputError("crop_to_overlap: the pair overlaps nowhere under T_target_source")
+    normal = rng.normal(size=3)
+    normal /= np.linalg.norm(normal)
+    source_heights, target_heights = moved @ normal, target @ normal
+    offset = float(np.median(source_heights[on_target]))
+
+    def crop(width):
+        keep_source = source_heights >= offset - 0.5 * width
+        keep_target = target_heights <= offset + 0.5 * width
+        if keep_source.sum() < 3 or keep_target.sum() < 3:
+            return None
+        kept_source, kept_target = source[keep_source], target[keep_target]
+        return kept_source, kept_target, scan_overlap(kept_source, kept_target, truth, distance)
+
+    low, high = 0.0, float(np.ptp(np.concatenate([source_heights, target_heights])))
+    best = None
+    for _ in range(CROP_STEPS):
+        width = 0.5 * (low + high)
+        found = crop(width)
+        if found is None or found[2] > overlap:
+            high = width
+        else:
+            low = width
+        if found is not None and (best is None or abs(found[2] - overlap) < abs(best[1][2] - overlap)):
+            best = (width, found)
+    if best is None:
+        raise InvalidInputError("crop_to_overlap: no cut keeps 3 points of each cloud")
+    width, (kept_source, kept_target, source_overlap) = best
+    target_overlap = scan_overlap(kept_target, kept_source, rigid_inverse(truth), 3.0 * median_spacing(kept_source))
+    return CroppedPair(kept_source, kept_target, source_overlap, target_overlap, normal, offset, width)

@@ -1,5 +1,5 @@
-"""The scan benchmark: every global method on the real pairs of a folder (as recorded and turned)
-and on the partial-overlap object protocol, in one run, one JSON row per (trial, method).
+"""The scan benchmark: every global method on the real pairs of a folder (as recorded, turned, and
+on request cropped to a low overlap) and on the partial-overlap object protocol, in one run, one JSON row per (trial, method).
 
 Methods (:data:`SCAN_METHODS`): ``esm-global`` (``esmicp.register(source, target, rng=seed)``,
 every default, no voxel), and the peers with the voxel their documentation recommends for the
@@ -10,8 +10,12 @@ objects the peers get their object default (1/40 of the target's diagonal), as i
 object protocols. Each method is warmed up once (untimed) on a small cloud, so imports are not
 counted; only the registration call is timed. Methods take turns pair by pair.
 
+The ``cropped`` variant (not run unless asked for) crops pair ``k`` by a plane slab
+(:func:`~esmicp.bench.real_pairs.crop_to_overlap`) so that ``CROPPED_OVERLAP`` of the kept source
+lies on the kept target (3DLoMatch's range); its rows report the overlap measured after the crop.
+
 Seeds: the turned variant of pair ``k`` draws its rotation from ``SeedSequence(seed,
-spawn_key=(0, k))``; partial trial ``i`` at keep fraction number ``j`` from ``SeedSequence(seed,
+spawn_key=(0, k))``; the cropped variant its plane from ``SeedSequence(seed, spawn_key=(2, k))``; partial trial ``i`` at keep fraction number ``j`` from ``SeedSequence(seed,
 spawn_key=(1, j, i))``; every method gets the same per-trial seed.
 """
 
@@ -27,10 +31,12 @@ import numpy as np
 
 from ..errors import InvalidInputError
 from ..metrics import rotation_error_deg, strict_success, translation_error, up_to_symmetry_success
-from .real_pairs import estimate_in_pair_frame, load_pair, pair_errors, partial_trial, read_pairs, turn_source
+from .real_pairs import crop_to_overlap, estimate_in_pair_frame, load_pair, pair_errors, partial_trial, read_pairs, turn_source
 
 __all__ = [
     "PARTIAL_KEEPS",
+    "CROPPED_OVERLAP",
+    "DEFAULT_VARIANTS",
     "SCAN_METHODS",
     "VARIANTS",
     "ScanBenchConfig",
@@ -41,8 +47,11 @@ __all__ = [
 
 #: The global methods of the scan benchmark.
 SCAN_METHODS = ("esm-global", "kiss-matcher-icp", "open3d-ransac-fpfh-icp", "fgr-icp")
-#: Variants of each real pair.
-VARIANTS = ("as-recorded", "turned")
+#: Variants of each real pair, and those run unless others are asked for.
+VARIANTS = ("as-recorded", "turned", "cropped")
+DEFAULT_VARIANTS = ("as-recorded", "turned")
+#: The ``cropped`` variant keeps this fraction of the source on the target (3DLoMatch: 10-30%).
+CROPPED_OVERLAP = 0.2
 #: Fractions of each half the partial-overlap protocol keeps.
 PARTIAL_KEEPS = (0.7, 0.5)
 #: ICP iterations after FGR (the other peers' default).
@@ -60,7 +69,7 @@ class ScanBenchConfig:
     real_pairs_dir: str | None
     data_dir: str = ""
     methods: tuple[str, ...] = SCAN_METHODS
-    variants: tuple[str, ...] = VARIANTS
+    variants: tuple[str, ...] = DEFAULT_VARIANTS
     partial_keeps: tuple[float, ...] = PARTIAL_KEEPS
     partial_trials: int = 24
     partial_points: int = 2000
@@ -142,18 +151,22 @@ def real_pair_rows(config: ScanBenchConfig, emit) -> None:
         criteria = pair.criteria
         for variant in config.variants:
             moved_by = None
-            trial_source, trial_truth = source, truth
+            trial_source, trial_target, trial_truth, trial_overlap = source, target, truth, overlap
             if variant == "turned":
                 rng = np.random.default_rng(np.random.SeedSequence(config.seed, spawn_key=(0, index)))
                 trial_source, trial_truth, moved_by = turn_source(source, truth, rng)
+            elif variant == "cropped":
+                rng = np.random.default_rng(np.random.SeedSequence(config.seed, spawn_key=(2, index)))
+                cropped = crop_to_overlap(source, target, truth, CROPPED_OVERLAP, rng)
+                trial_source, trial_target, trial_overlap = cropped.source, cropped.target, cropped.source_overlap
             seed = _seed_of(config.seed, 0, index, VARIANTS.index(variant))
             for method in config.methods:
                 row = {"protocol": "real-pairs", "pair": pair.name, "kind": pair.kind, "variant": variant,
-                       "method": method, "seed": seed, "points_source": len(source), "points_target": len(target),
-                       "overlap": overlap, "voxel": criteria.voxel_m if method != "esm-global" else None,
+                       "method": method, "seed": seed, "points_source": len(trial_source),
+                       "points_target": len(trial_target), "overlap": trial_overlap, "voxel": criteria.voxel_m if method != "esm-global" else None,
                        "criteria": [criteria.rotation_deg, criteria.translation_m],
                        "initial_rotation_deg": rotation_error_deg(np.eye(4), trial_truth)}
-                outcome = _timed(method, trial_source, target, row["voxel"], seed)
+                outcome = _timed(method, trial_source, trial_target, row["voxel"], seed)
                 estimate = outcome.pop("estimate", None)
                 row.update(outcome)
                 if estimate is not None:
