@@ -11,9 +11,11 @@ from scipy.spatial import cKDTree
 
 import esmicp
 from esmicp.cli import main
+from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import apply, rigid_inverse, to_matrix
 from esmicp.errors import InvalidInputError
-from esmicp.methods import METHODS, PlaneEstimator, make_estimator
+from esmicp.methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimator
+from esmicp.methods.local import refine
 from esmicp.methods.plane import plane_step
 from esmicp.metrics import random_rotation, rotation_error_deg
 from conftest import require_shared
@@ -73,12 +75,12 @@ def test_a_plane_does_not_slide_along_itself():
 
 def test_the_overlap_sets_sigma_not_the_pairs_off_it():
     """Pairs off the overlap (far, many) must not widen sigma: it follows the close ones."""
-    estimator = PlaneEstimator(floor=0.01)
+    estimator = PlaneEstimator(floor=0.01, diameter=5.0)
     rng = np.random.default_rng(2)
     distances = np.concatenate([np.abs(rng.normal(0.0, 0.02, 400)), rng.uniform(0.5, 3.0, 600)])
     sigma = estimator._sigma(distances)
     assert 0.01 <= sigma < 0.1
-    assert PlaneEstimator(floor=0.01, sigma=0.7)._sigma(distances) == 0.7
+    assert PlaneEstimator(floor=0.01, diameter=5.0, sigma=0.7)._sigma(distances) == 0.7
 
 
 def test_real_3dmatch_pair_keeps_its_overlap_and_recovers_the_truth():
@@ -139,3 +141,16 @@ def test_bad_clouds_are_refused_by_name():
     with pytest.raises(InvalidInputError, match="target"):
         esmicp.register(np.random.default_rng(0).normal(size=(50, 3)), np.full((50, 3), np.nan),
                         method="esm-plane", init=np.eye(4))
+
+
+def test_a_large_source_ends_on_the_whole_source(scene):
+    """The subset phase (a strided subset of a large source) ends once the steps are small, so the
+    pose comes from every point."""
+    source, target = scene
+    estimator = PlaneEstimator(floor=0.02, diameter=6.0)
+    assert estimator.coarse
+    outcome = refine(source, NearestNeighbors(target), estimator, init=np.eye(4), criteria=ConvergenceCriteria(),
+                     scale=6.0, coarse_points=len(source) // 4)
+    assert not estimator.coarse and outcome.converged
+    gap, _ = cKDTree(target).query(apply(outcome.transformation, source))
+    assert gap.max() < 1e-7

@@ -31,7 +31,7 @@ def make_estimator(
     if method == "icp":
         return IcpEstimator()
     if method == "esm-plane":
-        return PlaneEstimator(SigmaSchedule.auto(spacing, diagonal).floor, sigma)
+        return PlaneEstimator(SigmaSchedule.auto(spacing, diagonal).floor, diagonal, sigma)
     if method == "esm-paper":
         return EsmPaperEstimator(PAPER_SIGMA if sigma is None else sigma)
     schedule = SigmaSchedule.auto(spacing, diagonal) if sigma is None else SigmaSchedule.constant(sigma)

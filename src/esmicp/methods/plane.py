@@ -38,9 +38,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.pose_kernels import rotation_exp
+from ..core.procrustes import rotation_angle
 from ..core.weights import relative_gaussian_weights
 from ..globalreg.features import estimate_normals
 from .base import Estimator, Step
+from .esm import FINE_PHASE_STEP
 
 #: Target points whose PCA gives a target point's normal.
 NORMAL_NEIGHBOURS = 20
@@ -66,26 +68,43 @@ class PlaneEstimator(Estimator):
     """Point-to-plane Gauss-Newton increment with Gaussian weights on the pair distances.
 
     ``floor`` (cloud units, > 0) is the smallest sigma; ``sigma`` a fixed sigma (cloud units) in
-    place of the schedule of the module docstring. The target's normals are estimated the first
+    place of the schedule of the module docstring; ``diameter`` (cloud units, the target's
+    bounding-box diagonal) scales the increment that ends the subset phase. The target's normals are estimated the first
     time a target point is paired (only where needed), then kept: make a new estimator per
-    registration.
+    registration. The same steps run on a subset of a large source first (:attr:`coarse`): the
+    subset brings the clouds together, the whole source decides the pose.
     """
 
     name = "esm-plane"
 
-    def __init__(self, floor: float, sigma: float | None = None):
+    def __init__(self, floor: float, diameter: float, sigma: float | None = None):
         self.floor = float(floor)
+        self.diameter = float(diameter)
         self.fixed = sigma
+        self._whole = False
         self._target: np.ndarray | None = None
         self._tree: cKDTree | None = None
         self._normals: np.ndarray | None = None
         self._known: np.ndarray | None = None
+
+    @property
+    def coarse(self) -> bool:
+        """True until the first increment below ``esm``'s ``FINE_PHASE_STEP`` (or the loop's
+        convergence): the loop may iterate on a strided subset of a large source (``coarse_points``
+        of :func:`esmicp.methods.local.refine`) until then, then on all of it."""
+        return not self._whole
+
+    def end_coarse_phase(self) -> None:
+        self._whole = True
 
     def step(self, moved_source, target, distances, indices) -> Step:
         sigma = self._sigma(distances)
         weights = relative_gaussian_weights(distances, sigma)
         normals = self._normals_at(target, indices)
         rotation, translation = plane_step(moved_source, target[indices], normals, weights)
+        self._whole = self._whole or (
+            rotation_angle(rotation) < FINE_PHASE_STEP and np.linalg.norm(translation) < FINE_PHASE_STEP * self.diameter
+        )
         return Step(rotation, translation, weights=weights, sigma=sigma)
 
     def _sigma(self, distances: np.ndarray) -> float:
