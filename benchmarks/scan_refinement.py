@@ -148,8 +148,7 @@ def markdown(rows: list[dict], command: str, iterations: int) -> str:
              "pose the default global search gives (before its refinement). esmicp methods: "
              "`esmicp.register(method=..., init=start)`, every other default; the peers get the voxel their "
              "documentation recommends (0.05 m indoor, 0.3 m LiDAR) for normals / covariances (small_gicp also "
-             "downsamples by it). Errors in the pair's frame against the stored ground truth (3DMatch's has "
-             "about 1-2° of its own: every method ends 1.1-2.1° from it on t00_s04); success by the kind's "
+             "downsamples by it). Errors in the pair's frame against the stored ground truth; success by the kind's "
              "criteria (3DMatch 15° / 0.30 m, LiDAR 5° / 0.6 m). Time: the registration call (normals and "
              "index included), on a machine shared by several engineers: only the ratios within the run count.",
              "", "| family | start | method | success | median rotation error | median translation error | "
