@@ -69,10 +69,10 @@ class PlaneEstimator(Estimator):
 
     ``floor`` (cloud units, > 0) is the smallest sigma; ``sigma`` a fixed sigma (cloud units) in
     place of the schedule of the module docstring; ``diameter`` (cloud units, the target's
-    bounding-box diagonal) scales the increment that ends the subset phase. The target's normals are estimated the first
-    time a target point is paired (only where needed), then kept: make a new estimator per
-    registration. The same steps run on a subset of a large source first (:attr:`coarse`): the
-    subset brings the clouds together, the whole source decides the pose.
+    bounding-box diagonal) scales the increment that ends the subset phase. The target's normals
+    are estimated the first time a target point is paired (only where needed), then kept: make a
+    new estimator per registration. The same steps run on a subset of a large source first
+    (:attr:`coarse`): the subset brings the clouds together, the whole source decides the pose.
     """
 
     name = "esm-plane"
@@ -102,9 +102,8 @@ class PlaneEstimator(Estimator):
         weights = relative_gaussian_weights(distances, sigma)
         normals = self._normals_at(target, indices)
         rotation, translation = plane_step(moved_source, target[indices], normals, weights)
-        self._whole = self._whole or (
-            rotation_angle(rotation) < FINE_PHASE_STEP and np.linalg.norm(translation) < FINE_PHASE_STEP * self.diameter
-        )
+        small = rotation_angle(rotation) < FINE_PHASE_STEP
+        self._whole = self._whole or (small and np.linalg.norm(translation) < FINE_PHASE_STEP * self.diameter)
         return Step(rotation, translation, weights=weights, sigma=sigma)
 
     def _sigma(self, distances: np.ndarray) -> float:
