@@ -86,11 +86,13 @@ def register(
         Points to move (source frame). Never modified.
     target : (M, 3) array-like
         Points to align to (target frame). N and M may differ. Never modified.
-    method : {"esm", "esm-paper", "icp"}
+    method : {"esm", "esm-paper", "icp", "esm-plane"}
         ``esm``: Gaussian-weighted Procrustes on nearest-neighbour pairs (any sizes, any order).
         ``esm-paper``: the paper's symmetric-matrix formulation; needs index-aligned clouds of
         equal size (source point k and target point k the same physical point).
         ``icp``: point-to-point ICP.
+        ``esm-plane``: the Gaussian weights on point-to-plane residuals (target normals), sigma
+        from the overlap (:mod:`esmicp.methods.plane`): for partially overlapping scans.
     init : None, str or (4, 4) array-like
         Where to start. None or ``"global"`` (the default): find the pose globally, from any
         rotation and translation, with the best measured strategy (``"auto"``: both strategies
@@ -101,8 +103,9 @@ def register(
         ``"none"``): pure local refinement from the identity. A 4x4 ``T_target_source``: pure local
         refinement from there.
     sigma : float, optional
-        Kernel width in the clouds' units. None: ``esm`` chooses it from the data each iteration
-        (see :mod:`esmicp.methods.esm`), ``esm-paper`` uses the paper's 1.0. Ignored by ``icp``.
+        Kernel width in the clouds' units. None: ``esm`` and ``esm-plane`` choose it from the data
+        each iteration (see :mod:`esmicp.methods.esm`, :mod:`esmicp.methods.plane`), ``esm-paper``
+        uses the paper's 1.0. Ignored by ``icp``.
     max_iterations : int
         Upper bound on iterations (>= 1).
     tolerance : float

@@ -9,12 +9,14 @@ from .base import ConvergenceCriteria, Estimator, Step
 from .esm import EsmEstimator, SigmaSchedule
 from .esm_paper import PAPER_SIGMA, EsmPaperEstimator, similarity_matrix
 from .icp import IcpEstimator
+from .plane import PlaneEstimator
 
 #: Names accepted by ``esmicp.register(method=...)``, with a one-line description each.
 METHODS = {
     "esm": "ESM-ICP on true nearest-neighbour pairs: Gaussian-weighted Procrustes (any sizes, any order)",
     "esm-paper": "the paper's formulation, symmetric similarity matrix; needs index-aligned clouds",
     "icp": "classic point-to-point ICP (all weights 1)",
+    "esm-plane": "ESM's Gaussian weights on point-to-plane residuals (target normals), sigma from the overlap: for scans",
 }
 
 
@@ -24,9 +26,12 @@ def make_estimator(
 ) -> Estimator:
     """A fresh estimator for ``method`` (a key of :data:`METHODS`): ``sigma`` None lets ``esm``
     choose it from the data (a floor of target point spacings, ``diagonal`` as a backstop) and
-    gives ``esm-paper`` the paper's 1.0; ``start_fine`` starts ``esm`` in its fine phase."""
+    gives ``esm-paper`` the paper's 1.0 (``esm-plane``: from the overlap, above the same floor);
+    ``start_fine`` starts ``esm`` in its fine phase."""
     if method == "icp":
         return IcpEstimator()
+    if method == "esm-plane":
+        return PlaneEstimator(SigmaSchedule.auto(spacing, diagonal).floor, diagonal, sigma)
     if method == "esm-paper":
         return EsmPaperEstimator(PAPER_SIGMA if sigma is None else sigma)
     schedule = SigmaSchedule.auto(spacing, diagonal) if sigma is None else SigmaSchedule.constant(sigma)
@@ -40,6 +45,7 @@ __all__ = [
     "EsmEstimator",
     "EsmPaperEstimator",
     "IcpEstimator",
+    "PlaneEstimator",
     "SigmaSchedule",
     "Step",
     "make_estimator",

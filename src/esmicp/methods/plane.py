@@ -1,0 +1,160 @@
+"""``esm-plane``: ESM's Gaussian weights on point-to-plane residuals, for scans.
+
+Each iteration pairs every source point ``s_i`` (as currently placed, target frame) with its
+nearest target point ``t_c(i)``, whose unit normal ``n_c(i)`` comes from a PCA of the target
+around it (:func:`esmicp.globalreg.features.estimate_normals`, the ``NORMAL_NEIGHBOURS`` nearest
+target points: a scale the sampling chooses, so the method is unit-free). The residual is the
+distance of the point to the target's tangent plane,
+
+    r_i = n_c(i) . (R s_i + t - t_c(i)),
+
+and the increment minimises ``sum_i w_i r_i^2`` linearised at ``R = I, t = 0`` (one Gauss-Newton
+step, a 6x6 system solved in closed form) with ESM's Gaussian weights
+``w_i = exp(-d_i^2 / (2 sigma^2))``, ``d_i`` the pair's point distance (see
+``docs/real-scans.md``, "Refinement on scans", for why the point distance and not the plane
+residual). A plane slides freely along itself, so a flat target leaves directions unconstrained:
+the solve moves along none of them (a pseudo-inverse), where point-to-point ICP would pull the
+overlap's borders toward each other.
+
+Choosing sigma: from the overlap, not from every pair
+-----------------------------------------------------
+``esm``'s schedule (``3 x`` the median distance) measures every pair; on scans that overlap by
+40% most pairs join points the other scan never saw, the median is theirs, and a wide sigma pulls
+the overlap apart (3DMatch t00_s06 started at its ground truth drifts off it, see
+``docs/real-scans.md``). Here sigma is the robust scale of the distances *of the overlap*:
+``SIGMA_MAD_FACTOR x 1.4826 x`` the median of the distances below ``OVERLAP_SIGMAS`` sigmas, at
+its least fixed point above ``esm``'s floor of ``SIGMA_FLOOR_SPACINGS`` target point spacings
+(iterated up from the floor, each iteration anew): sigma widens only as far as the close pairs'
+own spread carries it, so the pairs off the overlap are discounted from the first step on. The
+price: a start further off than a few sigmas of the overlap's spread finds too few close pairs
+(this is a refinement, for after a global search). Units: sigma, distances and residuals in the clouds' units.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..core.pose_kernels import rotation_exp
+from ..core.procrustes import rotation_angle
+from ..core.weights import relative_gaussian_weights
+from ..globalreg.features import estimate_normals
+from .base import Estimator, Step
+from .esm import FINE_PHASE_STEP
+
+#: Target points whose PCA gives a target point's normal.
+NORMAL_NEIGHBOURS = 20
+
+#: Pairs farther than this many sigmas are not part of the overlap when sigma is re-estimated.
+OVERLAP_SIGMAS = 3.0
+
+#: Sigma is this many robust standard deviations (1.4826 x median) of the overlap's distances.
+SIGMA_MAD_FACTOR = 2.0
+
+#: At most this many rounds of the sigma fixed point per iteration (it settles in a few).
+SIGMA_ROUNDS = 30
+
+#: Eigenvalues of the 6x6 normal matrix below this fraction of the largest are treated as zero
+#: (directions a plane-like target leaves unconstrained: the step does not move along them).
+SINGULAR_FRACTION = 1e-9
+
+#: 1.4826 x the median absolute value estimates a Gaussian's standard deviation.
+_MAD_SCALE = 1.4826
+
+
+class PlaneEstimator(Estimator):
+    """Point-to-plane Gauss-Newton increment with Gaussian weights on the pair distances.
+
+    ``floor`` (cloud units, > 0) is the smallest sigma; ``sigma`` a fixed sigma (cloud units) in
+    place of the schedule of the module docstring; ``diameter`` (cloud units, the target's
+    bounding-box diagonal) scales the increment that ends the subset phase. The target's normals
+    are estimated the first time a target point is paired (only where needed), then kept: make a
+    new estimator per registration. The same steps run on a subset of a large source first
+    (:attr:`coarse`): the subset brings the clouds together, the whole source decides the pose.
+    """
+
+    name = "esm-plane"
+
+    def __init__(self, floor: float, diameter: float, sigma: float | None = None):
+        self.floor = float(floor)
+        self.diameter = float(diameter)
+        self.fixed = sigma
+        self._whole = False
+        self._target: np.ndarray | None = None
+        self._tree: cKDTree | None = None
+        self._normals: np.ndarray | None = None
+        self._known: np.ndarray | None = None
+
+    @property
+    def coarse(self) -> bool:
+        """True until the first increment below ``esm``'s ``FINE_PHASE_STEP`` (or the loop's
+        convergence): the loop may iterate on a strided subset of a large source (``coarse_points``
+        of :func:`esmicp.methods.local.refine`) until then, then on all of it."""
+        return not self._whole
+
+    def end_coarse_phase(self) -> None:
+        self._whole = True
+
+    def step(self, moved_source, target, distances, indices) -> Step:
+        sigma = self._sigma(distances)
+        weights = relative_gaussian_weights(distances, sigma)
+        normals = self._normals_at(target, indices)
+        rotation, translation = plane_step(moved_source, target[indices], normals, weights)
+        small = rotation_angle(rotation) < FINE_PHASE_STEP
+        self._whole = self._whole or (small and np.linalg.norm(translation) < FINE_PHASE_STEP * self.diameter)
+        return Step(rotation, translation, weights=weights, sigma=sigma)
+
+    def _sigma(self, distances: np.ndarray) -> float:
+        """This iteration's sigma: the least fixed point above the floor of the overlap's scale."""
+        if self.fixed is not None:
+            return self.fixed
+        sigma = self.floor
+        for _ in range(SIGMA_ROUNDS):
+            overlap = distances[distances <= OVERLAP_SIGMAS * sigma]
+            scale = SIGMA_MAD_FACTOR * _MAD_SCALE * float(np.median(overlap)) if len(overlap) else 0.0
+            if scale <= (1.0 + 1e-3) * sigma:
+                break
+            sigma = scale
+        return sigma
+
+    def _normals_at(self, target: np.ndarray, indices: np.ndarray) -> np.ndarray:
+        """Unit normals at ``target[indices]``, estimated once per target point."""
+        if self._target is not target:
+            self._target, self._tree = target, cKDTree(target)
+            self._normals = np.empty_like(target)
+            self._known = np.zeros(len(target), dtype=bool)
+        needed = np.unique(indices[~self._known[indices]])
+        if len(needed):
+            self._normals[needed] = estimate_normals(target, NORMAL_NEIGHBOURS, at=target[needed], tree=self._tree)
+            self._known[needed] = True
+        return self._normals[indices]
+
+
+def plane_step(source: np.ndarray, target: np.ndarray, normals: np.ndarray, weights: np.ndarray):
+    """``(R, t)`` minimising ``sum_i w_i (n_i . (R s_i + t - t_i))^2`` to first order in the rotation.
+
+    ``source``, ``target``, ``normals`` are ``(N, 3)`` (target frame, unit normals), ``weights``
+    ``(N,)``. The rotation is linearised about the weighted centroid ``c`` of the source and its
+    columns scaled by the source's weighted RMS radius ``L`` about it, so that the 6x6 system is
+    unit-free (a cloud in millimetres gives the same step); the solution ``(omega L, tau)`` gives
+    ``R = exp(omega)``, ``t = c + tau - R c``. Unconstrained directions (see
+    :data:`SINGULAR_FRACTION`) get no motion.
+    """
+    total = float(weights.sum())
+    centre = np.einsum("i,ij->j", weights, source) / total
+    offsets = source - centre
+    radius = math.sqrt(max(float(np.einsum("i,ij,ij->", weights, offsets, offsets)) / total, 0.0))
+    if not radius > 0:
+        return np.eye(3), np.zeros(3)
+    jacobian = np.hstack([np.cross(offsets / radius, normals), normals])
+    residuals = np.einsum("ij,ij->i", normals, source - target)
+    weighted = jacobian * weights[:, None]
+    normal_matrix = np.einsum("ni,nj->ij", weighted, jacobian)
+    gradient = np.einsum("ni,n->i", weighted, residuals)
+    values, vectors = np.linalg.eigh(normal_matrix)
+    keep = values > SINGULAR_FRACTION * max(float(values[-1]), 0.0)
+    solution = -vectors[:, keep] @ ((vectors[:, keep].T @ gradient) / values[keep])
+    rotation = rotation_exp(solution[:3] / radius)
+    return rotation, centre + solution[3:] - rotation @ centre
