@@ -14,6 +14,8 @@ of ``esmicp bench`` (its rows.jsonl), so that the docs can be regenerated exactl
     esmicp bench --paper-1000 --out bench-paper-1000
     python benchmarks/bench_doc_tables.py paper-1000 bench-paper-1000     # docs/bench-paper-1000.md
 
+    python benchmarks/bench_doc_tables.py times bench-paper     # where a run's time goes, per method
+
 Figures are measured in the run, never stored in the repository.
 """
 
@@ -166,9 +168,28 @@ def paper_1000(rows, data_dir: Path) -> str:
                        ratios(rows, lambda r: True, reference="esm-paper")])
 
 
+def times(rows) -> str:
+    """Per method: rows, the sum of its registration calls' times and its share of all of them (a
+    ``timeout`` row counts its limit, read from its reason), what dominates a run's wall time."""
+    spent, counts = defaultdict(float), defaultdict(int)
+    for row in rows:
+        counts[row["method"]] += 1
+        if row["time_s"] is not None:
+            spent[row["method"]] += row["time_s"]
+        elif row["status"] == "timeout":
+            spent[row["method"]] += float(row["reason"].split("timeout_s=")[1].split()[0])
+    total = sum(spent.values())
+    lines = [f"{len(rows)} rows; the methods' calls took {total:.0f} s in all:", "",
+             "| method | rows | time (s) | share | per row (s) |", "|---|---|---|---|---|"]
+    for method in sorted(counts, key=lambda m: -spent[m]):
+        lines.append(f"| {method} | {counts[method]} | {spent[method]:.0f} | {100 * spent[method] / total:.1f}% | "
+                     f"{spent[method] / counts[method]:.3g} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("kind", choices=("paper", "honest", "sigma", "paper-1000"))
+    parser.add_argument("kind", choices=("paper", "honest", "sigma", "paper-1000", "times"))
     parser.add_argument("results", type=Path, help="the --out folder of the run")
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
                         help="the shared data folder (paper-1000: the paper's tables; default ../shared/data)")
@@ -179,7 +200,7 @@ def main(argv=None) -> int:
     if args.kind == "paper-1000":
         print(paper_1000(rows, args.data))
         return 0
-    print({"paper": paper, "honest": honest, "sigma": sigma}[args.kind](rows))
+    print({"paper": paper, "honest": honest, "sigma": sigma, "times": times}[args.kind](rows))
     return 0
 
 

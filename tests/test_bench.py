@@ -207,6 +207,33 @@ def test_local_dask_cluster_of_two_workers_equals_a_serial_run(tmp_path):
     assert [_without_timings(r) for r in dask_rows] == [_without_timings(r) for r in serial_rows]
 
 
+def _threads_of_this_worker() -> dict:
+    """What a worker process runs its methods on: the libraries' thread pools, torch's if it is here."""
+    threads = {name: os.environ.get(name) for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+    try:
+        import torch
+    except ImportError:
+        return threads
+    return {**threads, "torch": torch.get_num_threads()}
+
+
+def test_every_worker_of_the_bench_cluster_runs_on_one_thread():
+    # Two processes on two cores: a worker running more than one thread (Dask's task threads, or
+    # the OpenMP / MKL / torch pools inside a method) would oversubscribe them.
+    _require_dask()
+    from dask.distributed import Client
+
+    from esmicp.bench.runner import local_cluster
+
+    with local_cluster(2) as cluster, Client(cluster) as client:
+        nthreads = client.nthreads()
+        seen = client.run(_threads_of_this_worker)
+    assert len(nthreads) == 2 and set(nthreads.values()) == {1}
+    for threads in seen.values():
+        assert {threads.pop(name) for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")} == {"1"}
+        assert threads in ({}, {"torch": 1})
+
+
 def test_an_existing_scheduler_runs_the_same_tasks(tmp_path):
     _require_dask()
     from dask.distributed import LocalCluster

@@ -11,7 +11,12 @@ conventions only; imported only by :mod:`esmicp.baselines.dcp`, which imports to
   after the other on the ``(B, C, N, k)`` edge tensor, and after each one the maximum over the
   ``k`` edges is kept; the four maxima (64 + 64 + 128 + 256 = 512 channels) go through a fifth
   1x1 convolution + batch norm + ReLU: a ``(B, 512, N)`` per-point embedding. The graph is built
-  once, from the coordinates.
+  once, from the coordinates. Inference only: each 1x1 convolution and the batch norm after it
+  (eval mode, its running statistics) are applied as one matrix product over the channels, on an
+  edge tensor laid out ``(B, N, k, C)``: the same arithmetic as ``nn.Conv2d`` + ``nn.BatchNorm2d``
+  up to float32 rounding, and faster on CPU, where torch runs these convolutions of a
+  non-contiguous ``(B, C, N, k)`` tensor through its slow im2col path (docs/bench-paper.md, "Run
+  time"; the modules are kept so that the state loads as the authors saved it).
 - **Pointer: identity.** DCP adds the pointer's output to the embedding; v1's pointer returns the
   embedding itself, so every embedding is doubled before the head (this sets the softmax's
   temperature the weights were trained with).
@@ -48,17 +53,25 @@ def knn_indices(points: torch.Tensor, k: int) -> torch.Tensor:
 
 
 def edge_features(points: torch.Tensor, k: int) -> torch.Tensor:
-    """``(B, 3, N)`` -> ``(B, 6, N, k)``: ``[neighbour, point]`` for each of the ``k`` edges."""
+    """``(B, 3, N)`` -> ``(B, N, k, 6)``: ``[neighbour, point]`` for each of the ``k`` edges."""
     batch, _, count = points.shape
     neighbours = knn_indices(points, min(k, count))  # (B, N, k)
     by_point = points.transpose(1, 2)  # (B, N, 3)
     gathered = by_point[torch.arange(batch)[:, None, None], neighbours]  # (B, N, k, 3)
     centre = by_point[:, :, None, :].expand_as(gathered)
-    return torch.cat((gathered, centre), dim=3).permute(0, 3, 1, 2)
+    return torch.cat((gathered, centre), dim=3)
+
+
+def _conv_bn_relu(x: torch.Tensor, conv: nn.Conv2d, norm: nn.BatchNorm2d) -> torch.Tensor:
+    """ReLU(batch norm (1x1 convolution)) of a channels-last ``(..., C_in)`` tensor -> ``(..., C_out)``,
+    the batch norm in eval mode (its running statistics) folded into the convolution's weights."""
+    scale = norm.weight / torch.sqrt(norm.running_var + norm.eps)
+    weight = conv.weight[:, :, 0, 0] * scale[:, None]
+    return torch.relu(nn.functional.linear(x, weight, norm.bias - norm.running_mean * scale))
 
 
 class DGCNNEmbedding(nn.Module):
-    """``(B, 3, N)`` -> ``(B, 512, N)`` (see the module's docstring)."""
+    """``(B, 3, N)`` -> ``(B, 512, N)`` (see the module's docstring); inference only."""
 
     def __init__(self, emb_dims: int = EMB_DIMS, k: int = K_NEIGHBOURS):
         super().__init__()
@@ -72,14 +85,13 @@ class DGCNNEmbedding(nn.Module):
             setattr(self, f"bn{index}", nn.BatchNorm2d(width))
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        batch, _, count = points.shape
-        x = edge_features(points, self.k)
+        x = edge_features(points, self.k)  # (B, N, k, 6)
         maxima = []
         for index in range(1, len(EDGE_WIDTHS) + 1):
-            x = torch.relu(getattr(self, f"bn{index}")(getattr(self, f"conv{index}")(x)))
-            maxima.append(x.max(dim=-1, keepdim=True).values)
-        x = torch.relu(self.bn5(self.conv5(torch.cat(maxima, dim=1))))
-        return x.view(batch, -1, count)
+            x = _conv_bn_relu(x, getattr(self, f"conv{index}"), getattr(self, f"bn{index}"))
+            maxima.append(x.max(dim=2).values)  # (B, N, C): the maximum over the k edges
+        x = _conv_bn_relu(torch.cat(maxima, dim=2), self.conv5, self.bn5)  # (B, N, 512)
+        return x.transpose(1, 2)
 
 
 class SVDHead(nn.Module):

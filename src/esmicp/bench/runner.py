@@ -258,7 +258,7 @@ def _write(writer, bar, rows) -> None:
 
 def _run_dask(todo, config, options, workers, writer, bar) -> None:
     try:
-        from dask.distributed import Client, LocalCluster, as_completed
+        from dask.distributed import Client, as_completed
     except ImportError as exc:
         from ..errors import MissingDependencyError
 
@@ -267,18 +267,15 @@ def _run_dask(todo, config, options, workers, writer, bar) -> None:
         ) from exc
     cluster = None
     if options.scheduler is None:
-        # Bound to this machine only; the status page on a free port (8787 may belong to someone else).
         # The worker processes start with Ctrl-C ignored (they inherit it): this process alone
         # handles it, closing the cluster, instead of every worker printing a traceback.
         with _sigint_ignored():
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                   dashboard_address=":0", silence_logs=logging.ERROR)
+            cluster = local_cluster(workers)
         client = Client(cluster)
     else:
-        try:
-            client = Client(options.scheduler, timeout=30)
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise InvalidInputError(f"scheduler: cannot connect to {options.scheduler!r} ({exc})") from None
+        from ..batch import dask_client
+
+        client = dask_client(options.scheduler)
     futures = []
     try:
         futures = [client.submit(run_item, _work_item(item, remaining, config), pure=False)
@@ -298,6 +295,22 @@ def _run_dask(todo, config, options, workers, writer, bar) -> None:
         client.close(timeout=10)
         if cluster is not None:
             cluster.close(timeout=10)
+
+
+#: The environment of every worker process of :func:`local_cluster`: the thread pools of the
+#: libraries the methods use (OpenMP: Open3D, torch's intra-op pool; MKL; OpenBLAS) at one thread.
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+
+
+def local_cluster(workers: int):
+    """The bench's local Dask cluster: ``workers`` processes of one thread each (one task at a
+    time), whose libraries also run on one thread (:data:`WORKER_ENV`): the processes share the
+    cores, and a process that ran every core's worth of threads on top would oversubscribe them.
+    Bound to this machine only, its status page on a free port (8787 may belong to someone else)."""
+    from dask.distributed import LocalCluster
+
+    return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                        dashboard_address=":0", silence_logs=logging.ERROR, env=WORKER_ENV)
 
 
 @contextlib.contextmanager
@@ -344,4 +357,5 @@ def write_tables(out_dir: Path) -> tuple[Path, ...]:
     return tuple(written)
 
 
-__all__ = ["BENCH_HINT", "BenchOutcome", "Interrupted", "PAPER_TABLE", "plan", "run_bench", "write_tables"]
+__all__ = ["BENCH_HINT", "WORKER_ENV", "BenchOutcome", "Interrupted", "PAPER_TABLE", "local_cluster", "plan", "run_bench",
+           "write_tables"]
