@@ -234,6 +234,31 @@ def test_every_worker_of_the_bench_cluster_runs_on_one_thread():
         assert threads in ({}, {"torch": 1})
 
 
+def test_esmicp_kernels_run_on_one_thread_inside_a_dask_worker_and_on_every_core_serially(tmp_path, monkeypatch):
+    # A Dask worker is one of a process per core: esmicp's own kernels inside it must not start
+    # a thread per core on top (register(workers=1)); a serial run keeps the default (None).
+    _require_dask()
+    import esmicp.api
+    from dask.distributed import LocalCluster
+
+    seen = []
+    real_register = esmicp.api.register
+
+    def recording(*args, **kwargs):
+        seen.append(kwargs.get("workers", "missing"))
+        return real_register(*args, **kwargs)
+
+    monkeypatch.setattr(esmicp.api, "register", recording)
+    config = small(protocols=("copy",), trials=2, methods=("esm", "esm-global"))
+    run_bench(config, serial(tmp_path / "serial"))
+    assert seen and set(seen) == {None}
+    seen.clear()
+    # An in-process cluster, so that the monkeypatched register is the one its workers call.
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        run_bench(config, RunOptions(out_dir=tmp_path / "dask", scheduler=cluster.scheduler_address, progress=False))
+    assert seen and set(seen) == {1}
+
+
 def test_an_existing_scheduler_runs_the_same_tasks(tmp_path):
     _require_dask()
     from dask.distributed import LocalCluster

@@ -80,19 +80,23 @@ def check_methods(names) -> None:
 
 
 def run_method(
-    name: str, source, target, *, init: np.ndarray, max_iterations: int, sigma: float | None, seed: int
+    name: str, source, target, *, init: np.ndarray, max_iterations: int, sigma: float | None, seed: int,
+    workers: int | None = None,
 ) -> MethodOutcome:
     """Run ``name`` once; only the registration call is timed (``time.perf_counter``).
+
+    ``workers``: threads of esmicp's own kernels (``register(workers=...)``; None: every core); the
+    baselines keep their libraries' own settings.
 
     Raises :class:`Unavailable` for a missing library / weights; any other exception is the
     method's own failure.
     """
     if name in OUR_METHODS:
-        return _run_ours(name, source, target, init, max_iterations, sigma, seed)
+        return _run_ours(name, source, target, init, max_iterations, sigma, seed, workers)
     return _run_baseline(name, source, target, init, max_iterations, seed)
 
 
-def _run_ours(name, source, target, init, max_iterations, sigma, seed) -> MethodOutcome:
+def _run_ours(name, source, target, init, max_iterations, sigma, seed, workers) -> MethodOutcome:
     from ..api import register
     from ..errors import IndexAlignmentWarning
 
@@ -103,9 +107,10 @@ def _run_ours(name, source, target, init, max_iterations, sigma, seed) -> Method
             start_from = "identity" if np.array_equal(init, np.eye(4)) else init
         start = time.perf_counter()
         if name == "esm-global":
-            result = register(source, target, rng=seed)
+            result = register(source, target, rng=seed, workers=workers)
         else:
-            result = register(source, target, method=name, init=start_from, sigma=sigma, max_iterations=max_iterations)
+            result = register(source, target, method=name, init=start_from, sigma=sigma, max_iterations=max_iterations,
+                              workers=workers)
         elapsed = time.perf_counter() - start
     return MethodOutcome(
         result.transformation, elapsed, int(result.num_iterations), bool(result.converged),

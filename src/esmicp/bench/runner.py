@@ -142,7 +142,7 @@ def _scan_plan(dataset, points: int, config: BenchConfig) -> list[_Planned]:
     return planned
 
 
-def _work_item(planned: _Planned, runs, config: BenchConfig) -> WorkItem:
+def _work_item(planned: _Planned, runs, config: BenchConfig, threads: int | None = None) -> WorkItem:
     trial = planned.build()
     if config.init == "perturbed":
         init = perturbed_init(trial.T_target_source, trial.target, planned.spec.seed,
@@ -150,7 +150,7 @@ def _work_item(planned: _Planned, runs, config: BenchConfig) -> WorkItem:
         label = "given"
     else:
         init, label = np.eye(4), "identity"
-    return WorkItem(planned.spec, trial, tuple(runs), config.max_iterations, init, label)
+    return WorkItem(planned.spec, trial, tuple(runs), config.max_iterations, init, label, threads)
 
 
 def _save_config(config: BenchConfig, out_dir: Path, resume: bool) -> None:
@@ -278,7 +278,7 @@ def _run_dask(todo, config, options, workers, writer, bar) -> None:
         client = dask_client(options.scheduler)
     futures = []
     try:
-        futures = [client.submit(run_item, _work_item(item, remaining, config), pure=False)
+        futures = [client.submit(run_item, _work_item(item, remaining, config, threads=1), pure=False)
                    for item, remaining in todo]
         for future in as_completed(futures):
             _write(writer, bar, future.result())

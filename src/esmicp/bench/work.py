@@ -41,6 +41,9 @@ class WorkItem:
     max_iterations: int
     init: np.ndarray
     init_label: str
+    #: Threads of esmicp's own compiled kernels (``register(workers=...)``); None: every core.
+    #: One inside a Dask worker, whose cluster already runs one process per core.
+    threads: int | None = None
 
 
 def run_item(item: WorkItem) -> list[dict]:
@@ -84,7 +87,7 @@ def run_one(item: WorkItem, method: str, sigma: float | None) -> dict:
         ("rotation_error_deg", "translation_error", "success_strict", "success_symmetry", "mse_r", "rmse_r",
          "mae_r", "mse_t", "rmse_t", "mae_t", "time_s", "iterations", "converged", "ambiguous"), None)
     row.update(metrics, notes="")
-    call = dict(init=item.init, max_iterations=item.max_iterations, sigma=sigma, seed=spec.seed)
+    call = dict(init=item.init, max_iterations=item.max_iterations, sigma=sigma, seed=spec.seed, workers=item.threads)
     try:
         if method not in _WARM:
             run_method(method, trial.source, trial.target, **call)  # untimed: imports, first-call caches
