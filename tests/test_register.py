@@ -185,6 +185,27 @@ def test_esm_is_robust_to_outliers_where_icp_is_not(shape, seed):
     assert esm_error < icp_error, f"esm {esm_error:.3f} deg, icp {icp_error:.3f} deg"
 
 
+def test_a_large_source_is_refined_on_a_subsample_then_polished_on_every_point():
+    """After a global search, a source above ``REFINE_POINTS`` is refined on a strided subsample and
+    polished on every point: the pose is where a refinement of every point started from it stays,
+    and ``max_iterations`` bounds both phases together."""
+    from esmicp.api import POLISH_ITERATIONS, REFINE_POINTS
+
+    target = load("bunny")
+    assert len(target) > REFINE_POINTS
+    rotation, translation = small_motion(5, diagonal(target), 30.0, 60.0)
+    source = move_to_source(target, rotation, translation)[np.random.default_rng(5).permutation(len(target))]
+    result = esmicp.register(source, target)
+    assert result.message.endswith("iteration(s) on the full source")
+    assert rotation_error_deg(result.transformation, rotation) < 0.05
+    spacing = float(np.median(cKDTree(target).query(target, k=2)[0][:, 1]))
+    full = esmicp.register(source, target, init=result.transformation)
+    assert rotation_error_deg(full.transformation, result.transformation[:3, :3]) < 0.05
+    assert np.linalg.norm(full.transformation[:3, 3] - result.transformation[:3, 3]) < 0.1 * spacing
+    capped = esmicp.register(source, target, max_iterations=POLISH_ITERATIONS + 1)
+    assert capped.num_iterations <= POLISH_ITERATIONS + 1
+
+
 def test_different_sizes_work(chair):
     rotation, translation = small_motion(5, diagonal(chair))
     source = move_to_source(chair[:900], rotation, translation)  # a 900-point part of the 1500
