@@ -46,12 +46,13 @@ COINCIDENT_WARNING_FRACTION = 0.1
 #: Seed of the global search when ``rng`` is None (results are reproducible by default).
 DEFAULT_SEED = 0
 
-#: After a global search (the pose is already close), a source of more points than this is refined
-#: on this many evenly strided points first; the full source then polishes that pose for at most
-#: ``POLISH_ITERATIONS`` iterations (each full-resolution iteration costs as much as
+#: After a global search (the pose is already close), a source of more than twice this many points
+#: is refined on this many evenly strided points first; the full source then polishes that pose
+#: for at most ``POLISH_ITERATIONS`` iterations (each full-resolution iteration costs as much as
 #: ``len(source) / REFINE_POINTS`` subsample iterations). Not with a callback or a history, which
-#: see every iteration on the whole source.
-REFINE_POINTS = 5_000
+#: see every iteration on the whole source. (5,000 points were too few on a KITTI scan: the pose
+#: slid 0.3 m along the road from where every point takes it; ``docs/measured-global.md``.)
+REFINE_POINTS = COARSE_POINTS
 POLISH_ITERATIONS = 2
 
 
@@ -158,7 +159,7 @@ def register(
     # After a global search (which ends at the finest sigma) the pose is already close: start in
     # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
     estimator = make_estimator(method, request.sigma, target_index.spacing(), diagonal, start_fine=estimate is not None)
-    if estimate is not None and callback is None and not record_history and len(source_points) > REFINE_POINTS:
+    if estimate is not None and callback is None and not record_history and len(source_points) > 2 * REFINE_POINTS:
         outcome = _refine_then_polish(source_points, target_index, estimator, initial, request, diagonal)
     else:
         outcome = guarded_refine(
@@ -242,10 +243,7 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     The outcome is the polish's, with the iterations of both and ``converged`` from the subsample
     run (the polish only sharpens it; a polish the guard rejected makes it False)."""
     strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
-    coarse = guarded_refine(
-        strided, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal,
-        coarse_points=COARSE_POINTS,
-    )
+    coarse = guarded_refine(strided, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal)
     budget = min(POLISH_ITERATIONS, request.criteria.max_iterations - coarse.num_iterations)
     if coarse.num_iterations == 0 or budget <= 0:
         return coarse  # no start to refine, or the user's iteration budget is spent
