@@ -198,7 +198,8 @@ def test_a_large_source_is_refined_on_a_subsample_then_polished_on_every_point(m
     rotation, translation = small_motion(5, diagonal(target), 30.0, 60.0)
     source = move_to_source(target, rotation, translation)[np.random.default_rng(5).permutation(len(target))]
     result = esmicp.register(source, target)
-    assert result.message.endswith("iteration(s) on the full source")
+    assert result.message.endswith(f"iteration(s) on all {len(target):,}"), result.message
+    assert "on 2,000 strided source points" in result.message
     assert rotation_error_deg(result.transformation, rotation) < 0.05
     spacing = float(np.median(cKDTree(target).query(target, k=2)[0][:, 1]))
     full = esmicp.register(source, target, init=result.transformation)

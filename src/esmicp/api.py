@@ -244,9 +244,12 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     run (the polish only sharpens it; a polish the guard rejected makes it False)."""
     strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
     coarse = guarded_refine(strided, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal)
+    if coarse.num_iterations == 0:
+        return coarse  # no start to refine (the guard's message says why)
+    where = f"{coarse.message} on {len(strided):,} strided source points"
     budget = min(POLISH_ITERATIONS, request.criteria.max_iterations - coarse.num_iterations)
-    if coarse.num_iterations == 0 or budget <= 0:
-        return coarse  # no start to refine, or the user's iteration budget is spent
+    if budget <= 0:  # the user's iteration budget is spent
+        return dataclasses.replace(coarse, message=where)
     polisher = make_estimator(request.method, request.sigma, target_index.spacing(), diagonal, start_fine=True)
     criteria = dataclasses.replace(request.criteria, max_iterations=budget)
     polish = guarded_refine(
@@ -255,7 +258,7 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     return dataclasses.replace(
         polish, converged=coarse.converged and (polish.converged or polish.message == _budget_spent(criteria)),
         num_iterations=coarse.num_iterations + polish.num_iterations,
-        message=f"{coarse.message}; then {polish.num_iterations} iteration(s) on the full source",
+        message=f"{where}; then {polish.num_iterations} iteration(s) on all {len(source):,}",
     )
 
 
