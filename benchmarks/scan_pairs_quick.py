@@ -12,10 +12,12 @@ Success: 3DMatch rotation error < 15 deg and translation error < 0.30 m; LiDAR <
 < 0.6 m. Methods (``--methods``): ``esm`` (``esmicp.register(source, target)`` with every
 default, or ``--init``), and any name of :data:`esmicp.baselines.BASELINES`, which get the voxel
 their documentation recommends (0.05 m indoor, 0.3 m LiDAR). Methods take turns pair by pair;
-only the registration call is timed. Prints one line per (pair, variant, method), a summary, and
-the median time ratio of each method to the first baseline.
+only the registration call is timed. Prints one line per (pair, variant, method), a summary,
+each method's median time ratio to the last one, and a Markdown table: one row per (pair,
+variant), every method's success, errors and time, and the first method's time over the fastest
+of the others (the peers) on that row.
 
-    PYTHONPATH=src python benchmarks/scan_pairs_quick.py --methods esm,kiss-matcher-icp
+    python benchmarks/scan_pairs_quick.py --methods esm,kiss-matcher-icp,open3d-ransac-fpfh-icp
 """
 
 from __future__ import annotations
@@ -133,6 +135,33 @@ def main() -> None:
                 if other[2] == peer and other[0] == row[0] and other[1] == row[1]
             ]
             print(f"{'':18s} time ratio to {peer}: median {statistics.median(ratios):.2f}, max {max(ratios):.2f}")
+    if len(methods) > 1:
+        print()
+        print(markdown_table(rows, methods))
+
+
+def markdown_table(rows, methods) -> str:
+    """One Markdown row per (pair, variant): each method's result and time, and the first method's
+    time over the fastest other method's, with the median and maximum of that ratio below."""
+    cells = {(row[0], row[1], row[2]): row for row in rows}
+    keys = list(dict.fromkeys((row[0], row[1]) for row in rows))
+    lines = [
+        "| pair | variant | " + " | ".join(methods) + f" | {methods[0]} / fastest peer |",
+        "|---|---|" + "---|" * (len(methods) + 1),
+    ]
+    ratios = []
+    for label, variant in keys:
+        found = [cells[label, variant, name] for name in methods]
+        ratio = found[0][6] / min(row[6] for row in found[1:])
+        ratios.append(ratio)
+        shown = [f"{'ok' if row[3] else 'FAIL'} {row[4]:.2f}° {row[5]:.3f}m {row[6]:.2f}s" for row in found]
+        lines.append(f"| {label} | {variant} | " + " | ".join(shown) + f" | {ratio:.2f} |")
+    successes = [sum(cells[key[0], key[1], name][3] for key in keys) for name in methods]
+    lines.append(
+        f"\n{' / '.join(f'{name} {count}/{len(keys)}' for name, count in zip(methods, successes))}; "
+        f"{methods[0]} / fastest peer: median {statistics.median(ratios):.2f}, max {max(ratios):.2f}"
+    )
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

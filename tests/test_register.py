@@ -185,6 +185,30 @@ def test_esm_is_robust_to_outliers_where_icp_is_not(shape, seed):
     assert esm_error < icp_error, f"esm {esm_error:.3f} deg, icp {icp_error:.3f} deg"
 
 
+def test_a_large_source_is_refined_on_a_subsample_then_polished_on_every_point(monkeypatch):
+    """After a global search, a source above twice ``REFINE_POINTS`` is refined on a strided
+    subsample and polished on every point: the pose is where a refinement of every point started
+    from it stays, and ``max_iterations`` bounds both phases together. (A smaller subsample than
+    the default, so that the bunny's 8k points take that path.)"""
+    from esmicp.api import POLISH_ITERATIONS
+
+    monkeypatch.setattr(esmicp.api, "REFINE_POINTS", 2000)
+    target = load("bunny")
+    assert len(target) > 2 * 2000
+    rotation, translation = small_motion(5, diagonal(target), 30.0, 60.0)
+    source = move_to_source(target, rotation, translation)[np.random.default_rng(5).permutation(len(target))]
+    result = esmicp.register(source, target)
+    assert result.message.endswith(f"iteration(s) on all {len(target):,}"), result.message
+    assert "on 2,000 strided source points" in result.message
+    assert rotation_error_deg(result.transformation, rotation) < 0.05
+    spacing = float(np.median(cKDTree(target).query(target, k=2)[0][:, 1]))
+    full = esmicp.register(source, target, init=result.transformation)
+    assert rotation_error_deg(full.transformation, result.transformation[:3, :3]) < 0.05
+    assert np.linalg.norm(full.transformation[:3, 3] - result.transformation[:3, 3]) < 0.1 * spacing
+    capped = esmicp.register(source, target, max_iterations=POLISH_ITERATIONS + 1)
+    assert capped.num_iterations <= POLISH_ITERATIONS + 1
+
+
 def test_different_sizes_work(chair):
     rotation, translation = small_motion(5, diagonal(chair))
     source = move_to_source(chair[:900], rotation, translation)  # a 900-point part of the 1500

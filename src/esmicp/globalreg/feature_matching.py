@@ -425,7 +425,10 @@ def _keypoints(
     if filter_radius is not None:
         keep = dense_point_mask(down, filter_radius)
         points, down = points[keep[owner]], down[keep]
-    normals = estimate_normals(points, k=_NORMAL_NEIGHBOURS, radius=normal_radius, at=down)
+    # A sliding-midpoint tree without node compaction: the same neighbours, built faster (on the
+    # dense cloud its build is most of the normals' time; as in core.correspondence).
+    dense_tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
+    normals = estimate_normals(points, k=_NORMAL_NEIGHBOURS, radius=normal_radius, at=down, tree=dense_tree)
     features = fpfh(down, normals, feature_radius)
     described = features.any(axis=1)
     return down[described], features[described]
