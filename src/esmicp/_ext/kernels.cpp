@@ -83,7 +83,7 @@ void parallel_pieces(int64_t pieces, int threads, F &&work) {
 
 // ---------------------------------------------------------------------------------------------
 // Persistent helper threads for the short calls of the local loop (Index::step below
-// PARALLEL_QUERY_MIN points): starting a std::thread per call costs more than half the work of
+// POOLED_STEP_MAX points): starting a std::thread per call costs more than half the work of
 // 1,000 queries, so these threads are started once and wait between calls, spinning for
 // POOL_SPIN (the Python between two iterations takes less), then sleeping on a condition
 // variable (no CPU used while idle). fork(): the child forgets the pool (its threads do not
@@ -977,6 +977,10 @@ bool anderson_propose(CArr2 current_, CArr2 plain_, Arr1 state_, double scale, i
 // of the pose (angle, translation norm).
 constexpr int STEP_OUT = 40;
 
+//: Below this many source points, Index::step queries on the persistent helper threads (a call
+//: of that size lasts a few milliseconds at most: the loop around it sees Ctrl-C in time).
+constexpr int64_t POOLED_STEP_MAX = 32768;
+
 struct Index {
     CArr2 target;
     CArr2 tree_points;
@@ -1052,8 +1056,9 @@ struct Index {
             double *row = partial.data() + 4 * piece;
             row[0] = misses; row[1] = squares; row[2] = least; row[3] = objective;
         };
-        // Few points: the persistent helpers (a thread started per call would cost more than it saves).
-        if (count < PARALLEL_QUERY_MIN) {
+        // Up to POOLED_STEP_MAX points the persistent helpers (a thread started per call costs a
+        // large part of the work there); beyond, threads per call, with their Ctrl-C checks.
+        if (count < POOLED_STEP_MAX) {
             pooled_pieces(pieces, threads, query);
         } else {
             parallel_pieces(pieces, threads, query);
