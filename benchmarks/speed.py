@@ -5,6 +5,7 @@ Usage::
     python benchmarks/speed.py                           # bunny + LiDAR at 1k, 10k, 100k, 1M, 3 repeats
     python benchmarks/speed.py --sizes 1000 10000 --clouds bunny --repeats 5
     python benchmarks/speed.py --plot docs/images/speed.png   # also draw time against N (log-log)
+    python benchmarks/speed.py --clouds bunny --iterations-only --peers open3d   # issue 14's ratios
 
 Clouds (``../shared/data`` or ``$ESMICP_SHARED_DATA``), resampled to each size N:
 
