@@ -5,6 +5,7 @@ Usage::
     python benchmarks/speed.py                           # bunny + LiDAR at 1k, 10k, 100k, 1M, 3 repeats
     python benchmarks/speed.py --sizes 1000 10000 --clouds bunny --repeats 5
     python benchmarks/speed.py --plot docs/images/speed.png   # also draw time against N (log-log)
+    python benchmarks/speed.py --clouds bunny --iterations-only --peers open3d   # issue 14's ratios
 
 Clouds (``../shared/data`` or ``$ESMICP_SHARED_DATA``), resampled to each size N:
 
@@ -221,9 +222,14 @@ class SmallGicp:
 
 
 # ------------------------------------------------------------------------------------ measuring
-def measure(cloud: str, size: int, repeats: int, with_global: bool, with_local: bool = True) -> dict:
+#: The peers ``--peers`` may name.
+PEERS = {"open3d": Open3dIcp, "small_gicp": SmallGicp}
+
+
+def measure(cloud: str, size: int, repeats: int, with_global: bool, with_local: bool = True,
+            peers: tuple[str, ...] = tuple(PEERS)) -> dict:
     source, target, start, truth = CLOUDS[cloud](size)
-    methods = [Esm(source, target, start), Open3dIcp(source, target, start), SmallGicp(source, target, start)]
+    methods = [Esm(source, target, start), *(PEERS[name](source, target, start) for name in peers)]
     samples: dict[str, dict[str, list]] = {m.name: {} for m in methods}
 
     def add(method, key, value):
@@ -324,7 +330,7 @@ def _fmt(value, digits=3):
 
 
 def _ratio(row, method, peer, key="iteration_ms"):
-    a, b = row[method].get(key), row[peer].get(key)
+    a, b = row[method].get(key), row.get(peer, {}).get(key)  # a peer left out by --peers: n/a
     return "n/a" if a is None or not b or b <= 0 else f"{a / b:.2f}"
 
 
@@ -336,7 +342,7 @@ def report(results: dict) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (cloud, size), row in results.items():
-        esm, o3d, gicp = row["esm"], row["open3d-icp"], row["small_gicp-gicp"]
+        esm, o3d, gicp = row["esm"], row.get("open3d-icp", {}), row.get("small_gicp-gicp", {})
         lines.append(
             f"| {cloud} | {size:,} | {_fmt(esm.get('iteration_ms'))} | {_fmt(o3d.get('iteration_ms'))} "
             f"| {_fmt(gicp.get('iteration_ms'))} | {_ratio(row, 'esm', 'open3d-icp')} "
@@ -360,7 +366,7 @@ def growth(results: dict) -> str:
             ratio = np.log(high / low)
 
             def slope(method, key):
-                x, y = a[method].get(key), b[method].get(key)
+                x, y = a.get(method, {}).get(key), b.get(method, {}).get(key)
                 return "n/a" if not x or not y or x <= 0 or y <= 0 else f"{np.log(y / x) / ratio:.2f}"
 
             lines.append(f"| {cloud} | {low:,} -> {high:,} | {slope('esm', 'iteration_ms')} "
@@ -382,7 +388,7 @@ def plot(results: dict, path: Path) -> None:
         for method, key, axis in (("esm", "iteration_ms", 0), ("open3d-icp", "iteration_ms", 0),
                                   ("small_gicp-gicp", "iteration_ms", 0), ("esm", "local_s", 1),
                                   ("open3d-icp", "local_s", 1), ("esm", "global_s", 1)):
-            values = [results[(cloud, size)][method].get(key) for size in sizes]
+            values = [results[(cloud, size)].get(method, {}).get(key) for size in sizes]
             if all(v is not None and v > 0 for v in values):
                 axes[axis].loglog(sizes, values, marker=marker, label=f"{method} {cloud}" + (" (global)" if key == "global_s" else ""))
     sizes = np.array([1e3, 1e6])
@@ -408,6 +414,8 @@ def main(argv=None) -> None:
                         help="k: iterations run before the n = 20 timed ones (default 5; 30 times them near convergence)")
     parser.add_argument("--iterations-only", action="store_true",
                         help="time only the per-iteration costs and builds (no full registrations)")
+    parser.add_argument("--peers", nargs="+", default=list(PEERS), choices=list(PEERS),
+                        help="the peers timed beside esm (default both; small_gicp's 1M iterations take minutes)")
     parser.add_argument("--memory", action="store_true", help="peak RSS at the largest size (child processes)")
     parser.add_argument("--plot", type=Path, help="write a log-log PNG of time against N")
     parser.add_argument("--json", type=Path, help="write the medians as JSON")
@@ -451,7 +459,7 @@ def main(argv=None) -> None:
     for cloud in args.clouds:
         for size in args.sizes:
             results[(cloud, size)] = measure(cloud, size, args.repeats, not (args.no_global or args.iterations_only),
-                                             not args.iterations_only)
+                                             not args.iterations_only, tuple(args.peers))
             print(f"done {cloud} {size} (load {os.getloadavg()[0]:.1f}): {json.dumps(results[(cloud, size)])}",
                   file=sys.stderr, flush=True)
     print(report(results))

@@ -227,3 +227,62 @@ def test_console_script_version_and_help():
             [sys.executable, "-m", "esmicp.cli", *command, "--help"], capture_output=True, text=True, env=env
         )
         assert shown.returncode == 0 and "usage: esmicp" in shown.stdout
+
+
+def _spy(monkeypatch, target):
+    """Replace ``target`` ("module.function") by a wrapper that records its keyword arguments."""
+    import importlib
+
+    module_name, name = target.rsplit(".", 1)
+    module = importlib.import_module(module_name)
+    original = getattr(module, name)
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, spy)
+    return seen
+
+
+def test_workers_reaches_register_and_one_or_two_threads_give_the_same_pose(pair, capsys, monkeypatch):
+    source, target, _, _ = pair
+    seen = _spy(monkeypatch, "esmicp.api.register")
+    poses = []
+    for workers in ("1", "2"):
+        code, out, err = run(capsys, "register", str(source), str(target), "--workers", workers, "--json")
+        assert code == 0, err
+        poses.append(np.array(json.loads(out)["transformation"]))
+    code, _, err = run(capsys, "register", str(source), str(target), "--json")
+    assert code == 0, err
+    assert [kwargs["workers"] for kwargs in seen] == [1, 2, None]
+    np.testing.assert_allclose(poses[1], poses[0], rtol=0, atol=1e-12)
+
+
+def test_workers_reaches_the_demo_and_merge_registrations(pair, tmp_path, capsys, monkeypatch):
+    seen = _spy(monkeypatch, "esmicp.api.register")
+    code, out, err = run(capsys, "demo", "--seed", "3", "--workers", "1")
+    assert code == 0, out + err
+    assert [kwargs["workers"] for kwargs in seen] == [1]
+    source, target, _, _ = pair
+    merged = _spy(monkeypatch, "esmicp.multiview.register_scans")
+    common = [str(source), str(target), "--processes", "1", "--pair-points", "300", "--no-progress", "--force"]
+    for extra, expected in (([], {}), (["--workers", "2"], {"workers": 2})):
+        code, _, err = run(capsys, "merge", *common, "-o", str(tmp_path / "merged.ply"), *extra)
+        assert code == 0, err
+        assert {key: merged[-1][key] for key in merged[-1] if key == "workers"} == expected
+
+
+@pytest.mark.parametrize("command", ["register", "demo", "merge"])
+@pytest.mark.parametrize("bad", ["0", "-3", "x", "1.5"])
+def test_a_bad_workers_value_is_one_line_and_exit_2(pair, tmp_path, capsys, command, bad):
+    source, target, _, _ = pair
+    files = [] if command == "demo" else [str(source), str(target)]
+    out = tmp_path / "merged.ply"
+    tail = ["-o", str(out)] if command == "merge" else []
+    code, _, err = run(capsys, command, *files, *tail, "--workers", bad)
+    assert code == 2
+    _assert_one_line_error(err, "--workers", f"{command} --workers {bad}")
+    assert bad in err
+    assert not out.exists()

@@ -3,6 +3,7 @@ near-linear on coincident points (issue 14; issue 16 items 1 and 2)."""
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 
@@ -65,23 +66,27 @@ def test_coincident_points_stay_near_linear():
     np.testing.assert_array_equal(target[indices], np.repeat(base, 100000, axis=0))
 
 
-def _register_small(seed):
+def _register_small(seed, count=3000):
     rng = np.random.default_rng(seed)
-    target = rng.normal(size=(3000, 3))
+    target = rng.normal(size=(count, 3))
     return esmicp.register(target + 0.01, target, method="icp", init="identity").transformation
 
 
+@pytest.mark.parametrize("count", [3000, 800])
 @pytest.mark.parametrize("executor", ["pool", "process_pool_executor"])
-def test_fork_after_register_works(executor):
-    """Issue 16 item 2: a forked pool after a registration in the parent (no OpenMP runtime)."""
-    _register_small(0)
+def test_fork_after_register_works(executor, count):
+    """Issue 16 item 2: a forked pool after a registration in the parent (no OpenMP runtime).
+    Below 32,768 points the step runs on the kernels' persistent helper threads, which the child
+    does not inherit: it starts its own."""
+    _register_small(0, count)
     context = multiprocessing.get_context("fork")
+    register = functools.partial(_register_small, count=count)
     if executor == "pool":
         with context.Pool(2) as pool:
-            results = pool.map_async(_register_small, [1, 2]).get(timeout=120)
+            results = pool.map_async(register, [1, 2]).get(timeout=120)
     else:
         with ProcessPoolExecutor(2, mp_context=context) as pool:
-            results = list(pool.map(_register_small, [1, 2], timeout=120))
+            results = list(pool.map(register, [1, 2], timeout=120))
     for transform in results:
         np.testing.assert_allclose(transform[:3, 3], [-0.01, -0.01, -0.01], atol=1e-6)
 
@@ -95,14 +100,16 @@ def _bunny_like(count, seed):
     return directions * radius[:, None] * [1.0, 0.7, 0.5]
 
 
+@pytest.mark.parametrize("sizes", [(40000, 35000), (1500, 1200)])
 @pytest.mark.parametrize("init", ["identity", None])
-def test_register_is_the_same_on_one_and_two_threads(init):
+def test_register_is_the_same_on_one_and_two_threads(init, sizes):
     """``workers=`` reaches every kernel call (global search and refinement), and the kernels sum
-    in pieces of fixed size: one thread and two give the same pose, to the last bit."""
-    target = _bunny_like(30000, 1)
+    in pieces of fixed size: one thread and two give the same pose, to the last bit (threads
+    started per call, and below 32,768 points the persistent helper threads)."""
+    target = _bunny_like(sizes[0], 1)
     angle = 0.15
     rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
-    source = _bunny_like(25000, 2) @ rotation.T + [0.05, 0.0, -0.02]
+    source = _bunny_like(sizes[1], 2) @ rotation.T + [0.05, 0.0, -0.02]
     one = esmicp.register(source, target, init=init, workers=1)
     two = esmicp.register(source, target, init=init, workers=2)
     assert one.num_iterations == two.num_iterations > 1
@@ -233,3 +240,82 @@ def test_repeated_points_warn_without_the_zero_advice():
     with pytest.warns(esmicp.CoincidentPointsWarning, match=r"^target: 3,000 of its 6,000 points \(50\.0%\)") as caught:
         esmicp.register(cloud + 0.01, doubled, init="identity")
     assert "depth sensors" not in str(caught[0].message)
+
+
+def _reference_anderson(poses, plains, scale, window):
+    """Anderson's proposal after the steps ``plains[k] = G(poses[k])`` in NumPy and SciPy: poses
+    relative to ``poses[0]`` as (rotation vector, translation / scale), ``gamma`` from
+    ``numpy.linalg.lstsq`` on the residuals' differences, the combination mapped back."""
+    from scipy.spatial.transform import Rotation
+
+    reference = poses[0]
+
+    def parameters(pose):
+        rotation = pose[:3, :3] @ reference[:3, :3].T
+        return np.concatenate([Rotation.from_matrix(rotation).as_rotvec(),
+                               (pose[:3, 3] - rotation @ reference[:3, 3]) / scale])
+
+    images = np.array([parameters(p) for p in plains])[-window - 1:]
+    residuals = images - np.array([parameters(p) for p in poses])[-window - 1:]
+    gamma = np.linalg.lstsq(np.diff(residuals, axis=0).T, residuals[-1])[0]
+    mixed = images[-1] - np.diff(images, axis=0).T @ gamma
+    pose = np.eye(4)
+    rotation = Rotation.from_rotvec(mixed[:3]).as_matrix()
+    pose[:3, :3] = rotation @ reference[:3, :3]
+    pose[:3, 3] = rotation @ reference[:3, 3] + mixed[3:] * scale
+    return pose
+
+
+@pytest.mark.parametrize("start_angle", [0.3, 3.0])
+def test_compiled_anderson_proposals_match_numpy_and_scipy(start_angle):
+    """The compiled proposal (rotation log and exp, Jacobi-SVD least squares) against SciPy's
+    rotation vectors and NumPy's lstsq, to 1e-9, along a contracting fixed-point iteration that
+    starts ``start_angle`` radians from its fixed point (relative rotations of up to 2.4 rad)."""
+    from scipy.spatial.transform import Rotation
+
+    from esmicp.core.procrustes import to_matrix
+    from esmicp.methods.acceleration import AndersonAccelerator
+
+    rng = np.random.default_rng(11)
+    scale = 2.5
+    axis = rng.normal(size=3)
+    fixed = to_matrix(Rotation.from_rotvec(rng.normal(size=3)).as_matrix(), [1.0, -2.0, 0.5])
+    accelerator = AndersonAccelerator(scale)
+    start = Rotation.from_rotvec(start_angle * axis / np.linalg.norm(axis)).as_matrix()
+    pose = to_matrix(start, rng.normal(size=3)) @ fixed
+    poses, plains = [], []
+    for step in range(12):
+        # G moves part of the way to `fixed`, each coordinate at its own rate: a linear rate is what
+        # Anderson removes, and the poses differ enough for a well-posed least squares.
+        rate = np.array([0.6, 0.3, 0.5, 0.4, 0.7, 0.2])
+        offset = Rotation.from_matrix(pose[:3, :3] @ fixed[:3, :3].T).as_rotvec()
+        shift = pose[:3, 3] - (pose[:3, :3] @ fixed[:3, :3].T) @ fixed[:3, 3]
+        plain = to_matrix(Rotation.from_rotvec(rate[:3] * offset).as_matrix(), rate[3:] * shift) @ fixed
+        poses.append(pose)
+        plains.append(plain)
+        proposed = accelerator.propose(pose, plain)
+        if step == 0:
+            assert proposed is plain
+            continue
+        expected = _reference_anderson(poses, plains, scale, accelerator.window)
+        np.testing.assert_allclose(proposed, expected, rtol=0, atol=1e-9)
+        motion = proposed[:3, :3] @ pose[:3, :3].T
+        np.testing.assert_allclose(accelerator.motion[0], Rotation.from_matrix(motion).magnitude(), atol=1e-9)
+        np.testing.assert_allclose(accelerator.motion[1], np.linalg.norm(proposed[:3, 3] - motion @ pose[:3, 3]),
+                                   atol=1e-9)
+        pose = proposed if step % 3 else plain  # both kinds of continuation, as the loop's fallback makes
+    accelerator.reset()
+    assert accelerator.propose(pose, plains[-1]) is plains[-1]
+
+
+def test_anderson_forgets_a_non_finite_step():
+    from esmicp.methods.acceleration import AndersonAccelerator
+
+    accelerator = AndersonAccelerator(1.0)
+    first, second = np.eye(4), np.eye(4)
+    second[:3, 3] = [0.1, 0.0, 0.0]
+    accelerator.propose(first, second)
+    broken = second.copy()
+    broken[0, 3] = np.nan
+    assert accelerator.propose(second, broken) is broken  # cleared: the next step starts afresh
+    assert accelerator.propose(first, second) is second

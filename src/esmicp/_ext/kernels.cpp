@@ -12,11 +12,15 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <condition_variable>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <pthread.h>
 #include <limits>
+#include <mutex>
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 namespace nb = nanobind;
@@ -75,6 +79,111 @@ void parallel_pieces(int64_t pieces, int threads, F &&work) {
         for (auto &thread : pool) thread.join();
     }
     if (interrupted) throw nb::python_error();
+}
+
+// ---------------------------------------------------------------------------------------------
+// Persistent helper threads for the short calls of the local loop (Index::step below
+// POOLED_STEP_MAX points): starting a std::thread per call costs more than half the work of
+// 1,000 queries, so these threads are started once and wait between calls, spinning for
+// POOL_SPIN (the Python between two iterations takes less), then sleeping on a condition
+// variable (no CPU used while idle). fork(): the child forgets the pool (its threads do not
+// exist there) and starts its own on first use. Same contract as parallel_pieces (every piece
+// once, results independent of the threads), without signal checks: a call is under a
+// millisecond, the loop around it sees Ctrl-C.
+constexpr auto POOL_SPIN = std::chrono::microseconds(200);
+
+struct Pool {
+    std::mutex mutex;
+    std::condition_variable wake;
+    std::atomic<uint64_t> generation{0};  // bumped for each job
+    std::atomic<int> active{0};           // helpers inside the current job
+    // The job (read under the mutex): its pieces, the shared counter, the work.
+    bool open = false;
+    int seats = 0;  // helpers that may still join
+    int64_t pieces = 0;
+    std::atomic<int64_t> *next = nullptr;
+    void (*call)(void *, int64_t) = nullptr;
+    void *context = nullptr;
+    int size = 0;
+
+    void helper() {
+        uint64_t seen = 0;
+        for (;;) {
+            auto start = std::chrono::steady_clock::now();
+            while (generation.load(std::memory_order_acquire) == seen) {
+                if (std::chrono::steady_clock::now() - start > POOL_SPIN) {
+                    std::unique_lock<std::mutex> lock(mutex);
+                    wake.wait(lock, [&] { return generation.load(std::memory_order_acquire) != seen; });
+                    break;
+                }
+                std::this_thread::yield();
+            }
+            int64_t total;
+            std::atomic<int64_t> *counter;
+            void (*work)(void *, int64_t);
+            void *data;
+            {
+                std::lock_guard<std::mutex> lock(mutex);
+                seen = generation.load(std::memory_order_acquire);
+                if (!open || seats == 0) continue;
+                --seats;
+                active.fetch_add(1, std::memory_order_acq_rel);
+                total = pieces, counter = next, work = call, data = context;
+            }
+            for (int64_t piece = counter->fetch_add(1); piece < total; piece = counter->fetch_add(1)) work(data, piece);
+            active.fetch_sub(1, std::memory_order_acq_rel);
+        }
+    }
+};
+
+Pool *the_pool = nullptr;
+std::mutex pool_start;
+
+void forget_pool_in_child() { the_pool = nullptr; }  // leaked: its threads and locks are the parent's
+
+Pool &pool_of(int helpers) {
+    std::lock_guard<std::mutex> lock(pool_start);
+    static bool registered = (pthread_atfork(nullptr, nullptr, forget_pool_in_child), true);
+    (void)registered;
+    if (the_pool == nullptr) the_pool = new Pool();
+    while (the_pool->size < helpers) {
+        Pool *pool = the_pool;
+        std::thread([pool] { pool->helper(); }).detach();
+        ++the_pool->size;
+    }
+    return *the_pool;
+}
+
+template <class F>
+void pooled_pieces(int64_t pieces, int threads, F &&work) {
+    if (pieces <= 0) return;
+    unsigned hw = std::max(1u, std::thread::hardware_concurrency());
+    if (threads <= 0) threads = int(hw);
+    threads = int(std::min<int64_t>(threads, pieces));
+    if (threads <= 1) {
+        for (int64_t piece = 0; piece < pieces; ++piece) work(piece);
+        return;
+    }
+    nb::gil_scoped_release release;
+    Pool &pool = pool_of(threads - 1);
+    std::atomic<int64_t> next{0};
+    {
+        std::lock_guard<std::mutex> lock(pool.mutex);
+        pool.open = true;
+        pool.seats = threads - 1;
+        pool.pieces = pieces;
+        pool.next = &next;
+        pool.call = [](void *data, int64_t piece) { (*static_cast<std::remove_reference_t<F> *>(data))(piece); };
+        pool.context = static_cast<void *>(&work);
+        pool.generation.fetch_add(1, std::memory_order_acq_rel);
+    }
+    pool.wake.notify_all();
+    for (int64_t piece = next.fetch_add(1); piece < pieces; piece = next.fetch_add(1)) work(piece);
+    {
+        std::lock_guard<std::mutex> lock(pool.mutex);
+        pool.open = false;  // no helper joins from here on
+    }
+    while (pool.active.load(std::memory_order_acquire) != 0) std::this_thread::yield();
 }
 
 inline int64_t piece_count(int64_t count, int64_t size) { return (count + size - 1) / size; }
@@ -662,6 +771,200 @@ void paper_moments(CArr2 source, CArr2 rotation, CArr1 translation, CArr2 target
 }
 
 // ---------------------------------------------------------------------------------------------
+// Anderson acceleration of the local loop (esmicp.methods.acceleration): the whole proposal in
+// one call. Poses are parametrised relative to a reference pose as (rotation vector, radians;
+// translation / scale). The state (Python-owned, ANDERSON_STATE(window) numbers): the number of
+// stored steps (0: no reference yet), the reference pose (16), then window + 1 rows of 6 for
+// the residuals G(x) - x and as many for the images G(x), oldest first.
+inline int64_t anderson_state_size(int64_t window) { return 17 + 12 * (window + 1); }
+
+// Rotation vector of a rotation (every angle in [0, pi]): the same branches as a closed-form log.
+void rotation_log(const double *r, double *v) {
+    const double skew[3] = {r[7] - r[5], r[2] - r[6], r[3] - r[1]};
+    const double angle = angle_of(r);
+    if (angle < 1e-4) {
+        const double f = 0.5 * (1.0 + angle * angle / 6.0);
+        for (int a = 0; a < 3; ++a) v[a] = f * skew[a];
+        return;
+    }
+    if (angle < 3.141592653589793 - 1e-4) {  // pi - 1e-4
+        const double f = 0.5 * angle / std::sin(angle);
+        for (int a = 0; a < 3; ++a) v[a] = f * skew[a];
+        return;
+    }
+    // Near a half turn the skew part vanishes: the axis from the symmetric part,
+    // (R + R^T) / 2 = cos(angle) I + (1 - cos(angle)) a a^T, at its largest diagonal entry.
+    const double cosine = std::cos(angle);
+    double outer[9];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            outer[3 * i + j] = (0.5 * (r[3 * i + j] + r[3 * j + i]) - (i == j ? cosine : 0.0)) / (1.0 - cosine);
+    int k = 0;
+    for (int j = 1; j < 3; ++j)
+        if (outer[4 * j] > outer[4 * k]) k = j;
+    const double root = std::sqrt(std::max(outer[4 * k], 1e-300));
+    double axis[3] = {outer[k] / root, outer[3 + k] / root, outer[6 + k] / root};
+    if (axis[0] * skew[0] + axis[1] * skew[1] + axis[2] * skew[2] < 0.0)
+        for (double &value : axis) value = -value;
+    const double norm = std::sqrt(axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2]);
+    for (int a = 0; a < 3; ++a) v[a] = angle * axis[a] / norm;
+}
+
+// Rotation of a rotation vector: Rodrigues' formula.
+void rotation_exp(const double *v, double *r) {
+    const double angle = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    const double k[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
+    double a, b;
+    if (angle < 1e-4) {
+        a = 1.0 - angle * angle / 6.0;
+        b = 0.5 - angle * angle / 24.0;
+    } else {
+        a = std::sin(angle) / angle;
+        b = (1.0 - std::cos(angle)) / (angle * angle);
+    }
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            const double kk = k[3 * i] * k[j] + k[3 * i + 1] * k[3 + j] + k[3 * i + 2] * k[6 + j];
+            r[3 * i + j] = (i == j ? 1.0 : 0.0) + a * k[3 * i + j] + b * kk;
+        }
+}
+
+// (rotation vector, translation / scale) of pose @ inv(reference), both 4x4 row-major.
+void pose_parameters(const double *pose, const double *reference, double scale, double *p) {
+    double rotation[9];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            rotation[3 * i + j] = pose[4 * i] * reference[4 * j] + pose[4 * i + 1] * reference[4 * j + 1] +
+                                  pose[4 * i + 2] * reference[4 * j + 2];
+    rotation_log(rotation, p);
+    for (int i = 0; i < 3; ++i)
+        p[3 + i] = (pose[4 * i + 3] - (rotation[3 * i] * reference[3] + rotation[3 * i + 1] * reference[7] +
+                                       rotation[3 * i + 2] * reference[11])) / scale;
+}
+
+// Minimum-norm least-squares solution of A x = b (A: 6 x m, column j at a[6 j], m <= 8), singular
+// values below 6 eps times the largest taken as zero (NumPy's lstsq default): one-sided Jacobi SVD.
+void least_squares_6(double *a, int m, const double *b, double *x) {
+    double v[64] = {0.0};
+    for (int j = 0; j < m; ++j) v[9 * j] = 1.0;  // v[8 j + j]
+    const double eps = std::numeric_limits<double>::epsilon();
+    for (int sweep = 0; sweep < 60; ++sweep) {
+        bool rotated = false;
+        for (int p = 0; p < m - 1; ++p)
+            for (int q = p + 1; q < m; ++q) {
+                double alpha = 0.0, beta = 0.0, gamma = 0.0;
+                for (int i = 0; i < 6; ++i) {
+                    alpha += a[6 * p + i] * a[6 * p + i];
+                    beta += a[6 * q + i] * a[6 * q + i];
+                    gamma += a[6 * p + i] * a[6 * q + i];
+                }
+                if (!(std::fabs(gamma) > eps * std::sqrt(alpha * beta))) continue;
+                rotated = true;
+                const double zeta = (beta - alpha) / (2.0 * gamma);
+                const double t = (zeta >= 0.0 ? 1.0 : -1.0) / (std::fabs(zeta) + std::sqrt(1.0 + zeta * zeta));
+                const double c = 1.0 / std::sqrt(1.0 + t * t), s = c * t;
+                for (int i = 0; i < 6; ++i) {
+                    const double ap = a[6 * p + i], aq = a[6 * q + i];
+                    a[6 * p + i] = c * ap - s * aq;
+                    a[6 * q + i] = s * ap + c * aq;
+                }
+                for (int i = 0; i < m; ++i) {
+                    const double vp = v[8 * p + i], vq = v[8 * q + i];
+                    v[8 * p + i] = c * vp - s * vq;
+                    v[8 * q + i] = s * vp + c * vq;
+                }
+            }
+        if (!rotated) break;
+    }
+    double squared[8], largest = 0.0;
+    for (int j = 0; j < m; ++j) {
+        squared[j] = 0.0;
+        for (int i = 0; i < 6; ++i) squared[j] += a[6 * j + i] * a[6 * j + i];
+        largest = std::max(largest, squared[j]);
+    }
+    const double cutoff = 6.0 * eps * std::sqrt(largest);
+    for (int i = 0; i < m; ++i) x[i] = 0.0;
+    for (int j = 0; j < m; ++j) {
+        if (!(std::sqrt(squared[j]) > cutoff)) continue;
+        double projection = 0.0;
+        for (int i = 0; i < 6; ++i) projection += a[6 * j + i] * b[i];
+        for (int i = 0; i < m; ++i) x[i] += v[8 * j + i] * projection / squared[j];
+    }
+}
+
+// One Anderson step: stores the residual and image of plain = G(current) (4x4 row-major each),
+// and, from two stored steps on, writes the combination of the last `window` into `out` (the
+// pose, 16, then its motion from `current`: angle in radians, translation norm) and returns
+// true. Returns false when `plain` itself is the next pose (fewer than two steps stored, or a
+// non-finite combination, which also clears the state).
+bool anderson_propose(CArr2 current_, CArr2 plain_, Arr1 state_, double scale, int64_t window, Arr1 out_) {
+    if (window < 1 || window > 8) throw nb::value_error("anderson_propose: window must be in [1, 8]");
+    if (int64_t(state_.shape(0)) != anderson_state_size(window) || out_.shape(0) < 18 ||
+        current_.shape(0) != 4 || current_.shape(1) != 4 || plain_.shape(0) != 4 || plain_.shape(1) != 4)
+        throw nb::value_error("anderson_propose: wrong shapes");
+    const double *current = current_.data(), *plain = plain_.data();
+    double *state = state_.data(), *out = out_.data();
+    double *reference = state + 1, *residuals = state + 17, *images = residuals + 6 * (window + 1);
+    int64_t stored = int64_t(state[0]);
+    if (stored == 0) std::copy(current, current + 16, reference);
+    if (stored == window + 1) {  // drop the oldest
+        std::copy(residuals + 6, residuals + 6 * (window + 1), residuals);
+        std::copy(images + 6, images + 6 * (window + 1), images);
+        --stored;
+    }
+    double *image = images + 6 * stored, *residual = residuals + 6 * stored, before[6];
+    pose_parameters(plain, reference, scale, image);
+    pose_parameters(current, reference, scale, before);
+    for (int i = 0; i < 6; ++i) residual[i] = image[i] - before[i];
+    state[0] = double(++stored);
+    if (stored < 2) return false;
+    bool finite = true;
+    for (int64_t i = 0; i < 6 * stored; ++i) finite = finite && std::isfinite(residuals[i]) && std::isfinite(images[i]);
+    double proposal[6];
+    if (finite) {
+        // gamma = lstsq(dF, residuals[-1]); proposal = images[-1] - dG gamma.
+        const int m = int(stored - 1);
+        double differences[48], gamma[8];
+        for (int j = 0; j < m; ++j)
+            for (int i = 0; i < 6; ++i) differences[6 * j + i] = residuals[6 * (j + 1) + i] - residuals[6 * j + i];
+        least_squares_6(differences, m, residual, gamma);
+        for (int i = 0; i < 6; ++i) {
+            proposal[i] = image[i];
+            for (int j = 0; j < m; ++j) proposal[i] -= (images[6 * (j + 1) + i] - images[6 * j + i]) * gamma[j];
+            finite = finite && std::isfinite(proposal[i]);
+        }
+    }
+    if (!finite) {
+        state[0] = 0.0;
+        return false;
+    }
+    // The pose [exp(r) | scale u] @ reference, and its motion from current.
+    double rotation[9], pose_rotation[9];
+    rotation_exp(proposal, rotation);
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j)
+            pose_rotation[3 * i + j] = rotation[3 * i] * reference[j] + rotation[3 * i + 1] * reference[4 + j] +
+                                       rotation[3 * i + 2] * reference[8 + j];
+        out[4 * i + 3] = rotation[3 * i] * reference[3] + rotation[3 * i + 1] * reference[7] +
+                         rotation[3 * i + 2] * reference[11] + proposal[3 + i] * scale;
+        for (int j = 0; j < 3; ++j) out[4 * i + j] = pose_rotation[3 * i + j];
+    }
+    out[12] = out[13] = out[14] = 0.0;
+    out[15] = 1.0;
+    double relative[9], moved[3];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            relative[3 * i + j] = out[4 * i] * current[4 * j] + out[4 * i + 1] * current[4 * j + 1] +
+                                  out[4 * i + 2] * current[4 * j + 2];
+    for (int i = 0; i < 3; ++i)
+        moved[i] = out[4 * i + 3] - (relative[3 * i] * current[3] + relative[3 * i + 1] * current[7] +
+                                     relative[3 * i + 2] * current[11]);
+    out[16] = angle_of(relative);
+    out[17] = std::sqrt(moved[0] * moved[0] + moved[1] * moved[1] + moved[2] * moved[2]);
+    return true;
+}
+
+// ---------------------------------------------------------------------------------------------
 // One iteration of the local loop in one call: nearest neighbours (hash and tree, warm-started),
 // the weights' sigma, the pair moments, the Kabsch increment and the composed pose.
 //
@@ -673,6 +976,10 @@ void paper_moments(CArr2 source, CArr2 rotation, CArr1 translation, CArr2 target
 // increment translation norm, R (9), t (3), the composed pose (16, re-orthonormalised), the motion
 // of the pose (angle, translation norm).
 constexpr int STEP_OUT = 40;
+
+//: Below this many source points, Index::step queries on the persistent helper threads (a call
+//: of that size lasts a few milliseconds at most: the loop around it sees Ctrl-C in time).
+constexpr int64_t POOLED_STEP_MAX = 32768;
 
 struct Index {
     CArr2 target;
@@ -729,8 +1036,7 @@ struct Index {
         // Pass 1: the queries; per piece the misses, sum d^2, min d^2 and the objective's sum.
         const int64_t pieces = piece_count(count, QUERY_PIECE);
         std::vector<double> partial(4 * pieces, 0.0);
-        int query_threads = count < PARALLEL_QUERY_MIN ? 1 : threads;
-        parallel_pieces(pieces, query_threads, [&](int64_t piece) {
+        auto query = [&](int64_t piece) {
             int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
             double misses = 0.0, squares = 0.0, least = INF, objective = 0.0;
             for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
@@ -749,7 +1055,14 @@ struct Index {
             }
             double *row = partial.data() + 4 * piece;
             row[0] = misses; row[1] = squares; row[2] = least; row[3] = objective;
-        });
+        };
+        // Up to POOLED_STEP_MAX points the persistent helpers (a thread started per call costs a
+        // large part of the work there); beyond, threads per call, with their Ctrl-C checks.
+        if (count < POOLED_STEP_MAX) {
+            pooled_pieces(pieces, threads, query);
+        } else {
+            parallel_pieces(pieces, threads, query);
+        }
         double misses = 0.0, squares = 0.0, least = INF, objective = 0.0;
         for (int64_t p = 0; p < pieces; ++p) {
             misses += partial[4 * p];
@@ -905,6 +1218,8 @@ NB_MODULE(_kernels, m) {
     m.def("transform_points", &transform_points);
     m.def("coincident", &coincident);
     m.def("nearest_rotation", &closest_rotation);
+    m.def("anderson_propose", &anderson_propose);
+    m.def("anderson_state_size", &anderson_state_size);
     m.attr("STEP_OUT") = STEP_OUT;
     nb::class_<Index>(m, "Index")
         .def(nb::init<CArr2, CArr2, CIdx, CIdx, CIdx, CIdx, CIdx, CArr2>())

@@ -39,6 +39,16 @@ def positive_float(text: str) -> float:
     return value
 
 
+def add_workers(parser, default: str = "every core") -> None:
+    """Add ``--workers N`` to a subcommand's parser: the threads of every compiled kernel of its
+    registrations (``workers=`` of :func:`esmicp.register`; None when absent: the library's
+    default, which ``default`` describes in the help)."""
+    parser.add_argument(
+        "--workers", type=positive_int, metavar="N",
+        help=f"threads of each registration's compiled kernels (default: {default})",
+    )
+
+
 #: Exit statuses of every ``esmicp`` command.
 EXIT_OK = 0
 EXIT_FAILED = 1  # ``esmicp demo``: the transform was not recovered

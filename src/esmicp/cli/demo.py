@@ -8,7 +8,7 @@ import numpy as np
 
 from ..api import INIT_NAMES
 from ..methods import METHODS
-from .args import EXIT_FAILED, EXIT_OK, positive_float, positive_int
+from .args import EXIT_FAILED, EXIT_OK, add_workers, positive_float, positive_int
 from .register import format_matrix, print_summary
 
 
@@ -39,6 +39,7 @@ def add_parser(commands) -> None:
         help="make the source a moved copy of the target in the same point order (the paper's protocol)",
     )
     demo.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
+    add_workers(demo)
     demo.set_defaults(handler=_run_demo)
 
 
@@ -56,7 +57,7 @@ def _run_demo(args) -> int:
     moved_by = to_matrix(random_rotation(rng, args.max_angle), rng.uniform(-5.0, 5.0, 3) * size)
     truth = np.linalg.inv(moved_by)
     source = apply(moved_by, sample)
-    result = register(source, target, method=args.method, init=args.init, rng=args.seed)
+    result = register(source, target, method=args.method, init=args.init, rng=args.seed, workers=args.workers)
     rotation_error = rotation_error_deg(result.transformation, truth)
     translation_err = translation_error(result.transformation, truth, pivot=source.mean(axis=0))
     recovered = rotation_error < 2.0 and translation_err < 0.02 * size

@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .args import positive_float, positive_int
+from .args import add_workers, positive_float, positive_int
 from ..batch import dask_client
 from ..errors import EsmicpError, InvalidInputError, OutputExistsError
 
@@ -36,6 +36,7 @@ def add_parser(commands) -> None:
     merge.add_argument("--skip-bad", action="store_true", help="merge the readable scans when some cannot be read")
     merge.add_argument("--pair-points", type=positive_int, default=800, help="points per scan for the pairwise registrations")
     merge.add_argument("--processes", type=positive_int, help="local worker processes (default: all cores)")
+    add_workers(merge, "1 per registration when several run at once, else every core")
     merge.add_argument("--scheduler", help="address of an existing Dask scheduler to run the pairwise jobs on")
     merge.add_argument("--no-progress", action="store_true", help="no progress bar")
     merge.add_argument("--force", action="store_true", help="overwrite existing output files")
@@ -116,9 +117,11 @@ def run_merge(args) -> int:
     if args.scheduler:
         client = dask_client(args.scheduler)
     progress, close = _progress(not args.no_progress)
+    # Without --workers the library picks the threads (one per registration run in parallel).
+    threads = {} if args.workers is None else {"workers": args.workers}
     try:
         result = register_scans(clouds, reference=args.reference, pair_points=args.pair_points,
-                                processes=args.processes, client=client, progress=progress)
+                                processes=args.processes, client=client, progress=progress, **threads)
     finally:
         close()
         if client is not None:

@@ -13,7 +13,7 @@ from ..api import INIT_NAMES
 from ..errors import EsmicpError, OutputExistsError
 from ..io import READ_EXTENSIONS, WRITE_EXTENSIONS
 from ..methods import METHODS
-from .args import EXIT_OK, positive_float, positive_int
+from .args import EXIT_OK, add_workers, positive_float, positive_int
 
 
 def add_parser(commands) -> None:
@@ -67,6 +67,7 @@ def add_parser(commands) -> None:
     reg.add_argument("--transform-out", type=Path, metavar="FILE", help="write T_target_source here (4x4 text)")
     reg.add_argument("--force", action="store_true", help="overwrite existing output files")
     reg.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
+    add_workers(reg)
     reg.set_defaults(handler=_run_register)
 
 
@@ -114,6 +115,7 @@ def _run_register(args) -> int:
     result = register(
         source, target, method=args.method, init=init, sigma=args.sigma, rng=args.seed,
         max_iterations=args.max_iterations, tolerance=args.tolerance, inlier_distance=args.inlier_distance,
+        workers=args.workers,
     )
     if args.output is not None:
         io.write_points(args.output, apply(result.transformation, source), overwrite=args.force)

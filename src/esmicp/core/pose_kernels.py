@@ -2,14 +2,14 @@
 
 Every iteration turns a 3x3 cross-covariance into a rotation (:func:`kabsch_rotation`), composes
 the increment with the current pose (:func:`compose`) and measures how far it moved
-(:func:`motion_between`); Anderson acceleration maps poses to rotation vectors and back. Each is a
+(:func:`motion_between`). Each is a
 handful of 3x3 operations, so their cost is the calls, not the arithmetic: the local loop's
 compiled step (:meth:`esmicp.core.correspondence.NearestNeighbors.step`) does the Kabsch rotation
-and the composition inside the kernel; these functions serve the path with callbacks, ``esm-paper``
-and the acceleration.
+and the composition inside the kernel; these functions serve the path with callbacks and
+``esm-paper`` (Anderson acceleration's pose arithmetic is compiled whole:
+:mod:`esmicp.methods.acceleration`).
 
-All transforms are 4x4 ``T_target_source`` matrices; angles are in radians, rotation vectors are
-axis times angle (radians).
+All transforms are 4x4 ``T_target_source`` matrices; angles are in radians.
 """
 
 from __future__ import annotations
@@ -71,75 +71,3 @@ def motion_between(before, after):
     rotation = _mul(after[:3, :3], before[:3, :3].T)
     translation = after[:3, 3] - _mul(rotation, before[:3, 3])
     return angle_of(rotation), math.sqrt(translation @ translation)
-
-
-def rotation_log(rotation):
-    """Rotation vector (axis x angle, radians) of a 3x3 rotation, for every angle in ``[0, pi]``."""
-    skew = np.array([
-        rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]
-    ])
-    angle = angle_of(rotation)
-    if angle < 1e-4:
-        # angle / sin(angle) = 1 + angle^2 / 6 + ...
-        return 0.5 * (1.0 + angle * angle / 6.0) * skew
-    if angle < math.pi - 1e-4:
-        return (0.5 * angle / math.sin(angle)) * skew
-    # Near a half turn the skew part vanishes: read the axis off the symmetric part,
-    # (R + R^T) / 2 = cos(angle) I + (1 - cos(angle)) a a^T, from its largest diagonal entry.
-    cosine = math.cos(angle)
-    outer = (0.5 * (rotation + rotation.T) - cosine * np.eye(3)) / (1.0 - cosine)
-    k = 0
-    for j in range(1, 3):
-        if outer[j, j] > outer[k, k]:
-            k = j
-    axis = outer[:, k] / math.sqrt(max(outer[k, k], 1e-300))
-    if axis @ skew < 0.0:
-        axis = -axis
-    return angle * axis / math.sqrt(axis @ axis)
-
-
-def rotation_exp(vector):
-    """3x3 rotation of a rotation vector (axis x angle, radians): Rodrigues' formula."""
-    angle = math.sqrt(vector @ vector)
-    k = np.array([
-        [0.0, -vector[2], vector[1]],
-        [vector[2], 0.0, -vector[0]],
-        [-vector[1], vector[0], 0.0],
-    ])
-    if angle < 1e-4:
-        a = 1.0 - angle * angle / 6.0
-        b = 0.5 - angle * angle / 24.0
-    else:
-        a = math.sin(angle) / angle
-        b = (1.0 - math.cos(angle)) / (angle * angle)
-    return np.eye(3) + a * k + b * _mul(k, k)
-
-
-def pose_parameters(transform, reference, scale):
-    """6-vector of ``transform @ inv(reference)`` (4x4 each): its rotation vector (radians) and its
-    translation divided by ``scale`` (cloud units), as :mod:`esmicp.methods.acceleration` uses."""
-    rotation = _mul(transform[:3, :3], np.ascontiguousarray(reference[:3, :3].T))
-    translation = transform[:3, 3] - _mul(rotation, reference[:3, 3])
-    parameters = np.empty(6)
-    parameters[:3] = rotation_log(rotation)
-    parameters[3:] = translation / scale
-    return parameters
-
-
-def pose_from_parameters(parameters, reference, scale):
-    """Inverse of :func:`pose_parameters`: the 4x4 pose ``[exp(r) | scale u] @ reference``."""
-    rotation = rotation_exp(np.ascontiguousarray(parameters[:3]))
-    pose = np.eye(4)
-    pose[:3, :3] = _mul(rotation, np.ascontiguousarray(reference[:3, :3]))
-    pose[:3, 3] = _mul(rotation, np.ascontiguousarray(reference[:3, 3])) + parameters[3:] * scale
-    return pose
-
-
-def anderson_mix(residuals, images):
-    """Anderson's combination of fixed-point images: ``images[-1] - dG gamma`` with ``gamma`` the
-    least-squares solution of ``dF gamma = residuals[-1]`` (``dF``, ``dG``: successive differences
-    of the rows of ``residuals`` and ``images``, (k, 6) arrays, k >= 2)."""
-    d_residuals = np.ascontiguousarray((residuals[1:] - residuals[:-1]).T)
-    d_images = np.ascontiguousarray((images[1:] - images[:-1]).T)
-    gamma = np.linalg.lstsq(d_residuals, np.ascontiguousarray(residuals[-1]))[0]
-    return images[-1] - d_images @ gamma

@@ -192,7 +192,10 @@ def refine(
                     fallback = plain
             else:
                 accelerator.reset()
-        moved_angle, moved_distance = motion_between(transformation, following)
+        if following is plain:
+            moved_angle, moved_distance = motion_between(transformation, following)
+        else:
+            moved_angle, moved_distance = accelerator.motion
         transformation = following
         # (Not ``distances @ distances``: BLAS would wake its own threads, which then spin and
         # take the cores from the compiled kernels: measured 3x slower iterations at 100k points.)
@@ -272,8 +275,7 @@ def _refine_fused(full_source, source, target, estimator, coarse, init, criteria
         if following is plain:
             moved_angle, moved_distance = float(out[35]), float(out[36])
         else:
-            moved_angle, moved_distance = motion_between(transformation, following)
-            following = np.ascontiguousarray(following, dtype=np.float64)
+            moved_angle, moved_distance = accelerator.motion
         transformation = following
         rmse = float(out[1])
         message = _converged(criteria, estimator, coarse, iteration, moved_angle, moved_distance, scale,
