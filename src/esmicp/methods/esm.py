@@ -25,6 +25,13 @@ less than ``FINE_PHASE_STEP`` times the target's diagonal, sigma drops to the fl
 until convergence. The factor 3 on the median is the best of those measured
 (``docs/measured-global.md``, "Why these choices"). The floor makes the choice unit-free:
 the same default serves a unit-size ModelNet object, the bunny in metres and a LiDAR scan.
+
+From a start the user gives (``init``), the median is the wrong scale on partial overlap: it
+measures how far the non-overlapping part lies, and a coarse sigma that wide pulls a good start
+apart. There the coarse sigma is held at ``SIGMA_MEDIAN_FACTOR`` times the ``START_QUANTILE``
+quantile of the start's distances (the overlap's residuals; at least the floor, at most the
+median rule), then the fine phase follows as above (:meth:`SigmaSchedule.from_start`). After a
+global search the refinement starts in the fine phase.
 """
 
 from __future__ import annotations
