@@ -142,10 +142,24 @@ def markdown(after: list[dict], before: list[dict] | None, command: str) -> str:
              "`before`: the same script on the parent commit, in the same session. \"moved\": translation "
              "between the start and the result (at the source's centroid).", "",
              "| case | start | before | after |", "|---|---|---|---|"]
+    worse = []
     for key in now:
         group, case, start = key
         lines.append(f"| {case} | {start} | {_cell(then.get(key, []))} | {_cell(now[key])} |")
+        if key in then and _worse(then[key], now[key]):
+            worse.append(f"{case} from {start}")
+    if then:
+        lines += ["", "Worse after than before (fewer successes, or a single pair's translation error up by more "
+                  "than half): " + ("; ".join(worse) if worse else "none") + "."]
+    lines += ["", "The coarse sigma from a given start is `SIGMA_MEDIAN_FACTOR` times the `START_QUANTILE` "
+              "quantile of the start's distances; rerun with `--start-quantile Q` to compare another quantile."]
     return "\n".join(lines) + "\n"
+
+
+def _worse(before, after) -> bool:
+    if sum(row["success"] for row in after) < sum(row["success"] for row in before):
+        return True
+    return len(after) == 1 and after[0]["translation_error"] > 1.5 * before[0]["translation_error"]
 
 
 def write_section(path: Path, section: str) -> None:
