@@ -67,6 +67,18 @@ def not_leading(rows) -> list[str]:
     return lines or ["- nowhere in this run."]
 
 
+MORE_ON_SCANS = """## More on scans
+
+Written by their own benchmarks, so that regenerating this page keeps them:
+
+- [Partial overlap: why trials fail, 3DLoMatch-like crops](scans-partial-overlap.md)
+  (`benchmarks/partial_failures.py`, `benchmarks/lomatch_crop.py`, `--protocols cropped`).
+- [Refinement on scans: `esm-plane` against Open3D point-to-plane ICP and small_gicp GICP](scans-refinement.md)
+  (`benchmarks/scan_refinement.py --doc docs/scans-refinement.md`).
+- [Refining from a given start](scans-start-drift.md)
+  (`benchmarks/start_drift.py --doc docs/scans-start-drift.md`)."""
+
+
 def page(rows, command: str, objects: str | None = None, objects_command: str = "") -> str:
     real = [r for r in rows if r["protocol"] == "real-pairs"]
     partial = [r for r in rows if r["protocol"].startswith("partial-")]
@@ -126,7 +138,8 @@ def page(rows, command: str, objects: str | None = None, objects_command: str = 
             objects.strip(),
             "",
         ]
-    return "\n".join(parts)
+    parts += MORE_ON_SCANS.splitlines()
+    return "\n".join(parts) + "\n"
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """Local refinement on the real scan pairs: ``esm``, ``esm-plane``, ``icp`` against Open3D
 point-to-plane ICP and small_gicp GICP, same starts, same iteration cap, one run; writes the
-section "Refinement on scans" of ``docs/real-scans.md`` (``--doc``) and prints it.
+section "Refinement on scans" of ``docs/scans-refinement.md`` (``--doc``) and prints it.
 
 Starts, per pair of ``pairs.csv``:
 
@@ -23,7 +23,7 @@ Errors in the pair's frame, success by the kind's criteria (:mod:`esmicp.bench.r
 Only the registration call is timed (esmicp: ``result.runtime_s``; peers: their
 ``runtime_s``, normals and covariances included); one untimed warm-up per method first.
 
-    nice -n 5 python benchmarks/scan_refinement.py --seeds 3 --doc docs/real-scans.md
+    nice -n 5 python benchmarks/scan_refinement.py --seeds 3 --doc docs/scans-refinement.md
 """
 
 from __future__ import annotations

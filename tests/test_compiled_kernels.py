@@ -187,13 +187,20 @@ def test_compiled_kabsch_matches_numpy_svd():
 def test_the_one_call_iteration_gives_the_pose_of_the_numpy_step(method, count):
     """The fused compiled iteration (query, weights, moments, Kabsch, composition in one call)
     against the loop's NumPy path (taken when a history is recorded: weighted Procrustes on the
-    gathered pairs, NumPy SVD): the same pose to 1e-9, the same number of iterations."""
+    gathered pairs, NumPy SVD): the same pose to 1e-9, the same number of iterations.
+
+    The 1,000-point case runs to its own stop. The 30,000-point one creeps slowly in the fine
+    phase, where after about 45 iterations a round-off difference (1e-16) can flip one of Anderson
+    acceleration's accept/reject decisions and the two paths stop at different, equally converged
+    poses (1e-5 apart): it compares a fixed budget of 30 iterations, where every step of the
+    two paths must agree."""
     target = _bunny_like(count, 5)
     angle = 0.2
     rotation = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
     source = _bunny_like(count, 6) @ rotation.T + [0.02, 0.01, 0.0]
-    fused = esmicp.register(source, target, method=method, init="identity")
-    plain = esmicp.register(source, target, method=method, init="identity", record_history=True)
+    budget = {} if count <= 1000 else {"max_iterations": 30, "tolerance": 1e-300}
+    fused = esmicp.register(source, target, method=method, init="identity", **budget)
+    plain = esmicp.register(source, target, method=method, init="identity", record_history=True, **budget)
     assert fused.num_iterations == plain.num_iterations > 2
     np.testing.assert_allclose(fused.transformation, plain.transformation, rtol=0, atol=1e-9)
 

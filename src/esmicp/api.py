@@ -18,7 +18,7 @@ from .globalreg.scan import Keypoints, overlap_confidence
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
 from .methods import METHODS, ConvergenceCriteria, make_estimator
-from .methods.esm import COARSE_POINTS
+from .methods.esm import COARSE_POINTS, EsmEstimator
 from .methods.guard import guarded_refine
 from .methods.local import Callback, _budget_spent
 from .result import RegistrationResult
@@ -162,6 +162,9 @@ def register(
     # After a global search (which ends at the finest sigma) the pose is already close: start in
     # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
     estimator = make_estimator(method, request.sigma, target_index.spacing(), diagonal, start_fine=estimate is not None)
+    if estimate is None and isinstance(estimator, EsmEstimator):
+        # A given start: its coarse sigma comes from the overlap's residuals (partial overlaps).
+        estimator.start_from(target_index.query_near(source_points, transform=initial)[0])
     if estimate is not None and callback is None and not record_history and len(source_points) > 2 * REFINE_POINTS:
         outcome = _refine_then_polish(source_points, target_index, estimator, initial, request, diagonal)
     else:

@@ -5,8 +5,8 @@ the increment with the current pose (:func:`compose`) and measures how far it mo
 (:func:`motion_between`). Each is a
 handful of 3x3 operations, so their cost is the calls, not the arithmetic: the local loop's
 compiled step (:meth:`esmicp.core.correspondence.NearestNeighbors.step`) does the Kabsch rotation
-and the composition inside the kernel; these functions serve the path with callbacks and
-``esm-paper`` (Anderson acceleration's pose arithmetic is compiled whole:
+and the composition inside the kernel; these functions serve the path with callbacks,
+``esm-paper`` and ``esm-plane``'s step (Anderson acceleration's pose arithmetic is compiled whole:
 :mod:`esmicp.methods.acceleration`).
 
 All transforms are 4x4 ``T_target_source`` matrices; angles are in radians.
@@ -71,3 +71,23 @@ def motion_between(before, after):
     rotation = _mul(after[:3, :3], before[:3, :3].T)
     translation = after[:3, 3] - _mul(rotation, before[:3, 3])
     return angle_of(rotation), math.sqrt(translation @ translation)
+
+
+def rotation_exp(vector):
+    """3x3 rotation of a rotation vector (axis x angle, radians): Rodrigues' formula.
+
+    ``esm-plane``'s Gauss-Newton step solves for a rotation vector and applies it through this.
+    """
+    angle = math.sqrt(vector @ vector)
+    k = np.array([
+        [0.0, -vector[2], vector[1]],
+        [vector[2], 0.0, -vector[0]],
+        [-vector[1], vector[0], 0.0],
+    ])
+    if angle < 1e-4:
+        a = 1.0 - angle * angle / 6.0
+        b = 0.5 - angle * angle / 24.0
+    else:
+        a = math.sin(angle) / angle
+        b = (1.0 - math.cos(angle)) / (angle * angle)
+    return np.eye(3) + a * k + b * _mul(k, k)

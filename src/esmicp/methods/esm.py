@@ -25,11 +25,18 @@ less than ``FINE_PHASE_STEP`` times the target's diagonal, sigma drops to the fl
 until convergence. The factor 3 on the median is the best of those measured
 (``docs/measured-global.md``, "Why these choices"). The floor makes the choice unit-free:
 the same default serves a unit-size ModelNet object, the bunny in metres and a LiDAR scan.
+
+From a start the user gives (``init``), the median is the wrong scale on partial overlap: it
+measures how far the non-overlapping part lies, and a coarse sigma that wide pulls a good start
+apart. There the coarse sigma is held at ``SIGMA_MEDIAN_FACTOR`` times the ``START_QUANTILE``
+quantile of the start's distances (the overlap's residuals; at least the floor, at most the
+median rule), then the fine phase follows as above (:meth:`SigmaSchedule.from_start`). After a
+global search the refinement starts in the fine phase.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -49,6 +56,10 @@ SIGMA_MEDIAN_FACTOR = 3.0
 #: schedule enters its fine phase (sigma at the floor).
 FINE_PHASE_STEP = 1e-3
 
+#: From a given start, the coarse sigma is held at ``SIGMA_MEDIAN_FACTOR`` times this quantile of
+#: the start's correspondence distances (above the floor, never above the median rule).
+START_QUANTILE = 0.25
+
 #: Source points of the coarse phase (see ``coarse_points`` of :func:`esmicp.methods.local.refine`):
 #: larger sources run their coarse phase on this many evenly strided points, the fine phase on all.
 COARSE_POINTS = 20_000
@@ -58,13 +69,15 @@ COARSE_POINTS = 20_000
 class SigmaSchedule:
     """How sigma (cloud units) is chosen each iteration.
 
-    ``fixed`` set: that value every iteration. Otherwise
-    ``max(floor, SIGMA_MEDIAN_FACTOR * median distance)``.
+    ``fixed`` set: that value every iteration. Otherwise ``start`` in the coarse phase when it
+    is set (a given start, :meth:`from_start`), else ``max(floor, SIGMA_MEDIAN_FACTOR * median
+    distance)``; the floor in the fine phase.
     """
 
     fixed: float | None = None
     floor: float = 0.0
     diameter: float = 1.0
+    start: float | None = None
 
     @classmethod
     def constant(cls, sigma: float) -> "SigmaSchedule":
@@ -82,12 +95,29 @@ class SigmaSchedule:
             floor = 1e-6 * diameter
         return cls(fixed=None, floor=floor, diameter=diameter)
 
+    def from_start(self, distances: np.ndarray) -> "SigmaSchedule":
+        """This schedule with its coarse sigma held at the scale of the overlap at a given start.
+
+        ``distances``: each source point's distance (cloud units) to its nearest target point
+        under the start. On a partial overlap the median of all of them measures how far the
+        non-overlapping part lies, not how far off the start is: a coarse sigma that wide pulls
+        a good start apart. The overlap's residuals are the small ones, so the coarse sigma is
+        ``SIGMA_MEDIAN_FACTOR`` times their ``START_QUANTILE`` quantile (at least the floor, at
+        most what the median rule gives at the start), held until the coarse phase converges.
+        """
+        if self.fixed is not None or len(distances) == 0:
+            return self
+        overlap = SIGMA_MEDIAN_FACTOR * float(np.quantile(distances, START_QUANTILE))
+        return replace(self, start=min(max(self.floor, overlap), self(distances)))
+
     def __call__(self, distances: np.ndarray, *, fine: bool = False) -> float:
         """Sigma for this iteration; ``fine`` selects the fine phase (the floor)."""
         if self.fixed is not None:
             return self.fixed
         if fine:
             return self.floor
+        if self.start is not None:
+            return self.start
         return max(self.floor, SIGMA_MEDIAN_FACTOR * float(np.median(distances)))
 
 
@@ -113,6 +143,11 @@ class EsmEstimator(Estimator):
     def coarse(self) -> bool:
         """True in the coarse phase of the automatic sigma (not with a fixed sigma)."""
         return not self.fine and self.sigma.fixed is None
+
+    def start_from(self, distances: np.ndarray) -> None:
+        """Refine from a given start whose correspondence distances are ``distances`` (cloud
+        units): the coarse sigma is held at the overlap's scale (:meth:`SigmaSchedule.from_start`)."""
+        self.sigma = self.sigma.from_start(distances)
 
     def end_coarse_phase(self) -> None:
         self.fine = True
@@ -148,6 +183,8 @@ class EsmEstimator(Estimator):
 
     def weighting(self) -> tuple[float, float, float, bool, bool]:
         fixed = self.sigma.fixed
+        if fixed is None and not self.fine:
+            fixed = self.sigma.start
         return (0.0 if fixed is None else fixed), self.sigma.floor, SIGMA_MEDIAN_FACTOR, self.fine, True
 
     def took_step(self, step: Step) -> None:

@@ -11,7 +11,7 @@ distance of the point to the target's tangent plane,
 and the increment minimises ``sum_i w_i r_i^2`` linearised at ``R = I, t = 0`` (one Gauss-Newton
 step, a 6x6 system solved in closed form) with ESM's Gaussian weights
 ``w_i = exp(-d_i^2 / (2 sigma^2))``, ``d_i`` the pair's point distance (see
-``docs/real-scans.md``, "Refinement on scans", for why the point distance and not the plane
+``docs/scans-refinement.md``, for why the point distance and not the plane
 residual). A plane slides freely along itself, so a flat target leaves directions unconstrained:
 the solve moves along none of them (a pseudo-inverse), where point-to-point ICP would pull the
 overlap's borders toward each other.
@@ -21,7 +21,7 @@ Choosing sigma: from the overlap, not from every pair
 ``esm``'s schedule (``3 x`` the median distance) measures every pair; on scans that overlap by
 40% most pairs join points the other scan never saw, the median is theirs, and a wide sigma pulls
 the overlap apart (3DMatch t00_s06 started at its ground truth drifts off it, see
-``docs/real-scans.md``). Here sigma is the robust scale of the distances *of the overlap*:
+``docs/scans-refinement.md``). Here sigma is the robust scale of the distances *of the overlap*:
 ``SIGMA_MAD_FACTOR x 1.4826 x`` the median of the distances below ``OVERLAP_SIGMAS`` sigmas, at
 its least fixed point above ``esm``'s floor of ``SIGMA_FLOOR_SPACINGS`` target point spacings
 (iterated up from the floor, each iteration anew): sigma widens only as far as the close pairs'

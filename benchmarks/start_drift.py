@@ -1,0 +1,207 @@
+"""Refining from a given start: does ``esm`` keep a good start good? (issue 13, docs/scans-start-drift.md)
+
+``esmicp.register(source, target, init=start)`` (method ``esm``, every other default) from
+
+- the ground truth, and the truth perturbed by a seeded rotation about a random axis through the
+  placed source's centroid plus a translation in a random direction: 5 deg / 0.1 m on 3DMatch,
+  5 deg / 0.5 m on LiDAR, 5 deg / 5% of the target's diagonal on the ModelNet40 partial-overlap
+  trials (``partial-70`` / ``partial-50`` of :mod:`esmicp.bench.scans`, the same seeds);
+- poor starts on whole objects (what the coarse phase of the automatic sigma is for): the
+  ``resampled`` and ``outliers-30`` ModelNet40 protocols from their truth perturbed by 30 deg / 10%
+  and 60 deg / 25% of the diagonal.
+
+Success: real pairs by their kind (3DMatch < 15 deg and < 0.30 m, LiDAR < 5 deg and < 0.6 m);
+objects within 2% of the diagonal up to symmetry (:func:`esmicp.metrics.up_to_symmetry_success`).
+"moved" is how far the result is from the start (rotation, and translation at the source's
+centroid): a start that was already right should barely move.
+
+    python benchmarks/start_drift.py --out /tmp/after.json
+    python benchmarks/start_drift.py --before /tmp/before.json --out /tmp/after.json --doc docs/scans-start-drift.md
+
+``--before`` puts the rows of an earlier run (e.g. on the parent commit) beside this run's;
+``--doc`` replaces (or appends) the section "Refining from a given start" of that Markdown file;
+``--start-quantile Q`` runs with another ``esmicp.methods.esm.START_QUANTILE`` (how it was chosen).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+import esmicp
+from esmicp.bench.protocols import make_trial
+from esmicp.bench.real_pairs import load_pair, pair_errors, partial_trial, read_pairs
+from esmicp.bench.scans import _modelnet_clouds, _seed_of
+from esmicp.core.procrustes import apply, bounding_box_diagonal, to_matrix
+from esmicp.methods import esm
+from esmicp.methods.esm import START_QUANTILE
+from esmicp.metrics import rotation_error_deg, translation_error, up_to_symmetry_success
+
+SECTION = "## Refining from a given start"
+#: (rotation degrees, translation) of the perturbed start; translation in metres for real pairs,
+#: as a fraction of the target's diagonal for objects.
+REAL_PERTURBATION = {"3DMatch": (5.0, 0.1), "LiDAR": (5.0, 0.5), "LiDAR-coarse-GT": (5.0, 0.5)}
+PARTIAL_PERTURBATION = (5.0, 0.05)
+POOR_STARTS = ((30.0, 0.10), (60.0, 0.25))
+
+
+def perturbed(truth: np.ndarray, source: np.ndarray, angle_deg: float, shift: float, rng) -> np.ndarray:
+    """``truth`` followed by a rotation of ``angle_deg`` about a random axis through the placed
+    source's centroid and a translation of length ``shift`` in a random direction."""
+    axis = rng.normal(size=3)
+    matrix = Rotation.from_rotvec(np.radians(angle_deg) * axis / np.linalg.norm(axis)).as_matrix()
+    centre = apply(truth, source).mean(axis=0)
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    return to_matrix(matrix, centre - matrix @ centre + shift * direction) @ truth
+
+
+def _moved(result, start, source):
+    return rotation_error_deg(result, start), translation_error(result, start, source.mean(axis=0))
+
+
+def real_rows(folder: Path, seed: int):
+    for index, pair in enumerate(read_pairs(folder)):
+        source, target, truth = load_pair(pair, bin_columns=3)
+        angle, shift = REAL_PERTURBATION[pair.kind]
+        rng = np.random.default_rng(_seed_of(seed, 2, index))
+        for start_name, start in (("truth", truth), (f"{angle:g}° / {shift:g} m", perturbed(truth, source, angle, shift, rng))):
+            result = esmicp.register(source, target, init=start)
+            rot, trans = pair_errors(result.transformation, truth)
+            moved_rot, moved_trans = _moved(result.transformation, start, source)
+            yield {"group": "real", "case": pair.name, "start": start_name, "rotation_error_deg": rot,
+                   "translation_error": trans, "success": pair.criteria.success(rot, trans),
+                   "moved_deg": moved_rot, "moved": moved_trans, "seconds": result.runtime_s}
+
+
+def object_rows(data_dir: Path, trials: int, seed: int):
+    clouds = _modelnet_clouds(data_dir)
+    names = list(clouds)
+    for number, keep in enumerate((0.7, 0.5)):
+        for index in range(trials):
+            rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(1, number, index)))
+            trial = partial_trial(clouds[names[index % len(names)]], keep, rng, 2000)
+            diagonal = bounding_box_diagonal(trial.target)
+            angle, shift = PARTIAL_PERTURBATION
+            start_rng = np.random.default_rng(_seed_of(seed, 3, number, index))
+            starts = (("truth", trial.T_target_source),
+                      (f"{angle:g}° / {shift:g} diag",
+                       perturbed(trial.T_target_source, trial.source, angle, shift * diagonal, start_rng)))
+            yield from _object_rows(f"partial-{round(100 * keep)}", trial.source, trial.target,
+                                    trial.T_target_source, diagonal, starts)
+    for protocol in ("resampled", "outliers-30"):
+        for index in range(trials):
+            trial = make_trial(protocol, clouds[names[index % len(names)]], seed, index)
+            diagonal = bounding_box_diagonal(trial.target)
+            start_rng = np.random.default_rng(_seed_of(seed, 4, protocol == "resampled", index))
+            starts = [(f"{angle:g}° / {shift:g} diag",
+                       perturbed(trial.T_target_source, trial.source, angle, shift * diagonal, start_rng))
+                      for angle, shift in POOR_STARTS]
+            yield from _object_rows(protocol, trial.source, trial.target, trial.T_target_source, diagonal, starts)
+
+
+def _object_rows(protocol, source, target, truth, diagonal, starts):
+    for start_name, start in starts:
+        result = esmicp.register(source, target, init=start)
+        moved_rot, moved_trans = _moved(result.transformation, start, source)
+        yield {"group": "objects", "case": protocol, "start": start_name,
+               "rotation_error_deg": rotation_error_deg(result.transformation, truth),
+               "translation_error": translation_error(result.transformation, truth, source.mean(axis=0)),
+               "success": up_to_symmetry_success(source, result.transformation, truth, diagonal),
+               "moved_deg": moved_rot, "moved": moved_trans / diagonal, "seconds": result.runtime_s}
+
+
+def _cell(rows):
+    if not rows:
+        return "-"
+    if len(rows) == 1:
+        row = rows[0]
+        verdict = "**ok**" if row["success"] else "no"
+        return f"{verdict} {row['rotation_error_deg']:.2f}° {row['translation_error']:.3f} m (moved {row['moved']:.3f} m)"
+    ok = sum(row["success"] for row in rows)
+    moved = statistics.median(row["moved"] for row in rows)
+    return f"{ok}/{len(rows)} ({100 * ok / len(rows):.0f}%), median moved {moved:.3f} diag"
+
+
+def markdown(after: list[dict], before: list[dict] | None, command: str) -> str:
+    def keyed(rows):
+        table = {}
+        for row in rows:
+            table.setdefault((row["group"], row["case"], row["start"]), []).append(row)
+        return table
+
+    now, then = keyed(after), keyed(before or [])
+    lines = [SECTION, "",
+             f"Generated by `{command}` (see its docstring for the starts and criteria). "
+             "`esmicp.register(source, target, init=start)`, method `esm`, every other default; "
+             "`before`: the same script on the parent commit, in the same session. \"moved\": translation "
+             "between the start and the result (at the source's centroid).", "",
+             "| case | start | before | after |", "|---|---|---|---|"]
+    worse = []
+    for key in now:
+        group, case, start = key
+        lines.append(f"| {case} | {start} | {_cell(then.get(key, []))} | {_cell(now[key])} |")
+        if key in then and _worse(then[key], now[key]):
+            worse.append(f"{case} from {start}")
+    if then:
+        lines += ["", "Worse after than before (fewer successes, or a single pair's translation error up by more "
+                  "than half): " + ("; ".join(worse) if worse else "none") + "."]
+    lines += ["", "The coarse sigma from a given start is `SIGMA_MEDIAN_FACTOR` times the `START_QUANTILE` "
+              "quantile of the start's distances; rerun with `--start-quantile Q` to compare another quantile."]
+    return "\n".join(lines) + "\n"
+
+
+def _worse(before, after) -> bool:
+    if sum(row["success"] for row in after) < sum(row["success"] for row in before):
+        return True
+    return len(after) == 1 and after[0]["translation_error"] > 1.5 * before[0]["translation_error"]
+
+
+def write_section(path: Path, section: str) -> None:
+    text = path.read_text()
+    start = text.find(SECTION)
+    if start < 0:
+        text = text.rstrip("\n") + "\n\n" + section
+    else:
+        end = text.find("\n## ", start + len(SECTION))
+        text = text[:start] + section + ("" if end < 0 else text[end:])
+    path.write_text(text)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[1] / ".." / "shared" / "data")
+    parser.add_argument("--trials", type=int, default=24, help="trials per object protocol (default 24)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--skip-real", action="store_true", help="objects only")
+    parser.add_argument("--start-quantile", type=float, default=START_QUANTILE,
+                        help=f"esm's START_QUANTILE for this run (default {START_QUANTILE})")
+    parser.add_argument("--out", type=Path, help="write this run's rows (JSON)")
+    parser.add_argument("--before", type=Path, help="rows of an earlier run (JSON) to show beside")
+    parser.add_argument("--doc", type=Path, help="Markdown file whose section to replace")
+    args = parser.parse_args(argv)
+    esm.START_QUANTILE = args.start_quantile
+    rows = []
+    if not args.skip_real:
+        for row in real_rows(args.data / "real_pairs", args.seed):
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    for row in object_rows(args.data, args.trials, args.seed):
+        rows.append(row)
+    if args.out:
+        args.out.write_text(json.dumps(rows))
+    before = json.loads(args.before.read_text()) if args.before else None
+    command = "python benchmarks/start_drift.py" + (f" --trials {args.trials}" if args.trials != 24 else "")
+    section = markdown(rows, before, command)
+    print(section)
+    if args.doc:
+        write_section(args.doc, section)
+
+
+if __name__ == "__main__":
+    main()
