@@ -422,6 +422,22 @@ def test_slow_methods_run_on_their_trial_budget_only(tmp_path, monkeypatch):
         BenchConfig(**common, slow_trials=-1)
 
 
+def test_a_slow_method_that_stalls_on_outliers_skips_the_random_outlier_groups(tmp_path, monkeypatch):
+    """Go-ICP (``icp`` stands in) runs on no randomised outlier group within the budget, but on
+    the clean groups and, with ``slow_trials=0``, everywhere."""
+    from esmicp.bench import runner
+
+    monkeypatch.setattr(runner, "SLOW_METHODS", ("icp", "esm"))
+    monkeypatch.setattr(runner, "SLOW_WITHOUT_OUTLIERS", ("icp",))
+    common = dict(protocols=("copy", "outliers-30"), datasets=("synthetic",), methods=("esm", "icp"), trials=2,
+                  points=(200,), max_iterations=5)
+    budget = read_rows_of(tmp_path / "budget", BenchConfig(**common, slow_trials=1))
+    assert sorted((r["method"], r["protocol"]) for r in budget) == [
+        ("esm", "copy"), ("esm", "outliers-30"), ("icp", "copy")]
+    everything = read_rows_of(tmp_path / "all", BenchConfig(**common, slow_trials=0))
+    assert sum(r["method"] == "icp" and r["protocol"] == "outliers-30" for r in everything) == 2
+
+
 def read_rows_of(out_dir, config):
     run_bench(config, RunOptions(out_dir=out_dir, workers=1, progress=False))
     return read_rows(out_dir / "rows.jsonl")

@@ -72,9 +72,11 @@ class BenchConfig:
         and ``max_iterations=100`` (``esmicp bench --paper-1000``).
     slow_trials : int
         Methods of :data:`esmicp.bench.methods.SLOW_METHODS` (seconds per trial: Go-ICP's
-        branch-and-bound) run only on the first ``slow_trials`` trials of each randomised
-        (protocol, dataset, points, range) group, and on every ``paper-table`` case; 0 means on
-        every trial. The tables give each cell's trial count, so a row run on fewer trials says so.
+        branch-and-bound, CPD's EM) run only on the first ``slow_trials`` trials of each
+        randomised (protocol, dataset, points, range) group, and on every ``paper-table`` case;
+        those of :data:`esmicp.bench.methods.SLOW_WITHOUT_OUTLIERS` (Go-ICP) on no randomised
+        group with outliers. 0 means every method on every trial. The tables give each cell's
+        trial count, so a row run on fewer trials says so.
     data_dir : str
         The shared data folder (``modelnet40/``, ``bunny/``, ...).
     """

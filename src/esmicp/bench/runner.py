@@ -21,7 +21,9 @@ from ..errors import InvalidInputError, PointCloudFileError
 from . import results, tables
 from .config import PAPER_PROTOCOLS, SCAN_PROTOCOL, BenchConfig, RunOptions
 from .datasets import POINTS_INDEPENDENT, load_dataset
-from .methods import SIGMA_METHODS, SLOW_METHODS, check_methods
+from .methods import SIGMA_METHODS, SLOW_METHODS, SLOW_WITHOUT_OUTLIERS, check_methods
+from .paper import PAPER_NOISE_FRACTIONS
+from .protocols import OUTLIER_FRACTIONS
 from .trials import (
     PAPER_TABLE,
     TrialSpec,
@@ -78,10 +80,17 @@ def _runs(config: BenchConfig) -> list[tuple[str, float | None]]:
 
 
 def _runs_of(spec, runs, config: BenchConfig) -> list[tuple[str, float | None]]:
-    """The runs of one trial: every run, but slow methods only within their trial budget."""
-    if config.slow_trials == 0 or spec.case is not None or spec.index < config.slow_trials:
+    """The runs of one trial: every run, but slow methods only within their trial budget (the
+    first ``slow_trials`` trials of a randomised group, and none of an outlier group for
+    :data:`~esmicp.bench.methods.SLOW_WITHOUT_OUTLIERS`); every run on a ``paper-table`` case."""
+    if config.slow_trials == 0 or spec.case is not None:
         return runs
-    return [(method, sigma) for method, sigma in runs if method not in SLOW_METHODS]
+    outliers = OUTLIER_FRACTIONS.get(spec.protocol, PAPER_NOISE_FRACTIONS.get(spec.protocol, 0.0)) > 0.0
+    return [
+        (method, sigma) for method, sigma in runs
+        if method not in SLOW_METHODS
+        or (spec.index < config.slow_trials and not (outliers and method in SLOW_WITHOUT_OUTLIERS))
+    ]
 
 
 def plan(config: BenchConfig) -> list[_Planned]:
