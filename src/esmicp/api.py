@@ -54,6 +54,12 @@ DEFAULT_SEED = 0
 #: slid 0.3 m along the road from where every point takes it; ``docs/measured-global.md``.)
 REFINE_POINTS = COARSE_POINTS
 POLISH_ITERATIONS = 2
+#: On that subsample, ``esm`` is preceded by at most this many ``esm-plane`` iterations: a global
+#: pose slid along a road or a corridor leaves the pairs that would pull it back many spacings
+#: apart, where ``esm``'s Gaussian weight is nil and it keeps the slide; the plane residual pulls
+#: it back (a KITTI street pair: ``docs/scans-refinement.md``). Capped, because on some fragment
+#: pairs ``esm-plane`` creeps on for its whole budget where ``esm`` converges.
+PLANE_ITERATIONS = 10
 
 
 @dataclass(frozen=True, eq=False)
@@ -244,18 +250,31 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
 
 def _refine_then_polish(source, target_index, estimator, initial, request: _Request, diagonal: float):
     """Stage 4 after a global search on a large source: ``estimator`` on ``REFINE_POINTS`` evenly
-    strided source points, then a fresh fine-phase estimator of the same method on the full
-    source for at most ``POLISH_ITERATIONS`` iterations (fewer when ``max_iterations`` leaves fewer).
-    The outcome is the polish's, with the iterations of both and ``converged`` from the subsample
-    run (the polish only sharpens it; a polish the guard rejected makes it False)."""
+    strided source points (for ``esm``, after at most ``PLANE_ITERATIONS`` of ``esm-plane`` there),
+    then a fresh fine-phase estimator of the same method on the full source for at most
+    ``POLISH_ITERATIONS`` iterations (fewer when ``max_iterations`` leaves fewer). The outcome is
+    the polish's, with the iterations of every stage and ``converged`` from the subsample run (the
+    polish only sharpens it; a polish the guard rejected makes it False)."""
     strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
+    plane_iterations, plane_note = 0, ""
+    if request.method == "esm":
+        plane_criteria = dataclasses.replace(
+            request.criteria, max_iterations=min(PLANE_ITERATIONS, request.criteria.max_iterations - 1))
+        if plane_criteria.max_iterations > 0:
+            planar = make_estimator("esm-plane", request.sigma, target_index.spacing(), diagonal)
+            plane = guarded_refine(strided, target_index, planar, init=initial, criteria=plane_criteria, scale=diagonal)
+            if plane.num_iterations > 0:
+                initial, plane_iterations = plane.transformation, plane.num_iterations
+                plane_note = f"{plane_iterations} esm-plane iteration(s), then "
+                request = dataclasses.replace(request, criteria=dataclasses.replace(
+                    request.criteria, max_iterations=request.criteria.max_iterations - plane_iterations))
     coarse = guarded_refine(strided, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal)
     if coarse.num_iterations == 0:
         return coarse  # no start to refine (the guard's message says why)
-    where = f"{coarse.message} on {len(strided):,} strided source points"
+    where = f"{plane_note}{coarse.message} on {len(strided):,} strided source points"
     budget = min(POLISH_ITERATIONS, request.criteria.max_iterations - coarse.num_iterations)
     if budget <= 0:  # the user's iteration budget is spent
-        return dataclasses.replace(coarse, message=where)
+        return dataclasses.replace(coarse, message=where, num_iterations=plane_iterations + coarse.num_iterations)
     polisher = make_estimator(request.method, request.sigma, target_index.spacing(), diagonal, start_fine=True)
     criteria = dataclasses.replace(request.criteria, max_iterations=budget)
     polish = guarded_refine(
@@ -263,7 +282,7 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     )
     return dataclasses.replace(
         polish, converged=coarse.converged and (polish.converged or polish.message == _budget_spent(criteria)),
-        num_iterations=coarse.num_iterations + polish.num_iterations,
+        num_iterations=plane_iterations + coarse.num_iterations + polish.num_iterations,
         message=f"{where}; then {polish.num_iterations} iteration(s) on all {len(source):,}",
     )
 
