@@ -59,7 +59,7 @@ POLISH_ITERATIONS = 2
 #: apart, where ``esm``'s Gaussian weight is nil and it keeps the slide; the plane residual pulls
 #: it back (a KITTI street pair: ``docs/scans-refinement.md``). Capped, because on some fragment
 #: pairs ``esm-plane`` creeps on for its whole budget where ``esm`` converges.
-PLANE_ITERATIONS = 10
+PLANE_ITERATIONS = 30
 
 
 @dataclass(frozen=True, eq=False)
