@@ -287,6 +287,7 @@ def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
     found = rotation_search(
         _subsample(work.source, SEARCH_POINTS, work.rng), grid,
         rotations=SEARCH_ROTATIONS, iterations=SEARCH_ITERATIONS, score_width=work.width, sigma_floor=work.width,
+        workers=work.full_index.workers,
     )
     return [found.transformations[k] for k in _distinct(found.transformations, np.arange(len(found.scores)), VERIFY_CANDIDATES)]
 
@@ -304,6 +305,7 @@ def _batched_verification(index, source_points, transformations, iterations, wid
     rotations, translations, distances = batched_esm(
         source_points, index, transformations[:, :3, :3], transformations[:, :3, 3],
         iterations=iterations, sigma_floor=width if sigma is None else sigma, fine_iterations=iterations,
+        workers=index.workers,
     )
     refined = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
     return refined, gaussian_overlap_score(distances, width)
