@@ -11,7 +11,7 @@ from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.nearest_grid import NearestGrid
 from esmicp.globalreg import search as global_search
 from esmicp.core.procrustes import batched_rotation_from_cross_covariance
-from esmicp.globalreg.rotation_search import batched_esm, so3_grid
+from esmicp.globalreg.rotation_search import NeighbourGraph, batched_esm, so3_grid
 from esmicp.methods import ConvergenceCriteria, EsmEstimator, SigmaSchedule
 from esmicp.methods.local import refine
 from esmicp.metrics import random_rotation, rotation_error_deg
@@ -116,6 +116,18 @@ def test_compiled_batched_esm_matches_a_numpy_reference(lookup, count):
     np.testing.assert_allclose(moved, expected[1], rtol=0, atol=1e-9)
     np.testing.assert_allclose(distances, expected[2], rtol=0, atol=1e-9)
     assert np.ptp(distances.mean(axis=1)) > 1e-3  # the starts did not all end at one pose
+
+
+def test_neighbour_graph_matches_ckdtree_with_duplicates():
+    """The graph's lists are the k nearest target points (SciPy's distances), its radii the squared
+    distance to the k-th, on a cloud with repeated points (ties)."""
+    rng = np.random.default_rng(7)
+    target = np.concatenate([asymmetric_shape(900, rng), np.repeat(rng.normal(size=(5, 3)), 20, axis=0)])
+    graph = NeighbourGraph.of(NearestNeighbors(target), k=12)
+    expected, _ = cKDTree(target).query(target, k=12)
+    found = np.sort(np.linalg.norm(target[graph.neighbours] - target[:, None], axis=2), axis=1)
+    np.testing.assert_allclose(found, expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(graph.radii, expected[:, -1] ** 2, rtol=1e-12, atol=1e-15)
 
 
 class _PlainEsm(EsmEstimator):

@@ -32,6 +32,8 @@ using Arr1 = nb::ndarray<double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 using Arr2 = nb::ndarray<double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 using CIdx = nb::ndarray<const int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 using Idx = nb::ndarray<int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using Idx2 = nb::ndarray<int64_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using CIdx2 = nb::ndarray<const int64_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 
 namespace {
 
@@ -1245,15 +1247,138 @@ struct GridLookup {
     }
 };
 
+// The k nearest target points of every target point (itself among them) and the squared distance
+// to the k-th: every target point strictly nearer than that to a point is in its list.
+struct NeighbourGraph {
+    const int64_t *neighbours;  // (M, k) target indices
+    const double *radii;        // (M,) squared distance to the k-th
+    int64_t k;
+};
+
+//: Descent steps along the graph before a query goes to the tree.
+constexpr int GRAPH_DESCENT_MAX = 8;
+
 struct TreeLookup {
     const Tree &t;
     const int64_t *rank;
     const double *target;  // (M, 3) as given (the neighbours' coordinates)
+    const NeighbourGraph &graph;
     const double *points() const { return target; }
+    // Exact nearest target point. With a warm start p: walk the graph to a nearer list member
+    // while there is one; when p's list holds none nearer and 2 |q - p| is within p's radius,
+    // every target point nearer to q than p (within 2 |q - p| of p) is in that list: p is the
+    // nearest (certified). Otherwise the tree, seeded with p.
     void operator()(double x, double y, double z, int64_t warm, double &distance, int64_t &index) const {
+        if (warm >= 0) {
+            auto squared = [&](int64_t j) {
+                const double ex = target[3 * j] - x, ey = target[3 * j + 1] - y, ez = target[3 * j + 2] - z;
+                return ex * ex + ey * ey + ez * ez;
+            };
+            int64_t p = warm;
+            double best = squared(p);
+            for (int step = 0; step < GRAPH_DESCENT_MAX; ++step) {
+                const int64_t *list = graph.neighbours + graph.k * p;
+                int64_t next = -1;
+                for (int64_t j = 0; j < graph.k; ++j) {
+                    const double candidate = squared(list[j]);
+                    if (candidate < best) {
+                        best = candidate;
+                        next = list[j];
+                    }
+                }
+                if (next < 0) {
+                    if (4.0 * best * (1.0 + 1e-9) <= graph.radii[p]) {
+                        distance = std::sqrt(best);
+                        index = p;
+                        return;
+                    }
+                    break;
+                }
+                p = next;
+            }
+            warm = p;
+        }
         tree_nearest(t, rank, x, y, z, warm, distance, index);
     }
 };
+
+// The k nearest tree points of (x, y, z): squared distances and slots, nearest first (k <= 64).
+void nearest_k(const Tree &t, double x, double y, double z, int64_t k, double *best, int64_t *slots) {
+    for (int64_t j = 0; j < k; ++j) {
+        best[j] = INF;
+        slots[j] = -1;
+    }
+    int64_t stack_nodes[STACK];
+    double stack_bounds[STACK];
+    stack_nodes[0] = 0;
+    stack_bounds[0] = box_distance(t.boxes, x, y, z);
+    int depth = 1;
+    while (depth > 0) {
+        --depth;
+        const int64_t node = stack_nodes[depth];
+        if (stack_bounds[depth] >= best[k - 1]) continue;
+        const int64_t left = t.lefts[node];
+        if (left < 0) {
+            for (int64_t s = t.starts[node]; s < t.ends[node]; ++s) {
+                const double ex = t.points[3 * s] - x, ey = t.points[3 * s + 1] - y, ez = t.points[3 * s + 2] - z;
+                const double squared = ex * ex + ey * ey + ez * ez;
+                if (squared >= best[k - 1]) continue;
+                int64_t j = k - 1;
+                for (; j > 0 && best[j - 1] > squared; --j) {
+                    best[j] = best[j - 1];
+                    slots[j] = slots[j - 1];
+                }
+                best[j] = squared;
+                slots[j] = s;
+            }
+            continue;
+        }
+        double near_bound = box_distance(t.boxes + 6 * left, x, y, z);
+        double far_bound = box_distance(t.boxes + 6 * (left + 1), x, y, z);
+        int64_t near_node = left, far_node = left + 1;
+        if (far_bound < near_bound) {
+            std::swap(near_node, far_node);
+            std::swap(near_bound, far_bound);
+        }
+        if (far_bound < best[k - 1]) {
+            stack_nodes[depth] = far_node;
+            stack_bounds[depth] = far_bound;
+            ++depth;
+        }
+        if (near_bound < best[k - 1]) {
+            stack_nodes[depth] = near_node;
+            stack_bounds[depth] = near_bound;
+            ++depth;
+        }
+    }
+}
+
+//: Most neighbours per point of a neighbour graph.
+constexpr int64_t GRAPH_K_MAX = 64;
+
+// The neighbour graph of the tree's target (out_neighbours (M, k), out_radii (M,); k <= min(M, 64)).
+void neighbour_graph(CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
+                     Idx2 out_neighbours, Arr1 out_radii, int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t k = int64_t(out_neighbours.shape(1));
+    if (k < 1 || k > GRAPH_K_MAX || k > t.count || int64_t(out_neighbours.shape(0)) != t.count ||
+        int64_t(out_radii.shape(0)) != t.count)
+        throw std::invalid_argument("neighbour_graph: out_neighbours (M, k) with 1 <= k <= min(M, 64), out_radii (M,)");
+    int64_t *neighbours = out_neighbours.data();
+    double *radii = out_radii.data();
+    parallel_pieces(piece_count(t.count, QUERY_PIECE), threads, [&](int64_t piece) {
+        double best[GRAPH_K_MAX];
+        int64_t slots[GRAPH_K_MAX];
+        const int64_t end = std::min(t.count, (piece + 1) * QUERY_PIECE);
+        for (int64_t s = piece * QUERY_PIECE; s < end; ++s) {
+            const int64_t i = t.order[s];
+            nearest_k(t, t.points[3 * s], t.points[3 * s + 1], t.points[3 * s + 2], k, best, slots);
+            for (int64_t j = 0; j < k; ++j) neighbours[k * i + j] = t.order[slots[j]];
+            radii[i] = best[k - 1];
+        }
+    });
+}
 
 inline void compose_step(const double *step_r, const double *step_t, double *r, double *t) {
     double nr[9], nt[3];
@@ -1344,11 +1469,16 @@ void esm_hypotheses(const Lookup &look, CArr2 source, Arr2 rotations, Arr2 trans
 
 void batched_esm_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations, double floor,
                       double factor, int64_t fine, Arr2 out_distances, CArr2 target, CIdx rank, CArr2 tree_points,
-                      CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, int threads) {
+                      CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, CIdx2 graph_neighbours,
+                      CArr1 graph_radii, int threads) {
     Tree tree{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
               int64_t(tree_points.shape(0))};
-    esm_hypotheses(TreeLookup{tree, rank.data(), target.data()}, source, rotations, translations, iterations, floor,
-                   factor, fine, out_distances, threads);
+    const int64_t k = int64_t(graph_neighbours.shape(1));
+    if (int64_t(graph_radii.shape(0)) != tree.count || k < 1 || int64_t(graph_neighbours.shape(0)) != tree.count)
+        throw std::invalid_argument("batched ESM: the neighbour graph does not match the target");
+    const NeighbourGraph graph{graph_neighbours.data(), graph_radii.data(), k};
+    esm_hypotheses(TreeLookup{tree, rank.data(), target.data(), graph}, source, rotations, translations, iterations,
+                   floor, factor, fine, out_distances, threads);
 }
 
 void batched_esm_grid(CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations, double floor,
@@ -1382,6 +1512,7 @@ NB_MODULE(_kernels, m) {
     m.def("anderson_state_size", &anderson_state_size);
     m.def("batched_esm_tree", &batched_esm_tree);
     m.def("batched_esm_grid", &batched_esm_grid);
+    m.def("neighbour_graph", &neighbour_graph);
     m.attr("STEP_OUT") = STEP_OUT;
     nb::class_<Index>(m, "Index")
         .def(nb::init<CArr2, CArr2, CIdx, CIdx, CIdx, CIdx, CIdx, CArr2>())
