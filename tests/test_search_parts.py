@@ -130,6 +130,19 @@ def test_neighbour_graph_matches_ckdtree_with_duplicates():
     np.testing.assert_allclose(graph.radii, expected[:, -1] ** 2, rtol=1e-12, atol=1e-15)
 
 
+def test_batched_esm_keeps_a_non_finite_pose_to_itself():
+    """A NaN start ends as NaN distances without touching the other hypotheses (no out-of-range
+    neighbour is read)."""
+    target = asymmetric_shape(500, 8)
+    starts = np.stack([np.eye(3), np.full((3, 3), np.nan)])
+    _, _, alone = batched_esm(target[:100], NearestNeighbors(target), starts[:1], np.zeros((1, 3)), iterations=3,
+                              sigma_floor=0.05)
+    _, _, distances = batched_esm(target[:100], NearestNeighbors(target), starts, np.zeros((2, 3)), iterations=3,
+                                  sigma_floor=0.05)
+    assert np.isnan(distances[1]).all()
+    np.testing.assert_array_equal(distances[0], alone[0])
+
+
 class _PlainEsm(EsmEstimator):
     """ESM without Anderson acceleration, for comparison."""
 

@@ -1299,6 +1299,10 @@ struct TreeLookup {
             warm = p;
         }
         tree_nearest(t, rank, x, y, z, warm, distance, index);
+        if (index >= t.count) {  // a non-finite query point: no neighbour (NaN distance, point 0)
+            index = 0;
+            distance = std::numeric_limits<double>::quiet_NaN();
+        }
     }
 };
 
