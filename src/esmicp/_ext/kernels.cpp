@@ -1306,54 +1306,30 @@ struct TreeLookup {
     }
 };
 
-// The k nearest tree points of (x, y, z): squared distances and slots, nearest first (k <= 64).
-void nearest_k(const Tree &t, double x, double y, double z, int64_t k, double *best, int64_t *slots) {
-    for (int64_t j = 0; j < k; ++j) {
-        best[j] = INF;
-        slots[j] = -1;
+// The k nearest tree points of (x, y, z) below `node` into best (squared distances) and slots,
+// nearest first: the caller fills both with (INF, -1) and starts at the root. Recursive, nearer
+// child first, a child skipped when its box is beyond the current k-th distance.
+void nearest_k(const Tree &t, int64_t node, double x, double y, double z, int64_t k, double *best, int64_t *slots) {
+    const int64_t left = t.lefts[node];
+    if (left >= 0) {
+        const double bounds[2] = {box_distance(t.boxes + 6 * left, x, y, z),
+                                  box_distance(t.boxes + 6 * (left + 1), x, y, z)};
+        const int first = bounds[1] < bounds[0] ? 1 : 0;
+        for (int child : {first, 1 - first})
+            if (bounds[child] < best[k - 1]) nearest_k(t, left + child, x, y, z, k, best, slots);
+        return;
     }
-    int64_t stack_nodes[STACK];
-    double stack_bounds[STACK];
-    stack_nodes[0] = 0;
-    stack_bounds[0] = box_distance(t.boxes, x, y, z);
-    int depth = 1;
-    while (depth > 0) {
-        --depth;
-        const int64_t node = stack_nodes[depth];
-        if (stack_bounds[depth] >= best[k - 1]) continue;
-        const int64_t left = t.lefts[node];
-        if (left < 0) {
-            for (int64_t s = t.starts[node]; s < t.ends[node]; ++s) {
-                const double ex = t.points[3 * s] - x, ey = t.points[3 * s + 1] - y, ez = t.points[3 * s + 2] - z;
-                const double squared = ex * ex + ey * ey + ez * ez;
-                if (squared >= best[k - 1]) continue;
-                int64_t j = k - 1;
-                for (; j > 0 && best[j - 1] > squared; --j) {
-                    best[j] = best[j - 1];
-                    slots[j] = slots[j - 1];
-                }
-                best[j] = squared;
-                slots[j] = s;
-            }
-            continue;
+    for (int64_t s = t.starts[node]; s < t.ends[node]; ++s) {
+        const double ex = t.points[3 * s] - x, ey = t.points[3 * s + 1] - y, ez = t.points[3 * s + 2] - z;
+        const double squared = ex * ex + ey * ey + ez * ez;
+        if (squared >= best[k - 1]) continue;
+        int64_t j = k - 1;
+        for (; j > 0 && best[j - 1] > squared; --j) {
+            best[j] = best[j - 1];
+            slots[j] = slots[j - 1];
         }
-        double near_bound = box_distance(t.boxes + 6 * left, x, y, z);
-        double far_bound = box_distance(t.boxes + 6 * (left + 1), x, y, z);
-        int64_t near_node = left, far_node = left + 1;
-        if (far_bound < near_bound) {
-            std::swap(near_node, far_node);
-            std::swap(near_bound, far_bound);
-        }
-        if (far_bound < best[k - 1]) {
-            stack_nodes[depth] = far_node;
-            stack_bounds[depth] = far_bound;
-            ++depth;
-        }
-        if (near_bound < best[k - 1]) {
-            stack_nodes[depth] = near_node;
-            stack_bounds[depth] = near_bound;
-            ++depth;
-        }
+        best[j] = squared;
+        slots[j] = s;
     }
 }
 
@@ -1377,7 +1353,9 @@ void neighbour_graph(CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx
         const int64_t end = std::min(t.count, (piece + 1) * QUERY_PIECE);
         for (int64_t s = piece * QUERY_PIECE; s < end; ++s) {
             const int64_t i = t.order[s];
-            nearest_k(t, t.points[3 * s], t.points[3 * s + 1], t.points[3 * s + 2], k, best, slots);
+            std::fill(best, best + k, INF);
+            std::fill(slots, slots + k, int64_t(-1));
+            nearest_k(t, 0, t.points[3 * s], t.points[3 * s + 1], t.points[3 * s + 2], k, best, slots);
             for (int64_t j = 0; j < k; ++j) neighbours[k * i + j] = t.order[slots[j]];
             radii[i] = best[k - 1];
         }
