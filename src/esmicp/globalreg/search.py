@@ -149,7 +149,7 @@ def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> lis
     if not order:
         return []
     rotations = transformations[order, :3, :3]
-    relative = np.einsum("aji,bjk->abik", rotations, rotations)  # R_a^T R_b for every pair
+    relative = np.matmul(np.swapaxes(rotations, 1, 2)[:, None], rotations[None])  # R_a^T R_b for every pair
     skew = np.stack([relative[..., 2, 1] - relative[..., 1, 2], relative[..., 0, 2] - relative[..., 2, 0],
                      relative[..., 1, 0] - relative[..., 0, 1]], axis=-1)
     trace = np.trace(relative, axis1=-2, axis2=-1)
