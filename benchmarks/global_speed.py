@@ -84,7 +84,8 @@ def main(argv=None) -> int:
     for name, by_method in groups.items():
         figures = {m: _summary(by_method[m]) for m in methods}
         cells = [f"{figures[m][0]:.1f} / {figures[m][1]:.1f} ({figures[m][2]:.0f})" for m in methods]
-        ratios = [f"{figures['esm-global'][0] / figures[m][0]:.2f} ({_paired(by_method['esm-global'], by_method[m]):.2f})"
+        ratios = [f"{figures['esm-global'][0] / figures[m][0]:.2f} "
+                  f"({_paired(by_method['esm-global'], by_method[m]):.2f})"
                   for m in methods if m != "esm-global" and "esm-global" in figures]
         print(f"| {name} | " + " | ".join(cells) + " | " + " | ".join(ratios) + " |")
     return 0

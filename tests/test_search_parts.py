@@ -70,7 +70,8 @@ def _reference_batched_esm(source, lookup, rotations, translations, iterations, 
             return rotations, translations, distances
         matched = lookup.points[indices].reshape(moved.shape)
         fine = iteration >= iterations - fine_iterations
-        sigma = np.full(count, sigma_floor) if fine else np.maximum(sigma_floor, sigma_factor * np.median(distances, axis=1))
+        median = np.median(distances, axis=1)
+        sigma = np.full(count, sigma_floor) if fine else np.maximum(sigma_floor, sigma_factor * median)
         squared = distances**2
         weights = np.exp(-(squared - squared.min(axis=1, keepdims=True)) / (2.0 * sigma[:, None] ** 2))
         weights = (weights / weights.sum(axis=1, keepdims=True))[:, :, None]

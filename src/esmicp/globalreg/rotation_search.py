@@ -3,9 +3,9 @@
 Rigid registration from an arbitrary pose has many local optima, but ESM (like ICP) converges from
 any start within a few tens of degrees of the truth. So we start from many rotations spread
 evenly over SO(3) (a super-Fibonacci spiral), each with the centroids aligned, run a short ESM
-refinement of ALL of them on subsampled clouds (one compiled call: each hypothesis runs every
-iteration on its own thread's turn, its nearest-neighbour queries warm-started), and keep the
-ones whose clouds then overlap best under a fixed-width Gaussian score.
+refinement of ALL of them on subsampled clouds (one compiled call, the hypotheses spread over the
+threads, each one's nearest-neighbour queries warm-started), and keep the ones whose clouds then
+overlap best under a fixed-width Gaussian score.
 """
 
 from __future__ import annotations
@@ -111,10 +111,10 @@ def batched_esm(
     ``source`` ``(n, 3)`` is in the source frame, ``target`` an exact index or the global search's
     lookup grid. With an exact index, each hypothesis' queries start from its previous neighbours
     and are answered through ``graph`` (:class:`NeighbourGraph` of ``target``, built here if not
-    given) where it certifies them, by the tree otherwise: exact either way. Each hypothesis anneals its own sigma as
-    ``max(sigma_floor, sigma_factor * median distance)`` (cloud units); the last
-    ``fine_iterations`` of the ``iterations`` use ``sigma_floor`` itself (the fine phase of
-    :mod:`esmicp.methods.esm`, which keeps outliers from biasing the pose). Every step weighs
+    given) where it certifies them, by the tree otherwise: exact either way. Each hypothesis
+    anneals its own sigma as ``max(sigma_floor, sigma_factor * median distance)`` (cloud units);
+    the last ``fine_iterations`` of the ``iterations`` use ``sigma_floor`` itself (the fine phase
+    of :mod:`esmicp.methods.esm`, which keeps outliers from biasing the pose). Every step weighs
     the pairs by ``exp(-(d^2 - min d^2) / (2 sigma^2))`` and moves the pose by their weighted
     Kabsch fit. Hypotheses run one per piece on ``workers`` threads (None: every core); the result
     does not depend on the number. Returns the final rotations, translations and the final
