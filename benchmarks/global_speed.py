@@ -13,8 +13,9 @@ rotating), after one untimed warm-up call each; only the registration call is ti
 and ``kiss-matcher-icp`` (then Open3D point-to-point ICP, as the suite compares it), both from
 :mod:`esmicp.baselines` (``pip install 'esmicp[baselines]'``).
 
-Prints, per protocol and over all trials: each method's median, p90 and strict success, and the
-ratios of esm-global's median to each peer's. Nothing is written.
+Prints, per protocol and over all trials: each method's median, p90 and strict success, and
+esm-global's time against each peer's: the ratio of the medians and, in brackets, the median of
+the per-trial ratios (same trial, consecutive calls). Nothing is written.
 
     python benchmarks/global_speed.py --trials 130
 """
@@ -42,6 +43,12 @@ def _summary(rows: list[dict]) -> tuple[float, float, float]:
         return float("nan"), float("nan"), 0.0
     return (statistics.median(times), float(np.percentile(times, 90)),
             100.0 * sum(bool(row["strict"]) for row in rows) / len(rows))
+
+
+def _paired(mine: list[dict], theirs: list[dict]) -> float:
+    """Median over the trials both timed of (my time / their time)."""
+    ratios = [a["time_s"] / b["time_s"] for a, b in zip(mine, theirs) if "time_s" in a and "time_s" in b]
+    return statistics.median(ratios) if ratios else float("nan")
 
 
 def main(argv=None) -> int:
@@ -77,8 +84,9 @@ def main(argv=None) -> int:
     for name, by_method in groups.items():
         figures = {m: _summary(by_method[m]) for m in methods}
         cells = [f"{figures[m][0]:.1f} / {figures[m][1]:.1f} ({figures[m][2]:.0f})" for m in methods]
-        ratios = [f"{figures['esm-global'][0] / figures[m][0]:.2f}" for m in methods
-                  if m != "esm-global" and "esm-global" in figures]
+        ratios = [f"{figures['esm-global'][0] / figures[m][0]:.2f} "
+                  f"({_paired(by_method['esm-global'], by_method[m]):.2f})"
+                  for m in methods if m != "esm-global" and "esm-global" in figures]
         print(f"| {name} | " + " | ".join(cells) + " | " + " | ".join(ratios) + " |")
     return 0
 

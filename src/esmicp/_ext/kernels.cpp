@@ -17,6 +17,7 @@
 #include <cstdint>
 #include <cstring>
 #include <pthread.h>
+#include <stdexcept>
 #include <limits>
 #include <mutex>
 #include <thread>
@@ -31,6 +32,8 @@ using Arr1 = nb::ndarray<double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 using Arr2 = nb::ndarray<double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 using CIdx = nb::ndarray<const int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 using Idx = nb::ndarray<int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using Idx2 = nb::ndarray<int64_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using CIdx2 = nb::ndarray<const int64_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 
 namespace {
 
@@ -1202,6 +1205,275 @@ void transform_points(CArr2 points, CArr2 rotation, CArr1 translation, Arr2 out_
     });
 }
 
+
+// ---------------------------------------------------------------------------------------------
+// Batched ESM of the global search (esmicp.globalreg.rotation_search.batched_esm): K hypotheses
+// (poses T_target_source) each run `iterations` ESM steps on the same n source points, one
+// hypothesis per piece from start to end (they are independent), so the result does not depend on
+// the number of threads. Per step: the nearest target point of each placed source point (the
+// exact tree, warm-started with the hypothesis' previous neighbours; or the global search's
+// lookup grid), sigma = max(floor, factor * median distance) (the floor itself in the last
+// `fine` steps), Gaussian weights exp(-(d^2 - min d^2) / (2 sigma^2)) normalised to sum 1, the
+// weighted centroids and cross-covariance, Horn's rotation, the composed pose. After the last
+// step, the distances of the placed source (out_distances, K x n).
+
+// The global search's nearest-target lookup table (esmicp.core.nearest_grid.NearestGrid).
+struct Grid {
+    const double *target;   // (M, 3)
+    const int64_t *lookup;  // cell (C order) -> target index
+    double low[3], cell;
+    int64_t shape[3];
+};
+
+inline int64_t grid_cell(const Grid &g, double x, double y, double z) {
+    const double p[3] = {x, y, z};
+    int64_t ijk[3];
+    for (int a = 0; a < 3; ++a) {
+        double f = std::floor((p[a] - g.low[a]) / g.cell);
+        // NaN and out-of-range values go to the border cells, as numpy.clip does after the cast.
+        int64_t v = f >= double(g.shape[a] - 1) ? g.shape[a] - 1 : (f > 0.0 ? int64_t(f) : 0);
+        ijk[a] = v;
+    }
+    return (ijk[0] * g.shape[1] + ijk[1]) * g.shape[2] + ijk[2];
+}
+
+struct GridLookup {
+    const Grid &g;
+    const double *points() const { return g.target; }
+    void operator()(double x, double y, double z, int64_t, double &distance, int64_t &index) const {
+        index = g.lookup[grid_cell(g, x, y, z)];
+        const double ex = x - g.target[3 * index], ey = y - g.target[3 * index + 1], ez = z - g.target[3 * index + 2];
+        distance = std::sqrt(ex * ex + ey * ey + ez * ez);
+    }
+};
+
+// The k nearest target points of every target point (itself among them) and the squared distance
+// to the k-th: every target point strictly nearer than that to a point is in its list.
+struct NeighbourGraph {
+    const int64_t *neighbours;  // (M, k) target indices
+    const double *radii;        // (M,) squared distance to the k-th
+    int64_t k;
+};
+
+//: Descent steps along the graph before a query goes to the tree.
+constexpr int GRAPH_DESCENT_MAX = 8;
+
+struct TreeLookup {
+    const Tree &t;
+    const int64_t *rank;
+    const double *target;  // (M, 3) as given (the neighbours' coordinates)
+    const NeighbourGraph &graph;
+    const double *points() const { return target; }
+    // Exact nearest target point. With a warm start p: walk the graph to a nearer list member
+    // while there is one; when p's list holds none nearer and 2 |q - p| is within p's radius,
+    // every target point nearer to q than p (within 2 |q - p| of p) is in that list: p is the
+    // nearest (certified). Otherwise the tree, seeded with p.
+    void operator()(double x, double y, double z, int64_t warm, double &distance, int64_t &index) const {
+        if (warm >= 0) {
+            auto squared = [&](int64_t j) {
+                const double ex = target[3 * j] - x, ey = target[3 * j + 1] - y, ez = target[3 * j + 2] - z;
+                return ex * ex + ey * ey + ez * ez;
+            };
+            int64_t p = warm;
+            double best = squared(p);
+            for (int step = 0; step < GRAPH_DESCENT_MAX; ++step) {
+                const int64_t *list = graph.neighbours + graph.k * p;
+                int64_t next = -1;
+                for (int64_t j = 0; j < graph.k; ++j) {
+                    const double candidate = squared(list[j]);
+                    if (candidate < best) {
+                        best = candidate;
+                        next = list[j];
+                    }
+                }
+                if (next < 0) {
+                    if (4.0 * best * (1.0 + 1e-9) <= graph.radii[p]) {
+                        distance = std::sqrt(best);
+                        index = p;
+                        return;
+                    }
+                    break;
+                }
+                p = next;
+            }
+            warm = p;
+        }
+        tree_nearest(t, rank, x, y, z, warm, distance, index);
+        if (index >= t.count) {  // a non-finite query point: no neighbour (NaN distance, point 0)
+            index = 0;
+            distance = std::numeric_limits<double>::quiet_NaN();
+        }
+    }
+};
+
+// The k nearest tree points of (x, y, z) below `node` into best (squared distances) and slots,
+// nearest first: the caller fills both with (INF, -1) and starts at the root. Recursive, nearer
+// child first, a child skipped when its box is beyond the current k-th distance.
+void nearest_k(const Tree &t, int64_t node, double x, double y, double z, int64_t k, double *best, int64_t *slots) {
+    const int64_t left = t.lefts[node];
+    if (left >= 0) {
+        const double bounds[2] = {box_distance(t.boxes + 6 * left, x, y, z),
+                                  box_distance(t.boxes + 6 * (left + 1), x, y, z)};
+        const int first = bounds[1] < bounds[0] ? 1 : 0;
+        for (int child : {first, 1 - first})
+            if (bounds[child] < best[k - 1]) nearest_k(t, left + child, x, y, z, k, best, slots);
+        return;
+    }
+    for (int64_t s = t.starts[node]; s < t.ends[node]; ++s) {
+        const double ex = t.points[3 * s] - x, ey = t.points[3 * s + 1] - y, ez = t.points[3 * s + 2] - z;
+        const double squared = ex * ex + ey * ey + ez * ez;
+        if (squared >= best[k - 1]) continue;
+        int64_t j = k - 1;
+        for (; j > 0 && best[j - 1] > squared; --j) {
+            best[j] = best[j - 1];
+            slots[j] = slots[j - 1];
+        }
+        best[j] = squared;
+        slots[j] = s;
+    }
+}
+
+//: Most neighbours per point of a neighbour graph.
+constexpr int64_t GRAPH_K_MAX = 64;
+
+// The neighbour graph of the tree's target (out_neighbours (M, k), out_radii (M,); k <= min(M, 64)).
+void neighbour_graph(CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
+                     Idx2 out_neighbours, Arr1 out_radii, int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t k = int64_t(out_neighbours.shape(1));
+    if (k < 1 || k > GRAPH_K_MAX || k > t.count || int64_t(out_neighbours.shape(0)) != t.count ||
+        int64_t(out_radii.shape(0)) != t.count)
+        throw std::invalid_argument("neighbour_graph: out_neighbours (M, k) with 1 <= k <= min(M, 64), out_radii (M,)");
+    int64_t *neighbours = out_neighbours.data();
+    double *radii = out_radii.data();
+    parallel_pieces(piece_count(t.count, QUERY_PIECE), threads, [&](int64_t piece) {
+        double best[GRAPH_K_MAX];
+        int64_t slots[GRAPH_K_MAX];
+        const int64_t end = std::min(t.count, (piece + 1) * QUERY_PIECE);
+        for (int64_t s = piece * QUERY_PIECE; s < end; ++s) {
+            const int64_t i = t.order[s];
+            std::fill(best, best + k, INF);
+            std::fill(slots, slots + k, int64_t(-1));
+            nearest_k(t, 0, t.points[3 * s], t.points[3 * s + 1], t.points[3 * s + 2], k, best, slots);
+            for (int64_t j = 0; j < k; ++j) neighbours[k * i + j] = t.order[slots[j]];
+            radii[i] = best[k - 1];
+        }
+    });
+}
+
+inline void compose_step(const double *step_r, const double *step_t, double *r, double *t) {
+    double nr[9], nt[3];
+    for (int a = 0; a < 3; ++a) {
+        for (int b = 0; b < 3; ++b)
+            nr[3 * a + b] = step_r[3 * a] * r[b] + step_r[3 * a + 1] * r[3 + b] + step_r[3 * a + 2] * r[6 + b];
+        nt[a] = step_r[3 * a] * t[0] + step_r[3 * a + 1] * t[1] + step_r[3 * a + 2] * t[2] + step_t[a];
+    }
+    std::memcpy(r, nr, sizeof nr);
+    std::memcpy(t, nt, sizeof nt);
+}
+
+template <class Lookup>
+void esm_hypothesis(const Lookup &look, const double *source, int64_t n, double *r, double *t, int64_t iterations,
+                    double floor, double factor, int64_t fine, double *distances, int64_t *indices,
+                    std::vector<double> &moved, std::vector<double> &scratch) {
+    const double *target = look.points();
+    for (int64_t i = 0; i < n; ++i) indices[i] = -1;
+    for (int64_t iteration = 0; iteration <= iterations; ++iteration) {
+        for (int64_t i = 0; i < n; ++i) {
+            double x, y, z;
+            mapped(source, i, r, t, x, y, z);
+            moved[3 * i] = x;
+            moved[3 * i + 1] = y;
+            moved[3 * i + 2] = z;
+            look(x, y, z, indices[i], distances[i], indices[i]);
+        }
+        if (iteration == iterations) return;  // the last query: the final pose's distances
+        double sigma = floor;
+        if (iteration < iterations - fine) {
+            scratch.assign(distances, distances + n);
+            const int64_t half = n / 2;
+            std::nth_element(scratch.begin(), scratch.begin() + half, scratch.end());
+            double median = scratch[half];
+            if (n % 2 == 0) median = 0.5 * (median + *std::max_element(scratch.begin(), scratch.begin() + half));
+            sigma = std::max(floor, factor * median);
+        }
+        double smallest = INF;
+        for (int64_t i = 0; i < n; ++i) smallest = std::min(smallest, distances[i] * distances[i]);
+        const double spread = 2.0 * (sigma * sigma);
+        double total = 0.0;
+        for (int64_t i = 0; i < n; ++i) {
+            scratch[i] = std::exp(-(distances[i] * distances[i] - smallest) / spread);
+            total += scratch[i];
+        }
+        double cp[3] = {0, 0, 0}, cm[3] = {0, 0, 0};
+        for (int64_t i = 0; i < n; ++i) {
+            const double w = scratch[i] / total;
+            scratch[i] = w;
+            const double *m = target + 3 * indices[i];
+            for (int a = 0; a < 3; ++a) {
+                cp[a] += w * moved[3 * i + a];
+                cm[a] += w * m[a];
+            }
+        }
+        double h[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+        for (int64_t i = 0; i < n; ++i) {
+            const double *m = target + 3 * indices[i];
+            const double w = scratch[i];
+            add_outer(h, w, moved[3 * i] - cp[0], moved[3 * i + 1] - cp[1], moved[3 * i + 2] - cp[2], m[0] - cm[0],
+                      m[1] - cm[1], m[2] - cm[2]);
+        }
+        double step_r[9], step_t[3];
+        best_rotation(h, step_r);
+        for (int a = 0; a < 3; ++a)
+            step_t[a] = cm[a] - (step_r[3 * a] * cp[0] + step_r[3 * a + 1] * cp[1] + step_r[3 * a + 2] * cp[2]);
+        compose_step(step_r, step_t, r, t);
+    }
+}
+
+template <class Lookup>
+void esm_hypotheses(const Lookup &look, CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations,
+                    double floor, double factor, int64_t fine, Arr2 out_distances, int threads) {
+    const int64_t count = int64_t(rotations.shape(0)), n = int64_t(source.shape(0));
+    if (rotations.shape(1) != 9 || translations.shape(0) != size_t(count) || translations.shape(1) != 3 ||
+        out_distances.shape(0) != size_t(count) || out_distances.shape(1) != size_t(n) || source.shape(1) != 3)
+        throw std::invalid_argument("batched ESM: rotations (K, 9), translations (K, 3), distances (K, n)");
+    if (n == 0) throw std::invalid_argument("batched ESM: no source points");
+    std::vector<int64_t> indices(size_t(count * n));
+    double *r = rotations.data(), *t = translations.data(), *d = out_distances.data();
+    const double *s = source.data();
+    parallel_pieces(count, threads, [&](int64_t k) {
+        std::vector<double> moved(static_cast<size_t>(3 * n)), scratch(static_cast<size_t>(n));
+        esm_hypothesis(look, s, n, r + 9 * k, t + 3 * k, iterations, floor, factor, fine, d + n * k,
+                       indices.data() + n * k, moved, scratch);
+    });
+}
+
+void batched_esm_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations, double floor,
+                      double factor, int64_t fine, Arr2 out_distances, CArr2 target, CIdx rank, CArr2 tree_points,
+                      CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, CIdx2 graph_neighbours,
+                      CArr1 graph_radii, int threads) {
+    Tree tree{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+              int64_t(tree_points.shape(0))};
+    const int64_t k = int64_t(graph_neighbours.shape(1));
+    if (int64_t(graph_radii.shape(0)) != tree.count || k < 1 || int64_t(graph_neighbours.shape(0)) != tree.count)
+        throw std::invalid_argument("batched ESM: the neighbour graph does not match the target");
+    const NeighbourGraph graph{graph_neighbours.data(), graph_radii.data(), k};
+    esm_hypotheses(TreeLookup{tree, rank.data(), target.data(), graph}, source, rotations, translations, iterations,
+                   floor, factor, fine, out_distances, threads);
+}
+
+void batched_esm_grid(CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations, double floor,
+                      double factor, int64_t fine, Arr2 out_distances, CArr2 target, CIdx lookup, CArr1 low,
+                      double cell, CIdx shape, int threads) {
+    Grid grid{target.data(), lookup.data(), {low.data()[0], low.data()[1], low.data()[2]}, cell,
+              {shape.data()[0], shape.data()[1], shape.data()[2]}};
+    if (int64_t(lookup.shape(0)) != grid.shape[0] * grid.shape[1] * grid.shape[2])
+        throw std::invalid_argument("batched ESM: the lookup table does not match the grid's shape");
+    esm_hypotheses(GridLookup{grid}, source, rotations, translations, iterations, floor, factor, fine, out_distances,
+                   threads);
+}
+
 }  // namespace
 
 NB_MODULE(_kernels, m) {
@@ -1220,6 +1492,9 @@ NB_MODULE(_kernels, m) {
     m.def("nearest_rotation", &closest_rotation);
     m.def("anderson_propose", &anderson_propose);
     m.def("anderson_state_size", &anderson_state_size);
+    m.def("batched_esm_tree", &batched_esm_tree);
+    m.def("batched_esm_grid", &batched_esm_grid);
+    m.def("neighbour_graph", &neighbour_graph);
     m.attr("STEP_OUT") = STEP_OUT;
     nb::class_<Index>(m, "Index")
         .def(nb::init<CArr2, CArr2, CIdx, CIdx, CIdx, CIdx, CIdx, CArr2>())

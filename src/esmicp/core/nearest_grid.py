@@ -50,7 +50,8 @@ class NearestGrid:
             ~occupied.reshape(self.shape), return_distances=False, return_indices=True
         )
         nearest_cell = np.ravel_multi_index(tuple(nearest), tuple(self.shape))
-        self._lookup = representative[nearest_cell.ravel()]
+        #: ``(prod(shape),)`` int64: the target index of each cell (C order), what a query returns.
+        self.lookup = representative[nearest_cell.ravel()].astype(np.int64, copy=False)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -62,6 +63,6 @@ class NearestGrid:
 
     def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(distances, indices)`` of each point's (approximately) nearest target point."""
-        indices = self._lookup[self._cell_index(points)]
+        indices = self.lookup[self._cell_index(points)]
         distances = np.linalg.norm(points - self.points[indices], axis=1)
         return distances, indices

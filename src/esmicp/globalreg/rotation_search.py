@@ -3,9 +3,9 @@
 Rigid registration from an arbitrary pose has many local optima, but ESM (like ICP) converges from
 any start within a few tens of degrees of the truth. So we start from many rotations spread
 evenly over SO(3) (a super-Fibonacci spiral), each with the centroids aligned, run a short ESM
-refinement of ALL of them at once on subsampled clouds (one KD-tree query per iteration for every
-hypothesis together, batched 3x3 SVDs), and keep the ones whose clouds then overlap best under a
-fixed-width Gaussian score. Everything is vectorised over hypotheses and points.
+refinement of ALL of them on subsampled clouds (one compiled call, the hypotheses spread over the
+threads, each one's nearest-neighbour queries warm-started), and keep the ones whose clouds then
+overlap best under a fixed-width Gaussian score.
 """
 
 from __future__ import annotations
@@ -14,8 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import _kernels
+from ..core import compiled_tree
 from ..core.correspondence import NearestNeighbors
-from ..core.procrustes import batched_rotation_from_cross_covariance, to_matrix
+from ..core.nearest_grid import NearestGrid
+from ..core.procrustes import to_matrix
 
 #: Constants of the super-Fibonacci spiral (Alexa, "Super-Fibonacci Spirals", CVPR 2022).
 _PHI = np.sqrt(2.0)
@@ -59,9 +62,39 @@ class Hypotheses:
     scores: np.ndarray
 
 
+#: Neighbours per target point in a :class:`NeighbourGraph`. On the verification calls of 4
+#: ModelNet40 trials (2,000 points), 67 % of the warm-started queries were certified with 8
+#: neighbours, 79 % with 16, 83 % with 24 (the rest go to the tree); counting the graph's build,
+#: 8 to 16 cost about the same, 4 and 24 more (``docs/speed.md``, "Issue 14, third pass").
+GRAPH_NEIGHBOURS = 12
+
+
+@dataclass(frozen=True)
+class NeighbourGraph:
+    """The ``k`` nearest target points of every target point, itself among them (``neighbours``,
+    ``(M, k)`` target indices), and the squared distance to the k-th (``radii``, ``(M,)``, cloud
+    units squared). Every target point strictly nearer than that to a point is in its list, so a
+    query whose warm-start neighbour ``p`` has no nearer point in its list, and lies within half
+    of ``p``'s radius, has ``p`` as its exact nearest neighbour: :func:`batched_esm` answers most
+    of its queries so, without the tree."""
+
+    neighbours: np.ndarray
+    radii: np.ndarray
+
+    @classmethod
+    def of(cls, index: NearestNeighbors, k: int = GRAPH_NEIGHBOURS) -> "NeighbourGraph":
+        """The graph of ``index``'s target, ``k`` (at most the target's size) neighbours each."""
+        tree = index.exact_tree()
+        count = min(int(k), len(tree.points))
+        neighbours, radii = np.empty((len(tree.points), count), dtype=np.int64), np.empty(len(tree.points))
+        _kernels.neighbour_graph(tree.points, tree.order, tree.starts, tree.ends, tree.lefts, tree.boxes, neighbours,
+                                 radii, compiled_tree.threads(index.workers))
+        return cls(neighbours, radii)
+
+
 def batched_esm(
     source: np.ndarray,
-    target: NearestNeighbors,
+    target: NearestNeighbors | NearestGrid,
     rotations: np.ndarray,
     translations: np.ndarray,
     *,
@@ -69,45 +102,44 @@ def batched_esm(
     sigma_floor: float,
     sigma_factor: float = 3.0,
     fine_iterations: int = 0,
+    workers: int | None = None,
+    graph: NeighbourGraph | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Run ``iterations`` ESM steps for K hypotheses at once.
+    """Run ``iterations`` ESM steps for K hypotheses at once, in one compiled call.
 
-    ``rotations`` ``(K, 3, 3)`` and ``translations`` ``(K, 3)`` are the starting ``T_target_source``.
-    Each hypothesis anneals its own sigma as ``max(sigma_floor, sigma_factor * median distance)``;
-    the last ``fine_iterations`` of the ``iterations`` use ``sigma_floor`` itself (the fine phase of
-    :mod:`esmicp.methods.esm`, which keeps outliers from biasing the pose).
-    Returns the final rotations, translations and the last correspondence distances ``(K, n)``.
+    ``rotations`` ``(K, 3, 3)`` and ``translations`` ``(K, 3)`` are the starting ``T_target_source``;
+    ``source`` ``(n, 3)`` is in the source frame, ``target`` an exact index or the global search's
+    lookup grid. With an exact index, each hypothesis' queries start from its previous neighbours
+    and are answered through ``graph`` (:class:`NeighbourGraph` of ``target``, built here if not
+    given) where it certifies them, by the tree otherwise: exact either way. Each hypothesis
+    anneals its own sigma as ``max(sigma_floor, sigma_factor * median distance)`` (cloud units);
+    the last ``fine_iterations`` of the ``iterations`` use ``sigma_floor`` itself (the fine phase
+    of :mod:`esmicp.methods.esm`, which keeps outliers from biasing the pose). Every step weighs
+    the pairs by ``exp(-(d^2 - min d^2) / (2 sigma^2))`` and moves the pose by their weighted
+    Kabsch fit. Hypotheses run one per piece on ``workers`` threads (None: every core); the result
+    does not depend on the number. Returns the final rotations, translations and the final
+    correspondence distances ``(K, n)``.
     """
     count = len(rotations)
-    for iteration in range(iterations):
-        moved = _place(source, rotations, translations)
-        distances, indices = target.query(moved.reshape(-1, 3))
-        distances = distances.reshape(count, -1)
-        matched = target.points[indices].reshape(moved.shape)
-        if iteration >= iterations - fine_iterations:
-            sigma = np.full(count, sigma_floor)
-        else:
-            sigma = np.maximum(sigma_floor, sigma_factor * np.median(distances, axis=1))
-        squared = np.square(distances)
-        weights = np.exp(-(squared - squared.min(axis=1, keepdims=True)) / (2.0 * sigma[:, None] ** 2))
-        weights /= weights.sum(axis=1, keepdims=True)
-        weights = weights[:, :, None]
-        moved_centroid = (weights * moved).sum(axis=1)
-        matched_centroid = (weights * matched).sum(axis=1)
-        cross = np.matmul(
-            np.swapaxes(weights * (moved - moved_centroid[:, None, :]), 1, 2), matched - matched_centroid[:, None, :]
-        )
-        step_rotation = batched_rotation_from_cross_covariance(cross)
-        step_translation = matched_centroid - np.matmul(step_rotation, moved_centroid[:, :, None])[:, :, 0]
-        rotations = np.matmul(step_rotation, rotations)
-        translations = np.matmul(step_rotation, translations[:, :, None])[:, :, 0] + step_translation
-    distances, _ = target.query(_place(source, rotations, translations).reshape(-1, 3))
-    return rotations, translations, distances.reshape(count, -1)
-
-
-def _place(source: np.ndarray, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
-    """``(K, n, 3)``: the source under each of the K poses."""
-    return np.matmul(source[None, :, :], np.swapaxes(rotations, 1, 2)) + translations[:, None, :]
+    source = np.ascontiguousarray(source, dtype=np.float64)
+    rotations = np.array(rotations, dtype=np.float64).reshape(count, 9)
+    translations = np.array(translations, dtype=np.float64).reshape(count, 3)
+    distances = np.empty((count, len(source)))
+    if count == 0:
+        return rotations.reshape(0, 3, 3), translations, distances
+    schedule = (int(iterations), float(sigma_floor), float(sigma_factor), int(fine_iterations))
+    points = np.ascontiguousarray(target.points, dtype=np.float64)
+    threads = compiled_tree.threads(workers)
+    if isinstance(target, NearestGrid):
+        _kernels.batched_esm_grid(source, rotations, translations, *schedule, distances, points, target.lookup,
+                                  target.low, target.cell, target.shape.astype(np.int64), threads)
+    else:
+        tree = target.exact_tree()
+        graph = NeighbourGraph.of(target) if graph is None else graph
+        _kernels.batched_esm_tree(source, rotations, translations, *schedule, distances, points, tree.rank,
+                                  tree.points, tree.order, tree.starts, tree.ends, tree.lefts, tree.boxes,
+                                  graph.neighbours, graph.radii, threads)
+    return rotations.reshape(count, 3, 3), translations, distances
 
 
 def gaussian_overlap_score(distances: np.ndarray, width: float) -> np.ndarray:
@@ -118,7 +150,7 @@ def gaussian_overlap_score(distances: np.ndarray, width: float) -> np.ndarray:
 
 def rotation_search(
     source: np.ndarray,
-    target: NearestNeighbors,
+    target: NearestNeighbors | NearestGrid,
     *,
     rotations: int = 96,
     iterations: int = 12,
@@ -126,13 +158,14 @@ def rotation_search(
     sigma_floor: float,
     source_centroid: np.ndarray | None = None,
     target_centroid: np.ndarray | None = None,
+    workers: int | None = None,
 ) -> Hypotheses:
     """Score ``rotations`` starting rotations (a :func:`so3_grid`) after a short batched ESM.
 
     ``source`` should be a subsample (a few hundred points); ``target`` an index over a (possibly
     subsampled) target. Each start aligns ``source_centroid`` with ``target_centroid`` (defaults:
     the clouds' means). Returns every hypothesis with its :func:`gaussian_overlap_score` of width
-    ``score_width`` (cloud units), best first.
+    ``score_width`` (cloud units), best first. ``workers``: threads of :func:`batched_esm`.
     """
     if source_centroid is None:
         source_centroid = source.mean(axis=0)
@@ -141,7 +174,7 @@ def rotation_search(
     starts = so3_grid(rotations)
     translations = target_centroid - starts @ source_centroid
     final_rotations, final_translations, distances = batched_esm(
-        source, target, starts, translations, iterations=iterations, sigma_floor=sigma_floor
+        source, target, starts, translations, iterations=iterations, sigma_floor=sigma_floor, workers=workers
     )
     scores = gaussian_overlap_score(distances, score_width)
     order = np.argsort(-scores, kind="stable")

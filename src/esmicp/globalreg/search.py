@@ -37,15 +37,15 @@ choices").
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..core.correspondence import NearestNeighbors
 from ..core.nearest_grid import NearestGrid
-from ..core.procrustes import bounding_box_diagonal, rotation_angle, to_matrix
+from ..core.procrustes import bounding_box_diagonal, to_matrix
 from . import DISTINCT_ROTATION_DEG
-from .rotation_search import batched_esm, gaussian_overlap_score, rotation_search
+from .rotation_search import NeighbourGraph, batched_esm, gaussian_overlap_score, rotation_search
 
 #: Names accepted as ``init=`` strategies for global registration.
 STRATEGIES = ("auto", "rotation-search", "features", "scan")
@@ -145,17 +145,23 @@ def _subsample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.n
 
 def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> list[int]:
     """Indices (in ``order``) of up to ``limit`` poses, each distinct from those before it."""
+    order = [int(index) for index in order]
+    if not order:
+        return []
+    rotations = transformations[order, :3, :3]
+    relative = np.matmul(np.swapaxes(rotations, 1, 2)[:, None], rotations[None])  # R_a^T R_b for every pair
+    skew = np.stack([relative[..., 2, 1] - relative[..., 1, 2], relative[..., 0, 2] - relative[..., 2, 0],
+                     relative[..., 1, 0] - relative[..., 0, 1]], axis=-1)
+    trace = np.trace(relative, axis1=-2, axis2=-1)
+    # The geodesic angle as :func:`~esmicp.core.procrustes.rotation_angle` computes it, for all pairs.
+    angles = np.degrees(np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), 0.5 * (trace - 1.0)))
     kept: list[int] = []
-    for index in order:
-        rotation = transformations[index, :3, :3]
-        if all(
-            np.degrees(rotation_angle(rotation.T @ transformations[other, :3, :3])) > DISTINCT_ROTATION_DEG
-            for other in kept
-        ):
-            kept.append(int(index))
+    for position in range(len(order)):
+        if (angles[position, kept] > DISTINCT_ROTATION_DEG).all():
+            kept.append(position)
             if len(kept) == limit:
                 break
-    return kept
+    return [order[position] for position in kept]
 
 
 @dataclass
@@ -169,6 +175,13 @@ class _Workspace:
     index: NearestNeighbors  # over ``target`` or a subsample of it
     spacing: float
     width: float
+    graphs: dict[int, NeighbourGraph] = field(default_factory=dict)  # by id() of ``index`` / ``full_index``
+
+    def graph(self, index: NearestNeighbors) -> NeighbourGraph:
+        """The :class:`NeighbourGraph` of ``index`` (one of the two above), built once."""
+        if id(index) not in self.graphs:
+            self.graphs[id(index)] = NeighbourGraph.of(index)
+        return self.graphs[id(index)]
 
 
 def global_estimate(
@@ -287,6 +300,7 @@ def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
     found = rotation_search(
         _subsample(work.source, SEARCH_POINTS, work.rng), grid,
         rotations=SEARCH_ROTATIONS, iterations=SEARCH_ITERATIONS, score_width=work.width, sigma_floor=work.width,
+        workers=work.full_index.workers,
     )
     return [found.transformations[k] for k in _distinct(found.transformations, np.arange(len(found.scores)), VERIFY_CANDIDATES)]
 
@@ -300,10 +314,11 @@ def _feature_candidates(work: _Workspace) -> list[np.ndarray]:
     return [hypothesis.transformation for hypothesis in hypotheses]
 
 
-def _batched_verification(index, source_points, transformations, iterations, width, sigma=None):
+def _batched_verification(work, index, source_points, transformations, iterations, width, sigma=None):
     rotations, translations, distances = batched_esm(
         source_points, index, transformations[:, :3, :3], transformations[:, :3, 3],
         iterations=iterations, sigma_floor=width if sigma is None else sigma, fine_iterations=iterations,
+        workers=index.workers, graph=work.graph(index),
     )
     refined = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
     return refined, gaussian_overlap_score(distances, width)
@@ -323,7 +338,7 @@ def _verify(
     origins_array = np.array(origins)
     for points, iterations, keep in VERIFY_ROUNDS:
         verified, scores = _batched_verification(
-            work.index, _subsample(work.source, points, work.rng), verified, iterations, work.width
+            work, work.index, _subsample(work.source, points, work.rng), verified, iterations, work.width
         )
         survivors = _distinct(verified, np.argsort(-scores, kind="stable"), keep)
         verified, scores, origins_array = verified[survivors], scores[survivors], origins_array[survivors]
@@ -348,7 +363,7 @@ def _decide(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     full_width = SCORE_WIDTH_SPACINGS * full_spacing if full_spacing > 0 else work.width
     sigma = DECIDE_SIGMA_SPACINGS * full_spacing if full_spacing > 0 else None
     refined, decided = _batched_verification(
-        work.full_index, _subsample(work.source, DECIDE_POINTS, work.rng), estimate.transformations,
+        work, work.full_index, _subsample(work.source, DECIDE_POINTS, work.rng), estimate.transformations,
         DECIDE_ITERATIONS, full_width, sigma=sigma,
     )
     # Coverage the other way: the target points (clean, unlike a noisy source) lying on the placed
