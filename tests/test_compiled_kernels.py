@@ -205,6 +205,39 @@ def test_the_one_call_iteration_gives_the_pose_of_the_numpy_step(method, count):
     np.testing.assert_allclose(fused.transformation, plain.transformation, rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("count", [1000, 40000])
+def test_a_step_below_reject_below_stops_after_its_queries(count):
+    """``reject_below`` (the trial of an accelerated pose that fits worse): above the objective the
+    step stops after its queries, with the same neighbours, RMS distance and objective as the
+    whole step; at or below it the whole step runs (the helper threads and threads per call)."""
+    from esmicp import _kernels
+
+    target = _bunny_like(count, 8)
+    source = np.ascontiguousarray(_bunny_like(count, 9))
+    pose = np.eye(4)
+    pose[:3, 3] = [0.01, -0.02, 0.005]
+    weighting = np.array([0.0, 0.02, 3.0, 1.0, 1.0])  # the fine phase: sigma = the floor, 0.02
+
+    def step(reject_below):
+        index = NearestNeighbors(target, workers=2)
+        indices, distances, out = np.empty(count, dtype=np.int64), np.empty(count), np.full(_kernels.STEP_OUT, -7.0)
+        index.step(source, pose, indices, distances, out, warm=False, weighting=weighting, objective_sigma=0.02,
+                   reject_below=reject_below)
+        return indices, distances, out
+
+    whole_indices, whole_distances, whole = step(-np.inf)
+    assert whole[39] == 0.0 and 0.0 < whole[2] < 1.0
+    stopped_indices, stopped_distances, stopped = step(np.nextafter(whole[2], np.inf))
+    assert stopped[39] == 1.0
+    np.testing.assert_array_equal(stopped_indices, whole_indices)
+    np.testing.assert_array_equal(stopped_distances, whole_distances)
+    np.testing.assert_array_equal(stopped[1:4], whole[1:4])
+    assert np.all(stopped[4:39] == -7.0)  # nothing past the queries was computed
+    _, _, again = step(whole[2])
+    assert again[39] == 0.0
+    np.testing.assert_array_equal(again[:39], whole[:39])
+
+
 def test_coincident_points_are_counted_exactly():
     from esmicp.core.correspondence import coincident_points
 

@@ -95,6 +95,11 @@ void parallel_pieces(int64_t pieces, int threads, F &&work) {
 // millisecond, the loop around it sees Ctrl-C.
 constexpr auto POOL_SPIN = std::chrono::microseconds(200);
 
+//: Below this many source points, Index::step runs both its passes (queries, moments) on the
+//: persistent helper threads (a call of that size lasts a few milliseconds at most: the loop
+//: around it sees Ctrl-C in time).
+constexpr int64_t POOLED_STEP_MAX = 32768;
+
 struct Pool {
     std::mutex mutex;
     std::condition_variable wake;
@@ -556,9 +561,11 @@ constexpr int64_t SUM_PIECE = 4096;
 
 // The 17 moments of the pairs (R x_i + t, target[indices[i]]) with weights
 // exp(-(d_i^2 - shift) * scale) (1 where scale is 0): sum w, sum w^2, the weighted centroids and
-// the weighted cross-covariance (see esmicp.core.moments.pair_moments).
+// the weighted cross-covariance (see esmicp.core.moments.pair_moments). `pooled`: on the
+// persistent helper threads (Index::step below POOLED_STEP_MAX points), else threads per call.
 void moments_of_pairs(const double *s, int64_t count, const double *r, const double *tr, const double *tg,
-                      const int64_t *ix, const double *d, double scale, double shift, double *o, int threads) {
+                      const int64_t *ix, const double *d, double scale, double shift, double *o, int threads,
+                      bool pooled) {
     double sref[3], tref[3];
     for (int a = 0; a < 3; ++a) {
         sref[a] = r[3 * a] * s[0] + r[3 * a + 1] * s[1] + r[3 * a + 2] * s[2] + tr[a];
@@ -566,8 +573,7 @@ void moments_of_pairs(const double *s, int64_t count, const double *r, const dou
     }
     const int64_t pieces = piece_count(count, SUM_PIECE);
     std::vector<double> partial(17 * pieces, 0.0);
-    if (count < 8192) threads = 1;
-    parallel_pieces(pieces, threads, [&](int64_t piece) {
+    auto moments = [&](int64_t piece) {
         double w0 = 0, w1 = 0, ax = 0, ay = 0, az = 0, bx = 0, by = 0, bz = 0;
         double c[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
         int64_t end = std::min(count, (piece + 1) * SUM_PIECE);
@@ -596,7 +602,12 @@ void moments_of_pairs(const double *s, int64_t count, const double *r, const dou
         double *row = partial.data() + 17 * piece;
         row[0] = w0; row[1] = w1; row[2] = ax; row[3] = ay; row[4] = az; row[5] = bx; row[6] = by; row[7] = bz;
         for (int k = 0; k < 9; ++k) row[8 + k] = c[k];
-    });
+    };
+    if (pooled) {
+        pooled_pieces(pieces, threads, moments);
+    } else {
+        parallel_pieces(pieces, count < 8192 ? 1 : threads, moments);
+    }
     double sums[17] = {0};
     for (int64_t p = 0; p < pieces; ++p)
         for (int k = 0; k < 17; ++k) sums[k] += partial[17 * p + k];
@@ -615,7 +626,7 @@ void moments_of_pairs(const double *s, int64_t count, const double *r, const dou
 void pair_moments(CArr2 source, CArr2 rotation, CArr1 translation, CArr2 target, CIdx indices, CArr1 distances,
                   double scale, double shift, Arr1 out, int threads) {
     moments_of_pairs(source.data(), int64_t(source.shape(0)), rotation.data(), translation.data(), target.data(),
-                     indices.data(), distances.data(), scale, shift, out.data(), threads);
+                     indices.data(), distances.data(), scale, shift, out.data(), threads, false);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -974,15 +985,14 @@ bool anderson_propose(CArr2 current_, CArr2 plain_, Arr1 state_, double scale, i
 // Weighting (`weighting`, 5 numbers): fixed sigma (> 0) or 0; the sigma floor; the factor on the
 // median distance; 1 in the fine phase (sigma = floor) else 0; 1 for Gaussian weights, 0 for
 // weights of 1 (icp). Objective sigma (> 0: also return the mean of exp(-d^2 / (2 s^2))).
+// `reject_below`: when that mean is below it (the loop's trial of an accelerated pose that fits
+// worse than the pose it came from), the step stops after the queries: out holds the rmse, the
+// objective and the misses, and out[39] = 1 (else 0).
 //
 // out (STEP_OUT numbers): sigma, rmse, objective, misses, effective pairs, increment angle,
 // increment translation norm, R (9), t (3), the composed pose (16, re-orthonormalised), the motion
-// of the pose (angle, translation norm).
+// of the pose (angle, translation norm), sum of weights, sum of squared weights, rejected (1/0).
 constexpr int STEP_OUT = 40;
-
-//: Below this many source points, Index::step queries on the persistent helper threads (a call
-//: of that size lasts a few milliseconds at most: the loop around it sees Ctrl-C in time).
-constexpr int64_t POOLED_STEP_MAX = 32768;
 
 struct Index {
     CArr2 target;
@@ -1014,12 +1024,13 @@ struct Index {
     }
 
     void step(CArr2 source, CArr2 pose, Idx indices, Arr1 distances, bool warm, bool use_hash, CArr1 weighting_,
-              double objective_sigma, Arr1 out_, int threads) {
+              double objective_sigma, double reject_below, Arr1 out_, int threads) {
         const int64_t count = int64_t(source.shape(0));
         if (count == 0) throw nb::value_error("step needs at least one source point");
         if (int64_t(indices.shape(0)) != count || int64_t(distances.shape(0)) != count)
             throw nb::value_error("step: indices and distances must have one entry per source point");
         if (pose.shape(0) != 4 || pose.shape(1) != 4) throw nb::value_error("step: pose must be 4x4");
+        if (int64_t(out_.shape(0)) < STEP_OUT) throw nb::value_error("step: out must hold STEP_OUT numbers");
         const double *T = pose.data(), *s = source.data(), *weighting = weighting_.data();
         const double r0[9] = {T[0], T[1], T[2], T[4], T[5], T[6], T[8], T[9], T[10]};
         const double t0[3] = {T[3], T[7], T[11]};
@@ -1073,6 +1084,11 @@ struct Index {
             least = std::min(least, partial[4 * p + 2]);
             objective += partial[4 * p + 3];
         }
+        out[1] = std::sqrt(squares / double(count));
+        out[2] = objective / double(count);
+        out[3] = misses;
+        out[39] = out[2] < reject_below ? 1.0 : 0.0;
+        if (out[39] != 0.0) return;
         // The sigma of this step.
         const double fixed = weighting[0], floor = weighting[1], factor = weighting[2];
         const bool fine = weighting[3] != 0.0, gaussian = weighting[4] != 0.0;
@@ -1095,7 +1111,8 @@ struct Index {
         }
         // Pass 2: the moments, and the increment.
         double m[17];
-        moments_of_pairs(s, count, r0, t0, target.data(), ix, d, scale, gaussian ? least : 0.0, m, threads);
+        moments_of_pairs(s, count, r0, t0, target.data(), ix, d, scale, gaussian ? least : 0.0, m, threads,
+                         count < POOLED_STEP_MAX);
         double r[9], tr[3];
         best_rotation(m + 8, r);
         for (int a = 0; a < 3; ++a) tr[a] = m[5 + a] - (r[3 * a] * m[2] + r[3 * a + 1] * m[3] + r[3 * a + 2] * m[4]);
@@ -1115,9 +1132,6 @@ struct Index {
         for (int i = 0; i < 3; ++i)
             moved[i] = translation[i] - (relative[3 * i] * t0[0] + relative[3 * i + 1] * t0[1] + relative[3 * i + 2] * t0[2]);
         out[0] = sigma;
-        out[1] = std::sqrt(squares / double(count));
-        out[2] = objective / double(count);
-        out[3] = misses;
         out[4] = m[1] > 0.0 ? m[0] * m[0] / m[1] : 0.0;
         out[5] = angle_of(r);
         out[6] = std::sqrt(tr[0] * tr[0] + tr[1] * tr[1] + tr[2] * tr[2]);
@@ -1134,7 +1148,6 @@ struct Index {
         out[36] = std::sqrt(moved[0] * moved[0] + moved[1] * moved[1] + moved[2] * moved[2]);
         out[37] = m[0];
         out[38] = m[1];
-        out[39] = 0.0;
     }
 };
 

@@ -115,7 +115,8 @@ class NearestNeighbors:
         return distances, indices
 
     def step(self, source: np.ndarray, transformation: np.ndarray, indices: np.ndarray, distances: np.ndarray,
-             out: np.ndarray, *, warm: bool, weighting: np.ndarray, objective_sigma: float) -> np.ndarray:
+             out: np.ndarray, *, warm: bool, weighting: np.ndarray, objective_sigma: float,
+             reject_below: float = -np.inf) -> np.ndarray:
         """One local iteration in one compiled call: the nearest target point of each source point
         as placed by ``transformation`` (exactly what :meth:`query_near` returns, written into
         ``indices`` and ``distances``; ``warm``: ``indices`` holds last iteration's neighbours), the
@@ -125,16 +126,19 @@ class NearestNeighbors:
         int64 and ``distances`` (N,) float64 are filled in place. ``weighting`` is
         ``(fixed sigma or 0, sigma floor, factor on the median distance, 1 in the fine phase, 1 for
         Gaussian weights / 0 for weights of 1)``; ``objective_sigma`` > 0 asks for the mean
-        Gaussian similarity at that sigma too. ``out`` (``_kernels.STEP_OUT``): sigma, RMS
-        distance, objective, misses, effective pairs, increment angle and translation norm,
-        increment rotation (9) and translation (3), the composed pose (16), its motion (angle,
-        translation norm), sum of weights, sum of squared weights.
+        Gaussian similarity at that sigma too; when that is below ``reject_below`` (the trial of an
+        accelerated pose that fits worse than the pose it came from) the call stops after the
+        queries, and ``out`` holds only the RMS distance, the objective, the misses and the flag.
+        ``out`` (``_kernels.STEP_OUT``): sigma, RMS distance, objective, misses, effective pairs,
+        increment angle and translation norm, increment rotation (9) and translation (3), the
+        composed pose (16), its motion (angle, translation norm), sum of weights, sum of squared
+        weights, 1.0 if the call stopped below ``reject_below`` (else 0.0).
         """
         near = len(source) >= NEAR_QUERY_MIN
         index = self._compiled_index(near)
         use_hash = bool(near and self._index_hashed and self._hash_misses <= HASH_MISS_LIMIT)
-        index.step(source, transformation, indices, distances, warm, use_hash, weighting, objective_sigma, out,
-                   compiled_tree.threads(self.workers))
+        index.step(source, transformation, indices, distances, warm, use_hash, weighting, objective_sigma,
+                   reject_below, out, compiled_tree.threads(self.workers))
         if near and self._index_hashed:
             self._hash_misses = float(out[3]) / len(source)
         return out
