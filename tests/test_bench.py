@@ -422,20 +422,23 @@ def test_slow_methods_run_on_their_trial_budget_only(tmp_path, monkeypatch):
         BenchConfig(**common, slow_trials=-1)
 
 
-def test_a_slow_method_that_stalls_on_outliers_skips_the_random_outlier_groups(tmp_path, monkeypatch):
-    """Go-ICP (``icp`` stands in) runs on no randomised outlier group within the budget, but on
-    the clean groups and, with ``slow_trials=0``, everywhere."""
+def test_a_printed_only_slow_method_runs_on_the_clean_printed_cases_alone(tmp_path, monkeypatch):
+    """Go-ICP (``icp`` stands in) runs on no randomised trial and on no printed case with
+    outliers within the budget, on every printed case without; with ``slow_trials=0`` everywhere."""
     from esmicp.bench import runner
 
-    monkeypatch.setattr(runner, "SLOW_METHODS", ("icp", "esm"))
-    monkeypatch.setattr(runner, "SLOW_WITHOUT_OUTLIERS", ("icp",))
-    common = dict(protocols=("copy", "outliers-30"), datasets=("synthetic",), methods=("esm", "icp"), trials=2,
-                  points=(200,), max_iterations=5)
+    monkeypatch.setattr(runner, "SLOW_METHODS", ("icp",))
+    monkeypatch.setattr(runner, "SLOW_ON_PRINTED_ONLY", ("icp",))
+    data = require_shared("modelnet40").parent
+    common = dict(protocols=("paper-noise-30",), datasets=("modelnet40",), methods=("esm", "icp"), trials=1,
+                  points=(300,), max_iterations=3, paper_tables=True, data_dir=str(data))
     budget = read_rows_of(tmp_path / "budget", BenchConfig(**common, slow_trials=1))
-    assert sorted((r["method"], r["protocol"]) for r in budget) == [
-        ("esm", "copy"), ("esm", "outliers-30"), ("icp", "copy")]
+    printed = {r["case"] for r in budget if r["protocol"] == "paper-table" and r["method"] == "esm"}
+    assert {"vase-outliers-30", "airplane"} <= printed
+    icp = {(r["protocol"], r.get("case")) for r in budget if r["method"] == "icp"}
+    assert icp == {("paper-table", case) for case in printed if "outliers" not in case}
     everything = read_rows_of(tmp_path / "all", BenchConfig(**common, slow_trials=0))
-    assert sum(r["method"] == "icp" and r["protocol"] == "outliers-30" for r in everything) == 2
+    assert sum(r["method"] == "icp" for r in everything) == sum(r["method"] == "esm" for r in everything)
 
 
 def read_rows_of(out_dir, config):

@@ -71,12 +71,12 @@ class BenchConfig:
         group, on every object dataset holding those classes. The paper's setting is 1,000 trials
         and ``max_iterations=100`` (``esmicp bench --paper-1000``).
     slow_trials : int
-        Methods of :data:`esmicp.bench.methods.SLOW_METHODS` (seconds per trial: Go-ICP's
-        branch-and-bound, CPD's EM) run only on the first ``slow_trials`` trials of each
-        randomised (protocol, dataset, points, range) group, and on every ``paper-table`` case;
-        those of :data:`esmicp.bench.methods.SLOW_WITHOUT_OUTLIERS` (Go-ICP) on no randomised
-        group with outliers. 0 means every method on every trial. The tables give each cell's
-        trial count, so a row run on fewer trials says so.
+        Methods of :data:`esmicp.bench.methods.SLOW_METHODS` (about a second or more per trial:
+        Go-ICP, CPD, ICP-NL) run only on the first ``slow_trials`` trials of each randomised
+        (protocol, dataset, points, range) group, and on every ``paper-table`` case; those of
+        :data:`esmicp.bench.methods.SLOW_ON_PRINTED_ONLY` (Go-ICP) on the printed cases without
+        outliers only. 0 means every method on every trial. The tables give each cell's trial
+        count, so a row run on fewer trials says so.
     data_dir : str
         The shared data folder (``modelnet40/``, ``bunny/``, ...).
     """

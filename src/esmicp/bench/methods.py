@@ -60,14 +60,14 @@ def method_kind(name: str) -> str:
     return _baselines().BASELINE_KINDS.get(name, "global")
 
 
-#: Methods that take seconds per trial (Go-ICP's branch-and-bound; CPD's EM, O(N x M) per
-#: iteration), run on a budget of trials (:attr:`esmicp.bench.config.BenchConfig.slow_trials`;
-#: their cost in docs/bench-paper.md, "Run time").
-SLOW_METHODS = ("go-icp", "cpd")
-#: Slow methods that never end within their time limit on a source with outliers (Go-ICP, which
-#: the adapter runs untrimmed): left out of the randomised outlier groups too, unless
-#: ``slow_trials`` is 0; the paper's printed outlier cases still run them.
-SLOW_WITHOUT_OUTLIERS = ("go-icp",)
+#: Methods that take about a second or more per trial (Go-ICP's branch-and-bound; CPD's EM, O(N x M)
+#: per iteration; ICP-NL's Levenberg-Marquardt), run on a budget of trials
+#: (:attr:`esmicp.bench.config.BenchConfig.slow_trials`; their cost in docs/bench-paper.md, "Run time").
+SLOW_METHODS = ("go-icp", "cpd", "icp-nl")
+#: Slow methods run on the paper's printed cases without outliers only (unless ``slow_trials`` is
+#: 0): Go-ICP, seconds to tens of seconds per trial, which never ends within its time limit on a
+#: source with outliers (the adapter runs it untrimmed).
+SLOW_ON_PRINTED_ONLY = ("go-icp",)
 
 
 def is_learned(name: str) -> bool:

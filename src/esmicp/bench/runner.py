@@ -21,8 +21,8 @@ from ..errors import InvalidInputError, PointCloudFileError
 from . import results, tables
 from .config import PAPER_PROTOCOLS, SCAN_PROTOCOL, BenchConfig, RunOptions
 from .datasets import POINTS_INDEPENDENT, load_dataset
-from .methods import SIGMA_METHODS, SLOW_METHODS, SLOW_WITHOUT_OUTLIERS, check_methods
-from .paper import PAPER_NOISE_FRACTIONS
+from .methods import SIGMA_METHODS, SLOW_METHODS, SLOW_ON_PRINTED_ONLY, check_methods
+from .paper import PAPER_CASES, PAPER_NOISE_FRACTIONS
 from .protocols import OUTLIER_FRACTIONS
 from .trials import (
     PAPER_TABLE,
@@ -80,17 +80,23 @@ def _runs(config: BenchConfig) -> list[tuple[str, float | None]]:
 
 
 def _runs_of(spec, runs, config: BenchConfig) -> list[tuple[str, float | None]]:
-    """The runs of one trial: every run, but slow methods only within their trial budget (the
-    first ``slow_trials`` trials of a randomised group, and none of an outlier group for
-    :data:`~esmicp.bench.methods.SLOW_WITHOUT_OUTLIERS`); every run on a ``paper-table`` case."""
-    if config.slow_trials == 0 or spec.case is not None:
+    """The runs of one trial: every run, but slow methods only within their trial budget: the
+    first ``slow_trials`` trials of a randomised group and every ``paper-table`` case, and for
+    :data:`~esmicp.bench.methods.SLOW_ON_PRINTED_ONLY` the printed cases without outliers only."""
+    if config.slow_trials == 0:
         return runs
-    outliers = OUTLIER_FRACTIONS.get(spec.protocol, PAPER_NOISE_FRACTIONS.get(spec.protocol, 0.0)) > 0.0
+    printed = spec.case is not None
+    clean = (PAPER_CASE_NOISE[spec.case] if printed else
+             OUTLIER_FRACTIONS.get(spec.protocol, PAPER_NOISE_FRACTIONS.get(spec.protocol, 0.0))) == 0.0
     return [
         (method, sigma) for method, sigma in runs
         if method not in SLOW_METHODS
-        or (spec.index < config.slow_trials and not (outliers and method in SLOW_WITHOUT_OUTLIERS))
+        or (printed and clean if method in SLOW_ON_PRINTED_ONLY else printed or spec.index < config.slow_trials)
     ]
+
+
+#: Outlier fraction of each printed paper case, by name.
+PAPER_CASE_NOISE = {case.name: case.noise_fraction for case in PAPER_CASES}
 
 
 def plan(config: BenchConfig) -> list[_Planned]:

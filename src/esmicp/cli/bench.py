@@ -77,9 +77,9 @@ def add_parser(commands) -> argparse.ArgumentParser:
     bench.add_argument("--points", type=_numbers(int), help="cloud sizes, comma-separated (default 1024,2048)")
     bench.add_argument("--seed", type=int, help="base seed of every trial (default 0)")
     bench.add_argument("--slow-trials", type=nonnegative_int, metavar="N",
-                       help="run the slow methods (go-icp, cpd: seconds per trial) on the first N trials of "
-                       "each randomised group only (go-icp on none with outliers, where it never ends within its "
-                       "limit), and on every paper-table case (default 1; 0: every method on every trial)")
+                       help="run the slow methods (cpd, icp-nl: a second or more per trial) on the first N "
+                       "trials of each randomised group only and on every paper-table case, go-icp on the "
+                       "paper-table cases without outliers only (default 1; 0: every method on every trial)")
     bench.add_argument("--max-iterations", type=positive_int, help="iteration budget of every local method (default 40)")
     bench.add_argument("--init", choices=("identity", "perturbed"),
                        help="start of every local method: identity (default) or perturbed (the truth moved by "
