@@ -256,18 +256,12 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     the polish's, with the iterations of every stage and ``converged`` from the subsample run (the
     polish only sharpens it; a polish the guard rejected makes it False)."""
     strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
-    plane_iterations, plane_note = 0, ""
+    plane_iterations = 0
     if request.method == "esm":
-        plane_criteria = dataclasses.replace(
-            request.criteria, max_iterations=min(PLANE_ITERATIONS, request.criteria.max_iterations - 1))
-        if plane_criteria.max_iterations > 0:
-            planar = make_estimator("esm-plane", request.sigma, target_index.spacing(), diagonal)
-            plane = guarded_refine(strided, target_index, planar, init=initial, criteria=plane_criteria, scale=diagonal)
-            if plane.num_iterations > 0:
-                initial, plane_iterations = plane.transformation, plane.num_iterations
-                plane_note = f"{plane_iterations} esm-plane iteration(s), then "
-                request = dataclasses.replace(request, criteria=dataclasses.replace(
-                    request.criteria, max_iterations=request.criteria.max_iterations - plane_iterations))
+        initial, plane_iterations = _plane_start(strided, target_index, initial, request, diagonal)
+        request = dataclasses.replace(request, criteria=dataclasses.replace(
+            request.criteria, max_iterations=request.criteria.max_iterations - plane_iterations))
+    plane_note = f"{plane_iterations} esm-plane iteration(s), then " if plane_iterations else ""
     coarse = guarded_refine(strided, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal)
     if coarse.num_iterations == 0:
         return coarse  # no start to refine (the guard's message says why)
@@ -285,6 +279,19 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
         num_iterations=plane_iterations + coarse.num_iterations + polish.num_iterations,
         message=f"{where}; then {polish.num_iterations} iteration(s) on all {len(source):,}",
     )
+
+
+def _plane_start(strided, target_index, initial, request: _Request, diagonal: float) -> tuple[np.ndarray, int]:
+    """``(pose, iterations)`` of at most ``PLANE_ITERATIONS`` ``esm-plane`` iterations on the
+    strided source from ``initial``, leaving ``esm`` at least one iteration of ``max_iterations``;
+    ``(initial, 0)`` when the budget leaves none or the guard refused the start."""
+    budget = min(PLANE_ITERATIONS, request.criteria.max_iterations - 1)
+    if budget <= 0:
+        return initial, 0
+    planar = make_estimator("esm-plane", request.sigma, target_index.spacing(), diagonal)
+    criteria = dataclasses.replace(request.criteria, max_iterations=budget)
+    plane = guarded_refine(strided, target_index, planar, init=initial, criteria=criteria, scale=diagonal)
+    return (plane.transformation, plane.num_iterations) if plane.num_iterations > 0 else (initial, 0)
 
 
 def _evaluate(source, target_index, transformation, request: _Request) -> tuple[float, float, float]:

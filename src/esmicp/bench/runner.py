@@ -22,8 +22,7 @@ from . import results, tables
 from .config import PAPER_PROTOCOLS, SCAN_PROTOCOL, BenchConfig, RunOptions
 from .datasets import POINTS_INDEPENDENT, load_dataset
 from .methods import SIGMA_METHODS, SLOW_METHODS, SLOW_ON_PRINTED_ONLY, check_methods
-from .paper import PAPER_CASES, PAPER_NOISE_FRACTIONS
-from .protocols import OUTLIER_FRACTIONS
+from .paper import PAPER_CASES
 from .trials import (
     PAPER_TABLE,
     TrialSpec,
@@ -79,6 +78,10 @@ def _runs(config: BenchConfig) -> list[tuple[str, float | None]]:
     return runs
 
 
+#: Outlier fraction of each printed paper case, by name.
+PAPER_CASE_NOISE = {case.name: case.noise_fraction for case in PAPER_CASES}
+
+
 def _runs_of(spec, runs, config: BenchConfig) -> list[tuple[str, float | None]]:
     """The runs of one trial: every run, but slow methods only within their trial budget: the
     first ``slow_trials`` trials of a randomised group and every ``paper-table`` case, and for
@@ -86,17 +89,12 @@ def _runs_of(spec, runs, config: BenchConfig) -> list[tuple[str, float | None]]:
     if config.slow_trials == 0:
         return runs
     printed = spec.case is not None
-    clean = (PAPER_CASE_NOISE[spec.case] if printed else
-             OUTLIER_FRACTIONS.get(spec.protocol, PAPER_NOISE_FRACTIONS.get(spec.protocol, 0.0))) == 0.0
+    printed_clean = printed and PAPER_CASE_NOISE[spec.case] == 0.0
     return [
         (method, sigma) for method, sigma in runs
         if method not in SLOW_METHODS
-        or (printed and clean if method in SLOW_ON_PRINTED_ONLY else printed or spec.index < config.slow_trials)
+        or (printed_clean if method in SLOW_ON_PRINTED_ONLY else printed or spec.index < config.slow_trials)
     ]
-
-
-#: Outlier fraction of each printed paper case, by name.
-PAPER_CASE_NOISE = {case.name: case.noise_fraction for case in PAPER_CASES}
 
 
 def plan(config: BenchConfig) -> list[_Planned]:
