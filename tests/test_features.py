@@ -119,6 +119,27 @@ def test_normals_are_equivariant_and_can_be_evaluated_elsewhere():
     assert np.abs(np.einsum("ij,ij->i", near, normals[:50])).min() > 0.99
 
 
+def test_normals_use_the_k_nearest_within_the_radius_as_scipys_tree_finds_them():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(4)
+    points = bumpy_sphere(1500, rng)
+    at = points[::7] + 0.02 * rng.normal(size=(len(points[::7]), 3))
+    radius = 0.15
+    normals = estimate_normals(points, k=20, radius=radius, at=at, workers=2)
+    # Reference: the PCA normal of SciPy's neighbourhoods (at least 3 of them within the radius).
+    distances, indices = cKDTree(points).query(at, k=20)
+    for normal, near, index in zip(normals, distances, indices):
+        chosen = points[index[near <= radius]]
+        if len(chosen) < 3:
+            continue
+        centred = chosen - chosen.mean(axis=0)
+        expected = np.linalg.eigh(centred.T @ centred)[1][:, 0]
+        assert abs(abs(normal @ expected) - 1.0) < 1e-9
+    with pytest.raises(InvalidInputError, match="neighbours"):
+        estimate_normals(points, k=65)
+
+
 # --------------------------------------------------------------------------------------------
 # FPFH
 

@@ -18,6 +18,8 @@ OPTIONAL = ("matplotlib", "plotly", "dask", "distributed", "torch", "open3d", "t
             "kiss_matcher", "probreg")
 #: Needed by the registration path, but not by `import esmicp` or `esmicp --version`.
 NUMERIC = ("numpy", "scipy")
+#: `esmicp demo` (the rotation search on a clean asymmetric pair) runs on the compiled kernels alone:
+#: SciPy's import would be most of a first demo's time.
 #: The file readers' libraries: loaded by reading a file, not by registering arrays.
 READERS = ("plyfile", "pypcd4", "trimesh", "lzf")
 
@@ -53,14 +55,14 @@ def test_a_registration_loads_no_optional_library_nor_file_reader():
         "esmicp.register(target[::-1] + 0.01, target)\n"  # the default global start included
     )
     loaded, _ = loaded_after(code)
-    assert {"numpy", "scipy"} <= loaded
+    assert "numpy" in loaded  # an ellipsoid: symmetric, so the feature strategy (SciPy's) runs too
     assert not loaded & {*OPTIONAL, *READERS}, sorted(loaded & {*OPTIONAL, *READERS})
 
 
 def test_the_demo_command_loads_no_optional_library():
     loaded, output = loaded_after("from esmicp.cli import main\nmain(['demo', '--json'])")
     assert json.loads(output)["recovered"]
-    assert not loaded & set(OPTIONAL), sorted(loaded & set(OPTIONAL))
+    assert not loaded & {*OPTIONAL, "scipy"}, sorted(loaded & {*OPTIONAL, "scipy"})
 
 
 @pytest.mark.parametrize("module", ["esmicp", "esmicp.cli"])

@@ -332,3 +332,20 @@ def test_conf_skips_camera_and_cybcyl(tmp_path):
 def _write(path, text):
     path.write_text(text)
     return path
+
+
+@pytest.mark.parametrize("max_angle", [180.0, 90.0, 5.0, 0.01])
+def test_random_rotation_draws_what_scipy_draws_bit_for_bit(max_angle):
+    # The protocols' trials were drawn with SciPy's Rotation; the NumPy code keeps them.
+    from esmicp.metrics import random_rotation
+
+    for seed in range(200):
+        ours, theirs = np.random.default_rng(seed), np.random.default_rng(seed)
+        if max_angle >= 180.0:
+            expected = Rotation.random(random_state=theirs).as_matrix()
+        else:
+            axis = theirs.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            expected = Rotation.from_rotvec(np.radians(theirs.uniform(0.0, max_angle)) * axis).as_matrix()
+        np.testing.assert_array_equal(random_rotation(ours, max_angle), expected)
+        assert ours.random() == theirs.random()  # the generators stay in step

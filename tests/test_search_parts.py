@@ -33,6 +33,31 @@ def test_nearest_grid_returns_an_almost_nearest_point_with_its_exact_distance():
     assert (distances[inside] - exact[inside]).max() <= 2 * np.sqrt(3) * cell
 
 
+@pytest.mark.parametrize(
+    "shape, fraction",
+    [((7, 9, 11), 0.02), ((30, 40, 50), 0.001), ((40, 30, 20), 0.05), ((1, 1, 6), 0.3), ((6, 1, 1), 0.3),
+     ((12, 12, 12), 0.0)],
+)
+def test_the_compiled_feature_transform_finds_the_nearest_occupied_cell_scipy_finds(shape, fraction):
+    # The lookup grid's table: SciPy's feature transform, ties resolved the same way (measured on
+    # these grids), so the global search's approximate queries are unchanged.
+    from scipy.ndimage import distance_transform_edt
+
+    from esmicp import _kernels
+
+    rng = np.random.default_rng(len(shape) + int(1000 * fraction))
+    occupied = rng.random(shape) < fraction
+    occupied.flat[rng.integers(occupied.size)] = True  # at least one
+    nearest = np.empty(occupied.size, dtype=np.int64)
+    _kernels.nearest_occupied(occupied.astype(np.uint8), nearest)
+    assert occupied.ravel()[nearest].all()
+    cells = np.indices(shape).reshape(3, -1).T
+    squared = ((cells - np.array(np.unravel_index(nearest, shape)).T) ** 2).sum(axis=1)
+    distances, indices = distance_transform_edt(~occupied, return_indices=True)
+    np.testing.assert_array_equal(squared, np.rint(distances.ravel() ** 2).astype(np.int64))
+    np.testing.assert_array_equal(nearest, np.ravel_multi_index(tuple(indices), shape).ravel())
+
+
 def test_batched_kabsch_matches_one_at_a_time():
     from esmicp.core.procrustes import rotation_from_cross_covariance
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .core.procrustes import rotation_angle
@@ -46,15 +48,36 @@ def paper_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
 
 def random_rotation(rng: np.random.Generator, max_angle_deg: float = 180.0) -> np.ndarray:
     """A random 3x3 rotation: uniform on SO(3) when ``max_angle_deg >= 180``; otherwise a uniformly
-    random axis and an angle uniform in ``[0, max_angle_deg]``."""
-    from scipy.spatial.transform import Rotation
+    random axis and an angle uniform in ``[0, max_angle_deg]``.
 
+    The draws and the arithmetic are SciPy's (``Rotation.random(random_state=rng)``,
+    ``Rotation.from_rotvec``), bit for bit (tested), so protocols keep their trials; written out
+    here so that the demo need not import SciPy."""
     if max_angle_deg >= 180.0:
-        return Rotation.random(random_state=rng).as_matrix()
+        x, y, z, w = (float(value) for value in rng.normal(size=4))
+        norm = math.sqrt(x * x + y * y + z * z + w * w)
+        return _quaternion_matrix(x / norm, y / norm, z / norm, w / norm)
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
-    angle = np.radians(rng.uniform(0.0, max_angle_deg))
-    return Rotation.from_rotvec(angle * axis).as_matrix()
+    x, y, z = (float(value) for value in np.radians(rng.uniform(0.0, max_angle_deg)) * axis)
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle <= 1e-3:  # sin(a/2)/a by its Taylor series near 0
+        squared = angle * angle
+        scale = 0.5 - squared / 48.0 + squared * squared / 3840.0
+    else:
+        scale = math.sin(angle / 2.0) / angle
+    return _quaternion_matrix(scale * x, scale * y, scale * z, math.cos(angle / 2.0))
+
+
+def _quaternion_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """The rotation matrix of the unit quaternion ``(x, y, z, w)`` (scalar last)."""
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return np.array([
+        [x2 - y2 - z2 + w2, 2.0 * (xy - zw), 2.0 * (xz + yw)],
+        [2.0 * (xy + zw), -x2 + y2 - z2 + w2, 2.0 * (yz - xw)],
+        [2.0 * (xz - yw), 2.0 * (yz + xw), -x2 - y2 + z2 + w2],
+    ])
 
 
 def strict_success(

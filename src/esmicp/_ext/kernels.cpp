@@ -1375,6 +1375,35 @@ void neighbour_graph(CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx
     });
 }
 
+// The k nearest tree points of each query (out_distances, out_indices (Q, k), nearest first;
+// Euclidean distances, indices into the target as given; k <= min(M, 64)).
+void tree_knn(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
+              Arr2 out_distances, Idx2 out_indices, int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t count = int64_t(queries.shape(0)), k = int64_t(out_indices.shape(1));
+    if (queries.shape(1) != 3 || k < 1 || k > GRAPH_K_MAX || k > t.count || int64_t(out_indices.shape(0)) != count ||
+        int64_t(out_distances.shape(0)) != count || int64_t(out_distances.shape(1)) != k)
+        throw std::invalid_argument("tree_knn: queries (Q, 3), out_distances and out_indices (Q, k), 1 <= k <= min(M, 64)");
+    const double *q = queries.data();
+    double *distances = out_distances.data();
+    int64_t *indices = out_indices.data();
+    parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
+        double best[GRAPH_K_MAX];
+        int64_t slots[GRAPH_K_MAX];
+        const int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
+        for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
+            std::fill(best, best + k, INF);
+            std::fill(slots, slots + k, int64_t(-1));
+            nearest_k(t, 0, q[3 * i], q[3 * i + 1], q[3 * i + 2], k, best, slots);
+            for (int64_t j = 0; j < k; ++j) {
+                distances[k * i + j] = std::sqrt(best[j]);
+                indices[k * i + j] = slots[j] >= 0 ? t.order[slots[j]] : t.count;
+            }
+        }
+    });
+}
+
 inline void compose_step(const double *step_r, const double *step_t, double *r, double *t) {
     double nr[9], nt[3];
     for (int a = 0; a < 3; ++a) {
@@ -1489,6 +1518,9 @@ void batched_esm_grid(CArr2 source, Arr2 rotations, Arr2 translations, int64_t i
 
 }  // namespace
 
+// distance_transform.cpp: the lookup grid's nearest occupied cells.
+void add_distance_transform(nb::module_ &m);
+
 NB_MODULE(_kernels, m) {
     m.doc() = "esmicp's compiled kernels (KD-tree, voxel hash, pair moments); std::thread, GIL released.";
     m.attr("STACK") = STACK;
@@ -1508,10 +1540,12 @@ NB_MODULE(_kernels, m) {
     m.def("batched_esm_tree", &batched_esm_tree);
     m.def("batched_esm_grid", &batched_esm_grid);
     m.def("neighbour_graph", &neighbour_graph);
+    m.def("tree_knn", &tree_knn);
     m.attr("STEP_OUT") = STEP_OUT;
     nb::class_<Index>(m, "Index")
         .def(nb::init<CArr2, CArr2, CIdx, CIdx, CIdx, CIdx, CIdx, CArr2>())
         .def("set_hash", &Index::set_hash)
         .def("step", &Index::step);
+    add_distance_transform(m);
     m.def("hardware_threads", []() { return int(std::max(1u, std::thread::hardware_concurrency())); });
 }

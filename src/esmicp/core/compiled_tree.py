@@ -21,6 +21,9 @@ from .. import _kernels
 #: Points per leaf (at most).
 LEAF_SIZE = 8
 
+#: Most neighbours :meth:`CompiledTree.query_k` returns per query.
+K_MAX = 64
+
 #: Depth of the search stack: median splits give depth log2(M / LEAF_SIZE) + 1 (27 for 1e9 points).
 STACK = 96
 
@@ -90,4 +93,15 @@ class CompiledTree:
         _kernels.tree_query(points, rotation, translation, warm, self.rank, self.points,
                             self.order, self.starts, self.ends, self.lefts, self.boxes, distances, indices,
                             threads(workers))
+        return distances, indices
+
+    def query_k(self, points: np.ndarray, k: int, workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(distances, indices)``, each ``(N, k)``, of the ``k`` nearest target points of each of
+        ``points``, nearest first (cloud units; indices into the target as given; a non-finite query
+        gets infinite distances and index ``M``). ``1 <= k <= min(M, K_MAX)``."""
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        distances = np.empty((len(points), k))
+        indices = np.empty((len(points), k), dtype=np.int64)
+        _kernels.tree_knn(points, self.points, self.order, self.starts, self.ends, self.lefts, self.boxes,
+                          distances, indices, threads(workers))
         return distances, indices

@@ -11,7 +11,6 @@ answer to the compiled tree in the same compiled loop. Both are built on first u
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .. import _kernels
 from . import compiled_tree, voxel_hash
@@ -59,7 +58,6 @@ class NearestNeighbors:
     def __init__(self, target: np.ndarray, *, workers: int | None = None):
         self.points = target
         self.workers = workers
-        self._scipy_tree: cKDTree | None = None
         self._compiled: compiled_tree.CompiledTree | None = None
         self._spacing: float | None = None
         self._near: voxel_hash.VoxelHash | None = None
@@ -67,15 +65,6 @@ class NearestNeighbors:
         self._index: "_kernels.Index | None" = None  # the compiled index of :meth:`step`
         self._coincident: tuple[int, int, int, np.ndarray] | None = None
         self._index_hashed = False
-
-    @property
-    def _tree(self) -> cKDTree:
-        """scipy's KD-tree (k nearest neighbours, for :meth:`spacing`)."""
-        if self._scipy_tree is None:
-            # A sliding-midpoint tree without node compaction builds about twice as fast as scipy's
-            # default for point clouds and queries as fast (measured on the bunny and the LiDAR pair).
-            self._scipy_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
-        return self._scipy_tree
 
     def exact_tree(self) -> "compiled_tree.CompiledTree":
         """The compiled KD-tree of the target (built on first use)."""
@@ -203,16 +192,15 @@ class NearestNeighbors:
         count = len(self.points)
         sample = self.points[np.linspace(0, count - 1, min(count, max_samples)).astype(np.intp)]
         repeats, _, _, first = self.coincident()
-        # One thread: a Ctrl-C landing in scipy's threaded k-NN query can crash the process
-        # (seen here: std::bad_alloc in its worker threads, then a segfault); 5,000 queries are cheap.
+        # The compiled tree's k nearest (exact); one thread: 5,000 queries are cheap.
         if repeats:
             distinct = self.points[first]
             if len(distinct) < 2:
                 return self._keep_spacing(0.0, default)
-            tree = cKDTree(distinct, balanced_tree=False, compact_nodes=False)
-            distances = tree.query(sample, k=2, workers=1)[0][:, 1]
+            distances = compiled_tree.CompiledTree(distinct).query_k(sample, 2, workers=1)[0][:, 1]
         else:
-            distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=1)
+            k = min(count, neighbours + 1, compiled_tree.K_MAX)
+            distances, _ = self.exact_tree().query_k(sample, k, workers=1)
             distances = np.where(distances > 0, distances, np.inf).min(axis=1)
         positive = distances[np.isfinite(distances) & (distances > 0)]
         return self._keep_spacing(float(np.median(positive)) if len(positive) else 0.0, default)

@@ -3,9 +3,10 @@
 The global search moves thousands of hypotheses' points every iteration, most of them far from
 the target, where KD-tree queries are slowest (about 1 microsecond each here). A
 :class:`NearestGrid` instead covers the target's bounding box (plus a margin) with cells, marks
-the cells that hold target points, and runs one Euclidean distance transform
-(``scipy.ndimage.distance_transform_edt``) to give every cell its nearest occupied cell and so a
-target point. A query is then an array lookup; the returned distance is the exact distance to the
+the cells that hold target points, and runs one exact Euclidean feature transform (the compiled
+``_kernels.nearest_occupied``, what ``scipy.ndimage.distance_transform_edt`` with
+``return_indices=True`` computes, without importing SciPy) to give every cell its nearest occupied
+cell and so a target point. A query is then an array lookup; the returned distance is the exact distance to the
 returned point, which is the nearest one up to about one cell size. Points outside the grid use
 the border cell they project onto.
 """
@@ -13,6 +14,8 @@ the border cell they project onto.
 from __future__ import annotations
 
 import numpy as np
+
+from .. import _kernels
 
 
 class NearestGrid:
@@ -44,14 +47,10 @@ class NearestGrid:
         occupied[cells] = True
         representative = np.empty(len(occupied), dtype=np.intp)
         representative[cells] = np.arange(len(target))
-        from scipy.ndimage import distance_transform_edt  # only a global search needs it (30 ms to import)
-
-        nearest = distance_transform_edt(
-            ~occupied.reshape(self.shape), return_distances=False, return_indices=True
-        )
-        nearest_cell = np.ravel_multi_index(tuple(nearest), tuple(self.shape))
+        nearest_cell = np.empty(len(occupied), dtype=np.int64)
+        _kernels.nearest_occupied(occupied.view(np.uint8).reshape(self.shape), nearest_cell)
         #: ``(prod(shape),)`` int64: the target index of each cell (C order), what a query returns.
-        self.lookup = representative[nearest_cell.ravel()].astype(np.int64, copy=False)
+        self.lookup = representative[nearest_cell].astype(np.int64, copy=False)
 
     def __len__(self) -> int:
         return len(self.points)

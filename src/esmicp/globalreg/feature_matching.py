@@ -45,14 +45,18 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..core.procrustes import batched_rotation_from_cross_covariance, to_matrix
 from ..errors import InvalidInputError
 from ..types import as_count, as_generator, as_points, as_positive, as_real
 from . import DISTINCT_ROTATION_DEG
 from .features import dense_point_mask, estimate_normals, fpfh, voxel_grid
+
+if TYPE_CHECKING:  # SciPy is imported where it is used: `register` on a clean pair never needs it
+    from scipy.spatial import cKDTree
 
 #: Below this many mutual matches, :func:`match_features` falls back to one-way matches.
 MIN_MUTUAL_MATCHES = 30
@@ -141,6 +145,8 @@ def _matches(source: np.ndarray, target: np.ndarray, *, second: bool, mutual: bo
             # row, and a mutual match must stay one-to-one.
             is_mutual = squared.argmin(axis=0)[forward] == rows
         return forward, distance, second_distance, is_mutual
+    from scipy.spatial import cKDTree
+
     distances, indices = cKDTree(target).query(source, k=2 if second else 1)
     distances, indices = distances.reshape(len(source), -1), indices.reshape(len(source), -1)
     forward = indices[:, 0]
@@ -425,10 +431,7 @@ def _keypoints(
     if filter_radius is not None:
         keep = dense_point_mask(down, filter_radius)
         points, down = points[keep[owner]], down[keep]
-    # A sliding-midpoint tree without node compaction: the same neighbours, built faster (on the
-    # dense cloud its build is most of the normals' time; as in core.correspondence).
-    dense_tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
-    normals = estimate_normals(points, k=_NORMAL_NEIGHBOURS, radius=normal_radius, at=down, tree=dense_tree)
+    normals = estimate_normals(points, k=_NORMAL_NEIGHBOURS, radius=normal_radius, at=down)
     features = fpfh(down, normals, feature_radius)
     described = features.any(axis=1)
     return down[described], features[described]
@@ -573,6 +576,8 @@ def feature_hypotheses(
     rotations, translations, counts = rotations[final], translations[final], counts[final]
     # Rank by geometric overlap of the keypoint clouds: it tells the true pose from a wrong one
     # with many consistent (but wrong) correspondences better than the count does.
+    from scipy.spatial import cKDTree
+
     overlap = _overlap(rotations, translations, source_points, cKDTree(target_points), threshold)
     order = np.lexsort((-counts, -overlap))
     hypotheses = []

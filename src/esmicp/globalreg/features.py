@@ -52,12 +52,16 @@ search, :func:`fpfh` agrees with Open3D 0.20's ``compute_fpfh_feature`` to round
 
 from __future__ import annotations
 
-import numpy as np
-from scipy import sparse
-from scipy.spatial import cKDTree
+from typing import TYPE_CHECKING
 
+import numpy as np
+
+from ..core.compiled_tree import K_MAX, CompiledTree
 from ..errors import InvalidInputError
 from ..types import as_positive
+
+if TYPE_CHECKING:  # SciPy is imported where it is used: `register` on a clean pair never needs it
+    from scipy.spatial import cKDTree
 
 #: Bins per FPFH angle feature, and the feature length (three blocks: theta, alpha, phi).
 FPFH_BINS = 11
@@ -161,6 +165,8 @@ def dense_point_mask(
     """
     points = _as_cloud(points)
     radius = as_positive(radius, "radius")
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(points) if tree is None else tree
     counts = tree.query_ball_point(points, radius, return_length=True)
     return counts >= fraction * np.quantile(counts, quantile)
@@ -173,7 +179,8 @@ def estimate_normals(
     *,
     at=None,
     viewpoint=None,
-    tree: cKDTree | None = None,
+    tree: CompiledTree | None = None,
+    workers: int | None = 1,
 ) -> np.ndarray:
     """Unit surface normals by PCA of each point's neighbourhood.
 
@@ -196,8 +203,10 @@ def estimate_normals(
     viewpoint : (3,) array, optional
         Orient each normal toward this position (a sensor). Default: away from the centroid of
         ``points`` (see the module docstring; this default is equivariant under rigid motions).
-    tree : cKDTree, optional
-        A tree over ``points``, to reuse.
+    tree : esmicp.core.compiled_tree.CompiledTree, optional
+        The compiled KD-tree over ``points``, to reuse (its exact k nearest; no SciPy import).
+    workers : int or None
+        Threads of the neighbour queries (None: every core).
 
     Returns
     -------
@@ -207,13 +216,13 @@ def estimate_normals(
     """
     points = _as_cloud(points)
     query = points if at is None else _as_cloud(at, "at")
-    if int(k) < 3:
-        raise InvalidInputError(f"k: need at least 3 neighbours for a normal, got {k!r}")
+    if not 3 <= int(k) <= K_MAX:
+        raise InvalidInputError(f"k: need 3 to {K_MAX} neighbours for a normal, got {k!r}")
     k = min(int(k), len(points))
     upper = np.inf if radius is None else as_positive(radius, "radius")
-    tree = cKDTree(points) if tree is None else tree
-    _, indices = tree.query(query, k=k, distance_upper_bound=upper)
-    indices = indices.reshape(len(query), k)
+    tree = CompiledTree(points) if tree is None else tree
+    distances, indices = tree.query_k(query, k, workers=workers)
+    indices[~(distances <= upper)] = len(points)  # beyond the radius (or a non-finite query): none
     counts = (indices < len(points)).sum(axis=1)
     # Raw moments of coordinates relative to the cloud's centroid; the padding row (index N, for
     # missing neighbours) is zero so it adds nothing.
@@ -317,6 +326,9 @@ def fpfh(points, normals, radius: float, tree: cKDTree | None = None) -> np.ndar
         raise InvalidInputError(f"normals: expected shape {points.shape}, got {normals.shape}")
     radius = as_positive(radius, "radius")
     count = len(points)
+    from scipy import sparse
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(points) if tree is None else tree
     pairs = tree.query_pairs(radius, output_type="ndarray").astype(np.intp)
     first, second = pairs[:, 0], pairs[:, 1]

@@ -36,15 +36,18 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.spatial.distance import cdist
 
+from ..core.compiled_tree import CompiledTree
 from ..core.procrustes import rotation_angle, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .feature_matching import _kabsch, _keypoints, _inlier_mask, _distinct_order
 from .features import estimate_normals, voxel_grid
+
+if TYPE_CHECKING:  # SciPy is imported where it is used: `register` on a clean pair never needs it
+    from scipy.spatial import cKDTree
 
 #: Occupied voxels of the target the keypoint voxel aims at.
 KEYPOINTS = 5000
@@ -136,6 +139,8 @@ class ScanEstimate:
 def overlap_score(transformation: np.ndarray, keypoints: Keypoints) -> float:
     """The fraction of both clouds' keypoints within ``VERIFY_VOXELS`` of the other cloud under
     ``transformation`` (the verification's score, :func:`rank_poses`)."""
+    from scipy.spatial import cKDTree
+
     forward, backward = overlap_counts(
         transformation[None], keypoints.source, keypoints.target, cKDTree(keypoints.source),
         cKDTree(keypoints.target), VERIFY_VOXELS * keypoints.voxel,
@@ -143,11 +148,12 @@ def overlap_score(transformation: np.ndarray, keypoints: Keypoints) -> float:
     return float(forward[0] + backward[0]) / (len(keypoints.source) + len(keypoints.target))
 
 
-def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints) -> float:
+def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, *, workers: int | None = None) -> float:
     """How sharply the clouds coincide where they overlap under ``transformation``
     (``T_target_source``), 0-1: of the keypoints within ``OVERLAP_VOXELS`` of the other cloud,
     the fraction within ``VERIFY_VOXELS``, the smaller of the two directions, mapped from
-    ``SHARPNESS_RANGE``. 0 when nothing overlaps."""
+    ``SHARPNESS_RANGE``. 0 when nothing overlaps. ``workers``: threads of the neighbour queries
+    (None: every core)."""
     if not np.isfinite(transformation).all():
         return 0.0
     rotation, translation = transformation[:3, :3], transformation[:3, 3]
@@ -157,7 +163,7 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints) -> floa
         (keypoints.source @ rotation.T + translation, keypoints.target),
         ((keypoints.target - translation) @ rotation, keypoints.source),
     ):
-        distances, _ = cKDTree(fixed).query(moved, distance_upper_bound=OVERLAP_VOXELS * voxel)
+        distances, _ = CompiledTree(fixed).query(moved, workers=workers)
         overlap = np.count_nonzero(distances <= OVERLAP_VOXELS * voxel)
         if overlap < 3:
             return 0.0
@@ -272,6 +278,8 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
     count = len(source)
     if count < 3:
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
+    from scipy.spatial.distance import cdist
+
     difference = cdist(source, source)
     difference -= cdist(target, target)
     compatible = (np.abs(difference) <= tolerance).astype(np.float32)
@@ -399,6 +407,8 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
             rotations[enough], translations[enough] = _kabsch(paired_source, paired_target, mask[enough].astype(float))
     counts = _inlier_mask(rotations, translations, paired_source, paired_target, tolerance).sum(axis=1)
 
+    from scipy.spatial import cKDTree
+
     target_tree = cKDTree(target_keys)
     poses = np.stack([
         _icp(to_matrix(r, t), source_keys, target_tree, target_keys, ICP_VOXELS * voxel, ICP_STEPS)
@@ -421,6 +431,8 @@ def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel:
     the two poses, and the higher count leads. On a corridor the slid pose can overlap *more*
     (it slides the source further along), while only the true one aligns the geometry across it.
     """
+    from scipy.spatial import cKDTree
+
     target_tree = cKDTree(target) if target_tree is None else target_tree
     distance = VERIFY_VOXELS * voxel
     forward, backward = overlap_counts(poses, source, target, cKDTree(source), target_tree, distance)

@@ -29,14 +29,18 @@ are left out (the reference code would index out of bounds there).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import scipy.sparse
 
 from ..core import moments
 from ..core.weights import gaussian_weights
 from ..core.procrustes import rotation_from_cross_covariance
 from ..types import as_positive
 from .base import COMPILED, Estimator, Step
+
+if TYPE_CHECKING:  # SciPy is imported where it is used: `register` with `esm` never needs it
+    import scipy.sparse
 
 #: The paper's sigma (in the clouds' units; its experiments use unit-size objects).
 PAPER_SIGMA = 1.0
@@ -71,6 +75,8 @@ def similarity_matrix(indices: np.ndarray, weights: np.ndarray, size: int) -> sc
     """The paper's similarity matrix M as a sparse ``size x size`` matrix (for inspection and
     heat maps; the solver itself works on :func:`similarity_entries`)."""
     rows, cols, values = similarity_entries(indices, weights, size)
+    import scipy.sparse
+
     return scipy.sparse.csr_matrix((values, (rows, cols)), shape=(size, size))
 
 

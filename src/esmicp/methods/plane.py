@@ -35,8 +35,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from ..core.compiled_tree import CompiledTree
 from ..core.pose_kernels import rotation_exp
 from ..core.procrustes import rotation_angle
 from ..core.weights import relative_gaussian_weights
@@ -83,7 +83,7 @@ class PlaneEstimator(Estimator):
         self.fixed = sigma
         self._whole = False
         self._target: np.ndarray | None = None
-        self._tree: cKDTree | None = None
+        self._tree: CompiledTree | None = None
         self._normals: np.ndarray | None = None
         self._known: np.ndarray | None = None
 
@@ -122,7 +122,7 @@ class PlaneEstimator(Estimator):
     def _normals_at(self, target: np.ndarray, indices: np.ndarray) -> np.ndarray:
         """Unit normals at ``target[indices]``, estimated once per target point."""
         if self._target is not target:
-            self._target, self._tree = target, cKDTree(target)
+            self._target, self._tree = target, CompiledTree(target)
             self._normals = np.empty_like(target)
             self._known = np.zeros(len(target), dtype=bool)
         needed = np.unique(indices[~self._known[indices]])
