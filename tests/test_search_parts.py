@@ -33,6 +33,98 @@ def test_nearest_grid_returns_an_almost_nearest_point_with_its_exact_distance():
     assert (distances[inside] - exact[inside]).max() <= 2 * np.sqrt(3) * cell
 
 
+def _scipy_lookup(grid: NearestGrid, target: np.ndarray) -> np.ndarray:
+    """The lookup table as SciPy's Euclidean feature transform gives it: each cell's nearest occupied
+    cell, and there the last target point (in input order)."""
+    from scipy.ndimage import distance_transform_edt
+
+    cells = grid._cell_index(target)
+    occupied = np.zeros(int(np.prod(grid.shape)), dtype=bool)
+    occupied[cells] = True
+    last = np.empty(len(occupied), dtype=np.intp)
+    last[cells] = np.arange(len(target))
+    nearest = distance_transform_edt(~occupied.reshape(grid.shape), return_distances=False, return_indices=True)
+    return last[np.ravel_multi_index(tuple(nearest), tuple(grid.shape)).ravel()]
+
+
+@pytest.mark.parametrize("cloud", ["uniform", "lattice", "sphere", "shape"])
+def test_nearest_grid_table_equals_scipys_feature_transform(cloud):
+    """The compiled table against ``scipy.ndimage.distance_transform_edt``: the same target point
+    in every cell, ties (many on a lattice) included."""
+    rng = np.random.default_rng(11)
+    for trial in range(12):
+        count = int(rng.integers(1, 600))
+        if cloud == "uniform":
+            target = rng.random((count, 3)) * rng.uniform(0.5, 3.0, size=3)
+        elif cloud == "lattice":
+            target = rng.integers(0, 6, size=(count, 3)).astype(float)
+        elif cloud == "sphere":
+            target = rng.normal(size=(count, 3))
+            target /= np.linalg.norm(target, axis=1, keepdims=True)
+        else:
+            target = asymmetric_shape(max(count, 10), rng)
+        extent = float(np.ptp(target, axis=0).max()) + 1.0
+        grid = NearestGrid(target, rng.uniform(0.02, 0.2) * extent, margin=rng.uniform(0.0, 0.5) * extent)
+        np.testing.assert_array_equal(grid.lookup, _scipy_lookup(grid, target))
+
+
+def _scipy_spacing(points: np.ndarray, max_samples: int = 5000) -> float:
+    """``NearestNeighbors.spacing`` as SciPy's k-nearest query gives it (duplicates looked past)."""
+    sample = points[np.linspace(0, len(points) - 1, min(len(points), max_samples)).astype(np.intp)]
+    distinct = np.unique(points, axis=0)
+    if len(distinct) < 2:
+        return 0.0
+    distances = cKDTree(distinct).query(sample, k=2)[0][:, 1]
+    return float(np.median(distances))
+
+
+@pytest.mark.parametrize("count", [2, 3, 50, 2000, 7000])
+def test_spacing_matches_scipys_k_nearest(count):
+    """The compiled spacing equals SciPy's exactly: plain clouds, a coarse lattice (exact copies and
+    equidistant neighbours), half of the points on one spot; 7,000 points use a strided sample."""
+    rng = np.random.default_rng(count)
+    plain = rng.random((count, 3))
+    lattice = np.round(plain * 4) / 4
+    piled = plain.copy()
+    piled[: count // 2] = piled[0]
+    for points in (plain, lattice, piled):
+        assert NearestNeighbors(points).spacing() == _scipy_spacing(points)
+    assert NearestNeighbors(np.zeros((5, 3))).spacing() == 0.0
+
+
+def test_overlap_confidence_counts_as_scipys_tree_does():
+    """The confidence (compiled tree) against the same counts from SciPy's KD-tree, at the truth,
+    near it and far from it."""
+    from esmicp.globalreg import scan
+    from esmicp.globalreg.scan import Keypoints, overlap_confidence
+
+    def reference(transformation, keypoints):
+        rotation, translation = transformation[:3, :3], transformation[:3, 3]
+        sharpness = []
+        for moved, fixed in ((keypoints.source @ rotation.T + translation, keypoints.target),
+                             ((keypoints.target - translation) @ rotation, keypoints.source)):
+            distances, _ = cKDTree(fixed).query(moved)
+            overlap = np.count_nonzero(distances <= scan.OVERLAP_VOXELS * keypoints.voxel)
+            if overlap < 3:
+                return 0.0
+            sharpness.append(np.count_nonzero(distances <= scan.VERIFY_VOXELS * keypoints.voxel) / overlap)
+        low, high = scan.SHARPNESS_RANGE
+        return float(np.clip((min(sharpness) - low) / (high - low), 0.0, 1.0))
+
+    rng = np.random.default_rng(12)
+    target = asymmetric_shape(2000, rng)
+    values = set()
+    for angle in (0.0, 2.0, 5.0, 20.0, 90.0):
+        truth = esmicp.core.procrustes.to_matrix(random_rotation(rng, angle), rng.normal(size=3) * 0.01 * angle)
+        source = (target - truth[:3, 3]) @ truth[:3, :3] + rng.normal(size=target.shape) * 0.002
+        keypoints = Keypoints.of(source[rng.permutation(len(source))], target, NearestNeighbors(target).spacing())
+        for shift in (0.0, 0.9, 1.05, 1.2, 30.0):  # keypoint voxels along x
+            pose = esmicp.core.procrustes.to_matrix(np.eye(3), [shift * keypoints.voxel, 0.0, 0.0]) @ truth
+            values.add(overlap_confidence(pose, keypoints))
+            assert overlap_confidence(pose, keypoints) == reference(pose, keypoints)
+    assert len(values) > 2  # confident, unsure and wrong poses alike
+
+
 def test_batched_kabsch_matches_one_at_a_time():
     from esmicp.core.procrustes import rotation_from_cross_covariance
 

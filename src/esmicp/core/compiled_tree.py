@@ -91,3 +91,12 @@ class CompiledTree:
                             self.order, self.starts, self.ends, self.lefts, self.boxes, distances, indices,
                             threads(workers))
         return distances, indices
+
+    def nearest_distances(self, points: np.ndarray, k: int, workers: int | None = None) -> np.ndarray:
+        """``(N, k)`` distances from each of ``points`` to its ``k`` nearest target points, nearest
+        first (cloud units; ``1 <= k <= min(M, 64)``)."""
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        squared = np.empty((len(points), int(k)))
+        _kernels.nearest_k_distances(points, self.points, self.order, self.starts, self.ends, self.lefts, self.boxes,
+                                     squared, threads(workers))
+        return np.sqrt(squared)

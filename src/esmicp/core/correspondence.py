@@ -11,7 +11,6 @@ answer to the compiled tree in the same compiled loop. Both are built on first u
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .. import _kernels
 from . import compiled_tree, voxel_hash
@@ -59,7 +58,6 @@ class NearestNeighbors:
     def __init__(self, target: np.ndarray, *, workers: int | None = None):
         self.points = target
         self.workers = workers
-        self._scipy_tree: cKDTree | None = None
         self._compiled: compiled_tree.CompiledTree | None = None
         self._spacing: float | None = None
         self._near: voxel_hash.VoxelHash | None = None
@@ -67,15 +65,6 @@ class NearestNeighbors:
         self._index: "_kernels.Index | None" = None  # the compiled index of :meth:`step`
         self._coincident: tuple[int, int, int, np.ndarray] | None = None
         self._index_hashed = False
-
-    @property
-    def _tree(self) -> cKDTree:
-        """scipy's KD-tree (k nearest neighbours, for :meth:`spacing`)."""
-        if self._scipy_tree is None:
-            # A sliding-midpoint tree without node compaction builds about twice as fast as scipy's
-            # default for point clouds and queries as fast (measured on the bunny and the LiDAR pair).
-            self._scipy_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
-        return self._scipy_tree
 
     def exact_tree(self) -> "compiled_tree.CompiledTree":
         """The compiled KD-tree of the target (built on first use)."""
@@ -186,34 +175,28 @@ class NearestNeighbors:
             self._coincident = coincident_points(self.points)
         return self._coincident
 
-    def spacing(self, max_samples: int = 5000, neighbours: int = 8) -> float:
+    def spacing(self, max_samples: int = 5000) -> float:
         """Median distance from a target point to its nearest *distinct* target point (cloud units).
 
         Uses an evenly strided subset of at most ``max_samples`` points, so the value is
-        deterministic and cheap on large clouds. Duplicated points are looked past: without exact
-        copies, each sampled point contributes its nearest neighbour at a positive distance among
-        its ``neighbours`` nearest; with copies, its nearest neighbour among the distinct target
-        points (so that a cloud full of coincident points costs no more than one without).
-        Returns 0.0 only if no sampled point has a distinct neighbour. Computed once for the
-        default arguments.
+        deterministic and cheap on large clouds. Duplicated points are looked past (the nearest
+        neighbour among the distinct target points), so a cloud full of coincident points costs no
+        more than one without. Returns 0.0 only if no sampled point has a distinct neighbour.
+        Computed once for the default argument, by the compiled tree (the second nearest point of
+        each sampled point, itself being the first; SciPy's k-nearest query cost 5 ms at 2,000
+        points, ``docs/speed.md``).
         """
-        default = max_samples == 5000 and neighbours == 8
+        default = max_samples == 5000
         if default and self._spacing is not None:
             return self._spacing
         count = len(self.points)
         sample = self.points[np.linspace(0, count - 1, min(count, max_samples)).astype(np.intp)]
         repeats, _, _, first = self.coincident()
-        # One thread: a Ctrl-C landing in scipy's threaded k-NN query can crash the process
-        # (seen here: std::bad_alloc in its worker threads, then a segfault); 5,000 queries are cheap.
-        if repeats:
-            distinct = self.points[first]
-            if len(distinct) < 2:
-                return self._keep_spacing(0.0, default)
-            tree = cKDTree(distinct, balanced_tree=False, compact_nodes=False)
-            distances = tree.query(sample, k=2, workers=1)[0][:, 1]
-        else:
-            distances, _ = self._tree.query(sample, k=min(count, neighbours + 1), workers=1)
-            distances = np.where(distances > 0, distances, np.inf).min(axis=1)
+        tree = self.exact_tree() if not repeats else compiled_tree.CompiledTree(self.points[first])
+        if len(tree.points) < 2:
+            return self._keep_spacing(0.0, default)
+        # One thread: 5,000 queries are cheap.
+        distances = tree.nearest_distances(sample, 2, workers=1)[:, 1]
         positive = distances[np.isfinite(distances) & (distances > 0)]
         return self._keep_spacing(float(np.median(positive)) if len(positive) else 0.0, default)
 
