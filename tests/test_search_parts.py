@@ -125,6 +125,36 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
     assert len(values) > 2  # confident, unsure and wrong poses alike
 
 
+def test_distinct_selects_what_a_loop_over_rotation_angles_selects():
+    """``_distinct`` (all pairwise angles at once) against a plain loop over
+    :func:`~esmicp.core.procrustes.rotation_angle`, on clustered poses (many pairs near the
+    threshold)."""
+    from esmicp.core.procrustes import rotation_angle, to_matrix
+    from esmicp.globalreg import DISTINCT_ROTATION_DEG
+
+    def loop(transformations, order, limit):
+        kept = []
+        for index in order:
+            if all(np.degrees(rotation_angle(transformations[k, :3, :3].T @ transformations[index, :3, :3]))
+                   > DISTINCT_ROTATION_DEG for k in kept):
+                kept.append(int(index))
+                if len(kept) == limit:
+                    break
+        return kept
+
+    rng = np.random.default_rng(13)
+    for _ in range(200):
+        count = int(rng.integers(1, 70))
+        centres = [random_rotation(rng) for _ in range(max(1, count // 4))]
+        transformations = np.stack([
+            to_matrix(random_rotation(rng, float(rng.uniform(0.0, 25.0))) @ centres[rng.integers(len(centres))],
+                      rng.normal(size=3))
+            for _ in range(count)
+        ])
+        order, limit = rng.permutation(count), int(rng.integers(1, 20))
+        assert global_search._distinct(transformations, order, limit) == loop(transformations, order, limit)
+
+
 def test_batched_kabsch_matches_one_at_a_time():
     from esmicp.core.procrustes import rotation_from_cross_covariance
 

@@ -149,12 +149,18 @@ def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> lis
     if not order:
         return []
     rotations = transformations[order, :3, :3]
-    relative = np.matmul(np.swapaxes(rotations, 1, 2)[:, None], rotations[None])  # R_a^T R_b for every pair
-    skew = np.stack([relative[..., 2, 1] - relative[..., 1, 2], relative[..., 0, 2] - relative[..., 2, 0],
-                     relative[..., 1, 0] - relative[..., 0, 1]], axis=-1)
-    trace = np.trace(relative, axis1=-2, axis2=-1)
+    count = len(order)
+    # R_a^T R_b for every pair, as relative[a, i, b, j], from one (3K, 3) x (3, 3K) product
+    # (4,096 separate 3x3 products cost 1 ms at 64 poses).
+    columns = np.swapaxes(rotations, 1, 2).reshape(3 * count, 3)
+    relative = (columns @ columns.T).reshape(count, 3, count, 3)
+    skew_x = relative[:, 2, :, 1] - relative[:, 1, :, 2]
+    skew_y = relative[:, 0, :, 2] - relative[:, 2, :, 0]
+    skew_z = relative[:, 1, :, 0] - relative[:, 0, :, 1]
+    trace = relative[:, 0, :, 0] + relative[:, 1, :, 1] + relative[:, 2, :, 2]
     # The geodesic angle as :func:`~esmicp.core.procrustes.rotation_angle` computes it, for all pairs.
-    angles = np.degrees(np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), 0.5 * (trace - 1.0)))
+    angles = np.degrees(np.arctan2(0.5 * np.sqrt(skew_x * skew_x + skew_y * skew_y + skew_z * skew_z),
+                                   0.5 * (trace - 1.0)))
     kept: list[int] = []
     for position in range(len(order)):
         if (angles[position, kept] > DISTINCT_ROTATION_DEG).all():
