@@ -213,32 +213,44 @@ class _TreeLookup:
         return self._tree.query(points)
 
 
-@pytest.mark.parametrize("lookup", ["tree", "grid"])
+@pytest.mark.parametrize("lookup", ["tree", "seeded tree", "grid"])
 @pytest.mark.parametrize("count", [199, 200])  # odd and even: the median's two definitions
 def test_compiled_batched_esm_matches_a_numpy_reference(lookup, count):
-    """The compiled batched ESM (warm-started tree queries, or the lookup grid) against plain
-    NumPy / SciPy: the same poses to 1e-9 along 10 annealed then 4 fixed-sigma iterations from
-    starts up to 60 degrees off, on one thread and two alike (bit for bit)."""
+    """The compiled batched ESM (warm-started tree queries, their first ones from scratch or from
+    the lookup grid's answers; or the lookup grid) against plain NumPy / SciPy: the same poses to
+    1e-9 along 10 annealed then 4 fixed-sigma iterations from starts up to 60 degrees off, on one
+    thread and two alike (bit for bit)."""
     rng = np.random.default_rng(6)
     target = asymmetric_shape(1500, rng)
     truth = random_rotation(rng, 180.0)
     source = asymmetric_shape(count, rng) @ truth
     starts = np.stack([random_rotation(rng, 60.0) @ truth for _ in range(12)])
     translations = rng.normal(scale=0.05, size=(12, 3))
-    if lookup == "tree":
-        index, reference_lookup = NearestNeighbors(target), _TreeLookup(target)
-    else:
-        index = reference_lookup = NearestGrid(target, 0.02, margin=0.3)
     options = dict(iterations=14, sigma_floor=0.01, fine_iterations=4)
+    if lookup == "grid":
+        index = reference_lookup = NearestGrid(target, 0.02, margin=0.3)
+    else:
+        index, reference_lookup = NearestNeighbors(target), _TreeLookup(target)
+        if lookup == "seeded tree":
+            options["seeds"] = NearestGrid(target, 0.02, margin=0.3)
     rotations, moved, distances = batched_esm(source, index, starts, translations, workers=1, **options)
     two = batched_esm(source, index, starts, translations, workers=2, **options)
     for mine, theirs in zip((rotations, moved, distances), two):
         np.testing.assert_array_equal(mine, theirs)
-    expected = _reference_batched_esm(source, reference_lookup, starts, translations, **options)
+    reference_options = {key: value for key, value in options.items() if key != "seeds"}
+    expected = _reference_batched_esm(source, reference_lookup, starts, translations, **reference_options)
     np.testing.assert_allclose(rotations, expected[0], rtol=0, atol=1e-9)
     np.testing.assert_allclose(moved, expected[1], rtol=0, atol=1e-9)
     np.testing.assert_allclose(distances, expected[2], rtol=0, atol=1e-9)
     assert np.ptp(distances.mean(axis=1)) > 1e-3  # the starts did not all end at one pose
+
+
+def test_seeds_over_other_points_are_refused():
+    rng = np.random.default_rng(14)
+    target = asymmetric_shape(300, rng)
+    with pytest.raises(ValueError, match="same target points"):
+        batched_esm(target, NearestNeighbors(target), np.eye(3)[None], np.zeros((1, 3)), iterations=2,
+                    sigma_floor=0.01, seeds=NearestGrid(target.copy(), 0.05, margin=0.1))
 
 
 def test_neighbour_graph_matches_ckdtree_with_duplicates():

@@ -1276,12 +1276,14 @@ struct TreeLookup {
     const int64_t *rank;
     const double *target;  // (M, 3) as given (the neighbours' coordinates)
     const NeighbourGraph &graph;
+    const Grid *seeds;  // or nullptr: a query without a warm start starts from its cell's point there
     const double *points() const { return target; }
     // Exact nearest target point. With a warm start p: walk the graph to a nearer list member
     // while there is one; when p's list holds none nearer and 2 |q - p| is within p's radius,
     // every target point nearer to q than p (within 2 |q - p| of p) is in that list: p is the
     // nearest (certified). Otherwise the tree, seeded with p.
     void operator()(double x, double y, double z, int64_t warm, double &distance, int64_t &index) const {
+        if (warm < 0 && seeds != nullptr) warm = seeds->lookup[grid_cell(*seeds, x, y, z)];
         if (warm >= 0) {
             auto squared = [&](int64_t j) {
                 const double ex = target[3 * j] - x, ey = target[3 * j + 1] - y, ez = target[3 * j + 2] - z;
@@ -1465,14 +1467,21 @@ void esm_hypotheses(const Lookup &look, CArr2 source, Arr2 rotations, Arr2 trans
 void batched_esm_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations, double floor,
                       double factor, int64_t fine, Arr2 out_distances, CArr2 target, CIdx rank, CArr2 tree_points,
                       CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, CIdx2 graph_neighbours,
-                      CArr1 graph_radii, int threads) {
+                      CArr1 graph_radii, CIdx seed_lookup, CArr1 seed_low, double seed_cell, CIdx seed_shape,
+                      int threads) {
     Tree tree{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
               int64_t(tree_points.shape(0))};
     const int64_t k = int64_t(graph_neighbours.shape(1));
     if (int64_t(graph_radii.shape(0)) != tree.count || k < 1 || int64_t(graph_neighbours.shape(0)) != tree.count)
         throw std::invalid_argument("batched ESM: the neighbour graph does not match the target");
     const NeighbourGraph graph{graph_neighbours.data(), graph_radii.data(), k};
-    esm_hypotheses(TreeLookup{tree, rank.data(), target.data(), graph}, source, rotations, translations, iterations,
+    // The seeds' grid (esmicp.core.nearest_grid.NearestGrid over the same target), if any (an empty lookup: none).
+    const Grid seeds{target.data(), seed_lookup.data(), {seed_low.data()[0], seed_low.data()[1], seed_low.data()[2]},
+                     seed_cell, {seed_shape.data()[0], seed_shape.data()[1], seed_shape.data()[2]}};
+    const bool seeded = seed_lookup.shape(0) > 0;
+    if (seeded && int64_t(seed_lookup.shape(0)) != seeds.shape[0] * seeds.shape[1] * seeds.shape[2])
+        throw std::invalid_argument("batched ESM: the seeds' lookup table does not match its grid's shape");
+    esm_hypotheses(TreeLookup{tree, rank.data(), target.data(), graph, seeded ? &seeds : nullptr}, source, rotations, translations, iterations,
                    floor, factor, fine, out_distances, threads);
 }
 

@@ -182,6 +182,12 @@ class _Workspace:
     spacing: float
     width: float
     graphs: dict[int, NeighbourGraph] = field(default_factory=dict)  # by id() of ``index`` / ``full_index``
+    grid: NearestGrid | None = None  # the rotation search's lookup grid over ``index``, once built
+
+    def seeds(self, index: NearestNeighbors) -> NearestGrid | None:
+        """The lookup grid when it covers ``index``'s points (the first queries of a batched ESM
+        on ``index`` then start from its answers), else None."""
+        return self.grid if self.grid is not None and self.grid.points is index.points else None
 
     def graph(self, index: NearestNeighbors) -> NeighbourGraph:
         """The :class:`NeighbourGraph` of ``index`` (one of the two above), built once."""
@@ -302,7 +308,7 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
     target = work.index.points
     diagonal = bounding_box_diagonal(target)
-    grid = NearestGrid(target, SEARCH_GRID_CELL * diagonal, margin=SEARCH_GRID_MARGIN * diagonal)
+    grid = work.grid = NearestGrid(target, SEARCH_GRID_CELL * diagonal, margin=SEARCH_GRID_MARGIN * diagonal)
     found = rotation_search(
         _subsample(work.source, SEARCH_POINTS, work.rng), grid,
         rotations=SEARCH_ROTATIONS, iterations=SEARCH_ITERATIONS, score_width=work.width, sigma_floor=work.width,
@@ -324,7 +330,7 @@ def _batched_verification(work, index, source_points, transformations, iteration
     rotations, translations, distances = batched_esm(
         source_points, index, transformations[:, :3, :3], transformations[:, :3, 3],
         iterations=iterations, sigma_floor=width if sigma is None else sigma, fine_iterations=iterations,
-        workers=index.workers, graph=work.graph(index),
+        workers=index.workers, graph=work.graph(index), seeds=work.seeds(index),
     )
     refined = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
     return refined, gaussian_overlap_score(distances, width)
