@@ -1481,8 +1481,8 @@ void batched_esm_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t i
     const bool seeded = seed_lookup.shape(0) > 0;
     if (seeded && int64_t(seed_lookup.shape(0)) != seeds.shape[0] * seeds.shape[1] * seeds.shape[2])
         throw std::invalid_argument("batched ESM: the seeds' lookup table does not match its grid's shape");
-    esm_hypotheses(TreeLookup{tree, rank.data(), target.data(), graph, seeded ? &seeds : nullptr}, source, rotations, translations, iterations,
-                   floor, factor, fine, out_distances, threads);
+    esm_hypotheses(TreeLookup{tree, rank.data(), target.data(), graph, seeded ? &seeds : nullptr}, source, rotations,
+                   translations, iterations, floor, factor, fine, out_distances, threads);
 }
 
 void batched_esm_grid(CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations, double floor,
@@ -1505,7 +1505,8 @@ void nearest_k_distances(CArr2 queries, CArr2 tree_points, CIdx order, CIdx star
            int64_t(tree_points.shape(0))};
     const int64_t count = int64_t(queries.shape(0)), k = int64_t(out_squared.shape(1));
     if (k < 1 || k > GRAPH_K_MAX || k > t.count || int64_t(out_squared.shape(0)) != count || queries.shape(1) != 3)
-        throw std::invalid_argument("nearest_k_distances: queries (N, 3), out_squared (N, k) with 1 <= k <= min(M, 64)");
+        throw std::invalid_argument(
+            "nearest_k_distances: queries (N, 3), out_squared (N, k) with 1 <= k <= min(M, 64)");
     const double *q = queries.data();
     double *out = out_squared.data();
     if (count < PARALLEL_QUERY_MIN) threads = 1;
@@ -1592,7 +1593,8 @@ void nearest_grid(CArr2 target, CArr1 low, double cell, CIdx shape_, Idx out_loo
     if (int64_t(out_lookup.shape(0)) != size || size <= 0 || count == 0 || target.shape(1) != 3)
         throw std::invalid_argument("nearest_grid: target (M, 3) with M >= 1, out_lookup (prod(shape),)");
     if (size > (int64_t(1) << 31) - 1) throw std::invalid_argument("nearest_grid: more than 2^31 - 1 cells");
-    Grid grid{target.data(), nullptr, {low.data()[0], low.data()[1], low.data()[2]}, cell, {shape[0], shape[1], shape[2]}};
+    Grid grid{target.data(), nullptr, {low.data()[0], low.data()[1], low.data()[2]}, cell,
+              {shape[0], shape[1], shape[2]}};
     std::vector<int64_t> representative(size_t(size), -1);
     for (int64_t i = 0; i < count; ++i) {
         const double *p = target.data() + 3 * i;

@@ -182,9 +182,9 @@ class NearestNeighbors:
         deterministic and cheap on large clouds. Duplicated points are looked past (the nearest
         neighbour among the distinct target points), so a cloud full of coincident points costs no
         more than one without. Returns 0.0 only if no sampled point has a distinct neighbour.
-        Computed once for the default argument, by the compiled tree (the second nearest point of
-        each sampled point, itself being the first; SciPy's k-nearest query cost 5 ms at 2,000
-        points, ``docs/speed.md``).
+        Computed once for the default argument, by the compiled tree: the second nearest point of
+        each sampled point, itself being the first (SciPy's k-nearest query gave the same value
+        at several times the cost: ``docs/speed.md``, "Issue 14, fourth pass").
         """
         default = max_samples == 5000
         if default and self._spacing is not None:
@@ -195,8 +195,7 @@ class NearestNeighbors:
         tree = self.exact_tree() if not repeats else compiled_tree.CompiledTree(self.points[first])
         if len(tree.points) < 2:
             return self._keep_spacing(0.0, default)
-        # One thread: 5,000 queries are cheap.
-        distances = tree.nearest_distances(sample, 2, workers=1)[:, 1]
+        distances = tree.nearest_distances(sample, 2, workers=self.workers)[:, 1]
         positive = distances[np.isfinite(distances) & (distances > 0)]
         return self._keep_spacing(float(np.median(positive)) if len(positive) else 0.0, default)
 

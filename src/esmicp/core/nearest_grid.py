@@ -6,8 +6,8 @@ the target, where KD-tree queries are slowest (about 1 microsecond each here). A
 the cells that hold target points, and runs one Euclidean feature transform to give every cell
 its nearest occupied cell and so a target point (compiled, ``_kernels.nearest_grid``: the
 separable transform that ``scipy.ndimage.distance_transform_edt`` computes, ties resolved as
-SciPy resolves them, so the table equals the one SciPy's transform gives; it cost 7 ms of SciPy
-at 2,000 points, ``docs/speed.md``). A query is then an array lookup; the returned distance is the
+SciPy resolves them, so the table equals the one SciPy's transform gives, at a fraction of its
+cost: ``docs/speed.md``, "Issue 14, fourth pass"). A query is then an array lookup; the returned distance is the
 exact distance to the returned point, which is the nearest one up to about one cell size. Points
 outside the grid use the border cell they project onto.
 """
@@ -46,8 +46,9 @@ class NearestGrid:
         #: ``(prod(shape),)`` int64: the target index of each cell (C order), what a query returns:
         #: the last target point (in input order) of the cell's nearest occupied cell.
         self.lookup = np.empty(int(np.prod(self.shape)), dtype=np.int64)
-        _kernels.nearest_grid(np.ascontiguousarray(target, dtype=np.float64), np.ascontiguousarray(low, dtype=np.float64),
-                              float(cell), self.shape.astype(np.int64), self.lookup)
+        _kernels.nearest_grid(np.ascontiguousarray(target, dtype=np.float64),
+                              np.ascontiguousarray(low, dtype=np.float64), float(cell), self.shape.astype(np.int64),
+                              self.lookup)
 
     def __len__(self) -> int:
         return len(self.points)

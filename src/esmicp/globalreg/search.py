@@ -151,7 +151,7 @@ def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> lis
     rotations = transformations[order, :3, :3]
     count = len(order)
     # R_a^T R_b for every pair, as relative[a, i, b, j], from one (3K, 3) x (3, 3K) product
-    # (4,096 separate 3x3 products cost 1 ms at 64 poses).
+    # (cheaper than K^2 separate 3x3 products: docs/speed.md, "Issue 14, fourth pass").
     columns = np.swapaxes(rotations, 1, 2).reshape(3 * count, 3)
     relative = (columns @ columns.T).reshape(count, 3, count, 3)
     skew_x = relative[:, 2, :, 1] - relative[:, 1, :, 2]
@@ -248,7 +248,7 @@ def global_estimate(
         # Not confident: probably a partial overlap. The scan strategy's pose wins at once when it
         # is confident on the overlap and overlaps clearly more than the rotation search's.
         scanned = _scan(source, target, full_index, target_spacing)
-        if _scan_leads(scanned, estimate.transformation, margin=SCAN_MARGIN):
+        if _scan_leads(scanned, estimate.transformation, margin=SCAN_MARGIN, workers=full_index.workers):
             return replace(scanned, candidates=searched + scanned.candidates)
         # The rotation search's verified contenders join the feature candidates in the last round.
         carried = (estimate.transformations, estimate.scores, list(estimate.strategies))
@@ -274,7 +274,7 @@ def global_estimate(
     # Count each candidate pose once (the carried rotation-search contenders are not new ones).
     estimate = replace(estimate, candidates=searched + found_count)
     if strategy == "auto":
-        if _scan_leads(scanned, estimate.transformation):
+        if _scan_leads(scanned, estimate.transformation, workers=full_index.workers):
             return replace(scanned, candidates=estimate.candidates + scanned.candidates)
         return replace(estimate, candidates=estimate.candidates + scanned.candidates, keypoints=scanned.keypoints)
     return estimate
@@ -292,14 +292,16 @@ def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | 
     )
 
 
-def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1.0) -> bool:
+def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1.0,
+                workers: int | None = None) -> bool:
     """True when the scan strategy's best pose is confident on the overlap
     (:func:`~esmicp.globalreg.scan.overlap_confidence`) and its overlap score (keypoints of both
-    clouds on the other cloud) is above ``margin`` times that of ``other``."""
+    clouds on the other cloud) is above ``margin`` times that of ``other``. ``workers``: threads
+    of the confidence's queries."""
     from .scan import CONFIDENT, overlap_confidence, overlap_score
 
     keypoints = scanned.keypoints
-    if overlap_confidence(scanned.transformation, keypoints) < CONFIDENT:
+    if overlap_confidence(scanned.transformation, keypoints, workers) < CONFIDENT:
         return False
     mine, theirs = overlap_score(scanned.transformation, keypoints), overlap_score(other, keypoints)
     return mine > margin * theirs
