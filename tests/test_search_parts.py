@@ -33,29 +33,126 @@ def test_nearest_grid_returns_an_almost_nearest_point_with_its_exact_distance():
     assert (distances[inside] - exact[inside]).max() <= 2 * np.sqrt(3) * cell
 
 
-@pytest.mark.parametrize(
-    "shape, fraction",
-    [((7, 9, 11), 0.02), ((30, 40, 50), 0.001), ((40, 30, 20), 0.05), ((1, 1, 6), 0.3), ((6, 1, 1), 0.3),
-     ((12, 12, 12), 0.0)],
-)
-def test_the_compiled_feature_transform_finds_the_nearest_occupied_cell_scipy_finds(shape, fraction):
-    # The lookup grid's table: SciPy's feature transform, ties resolved the same way (measured on
-    # these grids), so the global search's approximate queries are unchanged.
+def _scipy_lookup(grid: NearestGrid, target: np.ndarray) -> np.ndarray:
+    """The lookup table as SciPy's Euclidean feature transform gives it: each cell's nearest occupied
+    cell, and there the last target point (in input order)."""
     from scipy.ndimage import distance_transform_edt
 
-    from esmicp import _kernels
+    cells = grid._cell_index(target)
+    occupied = np.zeros(int(np.prod(grid.shape)), dtype=bool)
+    occupied[cells] = True
+    last = np.empty(len(occupied), dtype=np.intp)
+    last[cells] = np.arange(len(target))
+    nearest = distance_transform_edt(~occupied.reshape(grid.shape), return_distances=False, return_indices=True)
+    return last[np.ravel_multi_index(tuple(nearest), tuple(grid.shape)).ravel()]
 
-    rng = np.random.default_rng(len(shape) + int(1000 * fraction))
-    occupied = rng.random(shape) < fraction
-    occupied.flat[rng.integers(occupied.size)] = True  # at least one
-    nearest = np.empty(occupied.size, dtype=np.int64)
-    _kernels.nearest_occupied(occupied.astype(np.uint8), nearest)
-    assert occupied.ravel()[nearest].all()
-    cells = np.indices(shape).reshape(3, -1).T
-    squared = ((cells - np.array(np.unravel_index(nearest, shape)).T) ** 2).sum(axis=1)
-    distances, indices = distance_transform_edt(~occupied, return_indices=True)
-    np.testing.assert_array_equal(squared, np.rint(distances.ravel() ** 2).astype(np.int64))
-    np.testing.assert_array_equal(nearest, np.ravel_multi_index(tuple(indices), shape).ravel())
+
+@pytest.mark.parametrize("cloud", ["uniform", "lattice", "sphere", "shape"])
+def test_nearest_grid_table_equals_scipys_feature_transform(cloud):
+    """The compiled table against ``scipy.ndimage.distance_transform_edt``: the same target point
+    in every cell, ties (many on a lattice) included."""
+    rng = np.random.default_rng(11)
+    for trial in range(12):
+        count = int(rng.integers(1, 600))
+        if cloud == "uniform":
+            target = rng.random((count, 3)) * rng.uniform(0.5, 3.0, size=3)
+        elif cloud == "lattice":
+            target = rng.integers(0, 6, size=(count, 3)).astype(float)
+        elif cloud == "sphere":
+            target = rng.normal(size=(count, 3))
+            target /= np.linalg.norm(target, axis=1, keepdims=True)
+        else:
+            target = asymmetric_shape(max(count, 10), rng)
+        extent = float(np.ptp(target, axis=0).max()) + 1.0
+        grid = NearestGrid(target, rng.uniform(0.02, 0.2) * extent, margin=rng.uniform(0.0, 0.5) * extent)
+        np.testing.assert_array_equal(grid.lookup, _scipy_lookup(grid, target))
+
+
+def _scipy_spacing(points: np.ndarray, max_samples: int = 5000) -> float:
+    """``NearestNeighbors.spacing`` as SciPy's k-nearest query gives it (duplicates looked past)."""
+    sample = points[np.linspace(0, len(points) - 1, min(len(points), max_samples)).astype(np.intp)]
+    distinct = np.unique(points, axis=0)
+    if len(distinct) < 2:
+        return 0.0
+    distances = cKDTree(distinct).query(sample, k=2)[0][:, 1]
+    return float(np.median(distances))
+
+
+@pytest.mark.parametrize("count", [2, 3, 50, 2000, 7000])
+def test_spacing_matches_scipys_k_nearest(count):
+    """The compiled spacing equals SciPy's exactly: plain clouds, a coarse lattice (exact copies and
+    equidistant neighbours), half of the points on one spot; 7,000 points use a strided sample."""
+    rng = np.random.default_rng(count)
+    plain = rng.random((count, 3))
+    lattice = np.round(plain * 4) / 4
+    piled = plain.copy()
+    piled[: count // 2] = piled[0]
+    for points in (plain, lattice, piled):
+        assert NearestNeighbors(points).spacing() == _scipy_spacing(points)
+    assert NearestNeighbors(np.zeros((5, 3))).spacing() == 0.0
+
+
+def test_overlap_confidence_counts_as_scipys_tree_does():
+    """The confidence (compiled tree) against the same counts from SciPy's KD-tree, at the truth,
+    near it and far from it."""
+    from esmicp.globalreg import scan
+    from esmicp.globalreg.scan import Keypoints, overlap_confidence
+
+    def reference(transformation, keypoints):
+        rotation, translation = transformation[:3, :3], transformation[:3, 3]
+        sharpness = []
+        for moved, fixed in ((keypoints.source @ rotation.T + translation, keypoints.target),
+                             ((keypoints.target - translation) @ rotation, keypoints.source)):
+            distances, _ = cKDTree(fixed).query(moved)
+            overlap = np.count_nonzero(distances <= scan.OVERLAP_VOXELS * keypoints.voxel)
+            if overlap < 3:
+                return 0.0
+            sharpness.append(np.count_nonzero(distances <= scan.VERIFY_VOXELS * keypoints.voxel) / overlap)
+        low, high = scan.SHARPNESS_RANGE
+        return float(np.clip((min(sharpness) - low) / (high - low), 0.0, 1.0))
+
+    rng = np.random.default_rng(12)
+    target = asymmetric_shape(2000, rng)
+    values = set()
+    for angle in (0.0, 2.0, 5.0, 20.0, 90.0):
+        truth = esmicp.core.procrustes.to_matrix(random_rotation(rng, angle), rng.normal(size=3) * 0.01 * angle)
+        source = (target - truth[:3, 3]) @ truth[:3, :3] + rng.normal(size=target.shape) * 0.002
+        keypoints = Keypoints.of(source[rng.permutation(len(source))], target, NearestNeighbors(target).spacing())
+        for shift in (0.0, 0.9, 1.05, 1.2, 30.0):  # keypoint voxels along x
+            pose = esmicp.core.procrustes.to_matrix(np.eye(3), [shift * keypoints.voxel, 0.0, 0.0]) @ truth
+            values.add(overlap_confidence(pose, keypoints))
+            assert overlap_confidence(pose, keypoints) == reference(pose, keypoints)
+    assert len(values) > 2  # confident, unsure and wrong poses alike
+
+
+def test_distinct_selects_what_a_loop_over_rotation_angles_selects():
+    """``_distinct`` (all pairwise angles at once) against a plain loop over
+    :func:`~esmicp.core.procrustes.rotation_angle`, on clustered poses (many pairs near the
+    threshold)."""
+    from esmicp.core.procrustes import rotation_angle, to_matrix
+    from esmicp.globalreg import DISTINCT_ROTATION_DEG
+
+    def loop(transformations, order, limit):
+        kept = []
+        for index in order:
+            if all(np.degrees(rotation_angle(transformations[k, :3, :3].T @ transformations[index, :3, :3]))
+                   > DISTINCT_ROTATION_DEG for k in kept):
+                kept.append(int(index))
+                if len(kept) == limit:
+                    break
+        return kept
+
+    rng = np.random.default_rng(13)
+    for _ in range(200):
+        count = int(rng.integers(1, 70))
+        centres = [random_rotation(rng) for _ in range(max(1, count // 4))]
+        transformations = np.stack([
+            to_matrix(random_rotation(rng, float(rng.uniform(0.0, 25.0))) @ centres[rng.integers(len(centres))],
+                      rng.normal(size=3))
+            for _ in range(count)
+        ])
+        order, limit = rng.permutation(count), int(rng.integers(1, 20))
+        assert global_search._distinct(transformations, order, limit) == loop(transformations, order, limit)
 
 
 def test_batched_kabsch_matches_one_at_a_time():
@@ -116,32 +213,44 @@ class _TreeLookup:
         return self._tree.query(points)
 
 
-@pytest.mark.parametrize("lookup", ["tree", "grid"])
+@pytest.mark.parametrize("lookup", ["tree", "seeded tree", "grid"])
 @pytest.mark.parametrize("count", [199, 200])  # odd and even: the median's two definitions
 def test_compiled_batched_esm_matches_a_numpy_reference(lookup, count):
-    """The compiled batched ESM (warm-started tree queries, or the lookup grid) against plain
-    NumPy / SciPy: the same poses to 1e-9 along 10 annealed then 4 fixed-sigma iterations from
-    starts up to 60 degrees off, on one thread and two alike (bit for bit)."""
+    """The compiled batched ESM (warm-started tree queries, their first ones from scratch or from
+    the lookup grid's answers; or the lookup grid) against plain NumPy / SciPy: the same poses to
+    1e-9 along 10 annealed then 4 fixed-sigma iterations from starts up to 60 degrees off, on one
+    thread and two alike (bit for bit)."""
     rng = np.random.default_rng(6)
     target = asymmetric_shape(1500, rng)
     truth = random_rotation(rng, 180.0)
     source = asymmetric_shape(count, rng) @ truth
     starts = np.stack([random_rotation(rng, 60.0) @ truth for _ in range(12)])
     translations = rng.normal(scale=0.05, size=(12, 3))
-    if lookup == "tree":
-        index, reference_lookup = NearestNeighbors(target), _TreeLookup(target)
-    else:
-        index = reference_lookup = NearestGrid(target, 0.02, margin=0.3)
     options = dict(iterations=14, sigma_floor=0.01, fine_iterations=4)
+    if lookup == "grid":
+        index = reference_lookup = NearestGrid(target, 0.02, margin=0.3)
+    else:
+        index, reference_lookup = NearestNeighbors(target), _TreeLookup(target)
+        if lookup == "seeded tree":
+            options["seeds"] = NearestGrid(target, 0.02, margin=0.3)
     rotations, moved, distances = batched_esm(source, index, starts, translations, workers=1, **options)
     two = batched_esm(source, index, starts, translations, workers=2, **options)
     for mine, theirs in zip((rotations, moved, distances), two):
         np.testing.assert_array_equal(mine, theirs)
-    expected = _reference_batched_esm(source, reference_lookup, starts, translations, **options)
+    reference_options = {key: value for key, value in options.items() if key != "seeds"}
+    expected = _reference_batched_esm(source, reference_lookup, starts, translations, **reference_options)
     np.testing.assert_allclose(rotations, expected[0], rtol=0, atol=1e-9)
     np.testing.assert_allclose(moved, expected[1], rtol=0, atol=1e-9)
     np.testing.assert_allclose(distances, expected[2], rtol=0, atol=1e-9)
     assert np.ptp(distances.mean(axis=1)) > 1e-3  # the starts did not all end at one pose
+
+
+def test_seeds_over_other_points_are_refused():
+    rng = np.random.default_rng(14)
+    target = asymmetric_shape(300, rng)
+    with pytest.raises(ValueError, match="same target points"):
+        batched_esm(target, NearestNeighbors(target), np.eye(3)[None], np.zeros((1, 3)), iterations=2,
+                    sigma_floor=0.01, seeds=NearestGrid(target.copy(), 0.05, margin=0.1))
 
 
 def test_neighbour_graph_matches_ckdtree_with_duplicates():

@@ -182,7 +182,7 @@ def register(
     keypoints = getattr(estimate, "keypoints", None)
     if keypoints is None:
         keypoints = Keypoints.of(source_points, target_points, target_index.spacing())
-    confidence = overlap_confidence(outcome.transformation, keypoints, workers=request.workers)
+    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers)
     outcome = frame.outcome(outcome)
     return RegistrationResult(
         transformation=outcome.transformation,

@@ -1276,12 +1276,14 @@ struct TreeLookup {
     const int64_t *rank;
     const double *target;  // (M, 3) as given (the neighbours' coordinates)
     const NeighbourGraph &graph;
+    const Grid *seeds;  // or nullptr: a query without a warm start starts from its cell's point there
     const double *points() const { return target; }
     // Exact nearest target point. With a warm start p: walk the graph to a nearer list member
     // while there is one; when p's list holds none nearer and 2 |q - p| is within p's radius,
     // every target point nearer to q than p (within 2 |q - p| of p) is in that list: p is the
     // nearest (certified). Otherwise the tree, seeded with p.
     void operator()(double x, double y, double z, int64_t warm, double &distance, int64_t &index) const {
+        if (warm < 0 && seeds != nullptr) warm = seeds->lookup[grid_cell(*seeds, x, y, z)];
         if (warm >= 0) {
             auto squared = [&](int64_t j) {
                 const double ex = target[3 * j] - x, ey = target[3 * j + 1] - y, ez = target[3 * j + 2] - z;
@@ -1388,6 +1390,7 @@ void tree_knn(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx en
     const double *q = queries.data();
     double *distances = out_distances.data();
     int64_t *indices = out_indices.data();
+    if (count < PARALLEL_QUERY_MIN) threads = 1;
     parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
         double best[GRAPH_K_MAX];
         int64_t slots[GRAPH_K_MAX];
@@ -1494,15 +1497,22 @@ void esm_hypotheses(const Lookup &look, CArr2 source, Arr2 rotations, Arr2 trans
 void batched_esm_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations, double floor,
                       double factor, int64_t fine, Arr2 out_distances, CArr2 target, CIdx rank, CArr2 tree_points,
                       CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, CIdx2 graph_neighbours,
-                      CArr1 graph_radii, int threads) {
+                      CArr1 graph_radii, CIdx seed_lookup, CArr1 seed_low, double seed_cell, CIdx seed_shape,
+                      int threads) {
     Tree tree{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
               int64_t(tree_points.shape(0))};
     const int64_t k = int64_t(graph_neighbours.shape(1));
     if (int64_t(graph_radii.shape(0)) != tree.count || k < 1 || int64_t(graph_neighbours.shape(0)) != tree.count)
         throw std::invalid_argument("batched ESM: the neighbour graph does not match the target");
     const NeighbourGraph graph{graph_neighbours.data(), graph_radii.data(), k};
-    esm_hypotheses(TreeLookup{tree, rank.data(), target.data(), graph}, source, rotations, translations, iterations,
-                   floor, factor, fine, out_distances, threads);
+    // The seeds' grid (esmicp.core.nearest_grid.NearestGrid over the same target), if any (an empty lookup: none).
+    const Grid seeds{target.data(), seed_lookup.data(), {seed_low.data()[0], seed_low.data()[1], seed_low.data()[2]},
+                     seed_cell, {seed_shape.data()[0], seed_shape.data()[1], seed_shape.data()[2]}};
+    const bool seeded = seed_lookup.shape(0) > 0;
+    if (seeded && int64_t(seed_lookup.shape(0)) != seeds.shape[0] * seeds.shape[1] * seeds.shape[2])
+        throw std::invalid_argument("batched ESM: the seeds' lookup table does not match its grid's shape");
+    esm_hypotheses(TreeLookup{tree, rank.data(), target.data(), graph, seeded ? &seeds : nullptr}, source, rotations,
+                   translations, iterations, floor, factor, fine, out_distances, threads);
 }
 
 void batched_esm_grid(CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations, double floor,
@@ -1516,10 +1526,115 @@ void batched_esm_grid(CArr2 source, Arr2 rotations, Arr2 translations, int64_t i
                    threads);
 }
 
-}  // namespace
+// ---------------------------------------------------------------------------------------------
+// The global search's lookup grid (esmicp.core.nearest_grid.NearestGrid): each cell's nearest
+// occupied cell (Euclidean, in cells) by the separable feature transform of Maurer, Qi and
+// Raghavan (2003), computed as scipy.ndimage.distance_transform_edt(return_indices=True) does:
+// lines along axis 0, then 1, then 2; on each line the sites kept by the same integer-exact tests
+// and a tie going to the earlier site, so that every cell gets the occupied cell SciPy's gives.
+// Then each cell's target point: the last target point (in input order) of that occupied cell.
 
-// distance_transform.cpp: the lookup grid's nearest occupied cells.
-void add_distance_transform(nb::module_ &m);
+// One line of the feature transform along axis d. `feature` holds each cell's nearest occupied
+// cell so far, 3 coordinates per cell (the first -1: none yet); the line starts at cell `base`
+// with step `stride`, `length` cells; `fixed` holds its coordinates on the other axes. SciPy's
+// tests, in doubles on small integers, are exact: integer arithmetic takes the same branches.
+struct LineScratch {
+    std::vector<int64_t> along, off, sites;  // a site's coordinate on axis d, squared distance off the line
+    std::vector<int32_t> coordinates;         // a site's 3 coordinates
+};
+
+void voronoi_line(int32_t *feature, int64_t base, int64_t stride, int64_t length, int d, const int64_t *fixed,
+                  LineScratch &work) {
+    int64_t found = 0;
+    for (int64_t i = 0; i < length; ++i) {
+        const int32_t *f = feature + 3 * (base + i * stride);
+        if (f[0] < 0) continue;
+        int64_t off = 0;
+        for (int a = 0; a < 3; ++a) {
+            if (a == d) continue;
+            const int64_t gap = int64_t(f[a]) - fixed[a];
+            off += gap * gap;
+        }
+        std::memcpy(work.coordinates.data() + 3 * found, f, 3 * sizeof(int32_t));
+        work.along[size_t(found)] = f[d];
+        work.off[size_t(found)] = off;
+        ++found;
+    }
+    if (found == 0) return;
+    // The lower envelope of the sites' parabolas (SciPy's first loop).
+    int64_t *sites = work.sites.data();
+    const int64_t *along = work.along.data(), *off = work.off.data();
+    int64_t last = -1;
+    for (int64_t s = 0; s < found; ++s) {
+        while (last >= 1) {
+            const int64_t one = sites[last], two = sites[last - 1];
+            const int64_t a = along[one] - along[two], b = along[s] - along[one], c = a + b;
+            if (c * off[one] - b * off[two] - a * off[s] - a * b * c <= 0) break;
+            --last;
+        }
+        sites[++last] = s;
+    }
+    // Each cell's nearest site along the envelope, a tie to the earlier one (its second loop).
+    int64_t l = 0;
+    for (int64_t i = 0; i < length; ++i) {
+        int64_t gap = along[sites[l]] - i, nearest = gap * gap + off[sites[l]];
+        while (l < last) {
+            gap = along[sites[l + 1]] - i;
+            const int64_t next = gap * gap + off[sites[l + 1]];
+            if (nearest <= next) break;
+            nearest = next;
+            ++l;
+        }
+        std::memcpy(feature + 3 * (base + i * stride), work.coordinates.data() + 3 * sites[l], 3 * sizeof(int32_t));
+    }
+}
+
+// Fills out_lookup (prod(shape),) with each cell's target index (see above); cells are C-ordered
+// over `shape`, a target point's cell is as in grid_cell.
+void nearest_grid(CArr2 target, CArr1 low, double cell, CIdx shape_, Idx out_lookup) {
+    const int64_t shape[3] = {shape_.data()[0], shape_.data()[1], shape_.data()[2]};
+    const int64_t size = shape[0] * shape[1] * shape[2], count = int64_t(target.shape(0));
+    if (int64_t(out_lookup.shape(0)) != size || size <= 0 || count == 0 || target.shape(1) != 3)
+        throw std::invalid_argument("nearest_grid: target (M, 3) with M >= 1, out_lookup (prod(shape),)");
+    if (size > (int64_t(1) << 31) - 1) throw std::invalid_argument("nearest_grid: more than 2^31 - 1 cells");
+    Grid grid{target.data(), nullptr, {low.data()[0], low.data()[1], low.data()[2]}, cell,
+              {shape[0], shape[1], shape[2]}};
+    std::vector<int64_t> representative(size_t(size), -1);
+    for (int64_t i = 0; i < count; ++i) {
+        const double *p = target.data() + 3 * i;
+        representative[size_t(grid_cell(grid, p[0], p[1], p[2]))] = i;
+    }
+    std::vector<int32_t> feature(size_t(3 * size), -1);
+    for (int64_t c = 0; c < size; ++c) {
+        if (representative[size_t(c)] < 0) continue;
+        feature[size_t(3 * c)] = int32_t(c / (shape[1] * shape[2]));
+        feature[size_t(3 * c + 1)] = int32_t((c / shape[2]) % shape[1]);
+        feature[size_t(3 * c + 2)] = int32_t(c % shape[2]);
+    }
+    const int64_t strides[3] = {shape[1] * shape[2], shape[2], 1};
+    const size_t longest = size_t(std::max({shape[0], shape[1], shape[2]}));
+    LineScratch work{std::vector<int64_t>(longest), std::vector<int64_t>(longest), std::vector<int64_t>(longest),
+                     std::vector<int32_t>(3 * longest)};
+    for (int d = 0; d < 3; ++d) {
+        const int u = d == 0 ? 1 : 0, v = d == 2 ? 1 : 2;  // the other two axes
+        int64_t fixed[3] = {0, 0, 0};
+        for (int64_t i = 0; i < shape[u]; ++i) {
+            if (PyErr_CheckSignals() != 0) throw nb::python_error();
+            for (int64_t j = 0; j < shape[v]; ++j) {
+                fixed[u] = i;
+                fixed[v] = j;
+                voronoi_line(feature.data(), i * strides[u] + j * strides[v], strides[d], shape[d], d, fixed, work);
+            }
+        }
+    }
+    int64_t *lookup = out_lookup.data();
+    for (int64_t c = 0; c < size; ++c) {
+        const int32_t *f = feature.data() + 3 * c;
+        lookup[c] = representative[size_t((int64_t(f[0]) * shape[1] + f[1]) * shape[2] + f[2])];
+    }
+}
+
+}  // namespace
 
 NB_MODULE(_kernels, m) {
     m.doc() = "esmicp's compiled kernels (KD-tree, voxel hash, pair moments); std::thread, GIL released.";
@@ -1541,11 +1656,11 @@ NB_MODULE(_kernels, m) {
     m.def("batched_esm_grid", &batched_esm_grid);
     m.def("neighbour_graph", &neighbour_graph);
     m.def("tree_knn", &tree_knn);
+    m.def("nearest_grid", &nearest_grid);
     m.attr("STEP_OUT") = STEP_OUT;
     nb::class_<Index>(m, "Index")
         .def(nb::init<CArr2, CArr2, CIdx, CIdx, CIdx, CIdx, CIdx, CArr2>())
         .def("set_hash", &Index::set_hash)
         .def("step", &Index::step);
-    add_distance_transform(m);
     m.def("hardware_threads", []() { return int(std::max(1u, std::thread::hardware_concurrency())); });
 }

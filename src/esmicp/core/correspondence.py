@@ -175,33 +175,27 @@ class NearestNeighbors:
             self._coincident = coincident_points(self.points)
         return self._coincident
 
-    def spacing(self, max_samples: int = 5000, neighbours: int = 8) -> float:
+    def spacing(self, max_samples: int = 5000) -> float:
         """Median distance from a target point to its nearest *distinct* target point (cloud units).
 
         Uses an evenly strided subset of at most ``max_samples`` points, so the value is
-        deterministic and cheap on large clouds. Duplicated points are looked past: without exact
-        copies, each sampled point contributes its nearest neighbour at a positive distance among
-        its ``neighbours`` nearest; with copies, its nearest neighbour among the distinct target
-        points (so that a cloud full of coincident points costs no more than one without).
-        Returns 0.0 only if no sampled point has a distinct neighbour. Computed once for the
-        default arguments.
+        deterministic and cheap on large clouds. Duplicated points are looked past (the nearest
+        neighbour among the distinct target points), so a cloud full of coincident points costs no
+        more than one without. Returns 0.0 only if no sampled point has a distinct neighbour.
+        Computed once for the default argument, by the compiled tree: the second nearest point of
+        each sampled point, itself being the first (SciPy's k-nearest query gave the same value
+        at several times the cost: ``docs/speed.md``, "Issue 14, fourth pass").
         """
-        default = max_samples == 5000 and neighbours == 8
+        default = max_samples == 5000
         if default and self._spacing is not None:
             return self._spacing
         count = len(self.points)
         sample = self.points[np.linspace(0, count - 1, min(count, max_samples)).astype(np.intp)]
         repeats, _, _, first = self.coincident()
-        # The compiled tree's k nearest (exact); one thread: 5,000 queries are cheap.
-        if repeats:
-            distinct = self.points[first]
-            if len(distinct) < 2:
-                return self._keep_spacing(0.0, default)
-            distances = compiled_tree.CompiledTree(distinct).query_k(sample, 2, workers=1)[0][:, 1]
-        else:
-            k = min(count, neighbours + 1, compiled_tree.K_MAX)
-            distances, _ = self.exact_tree().query_k(sample, k, workers=1)
-            distances = np.where(distances > 0, distances, np.inf).min(axis=1)
+        tree = self.exact_tree() if not repeats else compiled_tree.CompiledTree(self.points[first])
+        if len(tree.points) < 2:
+            return self._keep_spacing(0.0, default)
+        distances = tree.query_k(sample, 2, workers=self.workers)[0][:, 1]
         positive = distances[np.isfinite(distances) & (distances > 0)]
         return self._keep_spacing(float(np.median(positive)) if len(positive) else 0.0, default)
 

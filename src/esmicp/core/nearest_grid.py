@@ -3,12 +3,13 @@
 The global search moves thousands of hypotheses' points every iteration, most of them far from
 the target, where KD-tree queries are slowest (about 1 microsecond each here). A
 :class:`NearestGrid` instead covers the target's bounding box (plus a margin) with cells, marks
-the cells that hold target points, and runs one exact Euclidean feature transform (the compiled
-``_kernels.nearest_occupied``, what ``scipy.ndimage.distance_transform_edt`` with
-``return_indices=True`` computes, without importing SciPy) to give every cell its nearest occupied
-cell and so a target point. A query is then an array lookup; the returned distance is the exact distance to the
-returned point, which is the nearest one up to about one cell size. Points outside the grid use
-the border cell they project onto.
+the cells that hold target points, and runs one Euclidean feature transform to give every cell
+its nearest occupied cell and so a target point (compiled, ``_kernels.nearest_grid``: the
+separable transform that ``scipy.ndimage.distance_transform_edt`` computes, ties resolved as
+SciPy resolves them, so the table equals the one SciPy's transform gives, at a fraction of its
+cost: ``docs/speed.md``, "Issue 14, fourth pass"). A query is then an array lookup; the returned distance is the
+exact distance to the returned point, which is the nearest one up to about one cell size. Points
+outside the grid use the border cell they project onto.
 """
 
 from __future__ import annotations
@@ -42,15 +43,12 @@ class NearestGrid:
         self.cell = cell
         self.low = low
         self.shape = np.maximum(np.ceil(extent / cell).astype(np.intp), 1)
-        cells = self._cell_index(target)
-        occupied = np.zeros(int(np.prod(self.shape)), dtype=bool)
-        occupied[cells] = True
-        representative = np.empty(len(occupied), dtype=np.intp)
-        representative[cells] = np.arange(len(target))
-        nearest_cell = np.empty(len(occupied), dtype=np.int64)
-        _kernels.nearest_occupied(occupied.view(np.uint8).reshape(self.shape), nearest_cell)
-        #: ``(prod(shape),)`` int64: the target index of each cell (C order), what a query returns.
-        self.lookup = representative[nearest_cell].astype(np.int64, copy=False)
+        #: ``(prod(shape),)`` int64: the target index of each cell (C order), what a query returns:
+        #: the last target point (in input order) of the cell's nearest occupied cell.
+        self.lookup = np.empty(int(np.prod(self.shape)), dtype=np.int64)
+        _kernels.nearest_grid(np.ascontiguousarray(target, dtype=np.float64),
+                              np.ascontiguousarray(low, dtype=np.float64), float(cell), self.shape.astype(np.int64),
+                              self.lookup)
 
     def __len__(self) -> int:
         return len(self.points)

@@ -104,6 +104,7 @@ def batched_esm(
     fine_iterations: int = 0,
     workers: int | None = None,
     graph: NeighbourGraph | None = None,
+    seeds: NearestGrid | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run ``iterations`` ESM steps for K hypotheses at once, in one compiled call.
 
@@ -111,7 +112,9 @@ def batched_esm(
     ``source`` ``(n, 3)`` is in the source frame, ``target`` an exact index or the global search's
     lookup grid. With an exact index, each hypothesis' queries start from its previous neighbours
     and are answered through ``graph`` (:class:`NeighbourGraph` of ``target``, built here if not
-    given) where it certifies them, by the tree otherwise: exact either way. Each hypothesis
+    given) where it certifies them, by the tree otherwise: exact either way. ``seeds`` (optional,
+    the lookup grid over the same target points) starts each first query from its cell's point
+    instead of from scratch (only the speed changes). Each hypothesis
     anneals its own sigma as ``max(sigma_floor, sigma_factor * median distance)`` (cloud units);
     the last ``fine_iterations`` of the ``iterations`` use ``sigma_floor`` itself (the fine phase
     of :mod:`esmicp.methods.esm`, which keeps outliers from biasing the pose). Every step weighs
@@ -136,9 +139,15 @@ def batched_esm(
     else:
         tree = target.exact_tree()
         graph = NeighbourGraph.of(target) if graph is None else graph
+        if seeds is None:
+            seeding = (np.empty(0, dtype=np.int64), np.zeros(3), 1.0, np.zeros(3, dtype=np.int64))
+        elif seeds.points is not target.points:
+            raise ValueError("batched_esm: the seeds' grid must be over the same target points as the index")
+        else:
+            seeding = (seeds.lookup, seeds.low, seeds.cell, seeds.shape.astype(np.int64))
         _kernels.batched_esm_tree(source, rotations, translations, *schedule, distances, points, tree.rank,
                                   tree.points, tree.order, tree.starts, tree.ends, tree.lefts, tree.boxes,
-                                  graph.neighbours, graph.radii, threads)
+                                  graph.neighbours, graph.radii, *seeding, threads)
     return rotations.reshape(count, 3, 3), translations, distances
 
 

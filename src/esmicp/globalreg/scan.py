@@ -148,12 +148,12 @@ def overlap_score(transformation: np.ndarray, keypoints: Keypoints) -> float:
     return float(forward[0] + backward[0]) / (len(keypoints.source) + len(keypoints.target))
 
 
-def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, *, workers: int | None = None) -> float:
+def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers: int | None = None) -> float:
     """How sharply the clouds coincide where they overlap under ``transformation``
     (``T_target_source``), 0-1: of the keypoints within ``OVERLAP_VOXELS`` of the other cloud,
     the fraction within ``VERIFY_VOXELS``, the smaller of the two directions, mapped from
-    ``SHARPNESS_RANGE``. 0 when nothing overlaps. ``workers``: threads of the neighbour queries
-    (None: every core)."""
+    ``SHARPNESS_RANGE``. 0 when nothing overlaps. ``workers``: threads of the compiled tree's
+    queries (None: every core)."""
     if not np.isfinite(transformation).all():
         return 0.0
     rotation, translation = transformation[:3, :3], transformation[:3, 3]
@@ -163,7 +163,7 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, *, work
         (keypoints.source @ rotation.T + translation, keypoints.target),
         ((keypoints.target - translation) @ rotation, keypoints.source),
     ):
-        distances, _ = CompiledTree(fixed).query(moved, workers=workers)
+        distances, _ = CompiledTree(fixed).query(moved, workers=workers)  # the counts SciPy's tree gives, cheaper
         overlap = np.count_nonzero(distances <= OVERLAP_VOXELS * voxel)
         if overlap < 3:
             return 0.0

@@ -149,12 +149,18 @@ def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> lis
     if not order:
         return []
     rotations = transformations[order, :3, :3]
-    relative = np.matmul(np.swapaxes(rotations, 1, 2)[:, None], rotations[None])  # R_a^T R_b for every pair
-    skew = np.stack([relative[..., 2, 1] - relative[..., 1, 2], relative[..., 0, 2] - relative[..., 2, 0],
-                     relative[..., 1, 0] - relative[..., 0, 1]], axis=-1)
-    trace = np.trace(relative, axis1=-2, axis2=-1)
+    count = len(order)
+    # R_a^T R_b for every pair, as relative[a, i, b, j], from one (3K, 3) x (3, 3K) product
+    # (cheaper than K^2 separate 3x3 products: docs/speed.md, "Issue 14, fourth pass").
+    columns = np.swapaxes(rotations, 1, 2).reshape(3 * count, 3)
+    relative = (columns @ columns.T).reshape(count, 3, count, 3)
+    skew_x = relative[:, 2, :, 1] - relative[:, 1, :, 2]
+    skew_y = relative[:, 0, :, 2] - relative[:, 2, :, 0]
+    skew_z = relative[:, 1, :, 0] - relative[:, 0, :, 1]
+    trace = relative[:, 0, :, 0] + relative[:, 1, :, 1] + relative[:, 2, :, 2]
     # The geodesic angle as :func:`~esmicp.core.procrustes.rotation_angle` computes it, for all pairs.
-    angles = np.degrees(np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), 0.5 * (trace - 1.0)))
+    angles = np.degrees(np.arctan2(0.5 * np.sqrt(skew_x * skew_x + skew_y * skew_y + skew_z * skew_z),
+                                   0.5 * (trace - 1.0)))
     kept: list[int] = []
     for position in range(len(order)):
         if (angles[position, kept] > DISTINCT_ROTATION_DEG).all():
@@ -176,6 +182,12 @@ class _Workspace:
     spacing: float
     width: float
     graphs: dict[int, NeighbourGraph] = field(default_factory=dict)  # by id() of ``index`` / ``full_index``
+    grid: NearestGrid | None = None  # the rotation search's lookup grid over ``index``, once built
+
+    def seeds(self, index: NearestNeighbors) -> NearestGrid | None:
+        """The lookup grid when it covers ``index``'s points (the first queries of a batched ESM
+        on ``index`` then start from its answers), else None."""
+        return self.grid if self.grid is not None and self.grid.points is index.points else None
 
     def graph(self, index: NearestNeighbors) -> NeighbourGraph:
         """The :class:`NeighbourGraph` of ``index`` (one of the two above), built once."""
@@ -280,14 +292,16 @@ def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | 
     )
 
 
-def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1.0, workers: int | None = None) -> bool:
+def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1.0,
+                workers: int | None = None) -> bool:
     """True when the scan strategy's best pose is confident on the overlap
     (:func:`~esmicp.globalreg.scan.overlap_confidence`) and its overlap score (keypoints of both
-    clouds on the other cloud) is above ``margin`` times that of ``other``."""
+    clouds on the other cloud) is above ``margin`` times that of ``other``. ``workers``: threads
+    of the confidence's queries."""
     from .scan import CONFIDENT, overlap_confidence, overlap_score
 
     keypoints = scanned.keypoints
-    if overlap_confidence(scanned.transformation, keypoints, workers=workers) < CONFIDENT:
+    if overlap_confidence(scanned.transformation, keypoints, workers) < CONFIDENT:
         return False
     mine, theirs = overlap_score(scanned.transformation, keypoints), overlap_score(other, keypoints)
     return mine > margin * theirs
@@ -296,7 +310,7 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
     target = work.index.points
     diagonal = bounding_box_diagonal(target)
-    grid = NearestGrid(target, SEARCH_GRID_CELL * diagonal, margin=SEARCH_GRID_MARGIN * diagonal)
+    grid = work.grid = NearestGrid(target, SEARCH_GRID_CELL * diagonal, margin=SEARCH_GRID_MARGIN * diagonal)
     found = rotation_search(
         _subsample(work.source, SEARCH_POINTS, work.rng), grid,
         rotations=SEARCH_ROTATIONS, iterations=SEARCH_ITERATIONS, score_width=work.width, sigma_floor=work.width,
@@ -318,7 +332,7 @@ def _batched_verification(work, index, source_points, transformations, iteration
     rotations, translations, distances = batched_esm(
         source_points, index, transformations[:, :3, :3], transformations[:, :3, 3],
         iterations=iterations, sigma_floor=width if sigma is None else sigma, fine_iterations=iterations,
-        workers=index.workers, graph=work.graph(index),
+        workers=index.workers, graph=work.graph(index), seeds=work.seeds(index),
     )
     refined = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
     return refined, gaussian_overlap_score(distances, width)
