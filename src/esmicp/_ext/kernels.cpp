@@ -1597,6 +1597,9 @@ void nearest_grid(CArr2 target, CArr1 low, double cell, CIdx shape_, Idx out_loo
     if (int64_t(out_lookup.shape(0)) != size || size <= 0 || count == 0 || target.shape(1) != 3)
         throw std::invalid_argument("nearest_grid: target (M, 3) with M >= 1, out_lookup (prod(shape),)");
     if (size > (int64_t(1) << 31) - 1) throw std::invalid_argument("nearest_grid: more than 2^31 - 1 cells");
+    // The envelope test's products reach 4 L^3 on an axis of L cells: within int64 up to 10^6.
+    if (std::max({shape[0], shape[1], shape[2]}) > 1000000)
+        throw std::invalid_argument("nearest_grid: more than 10^6 cells along an axis");
     Grid grid{target.data(), nullptr, {low.data()[0], low.data()[1], low.data()[2]}, cell,
               {shape[0], shape[1], shape[2]}};
     std::vector<int64_t> representative(size_t(size), -1);
