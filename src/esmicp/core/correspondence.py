@@ -142,7 +142,14 @@ class NearestNeighbors:
         ``out`` (``_kernels.STEP_OUT``): sigma, RMS distance, objective, misses, effective pairs,
         increment angle and translation norm, increment rotation (9) and translation (3), the
         composed pose (16), its motion (angle, translation norm), sum of weights, sum of squared
-        weights, 1.0 if the call stopped below ``reject_below`` (else 0.0).
+        weights, 1.0 if the call stopped below ``reject_below`` (else 0.0), the number of queries
+        the graph walk answered.
+
+        Near convergence (the last step's RMS distance within :data:`STEP_GRAPH_RMS_SPACINGS`
+        target spacings) each warm-started query first walks a neighbour graph of the target
+        from its last neighbour, and takes the point the walk certifies as the exact nearest
+        (every nearer point would be in that point's list); the others go to the hash and the
+        tree as before. The graph is built then, once per target (or by :meth:`prepare_step`).
         """
         near = len(source) >= NEAR_QUERY_MIN
         index = self._compiled_index(near)
