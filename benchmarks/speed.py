@@ -136,7 +136,7 @@ class Esm:
     def build(self):
         index = NearestNeighbors(self.target)
         spacing = index.spacing()
-        index._near_index()  # the voxel hash, otherwise built on the first near query
+        index.prepare_step(len(self.source))  # the hash and the neighbour graph, otherwise built on first use
         self.index, self.spacing = index, spacing
 
     def iterations(self, count):

@@ -359,3 +359,71 @@ def test_anderson_forgets_a_non_finite_step():
     broken[0, 3] = np.nan
     assert accelerator.propose(second, broken) is broken  # cleared: the next step starts afresh
     assert accelerator.propose(first, second) is second
+
+
+def _walk_case(case):
+    """(target, source, second pose) of a graph-walk case of the step's queries."""
+    rng = np.random.default_rng(11)
+    if case == "near":  # warm starts close to the answer: the walk certifies most queries
+        target = _bunny_like(6000, 12)
+        return target, _bunny_like(3000, 13), _pose(0.01, [0.003, -0.002, 0.001])
+    if case == "far":  # a third of the source far from the target: those must fall back
+        target = _bunny_like(6000, 12)
+        source = _bunny_like(3000, 13)
+        source[::3] += [4.0, -3.0, 2.0]
+        return target, source, _pose(0.01, [0.003, -0.002, 0.001])
+    if case == "duplicates":  # every target point 1-12 times: radii of 0, ties between copies
+        base = _bunny_like(800, 14)
+        target = np.repeat(base, rng.integers(1, 13, size=len(base)), axis=0)
+        return target, _bunny_like(2000, 15), _pose(0.02, [0.01, 0.0, 0.0])
+    # "plane": a flat target (no spread along z), the source just above and below it
+    target = np.column_stack([rng.uniform(-1, 1, size=(5000, 2)), np.zeros(5000)])
+    source = np.column_stack([rng.uniform(-1.1, 1.1, size=(3000, 2)), rng.normal(scale=0.01, size=3000)])
+    return target, source, _pose(0.05, [0.02, -0.01, 0.0])
+
+
+def _pose(angle, translation):
+    pose = np.eye(4)
+    pose[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+    pose[:3, 3] = translation
+    return pose
+
+
+@pytest.mark.parametrize("case", ["near", "far", "duplicates", "plane"])
+def test_the_steps_graph_walk_matches_ckdtree(case, monkeypatch):
+    """The step's warm-started queries walk the target's neighbour graph first (certified answers)
+    and hand the rest to the hash or the tree: every answer is the exact nearest distance of
+    scipy's KD-tree, on 1 and 2 threads alike, where the walk certifies most queries ("near") and
+    where many must fall back (far source points, copies of target points, a flat target). The
+    walk runs whatever the RMS distance here (the far points would otherwise switch it off)."""
+    from esmicp import _kernels
+    from esmicp.core import correspondence
+
+    monkeypatch.setattr(correspondence, "STEP_GRAPH_RMS_SPACINGS", np.inf)
+
+    target, source, pose = _walk_case(case)
+    source = np.ascontiguousarray(source)
+    reference = cKDTree(target)
+    weighting = np.array([0.0, 0.01, 3.0, 1.0, 1.0])
+    results = []
+    for workers in (1, 2):
+        index = NearestNeighbors(target, workers=workers)
+        indices, distances, out = np.empty(len(source), dtype=np.int64), np.empty(len(source)), np.empty(_kernels.STEP_OUT)
+        index.step(source, np.eye(4), indices, distances, out, warm=False, weighting=weighting, objective_sigma=0.0)
+        assert out[40] == 0  # no warm start: nothing to walk from
+        index.step(source, pose, indices, distances, out, warm=True, weighting=weighting, objective_sigma=0.0)
+        placed = source @ pose[:3, :3].T + pose[:3, 3]
+        expected, _ = reference.query(placed)
+        np.testing.assert_allclose(distances, expected, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(target[indices] - placed, axis=1), expected, rtol=0, atol=1e-12)
+        results.append((indices, distances, out[40]))
+        certified = out[40] / len(source)
+        if case == "near":
+            assert certified > 0.8
+        elif case == "far":
+            assert 0.1 < certified < 2 / 3 + 1e-9
+        else:
+            assert 0.05 < certified < 0.95
+    np.testing.assert_array_equal(results[0][0], results[1][0])
+    np.testing.assert_array_equal(results[0][1], results[1][1])
+    assert results[0][2] == results[1][2]

@@ -442,6 +442,17 @@ Hash make_hash(CArr2 sorted_points, CIdx sorted_index, CIdx rank, CIdx cell_star
                 table_cells.data(), dims.data(), low.data(), cell, 1.0 / cell, cell * cell, 64 - bits, size - 1};
 }
 
+// The cell number of a cell key (-1: no point there).
+inline int64_t hash_cell(const Hash &h, int64_t key) {
+    int64_t slot = hash_slot(key, h.shift);
+    while (true) {
+        const int64_t stored = h.table_keys[slot];
+        if (stored == key) return h.table_cells[slot];
+        if (stored == -1) return -1;
+        slot = (slot + 1) & h.mask;
+    }
+}
+
 // Nearest target point to (qx, qy, qz), seeded with target point `warm` (-1: none): the 3 x 3 x 3
 // cells around it when `use_hash` (exact within one cell), otherwise (or beyond one cell, or at a
 // dense cell) the tree. Returns true when the nearest point is farther than one cell (a miss).
@@ -482,17 +493,7 @@ inline bool hash_nearest(const Hash &h, const Tree &t, const int64_t *tree_rank,
                         if (x < 0 || x >= dims[0]) continue;
                         double gx = dx == 0 ? 0.0 : ((dx < 0 ? ox : 1.0 - ox) * cell);
                         if (gx * gx + gy * gy + gz * gz > bound) continue;
-                        int64_t key = x + dims[0] * (y + dims[1] * z);
-                        int64_t slot = hash_slot(key, h.shift), found = -1;
-                        while (true) {
-                            int64_t stored = h.table_keys[slot];
-                            if (stored == key) {
-                                found = h.table_cells[slot];
-                                break;
-                            }
-                            if (stored == -1) break;
-                            slot = (slot + 1) & h.mask;
-                        }
+                        const int64_t found = hash_cell(h, x + dims[0] * (y + dims[1] * z));
                         if (found < 0) continue;
                         if (cs[found + 1] - cs[found] > CELL_SCAN_MAX) {
                             dense = true;
@@ -553,6 +554,110 @@ int64_t hash_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, 
     int64_t total = 0;
     for (int64_t m : misses) total += m;
     return total;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Neighbour graphs.
+// k near points of every point (itself among them) and a squared radius: every point strictly
+// nearer than that to a point is in its list (the k nearest and the distance to the k-th, for the
+// global search's graph by target index; see hash_graph for the step's, by hash order).
+template <class I>
+struct NeighbourGraph {
+    const I *neighbours;  // (M, k) point numbers
+    const double *radii;  // (M,) squared radii
+    int64_t k;
+};
+
+//: Descent steps along the graph before a query goes to the tree.
+constexpr int GRAPH_DESCENT_MAX = 8;
+
+// The certified walk from a warm start p (best: squared distance from (x, y, z) to p, `points` the
+// coordinates the graph's numbers refer to): moves p to a nearer member of its list while there
+// is one; when p's list holds none nearer and 2 |q - p| is within p's radius, every point nearer
+// to q than p (within 2 |q - p| of p) is in that list, so p is the exact nearest: returns true.
+// Otherwise (no certificate within GRAPH_DESCENT_MAX steps) false, with p and best the nearest
+// point met, a seed for an exact search.
+template <class I>
+inline bool graph_descent(const NeighbourGraph<I> &graph, const double *points, double x, double y, double z,
+                          int64_t &p, double &best) {
+    for (int step = 0; step < GRAPH_DESCENT_MAX; ++step) {
+        const I *list = graph.neighbours + graph.k * p;
+        int64_t next = -1;
+        for (int64_t j = 0; j < graph.k; ++j) {
+            const int64_t c = int64_t(list[j]);
+            const double ex = points[3 * c] - x, ey = points[3 * c + 1] - y, ez = points[3 * c + 2] - z;
+            const double candidate = ex * ex + ey * ey + ez * ez;
+            if (candidate < best) {
+                best = candidate;
+                next = c;
+            }
+        }
+        if (next < 0) return 4.0 * best * (1.0 + 1e-9) <= graph.radii[p];
+        p = next;
+    }
+    return false;
+}
+
+//: Most neighbours per point of a neighbour graph.
+constexpr int64_t GRAPH_K_MAX = 64;
+
+// The neighbour graph of a voxel hash's points by sorted position (row p and its entries are rows
+// of h.sorted_points), from the 3 x 3 x 3 cells around each point: its k nearest there, and as
+// radius the squared distance to the k-th but at most one cell (every point within one cell of p
+// is in that block, so every point strictly nearer than the radius is in the list). A point next
+// to a dense cell (more than CELL_SCAN_MAX points) gets radius -1: it never certifies.
+void hash_graph(const Hash &h, int64_t count, int64_t k, int32_t *neighbours, double *radii, int threads) {
+    const double *sp = h.sorted_points;
+    const int64_t *cs = h.cell_starts, *dims = h.dims;
+    const double cell = h.cell;
+    // Below one cell by a margin for the rounding of the cell coordinates.
+    const double reach = h.limit * (1.0 - 1e-6);
+    parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
+        double best[GRAPH_K_MAX];
+        int64_t slots[GRAPH_K_MAX];
+        const int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
+        for (int64_t p = piece * QUERY_PIECE; p < end; ++p) {
+            const double qx = sp[3 * p], qy = sp[3 * p + 1], qz = sp[3 * p + 2];
+            std::fill(best, best + k, INF);
+            std::fill(slots, slots + k, p);
+            const double fx = (qx - h.low[0]) * h.inverse_cell, fy = (qy - h.low[1]) * h.inverse_cell,
+                         fz = (qz - h.low[2]) * h.inverse_cell;
+            const int64_t cx = int64_t(std::floor(fx)), cy = int64_t(std::floor(fy)), cz = int64_t(std::floor(fz));
+            const double ox = fx - cx, oy = fy - cy, oz = fz - cz;
+            bool dense = false;
+            // The point's own cell first: its near points bound the rest of the block early.
+            for (int cube = 0; cube < 27 && !dense; ++cube) {
+                const int offset = cube == 0 ? 13 : (cube <= 13 ? cube - 1 : cube);
+                const int dx = offset % 3 - 1, dy = offset / 3 % 3 - 1, dz = offset / 9 - 1;
+                const int64_t x = cx + dx, y = cy + dy, z = cz + dz;
+                if (x < 0 || x >= dims[0] || y < 0 || y >= dims[1] || z < 0 || z >= dims[2]) continue;
+                const double gx = dx == 0 ? 0.0 : ((dx < 0 ? ox : 1.0 - ox) * cell);
+                const double gy = dy == 0 ? 0.0 : ((dy < 0 ? oy : 1.0 - oy) * cell);
+                const double gz = dz == 0 ? 0.0 : ((dz < 0 ? oz : 1.0 - oz) * cell);
+                if (gx * gx + gy * gy + gz * gz > std::min(best[k - 1], h.limit)) continue;
+                const int64_t found = hash_cell(h, x + dims[0] * (y + dims[1] * z));
+                if (found < 0) continue;
+                if (cs[found + 1] - cs[found] > CELL_SCAN_MAX) {
+                    dense = true;
+                    break;
+                }
+                for (int64_t c = cs[found]; c < cs[found + 1]; ++c) {
+                    const double ex = sp[3 * c] - qx, ey = sp[3 * c + 1] - qy, ez = sp[3 * c + 2] - qz;
+                    const double squared = ex * ex + ey * ey + ez * ez;
+                    if (squared >= best[k - 1]) continue;
+                    int64_t j = k - 1;
+                    for (; j > 0 && best[j - 1] > squared; --j) {
+                        best[j] = best[j - 1];
+                        slots[j] = slots[j - 1];
+                    }
+                    best[j] = squared;
+                    slots[j] = c;
+                }
+            }
+            for (int64_t j = 0; j < k; ++j) neighbours[k * p + j] = int32_t(slots[j]);
+            radii[p] = dense ? -1.0 : std::min(best[k - 1], reach);
+        }
+    });
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -987,12 +1092,15 @@ bool anderson_propose(CArr2 current_, CArr2 plain_, Arr1 state_, double scale, i
 // weights of 1 (icp). Objective sigma (> 0: also return the mean of exp(-d^2 / (2 s^2))).
 // `reject_below`: when that mean is below it (the loop's trial of an accelerated pose that fits
 // worse than the pose it came from), the step stops after the queries: out holds the rmse, the
-// objective and the misses, and out[39] = 1 (else 0).
+// objective, the misses and the certified queries, and out[39] = 1 (else 0).
+// With `use_graph` and a neighbour graph (build_graph), each warm-started query first walks it
+// (graph_descent); the queries it certifies skip the hash and the tree.
 //
 // out (STEP_OUT numbers): sigma, rmse, objective, misses, effective pairs, increment angle,
 // increment translation norm, R (9), t (3), the composed pose (16, re-orthonormalised), the motion
-// of the pose (angle, translation norm), sum of weights, sum of squared weights, rejected (1/0).
-constexpr int STEP_OUT = 40;
+// of the pose (angle, translation norm), sum of weights, sum of squared weights, rejected (1/0),
+// queries certified by the graph walk.
+constexpr int STEP_OUT = 41;
 
 struct Index {
     CArr2 target;
@@ -1004,6 +1112,10 @@ struct Index {
     CIdx sorted_index, hash_rank, cell_starts, table_keys, table_cells, dims;
     CArr1 low;
     double cell = 0.0;
+    // The neighbour graph of the hash's points by sorted position (build_graph), empty until built.
+    std::vector<int32_t> graph_neighbours;
+    std::vector<double> graph_radii;
+    int64_t graph_k = 0;
 
     Index(CArr2 target_, CArr2 points, CIdx order, CIdx rank, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes)
         : target(target_), tree_points(points), tree_order(order), tree_rank(rank), tree_starts(starts),
@@ -1023,7 +1135,27 @@ struct Index {
         has_hash = true;
     }
 
-    void step(CArr2 source, CArr2 pose, Idx indices, Arr1 distances, bool warm, bool use_hash, CArr1 weighting_,
+    // Builds the neighbour graph (k neighbours per target point) that the warm-started queries of
+    // step() walk first; the walk certifies most of them near convergence (graph_descent) and
+    // hands the rest, seeded with its end, to the hash or the tree.
+    void build_graph(int64_t k, int threads) {
+        const int64_t count = int64_t(tree_points.shape(0));
+        if (!has_hash) throw nb::value_error("build_graph: set_hash first");
+        if (k < 1 || k > GRAPH_K_MAX || k > count) throw nb::value_error("build_graph: 1 <= k <= min(M, 64)");
+        if (count > int64_t(std::numeric_limits<int32_t>::max()))
+            throw nb::value_error("build_graph: more than 2**31 - 1 target points");
+        std::vector<int32_t> neighbours(static_cast<size_t>(count * k));
+        std::vector<double> radii(static_cast<size_t>(count));
+        const Hash h = make_hash(sorted_points, sorted_index, hash_rank, cell_starts, table_keys, table_cells, low,
+                                 cell, dims);
+        hash_graph(h, count, k, neighbours.data(), radii.data(), threads);
+        graph_neighbours.swap(neighbours);
+        graph_radii.swap(radii);
+        graph_k = k;
+    }
+
+    void step(CArr2 source, CArr2 pose, Idx indices, Arr1 distances, bool warm, bool use_hash, bool use_graph,
+              CArr1 weighting_,
               double objective_sigma, double reject_below, Arr1 out_, int threads) {
         const int64_t count = int64_t(source.shape(0));
         if (count == 0) throw nb::value_error("step needs at least one source point");
@@ -1039,6 +1171,8 @@ struct Index {
                tree_boxes.data(), int64_t(tree_points.shape(0))};
         const int64_t *trank = tree_rank.data();
         const bool hashed = has_hash && use_hash;
+        const bool graphed = use_graph && warm && graph_k > 0 && has_hash;
+        const NeighbourGraph<int32_t> graph{graph_neighbours.data(), graph_radii.data(), graph_k};
         Hash h{};
         if (has_hash) h = make_hash(sorted_points, sorted_index, hash_rank, cell_starts, table_keys, table_cells, low,
                                     cell, dims);
@@ -1047,28 +1181,46 @@ struct Index {
         const double objective_scale =
             objective_sigma > 0.0 ? 1.0 / (2.0 * std::max(objective_sigma, 1e-150) * std::max(objective_sigma, 1e-150))
                                   : 0.0;
-        // Pass 1: the queries; per piece the misses, sum d^2, min d^2 and the objective's sum.
+        // Pass 1: the queries; per piece the misses, sum d^2, min d^2, the objective's sum and the
+        // certified queries.
         const int64_t pieces = piece_count(count, QUERY_PIECE);
-        std::vector<double> partial(4 * pieces, 0.0);
+        std::vector<double> partial(5 * pieces, 0.0);
         auto query = [&](int64_t piece) {
             int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
-            double misses = 0.0, squares = 0.0, least = INF, objective = 0.0;
+            double misses = 0.0, squares = 0.0, least = INF, objective = 0.0, certified = 0.0;
             for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
                 double x, y, z;
                 mapped(s, i, r0, t0, x, y, z);
                 int64_t seed = warm ? ix[i] : -1;
-                if (has_hash) {
-                    misses += hash_nearest(h, t, trank, x, y, z, seed, hashed, d[i], ix[i]);
-                } else {
-                    tree_nearest(t, trank, x, y, z, seed, d[i], ix[i]);
+                bool found = false;
+                if (graphed && seed >= 0) {
+                    const double *sp = h.sorted_points;
+                    int64_t p = h.rank[seed];
+                    const double ex = sp[3 * p] - x, ey = sp[3 * p + 1] - y, ez = sp[3 * p + 2] - z;
+                    double best = ex * ex + ey * ey + ez * ez;
+                    found = graph_descent(graph, sp, x, y, z, p, best);
+                    seed = h.sorted_index[p];
+                    if (found) {
+                        d[i] = std::sqrt(best);
+                        ix[i] = seed;
+                        misses += best > h.limit;
+                        certified += 1.0;
+                    }
+                }
+                if (!found) {  // the hash and the tree, seeded with the walk's end
+                    if (has_hash) {
+                        misses += hash_nearest(h, t, trank, x, y, z, seed, hashed, d[i], ix[i]);
+                    } else {
+                        tree_nearest(t, trank, x, y, z, seed, d[i], ix[i]);
+                    }
                 }
                 double squared = d[i] * d[i];
                 squares += squared;
                 least = std::min(least, squared);
                 if (objective_scale > 0.0) objective += std::exp(-squared * objective_scale);
             }
-            double *row = partial.data() + 4 * piece;
-            row[0] = misses; row[1] = squares; row[2] = least; row[3] = objective;
+            double *row = partial.data() + 5 * piece;
+            row[0] = misses; row[1] = squares; row[2] = least; row[3] = objective; row[4] = certified;
         };
         // Up to POOLED_STEP_MAX points the persistent helpers (a thread started per call costs a
         // large part of the work there); beyond, threads per call, with their Ctrl-C checks.
@@ -1077,16 +1229,18 @@ struct Index {
         } else {
             parallel_pieces(pieces, threads, query);
         }
-        double misses = 0.0, squares = 0.0, least = INF, objective = 0.0;
+        double misses = 0.0, squares = 0.0, least = INF, objective = 0.0, certified = 0.0;
         for (int64_t p = 0; p < pieces; ++p) {
-            misses += partial[4 * p];
-            squares += partial[4 * p + 1];
-            least = std::min(least, partial[4 * p + 2]);
-            objective += partial[4 * p + 3];
+            misses += partial[5 * p];
+            squares += partial[5 * p + 1];
+            least = std::min(least, partial[5 * p + 2]);
+            objective += partial[5 * p + 3];
+            certified += partial[5 * p + 4];
         }
         out[1] = std::sqrt(squares / double(count));
         out[2] = objective / double(count);
         out[3] = misses;
+        out[40] = certified;
         out[39] = out[2] < reject_below ? 1.0 : 0.0;
         if (out[39] != 0.0) return;
         // The sigma of this step.
@@ -1260,56 +1414,25 @@ struct GridLookup {
     }
 };
 
-// The k nearest target points of every target point (itself among them) and the squared distance
-// to the k-th: every target point strictly nearer than that to a point is in its list.
-struct NeighbourGraph {
-    const int64_t *neighbours;  // (M, k) target indices
-    const double *radii;        // (M,) squared distance to the k-th
-    int64_t k;
-};
-
-//: Descent steps along the graph before a query goes to the tree.
-constexpr int GRAPH_DESCENT_MAX = 8;
-
 struct TreeLookup {
     const Tree &t;
     const int64_t *rank;
     const double *target;  // (M, 3) as given (the neighbours' coordinates)
-    const NeighbourGraph &graph;
+    const NeighbourGraph<int64_t> &graph;
     const Grid *seeds;  // or nullptr: a query without a warm start starts from its cell's point there
     const double *points() const { return target; }
-    // Exact nearest target point. With a warm start p: walk the graph to a nearer list member
-    // while there is one; when p's list holds none nearer and 2 |q - p| is within p's radius,
-    // every target point nearer to q than p (within 2 |q - p| of p) is in that list: p is the
-    // nearest (certified). Otherwise the tree, seeded with p.
+    // Exact nearest target point: with a warm start, the certified walk (graph_descent) on the
+    // graph of target indices; where it certifies none, the tree, seeded with the walk's end.
     void operator()(double x, double y, double z, int64_t warm, double &distance, int64_t &index) const {
         if (warm < 0 && seeds != nullptr) warm = seeds->lookup[grid_cell(*seeds, x, y, z)];
         if (warm >= 0) {
-            auto squared = [&](int64_t j) {
-                const double ex = target[3 * j] - x, ey = target[3 * j + 1] - y, ez = target[3 * j + 2] - z;
-                return ex * ex + ey * ey + ez * ez;
-            };
             int64_t p = warm;
-            double best = squared(p);
-            for (int step = 0; step < GRAPH_DESCENT_MAX; ++step) {
-                const int64_t *list = graph.neighbours + graph.k * p;
-                int64_t next = -1;
-                for (int64_t j = 0; j < graph.k; ++j) {
-                    const double candidate = squared(list[j]);
-                    if (candidate < best) {
-                        best = candidate;
-                        next = list[j];
-                    }
-                }
-                if (next < 0) {
-                    if (4.0 * best * (1.0 + 1e-9) <= graph.radii[p]) {
-                        distance = std::sqrt(best);
-                        index = p;
-                        return;
-                    }
-                    break;
-                }
-                p = next;
+            const double ex = target[3 * p] - x, ey = target[3 * p + 1] - y, ez = target[3 * p + 2] - z;
+            double best = ex * ex + ey * ey + ez * ez;
+            if (graph_descent(graph, target, x, y, z, p, best)) {
+                distance = std::sqrt(best);
+                index = p;
+                return;
             }
             warm = p;
         }
@@ -1347,9 +1470,6 @@ void nearest_k(const Tree &t, int64_t node, double x, double y, double z, int64_
         slots[j] = s;
     }
 }
-
-//: Most neighbours per point of a neighbour graph.
-constexpr int64_t GRAPH_K_MAX = 64;
 
 // The neighbour graph of the tree's target (out_neighbours (M, k), out_radii (M,); k <= min(M, 64)).
 void neighbour_graph(CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
@@ -1504,7 +1624,7 @@ void batched_esm_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t i
     const int64_t k = int64_t(graph_neighbours.shape(1));
     if (int64_t(graph_radii.shape(0)) != tree.count || k < 1 || int64_t(graph_neighbours.shape(0)) != tree.count)
         throw std::invalid_argument("batched ESM: the neighbour graph does not match the target");
-    const NeighbourGraph graph{graph_neighbours.data(), graph_radii.data(), k};
+    const NeighbourGraph<int64_t> graph{graph_neighbours.data(), graph_radii.data(), k};
     // The seeds' grid (esmicp.core.nearest_grid.NearestGrid over the same target), if any (an empty lookup: none).
     const Grid seeds{target.data(), seed_lookup.data(), {seed_low.data()[0], seed_low.data()[1], seed_low.data()[2]},
                      seed_cell, {seed_shape.data()[0], seed_shape.data()[1], seed_shape.data()[2]}};
@@ -1664,6 +1784,7 @@ NB_MODULE(_kernels, m) {
     nb::class_<Index>(m, "Index")
         .def(nb::init<CArr2, CArr2, CIdx, CIdx, CIdx, CIdx, CIdx, CArr2>())
         .def("set_hash", &Index::set_hash)
+        .def("build_graph", &Index::build_graph)
         .def("step", &Index::step);
     m.def("hardware_threads", []() { return int(std::max(1u, std::thread::hardware_concurrency())); });
 }

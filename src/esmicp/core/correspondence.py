@@ -32,6 +32,14 @@ NEAR_QUERY_MIN = 256
 #: start far from the solution): the hash would only delay the tree there.
 HASH_MISS_LIMIT = 0.5
 
+#: Neighbours per target point of the graph that :meth:`NearestNeighbors.step` walks from the warm
+#: starts (0: no graph).
+STEP_GRAPH_NEIGHBOURS = 8
+
+#: :meth:`NearestNeighbors.step` walks the graph (and builds it, the first time) while the last
+#: step's RMS distance is within this many target spacings: farther, few walks certify their answer.
+STEP_GRAPH_RMS_SPACINGS = 3.0
+
 
 def coincident_points(points: np.ndarray) -> tuple[int, int, int, np.ndarray]:
     """``(repeats, most_index, most_count, first)`` of ``(N, 3)`` points, in one O(N) pass (a hash
@@ -65,6 +73,8 @@ class NearestNeighbors:
         self._index: "_kernels.Index | None" = None  # the compiled index of :meth:`step`
         self._coincident: tuple[int, int, int, np.ndarray] | None = None
         self._index_hashed = False
+        self._index_graphed = False
+        self._step_rmse = np.inf  # RMS distance of the last step's pairs
 
     def exact_tree(self) -> "compiled_tree.CompiledTree":
         """The compiled KD-tree of the target (built on first use)."""
@@ -121,16 +131,41 @@ class NearestNeighbors:
         ``out`` (``_kernels.STEP_OUT``): sigma, RMS distance, objective, misses, effective pairs,
         increment angle and translation norm, increment rotation (9) and translation (3), the
         composed pose (16), its motion (angle, translation norm), sum of weights, sum of squared
-        weights, 1.0 if the call stopped below ``reject_below`` (else 0.0).
+        weights, 1.0 if the call stopped below ``reject_below`` (else 0.0), the number of queries
+        the graph walk answered.
+
+        Near convergence (the last step's RMS distance within :data:`STEP_GRAPH_RMS_SPACINGS`
+        target spacings) each warm-started query first walks a neighbour graph of the target
+        from its last neighbour, and takes the point the walk certifies as the exact nearest
+        (every nearer point would be in that point's list); the others go to the hash and the
+        tree as before. The graph is built then, once per target (or by :meth:`prepare_step`).
         """
         near = len(source) >= NEAR_QUERY_MIN
         index = self._compiled_index(near)
         use_hash = bool(near and self._index_hashed and self._hash_misses <= HASH_MISS_LIMIT)
-        index.step(source, transformation, indices, distances, warm, use_hash, weighting, objective_sigma,
+        use_graph = bool(warm and use_hash and self._step_rmse <= STEP_GRAPH_RMS_SPACINGS * self.spacing())
+        if use_graph:
+            self._step_graph()  # built once, when the warm starts first come near the target
+        index.step(source, transformation, indices, distances, warm, use_hash, use_graph, weighting, objective_sigma,
                    reject_below, out, compiled_tree.threads(self.workers))
+        self._step_rmse = float(out[1])
         if near and self._index_hashed:
             self._hash_misses = float(out[3]) / len(source)
         return out
+
+    def prepare_step(self, count: int) -> None:
+        """Build now what :meth:`step` uses for ``count`` source points (the compiled index, the
+        voxel hash, the neighbour graph), which it otherwise builds on first use (the graph at
+        the first warm-started step near the target): benchmarks time the builds apart."""
+        self._compiled_index(count >= NEAR_QUERY_MIN)
+        self._step_graph()
+
+    def _step_graph(self) -> None:
+        """The target's neighbour graph (:data:`STEP_GRAPH_NEIGHBOURS` each, from the voxel hash) in
+        the compiled index; none without the hash (fewer than :data:`NEAR_QUERY_MIN` queries)."""
+        if STEP_GRAPH_NEIGHBOURS and self._index_hashed and not self._index_graphed:
+            self._index.build_graph(min(STEP_GRAPH_NEIGHBOURS, len(self.points)), compiled_tree.threads(self.workers))
+            self._index_graphed = True
 
     def _compiled_index(self, hashed: bool) -> "_kernels.Index":
         if self._index is None:
