@@ -424,6 +424,19 @@ void build_table(CIdx cell_keys, Idx table_keys, Idx table_cells) {
 //: (exact, logarithmic), so that no dense cell makes the hash quadratic.
 constexpr int64_t CELL_SCAN_MAX = 256;
 
+// Insert (squared, slot) into the k best so far (best ascending, slots alongside), if it is nearer
+// than the k-th: the k-nearest searches of the tree and of the voxel hash share it.
+inline void keep_nearer(double *best, int64_t *slots, int64_t k, double squared, int64_t slot) {
+    if (squared >= best[k - 1]) return;
+    int64_t j = k - 1;
+    for (; j > 0 && best[j - 1] > squared; --j) {
+        best[j] = best[j - 1];
+        slots[j] = slots[j - 1];
+    }
+    best[j] = squared;
+    slots[j] = slot;
+}
+
 struct Hash {
     const double *sorted_points;
     const int64_t *sorted_index, *rank, *cell_starts, *table_keys, *table_cells, *dims;
@@ -643,15 +656,7 @@ void hash_graph(const Hash &h, int64_t count, int64_t k, int32_t *neighbours, do
                 }
                 for (int64_t c = cs[found]; c < cs[found + 1]; ++c) {
                     const double ex = sp[3 * c] - qx, ey = sp[3 * c + 1] - qy, ez = sp[3 * c + 2] - qz;
-                    const double squared = ex * ex + ey * ey + ez * ez;
-                    if (squared >= best[k - 1]) continue;
-                    int64_t j = k - 1;
-                    for (; j > 0 && best[j - 1] > squared; --j) {
-                        best[j] = best[j - 1];
-                        slots[j] = slots[j - 1];
-                    }
-                    best[j] = squared;
-                    slots[j] = c;
+                    keep_nearer(best, slots, k, ex * ex + ey * ey + ez * ez, c);
                 }
             }
             for (int64_t j = 0; j < k; ++j) neighbours[k * p + j] = int32_t(slots[j]);
@@ -1459,15 +1464,7 @@ void nearest_k(const Tree &t, int64_t node, double x, double y, double z, int64_
     }
     for (int64_t s = t.starts[node]; s < t.ends[node]; ++s) {
         const double ex = t.points[3 * s] - x, ey = t.points[3 * s + 1] - y, ez = t.points[3 * s + 2] - z;
-        const double squared = ex * ex + ey * ey + ez * ez;
-        if (squared >= best[k - 1]) continue;
-        int64_t j = k - 1;
-        for (; j > 0 && best[j - 1] > squared; --j) {
-            best[j] = best[j - 1];
-            slots[j] = slots[j - 1];
-        }
-        best[j] = squared;
-        slots[j] = s;
+        keep_nearer(best, slots, k, ex * ex + ey * ey + ez * ez, s);
     }
 }
 
