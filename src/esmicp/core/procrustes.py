@@ -107,6 +107,16 @@ def rotation_angle(rotation: np.ndarray) -> float:
     return pose_kernels.angle_of(np.asarray(rotation, dtype=np.float64))
 
 
+def batched_rotation_angle(rotations: np.ndarray) -> np.ndarray:
+    """Geodesic angles (radians, ``[0, pi]``) of ``(..., 3, 3)`` rotations: :func:`rotation_angle`'s
+    ``atan2`` of the skew part and the trace, for a whole array at once."""
+    skew_x = rotations[..., 2, 1] - rotations[..., 1, 2]
+    skew_y = rotations[..., 0, 2] - rotations[..., 2, 0]
+    skew_z = rotations[..., 1, 0] - rotations[..., 0, 1]
+    trace = rotations[..., 0, 0] + rotations[..., 1, 1] + rotations[..., 2, 2]
+    return np.arctan2(0.5 * np.sqrt(skew_x * skew_x + skew_y * skew_y + skew_z * skew_z), 0.5 * (trace - 1.0))
+
+
 def project_to_rotation(matrix: np.ndarray) -> np.ndarray:
     """Nearest rotation matrix (in Frobenius norm) to a 3x3 matrix; removes accumulated drift."""
     return pose_kernels.nearest_rotation(np.asarray(matrix, dtype=np.float64))

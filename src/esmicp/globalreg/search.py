@@ -43,7 +43,7 @@ import numpy as np
 
 from ..core.correspondence import NearestNeighbors
 from ..core.nearest_grid import NearestGrid
-from ..core.procrustes import bounding_box_diagonal, to_matrix
+from ..core.procrustes import batched_rotation_angle, bounding_box_diagonal, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .rotation_search import NeighbourGraph, batched_esm, gaussian_overlap_score, rotation_search
 
@@ -150,17 +150,11 @@ def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> lis
         return []
     rotations = transformations[order, :3, :3]
     count = len(order)
-    # R_a^T R_b for every pair, as relative[a, i, b, j], from one (3K, 3) x (3, 3K) product
+    # R_a^T R_b for every pair from one (3K, 3) x (3, 3K) product
     # (cheaper than K^2 separate 3x3 products: docs/speed.md, "Issue 14, fourth pass").
     columns = np.swapaxes(rotations, 1, 2).reshape(3 * count, 3)
-    relative = (columns @ columns.T).reshape(count, 3, count, 3)
-    skew_x = relative[:, 2, :, 1] - relative[:, 1, :, 2]
-    skew_y = relative[:, 0, :, 2] - relative[:, 2, :, 0]
-    skew_z = relative[:, 1, :, 0] - relative[:, 0, :, 1]
-    trace = relative[:, 0, :, 0] + relative[:, 1, :, 1] + relative[:, 2, :, 2]
-    # The geodesic angle as :func:`~esmicp.core.procrustes.rotation_angle` computes it, for all pairs.
-    angles = np.degrees(np.arctan2(0.5 * np.sqrt(skew_x * skew_x + skew_y * skew_y + skew_z * skew_z),
-                                   0.5 * (trace - 1.0)))
+    relative = (columns @ columns.T).reshape(count, 3, count, 3).transpose(0, 2, 1, 3)  # [a, b] = R_a^T R_b
+    angles = np.degrees(batched_rotation_angle(relative))
     kept: list[int] = []
     for position in range(len(order)):
         if (angles[position, kept] > DISTINCT_ROTATION_DEG).all():
