@@ -7,6 +7,7 @@ developer's machine, but FAIL in CI (``CI=true``), where their absence is a brok
 
 from __future__ import annotations
 
+import importlib
 import os
 import signal
 from pathlib import Path
@@ -29,10 +30,27 @@ def require_shared(relative: str) -> Path:
     path = _shared_data_dir() / relative
     if not path.exists():
         message = f"shared data not found: {path} (set ESMICP_SHARED_DATA or put shared/ beside the repo)"
-        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        if in_ci():
             pytest.fail(message)
         pytest.skip(message)
     return path
+
+
+def in_ci() -> bool:
+    """True under CI (``CI=true``): a test whose data or optional library is missing fails there."""
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+def require_module(name: str, extra: str):
+    """Import the optional module ``name``; skip the test when it is missing locally, fail it in CI.
+    ``extra``: the ``esmicp[...]`` extra that installs it."""
+    try:
+        return importlib.import_module(name)
+    except (ImportError, OSError) as exc:  # OSError: open3d-cpu without libusb
+        message = f"{name} cannot be imported ({exc}): pip install 'esmicp[{extra}]'"
+        if in_ci():
+            pytest.fail(message)
+        pytest.skip(message)
 
 
 @pytest.fixture

@@ -7,14 +7,12 @@ The baseline libraries are optional: locally a test that needs a missing one is 
 
 from __future__ import annotations
 
-import importlib
-import os
 import sys
 import types
 
 import numpy as np
 import pytest
-from conftest import require_shared
+from conftest import require_module, require_shared
 from scipy.spatial.transform import Rotation
 
 from esmicp.baselines import (
@@ -37,24 +35,9 @@ LOCAL = {"small-gicp": ("small_gicp",)}
 MODULES = {**GLOBAL, **LOCAL}
 
 
-def _in_ci() -> bool:
-    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
-
-
-def require_module(name: str):
-    """Import ``name``; skip the test when it is missing locally, fail it in CI."""
-    try:
-        return importlib.import_module(name)
-    except (ImportError, OSError) as exc:
-        message = f"{name} cannot be imported ({exc}): pip install 'esmicp[baselines]'"
-        if _in_ci():
-            pytest.fail(message)
-        pytest.skip(message)
-
-
 def _require_all(method: str) -> None:
     for module in MODULES[method]:
-        require_module(module)
+        require_module(module, "baselines")
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from conftest import REPO_ROOT, require_shared
 from scipy.spatial.transform import Rotation
-from test_baselines import _in_ci, require_module
+from conftest import in_ci, require_module
 
 from esmicp.baselines import (
     BASELINE_KINDS,
@@ -74,7 +74,7 @@ WEIGHTS = "pointnetlk/best_model.t7"
 
 def _require(method: str) -> None:
     for module in NEEDS[method]:
-        require_module(module)
+        require_module(module, "baselines")
     if method == "pointnetlk":
         require_weights(WEIGHTS)
 
@@ -97,7 +97,7 @@ def require_weights(relative: str):
     if (folder / relative).is_file():
         return folder / relative
     message = f"weights not found: {folder / relative} (set ESMICP_WEIGHTS_DIR or put shared/ beside the repo)"
-    if _in_ci():
+    if in_ci():
         pytest.fail(message)
     pytest.skip(message)
 
@@ -372,9 +372,9 @@ def test_missing_library_raises_with_its_own_install_hint(method, monkeypatch):
 
 def test_ci_flag_is_what_makes_missing_libraries_fail():
     # Guard for the skip/fail rule above: in CI every optional module must import.
-    if not _in_ci():
+    if not in_ci():
         pytest.skip("only meaningful with CI=true")
     for modules in NEEDS.values():
         for module in modules:
-            require_module(module)
+            require_module(module, "baselines")
     assert os.environ.get("CI")

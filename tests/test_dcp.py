@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import require_shared
 from scipy.spatial.transform import Rotation
-from test_baselines import require_module
+from conftest import require_module
 from test_baselines_methods import _weights_from_the_shared_folder, require_weights  # noqa: F401 (fixture)
 
 from esmicp.baselines import get_baseline
@@ -26,7 +26,7 @@ OBJECTS = ("airplane_0126", "guitar_0165", "chair_0848", "piano_0226", "person_0
 
 @pytest.fixture(autouse=True)
 def _needs_torch_and_weights():
-    require_module("torch")
+    require_module("torch", "learned")
     require_weights(WEIGHTS)
 
 

@@ -12,7 +12,7 @@ from esmicp.errors import InvalidInputError
 from esmicp.multiview import register_scans, scans as scans_module
 from esmicp.multiview import pose_graph
 
-from conftest import require_shared
+from conftest import require_module, require_shared
 
 BUNNY = ("bun000", "bun045", "bun315", "top3")
 
@@ -185,6 +185,7 @@ def bunny_files(tmp_path, bunny):
 def test_cli_merge_end_to_end(tmp_path, bunny_files):
     from esmicp.cli import main
 
+    require_module("plotly", "viz")  # --view writes an interactive page
     out, poses, view = tmp_path / "merged.ply", tmp_path / "poses.txt", tmp_path / "merged.html"
     argv = [*map(str, bunny_files), "-o", str(out), "--poses-out", str(poses), "--view", str(view),
             "--voxel", "0.002", "--processes", "1", "--pair-points", "500", "--no-progress"]

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO_ROOT, require_shared
+from conftest import REPO_ROOT, require_module, require_shared
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -100,6 +100,8 @@ def test_the_dcp_training_range_protocol_stays_inside_45_degrees_and_half_a_radi
 def small_run(tmp_path_factory) -> Path:
     """``esmicp bench --paper-1000`` with 3 trials per group at 1,024 points, two methods, serial."""
     data = require_shared("modelnet40").parent
+    for module in ("kiss_matcher", "open3d"):  # kiss-matcher-icp's libraries
+        require_module(module, "baselines")
     out = tmp_path_factory.mktemp("paper-1000")
     done = subprocess.run(
         [sys.executable, "-m", "esmicp.cli", "bench", "--paper-1000", "--trials", "3", "--points", "1024",

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_viz_support import check_image, in_ci, require_module, require_plotting
+from conftest import in_ci, require_module
+from test_viz_support import check_image, require_plotting
 
 from esmicp.cli import main
 from esmicp.core.procrustes import apply
@@ -42,7 +43,7 @@ def chromium_path() -> str:
 
 @pytest.fixture(scope="module")
 def browser():
-    sync_api = require_module("playwright.sync_api", extra="browser-test")
+    sync_api = require_module("playwright.sync_api", "browser-test")
     executable = chromium_path()
     with sync_api.sync_playwright() as playwright:
         launched = playwright.chromium.launch(executable_path=executable, args=CHROMIUM_FLAGS, headless=True)

@@ -3,37 +3,21 @@ locally when missing, FAILED in CI where .ci/run installs them) and image checks
 
 from __future__ import annotations
 
-import importlib
-import os
 
 import numpy as np
 import pytest
-
-
-def in_ci() -> bool:
-    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
-
-
-def require_module(name: str, extra: str = "viz"):
-    """Import ``name``; skip the test when it is missing locally, fail it in CI."""
-    try:
-        return importlib.import_module(name)
-    except ImportError as exc:
-        message = f"{name} cannot be imported ({exc}): pip install 'esmicp[{extra}]'"
-        if in_ci():
-            pytest.fail(message)
-        pytest.skip(message)
+from conftest import require_module
 
 
 def require_plotting():
-    require_module("matplotlib")
-    require_module("plotly")
-    return require_module("PIL.Image")
+    require_module("matplotlib", "viz")
+    require_module("plotly", "viz")
+    return require_module("PIL.Image", "viz")
 
 
 def check_image(path, *, min_width: int, min_height: int):
     """Open an image file; check its size and that it is not blank. Returns it as an RGB array."""
-    image_module = require_module("PIL.Image")
+    image_module = require_module("PIL.Image", "viz")
     with image_module.open(path) as image:
         width, height = image.size
         pixels = np.asarray(image.convert("RGB"), dtype=np.int16)
