@@ -154,3 +154,24 @@ def test_a_large_source_ends_on_the_whole_source(scene):
     assert not estimator.coarse and outcome.converged
     gap, _ = cKDTree(target).query(apply(outcome.transformation, source))
     assert gap.max() < 1e-7
+
+
+def test_normals_come_from_the_offered_tree_only_when_it_holds_the_target(scene, monkeypatch):
+    """``use_target_tree``: the target index's own tree serves the normals (no second tree) when
+    its points are the target's; a tree over other points is refused and the normals stay right."""
+    from esmicp.core.compiled_tree import CompiledTree
+    from esmicp.globalreg.features import estimate_normals
+    from esmicp.methods import plane
+
+    _, target = scene
+    indices = np.arange(0, len(target), 7)
+    expected = estimate_normals(target, plane.NORMAL_NEIGHBOURS, at=target[indices])
+    built = []
+    monkeypatch.setattr(plane, "CompiledTree", lambda points: built.append(len(points)) or CompiledTree(points))
+    for offered, builds in [(NearestNeighbors(target).exact_tree(), 0), (CompiledTree(target[::-1].copy()), 1)]:
+        built.clear()
+        estimator = PlaneEstimator(floor=0.02, diameter=6.0)
+        estimator.use_target_tree(offered, workers=2)
+        normals = estimator._normals_at(target, indices)
+        assert len(built) == builds
+        assert np.allclose(np.abs(np.einsum("ij,ij->i", normals, expected)), 1.0, atol=1e-9)

@@ -17,7 +17,7 @@ from .errors import CoincidentPointsWarning, IndexAlignmentWarning, InvalidInput
 from .globalreg.scan import Keypoints, overlap_confidence
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
-from .methods import METHODS, ConvergenceCriteria, make_estimator
+from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimator
 from .methods.esm import COARSE_POINTS, EsmEstimator
 from .methods.guard import guarded_refine
 from .methods.local import Callback, _budget_spent
@@ -167,7 +167,7 @@ def register(
     initial, init_name, estimate = _start(request, source_points, target_points, target_index, frame)
     # After a global search (which ends at the finest sigma) the pose is already close: start in
     # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
-    estimator = make_estimator(method, request.sigma, target_index.spacing(), diagonal, start_fine=estimate is not None)
+    estimator = _estimator(method, request, target_index, diagonal, start_fine=estimate is not None)
     if estimate is None and isinstance(estimator, EsmEstimator):
         # A given start: its coarse sigma comes from the overlap's residuals (partial overlaps).
         estimator.start_from(target_index.query_near(source_points, transform=initial)[0])
@@ -269,7 +269,7 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     budget = min(POLISH_ITERATIONS, request.criteria.max_iterations - coarse.num_iterations)
     if budget <= 0:  # the user's iteration budget is spent
         return dataclasses.replace(coarse, message=where, num_iterations=plane_iterations + coarse.num_iterations)
-    polisher = make_estimator(request.method, request.sigma, target_index.spacing(), diagonal, start_fine=True)
+    polisher = _estimator(request.method, request, target_index, diagonal, start_fine=True)
     criteria = dataclasses.replace(request.criteria, max_iterations=budget)
     polish = guarded_refine(
         source, target_index, polisher, init=coarse.transformation, criteria=criteria, scale=diagonal,
@@ -281,6 +281,15 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     )
 
 
+def _estimator(method: str, request: _Request, target_index, diagonal: float, start_fine: bool = False):
+    """``make_estimator`` for this request; ``esm-plane`` takes its normals' neighbours from the
+    target index's own KD-tree, on the request's threads."""
+    estimator = make_estimator(method, request.sigma, target_index.spacing(), diagonal, start_fine=start_fine)
+    if isinstance(estimator, PlaneEstimator):
+        estimator.use_target_tree(target_index.exact_tree(), request.workers)
+    return estimator
+
+
 def _plane_start(strided, target_index, initial, request: _Request, diagonal: float) -> tuple[np.ndarray, int]:
     """``(pose, iterations)`` of at most ``PLANE_ITERATIONS`` ``esm-plane`` iterations on the
     strided source from ``initial``, leaving ``esm`` at least one iteration of ``max_iterations``;
@@ -288,7 +297,7 @@ def _plane_start(strided, target_index, initial, request: _Request, diagonal: fl
     budget = min(PLANE_ITERATIONS, request.criteria.max_iterations - 1)
     if budget <= 0:
         return initial, 0
-    planar = make_estimator("esm-plane", request.sigma, target_index.spacing(), diagonal)
+    planar = _estimator("esm-plane", request, target_index, diagonal)
     criteria = dataclasses.replace(request.criteria, max_iterations=budget)
     plane = guarded_refine(strided, target_index, planar, init=initial, criteria=criteria, scale=diagonal)
     return (plane.transformation, plane.num_iterations) if plane.num_iterations > 0 else (initial, 0)

@@ -86,6 +86,15 @@ class PlaneEstimator(Estimator):
         self._tree: CompiledTree | None = None
         self._normals: np.ndarray | None = None
         self._known: np.ndarray | None = None
+        self._offered: CompiledTree | None = None
+        self._workers: int | None = 1
+
+    def use_target_tree(self, tree: CompiledTree, workers: int | None = None) -> None:
+        """Take the normals' neighbours from ``tree`` (the compiled KD-tree of the target the steps
+        will see, e.g. :meth:`~esmicp.core.correspondence.NearestNeighbors.exact_tree`) on
+        ``workers`` threads (None: every core), instead of building a second tree over the same
+        points on one thread. Used only if its points are the target's (checked once)."""
+        self._offered, self._workers = tree, workers
 
     @property
     def coarse(self) -> bool:
@@ -122,12 +131,16 @@ class PlaneEstimator(Estimator):
     def _normals_at(self, target: np.ndarray, indices: np.ndarray) -> np.ndarray:
         """Unit normals at ``target[indices]``, estimated once per target point."""
         if self._target is not target:
-            self._target, self._tree = target, CompiledTree(target)
+            offered = self._offered
+            same = offered is not None and len(offered.points) == len(target) and np.array_equal(
+                offered.points[offered.rank], target)
+            self._target, self._tree = target, offered if same else CompiledTree(target)
             self._normals = np.empty_like(target)
             self._known = np.zeros(len(target), dtype=bool)
         needed = np.unique(indices[~self._known[indices]])
         if len(needed):
-            self._normals[needed] = estimate_normals(target, NORMAL_NEIGHBOURS, at=target[needed], tree=self._tree)
+            self._normals[needed] = estimate_normals(target, NORMAL_NEIGHBOURS, at=target[needed], tree=self._tree,
+                                                     workers=self._workers)
             self._known[needed] = True
         return self._normals[indices]
 
