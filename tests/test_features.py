@@ -119,6 +119,24 @@ def test_normals_are_equivariant_and_can_be_evaluated_elsewhere():
     assert np.abs(np.einsum("ij,ij->i", near, normals[:50])).min() > 0.99
 
 
+def test_a_normal_estimator_asked_piece_by_piece_gives_estimate_normals_results():
+    """NormalEstimator (the cloud's tree, centroid and centred copy made once, for esm-plane's
+    many small requests) answers each request exactly as one estimate_normals call would."""
+    from esmicp.globalreg.features import NormalEstimator
+
+    rng = np.random.default_rng(5)
+    points = bumpy_sphere(3000, rng)
+    estimator = NormalEstimator(points, k=20, radius=0.4, workers=2)
+    viewpoint = np.array([3.0, -1.0, 0.5])
+    for piece in np.array_split(rng.permutation(len(points)), 3):
+        at = points[piece] + 1e-3 * rng.normal(size=(len(piece), 3))
+        np.testing.assert_array_equal(estimator.at(at), estimate_normals(points, k=20, radius=0.4, at=at))
+        np.testing.assert_array_equal(estimator.at(at, viewpoint),
+                                      estimate_normals(points, k=20, radius=0.4, at=at, viewpoint=viewpoint))
+    with pytest.raises(InvalidInputError, match="at"):
+        estimator.at(np.full((2, 3), np.nan))
+
+
 def test_normals_use_the_k_nearest_within_the_radius_as_scipys_tree_finds_them():
     from scipy.spatial import cKDTree
 

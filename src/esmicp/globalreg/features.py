@@ -214,40 +214,59 @@ def estimate_normals(
         Where fewer than 3 neighbours are found, the normal falls back to the unit direction from
         the centroid of ``points`` to the query point (or ``+z`` if they coincide).
     """
-    points = _as_cloud(points)
-    query = points if at is None else _as_cloud(at, "at")
-    if not 3 <= int(k) <= K_MAX:
-        raise InvalidInputError(f"k: need 3 to {K_MAX} neighbours for a normal, got {k!r}")
-    k = min(int(k), len(points))
-    upper = np.inf if radius is None else as_positive(radius, "radius")
-    tree = CompiledTree(points) if tree is None else tree
-    distances, indices = tree.query_k(query, k, workers=workers)
-    indices[~(distances <= upper)] = len(points)  # beyond the radius (or a non-finite query): none
-    counts = (indices < len(points)).sum(axis=1)
-    # Raw moments of coordinates relative to the cloud's centroid; the padding row (index N, for
-    # missing neighbours) is zero so it adds nothing.
-    centroid = points.mean(axis=0)
-    padded = np.vstack([points - centroid, np.zeros((1, 3))])
-    neighbours = padded[indices]
-    safe_counts = np.maximum(counts, 1).astype(np.float64)
-    mean = neighbours.sum(axis=1) / safe_counts[:, None]
-    covariance = np.matmul(neighbours.transpose(0, 2, 1), neighbours) / safe_counts[:, None, None]
-    covariance -= mean[:, :, None] * mean[:, None, :]
-    _, vectors = np.linalg.eigh(covariance)
-    normals = vectors[:, :, 0]
+    estimator = NormalEstimator(points, k, radius, tree=tree, workers=workers)
+    return estimator.at(estimator.points if at is None else at, viewpoint)
 
-    outward = query - centroid
-    few = counts < 3
-    if few.any():
-        fallback = outward[few]
-        lengths = np.linalg.norm(fallback, axis=1)
-        unit = fallback / np.where(lengths > 0, lengths, 1.0)[:, None]
-        fallback = np.where(lengths[:, None] > 0, unit, [0.0, 0.0, 1.0])
-        normals[few] = fallback
-    reference = outward if viewpoint is None else np.asarray(viewpoint, dtype=np.float64).reshape(3) - query
-    flip = np.einsum("ij,ij->i", normals, reference) < 0
-    normals[flip] *= -1.0
-    return normals
+
+class NormalEstimator:
+    """:func:`estimate_normals` of one cloud, asked many times: what depends only on the cloud
+    (its tree, its centroid, its points relative to the centroid) is made once, so that each call
+    costs in proportion to the points asked about (``esm-plane`` asks for a few thousand new
+    normals of a 300k-point target at each iteration). Same parameters and results as
+    :func:`estimate_normals`; ``points`` must not change while it is in use."""
+
+    def __init__(self, points, k: int = 30, radius: float | None = None, *, tree: CompiledTree | None = None,
+                 workers: int | None = 1):
+        self.points = _as_cloud(points)
+        if not 3 <= int(k) <= K_MAX:
+            raise InvalidInputError(f"k: need 3 to {K_MAX} neighbours for a normal, got {k!r}")
+        self.k = min(int(k), len(self.points))
+        self.upper = np.inf if radius is None else as_positive(radius, "radius")
+        self.tree = CompiledTree(self.points) if tree is None else tree
+        self.workers = workers
+        # Raw moments of coordinates relative to the cloud's centroid; the padding row (index N,
+        # for missing neighbours) is zero so it adds nothing.
+        self.centroid = self.points.mean(axis=0)
+        self.padded = np.vstack([self.points - self.centroid, np.zeros((1, 3))])
+
+    def at(self, query, viewpoint=None) -> np.ndarray:
+        """Unit normals at ``query`` ((M, 3), cloud units), oriented as :func:`estimate_normals`
+        orients them (toward ``viewpoint`` if given)."""
+        query = query if query is self.points else _as_cloud(query, "at")
+        count = len(self.points)
+        distances, indices = self.tree.query_k(query, self.k, workers=self.workers)
+        indices[~(distances <= self.upper)] = count  # beyond the radius (or a non-finite query): none
+        counts = (indices < count).sum(axis=1)
+        neighbours = self.padded[indices]
+        safe_counts = np.maximum(counts, 1).astype(np.float64)
+        mean = neighbours.sum(axis=1) / safe_counts[:, None]
+        covariance = np.matmul(neighbours.transpose(0, 2, 1), neighbours) / safe_counts[:, None, None]
+        covariance -= mean[:, :, None] * mean[:, None, :]
+        _, vectors = np.linalg.eigh(covariance)
+        normals = vectors[:, :, 0]
+
+        outward = query - self.centroid
+        few = counts < 3
+        if few.any():
+            fallback = outward[few]
+            lengths = np.linalg.norm(fallback, axis=1)
+            unit = fallback / np.where(lengths > 0, lengths, 1.0)[:, None]
+            fallback = np.where(lengths[:, None] > 0, unit, [0.0, 0.0, 1.0])
+            normals[few] = fallback
+        reference = outward if viewpoint is None else np.asarray(viewpoint, dtype=np.float64).reshape(3) - query
+        flip = np.einsum("ij,ij->i", normals, reference) < 0
+        normals[flip] *= -1.0
+        return normals
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -40,7 +40,7 @@ from ..core.compiled_tree import CompiledTree
 from ..core.pose_kernels import rotation_exp
 from ..core.procrustes import rotation_angle
 from ..core.weights import relative_gaussian_weights
-from ..globalreg.features import estimate_normals
+from ..globalreg.features import NormalEstimator
 from .base import Estimator, Step
 from .esm import FINE_PHASE_STEP
 
@@ -83,7 +83,7 @@ class PlaneEstimator(Estimator):
         self.fixed = sigma
         self._whole = False
         self._target: np.ndarray | None = None
-        self._tree: CompiledTree | None = None
+        self._estimator: NormalEstimator | None = None
         self._normals: np.ndarray | None = None
         self._known: np.ndarray | None = None
         self._offered: CompiledTree | None = None
@@ -134,13 +134,14 @@ class PlaneEstimator(Estimator):
             offered = self._offered
             same = offered is not None and len(offered.points) == len(target) and np.array_equal(
                 offered.points[offered.rank], target)
-            self._target, self._tree = target, offered if same else CompiledTree(target)
+            self._target = target
+            self._estimator = NormalEstimator(target, NORMAL_NEIGHBOURS, tree=offered if same else CompiledTree(target),
+                                              workers=self._workers)
             self._normals = np.empty_like(target)
             self._known = np.zeros(len(target), dtype=bool)
         needed = np.unique(indices[~self._known[indices]])
         if len(needed):
-            self._normals[needed] = estimate_normals(target, NORMAL_NEIGHBOURS, at=target[needed], tree=self._tree,
-                                                     workers=self._workers)
+            self._normals[needed] = self._estimator.at(target[needed])
             self._known[needed] = True
         return self._normals[indices]
 
