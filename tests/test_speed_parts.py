@@ -163,6 +163,41 @@ def test_coarse_to_fine_converges_to_the_full_resolution_pose_on_lidar():
         assert np.degrees(rotation_angle(outcome.transformation[:3, :3].T @ truth[:3, :3])) < 0.2
 
 
+def test_the_last_neighbours_come_back_in_the_sources_order_only_from_the_whole_source():
+    """RefinementOutcome.neighbours: the one-call loop visits the source in the target's spatial
+    order and on a strided subset first; the neighbours it returns are every source point's, in
+    the caller's order, at the pose one step before the final one (after convergence most equal
+    the nearest at the final pose), and None where the loop ended on the subset."""
+    source, target, truth = lidar_pair()
+    rng = np.random.default_rng(1)
+    source = source[rng.choice(len(source), 30_000, replace=False)]
+    target = target[rng.choice(len(target), 30_000, replace=False)]
+    index = NearestNeighbors(target)
+    diagonal = float(np.linalg.norm(np.ptp(target, axis=0)))
+    common = {"diagonal": diagonal, "spacing": index.spacing()}
+    start = yawed(truth, source, 5.0)
+    outcome = _refine(source, index, start, coarse_points=COARSE_POINTS, max_iterations=200, **common)
+    assert outcome.converged and outcome.neighbours is not None and len(outcome.neighbours) == len(source)
+    _, nearest = cKDTree(target).query(apply(outcome.transformation, source))
+    # Measured 93% (the last step still moves some LiDAR points to another neighbour); points in
+    # another order would match almost none.
+    assert np.mean(outcome.neighbours == nearest) > 0.8
+    # Stopped while still on the subset: no neighbours of the whole source.
+    early = _refine(source, index, start, coarse_points=COARSE_POINTS, max_iterations=1, **common)
+    assert early.neighbours is None
+
+
+def test_registers_fitness_is_the_cold_querys():
+    """register() warm-starts its fitness query from the refinement's last neighbours: the
+    figures are those of a cold exact query at the final pose."""
+    source, target, truth = lidar_pair()
+    result = esmicp.register(source, target, init=yawed(truth, source, 3.0))
+    distances, _ = cKDTree(target).query(apply(result.transformation, source))
+    inliers = distances <= result.inlier_distance
+    assert result.fitness == pytest.approx(inliers.mean(), abs=1e-12)
+    assert result.inlier_rmse == pytest.approx(np.sqrt(np.mean(distances[inliers] ** 2)), rel=1e-9)
+
+
 def test_fast_index_gives_the_pose_of_the_plain_kd_tree_loop():
     """The voxel hash with warm starts and the spatial visiting order against the KD-tree with the
     source in its own order (no coarse phase), bunny scan onto the bunny model, 10 degrees off:

@@ -68,6 +68,10 @@ class RefinementOutcome:
 
     ``effective_pairs`` is Kish's effective number of pairs of the last step (None where it is not
     known, or there were no pairs), ``pairs`` that step's number of pairs (0: no step).
+    ``neighbours``: the nearest target index of every source point (the source's own order) at
+    the last pose the loop queried, one step before ``transformation``, where the one-call loop
+    ended on the whole source; else None. A warm start for queries near the final pose (any
+    index gives exact answers; a near one makes them cheap).
     """
 
     transformation: np.ndarray
@@ -78,6 +82,7 @@ class RefinementOutcome:
     history: tuple[IterationRecord, ...] | None
     effective_pairs: float | None = None
     pairs: int = 0
+    neighbours: np.ndarray | None = None
 
 
 @keeps_keyboard_interrupt
@@ -115,12 +120,12 @@ def refine(
         and estimator.coarse
     )
     workers = getattr(target, "workers", None)
-    query_order = None
+    query_order = visit_order = None
     if len(source) >= SPATIAL_ORDER_MIN:
         order = target.spatial_order(apply(init, source, workers))
         if callback is None and estimator.order_invariant:
             # Visit the source points in spatial order (the result does not depend on the order).
-            full_source = source[order]
+            full_source, visit_order = source[order], order
         else:
             # The source keeps its order; only the queries are made in spatial order.
             query_order = order
@@ -160,7 +165,8 @@ def refine(
         return RefinementOutcome(transformation, converged, iterations, sigma, message, _freeze(history), effective, pairs)
 
     if fused:
-        return _refine_fused(full_source, source, target, estimator, coarse, init, criteria, scale, accelerator)
+        return _refine_fused(full_source, source, target, estimator, coarse, init, criteria, scale, accelerator,
+                             visit_order)
     for iteration in range(1, criteria.max_iterations + 1):
         if coarse and not estimator.coarse:
             coarse, source, indices, previous_rmse = False, full_source, None, None
@@ -215,9 +221,11 @@ def refine(
     return outcome(transformation, False, criteria.max_iterations, _budget_spent(criteria))
 
 
-def _refine_fused(full_source, source, target, estimator, coarse, init, criteria, scale, accelerator) -> RefinementOutcome:
+def _refine_fused(full_source, source, target, estimator, coarse, init, criteria, scale, accelerator,
+                  visit_order=None) -> RefinementOutcome:
     """:func:`refine`'s loop with one compiled call per iteration (no callback, no history, the
-    source in the order it is queried): the same decisions on the same numbers as the loop above."""
+    source in the order it is queried: ``full_source`` is the caller's source permuted by
+    ``visit_order``, None for none): the same decisions on the same numbers as the loop above."""
     full_source = np.ascontiguousarray(full_source, dtype=np.float64)
     source = np.ascontiguousarray(source, dtype=np.float64)
     out = np.empty(_kernels.STEP_OUT)
@@ -243,8 +251,13 @@ def _refine_fused(full_source, source, target, estimator, coarse, init, criteria
                            objective_sigma=objective_sigma, reject_below=reject_below)
 
     def finish(transformation, converged, iterations, message):
+        neighbours = None
+        if done and not coarse:  # the last queries were of every point: un-permute them
+            neighbours = indices.copy() if visit_order is None else np.empty_like(indices)
+            if visit_order is not None:
+                neighbours[visit_order] = indices
         return RefinementOutcome(transformation, converged, iterations, sigma, message, None,
-                                 effective if done else None, len(source) if done else 0)
+                                 effective if done else None, len(source) if done else 0, neighbours)
 
     for iteration in range(1, criteria.max_iterations + 1):
         if coarse and not estimator.coarse:
