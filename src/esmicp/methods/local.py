@@ -252,10 +252,9 @@ def _refine_fused(full_source, source, target, estimator, coarse, init, criteria
 
     def finish(transformation, converged, iterations, message):
         neighbours = None
-        if done and not coarse:  # the last queries were of every point: un-permute them
-            neighbours = indices.copy() if visit_order is None else np.empty_like(indices)
-            if visit_order is not None:
-                neighbours[visit_order] = indices
+        if done and not coarse:  # the last queries were of every point: back to the caller's order
+            neighbours = np.empty_like(indices)
+            neighbours[slice(None) if visit_order is None else visit_order] = indices
         return RefinementOutcome(transformation, converged, iterations, sigma, message, None,
                                  effective if done else None, len(source) if done else 0, neighbours)
 
