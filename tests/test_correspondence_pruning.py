@@ -12,7 +12,8 @@ import esmicp
 from esmicp.core.procrustes import to_matrix
 from esmicp.globalreg.feature_matching import _inlier_mask
 from esmicp.core.correspondence import NearestNeighbors
-from esmicp.globalreg.scan import CONFIDENT, Keypoints, overlap_confidence, prune, rank_poses
+from esmicp.core.compiled_tree import CompiledTree
+from esmicp.globalreg.scan import CONFIDENT, Keypoints, _icp, overlap_confidence, prune, rank_poses
 from esmicp.metrics import rotation_error_deg
 
 from conftest import require_shared
@@ -38,6 +39,53 @@ def test_pruning_recovers_the_pose_from_95_percent_outliers(seed):
     assert rotation_error_deg(rotations[best], truth[:3, :3]) < 1.0
     assert np.linalg.norm(translations[best] - truth[:3, 3]) < 0.1
     assert counts[best] >= 0.9 * inliers
+
+
+def _bumpy_surface(generator: np.random.Generator, count: int, low: float, high: float) -> np.ndarray:
+    x, y = generator.uniform(low, high, count), generator.uniform(0, 10, count)
+    return np.column_stack([x, y, np.sin(x) * np.cos(0.7 * y) + 0.3 * np.sin(2.3 * y)])
+
+
+def _reference_icp(pose, source, target, distance, steps, settled):
+    """Plain point-to-point ICP on one pose, with SciPy's tree and an SVD: what ``_icp`` must equal."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(target)
+    moved = source @ pose[:3, :3].T + pose[:3, 3]
+    for _ in range(steps):
+        gaps, nearest = tree.query(moved, distance_upper_bound=distance)
+        close = gaps <= distance
+        if close.sum() < 3:
+            break
+        a, b = source[close], target[nearest[close]]
+        u, _, vt = np.linalg.svd((a - a.mean(axis=0)).T @ (b - b.mean(axis=0)))
+        rotation = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+        pose = to_matrix(rotation, b.mean(axis=0) - rotation @ a.mean(axis=0))
+        previous, moved = moved, source @ pose[:3, :3].T + pose[:3, 3]
+        if np.max(np.abs(moved - previous)) <= settled:
+            break
+    return pose
+
+
+def test_keypoint_icp_brings_poses_several_degrees_off_to_the_truth_and_equals_a_plain_loop():
+    generator = np.random.default_rng(4)
+    target = _bumpy_surface(generator, 4000, 0.0, 10.0)
+    part = _bumpy_surface(generator, 3000, 4.0, 14.0)  # overlaps the target on 4 <= x <= 10 (60%)
+    truth = to_matrix(Rotation.from_rotvec([0.2, -0.4, 0.9]).as_matrix(), np.array([1.0, -2.0, 0.5]))
+    source = (part - truth[:3, 3]) @ truth[:3, :3]  # target ~= source @ R.T + t
+    off = [to_matrix(Rotation.from_rotvec(np.radians(angle) * np.asarray(axis, float)).as_matrix(), np.asarray(shift)) @ truth
+           for angle, axis, shift in ((6.0, [0, 0, 1], [0.2, 0.1, 0.0]), (8.0, [1, 0, 0], [0.0, -0.2, 0.1]))]
+    far = to_matrix(np.eye(3), np.array([100.0, 0.0, 0.0]))  # no pair within the gate: left as it is
+    poses = np.stack(off + [far])
+    distance, steps, settled = 0.6, 30, 1e-6  # the gate: about 4 point spacings
+    found = _icp(poses, source, CompiledTree(target), target, distance, steps, settled)
+    six = _icp(poses, source, CompiledTree(target), target, distance, 6, settled)
+    assert rotation_error_deg(six[0, :3, :3], truth[:3, :3]) > 2.0, "6 steps stop short: what 30 are for"
+    for start, result in zip(poses[:2], found[:2]):
+        assert rotation_error_deg(result[:3, :3], truth[:3, :3]) < 1.0
+        assert np.linalg.norm(result[:3, 3] - truth[:3, 3]) < 0.25  # about one point spacing
+        np.testing.assert_allclose(result, _reference_icp(start, source, target, distance, steps, settled), atol=1e-9)
+    np.testing.assert_array_equal(found[2], far)
 
 
 def _corridor(generator: np.random.Generator, start: float, stop: float, spacing: float = 0.05) -> np.ndarray:

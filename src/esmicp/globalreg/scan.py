@@ -23,8 +23,8 @@ so a pair scaled by 1000 gives the same pose):
    Kabsch fit weighted by the leading eigenvector of its own second-order matrix.
 5. **Hypotheses.** Each fit is scored by the correspondences it maps within the compatibility
    distance; the best distinct ones are refit on their inliers.
-6. **Verification on the overlap** (:func:`overlap_counts`). A few ICP steps on the keypoints,
-   then the keypoints lying within ``VERIFY_VOXELS`` of the other cloud, counted both ways (source
+6. **Verification on the overlap** (:func:`overlap_counts`). ICP on the keypoints until each
+   pose settles (:func:`_icp`, all poses in one batch), then the keypoints lying within ``VERIFY_VOXELS`` of the other cloud, counted both ways (source
    on target and target on source): the overlap, not the whole source. When two distinct poses
    count alike (a corridor, a road), each is scored by the inliers whose target normal points
    along the displacement between the two poses: only that geometry constrains the slide.
@@ -83,9 +83,17 @@ HYPOTHESES = 6
 DISTINCT_VOXELS = 3.0
 CONTENDER_VOXELS = 6.0
 
-#: ICP steps (on the keypoints, pairs within ``ICP_VOXELS``) before verification.
-ICP_STEPS = 6
+#: ICP steps (on the keypoints, pairs within ``ICP_VOXELS``) before verification, at most; a pose
+#: stops early once a step moves its keypoints by less than ``ICP_SETTLED_VOXELS``. A hypothesis
+#: from 10-25% overlap is often 5-10 degrees off: 6 steps left it there (its keypoints then do not
+#: coincide, and the verification and the confidence judge it as wrong), 30 bring it in
+#: (``docs/scans-partial-overlap.md``).
+ICP_STEPS = 30
 ICP_VOXELS = 2.0
+ICP_SETTLED_VOXELS = 0.05
+#: The ICP runs on at most this many source keypoints (evenly strided): a pose needs no more, and
+#: each step queries every keypoint of every hypothesis.
+ICP_POINTS = 1500
 
 #: A keypoint lies on the other cloud when within this many voxels of one of its keypoints.
 VERIFY_VOXELS = 1.0
@@ -341,17 +349,41 @@ def overlap_counts(transformations: np.ndarray, source: np.ndarray, target: np.n
     return forward, backward
 
 
-def _icp(matrix, source, target_tree, target, distance, steps):
-    """A few point-to-point ICP steps on keypoints (pairs within ``distance``)."""
+def _icp(poses, source, target_tree: CompiledTree, target, distance, steps, settled=0.0, workers=None):
+    """Point-to-point ICP on keypoints for every pose of ``poses`` ``(B, 4, 4)`` at once (pairs
+    within ``distance``, cloud units): up to ``steps`` steps, a pose stopping once a step moves none
+    of its keypoints by more than ``settled``, or when fewer than 3 pairs are left. One query of
+    the compiled tree per step for all moving poses, each warm-started from its last neighbours."""
+    from ..core.procrustes import batched_rotation_from_cross_covariance
+
+    poses = np.array(poses, dtype=np.float64)
+    moved = np.matmul(source, poses[:, :3, :3].transpose(0, 2, 1)) + poses[:, None, :3, 3]
+    warm = np.full(moved.shape[:2], -1, dtype=np.int64)
+    active = np.arange(len(poses))
     for _ in range(steps):
-        moved = source @ matrix[:3, :3].T + matrix[:3, 3]
-        gaps, nearest = target_tree.query(moved, distance_upper_bound=distance)
-        close = gaps <= distance
-        if close.sum() < 3:
+        if len(active) == 0:
             break
-        rotation, translation = _kabsch(source[close][None], target[nearest[close]][None])
-        matrix = to_matrix(rotation[0], translation[0])
-    return matrix
+        gaps, nearest = target_tree.query(moved[active].reshape(-1, 3), warm=warm[active].reshape(-1), workers=workers)
+        gaps, nearest = gaps.reshape(len(active), -1), nearest.reshape(len(active), -1)
+        warm[active] = nearest
+        weights = (gaps <= distance).astype(np.float64)
+        enough = weights.sum(axis=1) >= 3
+        active, weights, nearest = active[enough], weights[enough], nearest[enough]
+        if len(active) == 0:
+            break
+        paired = target[nearest]
+        total = weights.sum(axis=1)
+        source_centroid = (weights @ source) / total[:, None]
+        target_centroid = np.matmul(weights[:, None], paired)[:, 0] / total[:, None]
+        weighted = (source[None] - source_centroid[:, None]) * weights[:, :, None]
+        cross = np.matmul(weighted.transpose(0, 2, 1), paired - target_centroid[:, None])
+        rotations = batched_rotation_from_cross_covariance(cross)
+        translations = target_centroid - np.einsum("bij,bj->bi", rotations, source_centroid)
+        poses[active, :3, :3], poses[active, :3, 3] = rotations, translations
+        previous = moved[active]
+        moved[active] = np.matmul(source, rotations.transpose(0, 2, 1)) + translations[:, None]
+        active = active[np.abs(moved[active] - previous).reshape(len(active), -1).max(axis=1) > settled]
+    return poses
 
 
 def _slide_votes(first, second, source, target_tree, target_normals, distance) -> tuple[float, float]:
@@ -410,10 +442,10 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     from scipy.spatial import cKDTree
 
     target_tree = cKDTree(target_keys)
-    poses = np.stack([
-        _icp(to_matrix(r, t), source_keys, target_tree, target_keys, ICP_VOXELS * voxel, ICP_STEPS)
-        for r, t in zip(rotations, translations)
-    ])
+    stride = -(-len(source_keys) // ICP_POINTS)
+    poses = _icp(np.stack([to_matrix(r, t) for r, t in zip(rotations, translations)]), source_keys[::stride],
+                 CompiledTree(target_keys), target_keys, ICP_VOXELS * voxel, ICP_STEPS, ICP_SETTLED_VOXELS * voxel,
+                 workers)
     order, scores = rank_poses(poses, source_keys, target_keys, voxel, target_tree=target_tree)
     keypoints = Keypoints(source_keys, target_keys, voxel)
     return ScanEstimate(poses[order], scores[order], keypoints, len(pairs), counts[order])
