@@ -120,7 +120,7 @@ def test_normals_are_equivariant_and_can_be_evaluated_elsewhere():
 
 
 def test_a_normal_estimator_asked_piece_by_piece_gives_estimate_normals_results():
-    """NormalEstimator (the cloud's tree, centroid and centred copy made once, for esm-plane's
+    """NormalEstimator (the cloud's tree and centroid made once, for esm-plane's
     many small requests) answers each request exactly as one estimate_normals call would."""
     from esmicp.globalreg.features import NormalEstimator
 

@@ -739,11 +739,50 @@ void pair_moments(CArr2 source, CArr2 rotation, CArr1 translation, CArr2 target,
                      indices.data(), distances.data(), scale, shift, out.data(), threads, false);
 }
 
+// Eigen-decomposition of a symmetric N x N matrix by cyclic Jacobi sweeps (accurate to rounding, no
+// special case for rank-deficient matrices): on return a is diagonal (the eigenvalues) and the
+// columns of v are the unit eigenvectors. Used by best_rotation (N = 4) and knn_normals (N = 3).
+template <int N>
+void jacobi_eigen(double (&a)[N][N], double (&v)[N][N]) {
+    for (int i = 0; i < N; ++i)
+        for (int j = 0; j < N; ++j) v[i][j] = i == j ? 1.0 : 0.0;
+    for (int sweep = 0; sweep < 64; ++sweep) {
+        double off = 0.0, diagonal = 0.0;
+        for (int i = 0; i < N; ++i) {
+            diagonal += a[i][i] * a[i][i];
+            for (int j = i + 1; j < N; ++j) off += a[i][j] * a[i][j];
+        }
+        if (off <= 1e-36 * diagonal || off == 0.0) break;
+        for (int p = 0; p < N - 1; ++p) {
+            for (int q = p + 1; q < N; ++q) {
+                if (a[p][q] == 0.0) continue;
+                double theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
+                double t = (theta >= 0 ? 1.0 : -1.0) / (std::fabs(theta) + std::sqrt(theta * theta + 1.0));
+                double c = 1.0 / std::sqrt(t * t + 1.0), sn = t * c;
+                for (int k = 0; k < N; ++k) {  // columns p, q of A
+                    double akp = a[k][p], akq = a[k][q];
+                    a[k][p] = c * akp - sn * akq;
+                    a[k][q] = sn * akp + c * akq;
+                }
+                for (int k = 0; k < N; ++k) {  // rows p, q of A
+                    double apk = a[p][k], aqk = a[q][k];
+                    a[p][k] = c * apk - sn * aqk;
+                    a[q][k] = sn * apk + c * aqk;
+                }
+                for (int k = 0; k < N; ++k) {
+                    double vkp = v[k][p], vkq = v[k][q];
+                    v[k][p] = c * vkp - sn * vkq;
+                    v[k][q] = sn * vkp + c * vkq;
+                }
+            }
+        }
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // Rotations from 3x3 matrices: Horn's quaternion method. The rotation R maximising trace(R H)
 // (H = sum s t^T: the Kabsch rotation taking s onto t, reflection excluded) is the rotation of the
-// eigenvector of the largest eigenvalue of a symmetric 4x4 matrix, found by cyclic Jacobi sweeps
-// (accurate to rounding, no special case for rank-deficient H).
+// eigenvector of the largest eigenvalue of a symmetric 4x4 matrix (jacobi_eigen).
 void best_rotation(const double *h, double *r) {
     double scale = 0.0;
     for (int k = 0; k < 9; ++k) scale = std::max(scale, std::fabs(h[k]));
@@ -761,38 +800,8 @@ void best_rotation(const double *h, double *r) {
                       {yz - zy, xx - yy - zz, xy + yx, zx + xz},
                       {zx - xz, xy + yx, -xx + yy - zz, yz + zy},
                       {xy - yx, zx + xz, yz + zy, -xx - yy + zz}};
-    double v[4][4] = {{1, 0, 0, 0}, {0, 1, 0, 0}, {0, 0, 1, 0}, {0, 0, 0, 1}};
-    for (int sweep = 0; sweep < 64; ++sweep) {
-        double off = 0.0, diagonal = 0.0;
-        for (int i = 0; i < 4; ++i) {
-            diagonal += a[i][i] * a[i][i];
-            for (int j = i + 1; j < 4; ++j) off += a[i][j] * a[i][j];
-        }
-        if (off <= 1e-36 * diagonal || off == 0.0) break;
-        for (int p = 0; p < 3; ++p) {
-            for (int q = p + 1; q < 4; ++q) {
-                if (a[p][q] == 0.0) continue;
-                double theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
-                double t = (theta >= 0 ? 1.0 : -1.0) / (std::fabs(theta) + std::sqrt(theta * theta + 1.0));
-                double c = 1.0 / std::sqrt(t * t + 1.0), sn = t * c;
-                for (int k = 0; k < 4; ++k) {  // columns p, q of A
-                    double akp = a[k][p], akq = a[k][q];
-                    a[k][p] = c * akp - sn * akq;
-                    a[k][q] = sn * akp + c * akq;
-                }
-                for (int k = 0; k < 4; ++k) {  // rows p, q of A
-                    double apk = a[p][k], aqk = a[q][k];
-                    a[p][k] = c * apk - sn * aqk;
-                    a[q][k] = sn * apk + c * aqk;
-                }
-                for (int k = 0; k < 4; ++k) {
-                    double vkp = v[k][p], vkq = v[k][q];
-                    v[k][p] = c * vkp - sn * vkq;
-                    v[k][q] = sn * vkp + c * vkq;
-                }
-            }
-        }
-    }
+    double v[4][4];
+    jacobi_eigen<4>(a, v);
     int top = 0;
     for (int i = 1; i < 4; ++i)
         if (a[i][i] > a[top][top]) top = i;
@@ -1524,6 +1533,68 @@ void tree_knn(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx en
     });
 }
 
+//: knn_normals runs on one thread below this many queries (each costs a k-nearest search and a
+//: 3 x 3 eigen-decomposition, several microseconds: a few hundred pay for the threads).
+constexpr int64_t PARALLEL_NORMALS_MIN = 512;
+
+// PCA normals: for each query, its k nearest tree points within `upper` (cloud units; INF for no
+// radius), their covariance (coordinates relative to `centre`, the cloud's centroid, for accuracy)
+// and the unit eigenvector of its smallest eigenvalue, sign as it comes (the caller orients it).
+// out_counts: the neighbours used; below 3 the normal is left NaN (the caller's fallback).
+void knn_normals(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
+                 int64_t k, double upper, CArr1 centre, Arr2 out_normals, Idx out_counts, int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t count = int64_t(queries.shape(0));
+    if (queries.shape(1) != 3 || k < 1 || k > GRAPH_K_MAX || k > t.count || int64_t(out_normals.shape(0)) != count ||
+        out_normals.shape(1) != 3 || int64_t(out_counts.shape(0)) != count || centre.shape(0) != 3)
+        throw std::invalid_argument("knn_normals: queries and out_normals (Q, 3), out_counts (Q,), centre (3,), "
+                                    "1 <= k <= min(M, 64)");
+    const double *q = queries.data(), *c = centre.data();
+    const double limit = upper * upper;
+    double *normals = out_normals.data();
+    int64_t *counts = out_counts.data();
+    if (count < PARALLEL_NORMALS_MIN) threads = 1;
+    parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
+        double best[GRAPH_K_MAX];
+        int64_t slots[GRAPH_K_MAX];
+        const int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
+        for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
+            std::fill(best, best + k, INF);
+            std::fill(slots, slots + k, int64_t(-1));
+            nearest_k(t, 0, q[3 * i], q[3 * i + 1], q[3 * i + 2], k, best, slots);
+            double sum[3] = {0.0, 0.0, 0.0}, moment[3][3] = {{0.0}};
+            int64_t used = 0;
+            for (int64_t j = 0; j < k; ++j) {
+                if (slots[j] < 0 || !(best[j] <= limit)) continue;
+                const double *point = t.points + 3 * slots[j];
+                const double x[3] = {point[0] - c[0], point[1] - c[1], point[2] - c[2]};
+                for (int a = 0; a < 3; ++a) {
+                    sum[a] += x[a];
+                    for (int b = 0; b < 3; ++b) moment[a][b] += x[a] * x[b];
+                }
+                ++used;
+            }
+            counts[i] = used;
+            double *normal = normals + 3 * i;
+            if (used < 3) {
+                normal[0] = normal[1] = normal[2] = std::numeric_limits<double>::quiet_NaN();
+                continue;
+            }
+            double covariance[3][3], vectors[3][3];
+            const double inverse = 1.0 / double(used);
+            for (int a = 0; a < 3; ++a)
+                for (int b = 0; b < 3; ++b)
+                    covariance[a][b] = moment[a][b] * inverse - (sum[a] * inverse) * (sum[b] * inverse);
+            jacobi_eigen<3>(covariance, vectors);
+            int least = 0;
+            for (int a = 1; a < 3; ++a)
+                if (covariance[a][a] < covariance[least][least]) least = a;
+            for (int a = 0; a < 3; ++a) normal[a] = vectors[a][least];
+        }
+    });
+}
+
 inline void compose_step(const double *step_r, const double *step_t, double *r, double *t) {
     double nr[9], nt[3];
     for (int a = 0; a < 3; ++a) {
@@ -1776,6 +1847,7 @@ NB_MODULE(_kernels, m) {
     m.def("batched_esm_grid", &batched_esm_grid);
     m.def("neighbour_graph", &neighbour_graph);
     m.def("tree_knn", &tree_knn);
+    m.def("knn_normals", &knn_normals);
     m.def("nearest_grid", &nearest_grid);
     m.attr("STEP_OUT") = STEP_OUT;
     nb::class_<Index>(m, "Index")

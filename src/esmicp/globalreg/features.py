@@ -56,7 +56,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..core.compiled_tree import K_MAX, CompiledTree
+from .. import _kernels
+from ..core.compiled_tree import K_MAX, CompiledTree, threads
 from ..errors import InvalidInputError
 from ..types import as_positive
 
@@ -185,7 +186,8 @@ def estimate_normals(
     """Unit surface normals by PCA of each point's neighbourhood.
 
     The normal is the eigenvector of the smallest eigenvalue of the covariance of the
-    neighbourhood (batched ``numpy.linalg.eigh`` on ``(M, 3, 3)`` matrices).
+    neighbourhood (compiled: the k nearest, the 3 x 3 covariance and its Jacobi eigen-decomposition,
+    one pass per query on ``workers`` threads).
 
     Parameters
     ----------
@@ -206,7 +208,7 @@ def estimate_normals(
     tree : esmicp.core.compiled_tree.CompiledTree, optional
         The compiled KD-tree over ``points``, to reuse (its exact k nearest; no SciPy import).
     workers : int or None
-        Threads of the neighbour queries (None: every core).
+        Threads of the neighbour queries and the decompositions (None: every core).
 
     Returns
     -------
@@ -220,7 +222,7 @@ def estimate_normals(
 
 class NormalEstimator:
     """:func:`estimate_normals` of one cloud, asked many times: what depends only on the cloud
-    (its tree, its centroid, its points relative to the centroid) is made once, so that each call
+    (its tree and its centroid) is made once, so that each call
     costs in proportion to the points asked about (``esm-plane`` asks for a few thousand new
     normals of a 300k-point target at each iteration). Same parameters and results as
     :func:`estimate_normals`; ``points`` must not change while it is in use."""
@@ -234,26 +236,21 @@ class NormalEstimator:
         self.upper = np.inf if radius is None else as_positive(radius, "radius")
         self.tree = CompiledTree(self.points) if tree is None else tree
         self.workers = workers
-        # Raw moments of coordinates relative to the cloud's centroid; the padding row (index N,
-        # for missing neighbours) is zero so it adds nothing.
+        # Covariances are taken of coordinates relative to the cloud's centroid (for accuracy).
         self.centroid = self.points.mean(axis=0)
-        self.padded = np.vstack([self.points - self.centroid, np.zeros((1, 3))])
 
     def at(self, query, viewpoint=None) -> np.ndarray:
         """Unit normals at ``query`` ((M, 3), cloud units), oriented as :func:`estimate_normals`
         orients them (toward ``viewpoint`` if given)."""
         query = query if query is self.points else _as_cloud(query, "at")
-        count = len(self.points)
-        distances, indices = self.tree.query_k(query, self.k, workers=self.workers)
-        indices[~(distances <= self.upper)] = count  # beyond the radius (or a non-finite query): none
-        counts = (indices < count).sum(axis=1)
-        neighbours = self.padded[indices]
-        safe_counts = np.maximum(counts, 1).astype(np.float64)
-        mean = neighbours.sum(axis=1) / safe_counts[:, None]
-        covariance = np.matmul(neighbours.transpose(0, 2, 1), neighbours) / safe_counts[:, None, None]
-        covariance -= mean[:, :, None] * mean[:, None, :]
-        _, vectors = np.linalg.eigh(covariance)
-        normals = vectors[:, :, 0]
+        tree = self.tree
+        normals = np.empty((len(query), 3))
+        counts = np.empty(len(query), dtype=np.int64)
+        # The k nearest within the radius, their covariance and its least eigenvector, compiled
+        # (NumPy's gather and batched eigh cost more than the neighbour search itself).
+        _kernels.knn_normals(np.ascontiguousarray(query, dtype=np.float64), tree.points, tree.order, tree.starts,
+                             tree.ends, tree.lefts, tree.boxes, self.k, float(self.upper), self.centroid, normals,
+                             counts, threads(self.workers))
 
         outward = query - self.centroid
         few = counts < 3
