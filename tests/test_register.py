@@ -695,3 +695,21 @@ def test_duplicated_target_points_do_not_break_the_default_inlier_distance():
     assert doubled.inlier_distance == pytest.approx(single.inlier_distance)
     assert doubled.fitness == pytest.approx(single.fitness)
     assert single.fitness > 0.5
+
+
+def test_the_strided_stages_stop_at_their_own_tolerance_without_moving_the_pose(monkeypatch):
+    """After a global search on a source of more than 40k points, the strided stages stop at
+    ``STRIDED_TOLERANCE`` (the polish keeps the caller's tolerance): the pose is the one that
+    following the caller's 1e-8 on the subsample too gives, in fewer iterations."""
+    from esmicp import api
+
+    source = esmicp.read_points(require_shared("bunny_scans/bun180.ply"))
+    target = esmicp.read_points(require_shared("bunny_scans/bun090.ply"))
+    assert len(source) > 2 * api.REFINE_POINTS
+    default = esmicp.register(source, target)
+    monkeypatch.setattr(api, "STRIDED_TOLERANCE", 0.0)
+    followed = esmicp.register(source, target)
+    assert default.num_iterations < followed.num_iterations
+    assert rotation_error_deg(default.transformation, followed.transformation[:3, :3]) < 0.05
+    diagonal = np.linalg.norm(np.ptp(target, axis=0))
+    assert np.linalg.norm(default.transformation[:3, 3] - followed.transformation[:3, 3]) < 1e-3 * diagonal

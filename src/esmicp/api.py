@@ -60,6 +60,13 @@ POLISH_ITERATIONS = 2
 #: it back (a KITTI street pair: ``docs/scans-refinement.md``). Capped, because on some fragment
 #: pairs ``esm-plane`` creeps on for its whole budget where ``esm`` converges.
 PLANE_ITERATIONS = 30
+#: The strided stages stop at this tolerance when the caller's is finer (the polish keeps the
+#: caller's): the subsample's optimum is not the whole source's, and on fragment pairs the strided
+#: ``esm`` then creeps on by 1e-5 rad per iteration in no steady direction (3DMatch ``t00_s04``:
+#: 45 of 50 iterations), which the polish's first step (4e-5 rad) undoes. A steady slide toward the
+#: truth still runs to its end (the bunny's ``bun180 -> bun090`` stops too early at 1e-5, not at
+#: 3e-6). Measured: ``docs/speed.md``, "Issue 13, session 24".
+STRIDED_TOLERANCE = 3e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -257,6 +264,9 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     the polish's, with the iterations of every stage and ``converged`` from the subsample run (the
     polish only sharpens it; a polish the guard rejected makes it False)."""
     strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
+    polish_criteria = request.criteria
+    request = dataclasses.replace(request, criteria=dataclasses.replace(
+        request.criteria, tolerance=max(request.criteria.tolerance, STRIDED_TOLERANCE)))
     plane_iterations = 0
     if request.method == "esm":
         initial, plane_iterations = _plane_start(strided, target_index, initial, request, diagonal)
@@ -271,7 +281,7 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     if budget <= 0:  # the user's iteration budget is spent
         return dataclasses.replace(coarse, message=where, num_iterations=plane_iterations + coarse.num_iterations)
     polisher = _estimator(request.method, request, target_index, diagonal, start_fine=True)
-    criteria = dataclasses.replace(request.criteria, max_iterations=budget)
+    criteria = dataclasses.replace(polish_criteria, max_iterations=budget)
     polish = guarded_refine(
         source, target_index, polisher, init=coarse.transformation, criteria=criteria, scale=diagonal,
     )
