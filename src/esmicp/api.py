@@ -262,7 +262,8 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     then a fresh fine-phase estimator of the same method on the full source for at most
     ``POLISH_ITERATIONS`` iterations (fewer when ``max_iterations`` leaves fewer). The outcome is
     the polish's, with the iterations of every stage and ``converged`` from the subsample run (the
-    polish only sharpens it; a polish the guard rejected makes it False)."""
+    polish only sharpens it; a polish the guard rejected makes it False). The strided stages stop
+    at ``STRIDED_TOLERANCE`` when the request's tolerance is finer; the polish keeps the request's."""
     strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
     polish_criteria = request.criteria
     request = dataclasses.replace(request, criteria=dataclasses.replace(
