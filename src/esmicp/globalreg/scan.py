@@ -323,15 +323,24 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
 
 
 def _group_kabsch(source, target, groups, weights):
+    """The weighted fit of each seed group (rows of ``groups`` index the paired points)."""
+    return _weighted_fits(source[groups], target[groups], weights)
+
+
+def _weighted_fits(source: np.ndarray, target: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares rigid fits of paired points, one per row: rotations ``(B, 3, 3)``
+    and translations ``(B, 3)`` with ``target ~= source @ R.T + t``. ``target`` is ``(B, n, 3)``,
+    ``source`` the same or ``(n, 3)`` shared by every row, ``weights`` ``(B, n)`` non-negative with
+    a positive sum per row (weighted centroids, weighted cross-covariance, its nearest rotation)."""
     from ..core.procrustes import batched_rotation_from_cross_covariance
 
-    weights = weights / weights.sum(axis=1, keepdims=True)
-    src, tgt = source[groups], target[groups]
-    src_c = np.einsum("gk,gki->gi", weights, src)
-    tgt_c = np.einsum("gk,gki->gi", weights, tgt)
-    cross = np.einsum("gk,gki,gkj->gij", weights, src - src_c[:, None], tgt - tgt_c[:, None])
+    total = weights.sum(axis=1)
+    source_centroid = np.matmul(weights[:, None], source)[:, 0] / total[:, None]
+    target_centroid = np.matmul(weights[:, None], target)[:, 0] / total[:, None]
+    centred = (source - source_centroid[:, None]) * weights[:, :, None]
+    cross = np.matmul(centred.transpose(0, 2, 1), target - target_centroid[:, None])
     rotations = batched_rotation_from_cross_covariance(cross)
-    return rotations, tgt_c - np.einsum("gij,gj->gi", rotations, src_c)
+    return rotations, target_centroid - np.einsum("bij,bj->bi", rotations, source_centroid)
 
 
 def overlap_counts(transformations: np.ndarray, source: np.ndarray, target: np.ndarray,
@@ -354,8 +363,6 @@ def _icp(poses, source, target_tree: CompiledTree, target, distance, steps, sett
     within ``distance``, cloud units): up to ``steps`` steps, a pose stopping once a step moves none
     of its keypoints by more than ``settled``, or when fewer than 3 pairs are left. One query of
     the compiled tree per step for all moving poses, each warm-started from its last neighbours."""
-    from ..core.procrustes import batched_rotation_from_cross_covariance
-
     poses = np.array(poses, dtype=np.float64)
     moved = np.matmul(source, poses[:, :3, :3].transpose(0, 2, 1)) + poses[:, None, :3, 3]
     warm = np.full(moved.shape[:2], -1, dtype=np.int64)
@@ -371,14 +378,7 @@ def _icp(poses, source, target_tree: CompiledTree, target, distance, steps, sett
         active, weights, nearest = active[enough], weights[enough], nearest[enough]
         if len(active) == 0:
             break
-        paired = target[nearest]
-        total = weights.sum(axis=1)
-        source_centroid = (weights @ source) / total[:, None]
-        target_centroid = np.matmul(weights[:, None], paired)[:, 0] / total[:, None]
-        weighted = (source[None] - source_centroid[:, None]) * weights[:, :, None]
-        cross = np.matmul(weighted.transpose(0, 2, 1), paired - target_centroid[:, None])
-        rotations = batched_rotation_from_cross_covariance(cross)
-        translations = target_centroid - np.einsum("bij,bj->bi", rotations, source_centroid)
+        rotations, translations = _weighted_fits(source, target[nearest], weights)
         poses[active, :3, :3], poses[active, :3, 3] = rotations, translations
         previous = moved[active]
         moved[active] = np.matmul(source, rotations.transpose(0, 2, 1)) + translations[:, None]
