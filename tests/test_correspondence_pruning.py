@@ -170,3 +170,13 @@ def test_a_wrong_pose_does_not_come_back_confident(real_pair, angle_deg):
 def test_confidence_is_high_at_the_truth(real_pair):
     source, target, truth = real_pair
     assert overlap_confidence(truth, Keypoints.of(source, target, NearestNeighbors(target).spacing())) >= CONFIDENT
+
+
+def test_occupied_voxels_equal_the_distinct_cell_keys():
+    from esmicp.globalreg.scan import _occupied
+
+    generator = np.random.default_rng(7)
+    points = np.concatenate([generator.normal(-50.0, 20.0, (20000, 3)), np.repeat(generator.uniform(0, 1, (50, 3)), 40, axis=0)])
+    for voxel in (0.05, 0.5, 3.0, 1000.0):
+        cells = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+        assert _occupied(points, voxel) == len(np.unique(cells, axis=0))

@@ -199,10 +199,14 @@ def keypoint_voxel(points: np.ndarray, spacing: float, count: int = KEYPOINTS) -
 
 
 def _occupied(points: np.ndarray, voxel: float) -> int:
-    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
-    extent = keys.max(axis=0) + 1
-    linear = (keys[:, 0] * extent[1] + keys[:, 1]) * extent[2] + keys[:, 2]
-    return int(len(np.unique(linear)))
+    """The number of voxels of edge ``voxel`` that ``points`` occupy: the distinct integer cell
+    coordinates, counted by one compiled hash pass (exact while they stay below 2**53; a sort of
+    every key cost 15-20 ms a call on a 258k-point fragment, and the voxel search makes up to 5)."""
+    from ..core.correspondence import coincident_points
+
+    cells = np.floor((points - points.min(axis=0)) / voxel)
+    repeats, _, _, _ = coincident_points(cells)
+    return len(cells) - repeats
 
 
 def _correspondences(source_features: np.ndarray, target_features: np.ndarray, limit: int) -> np.ndarray:
