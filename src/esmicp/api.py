@@ -134,7 +134,10 @@ def register(
     tolerance : float
         Convergence tolerance: stop once an increment rotates less than ``tolerance`` radians and
         translates less than ``tolerance`` times the target's bounding-box diagonal, or once the
-        RMS correspondence distance changes by less than ``tolerance`` relative to itself.
+        RMS correspondence distance changes by less than ``tolerance`` relative to itself. After a
+        global search on a source of more than ``2 * REFINE_POINTS`` points, the stages on the
+        strided subsample stop at ``STRIDED_TOLERANCE`` (3e-6) when ``tolerance`` is finer; the
+        polish on every point keeps ``tolerance``.
     rng : None, int or numpy.random.Generator
         Randomness of the global search (its subsamples). None uses a fixed seed, so the same input
         gives the same result; local refinement itself is deterministic.
