@@ -180,3 +180,24 @@ def test_occupied_voxels_equal_the_distinct_cell_keys():
     for voxel in (0.05, 0.5, 3.0, 1000.0):
         cells = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
         assert _occupied(points, voxel) == len(np.unique(cells, axis=0))
+
+
+def test_the_compatibility_matrix_equals_scipys_two_distance_matrices():
+    from scipy.spatial.distance import cdist
+
+    from esmicp import _kernels
+
+    generator = np.random.default_rng(8)
+    count = 700
+    source = generator.normal(0, 3.0, (count, 3))
+    truth = _pose(8)
+    target = source @ truth[:3, :3].T + truth[:3, 3] + generator.normal(0, 0.05, (count, 3))
+    target[::3] = generator.normal(0, 3.0, (len(target[::3]), 3))  # a third of them wrong
+    source[5] = source[4]  # a repeated point: zero length
+    tolerance = 0.1
+    expected = (np.abs(cdist(source, source) - cdist(target, target)) <= tolerance).astype(np.float32)
+    np.fill_diagonal(expected, 0.0)
+    for workers in (1, 2):
+        found = np.empty((count, count), dtype=np.float32)
+        _kernels.compatibility(source, target, tolerance, found, workers)
+        np.testing.assert_array_equal(found, expected)

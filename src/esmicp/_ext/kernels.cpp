@@ -34,6 +34,7 @@ using CIdx = nb::ndarray<const int64_t, nb::ndim<1>, nb::c_contig, nb::device::c
 using Idx = nb::ndarray<int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 using Idx2 = nb::ndarray<int64_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 using CIdx2 = nb::ndarray<const int64_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using F32Arr2 = nb::ndarray<float, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 
 namespace {
 
@@ -1595,6 +1596,45 @@ void knn_normals(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx
     });
 }
 
+// Length compatibility of K paired points (source[k] <-> target[k], e.g. feature correspondences):
+// out[i][j] = 1 when the source length |s_i - s_j| and the target length |t_i - t_j| differ by at
+// most `tolerance` (cloud units), else 0; the diagonal is 0. Lengths as SciPy's cdist computes them
+// (the same sums, the same square roots), so the entries are those of its two distance matrices;
+// float32 for the power iterations that follow. Rows in parallel.
+void compatibility(CArr2 source, CArr2 target, double tolerance, F32Arr2 out, int threads) {
+    const int64_t count = int64_t(source.shape(0));
+    if (source.shape(1) != 3 || target.shape(1) != 3 || int64_t(target.shape(0)) != count ||
+        int64_t(out.shape(0)) != count || int64_t(out.shape(1)) != count)
+        throw std::invalid_argument("compatibility: source and target (K, 3), out (K, K)");
+    const double *s = source.data(), *t = target.data();
+    float *o = out.data();
+    constexpr int64_t ROWS = 32;
+    if (count < 256) threads = 1;
+    parallel_pieces(piece_count(count, ROWS), threads, [&](int64_t piece) {
+        const int64_t end = std::min(count, (piece + 1) * ROWS);
+        for (int64_t i = piece * ROWS; i < end; ++i) {
+            // Row i from its diagonal on; the entries below it are mirrored (the matrix is symmetric,
+            // and each entry is written by the one row that computes it).
+            float *row = o + count * i;
+            const double *si = s + 3 * i, *ti = t + 3 * i;
+            row[i] = 0.0f;
+            for (int64_t j = i + 1; j < count; ++j) {
+                const double *sj = s + 3 * j, *tj = t + 3 * j;
+                double a = 0.0, b = 0.0, d;
+                d = si[0] - sj[0]; a += d * d;
+                d = si[1] - sj[1]; a += d * d;
+                d = si[2] - sj[2]; a += d * d;
+                d = ti[0] - tj[0]; b += d * d;
+                d = ti[1] - tj[1]; b += d * d;
+                d = ti[2] - tj[2]; b += d * d;
+                const float value = std::fabs(std::sqrt(a) - std::sqrt(b)) <= tolerance ? 1.0f : 0.0f;
+                row[j] = value;
+                o[count * j + i] = value;
+            }
+        }
+    });
+}
+
 inline void compose_step(const double *step_r, const double *step_t, double *r, double *t) {
     double nr[9], nt[3];
     for (int a = 0; a < 3; ++a) {
@@ -1848,6 +1888,7 @@ NB_MODULE(_kernels, m) {
     m.def("neighbour_graph", &neighbour_graph);
     m.def("tree_knn", &tree_knn);
     m.def("knn_normals", &knn_normals);
+    m.def("compatibility", &compatibility);
     m.def("nearest_grid", &nearest_grid);
     m.attr("STEP_OUT") = STEP_OUT;
     nb::class_<Index>(m, "Index")

@@ -40,7 +40,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..core.compiled_tree import CompiledTree
+from .. import _kernels
+from ..core.compiled_tree import CompiledTree, threads
 from ..core.procrustes import rotation_angle, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .feature_matching import _kabsch, _keypoints, _inlier_mask, _distinct_order
@@ -279,24 +280,23 @@ def _leading_vector(matrices: np.ndarray, iterations: int = 20) -> np.ndarray:
 
 
 def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: int = SEEDS,
-          group_size: int = GROUP_SIZE, spread: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+          group_size: int = GROUP_SIZE, spread: float | None = None,
+          workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pose fits of paired points ``source[k] <-> target[k]`` (most of them possibly wrong) by
     second-order spatial compatibility (see the module docstring, step 4).
 
     ``tolerance``: the length disagreement (cloud units) two inlier correspondences may have.
-    ``spread``: seeds' minimum source distance (default ``2 tolerance``). Returns rotations
-    ``(S, 3, 3)`` and translations ``(S, 3)``, one per seed group of at least 3 members.
+    ``spread``: seeds' minimum source distance (default ``2 tolerance``). ``workers``: threads of
+    the compiled compatibility matrix (None: every core). Returns rotations ``(S, 3, 3)`` and
+    translations ``(S, 3)``, one per seed group of at least 3 members.
     """
     count = len(source)
     if count < 3:
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
-    from scipy.spatial.distance import cdist
-
-    difference = cdist(source, source)
-    difference -= cdist(target, target)
-    compatible = (np.abs(difference) <= tolerance).astype(np.float32)
-    del difference
-    np.fill_diagonal(compatible, 0.0)
+    compatible = np.empty((count, count), dtype=np.float32)
+    _kernels.compatibility(np.ascontiguousarray(source, dtype=np.float64),
+                           np.ascontiguousarray(target, dtype=np.float64), float(tolerance), compatible,
+                           threads(workers))
     score = _leading_vector(compatible[None])[0]
     spread = 2.0 * tolerance if spread is None else spread
     chosen: list[int] = []
@@ -428,7 +428,8 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     pairs = _correspondences(source_features, target_features, MAX_CORRESPONDENCES)
     paired_source, paired_target = source_keys[pairs[:, 0]], target_keys[pairs[:, 1]]
     tolerance = COMPATIBILITY_VOXELS * voxel
-    rotations, translations = prune(paired_source, paired_target, tolerance, spread=SEED_SPREAD_VOXELS * voxel)
+    rotations, translations = prune(paired_source, paired_target, tolerance, spread=SEED_SPREAD_VOXELS * voxel,
+                                    workers=workers)
     if len(rotations) == 0:
         return empty
     counts = _inlier_mask(rotations, translations, paired_source, paired_target, tolerance).sum(axis=1)
