@@ -1504,6 +1504,26 @@ void neighbour_graph(CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx
     });
 }
 
+// For each of `count` queries (rows of q, (count, 3)), its k nearest tree points (squared distances
+// best[0..k), tree slots slots[0..k), nearest first; -1 where fewer exist), handed to
+// emit(i, best, slots). Pieces of queries on `threads` threads (1 below `parallel_min` queries).
+template <class Emit>
+void each_k_nearest(const Tree &t, const double *q, int64_t count, int64_t k, int threads, int64_t parallel_min,
+                    Emit &&emit) {
+    if (count < parallel_min) threads = 1;
+    parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
+        double best[GRAPH_K_MAX];
+        int64_t slots[GRAPH_K_MAX];
+        const int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
+        for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
+            std::fill(best, best + k, INF);
+            std::fill(slots, slots + k, int64_t(-1));
+            nearest_k(t, 0, q[3 * i], q[3 * i + 1], q[3 * i + 2], k, best, slots);
+            emit(i, best, slots);
+        }
+    });
+}
+
 // The k nearest tree points of each query (out_distances, out_indices (Q, k), nearest first;
 // Euclidean distances, indices into the target as given; k <= min(M, 64)).
 void tree_knn(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
@@ -1514,22 +1534,13 @@ void tree_knn(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx en
     if (queries.shape(1) != 3 || k < 1 || k > GRAPH_K_MAX || k > t.count || int64_t(out_indices.shape(0)) != count ||
         int64_t(out_distances.shape(0)) != count || int64_t(out_distances.shape(1)) != k)
         throw std::invalid_argument("tree_knn: queries (Q, 3), out_distances and out_indices (Q, k), 1 <= k <= min(M, 64)");
-    const double *q = queries.data();
     double *distances = out_distances.data();
     int64_t *indices = out_indices.data();
-    if (count < PARALLEL_QUERY_MIN) threads = 1;
-    parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
-        double best[GRAPH_K_MAX];
-        int64_t slots[GRAPH_K_MAX];
-        const int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
-        for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
-            std::fill(best, best + k, INF);
-            std::fill(slots, slots + k, int64_t(-1));
-            nearest_k(t, 0, q[3 * i], q[3 * i + 1], q[3 * i + 2], k, best, slots);
-            for (int64_t j = 0; j < k; ++j) {
-                distances[k * i + j] = std::sqrt(best[j]);
-                indices[k * i + j] = slots[j] >= 0 ? t.order[slots[j]] : t.count;
-            }
+    each_k_nearest(t, queries.data(), count, k, threads, PARALLEL_QUERY_MIN,
+                   [&](int64_t i, const double *best, const int64_t *slots) {
+        for (int64_t j = 0; j < k; ++j) {
+            distances[k * i + j] = std::sqrt(best[j]);
+            indices[k * i + j] = slots[j] >= 0 ? t.order[slots[j]] : t.count;
         }
     });
 }
@@ -1551,48 +1562,40 @@ void knn_normals(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx
         out_normals.shape(1) != 3 || int64_t(out_counts.shape(0)) != count || centre.shape(0) != 3)
         throw std::invalid_argument("knn_normals: queries and out_normals (Q, 3), out_counts (Q,), centre (3,), "
                                     "1 <= k <= min(M, 64)");
-    const double *q = queries.data(), *c = centre.data();
+    const double *c = centre.data();
     const double limit = upper * upper;
     double *normals = out_normals.data();
     int64_t *counts = out_counts.data();
-    if (count < PARALLEL_NORMALS_MIN) threads = 1;
-    parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
-        double best[GRAPH_K_MAX];
-        int64_t slots[GRAPH_K_MAX];
-        const int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
-        for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
-            std::fill(best, best + k, INF);
-            std::fill(slots, slots + k, int64_t(-1));
-            nearest_k(t, 0, q[3 * i], q[3 * i + 1], q[3 * i + 2], k, best, slots);
-            double sum[3] = {0.0, 0.0, 0.0}, moment[3][3] = {{0.0}};
-            int64_t used = 0;
-            for (int64_t j = 0; j < k; ++j) {
-                if (slots[j] < 0 || !(best[j] <= limit)) continue;
-                const double *point = t.points + 3 * slots[j];
-                const double x[3] = {point[0] - c[0], point[1] - c[1], point[2] - c[2]};
-                for (int a = 0; a < 3; ++a) {
-                    sum[a] += x[a];
-                    for (int b = 0; b < 3; ++b) moment[a][b] += x[a] * x[b];
-                }
-                ++used;
+    each_k_nearest(t, queries.data(), count, k, threads, PARALLEL_NORMALS_MIN,
+                   [&](int64_t i, const double *best, const int64_t *slots) {
+        double sum[3] = {0.0, 0.0, 0.0}, moment[3][3] = {{0.0}};
+        int64_t used = 0;
+        for (int64_t j = 0; j < k; ++j) {
+            if (slots[j] < 0 || !(best[j] <= limit)) continue;
+            const double *point = t.points + 3 * slots[j];
+            const double x[3] = {point[0] - c[0], point[1] - c[1], point[2] - c[2]};
+            for (int a = 0; a < 3; ++a) {
+                sum[a] += x[a];
+                for (int b = 0; b < 3; ++b) moment[a][b] += x[a] * x[b];
             }
-            counts[i] = used;
-            double *normal = normals + 3 * i;
-            if (used < 3) {
-                normal[0] = normal[1] = normal[2] = std::numeric_limits<double>::quiet_NaN();
-                continue;
-            }
-            double covariance[3][3], vectors[3][3];
-            const double inverse = 1.0 / double(used);
-            for (int a = 0; a < 3; ++a)
-                for (int b = 0; b < 3; ++b)
-                    covariance[a][b] = moment[a][b] * inverse - (sum[a] * inverse) * (sum[b] * inverse);
-            jacobi_eigen<3>(covariance, vectors);
-            int least = 0;
-            for (int a = 1; a < 3; ++a)
-                if (covariance[a][a] < covariance[least][least]) least = a;
-            for (int a = 0; a < 3; ++a) normal[a] = vectors[a][least];
+            ++used;
         }
+        counts[i] = used;
+        double *normal = normals + 3 * i;
+        if (used < 3) {
+            normal[0] = normal[1] = normal[2] = std::numeric_limits<double>::quiet_NaN();
+            return;
+        }
+        double covariance[3][3], vectors[3][3];
+        const double inverse = 1.0 / double(used);
+        for (int a = 0; a < 3; ++a)
+            for (int b = 0; b < 3; ++b)
+                covariance[a][b] = moment[a][b] * inverse - (sum[a] * inverse) * (sum[b] * inverse);
+        jacobi_eigen<3>(covariance, vectors);
+        int least = 0;
+        for (int a = 1; a < 3; ++a)
+            if (covariance[a][a] < covariance[least][least]) least = a;
+        for (int a = 0; a < 3; ++a) normal[a] = vectors[a][least];
     });
 }
 

@@ -24,8 +24,9 @@ so a pair scaled by 1000 gives the same pose):
 5. **Hypotheses.** Each fit is scored by the correspondences it maps within the compatibility
    distance; the best distinct ones are refit on their inliers.
 6. **Verification on the overlap** (:func:`overlap_counts`). ICP on the keypoints until each
-   pose settles (:func:`_icp`, all poses in one batch), then the keypoints lying within ``VERIFY_VOXELS`` of the other cloud, counted both ways (source
-   on target and target on source): the overlap, not the whole source. When two distinct poses
+   pose settles (:func:`_icp`, all poses in one batch), then the keypoints lying within
+   ``VERIFY_VOXELS`` of the other cloud, counted both ways (source on target and target on
+   source): the overlap, not the whole source. When two distinct poses
    count alike (a corridor, a road), each is scored by the inliers whose target normal points
    along the displacement between the two poses: only that geometry constrains the slide.
 
@@ -42,6 +43,7 @@ import numpy as np
 
 from .. import _kernels
 from ..core.compiled_tree import CompiledTree, threads
+from ..core.correspondence import coincident_points
 from ..core.procrustes import rotation_angle, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .feature_matching import _kabsch, _keypoints, _inlier_mask, _distinct_order
@@ -203,8 +205,6 @@ def _occupied(points: np.ndarray, voxel: float) -> int:
     """The number of voxels of edge ``voxel`` that ``points`` occupy: the distinct integer cell
     coordinates, counted by one compiled hash pass (exact while they stay below 2**53; a sort of
     every key cost 15-20 ms a call on a 258k-point fragment, and the voxel search makes up to 5)."""
-    from ..core.correspondence import coincident_points
-
     cells = np.floor((points - points.min(axis=0)) / voxel)
     repeats, _, _, _ = coincident_points(cells)
     return len(cells) - repeats
@@ -323,11 +323,6 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
     if not enough.any():
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
     groups, weights = groups[enough], weights[enough]
-    return _group_kabsch(source, target, groups, weights)
-
-
-def _group_kabsch(source, target, groups, weights):
-    """The weighted fit of each seed group (rows of ``groups`` index the paired points)."""
     return _weighted_fits(source[groups], target[groups], weights)
 
 
