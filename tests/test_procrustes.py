@@ -12,6 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from esmicp.core.procrustes import (
     apply,
+    axis_bounds,
+    bounding_box_diagonal,
     project_to_rotation,
     rotation_angle,
     rotation_from_cross_covariance,
@@ -393,3 +395,21 @@ def test_to_matrix_and_apply_round_trip(seed):
     # and procrustes on the pair gives the matrix back
     r, t = weighted_procrustes(points, moved)
     np.testing.assert_allclose(to_matrix(r, t), matrix, atol=1e-10)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int64])
+def test_axis_bounds_are_numpys_per_axis_min_and_max(rng, dtype):
+    """Column by column, the same values as ``min(axis=0)`` / ``max(axis=0)``: floats, integers
+    (voxel keys), a strided view, one row, and NaN propagating as in ``min``."""
+    points = (rng.normal(size=(1001, 3)) * 1e3).astype(dtype)
+    for cloud in (points, points[::3], points[:1], np.asfortranarray(points)):
+        low, high = axis_bounds(cloud)
+        np.testing.assert_array_equal(low, cloud.min(axis=0))
+        np.testing.assert_array_equal(high, cloud.max(axis=0))
+        assert low.dtype == cloud.dtype and low.shape == (3,)
+    if dtype is np.float64:
+        assert bounding_box_diagonal(points) == pytest.approx(np.linalg.norm(np.ptp(points, axis=0)), rel=1e-15)
+        holed = points.copy()
+        holed[500, 1] = np.nan
+        low, high = axis_bounds(holed)
+        assert np.isnan(low[1]) and np.isnan(high[1]) and np.isfinite(low[[0, 2]]).all()

@@ -12,6 +12,7 @@ import warnings
 
 import numpy as np
 
+from .core.procrustes import axis_bounds
 from .errors import InvalidInputError, NonFinitePointsWarning
 
 #: Minimum number of points a cloud must have for a rigid fit.
@@ -97,7 +98,8 @@ def check_representable(points: np.ndarray, name: str = "points") -> None:
             f"{name}: coordinates up to {magnitude:.3g} in magnitude, beyond the {MAX_COORDINATE:g} that "
             f"float64 squared distances allow; rescale the cloud (other units)"
         )
-    extent = float(np.max(points.max(axis=0) - points.min(axis=0)))  # no squares: they would underflow
+    low, high = axis_bounds(points)
+    extent = float(np.max(high - low))  # no squares: they would underflow
     if extent < MIN_EXTENT:
         raise InvalidInputError(
             f"{name}: the cloud spans only {extent:.3g} units, below the {MIN_EXTENT:g} that float64 "

@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from .base import BaselineResult
-from ..core.procrustes import apply, bounding_box_diagonal
+from ..core.procrustes import apply, axis_bounds, bounding_box_diagonal
 from ._common import checked_inputs
 from ..types import as_positive
 
@@ -81,7 +81,7 @@ class _Gaussians:
     """The target's cells of side ``cell``, as Gaussians (means, inverse covariances)."""
 
     def __init__(self, target: np.ndarray, cell: float):
-        keys = np.floor((target - target.min(axis=0)) / cell).astype(np.int64)
+        keys = np.floor((target - axis_bounds(target)[0]) / cell).astype(np.int64)
         _, label, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
         label = label.ravel()
         keep = counts >= MIN_POINTS_PER_CELL

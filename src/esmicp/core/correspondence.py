@@ -14,6 +14,7 @@ import numpy as np
 
 from .. import _kernels
 from . import compiled_tree, voxel_hash
+from .procrustes import axis_bounds
 
 
 #: Cell edge of the voxel hash of :meth:`NearestNeighbors.query_near`, in target point spacings.
@@ -75,6 +76,7 @@ class NearestNeighbors:
         self._index_hashed = False
         self._index_graphed = False
         self._step_rmse = np.inf  # RMS distance of the last step's pairs
+        self._axis_bounds: tuple[np.ndarray, np.ndarray] | None = None
 
     def exact_tree(self) -> "compiled_tree.CompiledTree":
         """The compiled KD-tree of the target (built on first use)."""
@@ -84,6 +86,12 @@ class NearestNeighbors:
 
     def __len__(self) -> int:
         return len(self.points)
+
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The target's per-axis ``(low, high)`` (computed once)."""
+        if self._axis_bounds is None:
+            self._axis_bounds = axis_bounds(self.points)
+        return self._axis_bounds
 
     def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return ``(distances, indices)`` of each point's nearest target point.
@@ -189,16 +197,18 @@ class NearestNeighbors:
         """
         near = self._near_index()
         cell = near.cell if near is not None else max(NEAR_CELL_SPACINGS * self.spacing(), 1e-12)
-        low = self.points.min(axis=0)
+        low = self._bounds()[0]
         ijk = np.floor((points - low) / cell).astype(np.int64)
-        ijk -= ijk.min(axis=0)
-        dims = ijk.max(axis=0) + 1
+        ijk_low, ijk_high = axis_bounds(ijk)
+        ijk -= ijk_low
+        dims = ijk_high - ijk_low + 1
         return np.argsort(ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2]), kind="stable")
 
     def _near_index(self) -> "voxel_hash.VoxelHash | None":
         if self._near is None:
             spacing = self.spacing() if self._spacing is None else self._spacing
-            diagonal = float(np.linalg.norm(np.ptp(self.points, axis=0)))
+            low, high = self._bounds()
+            diagonal = float(np.linalg.norm(high - low))
             cell = max(NEAR_CELL_SPACINGS * spacing, 1e-6 * diagonal)
             if cell > 0:
                 self._near = voxel_hash.VoxelHash(self.points, cell)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import _kernels
+from .procrustes import axis_bounds
 
 
 class NearestGrid:
@@ -37,8 +38,9 @@ class NearestGrid:
 
     def __init__(self, target: np.ndarray, cell: float, *, margin: float, max_cells: int = 2_000_000):
         self.points = target
-        low = target.min(axis=0) - margin
-        extent = target.max(axis=0) + margin - low
+        low, high = axis_bounds(target)
+        low = low - margin
+        extent = high + margin - low
         cell = max(cell, float(np.prod(extent) / max_cells) ** (1.0 / 3.0), 1e-12 * float(extent.max()))
         self.cell = cell
         self.low = low

@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import compiled_tree
+from .procrustes import axis_bounds
 
 from .. import _kernels
 
@@ -49,8 +50,9 @@ class VoxelHash:
     def __init__(self, target: np.ndarray, cell: float):
         target = np.ascontiguousarray(target, dtype=np.float64)
         self.cell = float(cell)
-        self.low = target.min(axis=0) - self.cell
-        extent = target.max(axis=0) + self.cell - self.low
+        low, high = axis_bounds(target)
+        self.low = low - self.cell
+        extent = high + self.cell - self.low
         self.dims = np.maximum(np.ceil(extent / self.cell).astype(np.int64), 1)
         if float(np.prod(self.dims.astype(np.float64))) >= 2.0**62:
             raise ValueError(f"VoxelHash: cell {cell!r} is too small for the target's extent")

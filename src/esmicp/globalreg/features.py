@@ -58,6 +58,7 @@ import numpy as np
 
 from .. import _kernels
 from ..core.compiled_tree import K_MAX, CompiledTree, threads
+from ..core.procrustes import axis_bounds
 from ..errors import InvalidInputError
 from ..types import as_positive
 
@@ -122,11 +123,11 @@ def voxel_grid(points, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """
     points = _as_cloud(points)
     voxel = as_positive(voxel, "voxel")
-    scaled = np.floor((points - points.min(axis=0)) / voxel)
+    scaled = np.floor((points - axis_bounds(points)[0]) / voxel)
     if float(scaled.max()) >= 2.0**62:
         raise InvalidInputError(f"voxel: {voxel!r} is too small for the cloud's extent (over 2^62 voxels per axis)")
     keys = scaled.astype(np.int64)
-    extent = keys.max(axis=0) + 1
+    extent = axis_bounds(keys)[1] + 1
     if float(extent[0]) * float(extent[1]) * float(extent[2]) < 2.0**62:
         linear = (keys[:, 0] * extent[1] + keys[:, 1]) * extent[2] + keys[:, 2]
         _, owner, counts = np.unique(linear, return_inverse=True, return_counts=True)

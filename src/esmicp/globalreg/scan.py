@@ -44,7 +44,7 @@ import numpy as np
 from .. import _kernels
 from ..core.compiled_tree import CompiledTree, threads
 from ..core.correspondence import coincident_points
-from ..core.procrustes import rotation_angle, to_matrix
+from ..core.procrustes import axis_bounds, rotation_angle, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .feature_matching import _kabsch, _keypoints, _inlier_mask, _distinct_order
 from .features import estimate_normals, voxel_grid
@@ -187,12 +187,12 @@ def keypoint_voxel(points: np.ndarray, spacing: float, count: int = KEYPOINTS) -
     """The voxel edge (cloud units) at which ``points`` occupy about ``count`` voxels (at least
     ``MIN_VOXEL_SPACINGS * spacing``)."""
     floor = MIN_VOXEL_SPACINGS * spacing
-    extent = np.ptp(points, axis=0)
+    low, high = axis_bounds(points)
     # Start from a surface guess (the bounding box's largest face) and correct by the 1/v^2 law.
-    faces = np.sort(extent)[1:]
+    faces = np.sort(high - low)[1:]
     voxel = max(float(np.sqrt(faces[0] * faces[1] / count)), floor, 1e-12)
     for _ in range(4):
-        occupied = _occupied(points, voxel)
+        occupied = _occupied(points, voxel, low)
         if abs(occupied - count) <= 0.1 * count:
             break
         voxel = max(voxel * float(np.sqrt(occupied / count)), floor)
@@ -201,11 +201,13 @@ def keypoint_voxel(points: np.ndarray, spacing: float, count: int = KEYPOINTS) -
     return voxel
 
 
-def _occupied(points: np.ndarray, voxel: float) -> int:
+def _occupied(points: np.ndarray, voxel: float, low: np.ndarray | None = None) -> int:
     """The number of voxels of edge ``voxel`` that ``points`` occupy: the distinct integer cell
     coordinates, counted by one compiled hash pass (exact while they stay below 2**53; a sort of
-    every key cost 15-20 ms a call on a 258k-point fragment, and the voxel search makes up to 5)."""
-    cells = np.floor((points - points.min(axis=0)) / voxel)
+    every key cost 15-20 ms a call on a 258k-point fragment, and the voxel search makes up to 5).
+    ``low``: the grid's corner, the points' per-axis minimum unless given (the voxel search passes
+    it, computed once)."""
+    cells = np.floor((points - (axis_bounds(points)[0] if low is None else low)) / voxel)
     repeats, _, _, _ = coincident_points(cells)
     return len(cells) - repeats
 

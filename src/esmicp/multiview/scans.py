@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..batch import register_many
+from ..core.procrustes import axis_bounds
 from ..errors import InvalidInputError
 from ..types import as_points
 from . import pose_graph
@@ -90,7 +91,7 @@ class MultiRegistrationResult:
             return points, label
         if not voxel > 0:
             raise InvalidInputError(f"voxel: expected a positive size, got {voxel!r}")
-        keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+        keys = np.floor((points - axis_bounds(points)[0]) / voxel).astype(np.int64)
         _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
         inverse = inverse.ravel()
         sums = np.zeros((len(first), 3))
