@@ -1638,6 +1638,169 @@ void compatibility(CArr2 source, CArr2 target, double tolerance, F32Arr2 out, in
     });
 }
 
+// ---------------------------------------------------------------------------------------------
+// FPFH (features.fpfh documents the definition; the formulas and their order of operations are
+// the ones there, so that the bins are those of the NumPy reference to the last bit).
+
+//: Bins per FPFH angle feature, the feature length, and what each SPFH block sums to.
+constexpr int FPFH_BINS = 11;
+constexpr int FPFH_DIMENSION = 3 * FPFH_BINS;
+constexpr double SPFH_BLOCK_SUM = 100.0;
+//: Two cosines closer than this count as equal when choosing a pair's source point.
+constexpr double FPFH_TIE = 1e-9;
+//: Points per piece of the FPFH passes.
+constexpr int64_t FPFH_PIECE = 64;
+
+// Tree slots within squared distance `limit` of (x, y, z), appended to `found` (tree order).
+void within(const Tree &t, double x, double y, double z, double limit, std::vector<int64_t> &found) {
+    int64_t stack[STACK];
+    stack[0] = 0;
+    int depth = box_distance(t.boxes, x, y, z) <= limit ? 1 : 0;
+    while (depth > 0) {
+        const int64_t node = stack[--depth];
+        const int64_t left = t.lefts[node];
+        if (left < 0) {
+            for (int64_t s = t.starts[node]; s < t.ends[node]; ++s) {
+                const double ex = t.points[3 * s] - x, ey = t.points[3 * s + 1] - y, ez = t.points[3 * s + 2] - z;
+                if (ex * ex + ey * ey + ez * ez <= limit) found.push_back(s);
+            }
+            continue;
+        }
+        for (int64_t child : {left + 1, left})
+            if (box_distance(t.boxes + 6 * child, x, y, z) <= limit) stack[depth++] = child;
+    }
+}
+
+inline int fpfh_bin(double scaled) {
+    // Truncation toward zero, clipped to the bins (NaN to the first): the NumPy reference's
+    // astype(intp) then clip.
+    if (!(scaled >= 1.0)) return 0;
+    return scaled >= double(FPFH_BINS - 1) ? FPFH_BINS - 1 : int(scaled);
+}
+
+// The (theta, alpha, phi) bins of the pair (a, b), a < b (points p, unit normals n, (N, 3)), and
+// their squared distance; false for coincident points (no direction, no feature).
+inline bool pair_bins(const double *p, const double *n, int64_t a, int64_t b, int bins[3], double &squared) {
+    const double *pa = p + 3 * a, *pb = p + 3 * b, *u = n + 3 * a, *m = n + 3 * b;
+    double o[3] = {pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2]};
+    const double distance = std::sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
+    if (!(distance > 0.0)) return false;
+    squared = distance * distance;
+    for (double &c : o) c /= distance;
+    const double cos_first = u[0] * o[0] + u[1] * o[1] + u[2] * o[2];
+    const double cos_second = m[0] * o[0] + m[1] * o[1] + m[2] * o[2];
+    const double normals_cos = u[0] * m[0] + u[1] * m[1] + u[2] * m[2];
+    const double triple = o[0] * (u[1] * m[2] - u[2] * m[1]) + o[1] * (u[2] * m[0] - u[0] * m[2]) +
+                          o[2] * (u[0] * m[1] - u[1] * m[0]);
+    const double gap = std::fabs(cos_first) - std::fabs(cos_second);
+    const bool swap = std::fabs(gap) <= FPFH_TIE ? -cos_second > cos_first : gap < 0.0;
+    const double total = cos_first + cos_second, chosen = swap ? 1.0 : 0.0;
+    const double phi = cos_first - chosen * total, target_cos = cos_second - chosen * total;
+    const double frame_norm = std::sqrt(std::max(1.0 - phi * phi, 0.0));
+    const double alpha = triple / std::max(frame_norm, std::numeric_limits<double>::min());
+    const double theta = std::atan2(target_cos - phi * normals_cos, normals_cos * frame_norm);
+    bins[0] = fpfh_bin((theta + M_PI) * (FPFH_BINS / (2.0 * M_PI)));
+    bins[1] = FPFH_BINS + fpfh_bin((alpha + 1.0) * (0.5 * FPFH_BINS));
+    bins[2] = 2 * FPFH_BINS + fpfh_bin((phi + 1.0) * (0.5 * FPFH_BINS));
+    return true;
+}
+
+// FPFH of every point of the tree's cloud within `radius` (cloud units): out (N, 33), rows in the
+// cloud's order; normals (N, 3) in that order too. In parallel, each point's neighbours and the
+// bins of its pairs with the later points (each pair computed once), counted for that point; then,
+// on one thread, the same bins counted for the later points (integer counts, so the order of the
+// adds does not matter, and no atomic add: those cost more than the features); in parallel again,
+// the SPFHs from the counts, and each point's SPFH plus its neighbours' weighted by 1 / squared
+// distance, renormalised per block.
+void fpfh(CArr2 normals_, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
+          double radius, Arr2 out_, int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t count = t.count;
+    if (int64_t(normals_.shape(0)) != count || normals_.shape(1) != 3 || int64_t(out_.shape(0)) != count ||
+        out_.shape(1) != FPFH_DIMENSION || !(radius > 0.0))
+        throw std::invalid_argument("fpfh: normals (N, 3) and out (N, 33) for the tree's N points, radius > 0");
+    // The cloud in its own order (the pair features index points and normals alike).
+    std::vector<double> cloud(3 * size_t(count));
+    for (int64_t s = 0; s < count; ++s)
+        for (int a = 0; a < 3; ++a) cloud[3 * t.order[s] + a] = t.points[3 * s + a];
+    const double *p = cloud.data(), *n = normals_.data(), limit = radius * radius;
+    double *out = out_.data();
+    std::vector<std::vector<int64_t>> neighbours(count);
+    std::vector<std::vector<uint32_t>> later_bins(count);  // the bins of (i, j > i), 8 bits each
+    std::vector<int64_t> histograms(size_t(FPFH_DIMENSION) * size_t(count), 0), pairs(count, 0);
+    std::vector<double> spfh(size_t(FPFH_DIMENSION) * size_t(count));
+    const int64_t pieces = piece_count(count, FPFH_PIECE);
+    if (count < 4 * FPFH_PIECE) threads = 1;
+    parallel_pieces(pieces, threads, [&](int64_t piece) {
+        std::vector<int64_t> found;
+        const int64_t end = std::min(count, (piece + 1) * FPFH_PIECE);
+        for (int64_t i = piece * FPFH_PIECE; i < end; ++i) {
+            found.clear();
+            within(t, p[3 * i], p[3 * i + 1], p[3 * i + 2], limit, found);
+            std::vector<int64_t> &around = neighbours[i];
+            around.reserve(found.size());
+            for (int64_t slot : found) {
+                const int64_t j = t.order[slot];
+                int bins[3];
+                double squared;
+                if (j == i || !pair_bins(p, n, std::min(i, j), std::max(i, j), bins, squared)) continue;
+                around.push_back(j);
+                if (j < i) continue;  // computed from its first point
+                for (int b : bins) ++histograms[FPFH_DIMENSION * i + b];
+                ++pairs[i];
+                later_bins[i].push_back(uint32_t(bins[0]) | uint32_t(bins[1]) << 8 | uint32_t(bins[2]) << 16);
+            }
+        }
+    });
+    for (int64_t i = 0; i < count; ++i) {
+        const uint32_t *packed = later_bins[i].data();
+        for (int64_t j : neighbours[i]) {
+            if (j < i) continue;
+            const uint32_t bins = *packed++;
+            int64_t *histogram = histograms.data() + FPFH_DIMENSION * j;
+            ++histogram[bins & 0xFF];
+            ++histogram[(bins >> 8) & 0xFF];
+            ++histogram[bins >> 16];
+            ++pairs[j];
+        }
+    }
+    parallel_pieces(pieces, threads, [&](int64_t piece) {
+        const int64_t end = std::min(count, (piece + 1) * FPFH_PIECE);
+        for (int64_t i = piece * FPFH_PIECE; i < end; ++i) {
+            const double scale = SPFH_BLOCK_SUM / double(std::max<int64_t>(pairs[i], 1));
+            for (int b = 0; b < FPFH_DIMENSION; ++b)
+                spfh[FPFH_DIMENSION * i + b] = double(histograms[FPFH_DIMENSION * i + b]) * scale;
+        }
+    });
+    parallel_pieces(pieces, threads, [&](int64_t piece) {
+        const int64_t end = std::min(count, (piece + 1) * FPFH_PIECE);
+        for (int64_t i = piece * FPFH_PIECE; i < end; ++i) {
+            double around[FPFH_DIMENSION] = {0.0};
+            for (int64_t j : neighbours[i]) {
+                const int64_t a = std::min(i, j), b = std::max(i, j);
+                const double *pa = p + 3 * a, *pb = p + 3 * b;
+                const double o[3] = {pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2]};
+                const double distance = std::sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
+                const double weight = 1.0 / (distance * distance);
+                const double *neighbour = spfh.data() + FPFH_DIMENSION * j;
+                for (int k = 0; k < FPFH_DIMENSION; ++k) around[k] += weight * neighbour[k];
+            }
+            double *row = out + FPFH_DIMENSION * i;
+            const double *own = spfh.data() + FPFH_DIMENSION * i;
+            for (int block = 0; block < 3; ++block) {
+                double sum = 0.0;
+                for (int k = 0; k < FPFH_BINS; ++k) sum += around[FPFH_BINS * block + k];
+                const double scale = SPFH_BLOCK_SUM / (sum > 0.0 ? sum : 1.0);
+                for (int k = 0; k < FPFH_BINS; ++k) {
+                    const int index = FPFH_BINS * block + k;
+                    row[index] = own[index] + around[index] * scale;
+                }
+            }
+        }
+    });
+}
+
 inline void compose_step(const double *step_r, const double *step_t, double *r, double *t) {
     double nr[9], nt[3];
     for (int a = 0; a < 3; ++a) {
@@ -1892,6 +2055,8 @@ NB_MODULE(_kernels, m) {
     m.def("tree_knn", &tree_knn);
     m.def("knn_normals", &knn_normals);
     m.def("compatibility", &compatibility);
+    m.def("fpfh", &fpfh);
+    m.attr("FPFH_DIMENSION") = FPFH_DIMENSION;
     m.def("nearest_grid", &nearest_grid);
     m.attr("STEP_OUT") = STEP_OUT;
     nb::class_<Index>(m, "Index")

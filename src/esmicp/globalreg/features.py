@@ -1,6 +1,7 @@
 """Local shape features for global registration: voxel downsampling, PCA normals and FPFH.
 
-Everything is vectorised over points (no Python loop over points) and deterministic. Lengths
+No Python loop over points: the normals and FPFH are compiled passes (:mod:`esmicp._kernels`),
+deterministic whatever the number of threads. Lengths
 (``voxel``, ``radius``) are in the clouds' units; angles inside FPFH are in radians.
 
 Normal orientation
@@ -74,9 +75,6 @@ SPFH_BLOCK_SUM = 100.0
 
 #: Value each 11-bin block of an FPFH sums to (a point with at least one neighbour).
 FPFH_BLOCK_SUM = 200.0
-
-#: Two cosines (unitless) closer than this count as equal when choosing a pair's source point.
-_TIE_TOLERANCE = 1e-9
 
 
 def _as_cloud(points, name: str = "points", *, min_points: int = 1) -> np.ndarray:
@@ -267,56 +265,12 @@ class NormalEstimator:
         return normals
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Column-wise dot products of two ``(3, P)`` arrays."""
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _pair_bins(directions: np.ndarray, first: np.ndarray, second: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """Bin indices ``(3, P)`` of the (theta, alpha, phi) features of the pairs ``(first, second)``.
-
-    ``directions`` are the unit normals as a ``(3, N)`` array; ``offset`` the ``(3, P)`` unit
-    vectors from each pair's first point to its second. The features do not depend on the order
-    within a pair. Uses closed forms of the Darboux-frame dot products, so no frame is ever
-    formed: with ``e`` the unit direction from the pair's source to its target, ``u`` the source
-    normal and ``n`` the target normal, ``|v| = sqrt(1 - phi^2)``,
-    ``alpha = e . (u x n) / |v|`` and ``theta = atan2((e . n - phi (u . n)) / |v|, u . n)``.
-    """
-    n_first, n_second = directions[:, first], directions[:, second]
-    cos_first = _dot(n_first, offset)
-    cos_second = _dot(n_second, offset)
-    normals_cos = _dot(n_first, n_second)
-    # e . (u x n) is the same whichever point is the source (both e and u x n flip sign).
-    triple = (
-        offset[0] * (n_first[1] * n_second[2] - n_first[2] * n_second[1])
-        + offset[1] * (n_first[2] * n_second[0] - n_first[0] * n_second[2])
-        + offset[2] * (n_first[0] * n_second[1] - n_first[1] * n_second[0])
-    )
-    # Source of the pair: the point whose normal is closer to the connecting line. When both are
-    # equally close (to rounding; e.g. two points with the same normal), either choice is valid
-    # but they can give opposite signs of phi, so take the one with the larger phi: the choice
-    # then depends neither on the order of the pair nor on the cloud's pose.
-    gap = np.abs(cos_first) - np.abs(cos_second)
-    swap = np.where(np.abs(gap) <= _TIE_TOLERANCE, -cos_second > cos_first, gap < 0)
-    # phi = -cos_second if swap else cos_first; the target's cosine likewise (arithmetic selects).
-    total = cos_first + cos_second
-    phi = cos_first - swap * total
-    target_cos = cos_second - swap * total
-    frame_norm = np.sqrt(np.maximum(1.0 - phi * phi, 0.0))
-    alpha = triple / np.maximum(frame_norm, np.finfo(np.float64).tiny)
-    theta = np.arctan2(target_cos - phi * normals_cos, normals_cos * frame_norm)
-    scaled = np.empty((3, len(phi)))
-    np.multiply(theta + np.pi, FPFH_BINS / (2.0 * np.pi), out=scaled[0])
-    np.multiply(alpha + 1.0, 0.5 * FPFH_BINS, out=scaled[1])
-    np.multiply(phi + 1.0, 0.5 * FPFH_BINS, out=scaled[2])
-    # Truncation equals floor for values >= 0 and gives 0 in (-1, 0); either way the clip to the
-    # first bin makes it the floor's bin.
-    bins = scaled.astype(np.intp)
-    return np.clip(bins, 0, FPFH_BINS - 1, out=bins)
-
-
-def fpfh(points, normals, radius: float, tree: cKDTree | None = None) -> np.ndarray:
+def fpfh(points, normals, radius: float, tree: CompiledTree | None = None, workers: int | None = 1) -> np.ndarray:
     """Fast Point Feature Histograms of every point (see the module docstring for the definition).
+
+    Compiled: each point's neighbours within ``radius`` from the KD-tree, its SPFH from the bins of
+    its pairs, then the weighted sum of its neighbours' SPFHs; every pair's features are computed
+    with the same operands from both of its ends, so both see the same bins.
 
     Parameters
     ----------
@@ -326,8 +280,10 @@ def fpfh(points, normals, radius: float, tree: cKDTree | None = None) -> np.ndar
         Unit normals, consistently oriented (e.g. :func:`estimate_normals`).
     radius : float
         Neighbourhood radius in the cloud's units (> 0); typically 5x the sampling spacing.
-    tree : cKDTree, optional
-        A tree over ``points``, to reuse.
+    tree : esmicp.core.compiled_tree.CompiledTree, optional
+        The compiled KD-tree over ``points``, to reuse.
+    workers : int or None
+        Threads (None: every core).
 
     Returns
     -------
@@ -342,38 +298,8 @@ def fpfh(points, normals, radius: float, tree: cKDTree | None = None) -> np.ndar
     if normals.shape != points.shape:
         raise InvalidInputError(f"normals: expected shape {points.shape}, got {normals.shape}")
     radius = as_positive(radius, "radius")
-    count = len(points)
-    from scipy import sparse
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(points) if tree is None else tree
-    pairs = tree.query_pairs(radius, output_type="ndarray").astype(np.intp)
-    first, second = pairs[:, 0], pairs[:, 1]
-    coordinates = points.T
-    offset = coordinates[:, second] - coordinates[:, first]
-    distance = np.sqrt(_dot(offset, offset))
-    if not (distance > 0).all():  # coincident points: no direction, no pair feature
-        keep = distance > 0
-        first, second, offset, distance = first[keep], second[keep], offset[:, keep], distance[keep]
-    offset /= distance
-    bins = _pair_bins(np.ascontiguousarray(normals.T), first, second, offset)
-
-    # SPFH: every pair adds its bins to both of its points, 100 / (number of pairs of the point).
-    owners = np.concatenate([first, second])
-    pair_counts = np.bincount(owners, minlength=count)
-    flat = np.tile(bins, 2)
-    flat += (np.arange(3) * FPFH_BINS)[:, None]
-    flat += owners * FPFH_DIMENSION
-    spfh = np.bincount(flat.reshape(-1), minlength=count * FPFH_DIMENSION).reshape(count, FPFH_DIMENSION)
-    spfh = spfh * (SPFH_BLOCK_SUM / np.maximum(pair_counts, 1))[:, None]
-
-    # FPFH: SPFH + the neighbours' SPFHs weighted by 1 / squared distance, renormalised per block.
-    inverse_square = 1.0 / np.square(distance)
-    weight_matrix = sparse.coo_matrix(
-        (np.concatenate([inverse_square, inverse_square]), (owners, np.concatenate([second, first]))),
-        shape=(count, count),
-    )
-    neighbourhood = np.asarray(weight_matrix @ spfh).reshape(count, 3, FPFH_BINS)
-    block_sums = neighbourhood.sum(axis=2, keepdims=True)
-    neighbourhood *= SPFH_BLOCK_SUM / np.where(block_sums > 0, block_sums, 1.0)
-    return spfh + neighbourhood.reshape(count, FPFH_DIMENSION)
+    tree = CompiledTree(points) if tree is None else tree
+    features = np.empty((len(points), FPFH_DIMENSION))
+    _kernels.fpfh(np.ascontiguousarray(normals), tree.points, tree.order, tree.starts, tree.ends, tree.lefts,
+                  tree.boxes, float(radius), features, threads(workers))
+    return features
