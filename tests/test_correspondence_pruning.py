@@ -201,3 +201,30 @@ def test_the_compatibility_matrix_equals_scipys_two_distance_matrices():
         found = np.empty((count, count), dtype=np.float32)
         _kernels.compatibility(source, target, tolerance, found, workers)
         np.testing.assert_array_equal(found, expected)
+
+
+def test_descriptor_matching_both_ways_equals_a_full_distance_matrix():
+    """The chunked, compiled nearest-descriptor search (rows in chunks of ``_CHUNK_ROWS``, columns
+    in pieces, on 1 and 2 threads) finds what a whole distance matrix gives: the nearest column of
+    each row and row of each column (the first of equal ones), and Lowe's ratios. Integer
+    descriptors make every distance exact, so ties are real ties."""
+    from esmicp.globalreg import scan
+
+    generator = np.random.default_rng(9)
+    for rows, columns in ((2500, 1300), (7, 600), (1100, 1)):
+        source = generator.integers(0, 4, (rows, 33)).astype(np.float64)
+        target = generator.integers(0, 4, (columns, 33)).astype(np.float64)
+        target[-1] = source[0]  # an exact match
+        squared = ((source[:, None, :] - target[None, :, :]) ** 2).sum(axis=2)
+        row_sorted, column_sorted = np.sort(squared, axis=1), np.sort(squared, axis=0)
+
+        def ratio(best, second):
+            return np.sqrt(best.astype(np.float32) / np.maximum(second.astype(np.float32), np.float32(1e-30)))
+
+        for workers in (1, 2):
+            forward, forward_ratio, backward, backward_ratio = scan._nearest_both_ways(source, target, workers)
+            np.testing.assert_array_equal(forward, squared.argmin(axis=1))
+            np.testing.assert_array_equal(backward, squared.argmin(axis=0))
+            if columns > 1:
+                np.testing.assert_array_equal(forward_ratio, ratio(row_sorted[:, 0], row_sorted[:, 1]))
+            np.testing.assert_array_equal(backward_ratio, ratio(column_sorted[0], column_sorted[1]))

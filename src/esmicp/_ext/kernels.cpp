@@ -35,6 +35,9 @@ using Idx = nb::ndarray<int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 using Idx2 = nb::ndarray<int64_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 using CIdx2 = nb::ndarray<const int64_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 using F32Arr2 = nb::ndarray<float, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using CF32Arr2 = nb::ndarray<const float, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using CF32Arr1 = nb::ndarray<const float, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using F32Arr1 = nb::ndarray<float, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 
 namespace {
 
@@ -1638,6 +1641,103 @@ void compatibility(CArr2 source, CArr2 target, double tolerance, F32Arr2 out, in
     });
 }
 
+//: Columns per piece of nearest_descriptors.
+constexpr int64_t DESCRIPTOR_COLUMNS = 512;
+
+// One row block of a descriptor matching both ways. gram (R, C) holds the dot products of R source
+// descriptors (rows `row_offset` on of the source) with the C target descriptors, float32 (BLAS);
+// each squared distance is formed as the NumPy version formed it, in float32 and in the same order
+// ((-2 g + |t|^2) + |s|^2, clipped at 0), so the results are its own. Per row: the nearest column
+// (the first of equal ones), its squared distance and the second smallest (out_row_*). Per column,
+// carried across blocks (callers start from INF and 0): the two smallest squared distances over
+// every row so far (column_best (2, C)) and the row of the first (column_index, the first of equal
+// ones). Column pieces in parallel; each piece's row minima are merged in column order.
+void nearest_descriptors(CF32Arr2 gram_, CF32Arr1 row_squares_, CF32Arr1 column_squares_, int64_t row_offset,
+                         Idx out_row_index_, F32Arr1 out_row_best_, F32Arr1 out_row_second_, F32Arr2 column_best_,
+                         Idx column_index_, int threads) {
+    const int64_t rows = int64_t(gram_.shape(0)), columns = int64_t(gram_.shape(1));
+    if (int64_t(row_squares_.shape(0)) != rows || int64_t(column_squares_.shape(0)) != columns ||
+        int64_t(out_row_index_.shape(0)) != rows || int64_t(out_row_best_.shape(0)) != rows ||
+        int64_t(out_row_second_.shape(0)) != rows || column_best_.shape(0) != 2 ||
+        int64_t(column_best_.shape(1)) != columns || int64_t(column_index_.shape(0)) != columns || rows < 1 ||
+        columns < 1)
+        throw std::invalid_argument("nearest_descriptors: gram (R, C), row arrays (R,), column_best (2, C), "
+                                    "column_index (C,), R, C >= 1");
+    const float *gram = gram_.data(), *row_squares = row_squares_.data(), *column_squares = column_squares_.data();
+    float *first = column_best_.data(), *second = column_best_.data() + columns;
+    int64_t *column_index = column_index_.data();
+    const int64_t pieces = piece_count(columns, DESCRIPTOR_COLUMNS);
+    const float inf = std::numeric_limits<float>::infinity();
+    std::vector<float> piece_best(size_t(pieces) * size_t(rows)), piece_second(size_t(pieces) * size_t(rows));
+    std::vector<int64_t> piece_index(size_t(pieces) * size_t(rows));
+    parallel_pieces(pieces, threads, [&](int64_t piece) {
+        const int64_t begin = piece * DESCRIPTOR_COLUMNS, end = std::min(columns, begin + DESCRIPTOR_COLUMNS);
+        float values[DESCRIPTOR_COLUMNS];
+        int32_t moved[DESCRIPTOR_COLUMNS];
+        for (int64_t i = 0; i < rows; ++i) {
+            const float *row = gram + columns * i + begin;
+            const float own = row_squares[i];
+            const int64_t width = end - begin, label = row_offset + i;
+            // Distances, then the columns' running minima: no dependence between columns, so
+            // both loops vectorise; then the row's minima, whose branches are rarely taken.
+            for (int64_t j = 0; j < width; ++j) {
+                float value = row[j] * -2.0f;
+                value = value + column_squares[begin + j];
+                value = value + own;
+                values[j] = value < 0.0f ? 0.0f : value;
+            }
+            float *column_first = first + begin, *column_second = second + begin;
+            int64_t *column_label = column_index + begin;
+            for (int64_t j = 0; j < width; ++j) {
+                const float value = values[j], low = column_first[j];
+                const bool lower = value < low;
+                column_second[j] = lower ? low : std::min(column_second[j], value);
+                column_first[j] = lower ? value : low;
+                moved[j] = lower ? 1 : 0;  // int32 beside float32: the loop vectorises
+            }
+            for (int64_t j = 0; j < width; ++j)
+                if (moved[j]) column_label[j] = label;
+            float best = inf, runner_up = inf;
+            int64_t nearest = 0;
+            for (int64_t j = 0; j < width; ++j) {
+                const float value = values[j];
+                if (value < runner_up) {
+                    if (value < best) {
+                        runner_up = best;
+                        best = value;
+                        nearest = j;
+                    } else {
+                        runner_up = value;
+                    }
+                }
+            }
+            const size_t slot = size_t(piece) * size_t(rows) + size_t(i);
+            piece_best[slot] = best;
+            piece_second[slot] = runner_up;
+            piece_index[slot] = begin + nearest;
+        }
+    });
+    int64_t *row_index = out_row_index_.data();
+    float *row_best = out_row_best_.data(), *row_second = out_row_second_.data();
+    for (int64_t i = 0; i < rows; ++i) {
+        float best = piece_best[size_t(i)], runner_up = piece_second[size_t(i)];
+        int64_t nearest = piece_index[size_t(i)];
+        for (int64_t piece = 1; piece < pieces; ++piece) {
+            const size_t slot = size_t(piece) * size_t(rows) + size_t(i);
+            if (piece_best[slot] < best) {
+                runner_up = std::min(best, piece_second[slot]);
+                best = piece_best[slot];
+                nearest = piece_index[slot];
+            } else {
+                runner_up = std::min(runner_up, piece_best[slot]);
+            }
+        }
+        row_index[i] = nearest;
+        row_best[i] = best;
+        row_second[i] = runner_up;
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // FPFH (features.fpfh documents the definition; the formulas and their order of operations are
 // the ones there, so that the bins are those of the NumPy reference to the last bit).
@@ -2056,6 +2156,7 @@ NB_MODULE(_kernels, m) {
     m.def("knn_normals", &knn_normals);
     m.def("compatibility", &compatibility);
     m.def("fpfh", &fpfh);
+    m.def("nearest_descriptors", &nearest_descriptors);
     m.attr("FPFH_DIMENSION") = FPFH_DIMENSION;
     m.def("nearest_grid", &nearest_grid);
     m.attr("STEP_OUT") = STEP_OUT;

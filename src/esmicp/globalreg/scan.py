@@ -212,9 +212,10 @@ def _occupied(points: np.ndarray, voxel: float, low: np.ndarray | None = None) -
     return len(cells) - repeats
 
 
-def _correspondences(source_features: np.ndarray, target_features: np.ndarray, limit: int) -> np.ndarray:
+def _correspondences(source_features: np.ndarray, target_features: np.ndarray, limit: int,
+                     workers: int | None = None) -> np.ndarray:
     """``(K, 2)`` (source, target) keypoint indices: nearest descriptors both ways, best ratio first."""
-    forward_i, forward_r, backward_i, backward_r = _nearest_both_ways(source_features, target_features)
+    forward_i, forward_r, backward_i, backward_r = _nearest_both_ways(source_features, target_features, workers)
     pairs = np.concatenate([
         np.stack([np.arange(len(source_features)), forward_i], axis=1),
         np.stack([backward_i, np.arange(len(target_features))], axis=1),
@@ -230,42 +231,25 @@ def _correspondences(source_features: np.ndarray, target_features: np.ndarray, l
 _CHUNK_ROWS = 1024
 
 
-def _nearest_both_ways(source: np.ndarray, target: np.ndarray):
+def _nearest_both_ways(source: np.ndarray, target: np.ndarray, workers: int | None = None):
     """Nearest target row of every source row and nearest source row of every target row
-    (Euclidean, float32 Gram matrices in row chunks), each with Lowe's ratio (nearest over
-    second-nearest distance)."""
+    (Euclidean, from float32 Gram matrices in row chunks: BLAS, then one compiled pass per chunk
+    for the nearest and second nearest both ways), each with Lowe's ratio (nearest over
+    second-nearest distance). Ties go to the first row or column."""
     source32, target32 = source.astype(np.float32), target.astype(np.float32)
     target_squares = np.einsum("ij,ij->i", target32, target32)
     forward_i = np.empty(len(source), dtype=np.intp)
-    forward_r = np.empty(len(source))
+    forward_best = np.empty(len(source), dtype=np.float32)
+    forward_second = np.empty(len(source), dtype=np.float32)
     column_best = np.full((2, len(target)), np.inf, dtype=np.float32)
     column_index = np.zeros(len(target), dtype=np.intp)
-    columns = np.arange(len(target))
     for start in range(0, len(source), _CHUNK_ROWS):
         block = source32[start:start + _CHUNK_ROWS]
-        squared = block @ target32.T
-        squared *= -2.0
-        squared += target_squares[None, :]
-        squared += np.einsum("ij,ij->i", block, block)[:, None]
-        np.maximum(squared, 0.0, out=squared)
-        rows = np.arange(len(block))
-        nearest = squared.argmin(axis=1)
-        best = squared[rows, nearest]
-        nearest_row = squared.argmin(axis=0)
-        best_column = squared[nearest_row, columns]
-        squared[rows, nearest] = np.inf
-        second = squared.min(axis=1)
-        squared[rows, nearest] = best
-        squared[nearest_row, columns] = np.inf
-        second_column = squared.min(axis=0)
-        forward_i[start:start + len(block)] = nearest
-        forward_r[start:start + len(block)] = np.sqrt(best / np.maximum(second, 1e-30))
-        # Columns: the two smallest of the running pair and this block's pair.
-        better = best_column < column_best[0]
-        new_second = np.minimum(np.maximum(column_best[0], best_column), np.minimum(column_best[1], second_column))
-        column_best[0] = np.minimum(column_best[0], best_column)
-        column_best[1] = new_second
-        column_index = np.where(better, nearest_row + start, column_index)
+        rows = slice(start, start + len(block))
+        _kernels.nearest_descriptors(block @ target32.T, np.einsum("ij,ij->i", block, block), target_squares, start,
+                                     forward_i[rows], forward_best[rows], forward_second[rows], column_best,
+                                     column_index, threads(workers))
+    forward_r = np.sqrt(forward_best / np.maximum(forward_second, 1e-30)).astype(np.float64)
     backward_r = np.sqrt(column_best[0] / np.maximum(column_best[1], 1e-30))
     return forward_i, forward_r, column_index, backward_r
 
@@ -422,7 +406,7 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
                          np.zeros(1, dtype=np.intp))
     if len(source_keys) < 3 or len(target_keys) < 3:
         return empty
-    pairs = _correspondences(source_features, target_features, MAX_CORRESPONDENCES)
+    pairs = _correspondences(source_features, target_features, MAX_CORRESPONDENCES, workers)
     paired_source, paired_target = source_keys[pairs[:, 0]], target_keys[pairs[:, 1]]
     tolerance = COMPATIBILITY_VOXELS * voxel
     rotations, translations = prune(paired_source, paired_target, tolerance, spread=SEED_SPREAD_VOXELS * voxel,
