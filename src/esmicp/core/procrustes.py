@@ -64,6 +64,38 @@ def weighted_procrustes(
     return rotation, target_centroid - rotation @ source_centroid
 
 
+def batched_weighted_procrustes(
+    source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`weighted_procrustes` of many paired point sets at once (feature correspondences under
+    many hypotheses, groups of them).
+
+    Parameters
+    ----------
+    source, target : (B, n, 3) arrays, or (n, 3) shared by every fit
+        Paired points of each fit (at least one of the two batched when ``weights`` is None).
+    weights : (B, n) array, optional
+        Non-negative per-pair weights, a positive sum per fit (e.g. a 0/1 inlier mask); None
+        means all ones.
+
+    Returns
+    -------
+    rotations : (B, 3, 3) array, translations : (B, 3) array
+        ``target ~= source @ R.T + t`` for each fit.
+    """
+    source, target = np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    if weights is None:
+        batch = source.shape[0] if source.ndim == 3 else target.shape[0]
+        weights = np.ones((batch, source.shape[-2]))
+    normalised = weights / weights.sum(axis=1, keepdims=True)
+    source_centroid = np.matmul(normalised[:, None], source)[:, 0]
+    target_centroid = np.matmul(normalised[:, None], target)[:, 0]
+    centred_source = np.swapaxes(source - source_centroid[:, None], 1, 2)
+    cross = np.matmul(centred_source, (target - target_centroid[:, None]) * normalised[:, :, None])
+    rotations = batched_rotation_from_cross_covariance(cross)
+    return rotations, target_centroid - np.einsum("bij,bj->bi", rotations, source_centroid)
+
+
 def to_matrix(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """4x4 homogeneous matrix from a 3x3 rotation and a 3-vector translation."""
     matrix = np.eye(4)

@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..core.procrustes import batched_rotation_from_cross_covariance, to_matrix
+from ..core.procrustes import batched_weighted_procrustes, to_matrix
 from ..errors import InvalidInputError
 from ..types import as_count, as_generator, as_points, as_positive, as_real
 from . import DISTINCT_ROTATION_DEG
@@ -214,35 +214,6 @@ def match_features(
 # Batched rigid fits and scoring
 
 
-def _kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Batched least-squares rigid fits of paired points.
-
-    ``source``, ``target``: ``(B, n, 3)`` paired points, or ``(n, 3)`` shared by every fit when
-    ``weights`` ``(B, n)`` (non-negative, each row with a positive sum) select the pairs of each
-    fit. Returns rotations ``(B, 3, 3)`` and translations ``(B, 3)`` with
-    ``target ~= source @ R.T + t``.
-    """
-    if weights is None:
-        source_centroid = source.mean(axis=1)
-        target_centroid = target.mean(axis=1)
-        cross = np.einsum("bni,bnj->bij", source - source_centroid[:, None], target - target_centroid[:, None])
-    else:
-        total = weights.sum(axis=1)
-        source_centroid = (weights @ source) / total[:, None]
-        target_centroid = (weights @ target) / total[:, None]
-        # sum_k w_k s_k t_k^T - total * s_bar t_bar^T, with s and t first centred on their plain
-        # means for accuracy.
-        source_mean, target_mean = source.mean(axis=0), target.mean(axis=0)
-        outer = ((source - source_mean)[:, :, None] * (target - target_mean)[:, None, :]).reshape(len(source), 9)
-        cross = (weights @ outer).reshape(-1, 3, 3)
-        cross -= total[:, None, None] * (
-            (source_centroid - source_mean)[:, :, None] * (target_centroid - target_mean)[:, None, :]
-        )
-    rotations = batched_rotation_from_cross_covariance(cross)
-    translations = target_centroid - np.einsum("bij,bj->bi", rotations, source_centroid)
-    return rotations, translations
-
-
 def _inlier_mask(rotations, translations, source, target, threshold) -> np.ndarray:
     """``(C, K)`` bool: correspondence ``k`` maps within ``threshold`` under candidate ``c``."""
     count, pairs = len(rotations), len(source)
@@ -297,7 +268,7 @@ def _refit(rotations, translations, source, target, threshold, rounds: int = 2):
         if not enough.any():
             return rotations, translations, counts
         rotations, translations = rotations.copy(), translations.copy()
-        fitted_r, fitted_t = _kabsch(source, target, mask[enough].astype(np.float64))
+        fitted_r, fitted_t = batched_weighted_procrustes(source, target, mask[enough].astype(np.float64))
         rotations[enough], translations[enough] = fitted_r, fitted_t
     counts = _inlier_mask(rotations, translations, source, target, threshold).sum(axis=1)
     return rotations, translations, counts
@@ -338,7 +309,7 @@ def _ransac(
         if not ok.any():
             size = min(2 * size, batch)
             continue
-        rotations, translations = _kabsch(src[ok], tgt[ok])
+        rotations, translations = batched_weighted_procrustes(src[ok], tgt[ok])
         counts = _inlier_mask(rotations, translations, source, target, threshold).sum(axis=1)
         pool_r = np.concatenate([pool_r, rotations])
         pool_t = np.concatenate([pool_t, translations])
@@ -394,7 +365,7 @@ def _cliques(source, target, threshold, *, max_cliques, min_edge):
         used[members] = True
         if len(members) < 3:
             continue
-        r, t = _kabsch(source[members][None], target[members][None])
+        r, t = batched_weighted_procrustes(source[members][None], target[members][None])
         rotations.append(r[0])
         translations.append(t[0])
     if not rotations:

@@ -44,9 +44,9 @@ import numpy as np
 from .. import _kernels
 from ..core.compiled_tree import CompiledTree, threads
 from ..core.correspondence import coincident_points
-from ..core.procrustes import axis_bounds, rotation_angle, to_matrix
+from ..core.procrustes import axis_bounds, batched_weighted_procrustes, rotation_angle, to_matrix
 from . import DISTINCT_ROTATION_DEG
-from .feature_matching import _kabsch, _keypoints, _inlier_mask, _distinct_order
+from .feature_matching import _keypoints, _inlier_mask, _distinct_order
 from .features import estimate_normals, voxel_grid
 
 if TYPE_CHECKING:  # SciPy is imported where it is used: `register` on a clean pair never needs it
@@ -310,23 +310,7 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
     if not enough.any():
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
     groups, weights = groups[enough], weights[enough]
-    return _weighted_fits(source[groups], target[groups], weights)
-
-
-def _weighted_fits(source: np.ndarray, target: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted least-squares rigid fits of paired points, one per row: rotations ``(B, 3, 3)``
-    and translations ``(B, 3)`` with ``target ~= source @ R.T + t``. ``target`` is ``(B, n, 3)``,
-    ``source`` the same or ``(n, 3)`` shared by every row, ``weights`` ``(B, n)`` non-negative with
-    a positive sum per row (weighted centroids, weighted cross-covariance, its nearest rotation)."""
-    from ..core.procrustes import batched_rotation_from_cross_covariance
-
-    total = weights.sum(axis=1)
-    source_centroid = np.matmul(weights[:, None], source)[:, 0] / total[:, None]
-    target_centroid = np.matmul(weights[:, None], target)[:, 0] / total[:, None]
-    centred = (source - source_centroid[:, None]) * weights[:, :, None]
-    cross = np.matmul(centred.transpose(0, 2, 1), target - target_centroid[:, None])
-    rotations = batched_rotation_from_cross_covariance(cross)
-    return rotations, target_centroid - np.einsum("bij,bj->bi", rotations, source_centroid)
+    return batched_weighted_procrustes(source[groups], target[groups], weights)
 
 
 def overlap_counts(transformations: np.ndarray, source: np.ndarray, target: np.ndarray,
@@ -364,7 +348,7 @@ def _icp(poses, source, target_tree: CompiledTree, target, distance, steps, sett
         active, weights, nearest = active[enough], weights[enough], nearest[enough]
         if len(active) == 0:
             break
-        rotations, translations = _weighted_fits(source, target[nearest], weights)
+        rotations, translations = batched_weighted_procrustes(source, target[nearest], weights)
         poses[active, :3, :3], poses[active, :3, 3] = rotations, translations
         previous = moved[active]
         moved[active] = np.matmul(source, rotations.transpose(0, 2, 1)) + translations[:, None]
@@ -423,7 +407,7 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
         enough = mask.sum(axis=1) >= 3
         if enough.any():
             rotations, translations = rotations.copy(), translations.copy()
-            rotations[enough], translations[enough] = _kabsch(paired_source, paired_target, mask[enough].astype(float))
+            rotations[enough], translations[enough] = batched_weighted_procrustes(paired_source, paired_target, mask[enough].astype(float))
     counts = _inlier_mask(rotations, translations, paired_source, paired_target, tolerance).sum(axis=1)
 
     from scipy.spatial import cKDTree
