@@ -37,20 +37,17 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .. import _kernels
 from ..core.compiled_tree import CompiledTree, threads
 from ..core.correspondence import coincident_points
-from ..core.procrustes import axis_bounds, batched_weighted_procrustes, rotation_angle, to_matrix
+from ..core.procrustes import axis_bounds, batched_weighted_procrustes, rigid_inverse, rotation_angle, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .feature_matching import _keypoints, _inlier_mask, _distinct_order
 from .features import estimate_normals, voxel_grid
 
-if TYPE_CHECKING:  # SciPy is imported where it is used: `register` on a clean pair never needs it
-    from scipy.spatial import cKDTree
 
 #: Occupied voxels of the target the keypoint voxel aims at.
 KEYPOINTS = 5000
@@ -147,14 +144,13 @@ class ScanEstimate:
         return self.keypoints.voxel
 
 
-def overlap_score(transformation: np.ndarray, keypoints: Keypoints) -> float:
+def overlap_score(transformation: np.ndarray, keypoints: Keypoints, workers: int | None = None) -> float:
     """The fraction of both clouds' keypoints within ``VERIFY_VOXELS`` of the other cloud under
-    ``transformation`` (the verification's score, :func:`rank_poses`)."""
-    from scipy.spatial import cKDTree
-
+    ``transformation`` (the verification's score, :func:`rank_poses`). ``workers``: threads of the
+    compiled tree's queries (None: every core)."""
     forward, backward = overlap_counts(
-        transformation[None], keypoints.source, keypoints.target, cKDTree(keypoints.source),
-        cKDTree(keypoints.target), VERIFY_VOXELS * keypoints.voxel,
+        transformation[None], keypoints.source, keypoints.target, CompiledTree(keypoints.source),
+        CompiledTree(keypoints.target), VERIFY_VOXELS * keypoints.voxel, workers,
     )
     return float(forward[0] + backward[0]) / (len(keypoints.source) + len(keypoints.target))
 
@@ -314,15 +310,15 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
 
 
 def overlap_counts(transformations: np.ndarray, source: np.ndarray, target: np.ndarray,
-                   source_tree: cKDTree, target_tree: cKDTree, distance: float) -> tuple[np.ndarray, np.ndarray]:
+                   source_tree: CompiledTree, target_tree: CompiledTree, distance: float,
+                   workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(C,)`` source points within ``distance`` of the target under each pose, and ``(C,)``
-    target points within ``distance`` of the placed source."""
+    target points within ``distance`` of the placed source (compiled trees over each cloud)."""
     forward = np.empty(len(transformations), dtype=np.intp)
     backward = np.empty(len(transformations), dtype=np.intp)
     for k, matrix in enumerate(transformations):
-        rotation, translation = matrix[:3, :3], matrix[:3, 3]
-        d_forward, _ = target_tree.query(source @ rotation.T + translation, distance_upper_bound=distance)
-        d_backward, _ = source_tree.query((target - translation) @ rotation, distance_upper_bound=distance)
+        d_forward, _ = target_tree.query(source, transform=matrix, workers=workers)
+        d_backward, _ = source_tree.query(target, transform=rigid_inverse(matrix), workers=workers)
         forward[k] = int(np.count_nonzero(d_forward <= distance))
         backward[k] = int(np.count_nonzero(d_backward <= distance))
     return forward, backward
@@ -356,7 +352,8 @@ def _icp(poses, source, target_tree: CompiledTree, target, distance, steps, sett
     return poses
 
 
-def _slide_votes(first, second, source, target_tree, target_normals, distance) -> tuple[float, float]:
+def _slide_votes(first, second, source, target_tree: CompiledTree, target_normals, distance,
+                 workers=None) -> tuple[float, float]:
     """Inliers of each pose weighted by how much their target normal points along the
     displacement between the two poses (at the source keypoints' centroid)."""
     centre = source.mean(axis=0)
@@ -367,7 +364,7 @@ def _slide_votes(first, second, source, target_tree, target_normals, distance) -
     direction /= length
     votes = []
     for matrix in (first, second):
-        gaps, nearest = target_tree.query(source @ matrix[:3, :3].T + matrix[:3, 3], distance_upper_bound=distance)
+        gaps, nearest = target_tree.query(source, transform=matrix, workers=workers)
         close = gaps <= distance
         votes.append(float(np.abs(target_normals[nearest[close]] @ direction).sum()))
     return votes[0], votes[1]
@@ -410,20 +407,17 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
             rotations[enough], translations[enough] = batched_weighted_procrustes(paired_source, paired_target, mask[enough].astype(float))
     counts = _inlier_mask(rotations, translations, paired_source, paired_target, tolerance).sum(axis=1)
 
-    from scipy.spatial import cKDTree
-
-    target_tree = cKDTree(target_keys)
+    target_tree = CompiledTree(target_keys)
     stride = -(-len(source_keys) // ICP_POINTS)
     poses = _icp(np.stack([to_matrix(r, t) for r, t in zip(rotations, translations)]), source_keys[::stride],
-                 CompiledTree(target_keys), target_keys, ICP_VOXELS * voxel, ICP_STEPS, ICP_SETTLED_VOXELS * voxel,
-                 workers)
-    order, scores = rank_poses(poses, source_keys, target_keys, voxel, target_tree=target_tree)
+                 target_tree, target_keys, ICP_VOXELS * voxel, ICP_STEPS, ICP_SETTLED_VOXELS * voxel, workers)
+    order, scores = rank_poses(poses, source_keys, target_keys, voxel, target_tree=target_tree, workers=workers)
     keypoints = Keypoints(source_keys, target_keys, voxel)
     return ScanEstimate(poses[order], scores[order], keypoints, len(pairs), counts[order])
 
 
 def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel: float, *,
-               target_tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
+               target_tree: CompiledTree | None = None, workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Verification on the overlap (module docstring, step 6): the indices of the mutually
     distinct ``poses`` ``(C, 4, 4)``, best first, and every pose's overlap score (the fraction of
     ``source`` and ``target`` keypoints within ``VERIFY_VOXELS`` of the other cloud).
@@ -434,11 +428,9 @@ def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel:
     the two poses, and the higher count leads. On a corridor the slid pose can overlap *more*
     (it slides the source further along), while only the true one aligns the geometry across it.
     """
-    from scipy.spatial import cKDTree
-
-    target_tree = cKDTree(target) if target_tree is None else target_tree
+    target_tree = CompiledTree(target) if target_tree is None else target_tree
     distance = VERIFY_VOXELS * voxel
-    forward, backward = overlap_counts(poses, source, target, cKDTree(source), target_tree, distance)
+    forward, backward = overlap_counts(poses, source, target, CompiledTree(source), target_tree, distance, workers)
     scores = (forward + backward) / float(len(source) + len(target))
     order = _distinct_poses(poses, list(np.argsort(-scores, kind="stable")), CONTENDER_VOXELS * voxel)
     normals = None
@@ -451,8 +443,9 @@ def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel:
         if turn > DISTINCT_ROTATION_DEG:
             continue
         if normals is None:
-            normals = estimate_normals(target, k=20, radius=NORMAL_RADIUS_VOXELS * voxel)
-        best_votes, challenger_votes = _slide_votes(poses[best], poses[challenger], source, target_tree, normals, distance)
+            normals = estimate_normals(target, k=20, radius=NORMAL_RADIUS_VOXELS * voxel, tree=target_tree)
+        best_votes, challenger_votes = _slide_votes(poses[best], poses[challenger], source, target_tree, normals, distance,
+                                                    workers)
         if challenger_votes > best_votes:
             leader = position
     order.insert(0, order.pop(leader))

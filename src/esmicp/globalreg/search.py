@@ -297,7 +297,7 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
     keypoints = scanned.keypoints
     if overlap_confidence(scanned.transformation, keypoints, workers) < CONFIDENT:
         return False
-    mine, theirs = overlap_score(scanned.transformation, keypoints), overlap_score(other, keypoints)
+    mine, theirs = overlap_score(scanned.transformation, keypoints, workers), overlap_score(other, keypoints, workers)
     return mine > margin * theirs
 
 
