@@ -1481,32 +1481,6 @@ void nearest_k(const Tree &t, int64_t node, double x, double y, double z, int64_
     }
 }
 
-// The neighbour graph of the tree's target (out_neighbours (M, k), out_radii (M,); k <= min(M, 64)).
-void neighbour_graph(CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
-                     Idx2 out_neighbours, Arr1 out_radii, int threads) {
-    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
-           int64_t(tree_points.shape(0))};
-    const int64_t k = int64_t(out_neighbours.shape(1));
-    if (k < 1 || k > GRAPH_K_MAX || k > t.count || int64_t(out_neighbours.shape(0)) != t.count ||
-        int64_t(out_radii.shape(0)) != t.count)
-        throw std::invalid_argument("neighbour_graph: out_neighbours (M, k) with 1 <= k <= min(M, 64), out_radii (M,)");
-    int64_t *neighbours = out_neighbours.data();
-    double *radii = out_radii.data();
-    parallel_pieces(piece_count(t.count, QUERY_PIECE), threads, [&](int64_t piece) {
-        double best[GRAPH_K_MAX];
-        int64_t slots[GRAPH_K_MAX];
-        const int64_t end = std::min(t.count, (piece + 1) * QUERY_PIECE);
-        for (int64_t s = piece * QUERY_PIECE; s < end; ++s) {
-            const int64_t i = t.order[s];
-            std::fill(best, best + k, INF);
-            std::fill(slots, slots + k, int64_t(-1));
-            nearest_k(t, 0, t.points[3 * s], t.points[3 * s + 1], t.points[3 * s + 2], k, best, slots);
-            for (int64_t j = 0; j < k; ++j) neighbours[k * i + j] = t.order[slots[j]];
-            radii[i] = best[k - 1];
-        }
-    });
-}
-
 // For each of `count` queries (rows of q, (count, 3)), its k nearest tree points (squared distances
 // best[0..k), tree slots slots[0..k), nearest first; -1 where fewer exist), handed to
 // emit(i, best, slots). Pieces of queries on `threads` threads (1 below `parallel_min` queries).
@@ -1524,6 +1498,25 @@ void each_k_nearest(const Tree &t, const double *q, int64_t count, int64_t k, in
             nearest_k(t, 0, q[3 * i], q[3 * i + 1], q[3 * i + 2], k, best, slots);
             emit(i, best, slots);
         }
+    });
+}
+
+// The neighbour graph of the tree's target (out_neighbours (M, k), out_radii (M,); k <= min(M, 64)):
+// each target point's k nearest (itself first), queried in tree order, written in the target's.
+void neighbour_graph(CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
+                     Idx2 out_neighbours, Arr1 out_radii, int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t k = int64_t(out_neighbours.shape(1));
+    if (k < 1 || k > GRAPH_K_MAX || k > t.count || int64_t(out_neighbours.shape(0)) != t.count ||
+        int64_t(out_radii.shape(0)) != t.count)
+        throw std::invalid_argument("neighbour_graph: out_neighbours (M, k) with 1 <= k <= min(M, 64), out_radii (M,)");
+    int64_t *neighbours = out_neighbours.data();
+    double *radii = out_radii.data();
+    each_k_nearest(t, t.points, t.count, k, threads, 0, [&](int64_t s, const double *best, const int64_t *slots) {
+        const int64_t i = t.order[s];
+        for (int64_t j = 0; j < k; ++j) neighbours[k * i + j] = t.order[slots[j]];
+        radii[i] = best[k - 1];
     });
 }
 
