@@ -1743,6 +1743,8 @@ constexpr double SPFH_BLOCK_SUM = 100.0;
 constexpr double FPFH_TIE = 1e-9;
 //: Points per piece of the FPFH passes.
 constexpr int64_t FPFH_PIECE = 64;
+//: pi, the double NumPy's np.pi is (the POSIX macro for it is not standard C++).
+constexpr double FPFH_PI = 3.141592653589793;
 
 // Tree slots within squared distance `limit` of (x, y, z), appended to `found` (tree order).
 void within(const Tree &t, double x, double y, double z, double limit, std::vector<int64_t> &found) {
@@ -1792,7 +1794,7 @@ inline bool pair_bins(const double *p, const double *n, int64_t a, int64_t b, in
     const double frame_norm = std::sqrt(std::max(1.0 - phi * phi, 0.0));
     const double alpha = triple / std::max(frame_norm, std::numeric_limits<double>::min());
     const double theta = std::atan2(target_cos - phi * normals_cos, normals_cos * frame_norm);
-    bins[0] = fpfh_bin((theta + M_PI) * (FPFH_BINS / (2.0 * M_PI)));
+    bins[0] = fpfh_bin((theta + FPFH_PI) * (FPFH_BINS / (2.0 * FPFH_PI)));
     bins[1] = FPFH_BINS + fpfh_bin((alpha + 1.0) * (0.5 * FPFH_BINS));
     bins[2] = 2 * FPFH_BINS + fpfh_bin((phi + 1.0) * (0.5 * FPFH_BINS));
     return true;
