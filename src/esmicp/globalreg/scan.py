@@ -199,8 +199,8 @@ def keypoint_voxel(points: np.ndarray, spacing: float, count: int = KEYPOINTS) -
 
 def _occupied(points: np.ndarray, voxel: float, low: np.ndarray | None = None) -> int:
     """The number of voxels of edge ``voxel`` that ``points`` occupy: the distinct integer cell
-    coordinates, counted by one compiled hash pass (exact while they stay below 2**53; a sort of
-    every key cost 15-20 ms a call on a 258k-point fragment, and the voxel search makes up to 5).
+    coordinates, counted by one compiled hash pass (exact while they stay below 2**53; cheaper
+    than a sort of every key, and the voxel search makes up to 5 counts: ``docs/speed.md``).
     ``low``: the grid's corner, the points' per-axis minimum unless given (the voxel search passes
     it, computed once)."""
     cells = np.floor((points - (axis_bounds(points)[0] if low is None else low)) / voxel)
@@ -252,8 +252,8 @@ def _nearest_both_ways(source: np.ndarray, target: np.ndarray, workers: int | No
 
 def _leading_vector(matrices: np.ndarray, iterations: int = 20) -> np.ndarray:
     """Leading eigenvectors (non-negative) of symmetric non-negative ``(..., n, n)`` matrices, by
-    power iteration (matrix-vector products by BLAS: ``einsum`` does not call it, and took 5x
-    longer on the 2,500 x 2,500 compatibility matrix)."""
+    power iteration (matrix-vector products by BLAS, which ``einsum`` does not call: the cheaper
+    of the two on the compatibility matrix, ``docs/speed.md``)."""
     vector = np.ones(matrices.shape[:-1], dtype=matrices.dtype)
     for _ in range(iterations):
         vector = np.matmul(matrices, vector[..., None])[..., 0]
@@ -404,7 +404,8 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
         enough = mask.sum(axis=1) >= 3
         if enough.any():
             rotations, translations = rotations.copy(), translations.copy()
-            rotations[enough], translations[enough] = batched_weighted_procrustes(paired_source, paired_target, mask[enough].astype(float))
+            rotations[enough], translations[enough] = batched_weighted_procrustes(
+                paired_source, paired_target, mask[enough].astype(float))
     counts = _inlier_mask(rotations, translations, paired_source, paired_target, tolerance).sum(axis=1)
 
     target_tree = CompiledTree(target_keys)
@@ -444,8 +445,8 @@ def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel:
             continue
         if normals is None:
             normals = estimate_normals(target, k=20, radius=NORMAL_RADIUS_VOXELS * voxel, tree=target_tree)
-        best_votes, challenger_votes = _slide_votes(poses[best], poses[challenger], source, target_tree, normals, distance,
-                                                    workers)
+        best_votes, challenger_votes = _slide_votes(poses[best], poses[challenger], source, target_tree, normals,
+                                                    distance, workers)
         if challenger_votes > best_votes:
             leader = position
     order.insert(0, order.pop(leader))
