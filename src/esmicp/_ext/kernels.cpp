@@ -1773,15 +1773,19 @@ inline int fpfh_bin(double scaled) {
     return scaled >= double(FPFH_BINS - 1) ? FPFH_BINS - 1 : int(scaled);
 }
 
-// The (theta, alpha, phi) bins of the pair (a, b), a < b (points p, unit normals n, (N, 3)), and
-// their squared distance; false for coincident points (no direction, no feature).
-inline bool pair_bins(const double *p, const double *n, int64_t a, int64_t b, int bins[3], double &squared) {
-    const double *pa = p + 3 * a, *pb = p + 3 * b, *u = n + 3 * a, *m = n + 3 * b;
-    double o[3] = {pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2]};
-    const double distance = std::sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
-    if (!(distance > 0.0)) return false;
-    squared = distance * distance;
-    for (double &c : o) c /= distance;
+// The offset o from point a to point b of the pair, a < b (points p, (N, 3)), and its length: the
+// same operands from either end of the pair, so both ends see the same distance.
+inline double pair_offset(const double *p, int64_t a, int64_t b, double o[3]) {
+    const double *pa = p + 3 * a, *pb = p + 3 * b;
+    for (int c = 0; c < 3; ++c) o[c] = pb[c] - pa[c];
+    return std::sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
+}
+
+// The (theta, alpha, phi) bins of the pair (a, b), a < b (unit normals n, (N, 3)), from its offset o
+// and length distance > 0 (pair_offset).
+inline void pair_bins(const double *n, int64_t a, int64_t b, double o[3], double distance, int bins[3]) {
+    const double *u = n + 3 * a, *m = n + 3 * b;
+    for (int c = 0; c < 3; ++c) o[c] /= distance;
     const double cos_first = u[0] * o[0] + u[1] * o[1] + u[2] * o[2];
     const double cos_second = m[0] * o[0] + m[1] * o[1] + m[2] * o[2];
     const double normals_cos = u[0] * m[0] + u[1] * m[1] + u[2] * m[2];
@@ -1797,7 +1801,6 @@ inline bool pair_bins(const double *p, const double *n, int64_t a, int64_t b, in
     bins[0] = fpfh_bin((theta + FPFH_PI) * (FPFH_BINS / (2.0 * FPFH_PI)));
     bins[1] = FPFH_BINS + fpfh_bin((alpha + 1.0) * (0.5 * FPFH_BINS));
     bins[2] = 2 * FPFH_BINS + fpfh_bin((phi + 1.0) * (0.5 * FPFH_BINS));
-    return true;
 }
 
 // FPFH of every point of the tree's cloud within `radius` (cloud units): out (N, 33), rows in the
@@ -1821,7 +1824,11 @@ void fpfh(CArr2 normals_, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends,
         for (int a = 0; a < 3; ++a) cloud[3 * t.order[s] + a] = t.points[3 * s + a];
     const double *p = cloud.data(), *n = normals_.data(), limit = radius * radius;
     double *out = out_.data();
-    std::vector<std::vector<int64_t>> neighbours(count);
+    struct Neighbour {
+        int64_t index;
+        double weight;  // 1 / squared distance
+    };
+    std::vector<std::vector<Neighbour>> neighbours(count);
     std::vector<std::vector<uint32_t>> later_bins(count);  // the bins of (i, j > i), 8 bits each
     std::vector<int64_t> histograms(size_t(FPFH_DIMENSION) * size_t(count), 0), pairs(count, 0);
     std::vector<double> spfh(size_t(FPFH_DIMENSION) * size_t(count));
@@ -1833,15 +1840,17 @@ void fpfh(CArr2 normals_, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends,
         for (int64_t i = piece * FPFH_PIECE; i < end; ++i) {
             found.clear();
             within(t, p[3 * i], p[3 * i + 1], p[3 * i + 2], limit, found);
-            std::vector<int64_t> &around = neighbours[i];
+            std::vector<Neighbour> &around = neighbours[i];
             around.reserve(found.size());
             for (int64_t slot : found) {
                 const int64_t j = t.order[slot];
+                double o[3];
+                const double distance = j == i ? 0.0 : pair_offset(p, std::min(i, j), std::max(i, j), o);
+                if (!(distance > 0.0)) continue;  // itself, or a coincident point: no direction
+                around.push_back({j, 1.0 / (distance * distance)});
+                if (j < i) continue;  // the features are computed from the pair's first point
                 int bins[3];
-                double squared;
-                if (j == i || !pair_bins(p, n, std::min(i, j), std::max(i, j), bins, squared)) continue;
-                around.push_back(j);
-                if (j < i) continue;  // computed from its first point
+                pair_bins(n, i, j, o, distance, bins);
                 for (int b : bins) ++histograms[FPFH_DIMENSION * i + b];
                 ++pairs[i];
                 later_bins[i].push_back(uint32_t(bins[0]) | uint32_t(bins[1]) << 8 | uint32_t(bins[2]) << 16);
@@ -1850,7 +1859,8 @@ void fpfh(CArr2 normals_, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends,
     });
     for (int64_t i = 0; i < count; ++i) {
         const uint32_t *packed = later_bins[i].data();
-        for (int64_t j : neighbours[i]) {
+        for (const Neighbour &neighbour : neighbours[i]) {
+            const int64_t j = neighbour.index;
             if (j < i) continue;
             const uint32_t bins = *packed++;
             int64_t *histogram = histograms.data() + FPFH_DIMENSION * j;
@@ -1872,14 +1882,9 @@ void fpfh(CArr2 normals_, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends,
         const int64_t end = std::min(count, (piece + 1) * FPFH_PIECE);
         for (int64_t i = piece * FPFH_PIECE; i < end; ++i) {
             double around[FPFH_DIMENSION] = {0.0};
-            for (int64_t j : neighbours[i]) {
-                const int64_t a = std::min(i, j), b = std::max(i, j);
-                const double *pa = p + 3 * a, *pb = p + 3 * b;
-                const double o[3] = {pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2]};
-                const double distance = std::sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
-                const double weight = 1.0 / (distance * distance);
-                const double *neighbour = spfh.data() + FPFH_DIMENSION * j;
-                for (int k = 0; k < FPFH_DIMENSION; ++k) around[k] += weight * neighbour[k];
+            for (const Neighbour &neighbour : neighbours[i]) {
+                const double *theirs = spfh.data() + FPFH_DIMENSION * neighbour.index;
+                for (int k = 0; k < FPFH_DIMENSION; ++k) around[k] += neighbour.weight * theirs[k];
             }
             double *row = out + FPFH_DIMENSION * i;
             const double *own = spfh.data() + FPFH_DIMENSION * i;
