@@ -25,8 +25,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..batch import register_many
-from ..core.procrustes import axis_bounds
 from ..errors import InvalidInputError
+from ..globalreg.features import voxel_grid
 from ..types import as_points
 from . import pose_graph
 
@@ -91,13 +91,9 @@ class MultiRegistrationResult:
             return points, label
         if not voxel > 0:
             raise InvalidInputError(f"voxel: expected a positive size, got {voxel!r}")
-        keys = np.floor((points - axis_bounds(points)[0]) / voxel).astype(np.int64)
-        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-        inverse = inverse.ravel()
-        sums = np.zeros((len(first), 3))
-        np.add.at(sums, inverse, points)
-        counts = np.bincount(inverse, minlength=len(first))
-        return sums / counts[:, None], label[first]
+        centroids, owner = voxel_grid(points, voxel)
+        _, first = np.unique(owner, return_index=True)  # each voxel's first point
+        return centroids, label[first]
 
     def to_dict(self) -> dict:
         return {
