@@ -228,3 +228,57 @@ def test_descriptor_matching_both_ways_equals_a_full_distance_matrix():
             if columns > 1:
                 np.testing.assert_array_equal(forward_ratio, ratio(row_sorted[:, 0], row_sorted[:, 1]))
             np.testing.assert_array_equal(backward_ratio, ratio(column_sorted[0], column_sorted[1]))
+
+
+def _reference_seeds(order, source, target, seeds, spread):
+    """The seeds as a plain loop takes them: each candidate in turn, skipped when a kept seed lies
+    within ``spread`` of it in both clouds."""
+    chosen = []
+    for index in order:
+        if len(chosen) == seeds:
+            break
+        if chosen and np.any((np.linalg.norm(source[chosen] - source[index], axis=1) < spread)
+                             & (np.linalg.norm(target[chosen] - target[index], axis=1) < spread)):
+            continue
+        chosen.append(int(index))
+    return chosen
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_pruning_kernels_equal_plain_numpy(seed):
+    """Seed spreading, second-order partners and inlier counts (the compiled helpers of ``prune``
+    and ``scan_estimate``) against the NumPy they replace: a dense second-order matrix sorted by a
+    stable argsort (ties to the lower index, partners at 0 in index order), a loop over the seeds,
+    every pose's residuals; on 1 and 2 threads."""
+    from esmicp import _kernels
+    from esmicp.globalreg.scan import _inlier_counts
+
+    generator = np.random.default_rng(seed)
+    count = 600
+    source = np.round(generator.uniform(0, 4, (count, 3)), 1)  # a coarse grid: many equal lengths and ties
+    target = np.round(generator.uniform(0, 4, (count, 3)), 1)
+    compatible = np.empty((count, count), dtype=np.float32)
+    _kernels.compatibility(source, target, 0.2, compatible, 1)  # ~60 per row, tied counts
+    order = generator.permutation(count).astype(np.int64)
+    chosen = np.empty(200, dtype=np.int64)
+    kept = _kernels.spread_seeds(order, source, target, 0.8, 200, chosen)
+    assert list(chosen[:kept]) == _reference_seeds(order, source, target, 200, 0.8)
+    assert 10 < kept <= 200
+    seeds = chosen[:kept]
+    rows = compatible[seeds]
+    second = rows * (rows @ compatible)
+    for size in (30, count):  # partners above 0 and, for the whole row, the ones at 0 after them
+        expected = np.argsort(-second, axis=1, kind="stable")[:, :size]
+        for threads in (1, 2):
+            partners = np.empty((kept, size), dtype=np.int64)
+            counted = np.empty((kept, size), dtype=np.uint8)
+            _kernels.second_order_partners(compatible, seeds, partners, counted, threads)
+            np.testing.assert_array_equal(partners, expected)
+            np.testing.assert_array_equal(counted.astype(bool), np.take_along_axis(second, expected, axis=1) > 0)
+    rotations = Rotation.random(50, random_state=seed).as_matrix()
+    translations = generator.normal(0, 1, (50, 3))
+    rotations[0], translations[0] = np.eye(3), np.zeros(3)
+    for threads in (1, 2):
+        np.testing.assert_array_equal(_inlier_counts(rotations, translations, source, target, 2.0, threads),
+                                      _inlier_mask(rotations, translations, source, target, 2.0).sum(axis=1))
+

@@ -1634,6 +1634,149 @@ void compatibility(CArr2 source, CArr2 target, double tolerance, F32Arr2 out, in
     });
 }
 
+// Seeds of the second-order pruning, spread apart: the candidates `order` (K, best first) are
+// taken in turn, each kept unless a kept one lies within `spread` of it in both clouds (source
+// distance and target distance both below `spread`, as NumPy's norm computes them), until `seeds`
+// are kept. Writes the kept candidates to `out` (at least `seeds` long) and returns how many.
+int64_t spread_seeds(CIdx order, CArr2 source, CArr2 target, double spread, int64_t seeds, Idx out) {
+    const int64_t count = int64_t(order.shape(0));
+    if (source.shape(1) != 3 || target.shape(1) != 3 || target.shape(0) != source.shape(0) ||
+        int64_t(out.shape(0)) < std::min(count, seeds))
+        throw std::invalid_argument("spread_seeds: source and target (N, 3), out as long as the seeds");
+    const double *s = source.data(), *t = target.data();
+    const int64_t *candidates = order.data();
+    const int64_t points = int64_t(source.shape(0));
+    int64_t *kept = out.data();
+    int64_t chosen = 0;
+    for (int64_t c = 0; c < count && chosen < seeds; ++c) {
+        const int64_t i = candidates[c];
+        if (i < 0 || i >= points) throw std::invalid_argument("spread_seeds: order holds an index out of range");
+        const double *si = s + 3 * i, *ti = t + 3 * i;
+        bool near = false;
+        for (int64_t k = 0; k < chosen && !near; ++k) {
+            const double *sk = s + 3 * kept[k], *tk = t + 3 * kept[k];
+            double a = 0.0, b = 0.0, d;
+            d = sk[0] - si[0]; a += d * d;
+            d = sk[1] - si[1]; a += d * d;
+            d = sk[2] - si[2]; a += d * d;
+            d = tk[0] - ti[0]; b += d * d;
+            d = tk[1] - ti[1]; b += d * d;
+            d = tk[2] - ti[2]; b += d * d;
+            near = std::sqrt(a) < spread && std::sqrt(b) < spread;
+        }
+        if (!near) kept[chosen++] = i;
+    }
+    return chosen;
+}
+
+// Bits set in both of two bitsets of `words` 64-bit words. On x86-64 with GCC, a clone with the
+// POPCNT instruction is chosen at load time when the processor has it (the baseline x86-64 target
+// has none, and its software popcount costs several times more).
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__)
+__attribute__((target_clones("popcnt", "default")))
+#endif
+int64_t common_bits(const uint64_t *a, const uint64_t *b, int64_t words) {
+    int64_t both = 0;
+    for (int64_t v = 0; v < words; ++v) both += __builtin_popcountll(a[v] & b[v]);
+    return both;
+}
+
+// Groups of the second-order pruning. `compatible` (K, K) is 0/1 and symmetric (compatibility()
+// above). For each seed s, the second-order compatibility of candidate j is C[s][j] times the
+// number of candidates compatible with both; `partners` (S, size) gets the `size` candidates of
+// highest second-order compatibility, highest first, ties to the lower index, then (when fewer
+// than `size` are above 0) the candidates at 0 in index order: the first `size` of a stable
+// argsort of the negated second-order row. `valid` (S, size) is 1 where the partner's
+// second-order compatibility is above 0. Seeds in parallel.
+void second_order_partners(CF32Arr2 compatible, CIdx seeds, Idx2 partners, nb::ndarray<uint8_t, nb::ndim<2>, nb::c_contig, nb::device::cpu> valid, int threads) {
+    const int64_t count = int64_t(compatible.shape(0));
+    const int64_t groups = int64_t(seeds.shape(0));
+    const int64_t size = int64_t(partners.shape(1));
+    if (int64_t(compatible.shape(1)) != count || int64_t(partners.shape(0)) != groups ||
+        int64_t(valid.shape(0)) != groups || int64_t(valid.shape(1)) != size || size > count)
+        throw std::invalid_argument("second_order_partners: compatible (K, K), partners and valid (S, size <= K)");
+    const float *c = compatible.data();
+    const int64_t *seed = seeds.data();
+    int64_t *out = partners.data();
+    uint8_t *ok = valid.data();
+    for (int64_t g = 0; g < groups; ++g)
+        if (seed[g] < 0 || seed[g] >= count) throw std::invalid_argument("second_order_partners: seed out of range");
+    // Each row as a bitset (bit j of row i: C[i][j] != 0): the count of candidates compatible with
+    // both seed and partner is then the popcount of two rows' AND.
+    const int64_t words = (count + 63) / 64;
+    std::vector<uint64_t> bits(size_t(count * words), 0);
+    parallel_pieces(piece_count(count, 64), threads, [&](int64_t piece) {
+        const int64_t end = std::min(count, (piece + 1) * 64);
+        for (int64_t i = piece * 64; i < end; ++i) {
+            const float *row = c + count * i;
+            uint64_t *word = bits.data() + words * i;
+            for (int64_t j = 0; j < count; ++j)
+                if (row[j] != 0.0f) word[j >> 6] |= uint64_t(1) << (j & 63);
+        }
+    });
+    parallel_pieces(groups, groups < 16 ? 1 : threads, [&](int64_t g) {
+        const uint64_t *mine = bits.data() + words * seed[g];
+        std::vector<std::pair<int64_t, int64_t>> ranked;  // (-second order, index)
+        for (int64_t w = 0; w < words; ++w) {
+            for (uint64_t word = mine[w]; word; word &= word - 1) {
+                const int64_t j = w * 64 + __builtin_ctzll(word);
+                const uint64_t *other = bits.data() + words * j;
+                const int64_t both = common_bits(mine, other, words);
+                if (both > 0) ranked.emplace_back(-both, j);
+            }
+        }
+        const int64_t top = std::min<int64_t>(size, int64_t(ranked.size()));
+        std::partial_sort(ranked.begin(), ranked.begin() + top, ranked.end());
+        int64_t *partner = out + size * g;
+        uint8_t *flag = ok + size * g;
+        for (int64_t k = 0; k < top; ++k) {
+            partner[k] = ranked[k].second;
+            flag[k] = 1;
+        }
+        if (top < size) {
+            // The candidates at 0, in index order: every index not among the positive ones.
+            std::vector<uint8_t> positive(count, 0);
+            for (const auto &entry : ranked) positive[entry.second] = 1;
+            int64_t k = top;
+            for (int64_t j = 0; j < count && k < size; ++j)
+                if (!positive[j]) {
+                    partner[k] = j;
+                    flag[k++] = 0;
+                }
+        }
+    });
+}
+
+// How many of K paired points (source[k] <-> target[k]) each of S poses maps within `distance`:
+// out[c] = #{k : |R_c source[k] + t_c - target[k]| <= distance}. `rotations` (S, 9) row-major,
+// `translations` (S, 3). Poses in parallel.
+void pair_inlier_counts(CArr2 rotations, CArr2 translations, CArr2 source, CArr2 target, double distance, Idx out,
+                        int threads) {
+    const int64_t poses = int64_t(rotations.shape(0));
+    const int64_t count = int64_t(source.shape(0));
+    if (rotations.shape(1) != 9 || translations.shape(1) != 3 || int64_t(translations.shape(0)) != poses ||
+        source.shape(1) != 3 || target.shape(1) != 3 || int64_t(target.shape(0)) != count ||
+        int64_t(out.shape(0)) != poses)
+        throw std::invalid_argument("pair_inlier_counts: rotations (S, 9), translations (S, 3), source and target (K, 3), out (S,)");
+    const double *r = rotations.data(), *t = translations.data(), *s = source.data(), *d = target.data();
+    const double limit = distance * distance;
+    int64_t *counts = out.data();
+    parallel_pieces(poses, poses * count < 65536 ? 1 : threads, [&](int64_t c) {
+        const double *rc = r + 9 * c, *tc = t + 3 * c;
+        int64_t inside = 0;
+        for (int64_t k = 0; k < count; ++k) {
+            const double *sk = s + 3 * k, *dk = d + 3 * k;
+            double sum = 0.0;
+            for (int i = 0; i < 3; ++i) {
+                const double e = rc[3 * i] * sk[0] + rc[3 * i + 1] * sk[1] + rc[3 * i + 2] * sk[2] + tc[i] - dk[i];
+                sum += e * e;
+            }
+            inside += sum <= limit;
+        }
+        counts[c] = inside;
+    });
+}
+
 //: Columns per piece of nearest_descriptors.
 constexpr int64_t DESCRIPTOR_COLUMNS = 512;
 
@@ -2155,6 +2298,9 @@ NB_MODULE(_kernels, m) {
     m.def("tree_knn", &tree_knn);
     m.def("knn_normals", &knn_normals);
     m.def("compatibility", &compatibility);
+    m.def("spread_seeds", &spread_seeds);
+    m.def("second_order_partners", &second_order_partners);
+    m.def("pair_inlier_counts", &pair_inlier_counts);
     m.def("fpfh", &fpfh);
     m.def("nearest_descriptors", &nearest_descriptors);
     m.attr("FPFH_DIMENSION") = FPFH_DIMENSION;

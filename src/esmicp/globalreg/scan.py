@@ -18,9 +18,9 @@ so a pair scaled by 1000 gives the same pose):
    ``COMPATIBILITY_VOXELS``. The second-order compatibility of a compatible pair counts the
    correspondences compatible with both; it separates inliers from the outliers that happen to be
    compatible with one, and survives 95-99% outliers. Seeds (the ``SEEDS`` correspondences of
-   highest leading-eigenvector score of the compatibility matrix, spread apart) each grow a group
-   of their ``GROUP_SIZE`` most second-order-compatible partners; each group is solved by a
-   Kabsch fit weighted by the leading eigenvector of its own second-order matrix.
+   highest leading-eigenvector score of the compatibility matrix, spread apart in both clouds)
+   each grow a group of their ``GROUP_SIZE`` most second-order-compatible partners; each group is
+   solved by a Kabsch fit weighted by the leading eigenvector of its own second-order matrix.
 5. **Hypotheses.** Each fit is scored by the correspondences it maps within the compatibility
    distance; the best distinct ones are refit on their inliers.
 6. **Verification on the overlap** (:func:`overlap_counts`). ICP on the keypoints until each
@@ -69,9 +69,13 @@ MAX_CORRESPONDENCES = 2500
 #: Two correspondences are compatible when their lengths agree to within this many voxels.
 COMPATIBILITY_VOXELS = 1.5
 
-#: Seeds, their spread (a seed's source keypoint at least this many voxels from every better
-#: seed's), and the size of the group each grows.
-SEEDS = 64
+#: Seeds, their spread (a seed is skipped when both its keypoints lie within this many voxels of
+#: a better seed's), and the size of the group each grows. 512 seeds spread in both clouds, not
+#: 64 spread in the source only: on 3DMatch pairs cropped to 15-25% overlap the true
+#: correspondences (12-30 of 2,500) ranked 38th-519th by the leading eigenvector, and the source
+#: spread alone skipped most of them; the crops went from 4/12 to 6/12
+#: (``docs/scans-partial-overlap.md``, session 26).
+SEEDS = 512
 SEED_SPREAD_VOXELS = 3.0
 GROUP_SIZE = 30
 
@@ -269,8 +273,10 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
     second-order spatial compatibility (see the module docstring, step 4).
 
     ``tolerance``: the length disagreement (cloud units) two inlier correspondences may have.
-    ``spread``: seeds' minimum source distance (default ``2 tolerance``). ``workers``: threads of
-    the compiled compatibility matrix (None: every core). Returns rotations ``(S, 3, 3)`` and
+    ``spread`` (default ``2 tolerance``): a candidate seed within ``spread`` of a better seed in
+    both clouds (its source point near that seed's source point and its target point near that
+    seed's target point) is skipped. ``workers``: threads of the compiled kernels (None: every
+    core). Returns rotations ``(S, 3, 3)`` and
     translations ``(S, 3)``, one per seed group of at least 3 members.
     """
     count = len(source)
@@ -282,23 +288,23 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
                            threads(workers))
     score = _leading_vector(compatible[None])[0]
     spread = 2.0 * tolerance if spread is None else spread
-    chosen: list[int] = []
-    for index in np.argsort(-score, kind="stable"):
-        if score[index] <= 0 or len(chosen) == seeds:
-            break
-        if chosen and np.min(np.linalg.norm(source[chosen] - source[index], axis=1)) < spread:
-            continue
-        chosen.append(int(index))
-    if not chosen:
+    order = np.argsort(-score, kind="stable")
+    order = order[score[order] > 0].astype(np.int64)
+    chosen = np.empty(min(seeds, len(order)), dtype=np.int64)
+    chosen = chosen[:_kernels.spread_seeds(order, np.ascontiguousarray(source, dtype=np.float64),
+                                           np.ascontiguousarray(target, dtype=np.float64), float(spread), seeds,
+                                           chosen)]
+    if not len(chosen):
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
-    seed_rows = compatible[chosen]
     # Second order: for each seed and each correspondence compatible with it, how many
-    # correspondences are compatible with both.
-    second = seed_rows * (seed_rows @ compatible)
+    # correspondences are compatible with both; each seed's group is it and its partners of
+    # highest second-order compatibility (compiled, from the rows as bitsets).
     size = min(group_size, count - 1)
-    partners = np.argsort(-second, axis=1, kind="stable")[:, :size]
-    groups = np.concatenate([np.asarray(chosen)[:, None], partners], axis=1)
-    valid = np.concatenate([np.ones((len(chosen), 1), bool), np.take_along_axis(second, partners, axis=1) > 0], axis=1)
+    partners = np.empty((len(chosen), size), dtype=np.int64)
+    counted = np.empty((len(chosen), size), dtype=np.uint8)
+    _kernels.second_order_partners(compatible, chosen, partners, counted, threads(workers))
+    groups = np.concatenate([chosen[:, None], partners], axis=1).astype(np.intp)
+    valid = np.concatenate([np.ones((len(chosen), 1), bool), counted.astype(bool)], axis=1)
     local = compatible[groups[:, :, None], groups[:, None, :]] * (valid[:, :, None] & valid[:, None, :])
     local_second = local * np.matmul(local, local)
     weights = _leading_vector(local_second.astype(np.float64)) * valid
@@ -307,6 +313,20 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
     groups, weights = groups[enough], weights[enough]
     return batched_weighted_procrustes(source[groups], target[groups], weights)
+
+
+def _inlier_counts(rotations: np.ndarray, translations: np.ndarray, source: np.ndarray, target: np.ndarray,
+                   distance: float, workers: int | None = None) -> np.ndarray:
+    """``(S,)``: how many pairs ``source[k] <-> target[k]`` each pose ``(rotations[c],
+    translations[c])`` maps within ``distance`` (cloud units) of each other (compiled: the
+    pruning fits a pose per seed, hundreds of them)."""
+    counts = np.empty(len(rotations), dtype=np.int64)
+    _kernels.pair_inlier_counts(np.ascontiguousarray(rotations, dtype=np.float64).reshape(-1, 9),
+                                np.ascontiguousarray(translations, dtype=np.float64),
+                                np.ascontiguousarray(source, dtype=np.float64),
+                                np.ascontiguousarray(target, dtype=np.float64), float(distance), counts,
+                                threads(workers))
+    return counts
 
 
 def overlap_counts(transformations: np.ndarray, source: np.ndarray, target: np.ndarray,
@@ -395,7 +415,7 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
                                     workers=workers)
     if len(rotations) == 0:
         return empty
-    counts = _inlier_mask(rotations, translations, paired_source, paired_target, tolerance).sum(axis=1)
+    counts = _inlier_counts(rotations, translations, paired_source, paired_target, tolerance, workers)
     keep = _distinct_order(rotations, translations, counts, HYPOTHESES, DISTINCT_VOXELS * voxel)
     rotations, translations = rotations[keep], translations[keep]
     # Refit each on its own inliers (twice).
@@ -406,7 +426,7 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
             rotations, translations = rotations.copy(), translations.copy()
             rotations[enough], translations[enough] = batched_weighted_procrustes(
                 paired_source, paired_target, mask[enough].astype(float))
-    counts = _inlier_mask(rotations, translations, paired_source, paired_target, tolerance).sum(axis=1)
+    counts = _inlier_counts(rotations, translations, paired_source, paired_target, tolerance, workers)
 
     target_tree = CompiledTree(target_keys)
     stride = -(-len(source_keys) // ICP_POINTS)
