@@ -175,3 +175,37 @@ def test_normals_come_from_the_offered_tree_only_when_it_holds_the_target(scene,
         normals = estimator._normals_at(target, indices)
         assert len(built) == builds
         assert np.allclose(np.abs(np.einsum("ij,ij->i", normals, expected)), 1.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("plane_moves_by_deg, kept", [(0.5, True), (40.0, False)])
+def test_the_plane_stage_is_undone_when_it_loses_the_overlap(monkeypatch, plane_moves_by_deg, kept):
+    """After a global search on a large source, ``register`` runs ``esm-plane`` first; a stage that
+    lowers the overlap confidence by more than ``PLANE_CONFIDENCE_DROP`` (as on a 15%-overlap
+    scan pair, where its sigma grew with the pairs off the overlap) is undone, and the message says
+    so. Here the stage is replaced by one that turns the pose by a set angle."""
+    import esmicp.api as api
+    from esmicp.globalreg.scan import Keypoints, overlap_confidence
+    from esmicp.methods.local import RefinementOutcome
+
+    rng = np.random.default_rng(5)
+    target = room(1500, rng)
+    truth = to_matrix(random_rotation(rng, 4.0), [0.08, -0.05, 0.06])
+    source = apply(rigid_inverse(truth), target)
+    keypoints = Keypoints.of(source, target, NearestNeighbors(target).spacing())
+    turned = to_matrix(random_rotation(np.random.default_rng(2), plane_moves_by_deg), [0.0, 0.0, 0.0]) @ truth
+
+    def fake_stage(points, index, estimator, *, init, criteria, scale, **_):
+        return RefinementOutcome(turned, True, 7, None, "moved", None)
+
+    monkeypatch.setattr(api, "guarded_refine", fake_stage)
+    request = api._validate(source, target, "esm", truth, None, 100, 1e-8, None, None, None)
+    index = NearestNeighbors(target)
+    pose, iterations, note = api._plane_start(source, index, truth, request, 1.0, keypoints)
+    assert iterations == 7
+    dropped = overlap_confidence(truth, keypoints) - overlap_confidence(turned, keypoints)
+    if kept:
+        assert dropped <= api.PLANE_CONFIDENCE_DROP
+        assert pose is turned and "undone" not in note
+    else:
+        assert dropped > api.PLANE_CONFIDENCE_DROP
+        assert pose is truth and "undone" in note

@@ -60,6 +60,13 @@ POLISH_ITERATIONS = 2
 #: it back (a KITTI street pair: ``docs/scans-refinement.md``). Capped, because on some fragment
 #: pairs ``esm-plane`` creeps on for its whole budget where ``esm`` converges.
 PLANE_ITERATIONS = 30
+#: The ``esm-plane`` stage is undone when it lowers the overlap confidence
+#: (:func:`~esmicp.globalreg.scan.overlap_confidence`, 0-1, on the pair's keypoints) by more than
+#: this: on a scan pair that overlaps by 15%, most pairs join points the other scan never saw, its
+#: sigma grows with them and it pulled a global pose 2 degrees off to 37 degrees off (confidence
+#: 0.68 -> 0.00), where ``esm`` from the same start converged to 0.6 degrees
+#: (``docs/scans-partial-overlap.md``, session 26).
+PLANE_CONFIDENCE_DROP = 0.25
 #: The strided stages stop at this tolerance when the caller's is finer (the polish keeps the
 #: caller's): the subsample's optimum is not the whole source's, and on fragment pairs the strided
 #: ``esm`` then creeps on by 1e-5 rad per iteration in no steady direction (3DMatch ``t00_s04``:
@@ -175,6 +182,9 @@ def register(
     _warn_if_coincident(request.target, "target", target_index.coincident())
     diagonal = bounding_box_diagonal(target_points)
     initial, init_name, estimate = _start(request, source_points, target_points, target_index, frame)
+    keypoints = getattr(estimate, "keypoints", None)
+    if keypoints is None:
+        keypoints = Keypoints.of(source_points, target_points, target_index.spacing())
     # After a global search (which ends at the finest sigma) the pose is already close: start in
     # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
     estimator = _estimator(method, request, target_index, diagonal, start_fine=estimate is not None)
@@ -182,7 +192,7 @@ def register(
         # A given start: its coarse sigma comes from the overlap's residuals (partial overlaps).
         estimator.start_from(target_index.query_near(source_points, transform=initial)[0])
     if estimate is not None and callback is None and not record_history and len(source_points) > 2 * REFINE_POINTS:
-        outcome = _refine_then_polish(source_points, target_index, estimator, initial, request, diagonal)
+        outcome = _refine_then_polish(source_points, target_index, estimator, initial, request, diagonal, keypoints)
     else:
         outcome = guarded_refine(
             source_points, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal,
@@ -190,9 +200,6 @@ def register(
         )
     fitness, inlier_rmse, inlier_distance = _evaluate(source_points, target_index, outcome.transformation, request,
                                                       outcome.neighbours)
-    keypoints = getattr(estimate, "keypoints", None)
-    if keypoints is None:
-        keypoints = Keypoints.of(source_points, target_points, target_index.spacing())
     confidence = overlap_confidence(outcome.transformation, keypoints, request.workers)
     outcome = frame.outcome(outcome)
     return RegistrationResult(
@@ -259,9 +266,12 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
     return estimate.transformation, f"global:{estimate.strategies[0]}", estimate
 
 
-def _refine_then_polish(source, target_index, estimator, initial, request: _Request, diagonal: float):
+def _refine_then_polish(source, target_index, estimator, initial, request: _Request, diagonal: float,
+                        keypoints: Keypoints):
     """Stage 4 after a global search on a large source: ``estimator`` on ``REFINE_POINTS`` evenly
-    strided source points (for ``esm``, after at most ``PLANE_ITERATIONS`` of ``esm-plane`` there),
+    strided source points (for ``esm``, after at most ``PLANE_ITERATIONS`` of ``esm-plane`` there,
+    undone when they lower the overlap confidence on ``keypoints`` by more than
+    ``PLANE_CONFIDENCE_DROP``),
     then a fresh fine-phase estimator of the same method on the full source for at most
     ``POLISH_ITERATIONS`` iterations (fewer when ``max_iterations`` leaves fewer). The outcome is
     the polish's, with the iterations of every stage and ``converged`` from the subsample run (the
@@ -271,12 +281,12 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     polish_criteria = request.criteria
     request = dataclasses.replace(request, criteria=dataclasses.replace(
         request.criteria, tolerance=max(request.criteria.tolerance, STRIDED_TOLERANCE)))
-    plane_iterations = 0
+    plane_iterations, plane_note = 0, ""
     if request.method == "esm":
-        initial, plane_iterations = _plane_start(strided, target_index, initial, request, diagonal)
+        initial, plane_iterations, plane_note = _plane_start(strided, target_index, initial, request, diagonal,
+                                                             keypoints)
         request = dataclasses.replace(request, criteria=dataclasses.replace(
             request.criteria, max_iterations=request.criteria.max_iterations - plane_iterations))
-    plane_note = f"{plane_iterations} esm-plane iteration(s), then " if plane_iterations else ""
     coarse = guarded_refine(strided, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal)
     if coarse.num_iterations == 0:
         return coarse  # no start to refine (the guard's message says why)
@@ -305,17 +315,27 @@ def _estimator(method: str, request: _Request, target_index, diagonal: float, st
     return estimator
 
 
-def _plane_start(strided, target_index, initial, request: _Request, diagonal: float) -> tuple[np.ndarray, int]:
-    """``(pose, iterations)`` of at most ``PLANE_ITERATIONS`` ``esm-plane`` iterations on the
+def _plane_start(strided, target_index, initial, request: _Request, diagonal: float,
+                 keypoints: Keypoints) -> tuple[np.ndarray, int, str]:
+    """``(pose, iterations, note)`` of at most ``PLANE_ITERATIONS`` ``esm-plane`` iterations on the
     strided source from ``initial``, leaving ``esm`` at least one iteration of ``max_iterations``;
-    ``(initial, 0)`` when the budget leaves none or the guard refused the start."""
+    the note begins the result's message. ``initial`` when the budget leaves none, the guard
+    refused the start, or the iterations lowered the overlap confidence on ``keypoints`` by more
+    than ``PLANE_CONFIDENCE_DROP`` (they still count against the budget and the note says so)."""
     budget = min(PLANE_ITERATIONS, request.criteria.max_iterations - 1)
     if budget <= 0:
-        return initial, 0
+        return initial, 0, ""
     planar = _estimator("esm-plane", request, target_index, diagonal)
     criteria = dataclasses.replace(request.criteria, max_iterations=budget)
     plane = guarded_refine(strided, target_index, planar, init=initial, criteria=criteria, scale=diagonal)
-    return (plane.transformation, plane.num_iterations) if plane.num_iterations > 0 else (initial, 0)
+    if plane.num_iterations == 0:
+        return initial, 0, ""
+    before = overlap_confidence(initial, keypoints, request.workers)
+    after = overlap_confidence(plane.transformation, keypoints, request.workers)
+    if after < before - PLANE_CONFIDENCE_DROP:
+        return initial, plane.num_iterations, (
+            f"{plane.num_iterations} esm-plane iteration(s) undone (overlap confidence {before:.2f} -> {after:.2f}), then ")
+    return plane.transformation, plane.num_iterations, f"{plane.num_iterations} esm-plane iteration(s), then "
 
 
 def _evaluate(source, target_index, transformation, request: _Request, warm=None) -> tuple[float, float, float]:
