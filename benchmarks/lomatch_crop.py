@@ -50,7 +50,7 @@ def main() -> None:
                     for method in methods:
                         outcome = _timed(method, used, cropped.target, None if method == "esm-global" else criteria.voxel_m,
                                          args.seed)
-                        row = {"pair": pair.name, "overlap": cropped.source_overlap, "back": cropped.target_overlap,
+                        row = {"pair": pair.name, "crop": crop, "overlap": cropped.source_overlap, "back": cropped.target_overlap,
                                "points": (len(cropped.source), len(cropped.target)), "variant": variant,
                                "method": method, "time_s": outcome["time_s"], "success": False,
                                "rotation": None, "translation": None}
@@ -67,8 +67,10 @@ def markdown(rows, methods) -> str:
              + " | ".join(METHOD_LABELS[m] for m in methods) + " |", "|---" * (4 + len(methods)) + "|"]
     cases = {}
     for row in rows:
-        cases.setdefault((row["pair"], round(row["overlap"], 3), row["variant"]), {})[row["method"]] = row
-    for (pair, _, variant), by_method in cases.items():
+        cases.setdefault((row["pair"], row["crop"], round(row["overlap"], 3), row["variant"]), {})[row["method"]] = row
+    several = any(row["crop"] > 0 for row in rows)
+    for (pair, crop, _, variant), by_method in cases.items():
+        pair = f"{pair} (crop {crop})" if several else pair
         first = next(iter(by_method.values()))
         cells = []
         for method in methods:
@@ -86,8 +88,8 @@ def markdown(rows, methods) -> str:
         mine = [r for r in rows if r["method"] == method]
         line = f"- {METHOD_LABELS[method]}: {sum(r['success'] for r in mine)}/{len(mine)} successes, median time {statistics.median(r['time_s'] for r in mine):.2f} s"
         if reference and method != reference:
-            theirs = {(r["pair"], r["overlap"], r["variant"]): r["time_s"] for r in rows if r["method"] == reference}
-            ratios = [r["time_s"] / theirs[(r["pair"], r["overlap"], r["variant"])] for r in mine]
+            theirs = {(r["pair"], r["crop"], r["overlap"], r["variant"]): r["time_s"] for r in rows if r["method"] == reference}
+            ratios = [r["time_s"] / theirs[(r["pair"], r["crop"], r["overlap"], r["variant"])] for r in mine]
             line += f", {statistics.median(ratios):.2f}x {METHOD_LABELS[reference]}'s time (median of per-case ratios)"
         lines.append(line)
     return "\n".join(lines)
