@@ -1,15 +1,17 @@
-"""Quick check of global registration on real scan pairs (a stop-gap until ``esmicp bench
---datasets real-pairs`` exists): every pair of ``pairs.csv``, as recorded and turned.
+"""Quick check of global registration on real scan pairs, against the peers *without* their ICP
+(``esmicp bench --datasets real-pairs`` gives them ICP): every pair of ``pairs.csv``, as recorded
+and turned.
 
-The folder is laid out like ``shared/data/real_pairs`` (``pairs.csv``: dataset, pair, kind,
-target, source, T_target_source; ``target ~= R @ source + t``). ``.bin`` files are headerless
-float32 ``x y z`` (3 columns); ``.ply`` / ``.npy`` go through :func:`esmicp.read_points`.
+The folder is laid out like ``shared/data/real_pairs`` (read by
+:func:`esmicp.bench.real_pairs.read_pairs`; ``.bin`` scans have ``--bin-columns`` float32 columns,
+3 in the shared data).
 
 Variants: ``as-recorded``, and ``turned``: the source turned by a random rotation (uniform on
-SO(3), seeded per pair) about its centroid, the truth composed accordingly.
+SO(3), seeded per pair) about its centroid (:func:`~esmicp.bench.real_pairs.turn_source`), the
+estimate mapped back before it is judged.
 
-Success: 3DMatch rotation error < 15 deg and translation error < 0.30 m; LiDAR < 5 deg and
-< 0.6 m. Methods (``--methods``): ``esm`` (``esmicp.register(source, target)`` with every
+Success: each kind's criteria (:func:`~esmicp.bench.real_pairs.criteria_for`: 3DMatch rotation
+error < 15 deg and translation error < 0.30 m; LiDAR < 5 deg and < 0.6 m). Methods (``--methods``): ``esm`` (``esmicp.register(source, target)`` with every
 default, or ``--init``), and any name of :data:`esmicp.baselines.BASELINES`, which get the voxel
 their documentation recommends (0.05 m indoor, 0.3 m LiDAR). Methods take turns pair by pair;
 only the registration call is timed. Prints one line per (pair, variant, method), a summary,
@@ -23,48 +25,18 @@ of the others (the peers) on that row.
 from __future__ import annotations
 
 import argparse
-import csv
 import statistics
 import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 import esmicp
-from esmicp.metrics import rotation_error_deg
+from esmicp.bench.real_pairs import (
+    criteria_for, estimate_in_pair_frame, load_pair, pair_errors, read_pairs, turn_source,
+)
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_pairs"
-
-#: (rotation deg, translation m) success thresholds per kind.
-CRITERIA = {"3DMatch": (15.0, 0.30), "LiDAR": (5.0, 0.6), "LiDAR-coarse-GT": (5.0, 0.6)}
-
-#: Voxel the peers' documentation recommends, per kind (metres).
-PEER_VOXEL = {"3DMatch": 0.05, "LiDAR": 0.3, "LiDAR-coarse-GT": 0.3}
-
-
-def load_cloud(path: Path) -> np.ndarray:
-    if path.suffix == ".bin":
-        raw = np.fromfile(path, dtype=np.float32)
-        if raw.size % 3:
-            raise SystemExit(f"{path}: {raw.size} float32 values is not a whole number of x y z rows")
-        return raw.reshape(-1, 3).astype(np.float64)
-    return esmicp.read_points(path)
-
-
-def turn(source: np.ndarray, truth: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """The source turned about its centroid by a seeded uniform rotation, and the new truth."""
-    rotation = Rotation.random(random_state=seed).as_matrix()
-    centre = source.mean(axis=0)
-    move = np.eye(4)
-    move[:3, :3] = rotation
-    move[:3, 3] = centre - rotation @ centre
-    return (source - centre) @ rotation.T + centre, truth @ np.linalg.inv(move)
-
-
-def errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
-    rotation = rotation_error_deg(estimate[:3, :3], truth[:3, :3])
-    return float(rotation), float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))
 
 
 def run_method(name: str, source, target, kind: str, seed: int, init: str | None):
@@ -74,7 +46,7 @@ def run_method(name: str, source, target, kind: str, seed: int, init: str | None
         return result.transformation, time.perf_counter() - started, result
     from esmicp.baselines import get_baseline
 
-    result = get_baseline(name)(source, target, voxel_size=PEER_VOXEL[kind], rng=seed)
+    result = get_baseline(name)(source, target, voxel_size=criteria_for(kind).voxel_m, rng=seed)
     return result.transformation, result.runtime_s, result
 
 
@@ -86,29 +58,29 @@ def main() -> None:
     parser.add_argument("--variants", default="as-recorded,turned")
     parser.add_argument("--pairs", default=None, help="comma-separated pair names (dataset/pair or pair)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--bin-columns", type=int, choices=(3, 4), default=3,
+                        help="columns of the .bin scans (3: x y z, as in shared/data; 4: KITTI's x y z intensity)")
     args = parser.parse_args()
     methods = args.methods.split(",")
     variants = args.variants.split(",")
     wanted = None if args.pairs is None else set(args.pairs.split(","))
     rows = []
-    with open(args.folder / "pairs.csv", newline="") as handle:
-        records = list(csv.DictReader(handle))
-    for number, record in enumerate(records):
-        label = f"{record['dataset']}/{record['pair']}"
-        if wanted is not None and label not in wanted and record["pair"] not in wanted:
+    for number, pair in enumerate(read_pairs(args.folder)):
+        label = pair.name
+        if wanted is not None and label not in wanted and pair.pair not in wanted:
             continue
-        kind = record["kind"]
-        target = load_cloud(args.folder / record["target"])
-        source0 = load_cloud(args.folder / record["source"])
-        truth0 = np.loadtxt(args.folder / record["T_target_source"]).reshape(4, 4)
-        max_rot, max_trans = CRITERIA[kind]
+        kind = pair.kind
+        source0, target, truth = load_pair(pair, bin_columns=args.bin_columns)
+        criteria = criteria_for(kind)
         for variant in variants:
             seed = args.seed * 1000 + number
-            source, truth = (source0, truth0) if variant == "as-recorded" else turn(source0, truth0, seed)
+            source, moved_by = source0, None
+            if variant != "as-recorded":
+                source, _, moved_by = turn_source(source0, truth, np.random.default_rng(seed))
             for name in methods:
                 estimate, seconds, result = run_method(name, source, target, kind, seed, args.init)
-                rot, trans = errors(estimate, truth)
-                ok = rot < max_rot and trans < max_trans
+                rot, trans = pair_errors(estimate_in_pair_frame(estimate, moved_by), truth)
+                ok = criteria.success(rot, trans)
                 extra = ""
                 if name == "esm":
                     extra = f" init={result.init} ambiguous={result.ambiguous} fitness={result.fitness:.3f}"
