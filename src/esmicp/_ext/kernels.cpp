@@ -1598,6 +1598,21 @@ void knn_normals(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx
     });
 }
 
+// Squared lengths |p - q|^2 of a pair of correspondences in the source and in the target, the
+// coordinates summed x, y, z in turn (as SciPy's cdist and NumPy's norm sum them).
+inline void squared_lengths(const double *sp, const double *sq, const double *tp, const double *tq, double &source,
+                            double &target) {
+    double a = 0.0, b = 0.0, d;
+    d = sp[0] - sq[0]; a += d * d;
+    d = sp[1] - sq[1]; a += d * d;
+    d = sp[2] - sq[2]; a += d * d;
+    d = tp[0] - tq[0]; b += d * d;
+    d = tp[1] - tq[1]; b += d * d;
+    d = tp[2] - tq[2]; b += d * d;
+    source = a;
+    target = b;
+}
+
 // Length compatibility of K paired points (source[k] <-> target[k], e.g. feature correspondences):
 // out[i][j] = 1 when the source length |s_i - s_j| and the target length |t_i - t_j| differ by at
 // most `tolerance` (cloud units), else 0; the diagonal is 0. Lengths as SciPy's cdist computes them
@@ -1621,14 +1636,8 @@ void compatibility(CArr2 source, CArr2 target, double tolerance, F32Arr2 out, in
             const double *si = s + 3 * i, *ti = t + 3 * i;
             row[i] = 0.0f;
             for (int64_t j = i + 1; j < count; ++j) {
-                const double *sj = s + 3 * j, *tj = t + 3 * j;
-                double a = 0.0, b = 0.0, d;
-                d = si[0] - sj[0]; a += d * d;
-                d = si[1] - sj[1]; a += d * d;
-                d = si[2] - sj[2]; a += d * d;
-                d = ti[0] - tj[0]; b += d * d;
-                d = ti[1] - tj[1]; b += d * d;
-                d = ti[2] - tj[2]; b += d * d;
+                double a, b;
+                squared_lengths(si, s + 3 * j, ti, t + 3 * j, a, b);
                 const float value = std::fabs(std::sqrt(a) - std::sqrt(b)) <= tolerance ? 1.0f : 0.0f;
                 row[j] = value;
                 o[count * j + i] = value;
@@ -1657,14 +1666,8 @@ int64_t spread_seeds(CIdx order, CArr2 source, CArr2 target, double spread, int6
         const double *si = s + 3 * i, *ti = t + 3 * i;
         bool near = false;
         for (int64_t k = 0; k < chosen && !near; ++k) {
-            const double *sk = s + 3 * kept[k], *tk = t + 3 * kept[k];
-            double a = 0.0, b = 0.0, d;
-            d = sk[0] - si[0]; a += d * d;
-            d = sk[1] - si[1]; a += d * d;
-            d = sk[2] - si[2]; a += d * d;
-            d = tk[0] - ti[0]; b += d * d;
-            d = tk[1] - ti[1]; b += d * d;
-            d = tk[2] - ti[2]; b += d * d;
+            double a, b;
+            squared_lengths(s + 3 * kept[k], si, t + 3 * kept[k], ti, a, b);
             near = std::sqrt(a) < spread && std::sqrt(b) < spread;
         }
         if (!near) kept[chosen++] = i;
