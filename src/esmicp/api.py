@@ -62,10 +62,9 @@ POLISH_ITERATIONS = 2
 PLANE_ITERATIONS = 30
 #: The ``esm-plane`` stage is undone when it lowers the overlap confidence
 #: (:func:`~esmicp.globalreg.scan.overlap_confidence`, 0-1, on the pair's keypoints) by more than
-#: this: on a scan pair that overlaps by 15%, most pairs join points the other scan never saw, its
-#: sigma grows with them and it pulled a global pose 2 degrees off to 37 degrees off (confidence
-#: 0.68 -> 0.00), where ``esm`` from the same start converged to 0.6 degrees
-#: (``docs/scans-partial-overlap.md``, session 26).
+#: this: where scans overlap by 15% or so, most pairs join points the other scan never saw, the
+#: stage's sigma grows with them and can pull a right global pose far off, where ``esm`` from the
+#: same start converges (``docs/scans-partial-overlap.md``, session 26).
 PLANE_CONFIDENCE_DROP = 0.25
 #: The strided stages stop at this tolerance when the caller's is finer (the polish keeps the
 #: caller's): the subsample's optimum is not the whole source's, and on fragment pairs the strided

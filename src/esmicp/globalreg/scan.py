@@ -70,10 +70,9 @@ MAX_CORRESPONDENCES = 2500
 COMPATIBILITY_VOXELS = 1.5
 
 #: Seeds, their spread (a seed is skipped when both its keypoints lie within this many voxels of
-#: a better seed's), and the size of the group each grows. 512 seeds spread in both clouds, not
-#: 64 spread in the source only: on 3DMatch pairs cropped to 15-25% overlap the true
-#: correspondences (12-30 of 2,500) ranked 38th-519th by the leading eigenvector, and the source
-#: spread alone skipped most of them; the crops went from 4/12 to 6/12
+#: a better seed's), and the size of the group each grows. Many seeds, spread in both clouds: at
+#: 15-25% overlap the few true correspondences rank far down the leading eigenvector, and a spread
+#: in the source alone skipped most of them, each near a better-ranked wrong one
 #: (``docs/scans-partial-overlap.md``, session 26).
 SEEDS = 512
 SEED_SPREAD_VOXELS = 3.0
@@ -276,8 +275,8 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
     ``spread`` (default ``2 tolerance``): a candidate seed within ``spread`` of a better seed in
     both clouds (its source point near that seed's source point and its target point near that
     seed's target point) is skipped. ``workers``: threads of the compiled kernels (None: every
-    core). Returns rotations ``(S, 3, 3)`` and
-    translations ``(S, 3)``, one per seed group of at least 3 members.
+    core). Returns rotations ``(S, 3, 3)`` and translations ``(S, 3)``, one per seed group of at
+    least 3 members.
     """
     count = len(source)
     if count < 3:
