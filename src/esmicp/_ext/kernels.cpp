@@ -1708,16 +1708,21 @@ __attribute__((target("popcnt"))) int64_t common_bits_popcnt(const uint64_t *a, 
     for (int64_t v = 0; v < words; ++v) both += __builtin_popcountll(a[v] & b[v]);
     return both;
 }
+// (The AVX-512 version from GCC 11 on, where its feature test is known for certain.)
+#if __GNUC__ >= 11
 __attribute__((target("avx512f,avx512vpopcntdq,popcnt"), optimize("tree-vectorize")))
 int64_t common_bits_avx512(const uint64_t *a, const uint64_t *b, int64_t words) {
     int64_t both = 0;
     for (int64_t v = 0; v < words; ++v) both += __builtin_popcountll(a[v] & b[v]);
     return both;
 }
+#endif
 using CommonBits = int64_t (*)(const uint64_t *, const uint64_t *, int64_t);
 CommonBits pick_common_bits() {
     __builtin_cpu_init();
+#if __GNUC__ >= 11
     if (__builtin_cpu_supports("avx512vpopcntdq") && __builtin_cpu_supports("avx512f")) return common_bits_avx512;
+#endif
     if (__builtin_cpu_supports("popcnt")) return common_bits_popcnt;
     return common_bits_plain;
 }
