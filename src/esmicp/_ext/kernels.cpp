@@ -1693,13 +1693,35 @@ void pack_row(const float *row, int64_t count, uint64_t *word) {
     }
 }
 
+// Population count and lowest set bit of a 64-bit word: GCC's and Clang's builtins, or plain C++
+// for other compilers (MSVC).
+#if defined(__GNUC__) || defined(__clang__)
+inline int64_t popcount64(uint64_t x) { return __builtin_popcountll(x); }
+inline int64_t lowest_set_bit(uint64_t x) { return __builtin_ctzll(x); }
+#else
+inline int64_t popcount64(uint64_t x) {
+    x = x - ((x >> 1) & 0x5555555555555555ULL);
+    x = (x & 0x3333333333333333ULL) + ((x >> 2) & 0x3333333333333333ULL);
+    x = (x + (x >> 4)) & 0x0F0F0F0F0F0F0F0FULL;
+    return int64_t((x * 0x0101010101010101ULL) >> 56);
+}
+inline int64_t lowest_set_bit(uint64_t x) {
+    int64_t bit = 0;
+    while (!(x & 1)) {
+        x >>= 1;
+        ++bit;
+    }
+    return bit;
+}
+#endif
+
 // Bits set in both of two bitsets of `words` 64-bit words. On x86-64 with GCC, a version with the
 // processor's popcount instructions (AVX-512 VPOPCNTDQ, eight words at a time, or POPCNT) is
 // chosen once at run time when the processor has them (the baseline x86-64 target has neither, and
 // its software popcount costs several times more).
 int64_t common_bits_plain(const uint64_t *a, const uint64_t *b, int64_t words) {
     int64_t both = 0;
-    for (int64_t v = 0; v < words; ++v) both += __builtin_popcountll(a[v] & b[v]);
+    for (int64_t v = 0; v < words; ++v) both += popcount64(a[v] & b[v]);
     return both;
 }
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
@@ -1765,7 +1787,7 @@ void second_order_partners(CF32Arr2 compatible, CIdx seeds, Idx2 partners, nb::n
         std::vector<std::pair<int64_t, int64_t>> ranked;  // (-second order, index)
         for (int64_t w = 0; w < words; ++w) {
             for (uint64_t word = mine[w]; word; word &= word - 1) {
-                const int64_t j = w * 64 + __builtin_ctzll(word);
+                const int64_t j = w * 64 + lowest_set_bit(word);
                 const uint64_t *other = bits.data() + words * j;
                 const int64_t both = common_bits(mine, other, words);
                 if (both > 0) ranked.emplace_back(-both, j);
