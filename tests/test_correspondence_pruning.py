@@ -251,7 +251,7 @@ def test_the_pruning_kernels_equal_plain_numpy(seed):
     stable argsort (ties to the lower index, partners at 0 in index order), a loop over the seeds,
     every pose's residuals; on 1 and 2 threads."""
     from esmicp import _kernels
-    from esmicp.globalreg.scan import _inlier_counts
+    from esmicp.globalreg.feature_matching import _inlier_counts
 
     generator = np.random.default_rng(seed)
     count = 600

@@ -49,6 +49,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .. import _kernels
+from ..core.compiled_tree import threads
 from ..core.procrustes import batched_weighted_procrustes, to_matrix
 from ..errors import InvalidInputError
 from ..types import as_count, as_generator, as_points, as_positive, as_real
@@ -234,6 +236,21 @@ def _inlier_mask(rotations, translations, source, target, threshold) -> np.ndarr
     return mask
 
 
+def _inlier_counts(rotations: np.ndarray, translations: np.ndarray, source: np.ndarray, target: np.ndarray,
+                   distance: float, workers: int | None = None) -> np.ndarray:
+    """``(S,)``: how many pairs ``source[k] <-> target[k]`` each pose ``(rotations[c],
+    translations[c])`` maps within ``distance`` (cloud units) of each other: ``_inlier_mask``'s
+    row sums, counted in one compiled pass (RANSAC and the scan strategy's pruning score hundreds
+    to thousands of poses at a time). ``workers``: threads (None: every core)."""
+    counts = np.empty(len(rotations), dtype=np.int64)
+    _kernels.pair_inlier_counts(np.ascontiguousarray(rotations, dtype=np.float64).reshape(-1, 9),
+                                np.ascontiguousarray(translations, dtype=np.float64),
+                                np.ascontiguousarray(source, dtype=np.float64),
+                                np.ascontiguousarray(target, dtype=np.float64), float(distance), counts,
+                                threads(workers))
+    return counts
+
+
 def _rotation_gaps_deg(rotations: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """Geodesic angles (degrees) between each of ``(C, 3, 3)`` rotations and one reference."""
     cosine = 0.5 * (np.einsum("cij,ij->c", rotations, reference) - 1.0)
@@ -255,11 +272,11 @@ def _distinct_order(rotations, translations, scores, max_count, min_translation)
     return np.asarray(chosen, dtype=np.intp)
 
 
-def _refit(rotations, translations, source, target, threshold, rounds: int = 2):
+def _refit(rotations, translations, source, target, threshold, rounds: int = 2, workers: int | None = None):
     """Refit every candidate by Kabsch on its own inliers, ``rounds`` times.
 
     Candidates with fewer than 3 inliers are left as they are. Returns the refit rotations,
-    translations and final inlier counts.
+    translations and final inlier counts. ``workers``: threads of the compiled count.
     """
     for _ in range(rounds):
         mask = _inlier_mask(rotations, translations, source, target, threshold)
@@ -270,7 +287,7 @@ def _refit(rotations, translations, source, target, threshold, rounds: int = 2):
         rotations, translations = rotations.copy(), translations.copy()
         fitted_r, fitted_t = batched_weighted_procrustes(source, target, mask[enough].astype(np.float64))
         rotations[enough], translations[enough] = fitted_r, fitted_t
-    counts = _inlier_mask(rotations, translations, source, target, threshold).sum(axis=1)
+    counts = _inlier_counts(rotations, translations, source, target, threshold, workers)
     return rotations, translations, counts
 
 
@@ -284,12 +301,14 @@ def _edge_lengths(points: np.ndarray) -> np.ndarray:
 
 
 def _ransac(
-    source, target, threshold, rng, *, max_trials, min_trials, batch, confidence, min_edge, keep, min_translation
+    source, target, threshold, rng, *, max_trials, min_trials, batch, confidence, min_edge, keep, min_translation,
+    workers=None,
 ):
     """Batched RANSAC on paired points.
 
     Returns ``(rotations, translations, counts)`` of at most ``keep`` mutually distinct candidates
     (see :func:`_distinct_order`), each the best-scoring of its neighbourhood of poses.
+    ``workers``: threads of the compiled inlier count.
     """
     count = len(source)
     pool_r = np.zeros((0, 3, 3))
@@ -310,7 +329,7 @@ def _ransac(
             size = min(2 * size, batch)
             continue
         rotations, translations = batched_weighted_procrustes(src[ok], tgt[ok])
-        counts = _inlier_mask(rotations, translations, source, target, threshold).sum(axis=1)
+        counts = _inlier_counts(rotations, translations, source, target, threshold, workers)
         pool_r = np.concatenate([pool_r, rotations])
         pool_t = np.concatenate([pool_t, translations])
         pool_c = np.concatenate([pool_c, counts])
@@ -327,14 +346,14 @@ def _ransac(
     return pool_r, pool_t, pool_c
 
 
-def _cliques(source, target, threshold, *, max_cliques, min_edge):
+def _cliques(source, target, threshold, *, max_cliques, min_edge, workers=None):
     """Greedy cliques of the pairwise length-consistency graph; returns Kabsch fits of each.
 
     Correspondences ``i`` and ``j`` are adjacent when their source and target distances agree to
     within ``2 threshold`` (and both exceed ``min_edge``). Each clique starts at the unused
     correspondence of highest degree and repeatedly adds the candidate adjacent to the most
     remaining candidates (degrees within the candidate set are updated incrementally, so growing
-    one clique costs O(K^2) in all).
+    one clique costs O(K^2) in all). ``workers``: threads of the compiled inlier count.
     """
     count = len(source)
     source_d = np.linalg.norm(source[:, None] - source[None], axis=2)
@@ -371,7 +390,7 @@ def _cliques(source, target, threshold, *, max_cliques, min_edge):
     if not rotations:
         return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, dtype=np.intp)
     rotations, translations = np.stack(rotations), np.stack(translations)
-    counts = _inlier_mask(rotations, translations, source, target, threshold).sum(axis=1)
+    counts = _inlier_counts(rotations, translations, source, target, threshold, workers)
     return rotations, translations, counts
 
 
@@ -532,16 +551,18 @@ def feature_hypotheses(
             min_edge=min_edge,
             keep=4 * max_hypotheses,
             min_translation=min_translation,
+            workers=workers,
         )
     else:
         rotations, translations, counts = _cliques(
-            paired_source, paired_target, threshold, max_cliques=4 * max_hypotheses, min_edge=min_edge
+            paired_source, paired_target, threshold, max_cliques=4 * max_hypotheses, min_edge=min_edge,
+            workers=workers,
         )
     if len(counts) == 0:
         return []
     pool = _distinct_order(rotations, translations, counts, 4 * max_hypotheses, min_translation)
     rotations, translations, counts = _refit(
-        rotations[pool], translations[pool], paired_source, paired_target, threshold
+        rotations[pool], translations[pool], paired_source, paired_target, threshold, workers=workers
     )
     final = _distinct_order(rotations, translations, counts, max_hypotheses, min_translation)
     rotations, translations, counts = rotations[final], translations[final], counts[final]

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -45,7 +46,7 @@ from ..core.compiled_tree import CompiledTree, threads
 from ..core.correspondence import coincident_points
 from ..core.procrustes import axis_bounds, batched_weighted_procrustes, rigid_inverse, rotation_angle, to_matrix
 from . import DISTINCT_ROTATION_DEG
-from .feature_matching import _keypoints, _inlier_mask, _distinct_order
+from .feature_matching import _keypoints, _inlier_counts, _inlier_mask, _distinct_order
 from .features import estimate_normals, voxel_grid
 
 
@@ -130,6 +131,16 @@ class Keypoints:
         voxel = keypoint_voxel(target, spacing) if spacing > 0 else keypoint_voxel(target, 0.0)
         return cls(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
 
+    @cached_property
+    def source_tree(self) -> CompiledTree:
+        """A compiled tree over :attr:`source`, built once (every score of a pose queries it)."""
+        return CompiledTree(self.source)
+
+    @cached_property
+    def target_tree(self) -> CompiledTree:
+        """A compiled tree over :attr:`target`, built once."""
+        return CompiledTree(self.target)
+
 
 @dataclass(frozen=True)
 class ScanEstimate:
@@ -152,8 +163,8 @@ def overlap_score(transformation: np.ndarray, keypoints: Keypoints, workers: int
     ``transformation`` (the verification's score, :func:`rank_poses`). ``workers``: threads of the
     compiled tree's queries (None: every core)."""
     forward, backward = overlap_counts(
-        transformation[None], keypoints.source, keypoints.target, CompiledTree(keypoints.source),
-        CompiledTree(keypoints.target), VERIFY_VOXELS * keypoints.voxel, workers,
+        transformation[None], keypoints.source, keypoints.target, keypoints.source_tree,
+        keypoints.target_tree, VERIFY_VOXELS * keypoints.voxel, workers,
     )
     return float(forward[0] + backward[0]) / (len(keypoints.source) + len(keypoints.target))
 
@@ -170,10 +181,10 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
     voxel = keypoints.voxel
     sharpness = []
     for moved, fixed in (
-        (keypoints.source @ rotation.T + translation, keypoints.target),
-        ((keypoints.target - translation) @ rotation, keypoints.source),
+        (keypoints.source @ rotation.T + translation, keypoints.target_tree),
+        ((keypoints.target - translation) @ rotation, keypoints.source_tree),
     ):
-        distances, _ = CompiledTree(fixed).query(moved, workers=workers)  # the counts SciPy's tree gives, cheaper
+        distances, _ = fixed.query(moved, workers=workers)  # the counts SciPy's tree gives, cheaper
         overlap = np.count_nonzero(distances <= OVERLAP_VOXELS * voxel)
         if overlap < 3:
             return 0.0
@@ -314,20 +325,6 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
     return batched_weighted_procrustes(source[groups], target[groups], weights)
 
 
-def _inlier_counts(rotations: np.ndarray, translations: np.ndarray, source: np.ndarray, target: np.ndarray,
-                   distance: float, workers: int | None = None) -> np.ndarray:
-    """``(S,)``: how many pairs ``source[k] <-> target[k]`` each pose ``(rotations[c],
-    translations[c])`` maps within ``distance`` (cloud units) of each other (compiled: the
-    pruning fits a pose per seed, hundreds of them)."""
-    counts = np.empty(len(rotations), dtype=np.int64)
-    _kernels.pair_inlier_counts(np.ascontiguousarray(rotations, dtype=np.float64).reshape(-1, 9),
-                                np.ascontiguousarray(translations, dtype=np.float64),
-                                np.ascontiguousarray(source, dtype=np.float64),
-                                np.ascontiguousarray(target, dtype=np.float64), float(distance), counts,
-                                threads(workers))
-    return counts
-
-
 def overlap_counts(transformations: np.ndarray, source: np.ndarray, target: np.ndarray,
                    source_tree: CompiledTree, target_tree: CompiledTree, distance: float,
                    workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -403,8 +400,8 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
         jobs = [pool.submit(_keypoints, cloud, voxel, normal_radius, feature_radius, filter_radius)
                 for cloud in (source, target)]
         (source_keys, source_features), (target_keys, target_features) = (job.result() for job in jobs)
-    empty = ScanEstimate(np.eye(4)[None], np.zeros(1), Keypoints(source_keys, target_keys, voxel), 0,
-                         np.zeros(1, dtype=np.intp))
+    keypoints = Keypoints(source_keys, target_keys, voxel)  # its trees serve every score below and after
+    empty = ScanEstimate(np.eye(4)[None], np.zeros(1), keypoints, 0, np.zeros(1, dtype=np.intp))
     if len(source_keys) < 3 or len(target_keys) < 3:
         return empty
     pairs = _correspondences(source_features, target_features, MAX_CORRESPONDENCES, workers)
@@ -427,17 +424,18 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
                 paired_source, paired_target, mask[enough].astype(float))
     counts = _inlier_counts(rotations, translations, paired_source, paired_target, tolerance, workers)
 
-    target_tree = CompiledTree(target_keys)
     stride = -(-len(source_keys) // ICP_POINTS)
     poses = _icp(np.stack([to_matrix(r, t) for r, t in zip(rotations, translations)]), source_keys[::stride],
-                 target_tree, target_keys, ICP_VOXELS * voxel, ICP_STEPS, ICP_SETTLED_VOXELS * voxel, workers)
-    order, scores = rank_poses(poses, source_keys, target_keys, voxel, target_tree=target_tree, workers=workers)
-    keypoints = Keypoints(source_keys, target_keys, voxel)
+                 keypoints.target_tree, target_keys, ICP_VOXELS * voxel, ICP_STEPS, ICP_SETTLED_VOXELS * voxel,
+                 workers)
+    order, scores = rank_poses(poses, source_keys, target_keys, voxel, target_tree=keypoints.target_tree,
+                               source_tree=keypoints.source_tree, workers=workers)
     return ScanEstimate(poses[order], scores[order], keypoints, len(pairs), counts[order])
 
 
 def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel: float, *,
-               target_tree: CompiledTree | None = None, workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+               target_tree: CompiledTree | None = None, source_tree: CompiledTree | None = None,
+               workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Verification on the overlap (module docstring, step 6): the indices of the mutually
     distinct ``poses`` ``(C, 4, 4)``, best first, and every pose's overlap score (the fraction of
     ``source`` and ``target`` keypoints within ``VERIFY_VOXELS`` of the other cloud).
@@ -447,10 +445,13 @@ def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel:
     inliers weighted by ``|n . u|``, with ``n`` the target normal and ``u`` the direction between
     the two poses, and the higher count leads. On a corridor the slid pose can overlap *more*
     (it slides the source further along), while only the true one aligns the geometry across it.
+    ``target_tree`` / ``source_tree``: compiled trees over ``target`` / ``source`` to reuse (built
+    here when not given).
     """
     target_tree = CompiledTree(target) if target_tree is None else target_tree
+    source_tree = CompiledTree(source) if source_tree is None else source_tree
     distance = VERIFY_VOXELS * voxel
-    forward, backward = overlap_counts(poses, source, target, CompiledTree(source), target_tree, distance, workers)
+    forward, backward = overlap_counts(poses, source, target, source_tree, target_tree, distance, workers)
     scores = (forward + backward) / float(len(source) + len(target))
     order = _distinct_poses(poses, list(np.argsort(-scores, kind="stable")), CONTENDER_VOXELS * voxel)
     normals = None
