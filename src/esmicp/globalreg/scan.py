@@ -53,6 +53,12 @@ from .features import estimate_normals, voxel_grid
 #: Occupied voxels of the target the keypoint voxel aims at.
 KEYPOINTS = 5000
 
+#: When the pose found at ``KEYPOINTS`` is not confident (:data:`CONFIDENT`), the search runs again
+#: at this many (a finer voxel: more keypoints in a small overlap, descriptors of finer
+#: structure), and the more confident of the two wins (``docs/scans-partial-overlap.md``,
+#: session 28).
+FINER_KEYPOINTS = 10000
+
 #: The keypoint voxel is at least this many target point spacings.
 MIN_VOXEL_SPACINGS = 1.5
 
@@ -386,10 +392,12 @@ def _slide_votes(first, second, source, target_tree: CompiledTree, target_normal
     return votes[0], votes[1]
 
 
-def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, workers: int | None = None) -> ScanEstimate:
+def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, workers: int | None = None,
+                  keypoints: int = KEYPOINTS) -> ScanEstimate:
     """Poses ``T_target_source`` of two partially overlapping scans, best first (the module
-    docstring). ``spacing``: the target's median point spacing (cloud units). Deterministic."""
-    voxel = keypoint_voxel(target, spacing)
+    docstring). ``spacing``: the target's median point spacing (cloud units); ``keypoints``: the
+    occupied target voxels the keypoint voxel aims at (:func:`keypoint_voxel`). Deterministic."""
+    voxel = keypoint_voxel(target, spacing, keypoints)
     if min(_occupied(source, voxel), _occupied(target, voxel)) < MIN_KEYPOINTS:
         # Too few distinct places to describe (e.g. a few points repeated): no hypothesis.
         keypoints = Keypoints(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
@@ -431,6 +439,24 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     order, scores = rank_poses(poses, source_keys, target_keys, voxel, target_tree=keypoints.target_tree,
                                source_tree=keypoints.source_tree, workers=workers)
     return ScanEstimate(poses[order], scores[order], keypoints, len(pairs), counts[order])
+
+
+def scan_estimate_at_two_scales(source: np.ndarray, target: np.ndarray, *, spacing: float,
+                                workers: int | None = None) -> ScanEstimate:
+    """:func:`scan_estimate` at ``KEYPOINTS``, and again at ``FINER_KEYPOINTS`` when its best pose
+    is not confident (:func:`overlap_confidence` below :data:`CONFIDENT`) and the finer voxel is
+    really finer (not held at the spacing floor): the estimate whose best pose is the more
+    confident, each judged on its own keypoints (the first on a tie).
+
+    Why: at 10-25% overlap only a few hundred of the 5,000 keypoints lie in the overlap and
+    sometimes no true correspondence survives among them; a finer voxel puts more keypoints there
+    and describes finer structure. A confident first pose costs nothing more."""
+    first = scan_estimate(source, target, spacing=spacing, workers=workers)
+    mine = overlap_confidence(first.transformations[0], first.keypoints, workers)
+    if mine >= CONFIDENT or keypoint_voxel(target, spacing, FINER_KEYPOINTS) >= first.voxel:
+        return first
+    finer = scan_estimate(source, target, spacing=spacing, workers=workers, keypoints=FINER_KEYPOINTS)
+    return finer if overlap_confidence(finer.transformations[0], finer.keypoints, workers) > mine else first
 
 
 def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel: float, *,

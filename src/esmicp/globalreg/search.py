@@ -99,6 +99,11 @@ DECIDE_SIGMA_SPACINGS = 1.0
 #: turned 18 degrees about the cup's axis overlapped as much as the exact one).
 SCAN_MARGIN = 1.1
 
+#: ``"auto"``: the scan strategy's confident pose also wins when it overlaps at least this fraction
+#: as much as the other pose and its overlap confidence is higher by ``SHARPER_BY`` (0-1).
+SHARPER_SCORE_RATIO = 0.8
+SHARPER_BY = 0.2
+
 #: The full-resolution decision runs when the runner-up scores at least this fraction of the best.
 DECIDE_RATIO = 0.9
 
@@ -276,10 +281,10 @@ def global_estimate(
 
 def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | None) -> GlobalEstimate:
     """The ``"scan"`` strategy (:mod:`esmicp.globalreg.scan`): its poses and overlap scores."""
-    from .scan import scan_estimate
+    from .scan import scan_estimate_at_two_scales
 
     spacing = full_index.spacing() if target_spacing is None else target_spacing
-    found = scan_estimate(source, target, spacing=spacing, workers=full_index.workers)
+    found = scan_estimate_at_two_scales(source, target, spacing=spacing, workers=full_index.workers)
     return GlobalEstimate(
         found.transformations, found.scores, ("scan",) * len(found.scores), candidates=len(found.scores),
         keypoints=found.keypoints,
@@ -289,16 +294,21 @@ def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | 
 def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1.0,
                 workers: int | None = None) -> bool:
     """True when the scan strategy's best pose is confident on the overlap
-    (:func:`~esmicp.globalreg.scan.overlap_confidence`) and its overlap score (keypoints of both
-    clouds on the other cloud) is above ``margin`` times that of ``other``. ``workers``: threads
-    of the confidence's queries."""
+    (:func:`~esmicp.globalreg.scan.overlap_confidence`) and either its overlap score (keypoints of
+    both clouds on the other cloud) is above ``margin`` times that of ``other``, or it overlaps at
+    least ``SHARPER_SCORE_RATIO`` as much and is sharper by ``SHARPER_BY``: a pose slid along a
+    wall or a floor can overlap a little more, while only the true one makes the overlap coincide
+    (``docs/scans-partial-overlap.md``, session 28). ``workers``: threads of the queries."""
     from .scan import CONFIDENT, overlap_confidence, overlap_score
 
     keypoints = scanned.keypoints
-    if overlap_confidence(scanned.transformation, keypoints, workers) < CONFIDENT:
+    sharpness = overlap_confidence(scanned.transformation, keypoints, workers)
+    if sharpness < CONFIDENT:
         return False
     mine, theirs = overlap_score(scanned.transformation, keypoints, workers), overlap_score(other, keypoints, workers)
-    return mine > margin * theirs
+    if mine > margin * theirs:
+        return True
+    return mine >= SHARPER_SCORE_RATIO * theirs and sharpness >= overlap_confidence(other, keypoints, workers) + SHARPER_BY
 
 
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
