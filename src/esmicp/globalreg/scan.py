@@ -8,7 +8,7 @@ so a pair scaled by 1000 gives the same pose):
    ``KEYPOINTS`` occupied voxels (found from the voxel counts, which scale as the inverse square of
    the edge on a surface), never below ``MIN_VOXEL_SPACINGS`` target point spacings.
 2. **Keypoints and descriptors.** Voxel centroids of each cloud, isolated ones dropped; PCA
-   normals from the dense points, FPFH within ``FEATURE_RADIUS_VOXELS``
+   normals from the keypoints (or from the dense points), FPFH within ``FEATURE_RADIUS_VOXELS``
    (:mod:`esmicp.globalreg.feature_matching`'s keypoints).
 3. **Correspondences.** Each source keypoint's nearest target descriptor and each target
    keypoint's nearest source descriptor (the union: a partial overlap leaves too few mutual
@@ -29,6 +29,9 @@ so a pair scaled by 1000 gives the same pose):
    source): the overlap, not the whole source. When two distinct poses
    count alike (a corridor, a road), each is scored by the inliers whose target normal points
    along the displacement between the two poses: only that geometry constrains the slide.
+
+:func:`scan_estimate_until_confident` runs the pipeline with each setting of ``SEARCHES`` (the
+normals' source) until the best pose is confident on the overlap.
 
 Transforms are ``T_target_source`` (``target ~= source @ R.T + t``).
 """
@@ -53,11 +56,12 @@ from .features import estimate_normals, voxel_grid
 #: Occupied voxels of the target the keypoint voxel aims at.
 KEYPOINTS = 5000
 
-#: When the pose found at ``KEYPOINTS`` is not confident (:data:`CONFIDENT`), the search runs again
-#: at this many (a finer voxel: more keypoints in a small overlap, descriptors of finer
-#: structure), and the more confident of the two wins (``docs/scans-partial-overlap.md``,
-#: session 28).
-FINER_KEYPOINTS = 10000
+#: The scan searches of :func:`scan_estimate_until_confident`, tried in order until one's best pose
+#: is confident (:data:`CONFIDENT`): ``(keypoints, normals from the keypoints rather than from the
+#: dense points)``. Each finds 3DMatch crops at 15-25% overlap that the other misses; a third at
+#: 10,000 keypoints found more on the crops it was chosen on and fewer on others, with confident
+#: wrong poses (``docs/scans-partial-overlap.md``, session 28).
+SEARCHES = ((KEYPOINTS, True), (KEYPOINTS, False))
 
 #: The keypoint voxel is at least this many target point spacings.
 MIN_VOXEL_SPACINGS = 1.5
@@ -393,7 +397,7 @@ def _slide_votes(first, second, source, target_tree: CompiledTree, target_normal
 
 
 def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, workers: int | None = None,
-                  keypoints: int = KEYPOINTS) -> ScanEstimate:
+                  keypoints: int = KEYPOINTS, normals_from_keypoints: bool = True) -> ScanEstimate:
     """Poses ``T_target_source`` of two partially overlapping scans, best first (the module
     docstring). ``spacing``: the target's median point spacing (cloud units); ``keypoints``: the
     occupied target voxels the keypoint voxel aims at (:func:`keypoint_voxel`). Deterministic."""
@@ -405,7 +409,8 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     normal_radius, feature_radius = NORMAL_RADIUS_VOXELS * voxel, FEATURE_RADIUS_VOXELS * voxel
     filter_radius = FILTER_RADIUS_VOXELS * voxel
     with ThreadPoolExecutor(max_workers=1 if workers == 1 else 2) as pool:
-        jobs = [pool.submit(_keypoints, cloud, voxel, normal_radius, feature_radius, filter_radius)
+        jobs = [pool.submit(_keypoints, cloud, voxel, normal_radius, feature_radius, filter_radius,
+                            normals_from_keypoints=normals_from_keypoints)
                 for cloud in (source, target)]
         (source_keys, source_features), (target_keys, target_features) = (job.result() for job in jobs)
     keypoints = Keypoints(source_keys, target_keys, voxel)  # its trees serve every score below and after
@@ -441,22 +446,26 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     return ScanEstimate(poses[order], scores[order], keypoints, len(pairs), counts[order])
 
 
-def scan_estimate_at_two_scales(source: np.ndarray, target: np.ndarray, *, spacing: float,
-                                workers: int | None = None) -> ScanEstimate:
-    """:func:`scan_estimate` at ``KEYPOINTS``, and again at ``FINER_KEYPOINTS`` when its best pose
-    is not confident (:func:`overlap_confidence` below :data:`CONFIDENT`) and the finer voxel is
-    really finer (not held at the spacing floor): the estimate whose best pose is the more
-    confident, each judged on its own keypoints (the first on a tie).
+def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spacing: float,
+                                  workers: int | None = None) -> ScanEstimate:
+    """:func:`scan_estimate` with each setting of ``SEARCHES`` in turn until one's best pose is
+    confident (:func:`overlap_confidence` at least :data:`CONFIDENT`): the estimate whose best pose
+    is the most confident, each judged on its own keypoints (the first on a tie).
 
-    Why: at 10-25% overlap only a few hundred of the 5,000 keypoints lie in the overlap and
-    sometimes no true correspondence survives among them; a finer voxel puts more keypoints there
-    and describes finer structure. A confident first pose costs nothing more."""
-    first = scan_estimate(source, target, spacing=spacing, workers=workers)
-    mine = overlap_confidence(first.transformations[0], first.keypoints, workers)
-    if mine >= CONFIDENT or keypoint_voxel(target, spacing, FINER_KEYPOINTS) >= first.voxel:
-        return first
-    finer = scan_estimate(source, target, spacing=spacing, workers=workers, keypoints=FINER_KEYPOINTS)
-    return finer if overlap_confidence(finer.transformations[0], finer.keypoints, workers) > mine else first
+    Why: at 10-25% overlap only a few hundred of the 5,000 keypoints lie in the overlap and often
+    no true correspondence survives the pruning; normals at the keypoints' scale and at the dense
+    points' give different descriptors, and each finds crops the other misses. A confident first
+    search costs nothing more."""
+    best, best_confidence = None, -1.0
+    for keypoints, normals_from_keypoints in SEARCHES:
+        found = scan_estimate(source, target, spacing=spacing, workers=workers, keypoints=keypoints,
+                              normals_from_keypoints=normals_from_keypoints)
+        confidence = overlap_confidence(found.transformations[0], found.keypoints, workers)
+        if confidence > best_confidence:
+            best, best_confidence = found, confidence
+        if confidence >= CONFIDENT:
+            break
+    return best
 
 
 def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel: float, *,

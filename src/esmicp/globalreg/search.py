@@ -281,10 +281,10 @@ def global_estimate(
 
 def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | None) -> GlobalEstimate:
     """The ``"scan"`` strategy (:mod:`esmicp.globalreg.scan`): its poses and overlap scores."""
-    from .scan import scan_estimate_at_two_scales
+    from .scan import scan_estimate_until_confident
 
     spacing = full_index.spacing() if target_spacing is None else target_spacing
-    found = scan_estimate_at_two_scales(source, target, spacing=spacing, workers=full_index.workers)
+    found = scan_estimate_until_confident(source, target, spacing=spacing, workers=full_index.workers)
     return GlobalEstimate(
         found.transformations, found.scores, ("scan",) * len(found.scores), candidates=len(found.scores),
         keypoints=found.keypoints,
