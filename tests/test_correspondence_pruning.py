@@ -325,7 +325,7 @@ def test_an_unconfident_scan_search_is_run_again_with_other_settings():
                 and np.linalg.norm(pose[:3, 3] - truth[:3, 3]) < 0.30)
 
     assert SEARCHES[0][1] and not SEARCHES[1][1]
-    first = scan_estimate(cropped.source, cropped.target, spacing=spacing, keypoints=SEARCHES[0][0],
+    first = scan_estimate(cropped.source, cropped.target, spacing=spacing, keypoint_count=SEARCHES[0][0],
                           normals_from_keypoints=True)
     assert not right(first.transformations[0])
     assert overlap_confidence(first.transformations[0], first.keypoints) < CONFIDENT

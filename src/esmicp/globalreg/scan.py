@@ -57,8 +57,8 @@ from .features import estimate_normals, voxel_grid
 KEYPOINTS = 5000
 
 #: The scan searches of :func:`scan_estimate_until_confident`, tried in order until one's best pose
-#: is confident (:data:`CONFIDENT`): ``(keypoints, normals from the keypoints rather than from the
-#: dense points)``. Each finds 3DMatch crops at 15-25% overlap that the other misses; a third at
+#: is confident (:data:`CONFIDENT`): ``(keypoint_count, normals_from_keypoints)`` of
+#: :func:`scan_estimate`. Each finds 3DMatch crops at 15-25% overlap that the other misses; a third at
 #: 10,000 keypoints found more on the crops it was chosen on and fewer on others, with confident
 #: wrong poses (``docs/scans-partial-overlap.md``, session 28).
 SEARCHES = ((KEYPOINTS, True), (KEYPOINTS, False))
@@ -397,11 +397,13 @@ def _slide_votes(first, second, source, target_tree: CompiledTree, target_normal
 
 
 def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, workers: int | None = None,
-                  keypoints: int = KEYPOINTS, normals_from_keypoints: bool = True) -> ScanEstimate:
+                  keypoint_count: int = KEYPOINTS, normals_from_keypoints: bool = True) -> ScanEstimate:
     """Poses ``T_target_source`` of two partially overlapping scans, best first (the module
-    docstring). ``spacing``: the target's median point spacing (cloud units); ``keypoints``: the
-    occupied target voxels the keypoint voxel aims at (:func:`keypoint_voxel`). Deterministic."""
-    voxel = keypoint_voxel(target, spacing, keypoints)
+    docstring). ``spacing``: the target's median point spacing (cloud units); ``keypoint_count``:
+    the occupied target voxels the keypoint voxel aims at (:func:`keypoint_voxel`);
+    ``normals_from_keypoints``: the keypoints' normals from the keypoints themselves, else from the
+    dense points (:func:`~esmicp.globalreg.feature_matching._keypoints`). Deterministic."""
+    voxel = keypoint_voxel(target, spacing, keypoint_count)
     if min(_occupied(source, voxel), _occupied(target, voxel)) < MIN_KEYPOINTS:
         # Too few distinct places to describe (e.g. a few points repeated): no hypothesis.
         keypoints = Keypoints(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
@@ -457,8 +459,8 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
     points' give different descriptors, and each finds crops the other misses. A confident first
     search costs nothing more."""
     best, best_confidence = None, -1.0
-    for keypoints, normals_from_keypoints in SEARCHES:
-        found = scan_estimate(source, target, spacing=spacing, workers=workers, keypoints=keypoints,
+    for keypoint_count, normals_from_keypoints in SEARCHES:
+        found = scan_estimate(source, target, spacing=spacing, workers=workers, keypoint_count=keypoint_count,
                               normals_from_keypoints=normals_from_keypoints)
         confidence = overlap_confidence(found.transformations[0], found.keypoints, workers)
         if confidence > best_confidence:
