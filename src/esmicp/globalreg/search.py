@@ -324,11 +324,19 @@ def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
 
 
 def _feature_candidates(work: _Workspace) -> list[np.ndarray]:
+    """The feature strategy's hypotheses, with normals from the dense points and from the
+    keypoints (each kind finds poses the other misses; on the bunny scan pairs the pool gained 4
+    of 111 object-protocol trials and lost none, ``docs/measured-global.md``, session 28)."""
     from .feature_matching import feature_hypotheses
 
-    hypotheses = feature_hypotheses(
-        work.source, work.target, voxel=_feature_voxel(work.target), rng=work.rng, workers=work.full_index.workers
-    )
+    hypotheses = [
+        hypothesis
+        for normals_from_keypoints in (False, True)
+        for hypothesis in feature_hypotheses(
+            work.source, work.target, voxel=_feature_voxel(work.target), rng=work.rng,
+            workers=work.full_index.workers, normals_from_keypoints=normals_from_keypoints,
+        )
+    ]
     return [hypothesis.transformation for hypothesis in hypotheses]
 
 
