@@ -306,12 +306,12 @@ def test_a_real_pair_cropped_to_15_percent_overlap_succeeds():
 
 def test_an_unconfident_scan_search_is_run_again_with_other_settings():
     """3DMatch fragments 0 and 4 cropped to 15% overlap (the crop of the test above): with normals
-    from the keypoints (the first of ``scan.SEARCHES``) no true group survives the pruning and the
+    from the keypoints (the first of ``scan.NORMALS_FROM_KEYPOINTS``) no true group survives the pruning and the
     best pose is a flip with little confidence; with normals from the dense points (the second)
     the pose is found, confidently, and the search that tries them in turn keeps that one. Fails
     if the retry is dropped or keeps the wrong estimate."""
     from esmicp.bench.real_pairs import crop_to_overlap, load_pair, read_pairs
-    from esmicp.globalreg.scan import SEARCHES, scan_estimate, scan_estimate_until_confident
+    from esmicp.globalreg.scan import NORMALS_FROM_KEYPOINTS, scan_estimate, scan_estimate_until_confident
 
     require_shared("real_pairs/3dmatch_redkitchen/cloud_bin_0.ply")
     pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.pair == "t00_s04")
@@ -324,9 +324,8 @@ def test_an_unconfident_scan_search_is_run_again_with_other_settings():
         return (rotation_error_deg(pose[:3, :3], truth[:3, :3]) < 15.0
                 and np.linalg.norm(pose[:3, 3] - truth[:3, 3]) < 0.30)
 
-    assert SEARCHES[0][1] and not SEARCHES[1][1]
-    first = scan_estimate(cropped.source, cropped.target, spacing=spacing, keypoint_count=SEARCHES[0][0],
-                          normals_from_keypoints=True)
+    assert NORMALS_FROM_KEYPOINTS == (True, False)
+    first = scan_estimate(cropped.source, cropped.target, spacing=spacing, normals_from_keypoints=True)
     assert not right(first.transformations[0])
     assert overlap_confidence(first.transformations[0], first.keypoints) < CONFIDENT
     chosen = scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)

@@ -424,7 +424,9 @@ def _keypoints(
     down, owner = voxel_grid(points, voxel)
     if filter_radius is not None:
         keep = dense_point_mask(down, filter_radius)
-        points, down = points[keep[owner]], down[keep]
+        down = down[keep]
+        if not normals_from_keypoints:  # the dense points serve only the dense normals
+            points = points[keep[owner]]
     if normals_from_keypoints:
         normals = estimate_normals(down, k=_NORMAL_NEIGHBOURS, radius=normal_radius)
     else:

@@ -30,8 +30,8 @@ so a pair scaled by 1000 gives the same pose):
    count alike (a corridor, a road), each is scored by the inliers whose target normal points
    along the displacement between the two poses: only that geometry constrains the slide.
 
-:func:`scan_estimate_until_confident` runs the pipeline with each setting of ``SEARCHES`` (the
-normals' source) until the best pose is confident on the overlap.
+:func:`scan_estimate_until_confident` runs the pipeline with each setting of
+``NORMALS_FROM_KEYPOINTS`` in turn until the best pose is confident on the overlap.
 
 Transforms are ``T_target_source`` (``target ~= source @ R.T + t``).
 """
@@ -56,12 +56,12 @@ from .features import estimate_normals, voxel_grid
 #: Occupied voxels of the target the keypoint voxel aims at.
 KEYPOINTS = 5000
 
-#: The scan searches of :func:`scan_estimate_until_confident`, tried in order until one's best pose
-#: is confident (:data:`CONFIDENT`): ``(keypoint_count, normals_from_keypoints)`` of
-#: :func:`scan_estimate`. Each finds 3DMatch crops at 15-25% overlap that the other misses; a third at
-#: 10,000 keypoints found more on the crops it was chosen on and fewer on others, with confident
-#: wrong poses (``docs/scans-partial-overlap.md``, session 28).
-SEARCHES = ((KEYPOINTS, True), (KEYPOINTS, False))
+#: The searches of :func:`scan_estimate_until_confident`, tried in order until one's best pose is
+#: confident (:data:`CONFIDENT`): ``normals_from_keypoints`` of :func:`scan_estimate` (normals from
+#: the keypoints, then from the dense points). Each finds 3DMatch crops at 15-25% overlap that the
+#: other misses; a third search at 10,000 keypoints found more on the crops it was chosen on and
+#: fewer on others, with confident wrong poses (``docs/scans-partial-overlap.md``, session 28).
+NORMALS_FROM_KEYPOINTS = (True, False)
 
 #: The keypoint voxel is at least this many target point spacings.
 MIN_VOXEL_SPACINGS = 1.5
@@ -397,13 +397,12 @@ def _slide_votes(first, second, source, target_tree: CompiledTree, target_normal
 
 
 def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, workers: int | None = None,
-                  keypoint_count: int = KEYPOINTS, normals_from_keypoints: bool = True) -> ScanEstimate:
+                  normals_from_keypoints: bool = True) -> ScanEstimate:
     """Poses ``T_target_source`` of two partially overlapping scans, best first (the module
-    docstring). ``spacing``: the target's median point spacing (cloud units); ``keypoint_count``:
-    the occupied target voxels the keypoint voxel aims at (:func:`keypoint_voxel`);
+    docstring). ``spacing``: the target's median point spacing (cloud units);
     ``normals_from_keypoints``: the keypoints' normals from the keypoints themselves, else from the
     dense points (:func:`~esmicp.globalreg.feature_matching._keypoints`). Deterministic."""
-    voxel = keypoint_voxel(target, spacing, keypoint_count)
+    voxel = keypoint_voxel(target, spacing)
     if min(_occupied(source, voxel), _occupied(target, voxel)) < MIN_KEYPOINTS:
         # Too few distinct places to describe (e.g. a few points repeated): no hypothesis.
         keypoints = Keypoints(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
@@ -450,7 +449,7 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
 
 def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spacing: float,
                                   workers: int | None = None) -> ScanEstimate:
-    """:func:`scan_estimate` with each setting of ``SEARCHES`` in turn until one's best pose is
+    """:func:`scan_estimate` with each setting of ``NORMALS_FROM_KEYPOINTS`` in turn until one's best pose is
     confident (:func:`overlap_confidence` at least :data:`CONFIDENT`): the estimate whose best pose
     is the most confident, each judged on its own keypoints (the first on a tie).
 
@@ -459,8 +458,8 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
     points' give different descriptors, and each finds crops the other misses. A confident first
     search costs nothing more."""
     best, best_confidence = None, -1.0
-    for keypoint_count, normals_from_keypoints in SEARCHES:
-        found = scan_estimate(source, target, spacing=spacing, workers=workers, keypoint_count=keypoint_count,
+    for normals_from_keypoints in NORMALS_FROM_KEYPOINTS:
+        found = scan_estimate(source, target, spacing=spacing, workers=workers,
                               normals_from_keypoints=normals_from_keypoints)
         confidence = overlap_confidence(found.transformations[0], found.keypoints, workers)
         if confidence > best_confidence:
