@@ -23,6 +23,7 @@ from esmicp.bench.real_pairs import (
     crop_to_overlap, criteria_for, estimate_in_pair_frame, load_pair, pair_errors, read_pairs, turn_source,
 )
 from esmicp.bench.scans import METHOD_LABELS, SCAN_METHODS, _timed
+from esmicp.globalreg.scan import CONFIDENT
 
 
 def main() -> None:
@@ -53,7 +54,7 @@ def main() -> None:
                         row = {"pair": pair.name, "crop": crop, "overlap": cropped.source_overlap, "back": cropped.target_overlap,
                                "points": (len(cropped.source), len(cropped.target)), "variant": variant,
                                "method": method, "time_s": outcome["time_s"], "success": False,
-                               "rotation": None, "translation": None}
+                               "rotation": None, "translation": None, "confidence": outcome.get("confidence")}
                         if outcome["status"] == "ok":
                             rotation, translation = pair_errors(estimate_in_pair_frame(outcome["estimate"], moved_by), truth)
                             row.update(rotation=rotation, translation=translation,
@@ -79,7 +80,8 @@ def markdown(rows, methods) -> str:
                 cells.append("failed")
                 continue
             mark = "**ok**" if row["success"] else "no"
-            cells.append(f"{mark} {row['rotation']:.1f}° {row['translation']:.2f} m {row['time_s']:.1f} s")
+            trust = "" if row["confidence"] is None else f" (confidence {row['confidence']:.2f})"
+            cells.append(f"{mark} {row['rotation']:.1f}° {row['translation']:.2f} m {row['time_s']:.1f} s{trust}")
         lines.append(f"| {pair} | {first['overlap']:.2f} / {first['back']:.2f} | {first['points'][0]:,} / "
                      f"{first['points'][1]:,} | {variant} | " + " | ".join(cells) + " |")
     lines.append("")
@@ -92,6 +94,13 @@ def markdown(rows, methods) -> str:
             ratios = [r["time_s"] / theirs[(r["pair"], r["crop"], r["overlap"], r["variant"])] for r in mine]
             line += f", {statistics.median(ratios):.2f}x {METHOD_LABELS[reference]}'s time (median of per-case ratios)"
         lines.append(line)
+        judged = [r for r in mine if r["confidence"] is not None]
+        if judged:  # esmicp's own verdict on its pose (the peers give none)
+            wrong = [r for r in judged if not r["success"]]
+            lines.append(f"  - its confidence >= {CONFIDENT}: {sum(r['confidence'] >= CONFIDENT for r in wrong)} of its "
+                         f"{len(wrong)} failures (a wrong pose reported as trustworthy), "
+                         f"{sum(r['confidence'] >= CONFIDENT for r in judged if r['success'])} of its "
+                         f"{len(judged) - len(wrong)} successes")
     return "\n".join(lines)
 
 

@@ -287,7 +287,7 @@ def test_scan_bench_judges_a_wrong_pose_as_failure(tmp_path, monkeypatch):
     import esmicp.bench.scans as scans
 
     make_folder(tmp_path)
-    monkeypatch.setattr(scans, "run_global", lambda *args: (np.eye(4), "identity", None))
+    monkeypatch.setattr(scans, "run_global", lambda *args: (np.eye(4), "identity", None, None))
     rows = run_scan_bench(ScanBenchConfig(real_pairs_dir=str(tmp_path), methods=("esm-global",), partial_trials=0))
     assert all(not row["success"] and row["rotation_error_deg"] > 19.0 for row in rows)
 
