@@ -358,3 +358,30 @@ def test_a_sharper_scan_pose_wins_over_a_slid_pose_that_overlaps_a_little_more(m
     assert result.confidence >= CONFIDENT
     monkeypatch.setattr(search, "SHARPER_BY", 2.0)  # the rule off (confidences are 0-1)
     assert not right(esmicp.register(cropped.source, cropped.target, rng=100))
+
+
+def test_a_flip_that_lays_a_floor_on_a_floor_is_not_confident(monkeypatch):
+    """The 3DMatch pair ``t00_s06`` cropped to 15% overlap (``benchmarks/lomatch_crop.py --crops 3
+    --seed 200``'s crop 1 of that pair, as recorded): no right pose is found, and the one returned
+    (150-166 degrees off) lays a patch of floor on a patch of floor, which coincides as sharply as
+    the truth: it came back with confidence 0.85 (session 29). The coincident normals all point
+    one way (``scan.SPREAD_RANGE``), so it must now come back unconfident, or right. Fails with the
+    spread term off."""
+    from esmicp.bench.real_pairs import crop_to_overlap, load_pair, read_pairs
+    from esmicp.globalreg import scan
+
+    require_shared("real_pairs/3dmatch_redkitchen/cloud_bin_0.ply")
+    pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.pair == "t00_s06")
+    source, target, truth = load_pair(pair)
+    cropped = crop_to_overlap(source, target, truth, 0.15,
+                              np.random.default_rng(np.random.SeedSequence(200, spawn_key=(1, 1, 1))))
+
+    def right(result):
+        return (rotation_error_deg(result.rotation, truth[:3, :3]) < 15.0
+                and np.linalg.norm(result.translation - truth[:3, 3]) < 0.30)
+
+    result = esmicp.register(cropped.source, cropped.target, rng=200)
+    assert right(result) or result.confidence < CONFIDENT
+    monkeypatch.setattr(scan, "SPREAD_RANGE", (-2.0, -1.0))  # the spread term off
+    result = esmicp.register(cropped.source, cropped.target, rng=200)
+    assert not right(result) and result.confidence >= CONFIDENT

@@ -96,20 +96,32 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
     """The confidence (compiled tree) against the same counts from SciPy's KD-tree, at the truth,
     near it and far from it."""
     from esmicp.globalreg import scan
+    from esmicp.globalreg.features import estimate_normals
     from esmicp.globalreg.scan import Keypoints, overlap_confidence
 
     def reference(transformation, keypoints):
         rotation, translation = transformation[:3, :3], transformation[:3, 3]
-        sharpness = []
+        sharpness, spread, shares = [], [], []
         for moved, fixed in ((keypoints.source @ rotation.T + translation, keypoints.target),
                              ((keypoints.target - translation) @ rotation, keypoints.source)):
-            distances, _ = cKDTree(fixed).query(moved)
+            distances, nearest = cKDTree(fixed).query(moved)
             overlap = np.count_nonzero(distances <= scan.OVERLAP_VOXELS * keypoints.voxel)
-            if overlap < 3:
+            coincide = distances <= scan.VERIFY_VOXELS * keypoints.voxel
+            if overlap < 3 or np.count_nonzero(coincide) < 3:
                 return 0.0
-            sharpness.append(np.count_nonzero(distances <= scan.VERIFY_VOXELS * keypoints.voxel) / overlap)
+            sharpness.append(np.count_nonzero(coincide) / overlap)
+            shares.append(np.count_nonzero(coincide) / len(moved))
+            touched = nearest[coincide]
+            if len(touched) > scan.SPREAD_POINTS:
+                touched = touched[np.linspace(0, len(touched) - 1, scan.SPREAD_POINTS).astype(int)]
+            normals = estimate_normals(fixed, k=30, radius=scan.NORMAL_RADIUS_VOXELS * keypoints.voxel)[touched]
+            spread.append(np.sort(np.linalg.eigvalsh(np.cov(normals.T, bias=True) + np.outer(*[normals.mean(axis=0)] * 2)))[1])
         low, high = scan.SHARPNESS_RANGE
-        return float(np.clip((min(sharpness) - low) / (high - low), 0.0, 1.0))
+        sharp = float(np.clip((min(sharpness) - low) / (high - low), 0.0, 1.0))
+        if min(shares) >= scan.SPREAD_BELOW:
+            return sharp
+        low, high = scan.SPREAD_RANGE
+        return min(sharp, float(np.clip((min(spread) - low) / (high - low), 0.0, 1.0)))
 
     rng = np.random.default_rng(12)
     target = asymmetric_shape(2000, rng)
@@ -121,8 +133,38 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
         for shift in (0.0, 0.9, 1.05, 1.2, 30.0):  # keypoint voxels along x
             pose = esmicp.core.procrustes.to_matrix(np.eye(3), [shift * keypoints.voxel, 0.0, 0.0]) @ truth
             values.add(overlap_confidence(pose, keypoints))
-            assert overlap_confidence(pose, keypoints) == reference(pose, keypoints)
+            assert overlap_confidence(pose, keypoints) == pytest.approx(reference(pose, keypoints), abs=1e-12)
     assert len(values) > 2  # confident, unsure and wrong poses alike
+
+
+def test_a_floor_slid_over_a_floor_is_not_confident(monkeypatch):
+    """A patch of floor slid along the target's floor coincides with it as sharply as at the truth,
+    and the sharpness alone read that as confident; but all its coincident normals point one way,
+    which fixes 3 of the 6 degrees of freedom, so the confidence is now low
+    (:data:`~esmicp.globalreg.scan.SPREAD_RANGE`). A room (floor and two walls) at the truth stays
+    confident. Fails if the spread term is dropped."""
+    from esmicp.core.procrustes import to_matrix
+    from esmicp.globalreg import scan
+    from esmicp.globalreg.scan import CONFIDENT, Keypoints, overlap_confidence
+
+    rng = np.random.default_rng(21)
+
+    def room(count):
+        u, v = rng.uniform(0.0, 1.0, size=(2, count))
+        zero = np.zeros(count)
+        return np.vstack([np.column_stack([4 * u, 3 * v, zero]), np.column_stack([4 * u, zero, 2.5 * v]),
+                          np.column_stack([zero, 3 * v, 2.5 * u])])
+
+    target = room(3000)
+    source = room(3000)
+    floor = source[(source[:, 2] == 0.0) & (source[:, 0] > 1.0) & (source[:, 1] > 1.0)]
+    spacing = NearestNeighbors(target).spacing()
+    slid = to_matrix(np.eye(3), [-0.6, -0.4, 0.0])  # stays on the target's floor
+    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing)) >= CONFIDENT
+    floor_keys = Keypoints.of(floor, target, spacing)
+    assert overlap_confidence(slid, floor_keys) < CONFIDENT
+    monkeypatch.setattr(scan, "SPREAD_RANGE", (-2.0, -1.0))  # the spread term off
+    assert overlap_confidence(slid, floor_keys) >= CONFIDENT
 
 
 def test_distinct_selects_what_a_loop_over_rotation_angles_selects():

@@ -85,9 +85,12 @@ class RegistrationResult:
         How sharply the clouds coincide *where they overlap* under the final pose, 0-1, whatever
         the overlap's size (:func:`esmicp.globalreg.scan.overlap_confidence`): of the points (voxel
         centroids at the scale the data chooses) lying within 3 voxels of the other cloud, the
-        fraction within 1 voxel, the worse of the two directions, mapped from 0.5-0.8 onto 0-1.
-        Below 0.5 (:data:`esmicp.globalreg.scan.CONFIDENT`): do not trust the pose. Measured
-        figures: ``docs/measured-global.md``, "Scans".
+        fraction within 1 voxel, the worse of the two directions, mapped from 0.5-0.8 onto 0-1;
+        lower when less than half of either cloud coincides and the coincident part's normals
+        point mostly one way (one plane laid on another holds only 3 of the 6 degrees of freedom:
+        :func:`esmicp.globalreg.scan.coincident_spread`). Below 0.5
+        (:data:`esmicp.globalreg.scan.CONFIDENT`): do not trust the pose. Measured figures:
+        ``docs/measured-global.md``, "Scans".
     """
 
     transformation: np.ndarray
