@@ -71,7 +71,10 @@ PLANE_CONFIDENCE_DROP = 0.25
 #: ``esm`` then creeps on by 1e-5 rad per iteration in no steady direction (3DMatch ``t00_s04``:
 #: 45 of 50 iterations), which the polish's first step (4e-5 rad) undoes. A steady slide toward the
 #: truth still runs to its end (the bunny's ``bun180 -> bun090`` stops too early at 1e-5, not at
-#: 3e-6). Measured: ``docs/speed.md``, "Issue 13, session 24".
+#: 3e-6). Measured: ``docs/speed.md``, "Issue 13, session 24". After a global search, a source too
+#: small for the strided stages is refined at this tolerance too: from the global pose, ``esm``
+#: on all of ``t04_s06``'s 16k source points crept for 94 iterations (0.4 s) and moved the pose by
+#: 0.004 degrees (``docs/speed.md``, "Issue 13, session 29").
 STRIDED_TOLERANCE = 3e-6
 
 
@@ -141,9 +144,10 @@ def register(
         Convergence tolerance: stop once an increment rotates less than ``tolerance`` radians and
         translates less than ``tolerance`` times the target's bounding-box diagonal, or once the
         RMS correspondence distance changes by less than ``tolerance`` relative to itself. After a
-        global search on a source of more than ``2 * REFINE_POINTS`` points, the stages on the
-        strided subsample stop at ``STRIDED_TOLERANCE`` (3e-6) when ``tolerance`` is finer; the
-        polish on every point keeps ``tolerance``.
+        global search, the refinement stops at ``STRIDED_TOLERANCE`` (3e-6) when ``tolerance`` is
+        finer: on a source of more than ``2 * REFINE_POINTS`` points its stages on the strided
+        subsample (the polish on every point keeps ``tolerance``), on a smaller one the whole
+        refinement. A given ``init`` keeps ``tolerance``.
     rng : None, int or numpy.random.Generator
         Randomness of the global search (its subsamples). None uses a fixed seed, so the same input
         gives the same result; local refinement itself is deterministic.
@@ -193,8 +197,11 @@ def register(
     if estimate is not None and callback is None and not record_history and len(source_points) > 2 * REFINE_POINTS:
         outcome = _refine_then_polish(source_points, target_index, estimator, initial, request, diagonal, keypoints)
     else:
+        criteria = request.criteria
+        if estimate is not None:  # the global pose is close: see STRIDED_TOLERANCE
+            criteria = dataclasses.replace(criteria, tolerance=max(criteria.tolerance, STRIDED_TOLERANCE))
         outcome = guarded_refine(
-            source_points, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal,
+            source_points, target_index, estimator, init=initial, criteria=criteria, scale=diagonal,
             callback=frame.callback(callback), record_history=record_history, coarse_points=COARSE_POINTS,
         )
     fitness, inlier_rmse, inlier_distance = _evaluate(source_points, target_index, outcome.transformation, request,
