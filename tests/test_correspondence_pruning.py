@@ -283,6 +283,26 @@ def test_the_pruning_kernels_equal_plain_numpy(seed):
                                       _inlier_mask(rotations, translations, source, target, 2.0).sum(axis=1))
 
 
+def _lomatch_crop(pair_name: str, seed: int, spawn_key: tuple[int, int, int]):
+    """``(cropped, truth)``: the 3DMatch pair ``pair_name`` cropped to 15% overlap as
+    ``benchmarks/lomatch_crop.py --seed seed`` crops it (``spawn_key``: the pair's index among the
+    3DMatch pairs, the overlap's index, the crop's), as recorded."""
+    from esmicp.bench.real_pairs import crop_to_overlap, load_pair, read_pairs
+
+    require_shared("real_pairs/3dmatch_redkitchen/cloud_bin_0.ply")
+    pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.pair == pair_name)
+    source, target, truth = load_pair(pair)
+    cropped = crop_to_overlap(source, target, truth, 0.15,
+                              np.random.default_rng(np.random.SeedSequence(seed, spawn_key=spawn_key)))
+    return cropped, truth
+
+
+def _right_3dmatch(pose: np.ndarray, truth: np.ndarray) -> bool:
+    """The 3DMatch criteria: rotation error < 15 degrees and translation error < 0.3 m."""
+    return (rotation_error_deg(pose[:3, :3], truth[:3, :3]) < 15.0
+            and np.linalg.norm(pose[:3, 3] - truth[:3, 3]) < 0.30)
+
+
 def test_a_real_pair_cropped_to_15_percent_overlap_succeeds():
     """3DMatch fragments 0 and 4 (~300k points each) cropped by a seeded plane slab until 15% of
     the source lies on the target (``benchmarks/lomatch_crop.py``'s crop, as recorded): the
@@ -290,17 +310,10 @@ def test_a_real_pair_cropped_to_15_percent_overlap_succeeds():
     its seeds (64, spread in the source only) held no true group and it ended 35 degrees off; with
     the seeds right, the ``esm-plane`` stage still pulled the pose from 2 to 37 degrees off, and is
     now undone."""
-    from esmicp.bench.real_pairs import crop_to_overlap, load_pair, read_pairs
-
-    require_shared("real_pairs/3dmatch_redkitchen/cloud_bin_0.ply")
-    pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.pair == "t00_s04")
-    source, target, truth = load_pair(pair)
-    cropped = crop_to_overlap(source, target, truth, 0.15,
-                              np.random.default_rng(np.random.SeedSequence(0, spawn_key=(0, 1, 0))))
+    cropped, truth = _lomatch_crop("t00_s04", 0, (0, 1, 0))
     assert cropped.source_overlap < 0.2
     result = esmicp.register(cropped.source, cropped.target)
-    assert rotation_error_deg(result.rotation, truth[:3, :3]) < 15.0
-    assert np.linalg.norm(result.translation - truth[:3, 3]) < 0.30
+    assert _right_3dmatch(result.transformation, truth)
     assert result.confidence >= CONFIDENT
 
 
@@ -310,19 +323,13 @@ def test_an_unconfident_scan_search_is_run_again_with_other_settings():
     best pose is a flip with little confidence; with normals from the dense points (the second)
     the pose is found, confidently, and the search that tries them in turn keeps that one. Fails
     if the retry is dropped or keeps the wrong estimate."""
-    from esmicp.bench.real_pairs import crop_to_overlap, load_pair, read_pairs
     from esmicp.globalreg.scan import NORMALS_FROM_KEYPOINTS, scan_estimate, scan_estimate_until_confident
 
-    require_shared("real_pairs/3dmatch_redkitchen/cloud_bin_0.ply")
-    pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.pair == "t00_s04")
-    source, target, truth = load_pair(pair)
-    cropped = crop_to_overlap(source, target, truth, 0.15,
-                              np.random.default_rng(np.random.SeedSequence(0, spawn_key=(0, 1, 0))))
+    cropped, truth = _lomatch_crop("t00_s04", 0, (0, 1, 0))
     spacing = NearestNeighbors(cropped.target).spacing()
 
     def right(pose):
-        return (rotation_error_deg(pose[:3, :3], truth[:3, :3]) < 15.0
-                and np.linalg.norm(pose[:3, 3] - truth[:3, 3]) < 0.30)
+        return _right_3dmatch(pose, truth)
 
     assert NORMALS_FROM_KEYPOINTS == (True, False)
     first = scan_estimate(cropped.source, cropped.target, spacing=spacing, normals_from_keypoints=True)
@@ -339,18 +346,12 @@ def test_a_sharper_scan_pose_wins_over_a_slid_pose_that_overlaps_a_little_more(m
     overlaps a little less than the rotation search's (measured in session 28: 0.19 against 0.22,
     confidence 0.70 against 0.16), which the refinement then slid to 0.49 m off. The scan pose
     now wins on its sharpness (``search.SHARPER_BY``); with the rule off this crop fails."""
-    from esmicp.bench.real_pairs import crop_to_overlap, load_pair, read_pairs
-
-    require_shared("real_pairs/3dmatch_redkitchen/cloud_bin_0.ply")
-    pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.pair == "t00_s04")
-    source, target, truth = load_pair(pair)
-    cropped = crop_to_overlap(source, target, truth, 0.15,
-                              np.random.default_rng(np.random.SeedSequence(100, spawn_key=(0, 1, 1))))
     from esmicp.globalreg import search
 
+    cropped, truth = _lomatch_crop("t00_s04", 100, (0, 1, 1))
+
     def right(result):
-        return (rotation_error_deg(result.rotation, truth[:3, :3]) < 15.0
-                and np.linalg.norm(result.translation - truth[:3, 3]) < 0.30)
+        return _right_3dmatch(result.transformation, truth)
 
     result = esmicp.register(cropped.source, cropped.target, rng=100)
     assert result.init == "global:scan"
@@ -367,18 +368,12 @@ def test_a_flip_that_lays_a_floor_on_a_floor_is_not_confident(monkeypatch):
     the truth: it came back with confidence 0.85 (session 29). The coincident normals all point
     one way (``scan.SPREAD_RANGE``), so it must now come back unconfident, or right. Fails with the
     spread term off."""
-    from esmicp.bench.real_pairs import crop_to_overlap, load_pair, read_pairs
     from esmicp.globalreg import scan
 
-    require_shared("real_pairs/3dmatch_redkitchen/cloud_bin_0.ply")
-    pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.pair == "t00_s06")
-    source, target, truth = load_pair(pair)
-    cropped = crop_to_overlap(source, target, truth, 0.15,
-                              np.random.default_rng(np.random.SeedSequence(200, spawn_key=(1, 1, 1))))
+    cropped, truth = _lomatch_crop("t00_s06", 200, (1, 1, 1))
 
     def right(result):
-        return (rotation_error_deg(result.rotation, truth[:3, :3]) < 15.0
-                and np.linalg.norm(result.translation - truth[:3, 3]) < 0.30)
+        return _right_3dmatch(result.transformation, truth)
 
     result = esmicp.register(cropped.source, cropped.target, rng=200)
     assert right(result) or result.confidence < CONFIDENT
