@@ -203,8 +203,8 @@ def register(
         outcome = _refine_then_polish(source_points, target_index, estimator, initial, request, diagonal, keypoints)
     else:
         criteria = request.criteria
-        if estimate is not None and len(source_points) > LOOSER_FROM_POINTS:  # see STRIDED_TOLERANCE
-            criteria = dataclasses.replace(criteria, tolerance=max(criteria.tolerance, STRIDED_TOLERANCE))
+        if estimate is not None and len(source_points) > LOOSER_FROM_POINTS:
+            criteria = _at_strided_tolerance(criteria)
         outcome = guarded_refine(
             source_points, target_index, estimator, init=initial, criteria=criteria, scale=diagonal,
             callback=frame.callback(callback), record_history=record_history, coarse_points=COARSE_POINTS,
@@ -290,8 +290,7 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     at ``STRIDED_TOLERANCE`` when the request's tolerance is finer; the polish keeps the request's."""
     strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
     polish_criteria = request.criteria
-    request = dataclasses.replace(request, criteria=dataclasses.replace(
-        request.criteria, tolerance=max(request.criteria.tolerance, STRIDED_TOLERANCE)))
+    request = dataclasses.replace(request, criteria=_at_strided_tolerance(request.criteria))
     plane_iterations, plane_note = 0, ""
     if request.method == "esm":
         initial, plane_iterations, plane_note = _plane_start(strided, target_index, initial, request, diagonal,
@@ -315,6 +314,12 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
         num_iterations=plane_iterations + coarse.num_iterations + polish.num_iterations,
         message=f"{where}; then {polish.num_iterations} iteration(s) on all {len(source):,}",
     )
+
+
+def _at_strided_tolerance(criteria: ConvergenceCriteria) -> ConvergenceCriteria:
+    """``criteria`` stopping at :data:`STRIDED_TOLERANCE` when its own tolerance is finer: a
+    refinement from a global pose, whose last iterations creep in no steady direction."""
+    return dataclasses.replace(criteria, tolerance=max(criteria.tolerance, STRIDED_TOLERANCE))
 
 
 def _estimator(method: str, request: _Request, target_index, diagonal: float, start_fine: bool = False):

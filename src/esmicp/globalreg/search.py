@@ -302,13 +302,13 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
     from .scan import CONFIDENT, overlap_confidence, overlap_score
 
     keypoints = scanned.keypoints
-    sharpness = overlap_confidence(scanned.transformation, keypoints, workers)
-    if sharpness < CONFIDENT:
+    confidence = overlap_confidence(scanned.transformation, keypoints, workers)
+    if confidence < CONFIDENT:
         return False
     mine, theirs = overlap_score(scanned.transformation, keypoints, workers), overlap_score(other, keypoints, workers)
     if mine > margin * theirs:
         return True
-    return mine >= SHARPER_SCORE_RATIO * theirs and sharpness >= overlap_confidence(other, keypoints, workers) + SHARPER_BY
+    return mine >= SHARPER_SCORE_RATIO * theirs and confidence >= overlap_confidence(other, keypoints, workers) + SHARPER_BY
 
 
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
