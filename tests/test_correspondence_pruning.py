@@ -380,3 +380,62 @@ def test_a_flip_that_lays_a_floor_on_a_floor_is_not_confident(monkeypatch):
     monkeypatch.setattr(scan, "SPREAD_RANGE", (-2.0, -1.0))  # the spread term off
     result = esmicp.register(cropped.source, cropped.target, rng=200)
     assert not right(result) and result.confidence >= CONFIDENT
+
+
+def test_a_finer_search_runs_when_neither_first_search_is_confident(monkeypatch):
+    """The 3DMatch pair ``t04_s06`` cropped to 15% overlap (``benchmarks/lomatch_crop.py --crops 4
+    --seed 0``'s crop 0 of that pair, as recorded): neither search at the standard voxel is
+    confident (both end 30-180 degrees off, session 30), and the last one, at the voxel of
+    ``scan.FINER_KEYPOINTS``, finds the pose, confidently. The estimate carries the standard
+    keypoints, so that its confidence is on the data's one scale. Fails if the finer search is
+    dropped."""
+    from esmicp.globalreg import scan
+
+    cropped, truth = _lomatch_crop("t04_s06", 0, (2, 1, 0))
+    spacing = NearestNeighbors(cropped.target).spacing()
+    standard = scan.keypoint_voxel(cropped.target, spacing)
+    chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
+    assert _right_3dmatch(chosen.transformations[0], truth)
+    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= CONFIDENT
+    assert chosen.voxel == standard
+    monkeypatch.setattr(scan, "FINER_KEYPOINTS", scan.KEYPOINTS)  # no finer voxel: the search is skipped
+    chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
+    assert not _right_3dmatch(chosen.transformations[0], truth)
+    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) < CONFIDENT
+
+
+def test_a_small_cloud_skips_the_finer_search(monkeypatch):
+    """Two unrelated 1,000-point clouds: no search is confident, and the voxel of
+    ``scan.FINER_KEYPOINTS`` is the standard one (both at ``MIN_VOXEL_SPACINGS``), so the finer
+    search would repeat the first: it must not run (objects reach the scan strategy often, and
+    issue 14 times them)."""
+    from esmicp.globalreg import scan
+
+    generator = np.random.default_rng(3)
+    source, target = generator.normal(size=(1000, 3)), generator.uniform(-1, 1, (1000, 3))
+    calls = []
+    original = scan.scan_estimate
+
+    def counted(*args, **kwargs):
+        calls.append(kwargs.get("voxel"))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(scan, "scan_estimate", counted)
+    spacing = NearestNeighbors(target).spacing()
+    found = scan.scan_estimate_until_confident(source, target, spacing=spacing)
+    assert overlap_confidence(found.transformations[0], found.keypoints) < CONFIDENT
+    assert calls == [None, None]
+    # The same with a standard voxel above the floor: the finer search runs (the test can fail).
+    monkeypatch.setattr(scan, "KEYPOINTS", 200)
+    calls.clear()
+    scan.scan_estimate_until_confident(source, target, spacing=spacing)
+    assert len(calls) == 3 and calls[2] is not None
+
+
+def test_the_confidence_of_keypoints_too_few_to_compare_is_zero():
+    """A search whose keypoints were all dropped (isolated) returns an empty keypoint cloud; its
+    confidence is 0, not an error from the tree over no points."""
+    points = np.random.default_rng(0).normal(size=(50, 3))
+    assert overlap_confidence(np.eye(4), Keypoints(points, points[:0], 0.1)) == 0.0
+    assert overlap_confidence(np.eye(4), Keypoints(points[:2], points, 0.1)) == 0.0
+    assert overlap_confidence(np.eye(4), Keypoints(points, points, 0.5)) > 0.0

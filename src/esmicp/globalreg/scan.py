@@ -39,7 +39,7 @@ Transforms are ``T_target_source`` (``target ~= source @ R.T + t``).
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -59,9 +59,17 @@ KEYPOINTS = 5000
 #: The searches of :func:`scan_estimate_until_confident`, tried in order until one's best pose is
 #: confident (:data:`CONFIDENT`): ``normals_from_keypoints`` of :func:`scan_estimate` (normals from
 #: the keypoints, then from the dense points). Each finds 3DMatch crops at 15-25% overlap that the
-#: other misses; a third search at 10,000 keypoints found more on the crops it was chosen on and
-#: fewer on others, with confident wrong poses (``docs/scans-partial-overlap.md``, session 28).
+#: other misses.
 NORMALS_FROM_KEYPOINTS = (True, False)
+
+#: When neither of those is confident, a last search at the voxel where the target has about this
+#: many occupied voxels (normals from the keypoints): at 10-25% overlap, only a few hundred
+#: keypoints lie in the overlap, and a finer voxel puts more there. Session 28 tried it when a
+#: flat patch laid on another still came back confident, and its confident wrong poses overrode
+#: the other strategies; with the confidence's spread term it gained 7 of the 156 crops and lost
+#: none (``docs/scans-partial-overlap.md``, session 30). Skipped when that voxel is not finer (a
+#: small object is already at ``MIN_VOXEL_SPACINGS``).
+FINER_KEYPOINTS = 10000
 
 #: The keypoint voxel is at least this many target point spacings.
 MIN_VOXEL_SPACINGS = 1.5
@@ -201,9 +209,10 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
     the fraction within ``VERIFY_VOXELS``, the smaller of the two directions, mapped from
     ``SHARPNESS_RANGE``; or, when smaller and when less than :data:`SPREAD_BELOW` of either cloud
     coincides, how well the coincident part's normals hold the pose (:func:`coincident_spread`
-    mapped from :data:`SPREAD_RANGE`), the smaller of the two directions. 0 when nothing overlaps.
-    ``workers``: threads of the compiled tree's queries (None: every core)."""
-    if not np.isfinite(transformation).all():
+    mapped from :data:`SPREAD_RANGE`), the smaller of the two directions. 0 when nothing overlaps
+    or a cloud has fewer than 3 keypoints. ``workers``: threads of the compiled tree's queries
+    (None: every core)."""
+    if not np.isfinite(transformation).all() or min(len(keypoints.source), len(keypoints.target)) < 3:
         return 0.0
     rotation, translation = transformation[:3, :3], transformation[:3, 3]
     voxel = keypoints.voxel
@@ -242,9 +251,10 @@ def coincident_spread(points: np.ndarray, tree: CompiledTree, touched: np.ndarra
     return float(np.linalg.eigvalsh(normals.T @ normals / len(normals))[1])
 
 
-def keypoint_voxel(points: np.ndarray, spacing: float, count: int = KEYPOINTS) -> float:
-    """The voxel edge (cloud units) at which ``points`` occupy about ``count`` voxels (at least
-    ``MIN_VOXEL_SPACINGS * spacing``)."""
+def keypoint_voxel(points: np.ndarray, spacing: float, count: int | None = None) -> float:
+    """The voxel edge (cloud units) at which ``points`` occupy about ``count`` (default
+    :data:`KEYPOINTS`) voxels (at least ``MIN_VOXEL_SPACINGS * spacing``)."""
+    count = KEYPOINTS if count is None else count
     floor = MIN_VOXEL_SPACINGS * spacing
     low, high = axis_bounds(points)
     # Start from a surface guess (the bounding box's largest face) and correct by the 1/v^2 law.
@@ -436,12 +446,13 @@ def _slide_votes(first, second, source, target_tree: CompiledTree, target_normal
 
 
 def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, workers: int | None = None,
-                  normals_from_keypoints: bool = True) -> ScanEstimate:
+                  normals_from_keypoints: bool = True, voxel: float | None = None) -> ScanEstimate:
     """Poses ``T_target_source`` of two partially overlapping scans, best first (the module
     docstring). ``spacing``: the target's median point spacing (cloud units);
     ``normals_from_keypoints``: the keypoints' normals from the keypoints themselves, else from the
-    dense points (:func:`~esmicp.globalreg.feature_matching._keypoints`). Deterministic."""
-    voxel = keypoint_voxel(target, spacing)
+    dense points (:func:`~esmicp.globalreg.feature_matching._keypoints`); ``voxel``: the keypoint
+    voxel (cloud units; default :func:`keypoint_voxel` of the target). Deterministic."""
+    voxel = keypoint_voxel(target, spacing) if voxel is None else voxel
     if min(_occupied(source, voxel), _occupied(target, voxel)) < MIN_KEYPOINTS:
         # Too few distinct places to describe (e.g. a few points repeated): no hypothesis.
         keypoints = Keypoints(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
@@ -489,13 +500,16 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
 def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spacing: float,
                                   workers: int | None = None) -> ScanEstimate:
     """:func:`scan_estimate` with each setting of ``NORMALS_FROM_KEYPOINTS`` in turn until one's best pose is
-    confident (:func:`overlap_confidence` at least :data:`CONFIDENT`): the estimate whose best pose
-    is the most confident, each judged on its own keypoints (the first on a tie).
+    confident (:func:`overlap_confidence` at least :data:`CONFIDENT`), then, if none was, once
+    more at the finer voxel of :data:`FINER_KEYPOINTS`: the estimate whose best pose is the most
+    confident (the first on a tie). The first searches are each judged on their own keypoints; the
+    finer one on those of the most confident before it, which it then carries: the confidence
+    keeps the data's one scale, and :attr:`ScanEstimate.voxel` stays the standard keypoint voxel.
 
     Why: at 10-25% overlap only a few hundred of the 5,000 keypoints lie in the overlap and often
     no true correspondence survives the pruning; normals at the keypoints' scale and at the dense
-    points' give different descriptors, and each finds crops the other misses. A confident first
-    search costs nothing more."""
+    points' give different descriptors, and a finer voxel more keypoints in the overlap: each
+    finds crops the others miss. A confident first search costs nothing more."""
     best, best_confidence = None, -1.0
     for normals_from_keypoints in NORMALS_FROM_KEYPOINTS:
         found = scan_estimate(source, target, spacing=spacing, workers=workers,
@@ -504,7 +518,14 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
         if confidence > best_confidence:
             best, best_confidence = found, confidence
         if confidence >= CONFIDENT:
-            break
+            return best
+    finer = keypoint_voxel(target, spacing, FINER_KEYPOINTS)
+    if finer >= best.voxel:
+        return best
+    found = replace(scan_estimate(source, target, spacing=spacing, workers=workers, voxel=finer),
+                    keypoints=best.keypoints)
+    if overlap_confidence(found.transformations[0], found.keypoints, workers) > best_confidence:
+        return found
     return best
 
 
