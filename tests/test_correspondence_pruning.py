@@ -366,8 +366,8 @@ def test_a_flip_that_lays_a_floor_on_a_floor_is_not_confident(monkeypatch):
     --seed 200``'s crop 1 of that pair, as recorded): no right pose is found, and the one returned
     (150-166 degrees off) lays a patch of floor on a patch of floor, which coincides as sharply as
     the truth: it came back with confidence 0.85 (session 29). The coincident normals all point
-    one way (``scan.SPREAD_RANGE``), so it must now come back unconfident, or right. Fails with the
-    spread term off."""
+    one way (``scan.SPREAD_RANGE``, ``scan.THIRD_RANGE``), so it must now come back unconfident, or
+    right. Fails with the spread terms off."""
     from esmicp.globalreg import scan
 
     cropped, truth = _lomatch_crop("t00_s06", 200, (1, 1, 1))
@@ -377,7 +377,8 @@ def test_a_flip_that_lays_a_floor_on_a_floor_is_not_confident(monkeypatch):
 
     result = esmicp.register(cropped.source, cropped.target, rng=200)
     assert right(result) or result.confidence < CONFIDENT
-    monkeypatch.setattr(scan, "SPREAD_RANGE", (-2.0, -1.0))  # the spread term off
+    monkeypatch.setattr(scan, "SPREAD_RANGE", (-2.0, -1.0))  # the spread terms off
+    monkeypatch.setattr(scan, "THIRD_RANGE", (-2.0, -1.0))
     result = esmicp.register(cropped.source, cropped.target, rng=200)
     assert not right(result) and result.confidence >= CONFIDENT
 

@@ -115,13 +115,16 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
             if len(touched) > scan.SPREAD_POINTS:
                 touched = touched[np.linspace(0, len(touched) - 1, scan.SPREAD_POINTS).astype(int)]
             normals = estimate_normals(fixed, k=30, radius=scan.NORMAL_RADIUS_VOXELS * keypoints.voxel)[touched]
-            spread.append(np.sort(np.linalg.eigvalsh(np.cov(normals.T, bias=True) + np.outer(*[normals.mean(axis=0)] * 2)))[1])
-        low, high = scan.SHARPNESS_RANGE
-        sharp = float(np.clip((min(sharpness) - low) / (high - low), 0.0, 1.0))
+            spread.append(np.sort(np.linalg.eigvalsh(np.cov(normals.T, bias=True) + np.outer(*[normals.mean(axis=0)] * 2))))
+
+        def ramp(value, bounds):
+            return float(np.clip((value - bounds[0]) / (bounds[1] - bounds[0]), 0.0, 1.0))
+
+        sharp = ramp(min(sharpness), scan.SHARPNESS_RANGE)
         if min(shares) >= scan.SPREAD_BELOW:
             return sharp
-        low, high = scan.SPREAD_RANGE
-        return min(sharp, float(np.clip((min(spread) - low) / (high - low), 0.0, 1.0)))
+        return min(sharp, *(ramp(values[1], scan.SPREAD_RANGE) for values in spread),
+                   *(ramp(values[0], scan.THIRD_RANGE) for values in spread))
 
     rng = np.random.default_rng(12)
     target = asymmetric_shape(2000, rng)
@@ -163,8 +166,41 @@ def test_a_floor_slid_over_a_floor_is_not_confident(monkeypatch):
     assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing)) >= CONFIDENT
     floor_keys = Keypoints.of(floor, target, spacing)
     assert overlap_confidence(slid, floor_keys) < CONFIDENT
-    monkeypatch.setattr(scan, "SPREAD_RANGE", (-2.0, -1.0))  # the spread term off
+    monkeypatch.setattr(scan, "SPREAD_RANGE", (-2.0, -1.0))  # the spread terms off
+    monkeypatch.setattr(scan, "THIRD_RANGE", (-2.0, -1.0))
     assert overlap_confidence(slid, floor_keys) >= CONFIDENT
+
+
+def test_a_corner_of_floor_and_wall_slid_along_their_line_is_not_confident(monkeypatch):
+    """A floor and one wall slid along the line where they meet coincide as sharply as at the
+    truth, and their normals span two directions (the middle eigenvalue is the wall's share), so
+    the spread term read that as confident; but the slide along the line is free, and the smallest
+    eigenvalue is 0 (:data:`~esmicp.globalreg.scan.THIRD_RANGE`; on the 3DMatch crops, two wrong
+    poses 120 degrees and 1 m off, session 30). A room (floor and two walls) at the truth stays
+    confident. Fails if the third-direction term is dropped."""
+    from esmicp.core.procrustes import to_matrix
+    from esmicp.globalreg import scan
+    from esmicp.globalreg.scan import CONFIDENT, Keypoints, overlap_confidence
+
+    rng = np.random.default_rng(22)
+
+    def room(count):
+        u, v = rng.uniform(0.0, 1.0, size=(2, count))
+        zero = np.zeros(count)
+        return np.vstack([np.column_stack([4 * u, 3 * v, zero]), np.column_stack([4 * u, zero, 2.5 * v]),
+                          np.column_stack([zero, 3 * v, 2.5 * u])])
+
+    target, source = room(3000), room(3000)
+    # The source's floor and its wall y = 0, away from the wall x = 0: two planes meeting along x.
+    corner = source[(source[:, 0] > 1.5) & (source[:, 1] < 1.5) & (source[:, 2] < 1.2) & (source[:, 0] < 3.0)]
+    corner = corner[(corner[:, 2] == 0.0) | (corner[:, 1] == 0.0)]
+    spacing = NearestNeighbors(target).spacing()
+    slid = to_matrix(np.eye(3), [-0.7, 0.0, 0.0])  # along the line: stays on the target's floor and wall
+    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing)) >= CONFIDENT
+    corner_keys = Keypoints.of(corner, target, spacing)
+    assert overlap_confidence(slid, corner_keys) < CONFIDENT
+    monkeypatch.setattr(scan, "THIRD_RANGE", (-2.0, -1.0))  # the third-direction term off
+    assert overlap_confidence(slid, corner_keys) >= CONFIDENT
 
 
 def test_distinct_selects_what_a_loop_over_rotation_angles_selects():

@@ -138,6 +138,14 @@ SHARPNESS_RANGE = (0.5, 0.8)
 #: had a middle eigenvalue of 0.014-0.083, the right poses' 0.11-0.38, the real pairs' at the ground
 #: truth 0.19-0.36 (``docs/scans-partial-overlap.md``, session 29).
 SPREAD_RANGE = (0.05, 0.15)
+#: ... and a third direction: the smallest eigenvalue (0 for normals on two planes, a floor and one
+#: wall, which leave the slide along their line free) maps linearly from ``THIRD_RANGE`` onto 0-1.
+#: Its low end is the normals' own noise (a tilt of 3-5 degrees on one plane alone gives
+#: 0.003-0.008); 0.009 is about 1% of the coincident normals on a third plane. Two wrong poses on
+#: the 3DMatch crops, 120 degrees and 1 m off, laid a floor and a wall on a floor and a wall and came
+#: back with confidence 0.80-0.88 (smallest eigenvalue 0.001-0.003); the right poses had
+#: 0.007-0.164, the ground truths of all 156 crops 0.010-0.19 (session 30).
+THIRD_RANGE = (0.003, 0.009)
 #: The spread is measured on at most this many coincident keypoints (evenly strided), each one's
 #: normal from its 30 nearest keypoints within ``NORMAL_RADIUS_VOXELS``: normals at every keypoint
 #: of both clouds took 8 ms of a 24 ms registration of 2,000 points.
@@ -208,8 +216,9 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
     (``T_target_source``), 0-1: of the keypoints within ``OVERLAP_VOXELS`` of the other cloud,
     the fraction within ``VERIFY_VOXELS``, the smaller of the two directions, mapped from
     ``SHARPNESS_RANGE``; or, when smaller and when less than :data:`SPREAD_BELOW` of either cloud
-    coincides, how well the coincident part's normals hold the pose (:func:`coincident_spread`
-    mapped from :data:`SPREAD_RANGE`), the smaller of the two directions. 0 when nothing overlaps
+    coincides, how well the coincident part's normals hold the pose (:func:`coincident_spread`:
+    its middle eigenvalue mapped from :data:`SPREAD_RANGE`, its smallest from :data:`THIRD_RANGE`),
+    the smallest of these in either direction. 0 when nothing overlaps
     or a cloud has fewer than 3 keypoints. ``workers``: threads of the compiled tree's queries
     (None: every core)."""
     if not np.isfinite(transformation).all() or min(len(keypoints.source), len(keypoints.target)) < 3:
@@ -228,27 +237,34 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
             return 0.0
         sharpness.append(np.count_nonzero(coincide) / overlap)
         coincident.append((fixed_points, fixed, nearest[coincide], np.count_nonzero(coincide) / len(moved)))
-    spread = [np.inf]
+    held = 1.0
     if min(share for *_, share in coincident) < SPREAD_BELOW:
-        spread = [coincident_spread(points, tree, touched, voxel, workers) for points, tree, touched, _ in coincident]
-    low, high = SHARPNESS_RANGE
-    sharp = np.clip((min(sharpness) - low) / (high - low), 0.0, 1.0)
-    low, high = SPREAD_RANGE
-    held = np.clip((min(spread) - low) / (high - low), 0.0, 1.0)
-    return float(min(sharp, held))
+        for points, tree, touched, _ in coincident:
+            third, second = coincident_spread(points, tree, touched, voxel, workers)
+            held = min(held, _ramp(second, SPREAD_RANGE), _ramp(third, THIRD_RANGE))
+    return float(min(_ramp(min(sharpness), SHARPNESS_RANGE), held))
+
+
+def _ramp(value: float, bounds: tuple[float, float]) -> float:
+    """``value`` mapped linearly from ``bounds`` onto 0-1, clipped."""
+    low, high = bounds
+    return float(np.clip((value - low) / (high - low), 0.0, 1.0))
 
 
 def coincident_spread(points: np.ndarray, tree: CompiledTree, touched: np.ndarray, voxel: float,
-                      workers: int | None = None) -> float:
-    """How many directions the normals of ``points[touched]`` span: the middle eigenvalue of their
-    second moment (0 when they are all parallel, as on one plane; 1/3 when they point every way).
-    At most :data:`SPREAD_POINTS` of ``touched`` (evenly strided), each normal from its 30 nearest
-    of ``points`` (``tree`` is over them) within ``NORMAL_RADIUS_VOXELS * voxel``."""
+                      workers: int | None = None) -> tuple[float, float]:
+    """How many directions the normals of ``points[touched]`` span: the smallest and the middle
+    eigenvalue of their second moment (the middle one 0 when they are all parallel, as on one
+    plane; the smallest 0 when they lie in one plane's worth of directions, as on two planes; both
+    1/3 when they point every way). At most :data:`SPREAD_POINTS` of ``touched`` (evenly strided),
+    each normal from its 30 nearest of ``points`` (``tree`` is over them) within
+    ``NORMAL_RADIUS_VOXELS * voxel``."""
     if len(touched) > SPREAD_POINTS:
         touched = touched[np.linspace(0, len(touched) - 1, SPREAD_POINTS).astype(np.intp)]
     normals = estimate_normals(points, k=30, radius=NORMAL_RADIUS_VOXELS * voxel, at=points[touched], tree=tree,
                                workers=workers)
-    return float(np.linalg.eigvalsh(normals.T @ normals / len(normals))[1])
+    values = np.linalg.eigvalsh(normals.T @ normals / len(normals))
+    return float(values[0]), float(values[1])
 
 
 def keypoint_voxel(points: np.ndarray, spacing: float, count: int | None = None) -> float:
