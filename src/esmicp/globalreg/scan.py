@@ -527,16 +527,17 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
     points' give different descriptors, and a finer voxel more keypoints in the overlap: each
     finds crops the others miss. A confident first search costs nothing more."""
     best, best_confidence = None, -1.0
+    voxel = keypoint_voxel(target, spacing)  # the same for each standard search: found once
     for normals_from_keypoints in NORMALS_FROM_KEYPOINTS:
         found = scan_estimate(source, target, spacing=spacing, workers=workers,
-                              normals_from_keypoints=normals_from_keypoints)
+                              normals_from_keypoints=normals_from_keypoints, voxel=voxel)
         confidence = overlap_confidence(found.transformations[0], found.keypoints, workers)
         if confidence > best_confidence:
             best, best_confidence = found, confidence
         if confidence >= CONFIDENT:
             return best
     finer = keypoint_voxel(target, spacing, FINER_KEYPOINTS)
-    if finer >= best.voxel:
+    if finer >= voxel:
         return best
     found = replace(scan_estimate(source, target, spacing=spacing, workers=workers, voxel=finer),
                     keypoints=best.keypoints)
