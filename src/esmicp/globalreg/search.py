@@ -26,7 +26,8 @@ the result is flagged ambiguous: the object is probably symmetric, or the overla
 decide.
 
 ``"auto"`` (the default) runs the rotation search first; when its result is not confident (see
-:func:`global_estimate`) the scan strategy runs, and its pose wins outright when it is confident on
+:func:`global_estimate`; a pose just short of it is settled first, :data:`SETTLE_FROM`) the scan
+strategy runs, and its pose wins outright when it is confident on
 the overlap and overlaps clearly more (``SCAN_MARGIN``); otherwise the feature candidates join, with the *twins* of its best
 pose (turned by 180 degrees about each principal axis of the target): under heavy noise a
 near-symmetric object (a box-like night stand) otherwise ends on a twin of the truth that neither
@@ -106,6 +107,21 @@ SHARPER_BY = 0.2
 
 #: The full-resolution decision runs when the runner-up scores at least this fraction of the best.
 DECIDE_RATIO = 0.9
+
+#: ``"auto"``: an unambiguous rotation-search pose scoring at least this fraction of
+#: ``CONFIDENT_SCORE`` is *settled* before the scan strategy is called on: ``SETTLE_ITERATIONS``
+#: more ESM iterations on ``SETTLE_POINTS`` evenly strided source points. It is final when it then
+#: scores ``CONFIDENT_SCORE`` and is confident on the overlap (at least ``SETTLED_CONFIDENCE``, by
+#: :func:`~esmicp.globalreg.scan.overlap_confidence` on the pair's keypoints). A LiDAR pair whose
+#: scans are metres apart can end the verification short of the truth (Newer College ``t00_s40``
+#: with rng 9: 2.6 degrees and 1.2 m, score 0.597), and the scan strategy then took 0.21 s of its
+#: 0.29 s. Without the overlap check, settling lifted wrong poses of cut objects over the threshold
+#: (a piano half flipped end to end: 0.595 -> 0.621, overlap confidence 0.10;
+#: ``docs/scans-partial-overlap.md``, session 30).
+SETTLE_FROM = 0.9
+SETTLE_POINTS = 400
+SETTLE_ITERATIONS = 12
+SETTLED_CONFIDENCE = 0.5
 
 
 @dataclass(frozen=True)
@@ -215,7 +231,9 @@ def global_estimate(
 
     ``"auto"`` runs the rotation search first; when its verified best pose already puts at least
     ``CONFIDENT_SCORE`` of the source on the target and no distinct pose comes close, that is
-    final (clouds that overlap fully, as most objects do). Otherwise the scan strategy runs
+    final (clouds that overlap fully, as most objects do); so is a pose just short of that once
+    settled by a few more iterations, if it is then confident on the overlap (:func:`_settle`).
+    Otherwise the scan strategy runs
     (:mod:`esmicp.globalreg.scan`, for partial overlaps); its pose is final when it is confident on
     the overlap and overlaps clearly more than the rotation search's best. Otherwise the feature
     candidates and the twins of that pose (:func:`_twins`) join, and everything is verified
@@ -244,6 +262,10 @@ def global_estimate(
         estimate = _verify(work, candidates, origins)
         if estimate.score >= CONFIDENT_SCORE and not estimate.ambiguous:
             return _decide(work, estimate)
+        if estimate.score >= SETTLE_FROM * CONFIDENT_SCORE and not estimate.ambiguous:
+            settled = _settle(work, estimate)
+            if settled is not None:
+                return settled
         # Not confident: probably a partial overlap. The scan strategy's pose wins at once when it
         # is confident on the overlap and overlaps clearly more than the rotation search's.
         scanned = _scan(source, target, full_index, target_spacing)
@@ -277,6 +299,25 @@ def global_estimate(
             return replace(scanned, candidates=estimate.candidates + scanned.candidates)
         return replace(estimate, candidates=estimate.candidates + scanned.candidates, keypoints=scanned.keypoints)
     return estimate
+
+
+def _settle(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate | None:
+    """``estimate`` with its best pose settled (see :data:`SETTLE_FROM`), and the pair's keypoints
+    (for the confidence), when the settled pose scores ``CONFIDENT_SCORE`` and is confident on the
+    overlap; else None. The source points are strided, not drawn: the generator's later draws stay
+    those of a search without this step."""
+    from .scan import Keypoints, overlap_confidence
+
+    stride = np.linspace(0, len(work.source) - 1, min(SETTLE_POINTS, len(work.source))).astype(np.intp)
+    settled, scores = _batched_verification(work, work.index, work.source[stride], estimate.transformations[:1],
+                                            SETTLE_ITERATIONS, work.width)
+    if scores[0] < CONFIDENT_SCORE:
+        return None
+    keypoints = Keypoints.of(work.source, work.target, work.full_index.spacing())
+    if overlap_confidence(settled[0], keypoints, work.full_index.workers) < SETTLED_CONFIDENCE:
+        return None
+    return replace(estimate, transformations=np.concatenate([settled, estimate.transformations[1:]]),
+                   scores=np.concatenate([scores, estimate.scores[1:]]), keypoints=keypoints)
 
 
 def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | None) -> GlobalEstimate:
