@@ -218,9 +218,8 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
     ``SHARPNESS_RANGE``; or, when smaller and when less than :data:`SPREAD_BELOW` of either cloud
     coincides, how well the coincident part's normals hold the pose (:func:`coincident_spread`:
     its middle eigenvalue mapped from :data:`SPREAD_RANGE`, its smallest from :data:`THIRD_RANGE`),
-    the smallest of these in either direction. 0 when nothing overlaps
-    or a cloud has fewer than 3 keypoints. ``workers``: threads of the compiled tree's queries
-    (None: every core)."""
+    the smallest of these in either direction. 0 when nothing overlaps or a cloud has fewer than 3
+    keypoints. ``workers``: threads of the compiled tree's queries (None: every core)."""
     if not np.isfinite(transformation).all() or min(len(keypoints.source), len(keypoints.target)) < 3:
         return 0.0
     rotation, translation = transformation[:3, :3], transformation[:3, 3]

@@ -27,8 +27,8 @@ decide.
 
 ``"auto"`` (the default) runs the rotation search first; when its result is not confident (see
 :func:`global_estimate`; a pose just short of it is settled first, :data:`SETTLE_FROM`) the scan
-strategy runs, and its pose wins outright when it is confident on
-the overlap and overlaps clearly more (``SCAN_MARGIN``); otherwise the feature candidates join, with the *twins* of its best
+strategy runs, and its pose wins outright when it is confident on the overlap and overlaps
+clearly more (``SCAN_MARGIN``); otherwise the feature candidates join, with the *twins* of its best
 pose (turned by 180 degrees about each principal axis of the target): under heavy noise a
 near-symmetric object (a box-like night stand) otherwise ends on a twin of the truth that neither
 strategy proposes. The rotation search alone and the features alone each miss cases the other
@@ -233,9 +233,9 @@ def global_estimate(
     ``CONFIDENT_SCORE`` of the source on the target and no distinct pose comes close, that is
     final (clouds that overlap fully, as most objects do); so is a pose just short of that once
     settled by a few more iterations, if it is then confident on the overlap (:func:`_settle`).
-    Otherwise the scan strategy runs
-    (:mod:`esmicp.globalreg.scan`, for partial overlaps); its pose is final when it is confident on
-    the overlap and overlaps clearly more than the rotation search's best. Otherwise the feature
+    Otherwise the scan strategy runs (:mod:`esmicp.globalreg.scan`, for partial overlaps); its pose
+    is final when it is confident on the overlap and overlaps clearly more than the rotation
+    search's best. Otherwise the feature
     candidates and the twins of that pose (:func:`_twins`) join, and everything is verified
     together; the scan pose still wins if it is confident and overlaps strictly more than the
     winner. The scan's keypoints come back in ``keypoints`` either way, for the confidence.
