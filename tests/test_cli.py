@@ -72,11 +72,26 @@ def test_register_summary_and_outputs(pair, tmp_path, capsys):
     )
     assert code == 0, err
     assert "T_target_source" in out and "fitness" in out
+    assert "overlap confidence" in out and "LOW" not in out  # a whole shape on itself
     from esmicp import read_points, read_transform
 
     estimate = read_transform(transform)
     assert rotation_error_deg(estimate, truth) < 2.0
     np.testing.assert_allclose(read_points(aligned), apply(estimate, source_points), atol=1e-5)
+
+
+def test_register_summary_says_when_the_pose_is_not_to_be_trusted(tmp_path, capsys):
+    """Two clouds that do not overlap anywhere (a shape, and a distant box of noise): whatever pose
+    comes back, the summary must say its overlap confidence is low, as ``result.confidence`` does."""
+    rng = np.random.default_rng(4)
+    source, target = tmp_path / "shape.xyz", tmp_path / "noise.xyz"
+    np.savetxt(source, asymmetric_shape(1500, rng))
+    np.savetxt(target, rng.uniform(-5.0, 5.0, size=(1500, 3)))
+    code, out, err = run(capsys, "register", str(source), str(target))
+    assert code == 0, err
+    assert "overlap confidence" in out and "LOW" in out
+    code, out, err = run(capsys, "register", str(source), str(target), "--json")
+    assert json.loads(out)["confidence"] < 0.5
 
 
 def test_init_file_is_used(pair, tmp_path, capsys):
