@@ -200,7 +200,8 @@ def register(
         # A given start: its coarse sigma comes from the overlap's residuals (partial overlaps).
         estimator.start_from(target_index.query_near(source_points, transform=initial)[0])
     if estimate is not None and callback is None and not record_history and len(source_points) > 2 * REFINE_POINTS:
-        outcome = _refine_then_polish(source_points, target_index, estimator, initial, request, diagonal, keypoints)
+        outcome = _refine_then_polish(source_points, target_index, estimator, initial, request, diagonal, keypoints,
+                                      estimate.confidence)
     else:
         criteria = request.criteria
         if estimate is not None and len(source_points) > LOOSER_FROM_POINTS:
@@ -278,7 +279,7 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
 
 
 def _refine_then_polish(source, target_index, estimator, initial, request: _Request, diagonal: float,
-                        keypoints: Keypoints):
+                        keypoints: Keypoints, initial_confidence: float | None = None):
     """Stage 4 after a global search on a large source: ``estimator`` on ``REFINE_POINTS`` evenly
     strided source points (for ``esm``, after at most ``PLANE_ITERATIONS`` of ``esm-plane`` there,
     undone when they lower the overlap confidence on ``keypoints`` by more than
@@ -287,14 +288,16 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     ``POLISH_ITERATIONS`` iterations (fewer when ``max_iterations`` leaves fewer). The outcome is
     the polish's, with the iterations of every stage and ``converged`` from the subsample run (the
     polish only sharpens it; a polish the guard rejected makes it False). The strided stages stop
-    at ``STRIDED_TOLERANCE`` when the request's tolerance is finer; the polish keeps the request's."""
+    at ``STRIDED_TOLERANCE`` when the request's tolerance is finer; the polish keeps the request's.
+    ``initial_confidence``: the overlap confidence of ``initial`` on ``keypoints``, when the global
+    search already judged it (else computed here)."""
     strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
     polish_criteria = request.criteria
     request = dataclasses.replace(request, criteria=_at_strided_tolerance(request.criteria))
     plane_iterations, plane_note = 0, ""
     if request.method == "esm":
         initial, plane_iterations, plane_note = _plane_start(strided, target_index, initial, request, diagonal,
-                                                             keypoints)
+                                                             keypoints, initial_confidence)
         request = dataclasses.replace(request, criteria=dataclasses.replace(
             request.criteria, max_iterations=request.criteria.max_iterations - plane_iterations))
     coarse = guarded_refine(strided, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal)
@@ -332,7 +335,7 @@ def _estimator(method: str, request: _Request, target_index, diagonal: float, st
 
 
 def _plane_start(strided, target_index, initial, request: _Request, diagonal: float,
-                 keypoints: Keypoints) -> tuple[np.ndarray, int, str]:
+                 keypoints: Keypoints, initial_confidence: float | None = None) -> tuple[np.ndarray, int, str]:
     """``(pose, iterations, note)`` of at most ``PLANE_ITERATIONS`` ``esm-plane`` iterations on the
     strided source from ``initial``, leaving ``esm`` at least one iteration of ``max_iterations``;
     the note begins the result's message. ``initial`` when the budget leaves none, the guard
@@ -346,7 +349,9 @@ def _plane_start(strided, target_index, initial, request: _Request, diagonal: fl
     plane = guarded_refine(strided, target_index, planar, init=initial, criteria=criteria, scale=diagonal)
     if plane.num_iterations == 0:
         return initial, 0, ""
-    before = overlap_confidence(initial, keypoints, request.workers)
+    before = initial_confidence
+    if before is None:
+        before = overlap_confidence(initial, keypoints, request.workers)
     after = overlap_confidence(plane.transformation, keypoints, request.workers)
     if after < before - PLANE_CONFIDENCE_DROP:
         return initial, plane.num_iterations, (

@@ -187,13 +187,16 @@ class Keypoints:
 @dataclass(frozen=True)
 class ScanEstimate:
     """Verified poses, best first (each distinct from those before it), their overlap scores (the
-    fraction of keypoints of both clouds lying on the other cloud, 0-1), and the keypoints."""
+    fraction of keypoints of both clouds lying on the other cloud, 0-1), and the keypoints;
+    ``confidence``: :func:`overlap_confidence` of the best pose on those keypoints, once
+    :func:`scan_estimate_until_confident` has judged it (None before)."""
 
     transformations: np.ndarray
     scores: np.ndarray
     keypoints: Keypoints
     correspondences: int
     inlier_counts: np.ndarray
+    confidence: float | None = None
 
     @property
     def voxel(self) -> float:
@@ -530,19 +533,18 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
     for normals_from_keypoints in NORMALS_FROM_KEYPOINTS:
         found = scan_estimate(source, target, spacing=spacing, workers=workers,
                               normals_from_keypoints=normals_from_keypoints, voxel=voxel)
-        confidence = overlap_confidence(found.transformations[0], found.keypoints, workers)
-        if confidence > best_confidence:
-            best, best_confidence = found, confidence
-        if confidence >= CONFIDENT:
+        found = replace(found, confidence=overlap_confidence(found.transformations[0], found.keypoints, workers))
+        if found.confidence > best_confidence:
+            best, best_confidence = found, found.confidence
+        if found.confidence >= CONFIDENT:
             return best
     finer = keypoint_voxel(target, spacing, FINER_KEYPOINTS)
     if finer >= voxel:
         return best
     found = replace(scan_estimate(source, target, spacing=spacing, workers=workers, voxel=finer),
                     keypoints=best.keypoints)
-    if overlap_confidence(found.transformations[0], found.keypoints, workers) > best_confidence:
-        return found
-    return best
+    found = replace(found, confidence=overlap_confidence(found.transformations[0], found.keypoints, workers))
+    return found if found.confidence > best_confidence else best
 
 
 def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel: float, *,

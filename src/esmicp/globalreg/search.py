@@ -139,6 +139,7 @@ class GlobalEstimate:
     strategies: tuple[str, ...]
     candidates: int
     keypoints: object = None  # the scan strategy's :class:`~esmicp.globalreg.scan.Keypoints`, for confidence
+    confidence: float | None = None  # overlap confidence of transformations[0] on keypoints, when already judged
 
     @property
     def transformation(self) -> np.ndarray:
@@ -314,10 +315,11 @@ def _settle(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate | None
     if scores[0] < CONFIDENT_SCORE:
         return None
     keypoints = Keypoints.of(work.source, work.target, work.full_index.spacing())
-    if overlap_confidence(settled[0], keypoints, work.full_index.workers) < SETTLED_CONFIDENCE:
+    confidence = overlap_confidence(settled[0], keypoints, work.full_index.workers)
+    if confidence < SETTLED_CONFIDENCE:
         return None
     return replace(estimate, transformations=np.concatenate([settled, estimate.transformations[1:]]),
-                   scores=np.concatenate([scores, estimate.scores[1:]]), keypoints=keypoints)
+                   scores=np.concatenate([scores, estimate.scores[1:]]), keypoints=keypoints, confidence=confidence)
 
 
 def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | None) -> GlobalEstimate:
@@ -328,7 +330,7 @@ def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | 
     found = scan_estimate_until_confident(source, target, spacing=spacing, workers=full_index.workers)
     return GlobalEstimate(
         found.transformations, found.scores, ("scan",) * len(found.scores), candidates=len(found.scores),
-        keypoints=found.keypoints,
+        keypoints=found.keypoints, confidence=found.confidence,
     )
 
 
@@ -342,8 +344,7 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
     (``docs/scans-partial-overlap.md``, session 28). ``workers``: threads of the queries."""
     from .scan import CONFIDENT, overlap_confidence, overlap_score
 
-    keypoints = scanned.keypoints
-    confidence = overlap_confidence(scanned.transformation, keypoints, workers)
+    keypoints, confidence = scanned.keypoints, scanned.confidence  # judged by the scan strategy itself
     if confidence < CONFIDENT:
         return False
     mine, theirs = overlap_score(scanned.transformation, keypoints, workers), overlap_score(other, keypoints, workers)
