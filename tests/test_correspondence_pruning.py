@@ -406,10 +406,10 @@ def test_a_finer_search_runs_when_neither_first_search_is_confident(monkeypatch)
 
 
 def test_a_small_cloud_skips_the_finer_search(monkeypatch):
-    """Two unrelated 1,000-point clouds: no search is confident, and the voxel of
-    ``scan.FINER_KEYPOINTS`` is the standard one (both at ``MIN_VOXEL_SPACINGS``), so the finer
-    search would repeat the first: it must not run (objects reach the scan strategy often, and
-    issue 14 times them)."""
+    """Two unrelated 1,000-point clouds: no search is confident, and the voxels of
+    ``scan.FINER_KEYPOINTS`` and ``scan.COARSER_KEYPOINTS`` are the standard one (all at
+    ``MIN_VOXEL_SPACINGS``), so those searches would repeat the first: they must not run (objects
+    reach the scan strategy often, and issue 14 times them)."""
     from esmicp.globalreg import scan
 
     generator = np.random.default_rng(3)
@@ -430,7 +430,33 @@ def test_a_small_cloud_skips_the_finer_search(monkeypatch):
     monkeypatch.setattr(scan, "KEYPOINTS", 200)
     calls.clear()
     scan.scan_estimate_until_confident(source, target, spacing=spacing)
-    assert len(calls) == 3 and calls[2] < calls[0]
+    assert len(calls) == 3 and calls[2] < calls[0]  # the coarser voxel (2,500 keypoints) is the floor: skipped
+    # ... and with a coarser voxel above the standard one, the coarser search runs last.
+    monkeypatch.setattr(scan, "COARSER_KEYPOINTS", 50)
+    calls.clear()
+    scan.scan_estimate_until_confident(source, target, spacing=spacing)
+    assert len(calls) == 4 and calls[2] < calls[0] < calls[3]
+
+
+def test_a_coarser_search_runs_when_the_finer_one_is_not_confident_either(monkeypatch):
+    """The 3DMatch pair ``t04_s06`` cropped to 15% overlap (``benchmarks/lomatch_crop.py --crops 4
+    --seed 0``'s crop 1 of that pair, as recorded): no search at the standard or the finer voxel
+    is confident (the pose ended 180 degrees and 1 m off, session 30); the last one, at the
+    coarser voxel of ``scan.COARSER_KEYPOINTS``, finds it, confidently (session 31). Fails if the
+    coarser search is dropped."""
+    from esmicp.globalreg import scan
+
+    cropped, truth = _lomatch_crop("t04_s06", 0, (2, 1, 1))
+    spacing = NearestNeighbors(cropped.target).spacing()
+    standard = scan.keypoint_voxel(cropped.target, spacing)
+    chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
+    assert _right_3dmatch(chosen.transformations[0], truth)
+    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= CONFIDENT
+    assert chosen.voxel == standard
+    monkeypatch.setattr(scan, "COARSER_KEYPOINTS", scan.KEYPOINTS)  # no coarser voxel: the search is skipped
+    chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
+    assert not _right_3dmatch(chosen.transformations[0], truth)
+    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) < CONFIDENT
 
 
 def test_the_confidence_of_keypoints_too_few_to_compare_is_zero():
