@@ -383,29 +383,31 @@ def test_a_flip_that_lays_a_floor_on_a_floor_is_not_confident(monkeypatch):
     assert not right(result) and result.confidence >= CONFIDENT
 
 
-def test_a_finer_search_runs_when_neither_first_search_is_confident(monkeypatch):
+@pytest.mark.parametrize("crop, last", [((2, 1, 0), "FINER_KEYPOINTS"), ((2, 1, 1), "COARSER_KEYPOINTS")])
+def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, last):
     """The 3DMatch pair ``t04_s06`` cropped to 15% overlap (``benchmarks/lomatch_crop.py --crops 4
-    --seed 0``'s crop 0 of that pair, as recorded): neither search at the standard voxel is
-    confident (both end 30-180 degrees off, session 30), and the last one, at the voxel of
-    ``scan.FINER_KEYPOINTS``, finds the pose, confidently. The estimate carries the standard
-    keypoints, so that its confidence is on the data's one scale. Fails if the finer search is
+    --seed 0``'s crops 0 and 1 of that pair, as recorded): no search at the standard voxel is
+    confident (both end 30-180 degrees off); on crop 0 the search at the finer voxel of
+    ``scan.FINER_KEYPOINTS`` finds the pose, confidently (session 30), on crop 1 only the one at
+    the coarser voxel of ``scan.COARSER_KEYPOINTS`` does (session 31). The estimate carries the
+    standard keypoints, so that its confidence is on the data's one scale. Fails if that search is
     dropped."""
     from esmicp.globalreg import scan
 
-    cropped, truth = _lomatch_crop("t04_s06", 0, (2, 1, 0))
+    cropped, truth = _lomatch_crop("t04_s06", 0, crop)
     spacing = NearestNeighbors(cropped.target).spacing()
     standard = scan.keypoint_voxel(cropped.target, spacing)
     chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
     assert _right_3dmatch(chosen.transformations[0], truth)
     assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= CONFIDENT
     assert chosen.voxel == standard
-    monkeypatch.setattr(scan, "FINER_KEYPOINTS", scan.KEYPOINTS)  # no finer voxel: the search is skipped
+    monkeypatch.setattr(scan, last, scan.KEYPOINTS)  # its voxel is the standard one: the search is skipped
     chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
     assert not _right_3dmatch(chosen.transformations[0], truth)
     assert overlap_confidence(chosen.transformations[0], chosen.keypoints) < CONFIDENT
 
 
-def test_a_small_cloud_skips_the_finer_search(monkeypatch):
+def test_a_small_cloud_skips_the_last_searches(monkeypatch):
     """Two unrelated 1,000-point clouds: no search is confident, and the voxels of
     ``scan.FINER_KEYPOINTS`` and ``scan.COARSER_KEYPOINTS`` are the standard one (all at
     ``MIN_VOXEL_SPACINGS``), so those searches would repeat the first: they must not run (objects
@@ -436,27 +438,6 @@ def test_a_small_cloud_skips_the_finer_search(monkeypatch):
     calls.clear()
     scan.scan_estimate_until_confident(source, target, spacing=spacing)
     assert len(calls) == 4 and calls[2] < calls[0] < calls[3]
-
-
-def test_a_coarser_search_runs_when_the_finer_one_is_not_confident_either(monkeypatch):
-    """The 3DMatch pair ``t04_s06`` cropped to 15% overlap (``benchmarks/lomatch_crop.py --crops 4
-    --seed 0``'s crop 1 of that pair, as recorded): no search at the standard or the finer voxel
-    is confident (the pose ended 180 degrees and 1 m off, session 30); the last one, at the
-    coarser voxel of ``scan.COARSER_KEYPOINTS``, finds it, confidently (session 31). Fails if the
-    coarser search is dropped."""
-    from esmicp.globalreg import scan
-
-    cropped, truth = _lomatch_crop("t04_s06", 0, (2, 1, 1))
-    spacing = NearestNeighbors(cropped.target).spacing()
-    standard = scan.keypoint_voxel(cropped.target, spacing)
-    chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
-    assert _right_3dmatch(chosen.transformations[0], truth)
-    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= CONFIDENT
-    assert chosen.voxel == standard
-    monkeypatch.setattr(scan, "COARSER_KEYPOINTS", scan.KEYPOINTS)  # no coarser voxel: the search is skipped
-    chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
-    assert not _right_3dmatch(chosen.transformations[0], truth)
-    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) < CONFIDENT
 
 
 def test_the_confidence_of_keypoints_too_few_to_compare_is_zero():
