@@ -383,15 +383,14 @@ def test_a_flip_that_lays_a_floor_on_a_floor_is_not_confident(monkeypatch):
     assert not right(result) and result.confidence >= CONFIDENT
 
 
-@pytest.mark.parametrize("crop, last", [((2, 1, 0), "FINER_KEYPOINTS"), ((2, 1, 1), "COARSER_KEYPOINTS")])
-def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, last):
+@pytest.mark.parametrize("crop, count", [((2, 1, 0), 10000), ((2, 1, 1), 2500)])
+def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, count):
     """The 3DMatch pair ``t04_s06`` cropped to 15% overlap (``benchmarks/lomatch_crop.py --crops 4
     --seed 0``'s crops 0 and 1 of that pair, as recorded): no search at the standard voxel is
-    confident (both end 30-180 degrees off); on crop 0 the search at the finer voxel of
-    ``scan.FINER_KEYPOINTS`` finds the pose, confidently (session 30), on crop 1 only the one at
-    the coarser voxel of ``scan.COARSER_KEYPOINTS`` does (session 31). The estimate carries the
-    standard keypoints, so that its confidence is on the data's one scale. Fails if that search is
-    dropped."""
+    confident (30-180 degrees off), and only the search at the voxel of ``count`` target keypoints
+    (of ``scan.LAST_KEYPOINTS``) finds the pose, confidently (sessions 30 and 31). The estimate
+    carries the standard keypoints, so that its confidence is on the data's one scale. Fails if
+    that search is dropped."""
     from esmicp.globalreg import scan
 
     cropped, truth = _lomatch_crop("t04_s06", 0, crop)
@@ -401,17 +400,18 @@ def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, la
     assert _right_3dmatch(chosen.transformations[0], truth)
     assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= CONFIDENT
     assert chosen.voxel == standard
-    monkeypatch.setattr(scan, last, scan.KEYPOINTS)  # its voxel is the standard one: the search is skipped
+    assert count in scan.LAST_KEYPOINTS
+    monkeypatch.setattr(scan, "LAST_KEYPOINTS", tuple(c for c in scan.LAST_KEYPOINTS if c != count))
     chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
     assert not _right_3dmatch(chosen.transformations[0], truth)
     assert overlap_confidence(chosen.transformations[0], chosen.keypoints) < CONFIDENT
 
 
 def test_a_small_cloud_skips_the_last_searches(monkeypatch):
-    """Two unrelated 1,000-point clouds: no search is confident, and the voxels of
-    ``scan.FINER_KEYPOINTS`` and ``scan.COARSER_KEYPOINTS`` are the standard one (all at
-    ``MIN_VOXEL_SPACINGS``), so those searches would repeat the first: they must not run (objects
-    reach the scan strategy often, and issue 14 times them)."""
+    """Two unrelated 1,000-point clouds: no search is confident, and the voxels of every count of
+    ``scan.LAST_KEYPOINTS`` are the standard one (all at ``MIN_VOXEL_SPACINGS``), so those searches
+    would repeat the first: they must not run (objects reach the scan strategy often, and issue 14
+    times them)."""
     from esmicp.globalreg import scan
 
     generator = np.random.default_rng(3)
@@ -428,13 +428,10 @@ def test_a_small_cloud_skips_the_last_searches(monkeypatch):
     found = scan.scan_estimate_until_confident(source, target, spacing=spacing)
     assert overlap_confidence(found.transformations[0], found.keypoints) < CONFIDENT
     assert len(calls) == 2 and calls[0] == calls[1]  # both standard searches, at one voxel
-    # The same with a standard voxel above the floor: the finer search runs (the test can fail).
+    # With a standard voxel above the floor, the searches at other voxels run, each voxel once:
+    # 10,000 and 2,500 keypoints are both at the floor here, 50 above the standard voxel.
     monkeypatch.setattr(scan, "KEYPOINTS", 200)
-    calls.clear()
-    scan.scan_estimate_until_confident(source, target, spacing=spacing)
-    assert len(calls) == 3 and calls[2] < calls[0]  # the coarser voxel (2,500 keypoints) is the floor: skipped
-    # ... and with a coarser voxel above the standard one, the coarser search runs last.
-    monkeypatch.setattr(scan, "COARSER_KEYPOINTS", 50)
+    monkeypatch.setattr(scan, "LAST_KEYPOINTS", (10000, 2500, 50))
     calls.clear()
     scan.scan_estimate_until_confident(source, target, spacing=spacing)
     assert len(calls) == 4 and calls[2] < calls[0] < calls[3]

@@ -31,8 +31,8 @@ so a pair scaled by 1000 gives the same pose):
    along the displacement between the two poses: only that geometry constrains the slide.
 
 :func:`scan_estimate_until_confident` runs the pipeline with each setting of
-``NORMALS_FROM_KEYPOINTS`` in turn until the best pose is confident on the overlap, then at a finer
-and at a coarser voxel (``FINER_KEYPOINTS``, ``COARSER_KEYPOINTS``).
+``NORMALS_FROM_KEYPOINTS`` in turn until the best pose is confident on the overlap, then at other
+voxels (``LAST_KEYPOINTS``).
 
 Transforms are ``T_target_source`` (``target ~= source @ R.T + t``).
 """
@@ -63,20 +63,18 @@ KEYPOINTS = 5000
 #: other misses.
 NORMALS_FROM_KEYPOINTS = (True, False)
 
-#: When neither of those is confident, a search at the voxel where the target has about this many
-#: occupied voxels (normals from the keypoints): at 10-25% overlap, only a few hundred keypoints
-#: lie in the overlap, and a finer voxel puts more there. Session 28 tried it when a flat patch
-#: laid on another still came back confident, and its confident wrong poses overrode the other
-#: strategies; with the confidence's spread term it gained crops and lost none
-#: (``docs/scans-partial-overlap.md``, session 30).
-FINER_KEYPOINTS = 10000
-#: ... and when that one is not confident either, a last search at the coarser voxel of about this
-#: many target keypoints (normals from the keypoints), whose descriptors each span a larger part of
-#: the scene: it finds crops that the finer searches miss, and lost none; normals from the dense
-#: points there, or at the finer voxel, found no more (``docs/scans-partial-overlap.md``, session
-#: 31). Each of the two is skipped when its voxel was searched already (a small cloud is at
-#: ``MIN_VOXEL_SPACINGS`` for every count).
-COARSER_KEYPOINTS = 2500
+#: When neither of those is confident, searches at other voxels, in turn while none is: where the
+#: target has about each of these many occupied voxels (normals from the keypoints). At 10-25%
+#: overlap only a few hundred keypoints lie in the overlap, and often no true correspondence
+#: survives the pruning: a finer voxel puts more keypoints there, a coarser one gives descriptors
+#: of a larger part of the scene, and each scale finds crops that the others miss. Session 28
+#: tried a finer search when a flat patch laid on another still came back confident, and its
+#: confident wrong poses overrode the other strategies; with the confidence's spread terms these
+#: searches gained crops and lost none (``docs/scans-partial-overlap.md``, sessions 30 and 31;
+#: 7,000 keypoints gained on the crops the choice was made on and on no fresh one: not kept). A
+#: search whose voxel was searched already is skipped (a small cloud is at ``MIN_VOXEL_SPACINGS``
+#: for every count).
+LAST_KEYPOINTS = (10000, 2500)
 
 #: The keypoint voxel is at least this many target point spacings.
 MIN_VOXEL_SPACINGS = 1.5
@@ -524,19 +522,18 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
 
 def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spacing: float,
                                   workers: int | None = None) -> ScanEstimate:
-    """:func:`scan_estimate` with each setting of ``NORMALS_FROM_KEYPOINTS`` in turn until one's best pose is
-    confident (:func:`overlap_confidence` at least :data:`CONFIDENT`), then, while none is, at
-    the finer voxel of :data:`FINER_KEYPOINTS` and at the coarser one of
-    :data:`COARSER_KEYPOINTS` (each skipped when its voxel was searched already): the estimate whose best pose is the most confident (the first on a tie). The
-    first searches are each judged on their own keypoints; the last ones on those of the most
-    confident before them, which they then carry: the confidence keeps the data's one scale, and
-    :attr:`ScanEstimate.voxel` stays the standard keypoint voxel.
+    """:func:`scan_estimate` with each setting of ``NORMALS_FROM_KEYPOINTS`` in turn until one's
+    best pose is confident (:func:`overlap_confidence` at least :data:`CONFIDENT`), then, while
+    none is, at the voxel of each count of :data:`LAST_KEYPOINTS` in turn (skipped when its voxel
+    was searched already): the estimate whose best pose is the most confident (the first on a
+    tie). The first searches are each judged on their own keypoints; the last ones on those of the
+    most confident before them, which they then carry: the confidence keeps the data's one scale,
+    and :attr:`ScanEstimate.voxel` stays the standard keypoint voxel.
 
     Why: at 10-25% overlap only a few hundred of the 5,000 keypoints lie in the overlap and often
     no true correspondence survives the pruning; normals at the keypoints' scale and at the dense
-    points' give different descriptors, a finer voxel more keypoints in the overlap, a coarser one
-    descriptors of a larger part of the scene: each finds crops the others miss. A confident first
-    search costs nothing more."""
+    points' give different descriptors, and so does every voxel: each search finds crops the
+    others miss. A confident first search costs nothing more."""
     best, best_confidence = None, -1.0
     voxel = keypoint_voxel(target, spacing)  # the same for each standard search: found once
     for normals_from_keypoints in NORMALS_FROM_KEYPOINTS:
@@ -548,7 +545,7 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
         if found.confidence >= CONFIDENT:
             return best
     searched = {voxel}
-    for count in (FINER_KEYPOINTS, COARSER_KEYPOINTS):
+    for count in LAST_KEYPOINTS:
         other = keypoint_voxel(target, spacing, count)
         if other in searched:
             continue  # a repeat (a small cloud is at the floor, MIN_VOXEL_SPACINGS, for every count)
