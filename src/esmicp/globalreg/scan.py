@@ -534,15 +534,20 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
     no true correspondence survives the pruning; normals at the keypoints' scale and at the dense
     points' give different descriptors, and so does every voxel: each search finds crops the
     others miss. A confident first search costs nothing more."""
-    best, best_confidence = None, -1.0
+    best: ScanEstimate | None = None
+
+    def keep_if_better(found: ScanEstimate) -> bool:
+        """Judge ``found`` on its keypoints, keep it if more confident; True once one is confident."""
+        nonlocal best
+        found = replace(found, confidence=overlap_confidence(found.transformations[0], found.keypoints, workers))
+        if best is None or found.confidence > best.confidence:
+            best = found
+        return best.confidence >= CONFIDENT
+
     voxel = keypoint_voxel(target, spacing)  # the same for each standard search: found once
     for normals_from_keypoints in NORMALS_FROM_KEYPOINTS:
-        found = scan_estimate(source, target, spacing=spacing, workers=workers,
-                              normals_from_keypoints=normals_from_keypoints, voxel=voxel)
-        found = replace(found, confidence=overlap_confidence(found.transformations[0], found.keypoints, workers))
-        if found.confidence > best_confidence:
-            best, best_confidence = found, found.confidence
-        if found.confidence >= CONFIDENT:
+        if keep_if_better(scan_estimate(source, target, spacing=spacing, workers=workers,
+                                        normals_from_keypoints=normals_from_keypoints, voxel=voxel)):
             return best
     searched = {voxel}
     for count in LAST_KEYPOINTS:
@@ -550,12 +555,8 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
         if other in searched:
             continue  # a repeat (a small cloud is at the floor, MIN_VOXEL_SPACINGS, for every count)
         searched.add(other)
-        found = replace(scan_estimate(source, target, spacing=spacing, workers=workers, voxel=other),
-                        keypoints=best.keypoints)
-        found = replace(found, confidence=overlap_confidence(found.transformations[0], found.keypoints, workers))
-        if found.confidence > best_confidence:
-            best, best_confidence = found, found.confidence
-        if best_confidence >= CONFIDENT:
+        found = scan_estimate(source, target, spacing=spacing, workers=workers, voxel=other)
+        if keep_if_better(replace(found, keypoints=best.keypoints)):
             break
     return best
 
