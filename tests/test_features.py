@@ -158,6 +158,19 @@ def test_normals_use_the_k_nearest_within_the_radius_as_scipys_tree_finds_them()
         estimate_normals(points, k=65)
 
 
+def test_normals_use_the_neighbours_at_exactly_the_radius():
+    """The k-nearest search starts bounded by the radius (session 32): a point at exactly the
+    radius is still a neighbour, as it was when the search was unbounded. Here four points at
+    exactly 1.0 in the plane z = 0 make the normal; without them the query would have fewer than 3
+    neighbours and take the fallback (the direction from the centroid, far from the z axis)."""
+    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0],
+                       [0.3, 0.2, 1.5], [-0.1, 0.4, 1.7], [2.0, 2.0, 0.5]])
+    normal = estimate_normals(points, k=8, radius=1.0, at=points[:1])[0]
+    assert abs(abs(normal[2]) - 1.0) < 1e-12
+    fallback = estimate_normals(points, k=8, radius=0.999, at=points[:1])[0]
+    assert abs(fallback[2]) < 0.9
+
+
 # --------------------------------------------------------------------------------------------
 # FPFH
 

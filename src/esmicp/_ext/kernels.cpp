@@ -1487,16 +1487,22 @@ void nearest_k(const Tree &t, int64_t node, double x, double y, double z, int64_
 // For each of `count` queries (rows of q, (count, 3)), its k nearest tree points (squared distances
 // best[0..k), tree slots slots[0..k), nearest first; -1 where fewer exist), handed to
 // emit(i, best, slots). Pieces of queries on `threads` threads (1 below `parallel_min` queries).
+// `limit` (squared distance, INF for none): only points within it are wanted, so the search starts
+// bounded by it and skips every branch beyond (the same points, found sooner; slots beyond the
+// points within `limit` stay -1).
 template <class Emit>
 void each_k_nearest(const Tree &t, const double *q, int64_t count, int64_t k, int threads, int64_t parallel_min,
-                    Emit &&emit) {
+                    Emit &&emit, double limit = INF) {
+    // keep_nearer takes a point strictly nearer than the k-th best: start just above the limit,
+    // so that a point at exactly `limit` is still taken.
+    const double start = limit < INF ? std::nextafter(limit, INF) : INF;
     if (count < parallel_min) threads = 1;
     parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
         double best[GRAPH_K_MAX];
         int64_t slots[GRAPH_K_MAX];
         const int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
         for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
-            std::fill(best, best + k, INF);
+            std::fill(best, best + k, start);
             std::fill(slots, slots + k, int64_t(-1));
             nearest_k(t, 0, q[3 * i], q[3 * i + 1], q[3 * i + 2], k, best, slots);
             emit(i, best, slots);
@@ -1595,7 +1601,7 @@ void knn_normals(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx
         for (int a = 1; a < 3; ++a)
             if (covariance[a][a] < covariance[least][least]) least = a;
         for (int a = 0; a < 3; ++a) normal[a] = vectors[a][least];
-    });
+    }, limit);
 }
 
 // Squared lengths |p - q|^2 of a pair of correspondences in the source and in the target, the
