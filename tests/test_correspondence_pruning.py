@@ -179,7 +179,7 @@ def test_occupied_voxels_equal_the_distinct_cell_keys():
     points = np.concatenate([generator.normal(-50.0, 20.0, (20000, 3)), np.repeat(generator.uniform(0, 1, (50, 3)), 40, axis=0)])
     for voxel in (0.05, 0.5, 3.0, 1000.0):
         cells = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
-        assert _occupied(points, voxel) == len(np.unique(cells, axis=0))
+        assert _occupied(points, voxel, points.min(axis=0)) == len(np.unique(cells, axis=0))
 
 
 def test_the_compatibility_matrix_equals_scipys_two_distance_matrices():

@@ -410,9 +410,10 @@ def _overlap(rotations, translations, source, target_tree, threshold) -> np.ndar
 
 def _keypoints(
     points: np.ndarray, voxel: float, normal_radius: float, feature_radius: float, filter_radius: float | None,
-    *, normals_from_keypoints: bool = False,
+    *, normals_from_keypoints: bool = False, grid: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Downsampled points and their FPFH.
+    """Downsampled points and their FPFH. ``grid``: :func:`~esmicp.globalreg.features.voxel_grid`
+    of ``points`` at ``voxel``, when the caller has it already.
 
     Isolated voxels (few occupied voxels within ``filter_radius``: scattered outliers) are dropped
     with their points before normals are estimated; so are keypoints without FPFH neighbours.
@@ -421,7 +422,7 @@ def _keypoints(
     within ``normal_radius``): the voxel's scale rather than the sensor's, less noisy on depth
     scans, and no tree over the dense cloud.
     """
-    down, owner = voxel_grid(points, voxel)
+    down, owner = voxel_grid(points, voxel) if grid is None else grid
     if filter_radius is not None:
         keep = dense_point_mask(down, filter_radius)
         down = down[keep]

@@ -293,13 +293,12 @@ def keypoint_voxel(points: np.ndarray, spacing: float, count: int | None = None)
     return voxel
 
 
-def _occupied(points: np.ndarray, voxel: float, low: np.ndarray | None = None) -> int:
-    """The number of voxels of edge ``voxel`` that ``points`` occupy: the distinct integer cell
+def _occupied(points: np.ndarray, voxel: float, low: np.ndarray) -> int:
+    """The number of voxels of edge ``voxel`` that ``points`` occupy, the grid's corner at
+    ``low`` (the points' per-axis minimum, computed once by the caller): the distinct integer cell
     coordinates, counted by one compiled hash pass (exact while they stay below 2**53; cheaper
-    than a sort of every key, and the voxel search makes up to 5 counts: ``docs/speed.md``).
-    ``low``: the grid's corner, the points' per-axis minimum unless given (the voxel search passes
-    it, computed once)."""
-    cells = np.floor((points - (axis_bounds(points)[0] if low is None else low)) / voxel)
+    than a sort of every key, and the voxel search makes up to 4 counts: ``docs/speed.md``)."""
+    cells = np.floor((points - low) / voxel)
     repeats, _, _, _ = coincident_points(cells)
     return len(cells) - repeats
 
@@ -476,16 +475,17 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     dense points (:func:`~esmicp.globalreg.feature_matching._keypoints`); ``voxel``: the keypoint
     voxel (cloud units; default :func:`keypoint_voxel` of the target). Deterministic."""
     voxel = keypoint_voxel(target, spacing) if voxel is None else voxel
-    if min(_occupied(source, voxel), _occupied(target, voxel)) < MIN_KEYPOINTS:
-        # Too few distinct places to describe (e.g. a few points repeated): no hypothesis.
-        keypoints = Keypoints(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
-        return ScanEstimate(np.eye(4)[None], np.zeros(1), keypoints, 0, np.zeros(1, dtype=np.intp))
     normal_radius, feature_radius = NORMAL_RADIUS_VOXELS * voxel, FEATURE_RADIUS_VOXELS * voxel
     filter_radius = FILTER_RADIUS_VOXELS * voxel
     with ThreadPoolExecutor(max_workers=1 if workers == 1 else 2) as pool:
+        grids = list(pool.map(lambda cloud: voxel_grid(cloud, voxel), (source, target)))
+        if min(len(centroids) for centroids, _ in grids) < MIN_KEYPOINTS:
+            # Too few distinct places to describe (e.g. a few points repeated): no hypothesis.
+            keypoints = Keypoints(grids[0][0], grids[1][0], voxel)
+            return ScanEstimate(np.eye(4)[None], np.zeros(1), keypoints, 0, np.zeros(1, dtype=np.intp))
         jobs = [pool.submit(_keypoints, cloud, voxel, normal_radius, feature_radius, filter_radius,
-                            normals_from_keypoints=normals_from_keypoints)
-                for cloud in (source, target)]
+                            normals_from_keypoints=normals_from_keypoints, grid=grid)
+                for cloud, grid in zip((source, target), grids)]
         (source_keys, source_features), (target_keys, target_features) = (job.result() for job in jobs)
     keypoints = Keypoints(source_keys, target_keys, voxel)  # its trees serve every score below and after
     empty = ScanEstimate(np.eye(4)[None], np.zeros(1), keypoints, 0, np.zeros(1, dtype=np.intp))
