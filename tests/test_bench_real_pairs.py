@@ -305,6 +305,21 @@ def test_partial_rows_and_table(tmp_path, monkeypatch):
     assert "partial-70" in table and "overlap" in table
 
 
+def test_the_partial_table_counts_the_trials_that_still_overlap():
+    """The last table counts only the trials overlapping by at least ``COUNTED_OVERLAP``, per
+    method; fails if a barely overlapping trial is counted or a success is missed."""
+    def row(protocol, method, overlap, success):
+        return {"protocol": protocol, "method": method, "overlap": overlap, "success": success,
+                "success_strict": success, "rotation_error_deg": 1.0, "translation_error": 0.01,
+                "time_s": 0.1, "status": "ok"}
+
+    rows = [row("partial-50", "esm-global", 0.1, True), row("partial-50", "kiss-matcher-icp", 0.1, True),
+            row("partial-50", "esm-global", 0.3, True), row("partial-50", "kiss-matcher-icp", 0.3, False),
+            row("partial-50", "esm-global", 0.6, False), row("partial-50", "kiss-matcher-icp", 0.6, False)]
+    last = partial_markdown(rows).strip().splitlines()[-1]
+    assert last.split("|")[1:-1] == [" partial-50 ", " 2 ", " 1/2 ", " 0/2 "]
+
+
 def test_cli_scan_bench(tmp_path, capsys):
     make_folder(tmp_path / "pairs_dir" if (tmp_path / "pairs_dir").mkdir() is None else tmp_path)
     out = tmp_path / "out"

@@ -147,3 +147,48 @@ def test_a_settled_pose_must_be_confident_on_the_overlap(monkeypatch):
     monkeypatch.setattr(search, "SETTLED_CONFIDENCE", 0.0)  # no overlap check
     result = esmicp.register(trial.source, trial.target, rng=seed)
     assert result.init == "global:rotation-search" and not right(result)
+
+
+def test_the_scan_strategys_unconfident_poses_join_the_verification(monkeypatch):
+    """A stool cut to 50% (``esmicp bench --datasets partial-overlap``'s trial 22 of
+    ``partial-50``): the scan strategy's best pose is right but not confident on the overlap (a
+    few hundred keypoints), so it does not win at once; the rotation search and the feature
+    strategy end 158 degrees off. Joining the verification (``search.SCAN_CANDIDATES``), the scan
+    pose wins on the clouds' points. Fails if the scan strategy's poses are left out of it."""
+    from esmicp.bench.real_pairs import partial_trial
+    from esmicp.bench.scans import _seed_of
+    from esmicp.globalreg import search
+
+    rng = np.random.default_rng(np.random.SeedSequence(0, spawn_key=(1, 1, 22)))
+    trial = partial_trial(_cloud("stool_0072"), 0.5, rng, 2000)
+    seed = _seed_of(0, 1, 1, 22)
+    diagonal = float(np.linalg.norm(trial.target.max(axis=0) - trial.target.min(axis=0)))
+
+    def right(result):
+        return up_to_symmetry_success(trial.source, result.transformation, trial.T_target_source, diagonal)
+
+    result = esmicp.register(trial.source, trial.target, rng=seed)
+    assert right(result) and result.init == "global:scan"
+    assert result.confidence < 0.5  # it did not win on its own confidence
+    monkeypatch.setattr(search, "SCAN_CANDIDATES", 0)
+    assert not right(esmicp.register(trial.source, trial.target, rng=seed))
+
+
+def test_only_an_unconfident_scan_search_sends_its_poses_to_the_verification():
+    """A confident scan pose keeps its own way to win (``_scan_leads``) and sends nothing; an
+    unconfident one sends its best ``SCAN_CANDIDATES`` poses, never the identity that stands for
+    "found nothing" (score 0)."""
+    from esmicp.globalreg.search import SCAN_CANDIDATES, GlobalEstimate, _unconfident_scan_poses
+
+    poses = np.stack([np.eye(4)] * 5)
+    poses[:, 0, 3] = np.arange(5)  # tell them apart
+
+    def scanned(scores, confidence):
+        return GlobalEstimate(poses[: len(scores)], np.asarray(scores, float), ("scan",) * len(scores),
+                              candidates=len(scores), confidence=confidence)
+
+    sent = _unconfident_scan_poses(scanned([0.4, 0.3, 0.2, 0.1, 0.05], 0.3))
+    assert len(sent) == SCAN_CANDIDATES == 3
+    assert [pose[0, 3] for pose in sent] == [0.0, 1.0, 2.0]  # best first
+    assert _unconfident_scan_poses(scanned([0.4, 0.3, 0.2], 0.5)) == []
+    assert _unconfident_scan_poses(scanned([0.0], 0.0)) == []

@@ -31,8 +31,10 @@ strategy runs, and its pose wins outright when it is confident on the overlap an
 clearly more (``SCAN_MARGIN``); otherwise the feature candidates join, with the *twins* of its best
 pose (turned by 180 degrees about each principal axis of the target): under heavy noise a
 near-symmetric object (a box-like night stand) otherwise ends on a twin of the truth that neither
-strategy proposes. The rotation search alone and the features alone each miss cases the other
-catches, so the default uses both (the measurements: ``docs/measured-global.md``, "Why these
+strategy proposes; and so do the scan strategy's best poses when it is not confident
+(``SCAN_CANDIDATES``): on a small partial overlap they are often right without being confident.
+The rotation search alone and the features alone each miss cases the other catches, so the
+default uses both (the measurements: ``docs/measured-global.md``, "Why these
 choices").
 """
 
@@ -99,6 +101,14 @@ DECIDE_SIGMA_SPACINGS = 1.0
 #: more than this times the rotation search's best pose (on a cup under 30% outliers, a scan pose
 #: turned 18 degrees about the cup's axis overlapped as much as the exact one).
 SCAN_MARGIN = 1.1
+
+#: ``"auto"``: when the scan strategy's best pose is not confident on the overlap, its best this many
+#: poses (distinct, best first) join the feature candidates and the twins in the verification.
+#: Before, a scan pose could only win on its own confidence, and on a small partial overlap (a cut
+#: object, a bunny scan pair at 2,000 points: a few hundred keypoints) the right one is often not
+#: confident, while the verification on the clouds' points tells it from the rotation search's
+#: wrong ones (``docs/measured-global.md``, session 33).
+SCAN_CANDIDATES = 3
 
 #: ``"auto"``: the scan strategy's confident pose also wins when it overlaps at least this fraction
 #: as much as the other pose and its overlap confidence is higher by ``SHARPER_BY`` (0-1).
@@ -237,9 +247,10 @@ def global_estimate(
     Otherwise the scan strategy runs (:mod:`esmicp.globalreg.scan`, for partial overlaps); its pose
     is final when it is confident on the overlap and overlaps clearly more than the rotation
     search's best. Otherwise the feature
-    candidates and the twins of that pose (:func:`_twins`) join, and everything is verified
-    together; the scan pose still wins if it is confident and overlaps strictly more than the
-    winner. The scan's keypoints come back in ``keypoints`` either way, for the confidence.
+    candidates, the twins of that pose (:func:`_twins`) and, when it is not confident, the scan
+    strategy's best poses (:data:`SCAN_CANDIDATES`) join, and everything is verified together;
+    the scan pose still wins if it is confident and overlaps strictly more than the winner. The
+    scan's keypoints come back in ``keypoints`` either way, for the confidence.
     """
     full_index = target_index if target_index is not None else NearestNeighbors(target, workers=workers)
     if strategy == "scan":
@@ -277,6 +288,9 @@ def global_estimate(
         candidates = _twins(work.index.points, estimate.transformation)
         origins = ["rotation-search"] * len(candidates)
         searched += len(candidates)
+        scan_poses = _unconfident_scan_poses(scanned)
+        candidates += scan_poses
+        origins += ["scan"] * len(scan_poses)
     found_count = 0
     if strategy in ("auto", "features"):
         found = _feature_candidates(work)
@@ -351,6 +365,19 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
     if mine > margin * theirs:
         return True
     return mine >= SHARPER_SCORE_RATIO * theirs and confidence >= overlap_confidence(other, keypoints, workers) + SHARPER_BY
+
+
+def _unconfident_scan_poses(scanned: GlobalEstimate) -> list[np.ndarray]:
+    """The scan strategy's best :data:`SCAN_CANDIDATES` poses when its best is not confident on the
+    overlap, else none (a confident one keeps its own way to win, :func:`_scan_leads`: joining the
+    verification too, its runner-up flipped end to end beat it on a 3DMatch crop). A search that
+    found nothing returns the identity with score 0: not a candidate. They are counted once, in
+    ``scanned.candidates``."""
+    from .scan import CONFIDENT
+
+    if scanned.confidence >= CONFIDENT:
+        return []
+    return list(scanned.transformations[scanned.scores > 0][:SCAN_CANDIDATES])
 
 
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
