@@ -130,23 +130,35 @@ def test_a_settled_pose_must_be_confident_on_the_overlap(monkeypatch):
     search proposes the other half flipped end to end, scoring 0.595; settled, it scores 0.621,
     over ``CONFIDENT_SCORE``, but its overlap confidence is 0.10, so it is not final and the scan
     strategy finds the pose. Fails if a settled pose is final without the overlap check."""
-    from esmicp.bench.real_pairs import partial_trial
-    from esmicp.bench.scans import _seed_of
     from esmicp.globalreg import search
 
-    rng = np.random.default_rng(np.random.SeedSequence(0, spawn_key=(1, 0, 21)))
-    trial = partial_trial(_cloud("piano_0226"), 0.7, rng, 2000)
-    seed = _seed_of(0, 1, 0, 21)
+    register, right = _partial_overlap_trial("piano_0226", keep_index=0, index=21)
+    result = register()
+    assert right(result) and result.init != "global:rotation-search"
+    monkeypatch.setattr(search, "SETTLED_CONFIDENCE", 0.0)  # no overlap check
+    result = register()
+    assert result.init == "global:rotation-search" and not right(result)
+
+
+def _partial_overlap_trial(name: str, *, keep_index: int, index: int):
+    """Trial ``index`` of ``esmicp bench --datasets partial-overlap`` (seed 0) at keep fraction
+    ``(0.7, 0.5)[keep_index]`` on ModelNet40 object ``name``: a callable running the default
+    ``register`` on it with the bench's seed, and one judging a result up to symmetry."""
+    from esmicp.bench.real_pairs import partial_trial
+    from esmicp.bench.scans import _seed_of
+
+    rng = np.random.default_rng(np.random.SeedSequence(0, spawn_key=(1, keep_index, index)))
+    trial = partial_trial(_cloud(name), (0.7, 0.5)[keep_index], rng, 2000)
+    seed = _seed_of(0, 1, keep_index, index)
     diagonal = float(np.linalg.norm(trial.target.max(axis=0) - trial.target.min(axis=0)))
+
+    def register():
+        return esmicp.register(trial.source, trial.target, rng=seed)
 
     def right(result):
         return up_to_symmetry_success(trial.source, result.transformation, trial.T_target_source, diagonal)
 
-    result = esmicp.register(trial.source, trial.target, rng=seed)
-    assert right(result) and result.init != "global:rotation-search"
-    monkeypatch.setattr(search, "SETTLED_CONFIDENCE", 0.0)  # no overlap check
-    result = esmicp.register(trial.source, trial.target, rng=seed)
-    assert result.init == "global:rotation-search" and not right(result)
+    return register, right
 
 
 def test_the_scan_strategys_unconfident_poses_join_the_verification(monkeypatch):
@@ -155,23 +167,14 @@ def test_the_scan_strategys_unconfident_poses_join_the_verification(monkeypatch)
     few hundred keypoints), so it does not win at once; the rotation search and the feature
     strategy end 158 degrees off. Joining the verification (``search.SCAN_CANDIDATES``), the scan
     pose wins on the clouds' points. Fails if the scan strategy's poses are left out of it."""
-    from esmicp.bench.real_pairs import partial_trial
-    from esmicp.bench.scans import _seed_of
     from esmicp.globalreg import search
 
-    rng = np.random.default_rng(np.random.SeedSequence(0, spawn_key=(1, 1, 22)))
-    trial = partial_trial(_cloud("stool_0072"), 0.5, rng, 2000)
-    seed = _seed_of(0, 1, 1, 22)
-    diagonal = float(np.linalg.norm(trial.target.max(axis=0) - trial.target.min(axis=0)))
-
-    def right(result):
-        return up_to_symmetry_success(trial.source, result.transformation, trial.T_target_source, diagonal)
-
-    result = esmicp.register(trial.source, trial.target, rng=seed)
+    register, right = _partial_overlap_trial("stool_0072", keep_index=1, index=22)
+    result = register()
     assert right(result) and result.init == "global:scan"
     assert result.confidence < 0.5  # it did not win on its own confidence
     monkeypatch.setattr(search, "SCAN_CANDIDATES", 0)
-    assert not right(esmicp.register(trial.source, trial.target, rng=seed))
+    assert not right(register())
 
 
 def test_only_an_unconfident_scan_search_sends_its_poses_to_the_verification():

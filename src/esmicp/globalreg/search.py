@@ -369,10 +369,11 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
 
 def _unconfident_scan_poses(scanned: GlobalEstimate) -> list[np.ndarray]:
     """The scan strategy's best :data:`SCAN_CANDIDATES` poses when its best is not confident on the
-    overlap, else none (a confident one keeps its own way to win, :func:`_scan_leads`: joining the
-    verification too, its runner-up flipped end to end beat it on a 3DMatch crop). A search that
-    found nothing returns the identity with score 0: not a candidate. They are counted once, in
-    ``scanned.candidates``."""
+    overlap, else none: a confident one keeps the way to win it had (:func:`_scan_leads`), and its
+    runner-ups get no chance to beat it in a verification that scores differently (sending them
+    whatever the confidence gave the same results on the crops and the object protocols measured:
+    ``docs/scans-partial-overlap.md``, session 33). A search that found nothing returns the
+    identity with score 0: not a candidate. They are counted once, in ``scanned.candidates``."""
     from .scan import CONFIDENT
 
     if scanned.confidence >= CONFIDENT:
