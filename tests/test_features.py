@@ -443,10 +443,14 @@ def test_the_feature_strategy_pools_both_kinds_of_normals_on_a_bunny_scan_pair(m
     protocol (2,000 points per scan, seed 0; the source turned by its uniform rotation): with the
     feature hypotheses of the dense points' normals alone ``register`` ended 121 degrees off; those
     of the keypoints' own normals join them (``search._feature_candidates``) and the pose is found.
-    Fails if either kind is dropped from the pool (checked: the dense kind alone fails here)."""
+    Fails if either kind is dropped from the pool (checked: the dense kind alone fails here). The
+    scan strategy's unconfident poses, which also find this pose since session 33, are kept out of
+    the verification, so that the features alone are tested."""
     import esmicp
     from esmicp.globalreg import search
     from esmicp.io.stanford_conf import load_scans
+
+    monkeypatch.setattr(search, "SCAN_CANDIDATES", 0)
 
     scans = load_scans(require_shared("bunny_scans"), max_points=2000, rng=0)
     trial = next(t for t in scan_pairs(scans, 0) if t.cloud == "bun000->bun090")
