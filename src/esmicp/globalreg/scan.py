@@ -207,6 +207,12 @@ class ScanEstimate:
     def voxel(self) -> float:
         return self.keypoints.voxel
 
+    @classmethod
+    def nothing(cls, keypoints: Keypoints) -> "ScanEstimate":
+        """A search that found no hypothesis: the identity, with overlap score 0 (callers that
+        pool poses skip scores of 0)."""
+        return cls(np.eye(4)[None], np.zeros(1), keypoints, 0, np.zeros(1, dtype=np.intp))
+
 
 def overlap_score(transformation: np.ndarray, keypoints: Keypoints, workers: int | None = None) -> float:
     """The fraction of both clouds' keypoints within ``VERIFY_VOXELS`` of the other cloud under
@@ -481,14 +487,13 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
         grids = list(pool.map(lambda cloud: voxel_grid(cloud, voxel), (source, target)))
         if min(len(centroids) for centroids, _ in grids) < MIN_KEYPOINTS:
             # Too few distinct places to describe (e.g. a few points repeated): no hypothesis.
-            keypoints = Keypoints(grids[0][0], grids[1][0], voxel)
-            return ScanEstimate(np.eye(4)[None], np.zeros(1), keypoints, 0, np.zeros(1, dtype=np.intp))
+            return ScanEstimate.nothing(Keypoints(grids[0][0], grids[1][0], voxel))
         jobs = [pool.submit(_keypoints, cloud, voxel, normal_radius, feature_radius, filter_radius,
                             normals_from_keypoints=normals_from_keypoints, grid=grid)
                 for cloud, grid in zip((source, target), grids)]
         (source_keys, source_features), (target_keys, target_features) = (job.result() for job in jobs)
     keypoints = Keypoints(source_keys, target_keys, voxel)  # its trees serve every score below and after
-    empty = ScanEstimate(np.eye(4)[None], np.zeros(1), keypoints, 0, np.zeros(1, dtype=np.intp))
+    empty = ScanEstimate.nothing(keypoints)
     if len(source_keys) < 3 or len(target_keys) < 3:
         return empty
     pairs = _correspondences(source_features, target_features, MAX_CORRESPONDENCES, workers)

@@ -372,8 +372,9 @@ def _unconfident_scan_poses(scanned: GlobalEstimate) -> list[np.ndarray]:
     overlap, else none: a confident one keeps the way to win it had (:func:`_scan_leads`), and its
     runner-ups get no chance to beat it in a verification that scores differently (sending them
     whatever the confidence gave the same results on the crops and the object protocols measured:
-    ``docs/scans-partial-overlap.md``, session 33). A search that found nothing returns the
-    identity with score 0: not a candidate. They are counted once, in ``scanned.candidates``."""
+    ``docs/scans-partial-overlap.md``, session 33). A search that found nothing
+    (:meth:`~esmicp.globalreg.scan.ScanEstimate.nothing`: the identity, score 0) sends nothing.
+    They are counted once, in ``scanned.candidates``."""
     from .scan import CONFIDENT
 
     if scanned.confidence >= CONFIDENT:
