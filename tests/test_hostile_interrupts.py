@@ -201,38 +201,54 @@ target = np.repeat(base, -(-count // 3), axis=0)[:count]
 source = target + 0.01
 warm = np.random.default_rng(0).normal(size=(500, 3))
 esmicp.register(warm + 0.01, warm)  # the lazy imports: not what is measured
-started = time.perf_counter()
-esmicp.register(source, target, init=None if init == "global" else init)
-delay = fraction * (time.perf_counter() - started)  # into the same registration, whatever the host's speed
+
+
+def timed():
+    started = time.perf_counter()
+    esmicp.register(source, target, init=None if init == "global" else init)
+    return time.perf_counter() - started
+
+durations = [timed()]
 sent = []
 
 def fire():
     sent.append(time.perf_counter())
     os.kill(os.getpid(), signal.SIGINT)
 
-threading.Timer(delay, fire).start()
-started = time.perf_counter()
-try:
-    esmicp.register(source, target, init=None if init == "global" else init)
-    print(f"finished {time.perf_counter() - started:.3f}")
-except KeyboardInterrupt:
-    print(f"interrupted {time.perf_counter() - sent[0]:.4f} {delay:.3f}")
+# A shared host's runs of one registration vary by more than 15%: when a run ends before the
+# SIGINT, it is repeated with the delay cut to the fraction of the quickest run so far.
+for attempt in range(3):
+    delay = fraction * min(durations)  # into the same registration, whatever the host's speed
+    timer, elapsed = threading.Timer(delay, fire), None
+    try:
+        timer.start()
+        elapsed = timed()
+        timer.cancel()
+        timer.join()
+    except KeyboardInterrupt:
+        if elapsed is None:
+            print(f"interrupted {time.perf_counter() - sent[0]:.4f} {delay:.3f}")
+            break
+    durations.append(elapsed)
+else:
+    print(f"finished {min(durations[1:]):.3f}")
 """
 
 
 def coincident_interrupt_latency(count: int, fraction: float, init: str) -> tuple[float, float]:
     """``(latency, delay)``: seconds from a SIGINT to the ``KeyboardInterrupt`` of a registration
     of three points repeated to ``count`` (source + 0.01), the SIGINT sent ``delay`` s into it:
-    ``fraction`` of the time the same registration took uninterrupted just before, in the same
-    process (issue 16 item 1). Fractions, not fixed delays: on a faster host a fixed 2 s fell
-    after the end of the registration."""
+    ``fraction`` of the quickest time the same registration took uninterrupted just before, in the
+    same process (issue 16 item 1). Fractions, not fixed delays: on a faster host a fixed 2 s fell
+    after the end of the registration; and up to three tries, as one CI run was quicker than the
+    run before it (2.44 s, ending before the SIGINT at 85% of the first)."""
     done = subprocess.run(
         [sys.executable, "-c", COINCIDENT_CHILD, str(count), str(fraction), init],
         capture_output=True, text=True, timeout=300, preexec_fn=interruptible_child,
     )
     assert done.returncode == 0, done.stderr[-2000:]
     word, value, *delay = done.stdout.split()
-    assert word == "interrupted", f"the registration ended ({value} s) before the SIGINT at {fraction:.0%} of its time"
+    assert word == "interrupted", f"the registration ended ({value} s) before the SIGINT at {fraction:.0%} of its time, three times"
     return float(value), float(delay[0])
 
 
