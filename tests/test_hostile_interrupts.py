@@ -217,7 +217,7 @@ def fire():
 
 # A shared host's runs of one registration vary by more than 15%: when a run ends before the
 # SIGINT, it is repeated with the delay cut to the fraction of the quickest run so far.
-for attempt in range(3):
+for _ in range(3):
     delay = fraction * min(durations)  # into the same registration, whatever the host's speed
     timer, elapsed = threading.Timer(delay, fire), None
     try:
