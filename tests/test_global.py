@@ -189,11 +189,12 @@ def test_the_scan_strategys_unconfident_poses_join_the_verification(monkeypatch)
     strategy end 158 degrees off. Joining the verification (``search.SCAN_CANDIDATES``), the scan
     pose wins on the clouds' points. Fails if the scan strategy's poses are left out of it."""
     from esmicp.globalreg import search
+    from esmicp.globalreg.scan import CONFIDENT
 
     register, right = _partial_overlap_trial("stool_0072", keep_index=1, index=22)
     result = register()
     assert right(result) and result.init == "global:scan"
-    assert result.confidence < 0.5  # it did not win on its own confidence
+    assert result.confidence < CONFIDENT  # it did not win on its own confidence
     monkeypatch.setattr(search, "SCAN_CANDIDATES", 0)
     assert not right(register())
 

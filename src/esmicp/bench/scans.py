@@ -355,10 +355,7 @@ def partial_markdown(rows: list[dict]) -> str:
     lines.append("| protocol | " + " | ".join(METHOD_LABELS[m] for m in methods) + " |")
     lines.append("|---|" + "---|" * len(methods))
     for protocol in sorted({r["protocol"] for r in rows}, reverse=True):
-        cells = []
-        for method in methods:
-            mine = [r for r in rows if r["protocol"] == protocol and r["method"] == method]
-            cells.append(f"{sum(bool(r['success_strict']) for r in mine)}/{len(mine)}")
+        cells = _success_counts([r for r in rows if r["protocol"] == protocol], methods, "success_strict")
         lines.append(f"| {protocol} | " + " | ".join(cells) + " |")
     lines.append("")
     lines.append(f"Success up to symmetry on the trials whose overlap is at least {COUNTED_OVERLAP:.0%} (issue 13 "
@@ -368,9 +365,15 @@ def partial_markdown(rows: list[dict]) -> str:
     lines.append("|---|---|" + "---|" * len(methods))
     for protocol in sorted({r["protocol"] for r in rows}, reverse=True):
         counted = [r for r in rows if r["protocol"] == protocol and r["overlap"] >= COUNTED_OVERLAP]
-        cells = []
-        for method in methods:
-            mine = [r for r in counted if r["method"] == method]
-            cells.append(f"{sum(bool(r['success']) for r in mine)}/{len(mine)}")
+        cells = _success_counts(counted, methods, "success")
         lines.append(f"| {protocol} | {len(counted) // len(methods)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _success_counts(rows: list[dict], methods: list[str], key: str) -> list[str]:
+    """``successes/trials`` of each of ``methods`` among ``rows``, a success being a true ``key``."""
+    cells = []
+    for method in methods:
+        mine = [r for r in rows if r["method"] == method]
+        cells.append(f"{sum(bool(r[key]) for r in mine)}/{len(mine)}")
+    return cells
