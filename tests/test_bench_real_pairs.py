@@ -305,12 +305,42 @@ def test_partial_rows_and_table(tmp_path, monkeypatch):
     assert "partial-70" in table and "overlap" in table
 
 
+def test_partial_rows_judge_success_up_to_the_objects_symmetry(monkeypatch):
+    """An open cylinder about the z axis: a pose turned 90 degrees about that axis from the truth
+    places the source's half on the cylinder as well as the truth does, so it succeeds up to the
+    object's symmetry; judged on the kept points alone it fails, as their cut does not share the
+    symmetry. Fails if the rows judge the kept points only, or if any pose passes."""
+    import esmicp.bench.scans as scans
+
+    rng = np.random.default_rng(3)
+    angles, heights = rng.uniform(0.0, 2.0 * np.pi, 40_000), rng.uniform(-1.0, 1.0, 40_000)
+    cylinder = np.column_stack([np.cos(angles), np.sin(angles), heights])
+    monkeypatch.setattr(scans, "_modelnet_clouds", lambda data_dir: {"cylinder": cylinder})
+    made = []
+
+    def remembered_trial(*args):
+        made.append(partial_trial(*args))
+        return made[-1]
+
+    monkeypatch.setattr(scans, "partial_trial", remembered_trial)
+    about_x = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    turn = {"about the axis": to_matrix(rotation_about_z(90.0), np.zeros(3)), "about x": to_matrix(about_x, np.zeros(3))}
+    for name, move in turn.items():
+        monkeypatch.setattr(scans, "run_global", lambda *args: (move @ made[-1].T_target_source, name, None, None))
+        rows = []
+        scans.partial_rows(ScanBenchConfig(real_pairs_dir=None, methods=("esm-global",), partial_trials=1,
+                                           partial_keeps=(0.7,)), rows.append)
+        assert rows[0]["rotation_error_deg"] > 89.0
+        assert rows[0]["success"] == (name == "about the axis"), (name, rows[0])
+        assert not rows[0]["success_kept_points"] and not rows[0]["success_strict"]
+
+
 def test_the_partial_table_counts_the_trials_that_still_overlap():
     """The last table counts only the trials overlapping by at least ``COUNTED_OVERLAP``, per
     method; fails if a barely overlapping trial is counted or a success is missed."""
     def row(protocol, method, overlap, success):
         return {"protocol": protocol, "method": method, "overlap": overlap, "success": success,
-                "success_strict": success, "rotation_error_deg": 1.0, "translation_error": 0.01,
+                "success_strict": success, "success_kept_points": success, "rotation_error_deg": 1.0, "translation_error": 0.01,
                 "time_s": 0.1, "status": "ok"}
 
     rows = [row("partial-50", "esm-global", 0.1, True), row("partial-50", "kiss-matcher-icp", 0.1, True),

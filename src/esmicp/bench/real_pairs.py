@@ -230,8 +230,12 @@ class PartialTrial:
     """A partial-overlap trial: ``apply(T_target_source, source)`` lies on ``target`` where they overlap.
 
     ``overlap`` is the fraction of the source's points (in the object's frame) that lie in the
-    target's part of the object (on the kept side of the target's plane); ``source_object`` the
-    source before it was moved (for up-to-symmetry checks).
+    target's part of the object (on the kept side of the target's plane). ``source_half`` is the
+    source's half of the object before its plane cut, moved with it (source frame): success up to
+    the *object's* symmetry is judged on it. A bottle's cut half turned about the bottle's axis
+    still lies on the bottle, and no data can tell that pose from the truth, yet the kept points
+    themselves land elsewhere: judged on them, such a pose fails whenever the cut does not share
+    the symmetry (``docs/scans-partial-overlap.md``, session 35).
     """
 
     source: np.ndarray
@@ -239,13 +243,14 @@ class PartialTrial:
     T_target_source: np.ndarray
     overlap: float
     keep: float
+    source_half: np.ndarray
 
 
 def partial_trial(cloud: np.ndarray, keep: float, rng: np.random.Generator, points: int | None = 2000) -> PartialTrial:
     """Split ``cloud`` into two disjoint random halves (``points`` each at most), cut each by its
     own random plane (:func:`plane_cut`) to ``keep`` of its points; the target is one, the
     other, moved by a random rigid transform (:func:`~esmicp.bench.protocols.random_rigid_transform`),
-    the source."""
+    the source (and its whole half, moved the same way, as ``source_half``)."""
     cloud = np.asarray(cloud, dtype=np.float64)
     order = rng.permutation(len(cloud))
     half = len(cloud) // 2 if points is None else min(len(cloud) // 2, points)
@@ -257,7 +262,8 @@ def partial_trial(cloud: np.ndarray, keep: float, rng: np.random.Generator, poin
     from ..core.procrustes import bounding_box_diagonal
 
     moved_by = random_rigid_transform(rng, bounding_box_diagonal(target))
-    return PartialTrial(apply(moved_by, source_object), target, rigid_inverse(moved_by), overlap, keep)
+    return PartialTrial(apply(moved_by, source_object), target, rigid_inverse(moved_by), overlap, keep,
+                        apply(moved_by, source_half))
 
 
 @dataclass(frozen=True, eq=False)
