@@ -182,6 +182,46 @@ def _partial_overlap_trial(name: str, *, keep_index: int, index: int):
     return register, right
 
 
+def test_the_rotation_searchs_pose_is_final_at_once_only_when_confident_on_the_overlap(monkeypatch):
+    """A stool cut to 50% (``esmicp bench --datasets partial-overlap``'s trial 10 of
+    ``partial-50``): the rotation search's pose, 89 degrees off, lays enough of the source on the
+    target to be final at once, but it is not confident on the overlap; the scan strategy's first
+    search then finds the truth. Fails if that pose is final on the rotation search's score alone."""
+    from dataclasses import replace
+
+    from esmicp.globalreg import search
+
+    register, right = _partial_overlap_trial("stool_0072", keep_index=1, index=10)
+    result = register()
+    assert right(result) and result.init == "global:scan"
+    monkeypatch.setattr(search, "_on_the_overlap", lambda work, estimate: replace(estimate, confidence=1.0))
+    wrong = register()
+    assert not right(wrong) and wrong.init == "global:rotation-search"
+
+
+def test_a_pose_covering_the_whole_target_is_final_without_the_scan_search(monkeypatch):
+    """A chair under 30% outliers (``benchmarks/global_protocols.py``'s trial 2 of outliers-30):
+    the rotation search's pose is right but not confident on the overlap (the outliers are
+    keypoints too). It covers the whole target, so it is final without the scan strategy. Fails
+    if the coverage is not checked: the scan search then runs."""
+    from esmicp.globalreg import search
+    from esmicp.globalreg.scan import CONFIDENT
+
+    trial = make_trial("outliers-30", _cloud("chair_0848"), seed=0, index=2, name="chair_0848")
+    searched, decided = [], []
+    scan, on_the_overlap = search._scan, search._on_the_overlap
+    monkeypatch.setattr(search, "_scan", lambda *args, **kwargs: searched.append(1) or scan(*args, **kwargs))
+    monkeypatch.setattr(search, "_on_the_overlap",
+                        lambda work, estimate: decided.append(on_the_overlap(work, estimate)) or decided[-1])
+    result = esmicp.register(trial.source, trial.target, rng=3141116543)
+    assert strict_success(result.transformation, trial.T_target_source, trial.diagonal, pivot=trial.source.mean(axis=0))
+    assert result.init == "global:rotation-search" and not searched
+    assert decided and decided[0].confidence < CONFIDENT  # final on the coverage, not on the confidence
+    monkeypatch.setattr(search, "_covers_the_target", lambda work, transformation: False)
+    esmicp.register(trial.source, trial.target, rng=3141116543)
+    assert searched
+
+
 def test_the_scan_strategys_unconfident_poses_join_the_verification(monkeypatch):
     """A stool cut to 50% (``esmicp bench --datasets partial-overlap``'s trial 22 of
     ``partial-50``): the scan strategy's best pose is right but not confident on the overlap (a

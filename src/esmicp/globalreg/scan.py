@@ -526,28 +526,32 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
 
 
 def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spacing: float,
-                                  workers: int | None = None) -> ScanEstimate:
+                                  workers: int | None = None, searches: int | None = None) -> ScanEstimate:
     """:func:`scan_estimate` with each setting of ``NORMALS_FROM_KEYPOINTS`` in turn until one's
     best pose is confident (:func:`overlap_confidence` at least :data:`CONFIDENT`), then, while
     none is, at the voxel of each count of :data:`LAST_KEYPOINTS` in turn (skipped when its voxel
     was searched already): the estimate whose best pose is the most confident (the first on a
     tie). The first searches are each judged on their own keypoints; the last ones on those of the
     most confident before them, which they then carry: the confidence keeps the data's one scale,
-    and :attr:`ScanEstimate.voxel` stays the standard keypoint voxel.
+    and :attr:`ScanEstimate.voxel` stays the standard keypoint voxel. ``searches``: stop after
+    that many searches (None: no limit).
 
     Why: at 10-25% overlap only a few hundred of the 5,000 keypoints lie in the overlap and often
     no true correspondence survives the pruning; normals at the keypoints' scale and at the dense
     points' give different descriptors, and so does every voxel: each search finds crops the
     others miss. A confident first search costs nothing more."""
     best: ScanEstimate | None = None
+    done = 0
 
     def keep_if_better(found: ScanEstimate) -> bool:
-        """Judge ``found`` on its keypoints, keep it if more confident; True once one is confident."""
-        nonlocal best
+        """Judge ``found`` on its keypoints, keep it if more confident; True once one is confident
+        or ``searches`` have run."""
+        nonlocal best, done
         found = replace(found, confidence=overlap_confidence(found.transformations[0], found.keypoints, workers))
         if best is None or found.confidence > best.confidence:
             best = found
-        return best.confidence >= CONFIDENT
+        done += 1
+        return best.confidence >= CONFIDENT or done == searches
 
     voxel = keypoint_voxel(target, spacing)  # the same for each standard search: found once
     for normals_from_keypoints in NORMALS_FROM_KEYPOINTS:
