@@ -28,8 +28,8 @@ decide.
 ``"auto"`` (the default) runs the rotation search first; when its result is not confident (see
 :func:`global_estimate`; a pose just short of it is settled first, :data:`SETTLE_FROM`; one
 confident on its score but not on the overlap is checked by the scan strategy's first search
-only, :func:`_on_the_overlap`) the scan strategy runs, and its pose wins outright when it is confident on the overlap and overlaps
-clearly more (``SCAN_MARGIN``); otherwise the feature candidates join, with the *twins* of its best
+only, :func:`_on_the_overlap`) the scan strategy runs, and its pose wins outright when it is
+confident on the overlap and overlaps clearly more (``SCAN_MARGIN``); otherwise the feature candidates join, with the *twins* of its best
 pose (turned by 180 degrees about each principal axis of the target): under heavy noise a
 near-symmetric object (a box-like night stand) otherwise ends on a twin of the truth that neither
 strategy proposes; and so do the scan strategy's best poses when it is not confident
@@ -263,10 +263,12 @@ def global_estimate(
 
     ``"auto"`` runs the rotation search first; when its verified best pose already puts at least
     ``CONFIDENT_SCORE`` of the source on the target, no distinct pose comes close and it is
-    confident on the overlap (:func:`_on_the_overlap`), that is final (clouds that overlap
-    fully, as most objects do); when it is not confident on the overlap, it stands unless the scan
-    strategy's first search leads it (below). So is a pose just short of that once
-    settled by a few more iterations, if it is then confident on the overlap (:func:`_settle`).
+    confident on the overlap (:func:`_on_the_overlap`) or covers the whole target
+    (:func:`_covers_the_target`), that is final (clouds that overlap fully, as most objects do).
+    A pose just short of ``CONFIDENT_SCORE`` is final once settled by a few more iterations, if it
+    is then confident on the overlap (:func:`_settle`); so is a confident one that is neither. If
+    settling does not make it confident, that pose stands unless the scan strategy's first search
+    leads it (:func:`_scan_leads`).
     Otherwise the scan strategy runs (:mod:`esmicp.globalreg.scan`, for partial overlaps); its pose
     is final when it is confident on the overlap and overlaps clearly more than the rotation
     search's best. Otherwise the feature
