@@ -324,7 +324,8 @@ def test_partial_rows_judge_success_up_to_the_objects_symmetry(monkeypatch):
 
     monkeypatch.setattr(scans, "partial_trial", remembered_trial)
     about_x = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
-    turn = {"about the axis": to_matrix(rotation_about_z(90.0), np.zeros(3)), "about x": to_matrix(about_x, np.zeros(3))}
+    turn = {"about the axis": to_matrix(rotation_about_z(90.0), np.zeros(3)),
+            "about x": to_matrix(about_x, np.zeros(3))}
     for name, move in turn.items():
         monkeypatch.setattr(scans, "run_global", lambda *args: (move @ made[-1].T_target_source, name, None, None))
         rows = []
@@ -340,8 +341,8 @@ def test_the_partial_table_counts_the_trials_that_still_overlap():
     method; fails if a barely overlapping trial is counted or a success is missed."""
     def row(protocol, method, overlap, success):
         return {"protocol": protocol, "method": method, "overlap": overlap, "success": success,
-                "success_strict": success, "success_kept_points": success, "rotation_error_deg": 1.0, "translation_error": 0.01,
-                "time_s": 0.1, "status": "ok"}
+                "success_strict": success, "success_kept_points": success, "rotation_error_deg": 1.0,
+                "translation_error": 0.01, "time_s": 0.1, "status": "ok"}
 
     rows = [row("partial-50", "esm-global", 0.1, True), row("partial-50", "kiss-matcher-icp", 0.1, True),
             row("partial-50", "esm-global", 0.3, True), row("partial-50", "kiss-matcher-icp", 0.3, False),

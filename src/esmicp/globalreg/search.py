@@ -29,11 +29,12 @@ decide.
 :func:`global_estimate`; a pose just short of it is settled first, :data:`SETTLE_FROM`; one
 confident on its score but not on the overlap is checked by the scan strategy's first search
 only, :func:`_on_the_overlap`) the scan strategy runs, and its pose wins outright when it is
-confident on the overlap and overlaps clearly more (``SCAN_MARGIN``); otherwise the feature candidates join, with the *twins* of its best
-pose (turned by 180 degrees about each principal axis of the target): under heavy noise a
-near-symmetric object (a box-like night stand) otherwise ends on a twin of the truth that neither
-strategy proposes; and so do the scan strategy's best poses when it is not confident
-(``SCAN_CANDIDATES``): on a small partial overlap they are often right without being confident.
+confident on the overlap and overlaps clearly more (``SCAN_MARGIN``); otherwise the feature
+candidates join, with the *twins* of its best pose (turned by 180 degrees about each principal
+axis of the target): under heavy noise a near-symmetric object (a box-like night stand)
+otherwise ends on a twin of the truth that neither strategy proposes; and so do the scan
+strategy's best poses when it is not confident (``SCAN_CANDIDATES``): on a small partial overlap
+they are often right without being confident.
 The rotation search alone and the features alone each miss cases the other catches, so the
 default uses both (the measurements: ``docs/measured-global.md``, "Why these
 choices").
