@@ -248,7 +248,8 @@ def coincident_interrupt_latency(count: int, fraction: float, init: str) -> tupl
     )
     assert done.returncode == 0, done.stderr[-2000:]
     word, value, *delay = done.stdout.split()
-    assert word == "interrupted", f"the registration ended ({value} s) before the SIGINT at {fraction:.0%} of its time, three times"
+    assert word == "interrupted", (
+        f"the registration ended ({value} s) before the SIGINT at {fraction:.0%} of its time, three times")
     return float(value), float(delay[0])
 
 

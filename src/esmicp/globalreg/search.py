@@ -48,7 +48,7 @@ import numpy as np
 
 from ..core.correspondence import NearestNeighbors
 from ..core.nearest_grid import NearestGrid
-from ..core.procrustes import batched_rotation_angle, bounding_box_diagonal, to_matrix
+from ..core.procrustes import apply, batched_rotation_angle, bounding_box_diagonal, rigid_inverse, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .rotation_search import NeighbourGraph, batched_esm, gaussian_overlap_score, rotation_search
 
@@ -221,7 +221,8 @@ class _Workspace:
     width: float
     graphs: dict[int, NeighbourGraph] = field(default_factory=dict)  # by id() of ``index`` / ``full_index``
     grid: NearestGrid | None = None  # the rotation search's lookup grid over ``index``, once built
-    _keypoints: object = None  # the pair's Keypoints, once built (:meth:`keypoints`)
+    _keypoints: object = field(default=None, repr=False)  # the pair's Keypoints, once built (:meth:`keypoints`)
+    _source_index: NearestNeighbors | None = field(default=None, repr=False)  # once built (:meth:`source_index`)
 
     def keypoints(self):
         """The pair's :class:`~esmicp.globalreg.scan.Keypoints` (the ones ``register`` judges its
@@ -231,6 +232,12 @@ class _Workspace:
         if self._keypoints is None:
             self._keypoints = Keypoints.of(self.source, self.target, self.full_index.spacing())
         return self._keypoints
+
+    def source_index(self) -> NearestNeighbors:
+        """A :class:`NearestNeighbors` over the source (for target points placed on it), built once."""
+        if self._source_index is None:
+            self._source_index = NearestNeighbors(self.source, workers=self.full_index.workers)
+        return self._source_index
 
     def seeds(self, index: NearestNeighbors) -> NearestGrid | None:
         """The lookup grid when it covers ``index``'s points (the first queries of a batched ESM
@@ -376,9 +383,7 @@ def _covers_the_target(work: _Workspace, transformation: np.ndarray) -> bool:
     """True when at least :data:`FULL_COVER` of up to :data:`COVER_POINTS` evenly strided target
     points lie within two score widths of the source placed by ``transformation``."""
     target = work.target[np.linspace(0, len(work.target) - 1, min(COVER_POINTS, len(work.target))).astype(np.intp)]
-    source_index = NearestNeighbors(work.source, workers=work.full_index.workers)
-    # Target points in the source frame: rows (t - translation) @ R = R^T (t - translation).
-    distances, _ = source_index.query((target - transformation[:3, 3]) @ transformation[:3, :3])
+    distances, _ = work.source_index().query(apply(rigid_inverse(transformation), target))
     return bool(np.mean(distances <= 2.0 * work.width) >= FULL_COVER)
 
 
@@ -535,7 +540,7 @@ def _decide(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     # Coverage the other way: the target points (clean, unlike a noisy source) lying on the placed
     # source. A symmetric twin leaves the target's asymmetric details uncovered.
     target_points = _subsample(work.target, DECIDE_POINTS, work.rng)
-    source_index = NearestNeighbors(work.source, workers=work.full_index.workers)
+    source_index = work.source_index()
     # Target points in the source frame under each pose: rows (t - translation) @ R = R^T (t - translation).
     in_source = np.matmul(target_points[None] - refined[:, None, :3, 3], refined[:, :3, :3])
     backward, _ = source_index.query(in_source.reshape(-1, 3))
