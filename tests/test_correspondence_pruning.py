@@ -345,7 +345,9 @@ def test_a_sharper_scan_pose_wins_over_a_slid_pose_that_overlaps_a_little_more(m
     --seed 100``'s crop 1 of that pair): the scan strategy's best pose is right and confident but
     overlaps a little less than the rotation search's (measured in session 28: 0.19 against 0.22,
     confidence 0.70 against 0.16), which the refinement then slid to 0.49 m off. The scan pose
-    now wins on its sharpness (``search.SHARPER_BY``); with the rule off this crop fails."""
+    now wins on its sharpness (``search.SHARPER_BY``). With that rule off, the rotation search's
+    unconfident pose still gives way to the sharper scan pose at the very end
+    (``search.SHARPER_THAN_CHOSEN``), flagged ambiguous; with both off this crop fails."""
     from esmicp.globalreg import search
 
     cropped, truth = _lomatch_crop("t00_s04", 100, (0, 1, 1))
@@ -358,6 +360,9 @@ def test_a_sharper_scan_pose_wins_over_a_slid_pose_that_overlaps_a_little_more(m
     assert right(result)
     assert result.confidence >= CONFIDENT
     monkeypatch.setattr(search, "SHARPER_BY", 2.0)  # the rule off (confidences are 0-1)
+    late = esmicp.register(cropped.source, cropped.target, rng=100)
+    assert right(late) and late.ambiguous and late.runner_up_ratio > 1.0
+    monkeypatch.setattr(search, "SHARPER_THAN_CHOSEN", 2.0)  # and the last one
     assert not right(esmicp.register(cropped.source, cropped.target, rng=100))
 
 

@@ -161,16 +161,17 @@ def test_a_settled_pose_must_be_confident_on_the_overlap(monkeypatch):
     assert result.init == "global:rotation-search" and not right(result)
 
 
-def _partial_overlap_trial(name: str, *, keep_index: int, index: int):
-    """Trial ``index`` of ``esmicp bench --datasets partial-overlap`` (seed 0) at keep fraction
-    ``(0.7, 0.5)[keep_index]`` on ModelNet40 object ``name``: a callable running the default
-    ``register`` on it with the bench's seed, and one judging a result up to symmetry."""
+def _partial_overlap_trial(name: str, *, keep_index: int, index: int, bench_seed: int = 0):
+    """Trial ``index`` of ``esmicp bench --datasets partial-overlap --seed bench_seed`` at keep
+    fraction ``(0.7, 0.5)[keep_index]`` on ModelNet40 object ``name``: a callable running the
+    default ``register`` on it with the bench's seed, and one judging a result up to symmetry (on
+    the kept points, stricter than the bench's whole half)."""
     from esmicp.bench.real_pairs import partial_trial
     from esmicp.bench.scans import _seed_of
 
-    rng = np.random.default_rng(np.random.SeedSequence(0, spawn_key=(1, keep_index, index)))
+    rng = np.random.default_rng(np.random.SeedSequence(bench_seed, spawn_key=(1, keep_index, index)))
     trial = partial_trial(_cloud(name), (0.7, 0.5)[keep_index], rng, 2000)
-    seed = _seed_of(0, 1, keep_index, index)
+    seed = _seed_of(bench_seed, 1, keep_index, index)
     diagonal = float(np.linalg.norm(trial.target.max(axis=0) - trial.target.min(axis=0)))
 
     def register():
@@ -227,7 +228,8 @@ def test_the_scan_strategys_unconfident_poses_join_the_verification(monkeypatch)
     ``partial-50``): the scan strategy's best pose is right but not confident on the overlap (a
     few hundred keypoints), so it does not win at once; the rotation search and the feature
     strategy end 158 degrees off. Joining the verification (``search.SCAN_CANDIDATES``), the scan
-    pose wins on the clouds' points. Fails if the scan strategy's poses are left out of it."""
+    pose wins on the clouds' points. Left out of it, it still wins at the very end, over the
+    feature strategy's unconfident pose (``search.SHARPER_THAN_CHOSEN``). Fails if both are off."""
     from esmicp.globalreg import search
     from esmicp.globalreg.scan import CONFIDENT
 
@@ -236,7 +238,61 @@ def test_the_scan_strategys_unconfident_poses_join_the_verification(monkeypatch)
     assert right(result) and result.init == "global:scan"
     assert result.confidence < CONFIDENT  # it did not win on its own confidence
     monkeypatch.setattr(search, "SCAN_CANDIDATES", 0)
+    assert right(register())
+    monkeypatch.setattr(search, "SHARPER_THAN_CHOSEN", 2.0)
     assert not right(register())
+
+
+def test_an_unconfident_choice_gives_way_to_a_sharper_scan_pose(monkeypatch):
+    """A guitar cut to 50% (``esmicp bench --datasets partial-overlap --seed 1``'s trial 17 of
+    ``partial-50``): the rotation search's pose, 100 degrees off, lays as much of the source on the
+    target as any, but the overlap does not coincide (confidence 0); one of the scan strategy's
+    poses is right and confident. Fails if the chosen pose is kept whatever its confidence."""
+    from esmicp.globalreg import search
+    from esmicp.globalreg.scan import CONFIDENT
+
+    register, right = _partial_overlap_trial("guitar_0165", keep_index=1, index=17, bench_seed=1)
+    result = register()
+    assert right(result) and result.init == "global:scan" and result.confidence >= CONFIDENT
+    monkeypatch.setattr(search, "SHARPER_THAN_CHOSEN", 2.0)  # never sharper enough
+    kept = register()
+    assert not right(kept) and kept.init == "global:rotation-search" and kept.confidence < CONFIDENT
+
+
+def test_sharper_on_the_overlap_replaces_only_an_unconfident_choice(monkeypatch):
+    """``_sharper_on_the_overlap`` on an asymmetric object's keypoints: a pose turned 180 degrees
+    (not confident) gives way to the scan strategy's right pose, ranked second by overlap, and
+    stays as its runner-up; a confident choice, a scan search with no sharper pose or one that
+    found nothing (score 0), or a margin no pose reaches, change nothing."""
+    from scipy.spatial.transform import Rotation
+
+    from esmicp.core.correspondence import NearestNeighbors
+    from esmicp.globalreg import search
+    from esmicp.globalreg.scan import CONFIDENT, Keypoints
+
+    cloud = _cloud("chair_0848")
+    keypoints = Keypoints.of(cloud, cloud, NearestNeighbors(cloud).spacing())
+    right, wrong = np.eye(4), np.eye(4)
+    wrong[:3, :3] = Rotation.from_euler("z", 180, degrees=True).as_matrix()
+    wrong[:3, 3] = cloud.mean(axis=0) - wrong[:3, :3] @ cloud.mean(axis=0)
+
+    def estimate(poses, scores):
+        return search.GlobalEstimate(np.stack(poses), np.asarray(scores, float), ("rotation-search",) * len(poses),
+                                     candidates=len(poses), keypoints=keypoints)
+
+    def choice(chosen, scanned):
+        return search._sharper_on_the_overlap(chosen, scanned).transformations
+
+    chosen, scanned = estimate([wrong], [0.7]), estimate([wrong, right], [0.6, 0.5])
+    better = search._sharper_on_the_overlap(chosen, scanned)
+    assert better.strategies == ("scan", "rotation-search") and better.confidence >= CONFIDENT
+    assert np.array_equal(better.transformations, np.stack([right, wrong]))
+    kept = search._sharper_on_the_overlap(chosen, estimate([wrong], [0.6]))
+    assert np.array_equal(kept.transformations, np.stack([wrong])) and kept.confidence < CONFIDENT
+    assert np.array_equal(choice(chosen, estimate([right], [0.0])), np.stack([wrong]))
+    assert np.array_equal(choice(estimate([right], [0.7]), scanned), np.stack([right]))
+    monkeypatch.setattr(search, "SHARPER_THAN_CHOSEN", 2.0)
+    assert np.array_equal(choice(chosen, scanned), np.stack([wrong]))
 
 
 def test_only_an_unconfident_scan_search_sends_its_poses_to_the_verification():
