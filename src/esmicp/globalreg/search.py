@@ -463,7 +463,7 @@ def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
     poses is more confident by :data:`SHARPER_THAN_CHOSEN`: then the most confident of those, with
     the chosen pose as its runner-up when the two are distinct (rotations more than
     ``DISTINCT_ROTATION_DEG`` apart), each scored by its overlap score on the keypoints. The
-    chosen pose usually overlaps more, so such a result is flagged ambiguous and its
+    chosen pose usually overlaps more, so such a result is usually flagged ambiguous, and its
     ``runner_up_score`` can exceed its score.
 
     Why: the verification scores how much of the source lies on the target, and a cut object's
