@@ -51,9 +51,7 @@ import numpy as np
 
 from ..core.correspondence import NearestNeighbors
 from ..core.nearest_grid import NearestGrid
-from ..core.procrustes import (
-    apply, batched_rotation_angle, bounding_box_diagonal, rigid_inverse, rotation_angle, to_matrix,
-)
+from ..core.procrustes import apply, batched_rotation_angle, bounding_box_diagonal, rigid_inverse, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .rotation_search import NeighbourGraph, batched_esm, gaussian_overlap_score, rotation_search
 
@@ -482,13 +480,15 @@ def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
     poses = scanned.transformations[scanned.scores > 0]  # a search that found nothing sends nothing
     if confidence >= CONFIDENT or not len(poses):
         return chosen
-    confidences = [overlap_confidence(pose, keypoints, workers) for pose in poses]
+    # The scan strategy judged its best pose already, on these keypoints when they are its own.
+    known = scanned.confidence if keypoints is scanned.keypoints and scanned.scores[0] > 0 else None
+    confidences = [known if k == 0 and known is not None else overlap_confidence(pose, keypoints, workers)
+                   for k, pose in enumerate(poses)]
     best = int(np.argmax(confidences))
     if confidences[best] < confidence + SHARPER_THAN_CHOSEN:
         return chosen
     pair = np.stack([poses[best], chosen.transformation])
-    if np.degrees(rotation_angle(pair[0, :3, :3].T @ pair[1, :3, :3])) <= DISTINCT_ROTATION_DEG:
-        pair = pair[:1]  # the same pose, sharpened: no runner-up
+    pair = pair[_distinct(pair, np.arange(2), 2)]  # the same pose, sharpened: no runner-up
     scores = np.array([overlap_score(pose, keypoints, workers) for pose in pair])
     strategies = ("scan",) + chosen.strategies[:1] * (len(pair) - 1)
     return GlobalEstimate(pair, scores, strategies, candidates=chosen.candidates, keypoints=keypoints,
