@@ -60,6 +60,11 @@ POLISH_ITERATIONS = 2
 #: it back (a KITTI street pair: ``docs/scans-refinement.md``). Capped, because on some fragment
 #: pairs ``esm-plane`` creeps on for its whole budget where ``esm`` converges.
 PLANE_ITERATIONS = 30
+#: ... on this many of the strided points (evenly strided again): the stage only has to pull a
+#: slid pose back within ``esm``'s reach, and ``esm`` on all ``REFINE_POINTS`` settles it from
+#: there, so fewer points end where 20,000 do, to the refinement's own noise, at less cost
+#: (``docs/speed.md``, "Issue 13, session 37").
+PLANE_POINTS = 5_000
 #: The ``esm-plane`` stage is undone when it lowers the overlap confidence
 #: (:func:`~esmicp.globalreg.scan.overlap_confidence`, 0-1, on the pair's keypoints) by more than
 #: this: where scans overlap by 15% or so, most pairs join points the other scan never saw, the
@@ -281,9 +286,9 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
 def _refine_then_polish(source, target_index, estimator, initial, request: _Request, diagonal: float,
                         keypoints: Keypoints, initial_confidence: float | None = None):
     """Stage 4 after a global search on a large source: ``estimator`` on ``REFINE_POINTS`` evenly
-    strided source points (for ``esm``, after at most ``PLANE_ITERATIONS`` of ``esm-plane`` there,
-    undone when they lower the overlap confidence on ``keypoints`` by more than
-    ``PLANE_CONFIDENCE_DROP``),
+    strided source points (for ``esm``, after at most ``PLANE_ITERATIONS`` of ``esm-plane`` on
+    ``PLANE_POINTS`` of them, undone when they lower the overlap confidence on ``keypoints`` by
+    more than ``PLANE_CONFIDENCE_DROP``),
     then a fresh fine-phase estimator of the same method on the full source for at most
     ``POLISH_ITERATIONS`` iterations (fewer when ``max_iterations`` leaves fewer). The outcome is
     the polish's, with the iterations of every stage and ``converged`` from the subsample run (the
@@ -296,7 +301,8 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     request = dataclasses.replace(request, criteria=_at_strided_tolerance(request.criteria))
     plane_iterations, plane_note = 0, ""
     if request.method == "esm":
-        initial, plane_iterations, plane_note = _plane_start(strided, target_index, initial, request, diagonal,
+        planed = strided[np.linspace(0, len(strided) - 1, min(PLANE_POINTS, len(strided))).astype(np.intp)]
+        initial, plane_iterations, plane_note = _plane_start(planed, target_index, initial, request, diagonal,
                                                              keypoints, initial_confidence)
         request = dataclasses.replace(request, criteria=dataclasses.replace(
             request.criteria, max_iterations=request.criteria.max_iterations - plane_iterations))
@@ -355,8 +361,10 @@ def _plane_start(strided, target_index, initial, request: _Request, diagonal: fl
     after = overlap_confidence(plane.transformation, keypoints, request.workers)
     if after < before - PLANE_CONFIDENCE_DROP:
         return initial, plane.num_iterations, (
-            f"{plane.num_iterations} esm-plane iteration(s) undone (overlap confidence {before:.2f} -> {after:.2f}), then ")
-    return plane.transformation, plane.num_iterations, f"{plane.num_iterations} esm-plane iteration(s), then "
+            f"{plane.num_iterations} esm-plane iteration(s) on {len(strided):,} points undone (overlap confidence "
+            f"{before:.2f} -> {after:.2f}), then ")
+    note = f"{plane.num_iterations} esm-plane iteration(s) on {len(strided):,} points, then "
+    return plane.transformation, plane.num_iterations, note
 
 
 def _evaluate(source, target_index, transformation, request: _Request, warm=None) -> tuple[float, float, float]:
