@@ -80,6 +80,22 @@ def test_register_summary_and_outputs(pair, tmp_path, capsys):
     np.testing.assert_allclose(read_points(aligned), apply(estimate, source_points), atol=1e-5)
 
 
+def test_register_summary_calls_low_what_is_below_the_trust_bar(pair, monkeypatch, capsys):
+    """LOW follows ``scan.TRUSTED`` (the bar a result must reach), not the search's own
+    ``CONFIDENT``: the same right pose is LOW once the bar is set above its confidence."""
+    from esmicp.globalreg import scan
+
+    source, target, _, _ = pair
+    code, out, err = run(capsys, "register", str(source), str(target), "--method", "icp", "--json")
+    assert code == 0, err
+    confidence = json.loads(out)["confidence"]
+    assert confidence >= scan.TRUSTED
+    monkeypatch.setattr(scan, "TRUSTED", confidence + 1e-6)
+    code, out, err = run(capsys, "register", str(source), str(target), "--method", "icp")
+    assert code == 0, err
+    assert f"LOW, below {confidence + 1e-6:g}" in out
+
+
 def test_register_summary_says_when_the_pose_is_not_to_be_trusted(tmp_path, capsys):
     """Two clouds that do not overlap anywhere (a shape, and a distant box of noise): whatever pose
     comes back, the summary must say its overlap confidence is low, as ``result.confidence`` does."""

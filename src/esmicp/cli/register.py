@@ -145,11 +145,11 @@ def print_summary(result) -> None:
             "the object may be symmetric or the overlap too small to tell"
         )
     if result.confidence is not None:
-        from ..globalreg.scan import CONFIDENT  # not at import: `esmicp --version` stays light
+        from ..globalreg.scan import TRUSTED  # not at import: `esmicp --version` stays light
 
-        low = result.confidence < CONFIDENT
+        low = result.confidence < TRUSTED
         print(f"  overlap confidence {result.confidence:.2f}" + (
-            f" (LOW, below {CONFIDENT:g}: do not trust the pose; the clouds may not coincide where it "
+            f" (LOW, below {TRUSTED:g}: do not trust the pose; the clouds may not coincide where it "
             "puts them, or their overlap may not hold it)" if low else ""))
     print(f"  {result.message}")
     sigma = "n/a" if result.sigma is None else f"{result.sigma:.6g}"

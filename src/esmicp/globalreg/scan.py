@@ -160,8 +160,14 @@ SPREAD_POINTS = 500
 #: registered whole skip the normals' cost).
 SPREAD_BELOW = 0.5
 
-#: A confidence below this means the pose should not be trusted (``docs/measured-global.md``).
+#: The search's own bar: a pose at least this confident on the overlap ends the scan strategy's
+#: searches and may win over the other strategies' (``docs/measured-global.md``).
 CONFIDENT = 0.5
+#: The bar a result must reach to be trusted (``register``'s ``confidence``, ``esmicp register``'s
+#: LOW): higher than the search's own, because the search stops at, and chooses among its poses
+#: for, the first that reaches ``CONFIDENT``, so a wrong pose just over that bar is the one it keeps
+#: (``docs/scans-partial-overlap.md``, session 37).
+TRUSTED = 0.55
 
 
 @dataclass(frozen=True)
