@@ -374,7 +374,8 @@ def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimat
     """``estimate`` with the pair's keypoints and the overlap confidence of its best pose
     (:func:`~esmicp.globalreg.scan.overlap_confidence`). ``"auto"`` takes the rotation search's
     pose, confident on its score, at once only when this is at least
-    :data:`~esmicp.globalreg.scan.CONFIDENT` (the bar of the scan strategy and of ``register``'s result)
+    :data:`~esmicp.globalreg.scan.CONFIDENT` (the search's own bar; ``register``'s result is trusted from
+    :data:`~esmicp.globalreg.scan.TRUSTED`)
     or the pose covers the whole target (:func:`_covers_the_target`); otherwise the scan
     strategy's first search checks it (:func:`global_estimate`).
 
