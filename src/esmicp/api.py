@@ -340,11 +340,11 @@ def _estimator(method: str, request: _Request, target_index, diagonal: float, st
     return estimator
 
 
-def _plane_start(strided, target_index, initial, request: _Request, diagonal: float,
+def _plane_start(points, target_index, initial, request: _Request, diagonal: float,
                  keypoints: Keypoints, initial_confidence: float | None = None) -> tuple[np.ndarray, int, str]:
-    """``(pose, iterations, note)`` of at most ``PLANE_ITERATIONS`` ``esm-plane`` iterations on the
-    strided source from ``initial``, leaving ``esm`` at least one iteration of ``max_iterations``;
-    the note begins the result's message. ``initial`` when the budget leaves none, the guard
+    """``(pose, iterations, note)`` of at most ``PLANE_ITERATIONS`` ``esm-plane`` iterations on
+    ``points`` (``PLANE_POINTS`` strided source points) from ``initial``, leaving ``esm`` at least
+    one iteration of ``max_iterations``; the note begins the result's message. ``initial`` when the budget leaves none, the guard
     refused the start, or the iterations lowered the overlap confidence on ``keypoints`` by more
     than ``PLANE_CONFIDENCE_DROP`` (they still count against the budget and the note says so)."""
     budget = min(PLANE_ITERATIONS, request.criteria.max_iterations - 1)
@@ -352,7 +352,7 @@ def _plane_start(strided, target_index, initial, request: _Request, diagonal: fl
         return initial, 0, ""
     planar = _estimator("esm-plane", request, target_index, diagonal)
     criteria = dataclasses.replace(request.criteria, max_iterations=budget)
-    plane = guarded_refine(strided, target_index, planar, init=initial, criteria=criteria, scale=diagonal)
+    plane = guarded_refine(points, target_index, planar, init=initial, criteria=criteria, scale=diagonal)
     if plane.num_iterations == 0:
         return initial, 0, ""
     before = initial_confidence
@@ -361,9 +361,9 @@ def _plane_start(strided, target_index, initial, request: _Request, diagonal: fl
     after = overlap_confidence(plane.transformation, keypoints, request.workers)
     if after < before - PLANE_CONFIDENCE_DROP:
         return initial, plane.num_iterations, (
-            f"{plane.num_iterations} esm-plane iteration(s) on {len(strided):,} points undone (overlap confidence "
+            f"{plane.num_iterations} esm-plane iteration(s) on {len(points):,} points undone (overlap confidence "
             f"{before:.2f} -> {after:.2f}), then ")
-    note = f"{plane.num_iterations} esm-plane iteration(s) on {len(strided):,} points, then "
+    note = f"{plane.num_iterations} esm-plane iteration(s) on {len(points):,} points, then "
     return plane.transformation, plane.num_iterations, note
 
 

@@ -46,6 +46,7 @@ choices").
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -54,6 +55,9 @@ from ..core.nearest_grid import NearestGrid
 from ..core.procrustes import apply, batched_rotation_angle, bounding_box_diagonal, rigid_inverse, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .rotation_search import NeighbourGraph, batched_esm, gaussian_overlap_score, rotation_search
+
+if TYPE_CHECKING:  # for the annotations only: the functions below import scan where they use it
+    from .scan import Keypoints
 
 #: Names accepted as ``init=`` strategies for global registration.
 STRATEGIES = ("auto", "rotation-search", "features", "scan")
@@ -230,10 +234,10 @@ class _Workspace:
     width: float
     graphs: dict[int, NeighbourGraph] = field(default_factory=dict)  # by id() of ``index`` / ``full_index``
     grid: NearestGrid | None = None  # the rotation search's lookup grid over ``index``, once built
-    _keypoints: object = field(default=None, repr=False)  # the pair's Keypoints, once built (:meth:`keypoints`)
+    _keypoints: "Keypoints | None" = field(default=None, repr=False)  # once built (:meth:`keypoints`)
     _source_index: NearestNeighbors | None = field(default=None, repr=False)  # once built (:meth:`source_index`)
 
-    def keypoints(self):
+    def keypoints(self) -> "Keypoints":
         """The pair's :class:`~esmicp.globalreg.scan.Keypoints` (the ones ``register`` judges its
         confidence on), built once."""
         from .scan import Keypoints
@@ -374,10 +378,10 @@ def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimat
     """``estimate`` with the pair's keypoints and the overlap confidence of its best pose
     (:func:`~esmicp.globalreg.scan.overlap_confidence`). ``"auto"`` takes the rotation search's
     pose, confident on its score, at once only when this is at least
-    :data:`~esmicp.globalreg.scan.CONFIDENT` (the search's own bar; ``register``'s result is trusted from
-    :data:`~esmicp.globalreg.scan.TRUSTED`)
-    or the pose covers the whole target (:func:`_covers_the_target`); otherwise the scan
-    strategy's first search checks it (:func:`global_estimate`).
+    :data:`~esmicp.globalreg.scan.CONFIDENT` (the search's own bar; ``register``'s result is
+    trusted from :data:`~esmicp.globalreg.scan.TRUSTED`) or the pose covers the whole target
+    (:func:`_covers_the_target`); otherwise the scan strategy's first search checks it
+    (:func:`global_estimate`).
 
     Why: the rotation search's score counts the source points lying on the target, which a cut
     object's wrong pose can satisfy better than the truth (a piano half flipped end to end lies on
