@@ -17,7 +17,7 @@ their documentation recommends (0.05 m indoor, 0.3 m LiDAR). Methods take turns 
 only the registration call is timed. Prints one line per (pair, variant, method), a summary,
 each method's median time ratio to the last one, and a Markdown table: one row per (pair,
 variant), every method's success, errors and time, and the first method's time over the fastest
-of the others (the peers) on that row.
+of the others (the peers) that succeed on that row: a peer that fails is no bar to beat.
 
     python benchmarks/scan_pairs_quick.py --methods esm,kiss-matcher-icp,open3d-ransac-fpfh-icp
 """
@@ -114,25 +114,30 @@ def main() -> None:
 
 def markdown_table(rows, methods) -> str:
     """One Markdown row per (pair, variant): each method's result and time, and the first method's
-    time over the fastest other method's, with the median and maximum of that ratio below."""
+    time over the fastest *successful* other method's ("no peer succeeds" when none does), with
+    the median and maximum of that ratio below."""
     cells = {(row[0], row[1], row[2]): row for row in rows}
     keys = list(dict.fromkeys((row[0], row[1]) for row in rows))
     lines = [
-        "| pair | variant | " + " | ".join(methods) + f" | {methods[0]} / fastest peer |",
+        "| pair | variant | " + " | ".join(methods) + f" | {methods[0]} / fastest successful peer |",
         "|---|---|" + "---|" * (len(methods) + 1),
     ]
     ratios = []
     for label, variant in keys:
         found = [cells[label, variant, name] for name in methods]
-        ratio = found[0][6] / min(row[6] for row in found[1:])
-        ratios.append(ratio)
+        peers = [row[6] for row in found[1:] if row[3]]
         shown = [f"{'ok' if row[3] else 'FAIL'} {row[4]:.2f}° {row[5]:.3f}m {row[6]:.2f}s" for row in found]
-        lines.append(f"| {label} | {variant} | " + " | ".join(shown) + f" | {ratio:.2f} |")
+        if peers:
+            ratios.append(found[0][6] / min(peers))
+            lines.append(f"| {label} | {variant} | " + " | ".join(shown) + f" | {ratios[-1]:.2f} |")
+        else:
+            lines.append(f"| {label} | {variant} | " + " | ".join(shown) + " | no peer succeeds |")
     successes = [sum(cells[key[0], key[1], name][3] for key in keys) for name in methods]
-    lines.append(
-        f"\n{' / '.join(f'{name} {count}/{len(keys)}' for name, count in zip(methods, successes))}; "
-        f"{methods[0]} / fastest peer: median {statistics.median(ratios):.2f}, max {max(ratios):.2f}"
-    )
+    summary = f"\n{' / '.join(f'{name} {count}/{len(keys)}' for name, count in zip(methods, successes))}"
+    if ratios:
+        summary += (f"; {methods[0]} / fastest successful peer: median {statistics.median(ratios):.2f}, "
+                    f"max {max(ratios):.2f}")
+    lines.append(summary)
     return "\n".join(lines)
 
 
