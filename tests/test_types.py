@@ -168,6 +168,20 @@ def test_identical_points_are_degenerate():
     assert degeneracy(np.tile([1e8, 1e8, 1e8], (10, 1))) == "all points are identical"
 
 
+@pytest.mark.parametrize("offset", [0.0, 1e3, 1e9])
+def test_a_nearly_straight_cloud_is_judged_as_by_its_exact_singular_values(rng, offset):
+    """The fast scatter path only clears clouds far from the thresholds: across widths that
+    straddle them (1e-14 to 1e-2 of the length), the verdict is the exact SVD's."""
+    direction = rng.normal(size=3)
+    for width in 10.0 ** np.arange(-14.0, -1.0):
+        cloud = rng.uniform(-1, 1, (200, 1)) * direction + rng.normal(size=(200, 3)) * width + offset
+        centred = cloud - cloud.mean(axis=0)
+        values = np.linalg.svd(centred, compute_uv=False)
+        floor = 1e-13 * np.abs(cloud).max() * np.sqrt(len(cloud))
+        expected = "all points are collinear" if values[1] <= 1e-9 * values[0] + floor else None
+        assert degeneracy(cloud) == expected, width
+
+
 def test_collinear_points_are_degenerate(rng):
     direction = rng.normal(size=3)
     line = rng.uniform(-5, 5, (30, 1)) * direction
