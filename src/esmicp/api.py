@@ -46,12 +46,13 @@ COINCIDENT_WARNING_FRACTION = 0.1
 #: Seed of the global search when ``rng`` is None (results are reproducible by default).
 DEFAULT_SEED = 0
 
-#: After a global search (the pose is already close), a source of more than twice this many points
-#: is refined on this many evenly strided points first; the full source then polishes that pose
+#: A source of more than twice this many points is refined on this many evenly strided points
+#: first (after a global search or from a given start); the full source then polishes that pose
 #: for at most ``POLISH_ITERATIONS`` iterations (each full-resolution iteration costs as much as
 #: ``len(source) / REFINE_POINTS`` subsample iterations). Not with a callback or a history, which
-#: see every iteration on the whole source. (5,000 points were too few on a KITTI scan: the pose
-#: slid 0.3 m along the road from where every point takes it; ``docs/measured-global.md``.)
+#: see every iteration on the whole source, nor with ``esm-paper``, whose pairs are by index.
+#: (5,000 points were too few on a KITTI scan: the pose slid 0.3 m along the road from where
+#: every point takes it; ``docs/measured-global.md``.)
 REFINE_POINTS = COARSE_POINTS
 POLISH_ITERATIONS = 2
 #: On that subsample, ``esm`` is preceded by at most this many ``esm-plane`` iterations: a global
@@ -204,9 +205,10 @@ def register(
     if estimate is None and isinstance(estimator, EsmEstimator):
         # A given start: its coarse sigma comes from the overlap's residuals (partial overlaps).
         estimator.start_from(target_index.query_near(source_points, transform=initial)[0])
-    if estimate is not None and callback is None and not record_history and len(source_points) > 2 * REFINE_POINTS:
+    if callback is None and not record_history and len(source_points) > 2 * REFINE_POINTS and estimator.order_invariant:
+        # (``esm-paper`` pairs source point k with target point k: a strided subset has no pairs.)
         outcome = _refine_then_polish(source_points, target_index, estimator, initial, request, diagonal, keypoints,
-                                      estimate.confidence)
+                                      estimate)
     else:
         criteria = request.criteria
         if estimate is not None and len(source_points) > LOOSER_FROM_POINTS:
@@ -284,26 +286,30 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
 
 
 def _refine_then_polish(source, target_index, estimator, initial, request: _Request, diagonal: float,
-                        keypoints: Keypoints, initial_confidence: float | None = None):
-    """Stage 4 after a global search on a large source: ``estimator`` on ``REFINE_POINTS`` evenly
-    strided source points (for ``esm``, after at most ``PLANE_ITERATIONS`` of ``esm-plane`` on
-    ``PLANE_POINTS`` of them, undone when they lower the overlap confidence on ``keypoints`` by
-    more than ``PLANE_CONFIDENCE_DROP``),
+                        keypoints: Keypoints, estimate: GlobalEstimate | None = None):
+    """Stage 4 on a large source: ``estimator`` on ``REFINE_POINTS`` evenly strided source points,
     then a fresh fine-phase estimator of the same method on the full source for at most
     ``POLISH_ITERATIONS`` iterations (fewer when ``max_iterations`` leaves fewer). The outcome is
     the polish's, with the iterations of every stage and ``converged`` from the subsample run (the
-    polish only sharpens it; a polish the guard rejected makes it False). The strided stages stop
-    at ``STRIDED_TOLERANCE`` when the request's tolerance is finer; the polish keeps the request's.
-    ``initial_confidence``: the overlap confidence of ``initial`` on ``keypoints``, when the global
-    search already judged it (else computed here)."""
+    polish only sharpens it; a polish the guard rejected makes it False); the polish keeps the
+    request's tolerance.
+
+    After a global search (``estimate``, whose ``confidence`` is that of ``initial`` on
+    ``keypoints`` when it judged it), ``esm`` is preceded by at most ``PLANE_ITERATIONS`` of
+    ``esm-plane`` on ``PLANE_POINTS`` of the strided points, undone when they lower the overlap
+    confidence on ``keypoints`` by more than ``PLANE_CONFIDENCE_DROP``, and the strided stages stop
+    at ``STRIDED_TOLERANCE`` when the request's tolerance is finer: a global pose is already close.
+    From a given start (``estimate`` None) the strided run keeps the request's tolerance, since a
+    start can lie further off and a slow slide toward the optimum must run to its end."""
     strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
     polish_criteria = request.criteria
-    request = dataclasses.replace(request, criteria=_at_strided_tolerance(request.criteria))
     plane_iterations, plane_note = 0, ""
-    if request.method == "esm":
+    if estimate is not None:
+        request = dataclasses.replace(request, criteria=_at_strided_tolerance(request.criteria))
+    if estimate is not None and request.method == "esm":
         planed = strided[np.linspace(0, len(strided) - 1, min(PLANE_POINTS, len(strided))).astype(np.intp)]
         initial, plane_iterations, plane_note = _plane_start(planed, target_index, initial, request, diagonal,
-                                                             keypoints, initial_confidence)
+                                                             keypoints, estimate.confidence)
         request = dataclasses.replace(request, criteria=dataclasses.replace(
             request.criteria, max_iterations=request.criteria.max_iterations - plane_iterations))
     coarse = guarded_refine(strided, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal)
