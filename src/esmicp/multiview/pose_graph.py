@@ -120,21 +120,31 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
     if not free:
         return dict(poses)
     slot = {k: n for n, k in enumerate(free)}
+    slot[reference] = len(free)  # the fixed identity, after the free poses
     used = [(i, j, T, w) for i, j, T, w in edges if i in poses and j in poses]
-    inverse_measured = [np.linalg.inv(T) for _, _, T, _ in used]
+    first = np.array([slot[i] for i, _, _, _ in used], dtype=np.intp)
+    second = np.array([slot[j] for _, j, _, _ in used], dtype=np.intp)
+    inverse_measured = np.array([np.linalg.inv(T) for _, _, T, _ in used]).reshape(-1, 4, 4)
+    roots = np.sqrt(np.array([w for _, _, _, w in used], dtype=float))[:, None]
     rotation_unit = np.radians(rotation_scale_deg)
 
     def current(x, k):
         return np.eye(4) if k == reference else pose_from_vector(x[6 * slot[k]: 6 * slot[k] + 6])
 
     def residuals(x):
-        out = np.empty(6 * len(used))
-        for n, ((i, j, _, w), M) in enumerate(zip(used, inverse_measured)):
-            E = M @ np.linalg.inv(current(x, i)) @ current(x, j)
-            root = np.sqrt(w)
-            out[6 * n: 6 * n + 3] = root * Rotation.from_matrix(E[:3, :3]).as_rotvec() / rotation_unit
-            out[6 * n + 3: 6 * n + 6] = root * E[:3, 3] / translation_scale
-        return out
+        # Every edge at once: E = T_i_j^-1 T_world_i^-1 T_world_j, as rotation vector and translation.
+        vectors = x.reshape(-1, 6)
+        rotations = np.concatenate([Rotation.from_rotvec(vectors[:, :3]).as_matrix(), np.eye(3)[None]])
+        translations = np.concatenate([vectors[:, 3:], np.zeros((1, 3))])
+        back = np.transpose(rotations[first], (0, 2, 1))  # R_world_i^T
+        relative = back @ rotations[second]
+        shift = np.einsum("nab,nb->na", back, translations[second] - translations[first])
+        error_rotation = inverse_measured[:, :3, :3] @ relative
+        error_shift = np.einsum("nab,nb->na", inverse_measured[:, :3, :3], shift) + inverse_measured[:, :3, 3]
+        out = np.empty((len(used), 6))
+        out[:, :3] = roots * Rotation.from_matrix(error_rotation).as_rotvec() / rotation_unit
+        out[:, 3:] = roots * error_shift / translation_scale
+        return out.ravel()
 
     x0 = np.concatenate([vector_from_pose(poses[k]) for k in free])
     solution = least_squares(residuals, x0, loss=loss, f_scale=1.0, x_scale="jac", max_nfev=200)
