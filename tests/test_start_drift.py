@@ -60,3 +60,58 @@ def test_a_whole_object_still_converges_from_a_poor_given_start(rng):
     result = esmicp.register(cloud, apply(truth, cloud), init="identity")
     assert rotation_error_deg(result.transformation, truth) < 1e-3
     assert translation_error(result.transformation, truth, cloud.mean(axis=0)) < 1e-4
+
+
+def test_a_half_slid_off_by_the_first_run_is_kept_by_the_tighter_second_try(monkeypatch):
+    """``start_drift.py``'s ``partial-70`` trial 6 (seed 0, a lamp cut to 70%) from its start 5
+    degrees and 5% of the diagonal off: the first run's coarse sigma (from the start's 25%
+    distance quantile) pulls the half off (overlap confidence 0.02); the second try, from the 5%
+    quantile, keeps it (0.73). Fails without the second try, or if it stopped keeping the more
+    confident run."""
+    import sys
+
+    from conftest import REPO_ROOT
+
+    from esmicp import api
+    from esmicp.bench.scans import _modelnet_clouds, _seed_of
+    from esmicp.metrics import up_to_symmetry_success
+
+    sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
+    import start_drift
+
+    clouds = _modelnet_clouds(require_shared("modelnet40").parent)
+    names = list(clouds)
+    rng = np.random.default_rng(np.random.SeedSequence(0, spawn_key=(1, 0, 6)))
+    trial = partial_trial(clouds[names[6]], 0.7, rng, 2000)
+    diagonal = bounding_box_diagonal(trial.target)
+    start = start_drift.perturbed(trial.T_target_source, trial.source, 5.0, 0.05 * diagonal,
+                                  np.random.default_rng(_seed_of(0, 3, 0, 6)))
+    result = esmicp.register(trial.source, trial.target, init=start)
+    assert "second try" in result.message and "raised the overlap confidence" in result.message, result.message
+    assert result.confidence >= 0.5
+    assert up_to_symmetry_success(trial.source, result.transformation, trial.T_target_source, diagonal)
+    monkeypatch.setattr(api, "_second_try", lambda *arguments: arguments[-2:])  # the first run only
+    first = esmicp.register(trial.source, trial.target, init=start)
+    assert first.confidence < result.confidence
+    assert not up_to_symmetry_success(trial.source, first.transformation, trial.T_target_source, diagonal)
+
+
+def test_the_second_try_runs_only_below_the_trust_bar_and_keeps_the_more_confident(monkeypatch):
+    """The second try runs when the first run from a given start ends below ``TRUSTED``, never
+    with a fixed ``sigma`` (the quantile does not set it) or a callback (which would see two
+    runs), and its result is the more confident of the two."""
+    from esmicp import api
+
+    cloud = asymmetric_shape(600)
+    truth = to_matrix(random_rotation(np.random.default_rng(3), 3.0), np.full(3, 0.01))
+    target = apply(truth, cloud)
+    confident = esmicp.register(cloud, target, init=np.eye(4))
+    assert confident.confidence >= api.TRUSTED and "second try" not in confident.message
+    monkeypatch.setattr(api, "TRUSTED", 1.01)  # every run is below the bar now
+    tried = esmicp.register(cloud, target, init=np.eye(4))
+    assert "second try" in tried.message
+    assert tried.confidence >= confident.confidence
+    if "this run kept" in tried.message:
+        np.testing.assert_array_equal(tried.transformation, confident.transformation)
+    assert "second try" not in esmicp.register(cloud, target, init=np.eye(4), sigma=0.05).message
+    assert "second try" not in esmicp.register(cloud, target, init=np.eye(4), callback=lambda state: False).message

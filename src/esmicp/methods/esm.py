@@ -30,8 +30,10 @@ From a start the user gives (``init``), the median is the wrong scale on partial
 measures how far the non-overlapping part lies, and a coarse sigma that wide pulls a good start
 apart. There the coarse sigma is held at ``SIGMA_MEDIAN_FACTOR`` times the ``START_QUANTILE``
 quantile of the start's distances (the overlap's residuals; at least the floor, at most the
-median rule), then the fine phase follows as above (:meth:`SigmaSchedule.from_start`). After a
-global search the refinement starts in the fine phase.
+median rule), then the fine phase follows as above (:meth:`SigmaSchedule.from_start`). When that
+run ends unconfident, :func:`esmicp.register` tries once more from the ``TIGHT_START_QUANTILE``
+quantile and keeps the more confident run (less than a quarter of the source may overlap). After
+a global search the refinement starts in the fine phase.
 """
 
 from __future__ import annotations
@@ -59,6 +61,11 @@ FINE_PHASE_STEP = 1e-3
 #: From a given start, the coarse sigma is held at ``SIGMA_MEDIAN_FACTOR`` times this quantile of
 #: the start's correspondence distances (above the floor, never above the median rule).
 START_QUANTILE = 0.25
+#: ... and on a second try (:func:`esmicp.register`, when the first ends unconfident), this one:
+#: where less than a quarter of the source overlaps (a scan cut to 15-50%), the 0.25 quantile
+#: already measures the non-overlapping part, and that sigma pulls a good start apart
+#: (``docs/scans-start-drift.md``, session 38).
+TIGHT_START_QUANTILE = 0.05
 
 #: Source points of the coarse phase (see ``coarse_points`` of :func:`esmicp.methods.local.refine`):
 #: larger sources run their coarse phase on this many evenly strided points, the fine phase on all.
@@ -95,19 +102,21 @@ class SigmaSchedule:
             floor = 1e-6 * diameter
         return cls(fixed=None, floor=floor, diameter=diameter)
 
-    def from_start(self, distances: np.ndarray) -> "SigmaSchedule":
+    def from_start(self, distances: np.ndarray, quantile: float | None = None) -> "SigmaSchedule":
         """This schedule with its coarse sigma held at the scale of the overlap at a given start.
 
         ``distances``: each source point's distance (cloud units) to its nearest target point
         under the start. On a partial overlap the median of all of them measures how far the
         non-overlapping part lies, not how far off the start is: a coarse sigma that wide pulls
         a good start apart. The overlap's residuals are the small ones, so the coarse sigma is
-        ``SIGMA_MEDIAN_FACTOR`` times their ``START_QUANTILE`` quantile (at least the floor, at
-        most what the median rule gives at the start), held until the coarse phase converges.
+        ``SIGMA_MEDIAN_FACTOR`` times their ``quantile`` quantile (default ``START_QUANTILE``; at
+        least the floor, at most what the median rule gives at the start), held until the coarse
+        phase converges.
         """
         if self.fixed is not None or len(distances) == 0:
             return self
-        overlap = SIGMA_MEDIAN_FACTOR * float(np.quantile(distances, START_QUANTILE))
+        quantile = START_QUANTILE if quantile is None else quantile
+        overlap = SIGMA_MEDIAN_FACTOR * float(np.quantile(distances, quantile))
         return replace(self, start=min(max(self.floor, overlap), self(distances)))
 
     def __call__(self, distances: np.ndarray, *, fine: bool = False) -> float:
@@ -144,10 +153,11 @@ class EsmEstimator(Estimator):
         """True in the coarse phase of the automatic sigma (not with a fixed sigma)."""
         return not self.fine and self.sigma.fixed is None
 
-    def start_from(self, distances: np.ndarray) -> None:
+    def start_from(self, distances: np.ndarray, quantile: float | None = None) -> None:
         """Refine from a given start whose correspondence distances are ``distances`` (cloud
-        units): the coarse sigma is held at the overlap's scale (:meth:`SigmaSchedule.from_start`)."""
-        self.sigma = self.sigma.from_start(distances)
+        units): the coarse sigma is held at the overlap's scale, measured by their ``quantile``
+        quantile (default ``START_QUANTILE``; :meth:`SigmaSchedule.from_start`)."""
+        self.sigma = self.sigma.from_start(distances, quantile)
 
     def end_coarse_phase(self) -> None:
         self.fine = True
