@@ -66,19 +66,17 @@ def degeneracy(points: np.ndarray) -> str | None:
     centred = points - points.mean(axis=0)
     # Coordinates of magnitude m carry rounding noise of about m * 1e-16, which spreads even an
     # exact line; anything below this floor is indistinguishable from that noise.
-    rounding_floor = 1e-13 * max(float(np.abs(points).max()), 1e-300) * np.sqrt(len(points))
-    # The 3x3 scatter's eigenvalues are the squared singular values, at a tenth of the SVD's cost
-    # on a large cloud. Squaring halves their precision (they resolve to about 1e-16 of the
+    magnitude = max(float(np.abs(points).max()), 1e-300)
+    rounding_floor = 1e-13 * magnitude * np.sqrt(len(points))
+    # The eigenvalues of the 3x3 scatter are the squared singular values, cheaper than the SVD of
+    # the whole cloud. Squaring halves their precision (they resolve to about 1e-16 of the
     # largest), so they only clear a cloud whose second direction lies far above both thresholds
-    # below; a cloud anywhere near one is decided by the exact SVD.
-    # Coordinates beyond about 1e150 overflow the squares, below 1e-150 underflow them: the SVD
-    # decides those clouds too.
-    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-        scatter = centred.T @ centred
-    if np.isfinite(scatter).all():
-        squared = np.linalg.eigvalsh(scatter)
-        if squared[1] > 1e-12 * squared[2] and np.sqrt(squared[1]) > 2.0 * rounding_floor:
-            return None
+    # below; a cloud anywhere near one is decided by the exact SVD. Coordinates are scaled by
+    # their magnitude first, so that no square overflows or underflows.
+    unit = centred / magnitude
+    squared = np.linalg.eigvalsh(unit.T @ unit)
+    if squared[1] > 1e-12 * squared[2] and np.sqrt(squared[1]) * magnitude > 2.0 * rounding_floor:
+        return None
     singular_values = np.linalg.svd(centred, compute_uv=False)
     if singular_values[0] <= rounding_floor:
         return "all points are identical"
