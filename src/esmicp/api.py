@@ -310,9 +310,9 @@ def _second_try(source, target_index, initial, request: _Request, diagonal: floa
 
     Why: the first run's coarse sigma assumes a quarter of the source overlaps. Where less does
     (scans cut to 15-50%), that sigma pulls a good start apart; the tight one keeps it, but
-    narrows the reach from a poor start on a whole object, so it only comes second: the ModelNet40
-    halves from a 5 degree start, 55 -> 65 of 72 at 70% and 31 -> 43 at 50%, whole objects from
-    poor starts within one trial of before (``docs/scans-start-drift.md``, session 38)."""
+    narrows the reach from a poor start on a whole object, so it only comes second, and only
+    where the first run is not trusted (measured on the ModelNet40 halves and whole objects:
+    ``docs/scans-start-drift.md``, session 38)."""
     tight = _estimator(request.method, request, target_index, diagonal)
     tight.start_from(start_distances, TIGHT_START_QUANTILE)
     second = _refine(source, target_index, tight, initial, request, diagonal, keypoints, None, None, False)
