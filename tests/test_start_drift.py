@@ -4,8 +4,10 @@ spread of all distances, which the non-overlapping part inflates)."""
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
-from conftest import require_shared
+from conftest import REPO_ROOT, require_shared
 
 import esmicp
 from esmicp.bench.real_pairs import load_pair, pair_errors, partial_trial, read_pairs
@@ -68,10 +70,6 @@ def test_a_half_slid_off_by_the_first_run_is_kept_by_the_tighter_second_try(monk
     distance quantile) pulls the half off (overlap confidence 0.02); the second try, from the 5%
     quantile, keeps it (0.73). Fails without the second try, or if it stopped keeping the more
     confident run."""
-    import sys
-
-    from conftest import REPO_ROOT
-
     from esmicp import api
     from esmicp.bench.scans import _modelnet_clouds, _seed_of
     from esmicp.metrics import up_to_symmetry_success
