@@ -115,6 +115,14 @@ class RegistrationResult:
     confidence: float | None = None
 
     @property
+    def trusted(self) -> bool:
+        """True when ``confidence`` reaches the trust bar (:data:`esmicp.globalreg.scan.TRUSTED`) and
+        the result is not ``ambiguous``: the one test callers (``register_scans``, the CLI) apply."""
+        from .globalreg.scan import TRUSTED
+
+        return self.confidence is not None and self.confidence >= TRUSTED and not self.ambiguous
+
+    @property
     def rotation(self) -> np.ndarray:
         """The 3x3 rotation of ``transformation``."""
         return self.transformation[:3, :3].copy()
@@ -142,6 +150,7 @@ class RegistrationResult:
             "runner_up_ratio": self.runner_up_ratio,
             "global_candidates": self.global_candidates,
             "confidence": self.confidence,
+            "trusted": self.trusted,
         }
         if include_history and self.history is not None:
             data["history"] = [record.to_dict() for record in self.history]
