@@ -332,7 +332,7 @@ def _trial_key(row):
 
 
 #: :func:`partial_markdown` also counts the successes on the trials overlapping by at least this
-#: fraction: issue 13's partial-overlap targets are set on those.
+#: fraction: the partial-overlap targets are set on those.
 COUNTED_OVERLAP = 0.3
 
 
