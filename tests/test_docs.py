@@ -82,3 +82,16 @@ def test_every_init_value_is_in_the_user_guide():
     if not guide.is_file():
         pytest.skip("not run from a source tree")
     assert not _missing(guide.read_text(encoding="utf-8")), f"init values missing from {guide.name}"
+
+
+def test_the_readmes_links_lead_to_files_of_the_repository():
+    """The README is read on its own (not part of the site): each relative link must lead to a
+    file that exists, and each link into docs/ to a page of the site's sources."""
+    readme = REPO / "README.md"
+    if not readme.is_file():
+        pytest.skip("not run from a source tree")
+    links = re.findall(r"\]\(([^)\s]+)\)", readme.read_text(encoding="utf-8"))
+    relative = [link.split("#")[0] for link in links if not re.match(r"[a-z]+:", link)]
+    assert relative, "the README links to no page"
+    missing = [link for link in relative if link and not (REPO / link).exists()]
+    assert not missing, f"README links to missing files: {missing}"
