@@ -85,7 +85,7 @@ def test_rows_follow_the_schema_and_the_paper_protocol_favours_esm_paper(tmp_pat
         by[(r["protocol"], r["method"])].append(r["success_strict"])
     # The paper's formulation recovers index-aligned copies from most poses and no shuffled one.
     # Not from every pose: copy trial 1 (131 degrees) is chaotic, a 1e-12 change of the source
-    # moving its end between 0 and 11 degrees; one host (AMD EPYC) ends it at 21.6 (session 34).
+    # moving its end between 0 and 11 degrees; one host (AMD EPYC) ends it at 21.6.
     assert sum(by[("copy", "esm-paper")]) >= 3 and all(by[("paper", "esm-paper")])
     assert not any(by[("shuffled", "esm-paper")])
     assert all(by[("shuffled", "esm-global")])

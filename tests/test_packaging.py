@@ -42,6 +42,7 @@ def test_sdist_has_what_a_build_from_source_needs(sdist_members):
 def test_sdist_has_nothing_of_a_working_copy(sdist_members):
     unwanted = [name for name in sdist_members
                 if name.split("/")[0] in {"build", "dist", ".venv", "bench-results", ".hypothesis", ".pytest_cache"}
+                or name.startswith("docs/_build/")  # a local docs build
                 or "__pycache__" in name or name.endswith((".so", ".pyd", ".o"))]
     assert not unwanted, unwanted
     # Point clouds come from ../shared/data; only the fuzz corpus (tests/corpus, small files) ships.

@@ -743,7 +743,7 @@ def test_the_strided_stages_stop_at_their_own_tolerance_without_moving_the_pose(
 def test_a_small_source_after_a_global_search_stops_at_the_strided_tolerance(monkeypatch):
     """After a global search, a source too small for the strided stages (the 3DMatch pair
     ``t04_s06``: 16k source points) is refined whole at ``STRIDED_TOLERANCE`` too: following the
-    caller's 1e-8 there crept on for 94 iterations in session 29 and moved the pose by 0.004
+    caller's 1e-8 there crept on for 94 iterations and moved the pose by 0.004
     degrees. Fails if the small-source path ignores the strided tolerance. A given ``init`` keeps
     the caller's tolerance."""
     from esmicp import api
@@ -766,7 +766,7 @@ def test_a_small_source_after_a_global_search_stops_at_the_strided_tolerance(mon
 def test_a_small_object_after_a_global_search_keeps_the_callers_tolerance(monkeypatch):
     """Below ``LOOSER_FROM_POINTS`` source points the refinement after a global search keeps the
     caller's tolerance: on 2,000-point objects with 60% outliers it can still be sliding steadily
-    at ``STRIDED_TOLERANCE`` (session 29: a cup 0.8 -> 5.1 degrees). Fails if the floor is dropped."""
+    at ``STRIDED_TOLERANCE`` (measured: a cup 0.8 -> 5.1 degrees). Fails if the floor is dropped."""
     from esmicp import api
     from esmicp.shapes import asymmetric_shape
 

@@ -64,23 +64,23 @@ PLANE_ITERATIONS = 30
 #: ... on this many of the strided points (evenly strided again): the stage only has to pull a
 #: slid pose back within ``esm``'s reach, and ``esm`` on all ``REFINE_POINTS`` settles it from
 #: there, so fewer points end where 20,000 do, to the refinement's own noise, at less cost
-#: (``docs/speed.md``, "Issue 13, session 37").
+#: (``docs/speed.md``, "Real scan pairs").
 PLANE_POINTS = 5_000
 #: The ``esm-plane`` stage is undone when it lowers the overlap confidence
 #: (:func:`~esmicp.globalreg.scan.overlap_confidence`, 0-1, on the pair's keypoints) by more than
 #: this: where scans overlap by 15% or so, most pairs join points the other scan never saw, the
 #: stage's sigma grows with them and can pull a right global pose far off, where ``esm`` from the
-#: same start converges (``docs/scans-partial-overlap.md``, session 26).
+#: same start converges (``docs/scans-partial-overlap.md``).
 PLANE_CONFIDENCE_DROP = 0.25
 #: The strided stages stop at this tolerance when the caller's is finer (the polish keeps the
 #: caller's): the subsample's optimum is not the whole source's, and on fragment pairs the strided
 #: ``esm`` then creeps on by 1e-5 rad per iteration in no steady direction (3DMatch ``t00_s04``:
 #: 45 of 50 iterations), which the polish's first step (4e-5 rad) undoes. A steady slide toward the
 #: truth still runs to its end (the bunny's ``bun180 -> bun090`` stops too early at 1e-5, not at
-#: 3e-6). Measured: ``docs/speed.md``, "Issue 13, session 24". After a global search, a source too
+#: 3e-6). Measured on the 3DMatch pairs (``docs/speed.md``, "Real scan pairs"). After a global search, a source too
 #: small for the strided stages is refined at this tolerance too: from the global pose, ``esm``
 #: on all of ``t04_s06``'s 16k source points crept for 94 iterations (0.4 s) and moved the pose by
-#: 0.004 degrees (``docs/speed.md``, "Issue 13, session 29").
+#: 0.004 degrees (``docs/speed.md``, "Real scan pairs").
 STRIDED_TOLERANCE = 3e-6
 #: ... but only from this many source points on. On 2,000-point objects with 60% outliers the
 #: refinement can still be sliding steadily at 3e-6 (a cup 0.8 -> 5.1 degrees, a chair 1.8 -> 2.2),
@@ -312,7 +312,7 @@ def _second_try(source, target_index, initial, request: _Request, diagonal: floa
     (scans cut to 15-50%), that sigma pulls a good start apart; the tight one keeps it, but
     narrows the reach from a poor start on a whole object, so it only comes second, and only
     where the first run is not trusted (measured on the ModelNet40 halves and whole objects:
-    ``docs/scans-start-drift.md``, session 38)."""
+    ``docs/scans-start-drift.md``)."""
     tight = _estimator(request.method, request, target_index, diagonal)
     tight.start_from(start_distances, TIGHT_START_QUANTILE)
     second = _refine(source, target_index, tight, initial, request, diagonal, keypoints, None, None, False)

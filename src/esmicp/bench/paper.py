@@ -136,7 +136,7 @@ class PaperCase:
         return read_transform(Path(data_dir) / "esm_icp_paper" / self.figure_file)
 
 
-#: The paper's printed transforms (issue 4): its tables' settings, then its figures'.
+#: The paper's printed transforms: its tables' settings, then its figures'.
 PAPER_CASES = (
     PaperCase("airplane", "airplane", euler=(2.58175, -2.16765, 0.711617, 11.0585, 16.2285, -17.0047)),
     PaperCase("person", "person", euler=(-2.56814, 1.15753, 1.92252, 0.0635863, 0.0883894, 0.0158466)),

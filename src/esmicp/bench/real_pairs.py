@@ -235,7 +235,7 @@ class PartialTrial:
     the *object's* symmetry is judged on it. A bottle's cut half turned about the bottle's axis
     still lies on the bottle, and no data can tell that pose from the truth, yet the kept points
     themselves land elsewhere: judged on them, such a pose fails whenever the cut does not share
-    the symmetry (``docs/scans-partial-overlap.md``, session 35).
+    the symmetry (``docs/scans-partial-overlap.md``).
     """
 
     source: np.ndarray

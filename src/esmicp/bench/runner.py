@@ -322,7 +322,7 @@ def local_cluster(workers: int):
     Bound to this machine only, its status page on a free port (8787 may belong to someone else).
     Its processes log only critical errors: a task's failure reaches the bench anyway, as its
     future's exception, while at Ctrl-C a worker's heartbeat to the scheduler being closed fails,
-    and at ERROR it printed that as a traceback (once, in session 33's CI run)."""
+    and at ERROR it printed that as a traceback (seen once in a CI run)."""
     from dask.distributed import LocalCluster
 
     return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",

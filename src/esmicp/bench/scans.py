@@ -219,8 +219,8 @@ def partial_rows(config: ScanBenchConfig, emit) -> None:
                         rotation_error_deg=rotation_error_deg(estimate, truth),
                         translation_error=translation_error(estimate, truth, pivot),
                         success_strict=strict_success(estimate, truth, diagonal, pivot=pivot),
-                        # Up to the object's symmetry (the whole half placed), and, as before
-                        # session 35, judged on the kept points alone (see PartialTrial).
+                        # Up to the object's symmetry (the whole half placed), and judged on
+                        # the kept points alone (see PartialTrial).
                         success=up_to_symmetry_success(trial.source_half, estimate, truth, diagonal),
                         success_kept_points=up_to_symmetry_success(trial.source, estimate, truth, diagonal),
                     )
@@ -332,7 +332,7 @@ def _trial_key(row):
 
 
 #: :func:`partial_markdown` also counts the successes on the trials overlapping by at least this
-#: fraction: issue 13's partial-overlap targets are set on those.
+#: fraction: the partial-overlap targets are set on those.
 COUNTED_OVERLAP = 0.3
 
 

@@ -40,10 +40,10 @@ def add_parser(commands) -> None:
     reg.add_argument("--tolerance", type=float, default=1e-8, help="convergence tolerance (default 1e-8)")
     reg.add_argument(
         "--init", default="global", metavar="FILE|STRATEGY",
-        help="where to start: 'global' (default: find the pose from anywhere), 'rotation-search' or "
-        "'features' (global with one strategy), 'scan' (global, for partially overlapping scans: "
-        "RGB-D fragments, LiDAR), 'identity' (local refinement only), or a file "
-        "holding a 4x4 T_target_source to refine from",
+        help="where to start: 'global' (default, also 'auto': find the pose from anywhere), "
+        "'rotation-search' or 'features' (global with one strategy), 'scan' (global, for partially "
+        "overlapping scans: RGB-D fragments, LiDAR), 'identity' (or 'none': local refinement only), "
+        "or a file holding a 4x4 T_target_source to refine from",
     )
     reg.add_argument(
         "--inlier-distance", type=positive_float,

@@ -229,7 +229,7 @@ class NearestNeighbors:
         more than one without. Returns 0.0 only if no sampled point has a distinct neighbour.
         Computed once for the default argument, by the compiled tree: the second nearest point of
         each sampled point, itself being the first (SciPy's k-nearest query gave the same value
-        at several times the cost: ``docs/speed.md``, "Issue 14, fourth pass").
+        at several times the cost: ``docs/speed.md``, "First call").
         """
         default = max_samples == 5000
         if default and self._spacing is not None:

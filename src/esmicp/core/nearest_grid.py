@@ -7,7 +7,7 @@ the cells that hold target points, and runs one Euclidean feature transform to g
 its nearest occupied cell and so a target point (compiled, ``_kernels.nearest_grid``: the
 separable transform that ``scipy.ndimage.distance_transform_edt`` computes, ties resolved as
 SciPy resolves them, so the table equals the one SciPy's transform gives, at a fraction of its
-cost: ``docs/speed.md``, "Issue 14, fourth pass"). A query is then an array lookup; the returned distance is the
+cost: ``docs/speed.md``, "First call"). A query is then an array lookup; the returned distance is the
 exact distance to the returned point, which is the nearest one up to about one cell size. Points
 outside the grid use the border cell they project onto.
 """

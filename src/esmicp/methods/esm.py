@@ -64,7 +64,7 @@ START_QUANTILE = 0.25
 #: ... and on a second try (:func:`esmicp.register`, when the first ends unconfident), this one:
 #: where less than a quarter of the source overlaps (a scan cut to 15-50%), the 0.25 quantile
 #: already measures the non-overlapping part, and that sigma pulls a good start apart
-#: (``docs/scans-start-drift.md``, session 38).
+#: (``docs/scans-start-drift.md``).
 TIGHT_START_QUANTILE = 0.05
 
 #: Source points of the coarse phase (see ``coarse_points`` of :func:`esmicp.methods.local.refine`):

@@ -1,0 +1,101 @@
+"""The documentation is for users: no work-log labels in the sources, the docs or the README, and
+every ``init`` value :func:`esmicp.register` accepts is documented where a user looks for it (the
+docstring the API reference is generated from, the command line's ``--help`` and the reference
+pages). The site itself is built with warnings as errors by ``.ci/run``
+(``sphinx-build -W -b html docs docs/_build/html``)."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: A label that recounts a round of work ("session 12", "Session 3:", "Issue 14, fourth pass"), not
+#: something a user reads.
+WORK_LOG_LABEL = re.compile(r"\bsessions?\s+\d+|\bissue\s+\d+,?\s+(?:pass\s+\d+|\w+\s+pass)\b", re.IGNORECASE)
+
+#: Where a user reads: the package's sources, the documentation, the README.
+CHECKED = ("src", "docs", "README.md")
+#: Text files among them (images, CSV results and the compiled module are not read).
+TEXT_SUFFIXES = {".py", ".pyi", ".md", ".rst", ".txt", ".cpp", ".h", ".toml", ".cfg"}
+
+
+def _texts():
+    for name in CHECKED:
+        root = REPO / name
+        if root.is_file():
+            yield root
+            continue
+        for path in sorted(root.rglob("*")):
+            if path.is_file() and path.suffix in TEXT_SUFFIXES and "_build" not in path.parts:
+                yield path
+
+
+def test_no_work_log_labels_in_sources_docs_or_readme():
+    if not (REPO / "docs").is_dir():
+        pytest.skip("not run from a source tree")
+    found = []
+    for path in _texts():
+        for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+            if WORK_LOG_LABEL.search(line):
+                found.append(f"{path.relative_to(REPO)}:{number}: {line.strip()[:100]}")
+    assert not found, "work-log labels (the history lives in git):\n" + "\n".join(found)
+
+
+def test_the_label_pattern_catches_what_it_should():
+    assert WORK_LOG_LABEL.search("measured in Session 37's run")
+    assert WORK_LOG_LABEL.search("(sessions 30 and 31)")
+    assert WORK_LOG_LABEL.search('docs/speed.md, "Issue 14, fourth pass"')
+    assert WORK_LOG_LABEL.search("issue 13 pass 2")
+    assert not WORK_LOG_LABEL.search("a sessionless run of 3 trials")
+    assert not WORK_LOG_LABEL.search("a second pass over the points (issue 13 asks for it)")
+
+
+def _init_names():
+    from esmicp.api import INIT_NAMES
+
+    assert {"global", "identity"} <= set(INIT_NAMES)
+    return INIT_NAMES
+
+
+def _missing(text: str) -> list[str]:
+    return [name for name in _init_names() if not re.search(rf"['\"`]{re.escape(name)}['\"`]", text)]
+
+
+def test_every_init_value_is_in_the_docstring_the_reference_is_built_from():
+    import esmicp
+
+    assert not _missing(esmicp.register.__doc__), "init values missing from register's docstring"
+
+
+def test_every_init_value_is_in_the_command_lines_help():
+    done = subprocess.run([sys.executable, "-m", "esmicp", "register", "--help"], capture_output=True,
+                          text=True, env={**os.environ, "COLUMNS": "200"})
+    assert done.returncode == 0, done.stderr
+    assert not _missing(done.stdout), "init values missing from 'esmicp register --help'"
+
+
+def test_every_init_value_is_in_the_user_guide():
+    guide = REPO / "docs" / "guide" / "pairs.md"
+    if not guide.is_file():
+        pytest.skip("not run from a source tree")
+    assert not _missing(guide.read_text(encoding="utf-8")), f"init values missing from {guide.name}"
+
+
+def test_the_readmes_links_lead_to_files_of_the_repository():
+    """The README is read on its own (not part of the site): each relative link must lead to a
+    file that exists, and each link into docs/ to a page of the site's sources."""
+    readme = REPO / "README.md"
+    if not readme.is_file():
+        pytest.skip("not run from a source tree")
+    links = re.findall(r"\]\(([^)\s]+)\)", readme.read_text(encoding="utf-8"))
+    relative = [link.split("#")[0] for link in links if not re.match(r"[a-z]+:", link)]
+    assert relative, "the README links to no page"
+    missing = [link for link in relative if link and not (REPO / link).exists()]
+    assert not missing, f"README links to missing files: {missing}"
