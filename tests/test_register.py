@@ -498,6 +498,29 @@ def test_a_callback_or_a_history_never_changes_the_pose(method, size):
         np.testing.assert_array_equal(states[-1].transformation, plain.transformation)
 
 
+@pytest.mark.parametrize("method", ["esm", "icp"])
+def test_correspondences_are_the_final_inlier_pairs(easy_pair, method):
+    """``return_correspondences``: valid indices into the clouds as given, weights in [0, 1],
+    distances those of the transformed source to the target, and as many pairs as ``fitness``
+    counts; none unless asked for, and the pose the same either way."""
+    source, target, _ = easy_pair
+    result = esmicp.register(source, target, method=method, return_correspondences=True)
+    pairs = result.correspondences
+    assert esmicp.register(source, target, method=method).correspondences is None
+    assert len(pairs) == round(result.fitness * len(source)) > 0
+    assert pairs.source_index.dtype == pairs.target_index.dtype == np.int64
+    assert np.all(np.diff(pairs.source_index) > 0) and pairs.source_index[-1] < len(source)
+    assert pairs.target_index.min() >= 0 and pairs.target_index.max() < len(target)
+    assert np.all((pairs.weight >= 0) & (pairs.weight <= 1)) and pairs.weight.max() > 0
+    if method == "icp":
+        assert np.all(pairs.weight == 1.0)
+    moved = apply(result.transformation, source[pairs.source_index])
+    np.testing.assert_allclose(pairs.distance, np.linalg.norm(moved - target[pairs.target_index], axis=1), atol=1e-12)
+    np.testing.assert_allclose(pairs.distance, cKDTree(target).query(moved)[0], atol=1e-12)
+    assert np.all(pairs.distance <= result.inlier_distance)
+    np.testing.assert_array_equal(pairs.pairs, np.column_stack([pairs.source_index, pairs.target_index]))
+
+
 def test_callback_returning_true_stops(easy_pair):
     source, target, _ = easy_pair
     seen: list[int] = []

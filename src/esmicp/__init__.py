@@ -28,6 +28,7 @@ _LAZY = {
     "METHODS": ".methods",
     "MultiRegistrationResult": ".multiview",
     "register_scans": ".multiview",
+    "Correspondences": ".result",
     "IterationRecord": ".result",
     "RegistrationResult": ".result",
     # The file readers pull in plyfile / pypcd4 / trimesh.
@@ -57,6 +58,7 @@ __all__ = [
     "METHODS",
     "EsmicpError",
     "CoincidentPointsWarning",
+    "Correspondences",
     "EsmicpWarning",
     "IndexAlignmentWarning",
     "InvalidInputError",

@@ -21,7 +21,7 @@ from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimato
 from .methods.esm import COARSE_POINTS, TIGHT_START_QUANTILE, EsmEstimator
 from .methods.guard import guarded_refine
 from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome, _budget_spent
-from .result import RegistrationResult
+from .result import Correspondences, RegistrationResult
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
 from .types import check_representable
 from .working_frame import WorkingFrame
@@ -119,6 +119,7 @@ def register(
     record_history: bool = False,
     inlier_distance: float | None = None,
     workers: int | None = None,
+    return_correspondences: bool = False,
 ) -> RegistrationResult:
     """Rigidly register ``source`` onto ``target``.
 
@@ -182,6 +183,11 @@ def register(
         the refinement alike. None (the default) uses every core; pass 1 when registering many
         pairs in parallel processes (as :func:`esmicp.register_many` does). The result is the same
         for every value (the kernels sum in a fixed order).
+    return_correspondences : bool
+        Also return the final pose's point pairs in ``result.correspondences``
+        (:class:`~esmicp.result.Correspondences`: source and target indices, weights, distances
+        of the pairs within ``inlier_distance``, Open3D's ``correspondence_set``); they cost
+        nothing more to find, but hold four arrays per pair.
 
     Returns
     -------
@@ -226,8 +232,11 @@ def register(
                                           start_distances, outcome, confidence, observer=observer)
     if observer is not None:
         outcome = dataclasses.replace(outcome, history=observer.recorded())
-    fitness, inlier_rmse, inlier_distance = _evaluate(source_points, target_index, outcome.transformation, request,
-                                                      outcome.neighbours)
+    fitness, inlier_rmse, inlier_distance, pairs = _evaluate(source_points, target_index, outcome.transformation,
+                                                             request, outcome.neighbours)
+    correspondences = None
+    if return_correspondences:
+        correspondences = _correspondences(pairs, _estimator(method, request, target_index, diagonal), outcome.sigma)
     outcome = frame.outcome(outcome)
     return RegistrationResult(
         transformation=outcome.transformation,
@@ -249,6 +258,7 @@ def register(
         ),
         global_candidates=0 if estimate is None else estimate.candidates,
         confidence=confidence,
+        correspondences=correspondences,
     )
 
 
@@ -442,8 +452,9 @@ def _plane_start(points, target_index, initial, request: _Request, diagonal: flo
     return plane.transformation, plane.num_iterations, note
 
 
-def _evaluate(source, target_index, transformation, request: _Request, warm=None) -> tuple[float, float, float]:
-    """Stage 5: ``(fitness, inlier_rmse, inlier_distance)`` of the final pose, in Open3D's meaning
+def _evaluate(source, target_index, transformation, request: _Request, warm=None):
+    """Stage 5: ``(fitness, inlier_rmse, inlier_distance, (distances, indices, inliers))`` of the
+    final pose, in Open3D's meaning, with each source point's nearest target distance and index
     (and, for ``esm-paper``, a warning when the clouds were not index-aligned). ``warm``: the
     refinement's last neighbours of the source points, if it has them (the queries start there:
     the same answers, sooner)."""
@@ -459,7 +470,18 @@ def _evaluate(source, target_index, transformation, request: _Request, warm=None
     inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
     if request.method == "esm-paper" and len(source) == len(target_index.points):
         _warn_if_not_index_aligned(indices)
-    return fitness, inlier_rmse, float(inlier_distance)
+    return fitness, inlier_rmse, float(inlier_distance), (distances, indices, inliers)
+
+
+def _correspondences(pairs, estimator, sigma: float | None) -> Correspondences:
+    """The inlier pairs of :func:`_evaluate` (``(distances, indices, inliers)``) with the weight
+    ``estimator`` gives each at ``sigma`` (1 where it weighs none)."""
+    distances, indices, inliers = pairs
+    weights = estimator.pair_weights(distances, sigma)
+    weights = np.ones(len(distances)) if weights is None else np.clip(weights, 0.0, 1.0)
+    chosen = np.flatnonzero(inliers)
+    return Correspondences(chosen.astype(np.int64), indices[chosen].astype(np.int64),
+                           weights[chosen].astype(np.float64), distances[chosen].astype(np.float64))
 
 
 def _warn_if_coincident(points: np.ndarray, name: str, coincident) -> None:
