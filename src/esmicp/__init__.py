@@ -36,6 +36,7 @@ _LAZY = {
     "write_points": ".io",
     "read_transform": ".io",
     "write_transform": ".io",
+    "read_stanford_conf": ".io.stanford_conf",
 }
 
 
@@ -71,6 +72,7 @@ __all__ = [
     "RegistrationResult",
     "__version__",
     "read_points",
+    "read_stanford_conf",
     "read_transform",
     "register",
     "register_many",
