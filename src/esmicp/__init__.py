@@ -20,6 +20,17 @@ from .errors import (
     PointCloudFileError,
 )
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # what type checkers see: the names of the lazy table below, with their types
+    from .api import register
+    from .batch import RegistrationFailure, register_many
+    from .io import read_points, read_transform, write_points, write_transform
+    from .io.stanford_conf import read_stanford_conf
+    from .methods import METHODS
+    from .multiview import MultiRegistrationResult, register_scans
+    from .result import Correspondences, IterationRecord, RegistrationResult
+
 #: Public name -> the submodule that defines it (loaded on first access).
 _LAZY = {
     "register": ".api",
@@ -40,7 +51,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name):
+def __getattr__(name: str) -> object:
     module = _LAZY.get(name)
     if module is None:
         raise AttributeError(f"module 'esmicp' has no attribute {name!r}")
@@ -51,7 +62,7 @@ def __getattr__(name):
     return value
 
 
-def __dir__():
+def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_LAZY))
 
 

@@ -9,6 +9,7 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from .core.correspondence import NearestNeighbors
 from .core.procrustes import bounding_box_diagonal
@@ -23,7 +24,7 @@ from .methods.guard import guarded_refine
 from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome, _budget_spent
 from .result import Correspondences, RegistrationResult
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
-from .types import check_representable
+from .types import PointsLike, check_representable
 from .working_frame import WorkingFrame
 
 #: ``init`` strings meaning "no global search: start from the identity".
@@ -106,15 +107,15 @@ class _Request:
 
 @keeps_keyboard_interrupt
 def register(
-    source,
-    target,
+    source: PointsLike,
+    target: PointsLike,
     *,
     method: str = "esm",
-    init=None,
+    init: str | npt.ArrayLike | None = None,
     sigma: float | None = None,
     max_iterations: int = 100,
     tolerance: float = 1e-8,
-    rng=None,
+    rng: int | np.random.Generator | None = None,
     callback: Callback | None = None,
     record_history: bool = False,
     inlier_distance: float | None = None,
@@ -125,9 +126,9 @@ def register(
 
     Parameters
     ----------
-    source : (N, 3) array-like
+    source : (N, 3) array-like, or a cloud object with ``points`` (an ``open3d.geometry.PointCloud``)
         Points to move (source frame). Never modified.
-    target : (M, 3) array-like
+    target : (M, 3) array-like, or a cloud object with ``points``
         Points to align to (target frame). N and M may differ. Never modified.
     method : {"esm", "esm-paper", "icp", "esm-plane"}
         ``esm``: Gaussian-weighted Procrustes on nearest-neighbour pairs (any sizes, any order).

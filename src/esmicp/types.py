@@ -9,11 +9,24 @@ from __future__ import annotations
 
 import numbers
 import warnings
+from typing import Any, Protocol, Union
 
 import numpy as np
+import numpy.typing as npt
 
 from .core.procrustes import axis_bounds
 from .errors import InvalidInputError, NonFinitePointsWarning
+
+class HasPoints(Protocol):
+    """A cloud object holding its ``(N, 3)`` coordinates in ``points`` (an
+    ``open3d.geometry.PointCloud``, ...)."""
+
+    @property
+    def points(self) -> Any: ...
+
+
+#: What a cloud argument accepts (:func:`as_points`): an ``(N, 3)`` array-like or a cloud object.
+PointsLike = Union[npt.ArrayLike, HasPoints]
 
 #: Minimum number of points a cloud must have for a rigid fit.
 MIN_POINTS = 3
@@ -22,7 +35,7 @@ MIN_POINTS = 3
 RIGID_TOLERANCE = 1e-5
 
 
-def as_points(points, name: str = "points", *, min_points: int = MIN_POINTS) -> np.ndarray:
+def as_points(points: PointsLike, name: str = "points", *, min_points: int = MIN_POINTS) -> np.ndarray:
     """Return ``points`` as a new C-contiguous ``(N, 3)`` float64 array.
 
     ``points`` is an ``(N, 3)`` array-like (NumPy array, nested lists, a CPU tensor...) or an
