@@ -49,7 +49,8 @@ class IterationState:
     ``moved_source`` is the whole source, in its own order, as placed BEFORE this iteration's
     increment, ``indices`` and ``distances`` its nearest target points, ``weights`` the weight the
     method gives each of those pairs at this iteration's ``sigma`` (None for unweighted methods),
-    ``transformation`` the ``T_target_source`` AFTER the increment. On a large source some
+    ``transformation`` the ``T_target_source`` AFTER the increment, ``placement`` the one BEFORE it
+    (that placed ``moved_source``; the first iteration's is the run's start). On a large source some
     iterations compute their increment on a strided subset of the points (the coarse phase, the
     strided stages of :func:`esmicp.register`); the state still describes every point at that
     iteration's pose. ``iteration`` counts from 1 over every stage of a run; it starts again at 1
@@ -63,6 +64,7 @@ class IterationState:
     distances: np.ndarray
     weights: np.ndarray | None
     sigma: float | None
+    placement: np.ndarray | None = None
 
 
 #: Return True from a callback to stop the iterations.
@@ -102,7 +104,8 @@ class Observer:
             self.history.append(_record(self.iteration, after, rmse, weights, sigma, len(distances)))
         if self.callback is not None:
             moved = apply(before, self.source)
-            state = IterationState(self.iteration, after.copy(), moved, indices, distances, weights, sigma)
+            state = IterationState(self.iteration, after.copy(), moved, indices, distances, weights, sigma,
+                                   before.copy())
             self.stopped = bool(self.callback(state))
         return self.stopped
 
