@@ -72,7 +72,9 @@ def test_register_summary_and_outputs(pair, tmp_path, capsys):
     )
     assert code == 0, err
     assert "T_target_source" in out and "fitness" in out
-    assert "overlap confidence" in out and "LOW" not in out  # a whole shape on itself
+    assert "(trusted: >= " in out and "LOW" not in out  # a whole shape on itself
+    # The verdict comes first; fitness is labelled as the overlap it measures, after it.
+    assert out.index("confidence") < out.index("overlap (not a verdict): fitness")
     from esmicp import read_points, read_transform
 
     estimate = read_transform(transform)
@@ -93,7 +95,7 @@ def test_register_summary_calls_low_what_is_below_the_trust_bar(pair, monkeypatc
     monkeypatch.setattr(scan, "TRUSTED", confidence + 1e-6)
     code, out, err = run(capsys, "register", str(source), str(target), "--method", "icp")
     assert code == 0, err
-    assert f"LOW, below {confidence + 1e-6:g}" in out
+    assert f"LOW: below {confidence + 1e-6:g}, do not trust this pose" in out
 
 
 def test_register_summary_says_when_the_pose_is_not_to_be_trusted(tmp_path, capsys):
@@ -105,9 +107,23 @@ def test_register_summary_says_when_the_pose_is_not_to_be_trusted(tmp_path, caps
     np.savetxt(target, rng.uniform(-5.0, 5.0, size=(1500, 3)))
     code, out, err = run(capsys, "register", str(source), str(target))
     assert code == 0, err
-    assert "overlap confidence" in out and "LOW" in out
+    assert "LOW: below" in out and "do not trust this pose" in out
     code, out, err = run(capsys, "register", str(source), str(target), "--json")
     assert json.loads(out)["confidence"] < 0.5
+    # For scripts: --min-confidence turns the verdict into exit status 3 (the outputs still written).
+    transform = tmp_path / "T.txt"
+    code, out, err = run(capsys, "register", str(source), str(target), "--min-confidence", "--transform-out",
+                         str(transform))
+    assert code == 3 and "below" in err and transform.is_file()
+
+
+def test_register_min_confidence_passes_a_trusted_pose_and_refuses_a_bad_bar(pair, capsys):
+    source, target, _, _ = pair
+    code, out, err = run(capsys, "register", str(source), str(target), "--min-confidence", "--json")
+    assert code == 0, err
+    assert json.loads(out)["trusted"] is True
+    code, _, err = run(capsys, "register", str(source), str(target), "--min-confidence", "1.5")
+    assert code == 2 and "--min-confidence" in err
 
 
 def test_init_file_is_used(pair, tmp_path, capsys):

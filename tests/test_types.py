@@ -105,6 +105,29 @@ def test_as_points_rejects_non_numeric_input(bad):
         as_points(bad, "src")
 
 
+def test_as_points_hints_what_to_pass_for_near_misses():
+    """(N, 4) x y z intensity rows, (3, N) columns and an unreadable object each get a one-line
+    error saying what to pass instead."""
+    rows = np.random.default_rng(0).random((10, 4))
+    with pytest.raises(InvalidInputError, match=r"source: .*shape \(10, 4\).*x y z intensity.*points\[:, :3\]"):
+        as_points(rows, "source")
+    with pytest.raises(InvalidInputError, match=r"points\.T"):
+        as_points(rows[:, :3].T.copy())
+    with pytest.raises(InvalidInputError, match=r"target: .*object.*numpy\.asarray\(pcd\.points\)"):
+        as_points(object(), "target")
+
+
+def test_as_points_reads_any_object_holding_its_points():
+    class Cloud:
+        def __init__(self, points):
+            self.points = points
+
+    points = np.random.default_rng(1).random((10, 3))
+    np.testing.assert_array_equal(as_points(Cloud(points.tolist())), points)
+    with pytest.raises(InvalidInputError, match=r"cloud: .*shape \(10, 4\).*points\[:, :3\]"):
+        as_points(Cloud(np.ones((10, 4))), "cloud")
+
+
 def test_as_points_drops_non_finite_rows_with_a_warning():
     data = np.random.default_rng(3).normal(size=(8, 3))
     data[2, 1] = np.nan

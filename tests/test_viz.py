@@ -13,6 +13,7 @@ from test_viz_support import check_image, require_plotting
 
 from esmicp.cli import main
 from esmicp.core.procrustes import apply
+from esmicp.metrics import rotation_error_deg
 from esmicp.errors import InvalidInputError, OutputExistsError, PointCloudFileError
 from esmicp.methods.esm_paper import paper_cross_covariance
 from esmicp.methods.esm_paper import similarity_matrix as solver_similarity_matrix
@@ -62,10 +63,16 @@ def test_trace_poses_are_the_solvers_history(method):
     np.testing.assert_array_equal(step.indices, nearest)
 
 
-def test_trace_refuses_a_global_start():
-    pair = builtin_pair(points=50)
-    with pytest.raises(InvalidInputError, match="init"):
-        trace_registration(pair.source, pair.target, init="global")
+def test_a_global_trace_starts_at_the_search_pose_and_ends_at_registers_pose():
+    """After the global search, the trace is the local refinement that follows it: its poses end
+    at the pose ``register`` gives by default (bitwise: the callback changes nothing), and the
+    first iteration starts at the search's pose."""
+    pair = builtin_pair(points=400, angle_deg=120)
+    trace = trace_registration(pair.source, pair.target, init="global")
+    reference = register(pair.source, pair.target)
+    np.testing.assert_array_equal(trace.poses[-1], reference.transformation)
+    assert trace.start.startswith("global search") and trace.iterations == reference.num_iterations >= 1
+    assert rotation_error_deg(trace.poses[0], pair.T_target_source) < 5.0  # the search's pose, near the truth
 
 
 def test_trace_from_a_given_pose_starts_there():
@@ -156,7 +163,7 @@ def test_view_page_is_self_contained_and_carries_the_poses(tmp_path):
     require_plotting()
     pair = builtin_pair(points=600, angle_deg=30)
     figure = view_html(pair.source, pair.target, method="esm", compare="icp", max_display_points=250,
-                       truth=pair.T_target_source)
+                       truth=pair.T_target_source, init="identity")
     path = tmp_path / "view.html"
     write_view(figure, path)
     html = path.read_text(encoding="utf-8")
@@ -186,7 +193,7 @@ def test_view_opens_at_the_iteration_asked_for():
     pair = builtin_pair(points=300, angle_deg=30)
     trace = trace_registration(pair.source, pair.target)
     for asked, shown in ((4, 4), (10_000, trace.iterations)):
-        figure = view_html(pair.source, pair.target, shown_iteration=asked)
+        figure = view_html(pair.source, pair.target, shown_iteration=asked, init="identity")
         assert figure.layout.sliders[0].active == shown
         np.testing.assert_allclose(np.asarray(figure.data[2].x), trace.aligned(shown)[:, 0], atol=1e-5)
     with pytest.raises(InvalidInputError, match="shown_iteration"):
@@ -248,6 +255,42 @@ def test_view_command_writes_html_and_refuses_to_overwrite(tmp_path, capsys):
     assert out.read_bytes() == before
     code, _, stderr = run(capsys, "view", "--points", "200", "-o", str(out), "--force")
     assert code == 0, stderr
+
+
+def view_meta(path):
+    """The data block of a written viewer page (methods, poses, iterations, ...)."""
+    html = path.read_text()
+    return json.loads(re.search(rf'<script type="application/json" id="{DATA_ID}">(.*?)</script>', html, re.S).group(1))
+
+
+def test_view_shows_what_register_gives_a_given_transform_or_the_files_as_they_are(tmp_path, capsys):
+    """``esmicp view`` registers as ``esmicp register`` does (global by default) and its last
+    slider step is that pose; ``--transform`` shows a given pose, ``--as-is`` the clouds unmoved."""
+    require_plotting()
+    from esmicp.io import read_transform
+
+    pair = builtin_pair(points=300, angle_deg=120)
+    source, target, out = tmp_path / "s.xyz", tmp_path / "t.xyz", tmp_path / "v.html"
+    np.savetxt(source, pair.source, fmt="%.17g")
+    np.savetxt(target, pair.target, fmt="%.17g")
+    code, stdout, stderr = run(capsys, "register", str(source), str(target), "--transform-out", str(tmp_path / "T.txt"))
+    assert code == 0, stderr
+    registered = read_transform(tmp_path / "T.txt")
+    code, stdout, stderr = run(capsys, "view", str(source), str(target), "-o", str(out))
+    assert code == 0, stderr
+    assert "from global search" in stdout and "confidence" in stdout
+    meta = view_meta(out)
+    np.testing.assert_allclose(meta["poses"][0][-1], registered, atol=1e-8)  # the text file's 17 digits
+    assert meta["iterations"][0] >= 1 and rotation_error_deg(np.array(meta["poses"][0][0]), pair.T_target_source) < 5
+    for flags, expected in (([ "--transform", str(tmp_path / "T.txt")], registered), (["--as-is"], np.eye(4))):
+        code, stdout, stderr = run(capsys, "view", str(source), str(target), "-o", str(out), "--force", *flags)
+        assert code == 0, stderr
+        meta = view_meta(out)
+        assert meta["iterations"] == [0]
+        np.testing.assert_allclose(meta["poses"][0][0], expected, atol=1e-12)
+    code, _, stderr = run(capsys, "view", str(source), str(target), "-o", str(out), "--force", "--as-is",
+                          "--transform", str(tmp_path / "T.txt"))
+    assert code == 2 and "not allowed with" in stderr
 
 
 @pytest.mark.parametrize(

@@ -62,8 +62,10 @@ def _aligned_x(page, trace_index: int) -> np.ndarray:
 def test_viewer_loads_draws_and_steps_with_the_slider(browser, tmp_path):
     require_plotting()
     page_path = tmp_path / "view.html"
+    # (From the identity: many iterations for the slider to step through; by default the global
+    # search leaves the refinement one or two.)
     argv = ["view", "--points", "400", "--angle", "40", "--compare", "icp", "--max-display-points", "300",
-            "-o", str(page_path)]
+            "--init", "identity", "-o", str(page_path)]
     assert main(argv) == 0
     html = page_path.read_text(encoding="utf-8")
     data = json.loads(re.search(rf'<script type="application/json" id="{DATA_ID}">(.*?)</script>', html, re.S).group(1))

@@ -20,6 +20,17 @@ from .errors import (
     PointCloudFileError,
 )
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # what type checkers see: the names of the lazy table below, with their types
+    from .api import register
+    from .batch import RegistrationFailure, register_many
+    from .io import read_points, read_transform, write_points, write_transform
+    from .io.stanford_conf import read_stanford_conf
+    from .methods import METHODS
+    from .multiview import MultiRegistrationResult, register_scans
+    from .result import Correspondences, IterationRecord, RegistrationResult
+
 #: Public name -> the submodule that defines it (loaded on first access).
 _LAZY = {
     "register": ".api",
@@ -28,6 +39,7 @@ _LAZY = {
     "METHODS": ".methods",
     "MultiRegistrationResult": ".multiview",
     "register_scans": ".multiview",
+    "Correspondences": ".result",
     "IterationRecord": ".result",
     "RegistrationResult": ".result",
     # The file readers pull in plyfile / pypcd4 / trimesh.
@@ -35,10 +47,11 @@ _LAZY = {
     "write_points": ".io",
     "read_transform": ".io",
     "write_transform": ".io",
+    "read_stanford_conf": ".io.stanford_conf",
 }
 
 
-def __getattr__(name):
+def __getattr__(name: str) -> object:
     module = _LAZY.get(name)
     if module is None:
         raise AttributeError(f"module 'esmicp' has no attribute {name!r}")
@@ -49,7 +62,7 @@ def __getattr__(name):
     return value
 
 
-def __dir__():
+def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_LAZY))
 
 
@@ -57,6 +70,7 @@ __all__ = [
     "METHODS",
     "EsmicpError",
     "CoincidentPointsWarning",
+    "Correspondences",
     "EsmicpWarning",
     "IndexAlignmentWarning",
     "InvalidInputError",
@@ -69,6 +83,7 @@ __all__ = [
     "RegistrationResult",
     "__version__",
     "read_points",
+    "read_stanford_conf",
     "read_transform",
     "register",
     "register_many",

@@ -9,6 +9,7 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from .core.correspondence import NearestNeighbors
 from .core.procrustes import bounding_box_diagonal
@@ -20,10 +21,10 @@ from .interrupts import keeps_keyboard_interrupt
 from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimator
 from .methods.esm import COARSE_POINTS, TIGHT_START_QUANTILE, EsmEstimator
 from .methods.guard import guarded_refine
-from .methods.local import Callback, _budget_spent
-from .result import RegistrationResult
+from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome, _budget_spent
+from .result import Correspondences, RegistrationResult
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
-from .types import check_representable
+from .types import PointsLike, check_representable
 from .working_frame import WorkingFrame
 
 #: ``init`` strings meaning "no global search: start from the identity".
@@ -49,8 +50,8 @@ DEFAULT_SEED = 0
 #: A source of more than twice this many points is refined on this many evenly strided points
 #: first (after a global search or from a given start); the full source then polishes that pose
 #: for at most ``POLISH_ITERATIONS`` iterations (each full-resolution iteration costs as much as
-#: ``len(source) / REFINE_POINTS`` subsample iterations). Not with a callback or a history, which
-#: see every iteration on the whole source, nor with ``esm-paper``, whose pairs are by index.
+#: ``len(source) / REFINE_POINTS`` subsample iterations). Not with ``esm-paper``, whose pairs are
+#: by index. (A callback or a history still sees every point at each iteration's pose.)
 #: (5,000 points were too few on a KITTI scan: the pose slid 0.3 m along the road from where
 #: every point takes it; ``docs/measured-global.md``.)
 REFINE_POINTS = COARSE_POINTS
@@ -106,27 +107,28 @@ class _Request:
 
 @keeps_keyboard_interrupt
 def register(
-    source,
-    target,
+    source: PointsLike,
+    target: PointsLike,
     *,
     method: str = "esm",
-    init=None,
+    init: str | npt.ArrayLike | None = None,
     sigma: float | None = None,
     max_iterations: int = 100,
     tolerance: float = 1e-8,
-    rng=None,
+    rng: int | np.random.Generator | None = None,
     callback: Callback | None = None,
     record_history: bool = False,
     inlier_distance: float | None = None,
     workers: int | None = None,
+    return_correspondences: bool = False,
 ) -> RegistrationResult:
     """Rigidly register ``source`` onto ``target``.
 
     Parameters
     ----------
-    source : (N, 3) array-like
+    source : (N, 3) array-like, or a cloud object with ``points`` (an ``open3d.geometry.PointCloud``)
         Points to move (source frame). Never modified.
-    target : (M, 3) array-like
+    target : (M, 3) array-like, or a cloud object with ``points``
         Points to align to (target frame). N and M may differ. Never modified.
     method : {"esm", "esm-paper", "icp", "esm-plane"}
         ``esm``: Gaussian-weighted Procrustes on nearest-neighbour pairs (any sizes, any order).
@@ -145,7 +147,7 @@ def register(
         ``"none"``): pure local refinement from the identity. A 4x4 ``T_target_source``: pure local
         refinement from there. (From a given start, ``esm`` with the automatic sigma runs a second
         time with a tighter coarse sigma when the first run ends below the trust bar, and keeps
-        the more confident run; not with a callback or a history, which see one run.)
+        the more confident run.)
     sigma : float, optional
         Kernel width in the clouds' units. None: ``esm`` and ``esm-plane`` choose it from the data
         each iteration (see :mod:`esmicp.methods.esm`, :mod:`esmicp.methods.plane`), ``esm-paper``
@@ -166,9 +168,14 @@ def register(
         gives the same result; local refinement itself is deterministic.
     callback : callable, optional
         Called with an :class:`~esmicp.methods.local.IterationState` after every iteration of the
-        local refinement (after the global search, if any); returning True stops the run.
+        local refinement (after the global search, if any); returning True stops the run. It
+        observes and never changes the run: the pose is the one without a callback. When a
+        second run from the same start is tried (see ``init``), it sees that run too, counted
+        from iteration 1 again.
     record_history : bool
-        Keep an :class:`~esmicp.result.IterationRecord` per iteration in ``result.history``.
+        Keep an :class:`~esmicp.result.IterationRecord` per iteration of the run whose pose is
+        returned in ``result.history`` (every point at each iteration's pose; the pose is the
+        one without a history).
     inlier_distance : float, optional
         Distance (cloud units) within which a source point counts as an inlier for ``fitness`` and
         ``inlier_rmse``. Default: 3 x the target's median point spacing.
@@ -177,6 +184,11 @@ def register(
         the refinement alike. None (the default) uses every core; pass 1 when registering many
         pairs in parallel processes (as :func:`esmicp.register_many` does). The result is the same
         for every value (the kernels sum in a fixed order).
+    return_correspondences : bool
+        Also return the final pose's point pairs in ``result.correspondences``
+        (:class:`~esmicp.result.Correspondences`: source and target indices, weights, distances
+        of the pairs within ``inlier_distance``, Open3D's ``correspondence_set``); they cost
+        nothing more to find, but hold four arrays per pair.
 
     Returns
     -------
@@ -209,15 +221,23 @@ def register(
         # A given start: its coarse sigma comes from the overlap's residuals (partial overlaps).
         start_distances = target_index.query_near(source_points, transform=initial)[0]
         estimator.start_from(start_distances)
+    observer = None
+    if callback is not None or record_history:
+        observer = Observer(source_points, target_index, frame.callback(callback), record_history)
     outcome = _refine(source_points, target_index, estimator, initial, request, diagonal, keypoints, estimate,
-                      frame.callback(callback), record_history)
+                      observer)
     confidence = overlap_confidence(outcome.transformation, keypoints, request.workers)
-    if start_distances is not None and request.sigma is None and callback is None and not record_history \
-            and confidence < TRUSTED:
+    if start_distances is not None and request.sigma is None and confidence < TRUSTED \
+            and not (observer is not None and observer.stopped):
         outcome, confidence = _second_try(source_points, target_index, initial, request, diagonal, keypoints,
-                                          start_distances, outcome, confidence)
-    fitness, inlier_rmse, inlier_distance = _evaluate(source_points, target_index, outcome.transformation, request,
-                                                      outcome.neighbours)
+                                          start_distances, outcome, confidence, observer=observer)
+    if observer is not None:
+        outcome = dataclasses.replace(outcome, history=observer.recorded())
+    fitness, inlier_rmse, inlier_distance, pairs = _evaluate(source_points, target_index, outcome.transformation,
+                                                             request, outcome.neighbours)
+    correspondences = None
+    if return_correspondences:
+        correspondences = _correspondences(pairs, _estimator(method, request, target_index, diagonal), outcome.sigma)
     outcome = frame.outcome(outcome)
     return RegistrationResult(
         transformation=outcome.transformation,
@@ -239,6 +259,7 @@ def register(
         ),
         global_candidates=0 if estimate is None else estimate.candidates,
         confidence=confidence,
+        correspondences=correspondences,
     )
 
 
@@ -284,25 +305,27 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
 
 
 def _refine(source, target_index, estimator, initial, request: _Request, diagonal: float, keypoints: Keypoints,
-            estimate: GlobalEstimate | None, callback, record_history: bool):
+            estimate: GlobalEstimate | None, observer: Observer | None = None):
     """Stage 4: ``estimator`` from ``initial`` (working frame): on a large source the strided run
     and the polish (:func:`_refine_then_polish`), else the whole source at once (after a global
     search, from ``LOOSER_FROM_POINTS`` points on, at ``STRIDED_TOLERANCE`` when the request's
-    tolerance is finer). ``callback`` is in the working frame."""
-    if callback is None and not record_history and len(source) > 2 * REFINE_POINTS and estimator.order_invariant:
+    tolerance is finer). ``observer`` (the callback and the history, working frame) watches every
+    stage and changes none."""
+    if len(source) > 2 * REFINE_POINTS and estimator.order_invariant:
         # (``esm-paper`` pairs source point k with target point k: a strided subset has no pairs.)
-        return _refine_then_polish(source, target_index, estimator, initial, request, diagonal, keypoints, estimate)
+        return _refine_then_polish(source, target_index, estimator, initial, request, diagonal, keypoints, estimate,
+                                   observer)
     criteria = request.criteria
     if estimate is not None and len(source) > LOOSER_FROM_POINTS:
         criteria = _at_strided_tolerance(criteria)
     return guarded_refine(
         source, target_index, estimator, init=initial, criteria=criteria, scale=diagonal,
-        callback=callback, record_history=record_history, coarse_points=COARSE_POINTS,
+        coarse_points=COARSE_POINTS, observer=observer,
     )
 
 
 def _second_try(source, target_index, initial, request: _Request, diagonal: float, keypoints: Keypoints,
-                start_distances: np.ndarray, outcome, confidence: float):
+                start_distances: np.ndarray, outcome, confidence: float, observer: Observer | None = None):
     """``(outcome, confidence)``: of ``outcome`` (an ``esm`` run from a given start, overlap
     confidence ``confidence`` below ``TRUSTED``) and a second run from the same start whose coarse
     sigma comes from the start's ``TIGHT_START_QUANTILE`` distance quantile, the more confident
@@ -312,22 +335,29 @@ def _second_try(source, target_index, initial, request: _Request, diagonal: floa
     (scans cut to 15-50%), that sigma pulls a good start apart; the tight one keeps it, but
     narrows the reach from a poor start on a whole object, so it only comes second, and only
     where the first run is not trusted (measured on the ModelNet40 halves and whole objects:
-    ``docs/scans-start-drift.md``)."""
+    ``docs/scans-start-drift.md``). ``observer`` watches the second run as a new run;
+    its history ends as that of the run kept."""
     tight = _estimator(request.method, request, target_index, diagonal)
     tight.start_from(start_distances, TIGHT_START_QUANTILE)
-    second = _refine(source, target_index, tight, initial, request, diagonal, keypoints, None, None, False)
+    first_history = None if observer is None else observer.new_run()
+    second = _refine(source, target_index, tight, initial, request, diagonal, keypoints, None, observer)
     second_confidence = overlap_confidence(second.transformation, keypoints, request.workers)
+    if observer is not None and observer.stopped:
+        return second, second_confidence
     if second_confidence > confidence:
         note = (f"; a second try with a tighter coarse sigma (the start's {TIGHT_START_QUANTILE:.0%} distance "
                 f"quantile) raised the overlap confidence {confidence:.2f} -> {second_confidence:.2f}")
         return dataclasses.replace(second, message=second.message + note), second_confidence
     note = (f"; a second try with a tighter coarse sigma ended at overlap confidence {second_confidence:.2f}: "
             f"this run kept")
+    if observer is not None and observer.history is not None:
+        observer.history = list(first_history or ())
     return dataclasses.replace(outcome, message=outcome.message + note), confidence
 
 
 def _refine_then_polish(source, target_index, estimator, initial, request: _Request, diagonal: float,
-                        keypoints: Keypoints, estimate: GlobalEstimate | None = None):
+                        keypoints: Keypoints, estimate: GlobalEstimate | None = None,
+                        observer: Observer | None = None):
     """Stage 4 on a large source: ``estimator`` on ``REFINE_POINTS`` evenly strided source points,
     then a fresh fine-phase estimator of the same method on the full source for at most
     ``POLISH_ITERATIONS`` iterations (fewer when ``max_iterations`` leaves fewer). The outcome is
@@ -341,7 +371,8 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     confidence on ``keypoints`` by more than ``PLANE_CONFIDENCE_DROP``, and the strided stages stop
     at ``STRIDED_TOLERANCE`` when the request's tolerance is finer: a global pose is already close.
     From a given start (``estimate`` None) the strided run keeps the request's tolerance, since a
-    start can lie further off and a slow slide toward the optimum must run to its end."""
+    start can lie further off and a slow slide toward the optimum must run to its end. ``observer``
+    watches every stage (a stage its callback stopped is the last)."""
     strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
     polish_criteria = request.criteria
     plane_iterations, plane_note = 0, ""
@@ -350,20 +381,24 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     if estimate is not None and request.method == "esm":
         planed = strided[np.linspace(0, len(strided) - 1, min(PLANE_POINTS, len(strided))).astype(np.intp)]
         initial, plane_iterations, plane_note = _plane_start(planed, target_index, initial, request, diagonal,
-                                                             keypoints, estimate.confidence)
+                                                             keypoints, estimate.confidence, observer)
+        if observer is not None and observer.stopped:
+            return RefinementOutcome(initial, False, plane_iterations, None, plane_note + STOPPED_BY_CALLBACK, None)
         request = dataclasses.replace(request, criteria=dataclasses.replace(
             request.criteria, max_iterations=request.criteria.max_iterations - plane_iterations))
-    coarse = guarded_refine(strided, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal)
+    coarse = guarded_refine(strided, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal,
+                            observer=observer)
     if coarse.num_iterations == 0:
         return coarse  # no start to refine (the guard's message says why)
     where = f"{plane_note}{coarse.message} on {len(strided):,} strided source points"
     budget = min(POLISH_ITERATIONS, request.criteria.max_iterations - coarse.num_iterations)
-    if budget <= 0:  # the user's iteration budget is spent
+    if budget <= 0 or (observer is not None and observer.stopped):  # the budget is spent, or the callback stopped
         return dataclasses.replace(coarse, message=where, num_iterations=plane_iterations + coarse.num_iterations)
     polisher = _estimator(request.method, request, target_index, diagonal, start_fine=True)
     criteria = dataclasses.replace(polish_criteria, max_iterations=budget)
     polish = guarded_refine(
         source, target_index, polisher, init=coarse.transformation, criteria=criteria, scale=diagonal,
+        observer=observer,
     )
     return dataclasses.replace(
         polish, converged=coarse.converged and (polish.converged or polish.message == _budget_spent(criteria)),
@@ -388,7 +423,8 @@ def _estimator(method: str, request: _Request, target_index, diagonal: float, st
 
 
 def _plane_start(points, target_index, initial, request: _Request, diagonal: float,
-                 keypoints: Keypoints, initial_confidence: float | None = None) -> tuple[np.ndarray, int, str]:
+                 keypoints: Keypoints, initial_confidence: float | None = None,
+                 observer: Observer | None = None) -> tuple[np.ndarray, int, str]:
     """``(pose, iterations, note)`` of at most ``PLANE_ITERATIONS`` ``esm-plane`` iterations on
     ``points`` (``PLANE_POINTS`` strided source points) from ``initial``, leaving ``esm`` at least
     one iteration of ``max_iterations``; the note begins the result's message. ``initial`` when the budget leaves none, the guard
@@ -399,9 +435,12 @@ def _plane_start(points, target_index, initial, request: _Request, diagonal: flo
         return initial, 0, ""
     planar = _estimator("esm-plane", request, target_index, diagonal)
     criteria = dataclasses.replace(request.criteria, max_iterations=budget)
-    plane = guarded_refine(points, target_index, planar, init=initial, criteria=criteria, scale=diagonal)
+    plane = guarded_refine(points, target_index, planar, init=initial, criteria=criteria, scale=diagonal,
+                           observer=observer)
     if plane.num_iterations == 0:
         return initial, 0, ""
+    if observer is not None and observer.stopped:
+        return plane.transformation, plane.num_iterations, ""
     before = initial_confidence
     if before is None:
         before = overlap_confidence(initial, keypoints, request.workers)
@@ -414,8 +453,9 @@ def _plane_start(points, target_index, initial, request: _Request, diagonal: flo
     return plane.transformation, plane.num_iterations, note
 
 
-def _evaluate(source, target_index, transformation, request: _Request, warm=None) -> tuple[float, float, float]:
-    """Stage 5: ``(fitness, inlier_rmse, inlier_distance)`` of the final pose, in Open3D's meaning
+def _evaluate(source, target_index, transformation, request: _Request, warm=None):
+    """Stage 5: ``(fitness, inlier_rmse, inlier_distance, (distances, indices, inliers))`` of the
+    final pose, in Open3D's meaning, with each source point's nearest target distance and index
     (and, for ``esm-paper``, a warning when the clouds were not index-aligned). ``warm``: the
     refinement's last neighbours of the source points, if it has them (the queries start there:
     the same answers, sooner)."""
@@ -431,7 +471,18 @@ def _evaluate(source, target_index, transformation, request: _Request, warm=None
     inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
     if request.method == "esm-paper" and len(source) == len(target_index.points):
         _warn_if_not_index_aligned(indices)
-    return fitness, inlier_rmse, float(inlier_distance)
+    return fitness, inlier_rmse, float(inlier_distance), (distances, indices, inliers)
+
+
+def _correspondences(pairs, estimator, sigma: float | None) -> Correspondences:
+    """The inlier pairs of :func:`_evaluate` (``(distances, indices, inliers)``) with the weight
+    ``estimator`` gives each at ``sigma`` (1 where it weighs none)."""
+    distances, indices, inliers = pairs
+    weights = estimator.pair_weights(distances, sigma)
+    weights = np.ones(len(distances)) if weights is None else np.clip(weights, 0.0, 1.0)
+    chosen = np.flatnonzero(inliers)
+    return Correspondences(chosen.astype(np.int64), indices[chosen].astype(np.int64),
+                           weights[chosen].astype(np.float64), distances[chosen].astype(np.float64))
 
 
 def _warn_if_coincident(points: np.ndarray, name: str, coincident) -> None:

@@ -12,6 +12,11 @@ it. (The compiled kernels of :mod:`esmicp._kernels` raise the ``KeyboardInterrup
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
+from typing import ParamSpec, TypeVar
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
 
 
 def caused_by_interrupt(error: BaseException) -> bool:
@@ -25,11 +30,12 @@ def caused_by_interrupt(error: BaseException) -> bool:
     return False
 
 
-def keeps_keyboard_interrupt(function):
-    """Decorator: a ``SystemError`` caused by a ``KeyboardInterrupt`` is raised as that interrupt."""
+def keeps_keyboard_interrupt(function: Callable[_P, _R]) -> Callable[_P, _R]:
+    """Decorator: a ``SystemError`` caused by a ``KeyboardInterrupt`` is raised as that interrupt
+    (the signature, and so the types, of ``function`` kept)."""
 
     @functools.wraps(function)
-    def wrapper(*args, **kwargs):
+    def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _R:
         try:
             return function(*args, **kwargs)
         except SystemError as error:

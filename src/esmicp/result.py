@@ -38,6 +38,42 @@ class IterationRecord:
         }
 
 
+@dataclass(frozen=True, eq=False)
+class Correspondences:
+    """The point pairs of a registration's final pose (:func:`esmicp.register` with
+    ``return_correspondences=True``): every source point whose nearest target point, under the
+    final ``transformation``, lies within ``inlier_distance``, the pairs ``fitness`` and
+    ``inlier_rmse`` count (Open3D's ``correspondence_set``), sorted by source index.
+
+    Attributes
+    ----------
+    source_index : (K,) int64 array
+        Row of each pair's point in the source as given.
+    target_index : (K,) int64 array
+        Row of its nearest target point in the target as given.
+    weight : (K,) float64 array
+        The weight the method gives the pair at the final ``sigma``, in [0, 1] (``esm`` and
+        ``esm-plane``: relative to the closest pair of the whole source, which weighs 1; all 1
+        for ``icp``).
+    distance : (K,) float64 array
+        Distance between the transformed source point and its target point (cloud units).
+    """
+
+    source_index: np.ndarray
+    target_index: np.ndarray
+    weight: np.ndarray
+    distance: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.source_index)
+
+    @property
+    def pairs(self) -> np.ndarray:
+        """``(K, 2)`` int64 array of ``(source_index, target_index)`` rows, as Open3D's
+        ``numpy.asarray(result.correspondence_set)``."""
+        return np.column_stack([self.source_index, self.target_index])
+
+
 @dataclass(frozen=True)
 class RegistrationResult:
     """Outcome of :func:`esmicp.register`.
@@ -95,6 +131,9 @@ class RegistrationResult:
         of freedom, a floor and one wall 5: :func:`esmicp.globalreg.scan.coincident_spread`). Below 0.55
         (:data:`esmicp.globalreg.scan.TRUSTED`): do not trust the pose. Measured figures:
         ``docs/measured-global.md``, "Scans".
+    correspondences : Correspondences or None
+        The final pose's inlier pairs (:class:`Correspondences`), when asked for
+        (``return_correspondences=True``); else None.
     """
 
     transformation: np.ndarray
@@ -113,6 +152,7 @@ class RegistrationResult:
     runner_up_ratio: float | None = None
     global_candidates: int = 0
     confidence: float | None = None
+    correspondences: Correspondences | None = field(default=None, repr=False)
 
     @property
     def trusted(self) -> bool:

@@ -9,11 +9,24 @@ from __future__ import annotations
 
 import numbers
 import warnings
+from typing import Any, Protocol, Union
 
 import numpy as np
+import numpy.typing as npt
 
 from .core.procrustes import axis_bounds
 from .errors import InvalidInputError, NonFinitePointsWarning
+
+class HasPoints(Protocol):
+    """A cloud object holding its ``(N, 3)`` coordinates in ``points`` (an
+    ``open3d.geometry.PointCloud``, ...)."""
+
+    @property
+    def points(self) -> Any: ...
+
+
+#: What a cloud argument accepts (:func:`as_points`): an ``(N, 3)`` array-like or a cloud object.
+PointsLike = Union[npt.ArrayLike, HasPoints]
 
 #: Minimum number of points a cloud must have for a rigid fit.
 MIN_POINTS = 3
@@ -22,23 +35,24 @@ MIN_POINTS = 3
 RIGID_TOLERANCE = 1e-5
 
 
-def as_points(points, name: str = "points", *, min_points: int = MIN_POINTS) -> np.ndarray:
+def as_points(points: PointsLike, name: str = "points", *, min_points: int = MIN_POINTS) -> np.ndarray:
     """Return ``points`` as a new C-contiguous ``(N, 3)`` float64 array.
 
-    Rows with NaN or infinite coordinates are dropped with a :class:`NonFinitePointsWarning`.
+    ``points`` is an ``(N, 3)`` array-like (NumPy array, nested lists, a CPU tensor...) or an
+    object holding one in its ``points`` attribute (an ``open3d.geometry.PointCloud``, ...): the
+    one adapter every entry point (:func:`esmicp.register`, :func:`esmicp.register_scans`, the
+    writers) reads clouds through. Rows with NaN or infinite coordinates are dropped with a
+    :class:`NonFinitePointsWarning`.
 
     Raises
     ------
     InvalidInputError
         If the input is not numeric, not of shape ``(N, 3)``, or fewer than ``min_points`` finite
-        points remain. The message starts with ``name``.
+        points remain. The message starts with ``name`` and, where it can, says what to pass
+        instead (``points[:, :3]`` for ``(N, 4)`` x y z intensity rows, ``numpy.asarray(pcd.points)``
+        for a cloud object).
     """
-    try:
-        array = np.array(points, dtype=np.float64, copy=True)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"{name}: expected (N, 3) numeric points, could not convert: {exc}") from None
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise InvalidInputError(f"{name}: expected (N, 3) points, got shape {array.shape}")
+    array = _coordinate_array(points, name)
     finite = np.isfinite(array).all(axis=1)
     if not finite.all():
         dropped = int((~finite).sum())
@@ -54,6 +68,35 @@ def as_points(points, name: str = "points", *, min_points: int = MIN_POINTS) -> 
             f"{name}: need at least {min_points} finite points, got {len(array)}"
         )
     return np.ascontiguousarray(array)
+
+
+def _coordinate_array(points, name: str) -> np.ndarray:
+    """A new ``(N, 3)`` float64 array of ``points`` (or of their ``.points``), or a one-line
+    :class:`InvalidInputError` saying what to pass instead."""
+    source = points
+    if not isinstance(points, np.ndarray) and hasattr(points, "points"):
+        source = points.points  # an Open3D PointCloud (a Vector3dVector), or any cloud object holding its array
+    try:
+        array = np.array(source, dtype=np.float64, copy=True)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(
+            f"{name}: expected (N, 3) numeric points, could not convert a {type(points).__name__} ({exc}); "
+            f"pass an (N, 3) array, e.g. numpy.asarray(pcd.points) for a point cloud object"
+        ) from None
+    if array.ndim == 2 and array.shape[1] == 3:
+        return array
+    shape = f"got shape {array.shape}"
+    if array.ndim == 2 and array.shape[0] == 3 and array.shape[1] > 3:
+        hint = "; this looks like one point a column: pass points.T"
+    elif array.ndim == 2 and array.shape[1] == 4:
+        hint = "; this looks like x y z intensity (or x y z w) rows: pass points[:, :3]"
+    elif array.ndim == 2 and array.shape[1] > 4:
+        hint = f"; if its first 3 columns are x y z (then {array.shape[1] - 3} more values a point): pass points[:, :3]"
+    elif array.ndim == 0:
+        hint = f" (a {type(points).__name__}); pass an (N, 3) array, e.g. numpy.asarray(pcd.points) for a point cloud object"
+    else:
+        hint = ""
+    raise InvalidInputError(f"{name}: expected (N, 3) points, {shape}{hint}")
 
 
 def degeneracy(points: np.ndarray) -> str | None:

@@ -73,6 +73,7 @@ class WorkingFrame:
                     state,
                     transformation=self.transform_out(state.transformation),
                     moved_source=state.moved_source + self.origin,
+                    placement=None if state.placement is None else self.transform_out(state.placement),
                 )
             )
 

@@ -53,6 +53,7 @@ def add_workers(parser, default: str = "every core") -> None:
 EXIT_OK = 0
 EXIT_FAILED = 1  # ``esmicp demo``: the transform was not recovered
 EXIT_BAD_INPUT = 2
+EXIT_UNTRUSTED = 3  # ``esmicp register --min-confidence``: the pose is below the bar, or ambiguous
 EXIT_INTERRUPTED = 130
 
 

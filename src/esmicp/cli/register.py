@@ -3,8 +3,10 @@ the outputs asked for."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +15,28 @@ from ..api import INIT_NAMES
 from ..errors import EsmicpError, OutputExistsError
 from ..io import READ_EXTENSIONS, WRITE_EXTENSIONS
 from ..methods import METHODS
-from .args import EXIT_OK, add_workers, positive_float, positive_int
+from .args import EXIT_OK, EXIT_UNTRUSTED, add_workers, positive_float, positive_int
+
+
+def trust_bar() -> float:
+    """The confidence a pose must reach to be trusted (:attr:`esmicp.RegistrationResult.trusted`):
+    the command line's one reading of it (imported late: ``esmicp --version`` stays light)."""
+    from ..globalreg.scan import TRUSTED
+
+    return TRUSTED
+
+
+def _confidence_bar(text: str) -> float | str:
+    """``--min-confidence``'s value: a number in [0, 1] (``trusted`` is the library's bar)."""
+    if text == "trusted":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1] or 'trusted', got {text!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text!r}")
+    return value
 
 
 def add_parser(commands) -> None:
@@ -25,8 +48,11 @@ def add_parser(commands) -> None:
         "register",
         help="register SOURCE onto TARGET and report the transform",
         description=f"Register SOURCE onto TARGET (files: {' '.join(READ_EXTENSIONS)}) and print "
-        "T_target_source with fitness figures. Exit status: 0 done (see 'converged' in the report), "
-        "2 bad input (nothing written), 130 interrupted (nothing written).",
+        "the verdict first (the overlap confidence against the trust bar, 0-1: below it, or ambiguous, "
+        "do not trust the pose), then the run's and the overlap's figures and T_target_source. Exit status: 0 done (read "
+        "the verdict, or use --min-confidence), 2 bad input (nothing written), 3 below "
+        "--min-confidence or ambiguous (the outputs asked for are written all the same), 130 "
+        "interrupted (nothing written).",
     )
     reg.add_argument("source", type=Path, help="point cloud to move")
     reg.add_argument("target", type=Path, help="point cloud to align to")
@@ -67,6 +93,12 @@ def add_parser(commands) -> None:
     reg.add_argument("--transform-out", type=Path, metavar="FILE", help="write T_target_source here (4x4 text)")
     reg.add_argument("--force", action="store_true", help="overwrite existing output files")
     reg.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
+    reg.add_argument(
+        "--min-confidence", type=_confidence_bar, nargs="?", const="trusted", metavar="X",
+        help="exit with status 3 when the overlap confidence is below X (0-1), or the pose is "
+        "ambiguous (another pose fits almost as well); without X, or 'trusted': the library's trust "
+        "bar (RegistrationResult.trusted). For scripts: 'esmicp register A B --min-confidence && ...'",
+    )
     add_workers(reg)
     reg.set_defaults(handler=_run_register)
 
@@ -132,30 +164,51 @@ def _run_register(args) -> int:
         for label, path in (("aligned source", args.output), ("transform", args.transform_out)):
             if path is not None:
                 print(f"{label} written to {path}")
-    return EXIT_OK
+    return _status(result, args.min_confidence)
+
+
+def _status(result, bar: float | str | None) -> int:
+    """``EXIT_UNTRUSTED`` (with one line on stderr) when ``--min-confidence`` was given and the
+    confidence is below ``bar`` or the pose ambiguous; else ``EXIT_OK``."""
+    if bar is None:
+        return EXIT_OK
+    bar = trust_bar() if bar == "trusted" else bar
+    confidence = result.confidence
+    if confidence is not None and confidence >= bar and not result.ambiguous:
+        return EXIT_OK
+    why = "the pose is ambiguous" if result.ambiguous and confidence is not None and confidence >= bar else (
+        f"confidence {'unknown' if confidence is None else f'{confidence:.2f}'} is below {bar:g}")
+    print(f"esmicp register: --min-confidence {bar:g}: {why} (exit status {EXIT_UNTRUSTED})", file=sys.stderr)
+    return EXIT_UNTRUSTED
+
+
+def verdict(result) -> str:
+    """One line: the overlap confidence against the trust bar, and whether to trust the pose."""
+    if result.confidence is None:
+        return "confidence unknown: judge the pose yourself"
+    bar = trust_bar()
+    text = f"confidence {result.confidence:.2f}"
+    if result.confidence < bar:
+        return (f"{text} (LOW: below {bar:g}, do not trust this pose; the clouds may not coincide where it puts "
+                "them, or their overlap may not hold it)")
+    if result.ambiguous:
+        return (f"{text} (>= {bar:g}, but AMBIGUOUS: a clearly different pose fits almost as well, score ratio "
+                f"{result.runner_up_ratio:.3f}; do not trust this pose: the object may be symmetric or the "
+                "overlap too small to tell)")
+    return f"{text} (trusted: >= {bar:g})"
 
 
 def print_summary(result) -> None:
+    """The verdict first, then how the run went, the overlap figures and the pose."""
+    print(verdict(result))
     state = "converged" if result.converged else "NOT converged"
     print(f"method {result.method}: {state}, {result.num_iterations} iterations, {result.runtime_s * 1000:.1f} ms")
     print(f"  start: {result.init}" + (f", {result.global_candidates} candidate poses verified" if result.global_candidates else ""))
-    if result.ambiguous:
-        print(
-            f"  AMBIGUOUS: a clearly different pose fits almost as well (score ratio {result.runner_up_ratio:.3f}); "
-            "the object may be symmetric or the overlap too small to tell"
-        )
-    if result.confidence is not None:
-        from ..globalreg.scan import TRUSTED  # not at import: `esmicp --version` stays light
-
-        low = result.confidence < TRUSTED
-        print(f"  overlap confidence {result.confidence:.2f}" + (
-            f" (LOW, below {TRUSTED:g}: do not trust the pose; the clouds may not coincide where it "
-            "puts them, or their overlap may not hold it)" if low else ""))
     print(f"  {result.message}")
     sigma = "n/a" if result.sigma is None else f"{result.sigma:.6g}"
     print(
-        f"  fitness {result.fitness:.4f}, inlier RMSE {result.inlier_rmse:.6g} "
-        f"(inliers within {result.inlier_distance:.6g}), sigma {sigma}"
+        f"  overlap (not a verdict): fitness {result.fitness:.4f} of the source within {result.inlier_distance:.6g} "
+        f"of the target, inlier RMSE {result.inlier_rmse:.6g}; sigma {sigma}"
     )
     print("T_target_source =")
     print(format_matrix(result.transformation))

@@ -1,6 +1,9 @@
 """``esmicp view``, ``esmicp heatmap`` and ``esmicp animate``: pictures of a registration's local
-iterations (a thin layer over :mod:`esmicp.viz`). Outputs are written atomically and never over an
-existing file without ``--force``; bad input ends in one line on stderr (exit status 2).
+iterations (a thin layer over :mod:`esmicp.viz`). ``view`` registers as ``esmicp register`` does
+(the global search by default) and shows that pose, or shows a given pose (``--transform``) or the
+clouds as they are (``--as-is``); ``heatmap`` and ``animate`` start from the identity by default.
+Outputs are written atomically and never over an existing file without ``--force``; bad input
+ends in one line on stderr (exit status 2).
 
 Inputs, the same for all three: no file (the built-in shape, the source a rotated copy of it),
 one file (the source a rotated copy of that cloud: the paper's protocol, index-aligned), or
@@ -14,7 +17,7 @@ from pathlib import Path
 
 from .args import nonnegative_int, positive_float, positive_int
 from ..errors import InvalidInputError, OutputExistsError
-from ..api import IDENTITY_NAMES
+from ..api import INIT_NAMES
 from ..methods import METHODS
 
 
@@ -35,14 +38,16 @@ def add_parser(commands) -> None:
     """Register the ``view``, ``heatmap`` and ``animate`` subcommands on ``commands`` (the
     subparsers object of :func:`esmicp.cli.build_parser`)."""
 
-    def common(parser, *, points_default, points_help, output_help):
+    def common(parser, *, points_default, points_help, output_help, init=True):
         parser.add_argument("clouds", nargs="*", type=Path, metavar="CLOUD",
                             help="none (built-in shape), one cloud (the source is a rotated copy of it), "
                             "or SOURCE TARGET")
         parser.add_argument("-o", "--output", type=Path, required=True, help=output_help)
-        parser.add_argument("--init", default="identity", metavar="identity|FILE",
-                            help="where the local iterations start: 'identity' (default) or a file with "
-                            "a 4x4 T_target_source (for instance one written by 'esmicp register --transform-out')")
+        if init:
+            parser.add_argument("--init", default="identity", metavar="identity|global|FILE",
+                                help="where the local iterations start: 'identity' (default), 'global' (or "
+                                "a strategy, as in 'esmicp register'), or a file with a 4x4 T_target_source "
+                                "(for instance one written by 'esmicp register --transform-out')")
         parser.add_argument("--sigma", type=positive_float, help="fixed Gaussian kernel width (cloud units)")
         parser.add_argument("--max-iterations", type=positive_int, default=100, help="default 100")
         parser.add_argument("--points", type=positive_int, default=points_default, metavar="N",
@@ -55,13 +60,26 @@ def add_parser(commands) -> None:
         parser.add_argument("--force", action="store_true", help="overwrite an existing output file")
 
     view = commands.add_parser(
-        "view", help="interactive 3D viewer of the iterations (one self-contained HTML file)",
-        description="Register, then write one self-contained HTML page (plotly.js inlined, opens offline "
-        "in any browser) showing target, source and aligned source in 3D, with a slider over the "
-        "iterations; --compare adds a second method side by side on the same input.",
+        "view", help="interactive 3D viewer of a registration (one self-contained HTML file)",
+        description="Register as 'esmicp register' does (the global search, then the local refinement, "
+        "the same defaults), then write one self-contained HTML page (plotly.js inlined, opens offline "
+        "in any browser) showing target, source and aligned source in 3D, with a slider over the local "
+        "refinement's iterations (0: where it started, the global search's pose by default) and the "
+        "confidence verdict; --compare adds a second method side by side on the same input. "
+        "--transform shows a given result instead, --as-is the clouds as they are (already aligned).",
     )
     common(view, points_default=None, points_help="downsample each cloud to N well-spread points first "
-           "(default: keep all; large clouds are subsampled for display only)", output_help="the .html file")
+           "(default: keep all; large clouds are subsampled for display only)", output_help="the .html file",
+           init=False)
+    shown = view.add_mutually_exclusive_group()
+    shown.add_argument("--init", metavar="FILE|STRATEGY",
+                       help=f"where the registration starts, as in 'esmicp register': {', '.join(INIT_NAMES)}, or "
+                       "a file holding a 4x4 T_target_source to refine from (default: global)")
+    shown.add_argument("--transform", type=Path, metavar="T_FILE",
+                       help="show the source placed by this 4x4 T_target_source (for instance from "
+                       "'esmicp register --transform-out'), without registering")
+    shown.add_argument("--as-is", action="store_true",
+                       help="show the clouds as they are, without registering (files already aligned)")
     view.add_argument("--method", choices=list(METHODS), default="esm", help="default esm")
     view.add_argument("--compare", choices=list(METHODS), metavar="OTHER_METHOD",
                       help=f"a second method shown side by side ({', '.join(METHODS)})")
@@ -129,7 +147,8 @@ def _inputs(args):
 
     if len(args.clouds) > 2:
         raise InvalidInputError(f"CLOUD: give at most two files (SOURCE TARGET), got {len(args.clouds)}")
-    init = "identity" if args.init in IDENTITY_NAMES else io.read_transform(Path(args.init))
+    given = getattr(args, "init", None)
+    init = None if given is None else (given if given in INIT_NAMES else io.read_transform(Path(given)))
     if not args.clouds:
         pair = builtin_pair(points=args.points, angle_deg=args.angle, seed=args.seed)
         return pair.source, pair.target, pair.description, pair.T_target_source, init
@@ -144,19 +163,36 @@ def _inputs(args):
 
 
 def _run_view(args) -> int:
-    from ..viz.view import view_html, write_view
+    from .. import io
+    from ..viz.view import view_figure, view_html, write_view
 
     _check_output(args.output, args.force, (".html", ".htm"), "viewer")
     _require("plotly.graph_objects", "plotly.subplots")
+    fixed = args.transform is not None or args.as_is
+    if fixed and args.compare is not None:
+        flag = "--as-is" if args.as_is else "--transform"
+        raise InvalidInputError(f"--compare: compares registrations; {flag} shows a pose without registering")
+    pose = io.read_transform(args.transform) if args.transform is not None else None
     source, target, description, truth, init = _inputs(args)
+    if fixed:
+        import numpy as np
+
+        from ..viz.trace import fixed_trace
+
+        label = f"source placed by {args.transform.name}" if pose is not None else "as given (not registered)"
+        trace = fixed_trace(source, target, np.eye(4) if pose is None else pose, label)
+        figure = view_figure([trace], max_display_points=args.max_display_points, title=args.title or description,
+                             truth=truth)
+        write_view(figure, args.output, overwrite=args.force)
+        print(f"viewer written to {args.output} ({label})")
+        return 0
     figure = view_html(
         source, target, method=args.method, compare=args.compare, init=init, sigma=args.sigma,
         max_iterations=args.max_iterations, max_display_points=args.max_display_points,
         title=args.title or description, truth=truth, shown_iteration=args.show_iteration,
     )
     write_view(figure, args.output, overwrite=args.force)
-    iterations = ", ".join(f"{m}: {n} iterations" for m, n in zip(figure.layout.meta["methods"], figure.layout.meta["iterations"]))
-    print(f"viewer written to {args.output} ({iterations})")
+    print(f"viewer written to {args.output} ({'; '.join(figure.layout.meta['verdicts'])})")
     return 0
 
 

@@ -96,6 +96,12 @@ class Estimator(ABC):
         ``max(floor, factor * median distance)``; not Gaussian: every weight 1."""
         raise NotImplementedError(f"{self.name} has no fused step")
 
+    def pair_weights(self, distances: np.ndarray, sigma: float | None) -> np.ndarray | None:
+        """The weight :meth:`step` gives each pair at ``distances`` (cloud units) when its sigma is
+        ``sigma``; None for an unweighted method (the default: every pair weighs 1). Used to report
+        an iteration (:class:`~esmicp.methods.local.IterationState`), never to take a step."""
+        return None
+
     def took_step(self, step: Step) -> None:
         """Called by the loop with the fused kernel's increment (the default keeps no state)."""
 

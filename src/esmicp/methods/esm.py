@@ -197,6 +197,9 @@ class EsmEstimator(Estimator):
             fixed = self.sigma.start
         return (0.0 if fixed is None else fixed), self.sigma.floor, SIGMA_MEDIAN_FACTOR, self.fine, True
 
+    def pair_weights(self, distances, sigma):
+        return None if sigma is None else relative_gaussian_weights(distances, sigma)
+
     def took_step(self, step: Step) -> None:
         self._update_phase(step.rotation, step.translation)
 

@@ -127,6 +127,9 @@ class EsmPaperEstimator(Estimator):
         rotation = rotation_from_cross_covariance(cross_covariance)
         return Step(rotation, target_centroid - rotation @ source_centroid, weights=weights, sigma=self.sigma)
 
+    def pair_weights(self, distances, sigma):
+        return gaussian_weights(distances, self.sigma)
+
     def step_placed(self, source, transformation, target, distances, indices, workers=None) -> Step:
         """:meth:`step` from the unmoved source and its placement, in two compiled passes."""
         rotation, translation, effective = moments.rigid_fit(

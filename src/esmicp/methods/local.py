@@ -11,6 +11,9 @@ with the previous iteration's neighbours); the step gets its sums from one compi
 ``coarse_points``, an estimator that has a coarse phase (``esm`` with the automatic sigma) runs
 that phase on an evenly strided subset of the source, and the full source from its fine phase on:
 the coarse phase only brings the clouds close, the full-resolution iterations decide the pose.
+
+A callback or a history observes the run and never changes it (:class:`Observer`): the loop takes
+the same path, on the same points, in the same order, with or without one.
 """
 
 from __future__ import annotations
@@ -34,18 +37,24 @@ from .base import ConvergenceCriteria, Estimator, Step
 
 #: From this many source points on, :func:`refine` queries the source in the target's spatial
 #: order (:meth:`~esmicp.core.correspondence.NearestNeighbors.spatial_order`): it visits the
-#: source in that order, or, for a callback or an order-dependent method (``esm-paper``), keeps
-#: the source's order and only permutes the queries.
+#: source in that order, or, for an order-dependent method (``esm-paper``), keeps the source's
+#: order and only permutes the queries.
 SPATIAL_ORDER_MIN = 2048
 
 
 @dataclass(frozen=True)
 class IterationState:
-    """What a callback sees after each iteration (arrays are the solver's own: do not modify).
+    """What a callback sees after each iteration (its own arrays: the run never reads them).
 
-    ``moved_source`` is the source as placed BEFORE this iteration's increment, ``indices`` and
-    ``distances`` its nearest target points, ``weights`` the weights the method gave each pair
-    (None for unweighted methods), ``transformation`` the ``T_target_source`` AFTER the increment.
+    ``moved_source`` is the whole source, in its own order, as placed BEFORE this iteration's
+    increment, ``indices`` and ``distances`` its nearest target points, ``weights`` the weight the
+    method gives each of those pairs at this iteration's ``sigma`` (None for unweighted methods),
+    ``transformation`` the ``T_target_source`` AFTER the increment, ``placement`` the one BEFORE it
+    (that placed ``moved_source``; the first iteration's is the run's start). On a large source some
+    iterations compute their increment on a strided subset of the points (the coarse phase, the
+    strided stages of :func:`esmicp.register`); the state still describes every point at that
+    iteration's pose. ``iteration`` counts from 1 over every stage of a run; it starts again at 1
+    when :func:`esmicp.register` tries a second run from the same start (see its ``init``).
     """
 
     iteration: int
@@ -55,10 +64,72 @@ class IterationState:
     distances: np.ndarray
     weights: np.ndarray | None
     sigma: float | None
+    placement: np.ndarray | None = None
 
 
 #: Return True from a callback to stop the iterations.
 Callback = Callable[[IterationState], "bool | None"]
+
+#: The message of a run its callback stopped.
+STOPPED_BY_CALLBACK = "stopped by the callback"
+
+
+class Observer:
+    """The callback and the history of a run, kept apart from it: every iteration is reported by
+    a query of its own on the whole ``source`` (working frame, caller's order) at the pose the
+    iteration started from, so that the run itself takes the same path, on the same points, with
+    or without an observer (the same pose, bitwise).
+
+    One observer may watch several :func:`refine` calls (the stages of :func:`esmicp.register`):
+    ``iteration`` then counts over all of them. ``stopped`` is True once the callback returned a
+    true value; the caller then runs no further stage.
+    """
+
+    def __init__(self, source: np.ndarray, target: NearestNeighbors, callback: "Callback | None" = None,
+                 record_history: bool = False):
+        self.source, self.target, self.callback = source, target, callback
+        self.history: list[IterationRecord] | None = [] if record_history else None
+        self.iteration = 0
+        self.stopped = False
+        self._warm: np.ndarray | None = None
+
+    def __call__(self, estimator: Estimator, before: np.ndarray, after: np.ndarray, sigma: float | None) -> bool:
+        """Report one iteration that moved the source from ``before`` to ``after`` (4x4) at
+        ``sigma``; True when the callback asks to stop."""
+        self.iteration += 1
+        distances, indices = self._query(before)
+        weights = estimator.pair_weights(distances, sigma)
+        if self.history is not None:
+            rmse = float(np.sqrt(np.mean(np.square(distances))))
+            self.history.append(_record(self.iteration, after, rmse, weights, sigma, len(distances)))
+        if self.callback is not None:
+            moved = apply(before, self.source)
+            state = IterationState(self.iteration, after.copy(), moved, indices, distances, weights, sigma,
+                                   before.copy())
+            self.stopped = bool(self.callback(state))
+        return self.stopped
+
+    def recorded(self) -> tuple[IterationRecord, ...] | None:
+        """The history so far (None when none is kept)."""
+        return _freeze(self.history)
+
+    def new_run(self) -> tuple[IterationRecord, ...] | None:
+        """Start counting a new run from the same start; returns the history of the previous one."""
+        previous = self.recorded()
+        self.iteration, self.history = 0, (None if self.history is None else [])
+        return previous
+
+    def _query(self, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # The exact tree's own query: the index's near-query statistics, which steer the run's
+        # own queries (speed only, yet the tie between two equidistant targets), stay untouched.
+        tree = getattr(self.target, "exact_tree", None)
+        if tree is None:
+            distances, indices = self.target.query_near(self.source, warm=self._warm, transform=pose)
+        else:
+            distances, indices = tree().query(self.source, transform=pose, warm=self._warm,
+                                              workers=getattr(self.target, "workers", None))
+        self._warm = indices
+        return distances, indices
 
 
 @dataclass(frozen=True)
@@ -97,6 +168,7 @@ def refine(
     callback: Callback | None = None,
     record_history: bool = False,
     coarse_points: int | None = None,
+    observer: Observer | None = None,
 ) -> RefinementOutcome:
     """Iterate ``estimator`` from ``init`` (4x4 ``T_target_source``) until ``criteria`` are met.
 
@@ -110,20 +182,19 @@ def refine(
     automatic sigma), iterate on at most this many evenly strided source points; the run never
     ends there: once the coarse iterations converge, the loop ends the estimator's coarse phase
     (:meth:`~esmicp.methods.base.Estimator.end_coarse_phase`) and continues on the full source.
-    Ignored when a ``callback`` is given, so that callbacks always see the whole source.
+
+    ``callback`` / ``record_history``: as in :func:`esmicp.register` (an :class:`Observer` of this
+    call); or ``observer``, one shared by several calls. Neither changes the run.
     """
+    if observer is None and (callback is not None or record_history):
+        observer = Observer(source, target, callback, record_history)
     full_source = source
-    coarse = (
-        coarse_points is not None
-        and callback is None
-        and len(source) > coarse_points
-        and estimator.coarse
-    )
+    coarse = coarse_points is not None and len(source) > coarse_points and estimator.coarse
     workers = getattr(target, "workers", None)
     query_order = visit_order = None
     if len(source) >= SPATIAL_ORDER_MIN:
         order = target.spatial_order(apply(init, source, workers))
-        if callback is None and estimator.order_invariant:
+        if estimator.order_invariant:
             # Visit the source points in spatial order (the result does not depend on the order).
             full_source, visit_order = source[order], order
         else:
@@ -133,9 +204,9 @@ def refine(
         source = full_source[np.linspace(0, len(full_source) - 1, coarse_points).astype(np.intp)]
     else:
         source = full_source
-    # Without a callback or a history nothing needs the per-point arrays: the placed source is
-    # never formed, the query and the step map the source themselves.
-    placed = estimator.compiled_step and callback is None and not record_history
+    # The placed source is never formed where the step has a compiled pass: the query and the
+    # step map the source themselves.
+    placed = estimator.compiled_step
     # With no per-point array needed and the queries in the source's order, one compiled call per
     # iteration finds the pairs and computes the increment (``NearestNeighbors.step``).
     fused = placed and estimator.fused_step and query_order is None and hasattr(target, "step")
@@ -152,7 +223,6 @@ def refine(
 
     indices = None
     transformation = init.copy()
-    history: list[IterationRecord] | None = [] if record_history else None
     previous_rmse: float | None = None
     sigma: float | None = None
     accelerator = AndersonAccelerator(scale) if estimator.accelerable else None
@@ -162,11 +232,12 @@ def refine(
 
     def outcome(transformation, converged, iterations, message) -> RefinementOutcome:
         effective, pairs = _last_pairs(step, len(source))
-        return RefinementOutcome(transformation, converged, iterations, sigma, message, _freeze(history), effective, pairs)
+        history = None if observer is None else observer.recorded()
+        return RefinementOutcome(transformation, converged, iterations, sigma, message, history, effective, pairs)
 
     if fused:
         return _refine_fused(full_source, source, target, estimator, coarse, init, criteria, scale, accelerator,
-                             visit_order)
+                             visit_order, observer)
     for iteration in range(1, criteria.max_iterations + 1):
         if coarse and not estimator.coarse:
             coarse, source, indices, previous_rmse = False, full_source, None, None
@@ -203,16 +274,12 @@ def refine(
             moved_angle, moved_distance = motion_between(transformation, following)
         else:
             moved_angle, moved_distance = accelerator.motion
-        transformation = following
+        before, transformation = transformation, following
         # (Not ``distances @ distances``: BLAS would wake its own threads, which then spin and
         # take the cores from the compiled kernels: measured 3x slower iterations at 100k points.)
         rmse = float(np.sqrt(np.mean(np.square(distances))))
-        if history is not None:
-            history.append(_record(iteration, transformation, rmse, step.weights, sigma, len(distances)))
-        if callback is not None:
-            state = IterationState(iteration, transformation.copy(), moved, indices, distances, step.weights, sigma)
-            if callback(state):
-                return outcome(transformation, False, iteration, "stopped by the callback")
+        if observer is not None and observer(estimator, before, transformation, sigma):
+            return outcome(transformation, False, iteration, STOPPED_BY_CALLBACK)
         message = _converged(criteria, estimator, coarse, iteration, moved_angle, moved_distance, scale,
                              previous_rmse, rmse)
         if message is not None:
@@ -222,10 +289,10 @@ def refine(
 
 
 def _refine_fused(full_source, source, target, estimator, coarse, init, criteria, scale, accelerator,
-                  visit_order=None) -> RefinementOutcome:
-    """:func:`refine`'s loop with one compiled call per iteration (no callback, no history, the
-    source in the order it is queried: ``full_source`` is the caller's source permuted by
-    ``visit_order``, None for none): the same decisions on the same numbers as the loop above."""
+                  visit_order=None, observer: Observer | None = None) -> RefinementOutcome:
+    """:func:`refine`'s loop with one compiled call per iteration (the source in the order it is
+    queried: ``full_source`` is the caller's source permuted by ``visit_order``, None for none):
+    the same decisions on the same numbers as the loop above."""
     full_source = np.ascontiguousarray(full_source, dtype=np.float64)
     source = np.ascontiguousarray(source, dtype=np.float64)
     out = np.empty(_kernels.STEP_OUT)
@@ -255,7 +322,8 @@ def _refine_fused(full_source, source, target, estimator, coarse, init, criteria
         if done and not coarse:  # the last queries were of every point: back to the caller's order
             neighbours = np.empty_like(indices)
             neighbours[slice(None) if visit_order is None else visit_order] = indices
-        return RefinementOutcome(transformation, converged, iterations, sigma, message, None,
+        history = None if observer is None else observer.recorded()
+        return RefinementOutcome(transformation, converged, iterations, sigma, message, history,
                                  effective if done else None, len(source) if done else 0, neighbours)
 
     for iteration in range(1, criteria.max_iterations + 1):
@@ -295,8 +363,10 @@ def _refine_fused(full_source, source, target, estimator, coarse, init, criteria
             moved_angle, moved_distance = values[35], values[36]
         else:
             moved_angle, moved_distance = accelerator.motion
-        transformation = following
+        before, transformation = transformation, following
         rmse = values[1]
+        if observer is not None and observer(estimator, before, transformation, sigma):
+            return finish(transformation, False, iteration, STOPPED_BY_CALLBACK)
         message = _converged(criteria, estimator, coarse, iteration, moved_angle, moved_distance, scale,
                              previous_rmse, rmse)
         if message is not None:

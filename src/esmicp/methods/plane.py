@@ -115,6 +115,9 @@ class PlaneEstimator(Estimator):
         self._whole = self._whole or (small and np.linalg.norm(translation) < FINE_PHASE_STEP * self.diameter)
         return Step(rotation, translation, weights=weights, sigma=sigma)
 
+    def pair_weights(self, distances, sigma):
+        return None if sigma is None else relative_gaussian_weights(distances, sigma)
+
     def _sigma(self, distances: np.ndarray) -> float:
         """This iteration's sigma: the least fixed point above the floor of the overlap's scale."""
         if self.fixed is not None:

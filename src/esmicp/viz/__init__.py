@@ -19,12 +19,13 @@ from .files import save_figure
 from .heatmap import heatmap, heatmap_figure
 from .inputs import builtin_pair, downsample, farthest_point_subset, moved_copy
 from .similarity import similarity_matrix
-from .trace import RegistrationTrace, trace_registration
+from .trace import RegistrationTrace, fixed_trace, trace_registration
 from .view import display_subset, scatter_trace, view_figure, view_html, view_page, write_view
 
 __all__ = [
     "RegistrationTrace",
     "display_subset",
+    "fixed_trace",
     "require",
     "scatter_trace",
     "animate",

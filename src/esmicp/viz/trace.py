@@ -1,7 +1,8 @@
-"""Run a local registration and keep what every iteration did, for the pictures.
+"""Run a registration and keep what every iteration of its local refinement did, for the pictures.
 
 The solver knows nothing of plots: this module only listens to its ``callback`` and keeps copies
-of what it reports (:class:`~esmicp.methods.local.IterationState`).
+of what it reports (:class:`~esmicp.methods.local.IterationState`); the callback never changes
+the run, so the pictures show the pose :func:`esmicp.register` gives.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ import numpy as np
 
 from ..api import register
 from ..core.procrustes import apply
-from ..errors import InvalidInputError
 from ..result import RegistrationResult
 from ..types import as_points, as_transform
 
@@ -23,28 +23,28 @@ class Step:
 
     ``indices[i]`` is the target point nearest to source point ``i`` as placed before the
     iteration, ``distances[i]`` its distance (cloud units), ``weights[i]`` the weight the method
-    gave the pair (all 1 for ``icp``), ``transformation`` the ``T_target_source`` after it.
+    gave the pair (all 1 for ``icp``): None when the trace keeps no per-point arrays;
+    ``transformation`` the ``T_target_source`` after it, ``rmse`` the RMS correspondence distance
+    before it (cloud units).
     """
 
     iteration: int
     transformation: np.ndarray
-    indices: np.ndarray
-    distances: np.ndarray
-    weights: np.ndarray
+    indices: np.ndarray | None
+    distances: np.ndarray | None
+    weights: np.ndarray | None
     sigma: float | None
-
-    @property
-    def rmse(self) -> float:
-        """RMS correspondence distance before the iteration (cloud units)."""
-        return float(np.sqrt(np.mean(np.square(self.distances))))
+    rmse: float
 
 
 @dataclass(frozen=True, eq=False)
 class RegistrationTrace:
-    """A local registration, iteration by iteration.
+    """A registration's local refinement, iteration by iteration.
 
-    ``poses[k]`` is ``T_target_source`` after ``k`` iterations (``poses[0]`` the start), so there
-    are ``iterations + 1`` poses; ``steps[k - 1]`` is what iteration ``k`` did.
+    ``poses[k]`` is ``T_target_source`` after ``k`` iterations (``poses[0]`` the start: the
+    identity, a given pose, or the global search's pose), so there are ``iterations + 1`` poses;
+    ``steps[k - 1]`` is what iteration ``k`` did. ``result`` is None for a pose shown as given
+    (:func:`fixed_trace`: one pose, no iteration).
     """
 
     method: str
@@ -53,7 +53,7 @@ class RegistrationTrace:
     target: np.ndarray
     poses: tuple[np.ndarray, ...]
     steps: tuple[Step, ...]
-    result: RegistrationResult
+    result: RegistrationResult | None
 
     @property
     def iterations(self) -> int:
@@ -65,21 +65,28 @@ class RegistrationTrace:
 
     @property
     def label(self) -> str:
+        if self.result is None:
+            return self.start
         state = "converged" if self.result.converged else "not converged"
-        return f"{self.method} from {self.start}: {self.iterations} iterations, {state}"
+        text = f"{self.method} from {self.start}: {self.iterations} iterations, {state}"
+        if self.result.confidence is not None:
+            verdict = "trusted" if self.result.trusted else ("ambiguous" if self.result.ambiguous else "LOW")
+            text += f"; confidence {self.result.confidence:.2f} ({verdict})"
+        return text
 
 
-def _start(init) -> tuple[str, np.ndarray]:
-    if isinstance(init, str):
-        if init in ("identity", "none"):
-            return "identity", np.eye(4)
-        raise InvalidInputError(
-            f"init: the pictures show the local iterations, so init must be 'identity' or a 4x4 "
-            f"T_target_source (for instance a global register() result's transformation), got {init!r}"
-        )
-    if init is None:
-        return "identity", np.eye(4)
-    return "given pose", as_transform(init, "init")
+def fixed_trace(source, target, pose, label: str) -> RegistrationTrace:
+    """A trace of no iteration that shows ``source`` placed by ``pose`` (4x4 ``T_target_source``;
+    the identity for clouds already aligned), captioned ``label``."""
+    return RegistrationTrace("", label, as_points(source, "source"), as_points(target, "target"),
+                             (as_transform(pose, "pose"),), (), None)
+
+
+def _start_name(result: RegistrationResult) -> str:
+    """How the run started, for captions."""
+    if result.init.startswith("global:"):
+        return f"global search ({result.init.split(':', 1)[1]})"
+    return "given pose" if result.init == "given" else result.init
 
 
 def trace_registration(
@@ -91,35 +98,39 @@ def trace_registration(
     sigma: float | None = None,
     max_iterations: int = 100,
     tolerance: float = 1e-8,
+    per_point: bool = True,
 ) -> RegistrationTrace:
-    """Run :func:`esmicp.register` locally from ``init`` and keep every iteration.
-
-    ``init`` is ``"identity"`` or a 4x4 ``T_target_source``: a global search's own iterations are
-    not the local history, so it is not run here (start from its result instead).
+    """Run :func:`esmicp.register` from ``init`` (any of its values: ``"identity"``, a 4x4
+    ``T_target_source``, ``None`` / ``"global"`` or a strategy) and keep every iteration of its
+    local refinement; after a global search, ``poses[0]`` is the search's pose. The pose is the
+    one :func:`esmicp.register` gives with these arguments (the callback changes nothing). When
+    it tries a second run from the same start, the trace is the run whose pose it returns.
+    ``per_point``: keep each iteration's per-point arrays (heat maps, animations need them; the
+    viewer does not).
     """
     source_points = as_points(source, "source")
     target_points = as_points(target, "target")
-    start, initial = _start(init)
-    steps: list[Step] = []
+    runs: list[list[tuple[np.ndarray, Step]]] = []
 
     def keep(state) -> None:
-        weights = (
-            np.ones(len(state.indices)) if state.weights is None else np.array(state.weights, dtype=np.float64)
-        )
-        steps.append(
-            Step(
-                state.iteration,
-                np.array(state.transformation, dtype=np.float64),
-                np.array(state.indices, dtype=np.int64),
-                np.array(state.distances, dtype=np.float64),
-                weights,
-                state.sigma,
-            )
-        )
+        if state.iteration == 1:
+            runs.append([])
+        distances = np.array(state.distances, dtype=np.float64)
+        rmse = float(np.sqrt(np.mean(np.square(distances))))
+        arrays = (None, None, None)
+        if per_point:
+            weights = np.ones(len(distances)) if state.weights is None else np.array(state.weights, dtype=np.float64)
+            arrays = (np.array(state.indices, dtype=np.int64), distances, weights)
+        step = Step(state.iteration, np.array(state.transformation, dtype=np.float64), *arrays, state.sigma, rmse)
+        runs[-1].append((np.array(state.placement, dtype=np.float64), step))
 
     result = register(
-        source_points, target_points, method=method, init=initial, sigma=sigma,
+        source_points, target_points, method=method, init=init, sigma=sigma,
         max_iterations=max_iterations, tolerance=tolerance, callback=keep,
     )
-    poses = (initial, *(step.transformation for step in steps))
-    return RegistrationTrace(method, start, source_points, target_points, poses, tuple(steps), result)
+    kept = next((run for run in reversed(runs) if np.array_equal(run[-1][1].transformation, result.transformation)),
+                runs[-1] if runs else [])
+    start = kept[0][0] if kept else result.transformation
+    steps = tuple(step for _, step in kept)
+    poses = (start, *(step.transformation for step in steps))
+    return RegistrationTrace(method, _start_name(result), source_points, target_points, poses, steps, result)

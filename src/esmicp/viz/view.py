@@ -48,6 +48,9 @@ def scatter_trace(go, points, name, colour, scene, size=2.0, opacity=0.8, showle
 
 
 def _status(trace: RegistrationTrace, k: int, truth) -> str:
+    if trace.result is None:  # a pose shown as given
+        error = "" if truth is None else f", rotation error {rotation_error_deg(trace.poses[0], truth):.3g} deg"
+        return f"{trace.start}{error}"
     shown = min(k, trace.iterations)
     held = " (finished)" if k > trace.iterations else ""
     text = f"{trace.method}: iteration {shown}/{trace.iterations}{held}"
@@ -158,6 +161,7 @@ def view_figure(
         "start": [trace.start for trace in traces],
         "iterations": [trace.iterations for trace in traces],
         "poses": [[pose.tolist() for pose in trace.poses] for trace in traces],
+        "verdicts": [trace.label for trace in traces],
         "points_source": len(first.source), "points_target": len(first.target),
         "shown_source": len(source_shown), "shown_target": len(target_shown),
     }
@@ -179,7 +183,7 @@ def view_html(
     *,
     method: str = "esm",
     compare: str | None = None,
-    init="identity",
+    init=None,
     sigma: float | None = None,
     max_iterations: int = 100,
     max_display_points: int = DEFAULT_DISPLAY_POINTS,
@@ -187,11 +191,15 @@ def view_html(
     truth=None,
     shown_iteration: int = 0,
 ):
-    """Register with ``method`` (and ``compare``, side by side) from ``init`` and return the viewer's
-    plotly Figure (:func:`view_figure`); :func:`write_view` saves it as one HTML file."""
+    """Register with ``method`` (and ``compare``, side by side) as :func:`esmicp.register` does
+    (``init`` as there: None, the default, runs the global search) and return the viewer's plotly
+    Figure (:func:`view_figure`), its slider over the local refinement's iterations (after a
+    global search, from the search's pose); :func:`write_view` saves it as one HTML file. To show
+    a pose as given, pass :func:`~esmicp.viz.trace.fixed_trace` to :func:`view_figure`."""
     methods = [method] if compare is None else [method, compare]
     traces = [
-        trace_registration(source, target, method=name, init=init, sigma=sigma, max_iterations=max_iterations)
+        trace_registration(source, target, method=name, init=init, sigma=sigma, max_iterations=max_iterations,
+                           per_point=False)
         for name in methods
     ]
     return view_figure(

@@ -1,0 +1,43 @@
+"""Clouds from the Python point-cloud ecosystem: an ``open3d.geometry.PointCloud`` is accepted
+wherever an (N, 3) array is (:func:`esmicp.register`, :func:`esmicp.register_scans`, the writers)."""
+
+from __future__ import annotations
+
+import numpy as np
+from conftest import require_module
+
+import esmicp
+from esmicp.core.procrustes import apply, to_matrix
+from esmicp.metrics import rotation_error_deg
+from esmicp.shapes import asymmetric_shape
+
+
+def test_open3d_point_clouds_are_registered_merged_and_written(tmp_path):
+    o3d = require_module("open3d", "baselines")
+    target = asymmetric_shape(1500, rng=3)
+    truth = to_matrix(np.array([[0.96, -0.28, 0.0], [0.28, 0.96, 0.0], [0.0, 0.0, 1.0]]), np.array([0.02, 0.0, 0.01]))
+    source = apply(np.linalg.inv(truth), target)
+
+    def cloud(points):
+        pcd = o3d.geometry.PointCloud()
+        pcd.points = o3d.utility.Vector3dVector(points)
+        return pcd
+
+    from_open3d = esmicp.register(cloud(source), cloud(target))
+    from_arrays = esmicp.register(source, target)
+    np.testing.assert_array_equal(from_open3d.transformation, from_arrays.transformation)
+    assert rotation_error_deg(from_open3d.transformation, truth[:3, :3]) < 0.1
+    merged = esmicp.register_scans([cloud(source), cloud(target)], reference=1)
+    assert rotation_error_deg(merged.poses[0], truth[:3, :3]) < 0.1
+    esmicp.write_points(tmp_path / "source.ply", cloud(source))
+    np.testing.assert_array_equal(esmicp.read_points(tmp_path / "source.ply"), source)
+
+
+def test_the_stanford_conf_reader_is_public():
+    from conftest import require_shared
+
+    poses = esmicp.read_stanford_conf(require_shared("bunny_scans/bun.conf"))
+    assert "read_stanford_conf" in esmicp.__all__
+    assert {"bun000", "bun045"} <= set(poses)
+    for pose in poses.values():
+        np.testing.assert_allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-9)
