@@ -57,6 +57,7 @@ class LasLayout:
     point_count: int  #: points the header declares
     point_data: int  #: byte offset of the point data
     compressed: bool  #: LAZ
+    chunk_points: int | None = None  #: LAZ: points per chunk (None: variable-size chunks, or not chunked)
 
 
 def _laspy(path):
@@ -159,8 +160,9 @@ def check_header(path, handle, size: int) -> LasLayout:
 
     if minor >= 4:
         _check_extended_records(refuse, handle, head, size, point_data)
+    chunk_points = None
     if compressed:
-        _check_laz(refuse, handle, size, point_data, count, laszip)
+        chunk_points = _check_laz(refuse, handle, size, point_data, count, laszip)
     else:
         needed = point_data + count * record_bytes
         if needed > size:
@@ -168,7 +170,7 @@ def check_header(path, handle, size: int) -> LasLayout:
                 f"truncated LAS file: its header declares {count} points of {record_bytes} bytes from byte "
                 f"{point_data}, which needs {needed} bytes, but the file has {size}"
             )
-    return LasLayout(size, version, point_format, record_bytes, count, point_data, compressed)
+    return LasLayout(size, version, point_format, record_bytes, count, point_data, compressed, chunk_points)
 
 
 def _check_extended_records(refuse, handle, head: bytes, size: int, point_data: int) -> None:
@@ -198,9 +200,10 @@ def _check_extended_records(refuse, handle, head: bytes, size: int, point_data: 
             )
 
 
-def _check_laz(refuse, handle, size: int, point_data: int, count: int, laszip) -> None:
+def _check_laz(refuse, handle, size: int, point_data: int, count: int, laszip) -> int | None:
     """LAZ: a LASzip record that holds its items, and a chunk table inside the file whose number of
-    chunks (at least one byte each) and chunk size can hold the declared points."""
+    chunks (at least one byte each) and chunk size can hold the declared points. Returns the
+    number of points per chunk (None: variable-size chunks, or points not in chunks)."""
     if laszip is None:
         raise refuse(
             "corrupt LAZ file: its header says the points are compressed, but it has no LASzip record "
@@ -216,7 +219,7 @@ def _check_laz(refuse, handle, size: int, point_data: int, count: int, laszip) -
     if 34 + 6 * items > length:
         raise refuse(f"corrupt LAZ file: its LASzip record says {items} items, more than its {length} bytes hold")
     if compressor not in (2, 3):  # not chunked: no chunk table to check
-        return
+        return None
     if point_data + 8 > size:
         raise refuse(f"truncated LAZ file: no chunk table offset after the point data start (byte {point_data:,})")
     table = struct.unpack("<q", _read_at(handle, point_data, 8))[0]
@@ -243,6 +246,21 @@ def _check_laz(refuse, handle, size: int, point_data: int, count: int, laszip) -
             f"corrupt LAZ file: its header declares {count} points, more than its {chunks} chunk(s) of "
             f"{chunk_size:,} points hold"
         )
+    return None if chunk_size == VARIABLE_CHUNK_SIZE else chunk_size
+
+
+def _laz_backend(laspy, layout: LasLayout):
+    """The LAZ decoders laspy may use for ``layout``: lazrs's parallel decoder allocates whole
+    chunks, as large as the header's chunk size says (a corrupt one aborts the process when the
+    allocation fails), so it is used only for chunks of at most :data:`CHUNK_POINTS` points; the
+    sequential decoder, which fills the caller's buffer, otherwise. None: laspy's default."""
+    if layout.chunk_points is not None and layout.chunk_points <= CHUNK_POINTS:
+        return None
+    try:
+        sequential = tuple(b for b in laspy.LazBackend.detect_available() if b != laspy.LazBackend.LazrsParallel)
+    except Exception:  # noqa: BLE001 - an old or broken laspy: let the read say what is wrong
+        return None
+    return sequential or None
 
 
 def read_las(path) -> np.ndarray:
@@ -271,7 +289,7 @@ def read_las(path) -> np.ndarray:
     read = 0
     stage = f"laspy could not read the {kind} {layout.version} header and its variable-length records"
     try:
-        with laspy.open(path) as reader:
+        with laspy.open(path, laz_backend=_laz_backend(laspy, layout) if layout.compressed else None) as reader:
             stage = f"corrupt or truncated {kind} point data"
             for chunk in reader.chunk_iterator(CHUNK_POINTS):
                 block = np.empty((len(chunk), 3), dtype=np.float64)
