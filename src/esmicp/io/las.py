@@ -162,7 +162,7 @@ def check_header(path, handle, size: int) -> LasLayout:
         _check_extended_records(refuse, handle, head, size, point_data)
     chunk_points = None
     if compressed:
-        chunk_points = _check_laz(refuse, handle, size, point_data, count, laszip)
+        chunk_points = _check_laz(refuse, handle, size, point_data, count, record_bytes, laszip)
     else:
         needed = point_data + count * record_bytes
         if needed > size:
@@ -200,9 +200,11 @@ def _check_extended_records(refuse, handle, head: bytes, size: int, point_data: 
             )
 
 
-def _check_laz(refuse, handle, size: int, point_data: int, count: int, laszip) -> int | None:
+def _check_laz(refuse, handle, size: int, point_data: int, count: int, record_bytes: int, laszip) -> int | None:
     """LAZ: a LASzip record that holds its items, and a chunk table inside the file whose number of
-    chunks (at least one byte each) and chunk size can hold the declared points. Returns the
+    chunks (at least one byte each) and chunk size can hold the declared points, and whose items
+    make points of the header's record length (else the decoder reads, and laspy allocates, points
+    of the size the items say). Returns the
     number of points per chunk (None: variable-size chunks, or points not in chunks)."""
     if laszip is None:
         raise refuse(
@@ -218,6 +220,12 @@ def _check_laz(refuse, handle, size: int, point_data: int, count: int, laszip) -
     items = struct.unpack_from("<H", record, 32)[0]
     if 34 + 6 * items > length:
         raise refuse(f"corrupt LAZ file: its LASzip record says {items} items, more than its {length} bytes hold")
+    item_bytes = sum(struct.unpack_from("<H", record, 34 + 6 * k + 2)[0] for k in range(items))
+    if item_bytes != record_bytes:
+        raise refuse(
+            f"corrupt LAZ file: its LASzip record's items make points of {item_bytes:,} bytes, but the LAS header "
+            f"says {record_bytes}"
+        )
     if compressor not in (2, 3):  # not chunked: no chunk table to check
         return None
     if point_data + 8 > size:
