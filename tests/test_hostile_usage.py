@@ -209,3 +209,63 @@ def test_bench_on_a_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
                  "--points", "100", "--workers", "1", "--no-progress", "--out", str(tmp_path / "out")])
     assert code == EXIT_BAD_INPUT
     assert "No space left on device" in _one_line(capsys, "esmicp bench: error: ")
+
+
+# --- esmicp merge: outputs that are one file, or one of the scans ---------------------------------
+
+MERGE_QUICK = ["--processes", "1", "--pair-points", "100", "--no-progress"]
+
+
+def _folder_state(folder: Path) -> dict:
+    return {path.name: (path.is_symlink(), path.read_bytes() if path.is_file() else None) for path in folder.iterdir()}
+
+
+def _merge_case(folder: Path, case: str) -> list[str]:
+    """Arguments of ``esmicp merge`` for ``case`` (two small scans a.xyz, b.xyz in ``folder``)."""
+    source, target = _pair()
+    scans = [folder / "a.xyz", folder / "b.xyz"]
+    write_points(scans[0], source)
+    write_points(scans[1], target)
+    merged, poses, view = folder / "merged.ply", folder / "poses.txt", folder / "view.html"
+    if case == "poses-out is output":
+        return [*map(str, scans), "-o", str(merged), "--poses-out", str(merged)]
+    if case == "view is poses-out":
+        return [*map(str, scans), "-o", str(merged), "--poses-out", str(view), "--view", str(view)]
+    if case == "view is output, a hard link":
+        write_points(merged, source)
+        os.link(merged, view)
+        return [*map(str, scans), "-o", str(merged), "--view", str(view)]
+    if case == "output is a scan":
+        return [*map(str, scans), "-o", str(scans[0])]
+    if case == "output is a scan, spelled otherwise":
+        (folder / "sub").mkdir()
+        return [*map(str, scans), "-o", str(folder / "sub" / ".." / "b.xyz")]
+    if case == "poses-out is a scan":
+        return [*map(str, scans), "-o", str(merged), "--poses-out", str(scans[1])]
+    if case == "view is a scan, a symbolic link":
+        view.symlink_to(scans[0])
+        return [*map(str, scans), "-o", str(merged), "--view", str(view)]
+    raise AssertionError(case)
+
+
+@pytest.mark.parametrize("force", [False, True])
+@pytest.mark.parametrize("case", [
+    "poses-out is output", "view is poses-out", "view is output, a hard link", "output is a scan",
+    "output is a scan, spelled otherwise", "poses-out is a scan", "view is a scan, a symbolic link",
+])
+def test_merge_outputs_that_are_one_file_are_refused_before_anything_is_written(tmp_path, capsys, case, force):
+    argv = _merge_case(tmp_path, case)
+    before = _folder_state(tmp_path)
+    assert main(["merge", *argv, *MERGE_QUICK, *(["--force"] if force else [])]) == EXIT_BAD_INPUT
+    err = _one_line(capsys, "esmicp merge: error: ")
+    assert "is the same file as" in err or "is the input file" in err, err
+    assert _folder_state(tmp_path) == before  # nothing written, no scan replaced
+
+
+def test_register_output_that_is_its_source_is_refused_even_with_force(files, capsys):
+    source, target = files
+    before = source.read_bytes()
+    assert main(["register", str(source), str(target), "--output", str(source), "--force"]) == EXIT_BAD_INPUT
+    err = _one_line(capsys, "esmicp register: error: ")
+    assert "is the input file" in err, err
+    assert source.read_bytes() == before

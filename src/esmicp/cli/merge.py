@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .args import add_workers, positive_float, positive_int
+from .args import add_workers, check_distinct_files, positive_float, positive_int
 from ..batch import dask_client
 from ..errors import EsmicpError, InvalidInputError, OutputExistsError
 
@@ -85,10 +85,18 @@ def _write_view(path: Path, points, labels, names, force: bool) -> None:
     write_view(figure, path, overwrite=force)
 
 
+def check_paths(args) -> None:
+    """Refuse, before any scan is read or anything written, outputs (``--output``,
+    ``--poses-out``, ``--view``) that are one file, and an output that is one of the scans (even
+    with ``--force``): see :func:`.args.check_distinct_files`."""
+    check_distinct_files({"--output": args.output, "--poses-out": args.poses_out, "--view": args.view}, args.scans)
+
+
 def run_merge(args) -> int:
     from .. import io
     from ..multiview import register_scans
 
+    check_paths(args)
     outputs = [(args.output, "points"), (args.poses_out, "transform"), (args.view, "transform")]
     for path, kind in outputs:
         if path is None:
