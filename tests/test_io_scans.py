@@ -345,6 +345,7 @@ LAS_LIARS = {
     "chunk-table-at-0.laz": ("1.2.laz", [("point data", "<q", 0)], ["chunk table offset says byte 0"]),
     "chunks-ffffffff.laz": ("1.2.laz", [(("chunk table", 4), "<I", 0xFFFFFFFF)], ["4294967295 chunks"]),
     "chunks-ffffffff-1.4.laz": ("1.4.laz", [(("chunk table", 4), "<I", 0xFFFFFFFF)], ["4294967295 chunks"]),
+    "laszip-item-size-46k.laz": ("1.2.laz", [(("vlr", 37), "<B", 0xB5)], ["items make points of 46,", "says 34"]),
     "chunk-size-1.laz": ("1.2.laz", [(("vlr", 12), "<I", 1)], ["6000 points", "chunk(s) of 1 points"]),
 }
 #: Odd but harmless headers: read in full, within the same cap (lazrs's parallel decoder allocates a
