@@ -269,3 +269,67 @@ def test_register_output_that_is_its_source_is_refused_even_with_force(files, ca
     err = _one_line(capsys, "esmicp register: error: ")
     assert "is the input file" in err, err
     assert source.read_bytes() == before
+
+
+# --- esmicp merge --skip-bad: --reference names the scan given on the command line -----------------
+
+def _merge_scans(folder: Path) -> list[Path]:
+    """a.xyz, an unreadable broken.xyz, b.xyz (a shifted copy of a) and c.xyz (noise: not placeable)."""
+    from esmicp.shapes import asymmetric_shape
+
+    shape = asymmetric_shape(400, rng=3)
+    paths = [folder / name for name in ("a.xyz", "broken.xyz", "b.xyz", "c.xyz")]
+    write_points(paths[0], shape)
+    paths[1].write_text("not a point cloud\n")
+    write_points(paths[2], shape + [0.05, -0.02, 0.01])
+    write_points(paths[3], np.random.default_rng(4).normal(size=(400, 3)) * 50.0)
+    return paths
+
+
+def _pose_rows(path: Path) -> dict:
+    rows = [line.split() for line in path.read_text().splitlines() if not line.startswith("#")]
+    return {Path(row[1]).name: np.array(row[2:], float).reshape(4, 4) for row in rows}
+
+
+def test_merge_reference_after_a_skipped_scan_is_the_scan_named(tmp_path, capsys):
+    scans = _merge_scans(tmp_path)
+    poses = tmp_path / "poses.txt"
+    argv = ["merge", *map(str, scans[:3]), "-o", str(tmp_path / "m.ply"), "--poses-out", str(poses),
+            "--skip-bad", "--reference", "2", *MERGE_QUICK]
+    assert main(argv) == EXIT_OK, capsys.readouterr().err
+    rows = _pose_rows(poses)
+    np.testing.assert_array_equal(rows["b.xyz"], np.eye(4))  # b.xyz, the scan at index 2, is the world
+    assert not np.array_equal(rows["a.xyz"], np.eye(4))
+
+
+def test_merge_reference_that_was_skipped_is_an_error_naming_it(tmp_path, capsys):
+    scans = _merge_scans(tmp_path)
+    out = tmp_path / "m.ply"
+    argv = ["merge", *map(str, scans[:3]), "-o", str(out), "--skip-bad", "--reference", "1", *MERGE_QUICK]
+    assert main(argv) == EXIT_BAD_INPUT
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last.startswith("esmicp merge: error: --reference 1: ") and "broken.xyz" in last, last
+    assert not out.exists()
+
+
+def test_merge_reference_out_of_range_is_refused_before_reading(tmp_path, capsys):
+    scans = _merge_scans(tmp_path)
+    argv = ["merge", *map(str, scans), "-o", str(tmp_path / "m.ply"), "--reference", "4", *MERGE_QUICK]
+    assert main(argv) == EXIT_BAD_INPUT
+    err = _one_line(capsys, "esmicp merge: error: --reference")  # broken.xyz not even read
+    assert "[0, 4)" in err, err
+
+
+def test_merge_unplaced_scan_lines_all_carry_the_command_prefix(tmp_path):
+    """In a fresh process, as a user runs it (pytest's own log handlers would hide the library's
+    log lines)."""
+    import subprocess
+    import sys
+
+    scans = _merge_scans(tmp_path)
+    argv = ["merge", str(scans[0]), str(scans[2]), str(scans[3]), "-o", str(tmp_path / "m.ply"), *MERGE_QUICK]
+    done = subprocess.run([sys.executable, "-m", "esmicp", *argv], capture_output=True, text=True, timeout=300)
+    assert done.returncode == EXIT_OK, done.stderr
+    err = done.stderr.splitlines()
+    assert any("c.xyz" in line and "could not be placed" in line for line in err), err
+    assert err and all(line.startswith("esmicp merge: ") for line in err), err

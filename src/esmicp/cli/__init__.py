@@ -8,6 +8,8 @@ the exit codes and the parser class.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import sys
 import warnings
 
@@ -45,7 +47,7 @@ def main(argv=None) -> int:
         print(f"esmicp {__version__}")
         return EXIT_OK
     args = build_parser().parse_args(argv)
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _library_log_on_stderr(args.command):
         warnings.simplefilter("always", EsmicpWarning)
         warnings.showwarning = _show_warning
         try:
@@ -64,6 +66,29 @@ def main(argv=None) -> int:
             where = f"{exc.filename}: " if exc.filename else ""
             print(f"esmicp {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
+
+
+class _CommandLogHandler(logging.Handler):
+    """Prints the library's log records (warnings and above) as the command's own lines:
+    ``esmicp merge: warning: ...``, not the bare text of Python's last-resort handler."""
+
+    def __init__(self, command: str):
+        super().__init__(logging.WARNING)
+        self.command = command
+
+    def emit(self, record: logging.LogRecord) -> None:
+        print(f"esmicp {self.command}: {record.levelname.lower()}: {record.getMessage()}", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def _library_log_on_stderr(command: str):
+    """:class:`_CommandLogHandler` on the ``esmicp`` logger while a command runs."""
+    handler = _CommandLogHandler(command)
+    logging.getLogger("esmicp").addHandler(handler)
+    try:
+        yield handler
+    finally:
+        logging.getLogger("esmicp").removeHandler(handler)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
