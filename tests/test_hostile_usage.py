@@ -333,3 +333,42 @@ def test_merge_unplaced_scan_lines_all_carry_the_command_prefix(tmp_path):
     err = done.stderr.splitlines()
     assert any("c.xyz" in line and "could not be placed" in line for line in err), err
     assert err and all(line.startswith("esmicp merge: ") for line in err), err
+
+
+# --- The command line names the file whose numbers float64 geometry cannot use ---------------------
+
+@pytest.mark.parametrize("case", ["source 1e20 times its target", "a float64 .bin read as float32"])
+def test_register_names_the_file_whose_numbers_are_beyond_float64(tmp_path, capsys, case):
+    source, target = _pair(points=500)
+    if case == "source 1e20 times its target":
+        paths = [tmp_path / "huge.xyz", tmp_path / "t.xyz"]
+        write_points(paths[0], source * 1e20)
+        write_points(paths[1], target)
+        words, extra = [f"{paths[0]}: spans", "units"], []
+    else:
+        paths = [tmp_path / "doubles.bin", tmp_path / "t.bin"]
+        source.astype("<f8").tofile(paths[0])  # float64 records: read as float32, each double is two floats
+        target.astype("<f4").tofile(paths[1])
+        words, extra = [f"{paths[0]}: its points span", "wrong layout"], ["--bin-columns", "3"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the NaN halves of the doubles, dropped with a warning
+        assert main(["register", *map(str, paths), *extra]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert err.startswith("esmicp register: error: "), err
+    for word in words:
+        assert word in err, err
+
+
+def test_closed_standard_output_ends_quietly(files):
+    """``esmicp register ... | head -0``: the reader closed the pipe; no "error: Broken pipe"."""
+    import subprocess
+    import sys
+
+    source, target = files
+    process = subprocess.Popen([sys.executable, "-m", "esmicp", "register", str(source), str(target)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()  # the reader goes away before any output
+    err = process.stderr.read().decode()
+    status = process.wait(timeout=300)
+    assert status in (0, 141), (status, err)
+    assert "Broken pipe" not in err and "Traceback" not in err and "Exception ignored" not in err, err

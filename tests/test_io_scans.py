@@ -409,3 +409,13 @@ def test_las_header_checks_pass_good_files(tmp_path, name):
     path = _las_and_laz(tmp_path)[name]
     points = read_points(path)
     np.testing.assert_allclose(points - [1000.0, 2000.0, 10.0], cloud(13, 6000), atol=0.001)
+
+
+def test_las_offset_of_1e300_is_blamed_on_the_file_by_register(tmp_path, capsys):
+    """The header's x offset says 1e300: the points are read, and esmicp register refuses them
+    naming the file and their magnitude (not "degenerate cloud, all points are identical")."""
+    good = _las_and_laz(tmp_path)["1.2.las"]
+    path = _patched(good, tmp_path / "far.las", [(155, "<d", 1e300)])  # X offset
+    assert main(["register", str(path), str(good)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"esmicp register: error: {path}: coordinates up to 1e+300"), err

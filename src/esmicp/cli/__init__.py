@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import sys
 import warnings
 
 from .._version import __version__
 from ..errors import EsmicpError, EsmicpWarning
-from .args import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, Parser
+from .args import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, Parser
 
-__all__ = ["EXIT_BAD_INPUT", "EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "build_parser", "main"]
+__all__ = ["EXIT_BAD_INPUT", "EXIT_BROKEN_PIPE", "EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "build_parser", "main"]
 
 
 def build_parser() -> Parser:
@@ -51,7 +52,11 @@ def main(argv=None) -> int:
         warnings.simplefilter("always", EsmicpWarning)
         warnings.showwarning = _show_warning
         try:
-            return args.handler(args)
+            status = args.handler(args)
+            sys.stdout.flush()  # a reader that closed the pipe (esmicp ... | head) shows here, not at exit
+            return status
+        except BrokenPipeError:
+            return _stdout_closed()
         except EsmicpError as exc:
             print(f"esmicp {args.command}: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
@@ -66,6 +71,16 @@ def main(argv=None) -> int:
             where = f"{exc.filename}: " if exc.filename else ""
             print(f"esmicp {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
+
+
+def _stdout_closed() -> int:
+    """The reader of our output went away (``esmicp ... | head``): end quietly, as Unix tools do.
+    Standard output is pointed at the null device, so that Python's flush at exit cannot fail
+    again (the recipe of Python's documentation, "Note on SIGPIPE")."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, sys.stdout.fileno())
+    os.close(null)
+    return EXIT_BROKEN_PIPE
 
 
 class _CommandLogHandler(logging.Handler):

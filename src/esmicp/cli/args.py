@@ -92,6 +92,7 @@ EXIT_OK = 0
 EXIT_FAILED = 1  # ``esmicp demo``: the transform was not recovered
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141  # the reader of the output closed it (128 + SIGPIPE, what a shell reports for Unix tools)
 
 
 class Parser(argparse.ArgumentParser):

@@ -13,6 +13,7 @@ from ..api import INIT_NAMES
 from ..errors import EsmicpError, OutputExistsError
 from ..io import READ_EXTENSIONS, WRITE_EXTENSIONS
 from ..methods import METHODS
+from ..types import check_geometry
 from .args import EXIT_OK, add_workers, check_distinct_files, positive_float, positive_int
 
 
@@ -98,6 +99,7 @@ def _run_register(args) -> int:
     target = io.read_points(
         args.target, sample_points=args.sample_points, rng=args.seed + 1, bin_columns=args.bin_columns
     )
+    check_geometry({str(args.source): source, str(args.target): target})  # what register() checks first, by file
     init = args.init if args.init in INIT_NAMES else io.read_transform(Path(args.init))
     result = register(
         source, target, method=args.method, init=init, sigma=args.sigma, rng=args.seed,
