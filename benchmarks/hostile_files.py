@@ -9,6 +9,7 @@ invisible to tracemalloc; the cap makes an attempt to allocate the claimed size 
 
     python benchmarks/hostile_files.py [--no-open3d]
     python benchmarks/hostile_files.py --memory [--peer-src /path/to/other/checkout/src]
+    python benchmarks/hostile_files.py --las [--peer-src /path/to/other/checkout/src]
 
 Prints one Markdown table; figures are measured in this run, never stored.
 
@@ -18,6 +19,10 @@ before the vertices. Each read runs in a fresh child, capped at 3 GB of address 
 imports; the table gives its read time and the growth of its peak resident memory (VmHWM) over
 the read. ``--peer-src`` runs the same reads against another checkout's ``src`` in the same run
 (e.g. the code before the fix), as the peer.
+
+``--las`` reads each lying LAS / LAZ header of ``tests/test_io_scans.py`` (laspy's own files with
+corrupted header bytes) in a fresh child capped at 1 GB above its imports, 60 s at most: outcome,
+time and peak resident memory growth; ``--peer-src`` as above.
 """
 
 from __future__ import annotations
@@ -145,7 +150,12 @@ def memory_cases(directory: Path) -> dict[str, Path]:
     }
 
 
-def _measure(path: Path, src: str | None) -> str:
+#: The child of ``--las``: laspy and lazrs imported before the cap, 1 GB of address space above them.
+LAS_CHILD = MEMORY_CHILD.replace("import esmicp.io, pypcd4, lzf, plyfile", "import esmicp.io, laspy, lazrs").replace(
+    '+ 3 * 2**30', '+ 2**30')
+
+
+def _measure(path: Path, src: str | None, child: str = MEMORY_CHILD, timeout: float = 300) -> str:
     import json
     import os
 
@@ -153,10 +163,10 @@ def _measure(path: Path, src: str | None) -> str:
     if src:
         env["PYTHONPATH"] = src
     try:
-        process = subprocess.run([sys.executable, "-c", MEMORY_CHILD, str(path)], capture_output=True, text=True,
-                                 timeout=300, env=env)
+        process = subprocess.run([sys.executable, "-c", child, str(path)], capture_output=True, text=True,
+                                 timeout=timeout, env=env)
     except subprocess.TimeoutExpired:
-        return "still running after 300 s (killed) | - | -"
+        return f"still running after {timeout:.0f} s (killed) | - | -"
     if process.returncode != 0:
         return f"crashed (exit {process.returncode}) | - | -"
     result = json.loads(process.stdout.strip().splitlines()[-1])
@@ -178,12 +188,38 @@ def memory_main(peer_src: str | None) -> None:
         path.unlink()
 
 
+def las_main(peer_src: str | None) -> None:
+    """Each lying LAS / LAZ header of ``tests/test_io_scans.py`` (and the odd but readable ones), read
+    in a fresh child capped at 1 GB of address space above its imports, 60 s at most."""
+    import test_io_scans as las_cases  # noqa: E402  (needs laspy)
+
+    directory = Path(tempfile.mkdtemp(prefix="esmicp-hostile-las-"))
+    good = las_cases._las_and_laz(directory)
+    cases = {name: (source, edits) for name, (source, edits, _) in las_cases.LAS_LIARS.items()}
+    cases.update(las_cases.LAS_READABLE)
+    columns = "| file | esmicp: outcome | time | peak RSS growth |"
+    if peer_src:
+        columns += " peer: outcome | time | peak RSS growth |"
+    print(columns)
+    print("|" + "---|" * (columns.count("|") - 1))
+    for name, (source, edits) in cases.items():
+        path = las_cases._patched(good[source], directory / name, edits)
+        cells = _measure(path, None, LAS_CHILD, 60)
+        if peer_src:
+            cells += " | " + _measure(path, peer_src, LAS_CHILD, 60)
+        print(f"| `{name}` | {cells} |", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--no-open3d", action="store_true", help="skip the Open3D peer")
     parser.add_argument("--memory", action="store_true", help="big files: time and peak memory (issue 16)")
-    parser.add_argument("--peer-src", help="with --memory: also run another checkout's src as the peer")
+    parser.add_argument("--las", action="store_true", help="lying LAS / LAZ headers: outcome, time and peak memory")
+    parser.add_argument("--peer-src", help="with --memory or --las: also run another checkout's src as the peer")
     args = parser.parse_args()
+    if args.las:
+        las_main(args.peer_src)
+        return
     if args.memory:
         memory_main(args.peer_src)
         return

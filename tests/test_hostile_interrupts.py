@@ -261,3 +261,66 @@ def test_ctrl_c_stops_a_registration_of_a_million_coincident_points(fraction, in
     latency, delay = coincident_interrupt_latency(1_000_000, fraction, init)
     print(f"SIGINT at {delay:.3f} s ({fraction:.0%}, {init}): KeyboardInterrupt {latency:.3f} s later")
     assert latency < 1.0
+
+
+POOL_CHILD = r"""
+import multiprocessing, os, signal, sys, threading, time, warnings
+import numpy as np
+import esmicp
+from esmicp.shapes import asymmetric_shape
+
+
+def main():
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    warnings.simplefilter("ignore")
+    to_group = sys.argv[1] == "group"
+    light = asymmetric_shape(300, rng=1)
+    heavy = asymmetric_shape(20_000, rng=2)
+    # Pair 0 ends first (a second or two); the heavy pairs run for many seconds each.
+    pairs = [(light + 0.01, light)] + [(heavy + 0.01 * k, heavy) for k in range(1, 6)]
+    sent = []
+
+    def fire():
+        sent.append(time.perf_counter())
+        if to_group:  # Ctrl-C in a terminal: the whole process group, the workers included
+            os.killpg(0, signal.SIGINT)
+        else:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    def progress(done, total):
+        if done == 1:
+            fire()
+
+    try:
+        esmicp.register_many(pairs, processes=2, progress=progress)
+        print("finished")
+    except KeyboardInterrupt:
+        latency = time.perf_counter() - sent[0]
+        print(f"interrupted {latency:.4f} {len(multiprocessing.active_children())}")
+
+
+if __name__ == "__main__":
+    main()
+"""
+
+
+@pytest.mark.parametrize("to", ["process", "group"])
+def test_ctrl_c_stops_register_many_and_its_process_pool_at_once(tmp_path, to):
+    """Ctrl-C during ``register_many`` on a pool (``esmicp merge``'s pairwise registrations) took
+    6-10.5 s: leaving the pool waited for the registrations running in its workers. Now the
+    workers ignore SIGINT (the parent handles it) and are terminated, queued jobs cancelled; the
+    bound is generous for a shared CI machine."""
+    script = tmp_path / "pool_child.py"
+    script.write_text(POOL_CHILD)
+    done = subprocess.run(
+        [sys.executable, str(script), to], capture_output=True, text=True, timeout=600,
+        start_new_session=True, preexec_fn=interruptible_child,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    word, *figures = done.stdout.split()
+    assert word == "interrupted", done.stdout
+    latency, children_left = float(figures[0]), int(figures[1])
+    print(f"SIGINT to the {to}: KeyboardInterrupt {latency:.3f} s later")
+    assert children_left == 0
+    assert latency < 1.0
+    assert "Traceback" not in done.stderr, done.stderr[-2000:]  # no worker printed its interrupt

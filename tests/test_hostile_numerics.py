@@ -225,3 +225,77 @@ def test_a_non_finite_global_estimate_is_reported_and_not_refined(monkeypatch):
     np.testing.assert_array_equal(result.transformation, np.eye(4))
     assert not result.converged and result.num_iterations == 0
     assert "no pose" in result.message and "NaN" in result.message
+
+
+# --- Numbers float64 geometry cannot use: blamed before the degeneracy and voxel checks ------------
+
+def _float64_read_as_float32(points: np.ndarray) -> np.ndarray:
+    """What a reader of 3-column float32 records makes of a float64 x y z file (a wrong layout):
+    the bytes of each double read as two float32 halves (finite ones kept)."""
+    with np.errstate(invalid="ignore"):  # some halves are NaN
+        garbage = np.frombuffer(points.astype("<f8").tobytes(), dtype="<f4").astype(np.float64)
+    garbage = garbage[: len(garbage) // 3 * 3].reshape(-1, 3)
+    return garbage[np.isfinite(garbage).all(axis=1)]
+
+
+def _one_far(points: np.ndarray, value: float) -> np.ndarray:
+    far = points.copy()
+    far[17] = value
+    return far
+
+
+@pytest.mark.parametrize(
+    "case, words",
+    [
+        ("source 1e20 times its target", ["source: spans", "times the spread of the target's points", "units"]),
+        ("one point at 1e300", ["source: coordinates up to 1e+300", "rescale"]),
+        ("target offset by 1e300", ["target: coordinates up to 1e+300", "rescale"]),
+        ("one point at 1e40", ["source: its points span", "outliers"]),
+        ("a float64 file read as float32", ["source: its points span", "wrong layout"]),
+    ],
+)
+def test_numbers_beyond_float64_geometry_are_blamed_first(case, words):
+    source, target = {
+        "source 1e20 times its target": (SHAPE * 1e20, SHAPE),
+        "one point at 1e300": (_one_far(SHAPE, 1e300), SHAPE),
+        "target offset by 1e300": (SHAPE, SHAPE + 1e300),
+        "one point at 1e40": (_one_far(SHAPE, 1e40), SHAPE),
+        "a float64 file read as float32": (_float64_read_as_float32(SHAPE * 30.0), SHAPE * 30.0),
+    }[case]
+    with pytest.raises(InvalidInputError) as excinfo:
+        esmicp.register(source, target)
+    message = str(excinfo.value)
+    assert "degenerate" not in message and "voxel" not in message, message
+    for word in words:
+        assert word in message, message
+
+
+def test_clouds_in_units_1e14_apart_still_register():
+    """Below the scale bound: a source 1e14 times its target is registered (its result says how well)."""
+    result = esmicp.register(SHAPE * 1e14, SHAPE, init="identity", method="icp")
+    assert np.isfinite(result.transformation).all()
+
+
+def test_a_degenerate_tiny_cloud_is_called_degenerate_not_too_small():
+    """A cloud whose points coincide to rounding is degenerate whatever its extent: the extent
+    check leaves it to the degeneracy check."""
+    with pytest.raises(InvalidInputError, match="^source: degenerate cloud, all points are identical"):
+        esmicp.register(np.tile([1.0, 2.0, 3.0], (50, 1)) + np.linspace(0, 1e-120, 50)[:, None], SHAPE)
+
+
+@pytest.mark.parametrize("workers", [2**31, 2**63, -1, 0])
+def test_workers_out_of_range_is_a_clear_error(workers):
+    with pytest.raises(InvalidInputError, match=r"^workers: expected a whole number of threads"):
+        esmicp.register(SHAPE + 0.01, SHAPE, workers=workers)
+
+
+@pytest.mark.parametrize("kind, words", [(complex, "complex numbers"), (bool, "booleans")])
+@pytest.mark.parametrize("which", ["source", "target"])
+def test_complex_and_boolean_clouds_are_refused_without_a_numpy_warning(kind, words, which):
+    odd = (SHAPE + 1j) if kind is complex else SHAPE > 0
+    source, target = (odd, SHAPE) if which == "source" else (SHAPE, odd)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning
+        with pytest.raises(InvalidInputError) as excinfo:
+            esmicp.register(source, target)
+    assert str(excinfo.value).startswith(f"{which}: ") and words in str(excinfo.value), excinfo.value

@@ -209,3 +209,166 @@ def test_bench_on_a_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
                  "--points", "100", "--workers", "1", "--no-progress", "--out", str(tmp_path / "out")])
     assert code == EXIT_BAD_INPUT
     assert "No space left on device" in _one_line(capsys, "esmicp bench: error: ")
+
+
+# --- esmicp merge: outputs that are one file, or one of the scans ---------------------------------
+
+MERGE_QUICK = ["--processes", "1", "--pair-points", "100", "--no-progress"]
+
+
+def _folder_state(folder: Path) -> dict:
+    return {path.name: (path.is_symlink(), path.read_bytes() if path.is_file() else None) for path in folder.iterdir()}
+
+
+def _merge_case(folder: Path, case: str) -> list[str]:
+    """Arguments of ``esmicp merge`` for ``case`` (two small scans a.xyz, b.xyz in ``folder``)."""
+    source, target = _pair()
+    scans = [folder / "a.xyz", folder / "b.xyz"]
+    write_points(scans[0], source)
+    write_points(scans[1], target)
+    merged, poses, view = folder / "merged.ply", folder / "poses.txt", folder / "view.html"
+    if case == "poses-out is output":
+        return [*map(str, scans), "-o", str(merged), "--poses-out", str(merged)]
+    if case == "view is poses-out":
+        return [*map(str, scans), "-o", str(merged), "--poses-out", str(view), "--view", str(view)]
+    if case == "view is output, a hard link":
+        write_points(merged, source)
+        os.link(merged, view)
+        return [*map(str, scans), "-o", str(merged), "--view", str(view)]
+    if case == "output is a scan":
+        return [*map(str, scans), "-o", str(scans[0])]
+    if case == "output is a scan, spelled otherwise":
+        (folder / "sub").mkdir()
+        return [*map(str, scans), "-o", str(folder / "sub" / ".." / "b.xyz")]
+    if case == "poses-out is a scan":
+        return [*map(str, scans), "-o", str(merged), "--poses-out", str(scans[1])]
+    if case == "view is a scan, a symbolic link":
+        view.symlink_to(scans[0])
+        return [*map(str, scans), "-o", str(merged), "--view", str(view)]
+    raise AssertionError(case)
+
+
+@pytest.mark.parametrize("force", [False, True])
+@pytest.mark.parametrize("case", [
+    "poses-out is output", "view is poses-out", "view is output, a hard link", "output is a scan",
+    "output is a scan, spelled otherwise", "poses-out is a scan", "view is a scan, a symbolic link",
+])
+def test_merge_outputs_that_are_one_file_are_refused_before_anything_is_written(tmp_path, capsys, case, force):
+    argv = _merge_case(tmp_path, case)
+    before = _folder_state(tmp_path)
+    assert main(["merge", *argv, *MERGE_QUICK, *(["--force"] if force else [])]) == EXIT_BAD_INPUT
+    err = _one_line(capsys, "esmicp merge: error: ")
+    assert "is the same file as" in err or "is the input file" in err, err
+    assert _folder_state(tmp_path) == before  # nothing written, no scan replaced
+
+
+def test_register_output_that_is_its_source_is_refused_even_with_force(files, capsys):
+    source, target = files
+    before = source.read_bytes()
+    assert main(["register", str(source), str(target), "--output", str(source), "--force"]) == EXIT_BAD_INPUT
+    err = _one_line(capsys, "esmicp register: error: ")
+    assert "is the input file" in err, err
+    assert source.read_bytes() == before
+
+
+# --- esmicp merge --skip-bad: --reference names the scan given on the command line -----------------
+
+def _merge_scans(folder: Path) -> list[Path]:
+    """a.xyz, an unreadable broken.xyz, b.xyz (a shifted copy of a) and c.xyz (noise: not placeable)."""
+    from esmicp.shapes import asymmetric_shape
+
+    shape = asymmetric_shape(400, rng=3)
+    paths = [folder / name for name in ("a.xyz", "broken.xyz", "b.xyz", "c.xyz")]
+    write_points(paths[0], shape)
+    paths[1].write_text("not a point cloud\n")
+    write_points(paths[2], shape + [0.05, -0.02, 0.01])
+    write_points(paths[3], np.random.default_rng(4).normal(size=(400, 3)) * 50.0)
+    return paths
+
+
+def _pose_rows(path: Path) -> dict:
+    rows = [line.split() for line in path.read_text().splitlines() if not line.startswith("#")]
+    return {Path(row[1]).name: np.array(row[2:], float).reshape(4, 4) for row in rows}
+
+
+def test_merge_reference_after_a_skipped_scan_is_the_scan_named(tmp_path, capsys):
+    scans = _merge_scans(tmp_path)
+    poses = tmp_path / "poses.txt"
+    argv = ["merge", *map(str, scans[:3]), "-o", str(tmp_path / "m.ply"), "--poses-out", str(poses),
+            "--skip-bad", "--reference", "2", *MERGE_QUICK]
+    assert main(argv) == EXIT_OK, capsys.readouterr().err
+    rows = _pose_rows(poses)
+    np.testing.assert_array_equal(rows["b.xyz"], np.eye(4))  # b.xyz, the scan at index 2, is the world
+    assert not np.array_equal(rows["a.xyz"], np.eye(4))
+
+
+def test_merge_reference_that_was_skipped_is_an_error_naming_it(tmp_path, capsys):
+    scans = _merge_scans(tmp_path)
+    out = tmp_path / "m.ply"
+    argv = ["merge", *map(str, scans[:3]), "-o", str(out), "--skip-bad", "--reference", "1", *MERGE_QUICK]
+    assert main(argv) == EXIT_BAD_INPUT
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last.startswith("esmicp merge: error: --reference 1: ") and "broken.xyz" in last, last
+    assert not out.exists()
+
+
+def test_merge_reference_out_of_range_is_refused_before_reading(tmp_path, capsys):
+    scans = _merge_scans(tmp_path)
+    argv = ["merge", *map(str, scans), "-o", str(tmp_path / "m.ply"), "--reference", "4", *MERGE_QUICK]
+    assert main(argv) == EXIT_BAD_INPUT
+    err = _one_line(capsys, "esmicp merge: error: --reference")  # broken.xyz not even read
+    assert "[0, 4)" in err, err
+
+
+def test_merge_unplaced_scan_lines_all_carry_the_command_prefix(tmp_path):
+    """In a fresh process, as a user runs it (pytest's own log handlers would hide the library's
+    log lines)."""
+    import subprocess
+    import sys
+
+    scans = _merge_scans(tmp_path)
+    argv = ["merge", str(scans[0]), str(scans[2]), str(scans[3]), "-o", str(tmp_path / "m.ply"), *MERGE_QUICK]
+    done = subprocess.run([sys.executable, "-m", "esmicp", *argv], capture_output=True, text=True, timeout=300)
+    assert done.returncode == EXIT_OK, done.stderr
+    err = done.stderr.splitlines()
+    assert any("c.xyz" in line and "could not be placed" in line for line in err), err
+    assert err and all(line.startswith("esmicp merge: ") for line in err), err
+
+
+# --- The command line names the file whose numbers float64 geometry cannot use ---------------------
+
+@pytest.mark.parametrize("case", ["source 1e20 times its target", "a float64 .bin read as float32"])
+def test_register_names_the_file_whose_numbers_are_beyond_float64(tmp_path, capsys, case):
+    source, target = _pair(points=500)
+    if case == "source 1e20 times its target":
+        paths = [tmp_path / "huge.xyz", tmp_path / "t.xyz"]
+        write_points(paths[0], source * 1e20)
+        write_points(paths[1], target)
+        words, extra = [f"{paths[0]}: spans", "units"], []
+    else:
+        paths = [tmp_path / "doubles.bin", tmp_path / "t.bin"]
+        source.astype("<f8").tofile(paths[0])  # float64 records: read as float32, each double is two floats
+        target.astype("<f4").tofile(paths[1])
+        words, extra = [f"{paths[0]}: its points span", "wrong layout"], ["--bin-columns", "3"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the NaN halves of the doubles, dropped with a warning
+        assert main(["register", *map(str, paths), *extra]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert err.startswith("esmicp register: error: "), err
+    for word in words:
+        assert word in err, err
+
+
+def test_closed_standard_output_ends_quietly(files):
+    """``esmicp register ... | head -0``: the reader closed the pipe; no "error: Broken pipe"."""
+    import subprocess
+    import sys
+
+    source, target = files
+    process = subprocess.Popen([sys.executable, "-m", "esmicp", "register", str(source), str(target)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()  # the reader goes away before any output
+    err = process.stderr.read().decode()
+    status = process.wait(timeout=300)
+    assert status in (0, 141), (status, err)
+    assert "Broken pipe" not in err and "Traceback" not in err and "Exception ignored" not in err, err

@@ -24,7 +24,7 @@ from .methods.guard import guarded_refine
 from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome, _budget_spent
 from .result import Correspondences, RegistrationResult
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
-from .types import PointsLike, check_representable
+from .types import PointsLike, check_geometry, check_representable
 from .working_frame import WorkingFrame
 
 #: ``init`` strings meaning "no global search: start from the identity".
@@ -198,7 +198,7 @@ def register(
     ------
     InvalidInputError
         On malformed or degenerate clouds (or beyond float64 geometry, see
-        :func:`esmicp.types.check_representable`), an unknown method, a malformed or non-rigid ``init``,
+        :func:`esmicp.types.check_geometry`), an unknown method, a malformed or non-rigid ``init``,
         or non-positive ``sigma``, ``max_iterations``, ``inlier_distance`` or ``workers``.
     """
     started = time.perf_counter()
@@ -267,9 +267,9 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
     """Stage 1: every argument checked (one clear :class:`InvalidInputError` otherwise)."""
     source_points = as_points(source, "source")
     target_points = as_points(target, "target")
+    check_geometry({"source": source_points, "target": target_points})  # first: it blames the numbers
     for points, name in ((source_points, "source"), (target_points, "target")):
         check_not_degenerate(points, name)
-        check_representable(points, name)
     if method not in METHODS:
         raise InvalidInputError(f"method: unknown method {method!r}; choose one of {', '.join(METHODS)}")
     init_name, initial = _resolve_init(init)

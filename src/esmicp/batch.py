@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Callable, Iterable, Sequence
 
 from .errors import InvalidInputError
+from .interrupts import ignore_interrupts, stops_pool_on_interrupt
 from .result import RegistrationResult
 
 logger = logging.getLogger(__name__)
@@ -123,7 +124,8 @@ def register_many(
         # "spawn": the caller may hold threads of other libraries (BLAS, torch) that fork() would not survive.
         context = multiprocessing.get_context("spawn")
         kwargs = per_process_kwargs(register_kwargs)
-        with ProcessPoolExecutor(processes, mp_context=context) as pool:
+        with ProcessPoolExecutor(processes, mp_context=context, initializer=ignore_interrupts) as pool, \
+                stops_pool_on_interrupt(pool):  # Ctrl-C: the workers ended at once, not after their jobs
             futures = {
                 pool.submit(_register_one, i, source, target, kwargs): i
                 for i, (source, target) in enumerate(items)

@@ -7,11 +7,16 @@ with the earlier JIT-compiled kernels: ``esmicp bench`` ignored 4 of 8 interrupt
 :func:`keeps_keyboard_interrupt` turns such an error back into the ``KeyboardInterrupt`` it is;
 the library's entry points (:func:`esmicp.register`, :func:`esmicp.methods.local.refine`) carry
 it. (The compiled kernels of :mod:`esmicp._kernels` raise the ``KeyboardInterrupt`` itself.)
+
+A process pool is stopped by its parent: :func:`ignore_interrupts` starts each worker, and
+:func:`stops_pool_on_interrupt` terminates them when Ctrl-C (or any error) leaves the pool.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import signal
 from collections.abc import Callable
 from typing import ParamSpec, TypeVar
 
@@ -44,3 +49,31 @@ def keeps_keyboard_interrupt(function: Callable[_P, _R]) -> Callable[_P, _R]:
             raise
 
     return wrapper
+
+
+#: Seconds to wait for each terminated worker process to end.
+WORKER_EXIT_WAIT_S = 1.0
+
+
+def ignore_interrupts() -> None:
+    """Initializer of worker processes: SIGINT ignored. Ctrl-C in a terminal signals the whole
+    process group; the parent alone handles it, and ends its workers (:func:`stops_pool_on_interrupt`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def stops_pool_on_interrupt(pool):
+    """Context manager for the body of a ``with ProcessPoolExecutor(...) as pool`` block: when an
+    exception (Ctrl-C above all) leaves the body, the pool's queued jobs are cancelled and its
+    worker processes terminated, so that the pool's own ``__exit__`` does not wait for the jobs
+    still running (each a registration of seconds)."""
+    try:
+        yield pool
+    except BaseException:
+        workers = list((getattr(pool, "_processes", None) or {}).values())  # private, but the only handle
+        pool.shutdown(wait=False, cancel_futures=True)
+        for worker in workers:
+            worker.terminate()
+        for worker in workers:
+            worker.join(WORKER_EXIT_WAIT_S)
+        raise

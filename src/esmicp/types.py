@@ -77,7 +77,9 @@ def _coordinate_array(points, name: str) -> np.ndarray:
     if not isinstance(points, np.ndarray) and hasattr(points, "points"):
         source = points.points  # an Open3D PointCloud (a Vector3dVector), or any cloud object holding its array
     try:
-        array = np.array(source, dtype=np.float64, copy=True)
+        array = np.array(_real_numbers(source, name), dtype=np.float64, copy=True)
+    except InvalidInputError:
+        raise
     except (TypeError, ValueError) as exc:
         raise InvalidInputError(
             f"{name}: expected (N, 3) numeric points, could not convert a {type(points).__name__} ({exc}); "
@@ -97,6 +99,17 @@ def _coordinate_array(points, name: str) -> np.ndarray:
     else:
         hint = ""
     raise InvalidInputError(f"{name}: expected (N, 3) points, {shape}{hint}")
+
+
+def _real_numbers(points, name: str):
+    """``points`` as an array, refused when its numbers are complex (NumPy would drop the imaginary
+    parts with a warning) or booleans (they would become points at 0 and 1)."""
+    array = np.asarray(points)
+    if array.dtype.kind == "c":
+        raise InvalidInputError(f"{name}: expected real coordinates, got complex numbers ({array.dtype})")
+    if array.dtype.kind == "b":
+        raise InvalidInputError(f"{name}: expected coordinates, got booleans ({array.dtype})")
+    return array
 
 
 def degeneracy(points: np.ndarray) -> str | None:
@@ -149,15 +162,85 @@ def check_representable(points: np.ndarray, name: str = "points") -> None:
     if magnitude > MAX_COORDINATE:
         raise InvalidInputError(
             f"{name}: coordinates up to {magnitude:.3g} in magnitude, beyond the {MAX_COORDINATE:g} that "
-            f"float64 squared distances allow; rescale the cloud (other units)"
+            f"float64 squared distances allow; rescale the cloud (other units) or drop the points that far out"
         )
     low, high = axis_bounds(points)
     extent = float(np.max(high - low))  # no squares: they would underflow
-    if extent < MIN_EXTENT:
+    if extent < MIN_EXTENT and degeneracy(points) is None:  # a degenerate cloud is named so by check_not_degenerate
         raise InvalidInputError(
             f"{name}: the cloud spans only {extent:.3g} units, below the {MIN_EXTENT:g} that float64 "
             f"squared distances resolve; rescale the cloud (other units)"
         )
+
+
+#: Largest ratio :func:`check_scales` accepts between the largest extent of the clouds and the
+#: smallest spread of their points (unitless). At 1e15 the smaller spans about 5 rounding steps of
+#: float64 coordinates as large as the larger (2.2e-16 relative): measured, a source 1e20 times
+#: its target ended in the voxel grid's overflow ("voxel ... too small for the cloud's extent").
+MAX_SCALE_RATIO = 1e15
+
+#: Points :func:`check_scales` takes the spread of (evenly strided), so that it costs microseconds.
+SCALE_SAMPLE = 10_000
+
+
+def _spread(points: np.ndarray) -> float:
+    """Where most points lie: the largest per-axis median absolute deviation (from a strided sample),
+    or the extent when more than half of the points coincide (the deviation is then 0)."""
+    sample = points[:: max(1, len(points) // SCALE_SAMPLE)]
+    deviation = float(np.max(np.median(np.abs(sample - np.median(sample, axis=0)), axis=0)))
+    if deviation > 0:
+        return deviation
+    low, high = axis_bounds(points)
+    return float(np.max(high - low))
+
+
+def check_scales(clouds) -> None:
+    """Raise :class:`InvalidInputError` if float64 coordinates cannot resolve all ``clouds`` at once.
+
+    ``clouds`` maps a name (``"source"``, or a file's path) to its ``(N, 3)`` points. The largest
+    extent among them must stay within :data:`MAX_SCALE_RATIO` of the smallest spread of points
+    (median absolute deviation): beyond, the points of one cloud lie within a few rounding steps
+    of the coordinates of another (clouds in different units), or a few points lie so far from
+    the others that those others collapse (outliers; a file read in the wrong layout, such as the
+    columns of a ``.bin``). Every later check would blame the wrong thing. Degenerate clouds (no
+    spread) are left to :func:`check_not_degenerate`.
+    """
+    extents, spreads = {}, {}
+    for name, points in clouds.items():
+        low, high = axis_bounds(points)
+        extents[name] = float(np.max(high - low))
+        spreads[name] = _spread(points)
+    spreads = {name: spread for name, spread in spreads.items() if spread > 0}
+    for name, spread in spreads.items():
+        ratio = extents[name] / spread
+        if ratio > MAX_SCALE_RATIO:
+            raise InvalidInputError(
+                f"{name}: its points span {extents[name]:.3g} units, but half of them lie within {spread:.3g} of "
+                f"their median, {ratio:.2g} times less: beyond what float64 coordinates resolve "
+                f"({MAX_SCALE_RATIO:g}); outliers far from the other points, or a file read in the wrong layout "
+                "(such as the columns of a .bin)"
+            )
+    if not spreads:
+        return
+    widest = max(extents, key=extents.get)
+    tightest = min(spreads, key=spreads.get)
+    ratio = extents[widest] / spreads[tightest]
+    if ratio > MAX_SCALE_RATIO:
+        raise InvalidInputError(
+            f"{widest}: spans {extents[widest]:.3g} units, {ratio:.2g} times the spread of the {tightest}'s "
+            f"points ({spreads[tightest]:.3g}): beyond what float64 coordinates resolve at once "
+            f"({MAX_SCALE_RATIO:g}); the clouds may be in different units: rescale one"
+        )
+
+
+def check_geometry(clouds) -> None:
+    """The checks of numbers float64 geometry cannot use, in the order that blames the right thing:
+    :func:`check_representable` for each cloud, then :func:`check_scales` across them (before
+    :func:`check_not_degenerate`, whose verdict those numbers would distort). ``clouds`` maps a
+    name (``"source"``, or a file's path) to its points."""
+    for name, points in clouds.items():
+        check_representable(points, name)
+    check_scales(clouds)
 
 
 def check_not_degenerate(points: np.ndarray, name: str = "points") -> None:
@@ -215,14 +298,19 @@ def as_count(value, name: str, minimum: int = 1) -> int:
     return int(value)
 
 
+#: Most threads ``workers=`` may ask for: the compiled kernels take a C ``int`` (each call then
+#: uses at most one thread per piece of its work).
+MAX_WORKERS = 2**31 - 1
+
+
 def as_workers(value, name: str = "workers") -> int | None:
-    """Return the number of threads ``value`` asks for: None (every core) or a whole number >= 1,
-    or raise :class:`InvalidInputError`."""
+    """Return the number of threads ``value`` asks for: None (every core) or a whole number from 1
+    to :data:`MAX_WORKERS`, or raise :class:`InvalidInputError`."""
     if value is None:
         return None
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_WORKERS:
         raise InvalidInputError(
-            f"{name}: expected a whole number of threads >= 1, or None for every core, got {value!r}"
+            f"{name}: expected a whole number of threads from 1 to {MAX_WORKERS}, or None for every core, got {value!r}"
         )
     return int(value)
 

@@ -8,14 +8,17 @@ the exit codes and the parser class.
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
 import sys
 import warnings
 
 from .._version import __version__
 from ..errors import EsmicpError, EsmicpWarning
-from .args import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, Parser
+from .args import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, Parser
 
-__all__ = ["EXIT_BAD_INPUT", "EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "build_parser", "main"]
+__all__ = ["EXIT_BAD_INPUT", "EXIT_BROKEN_PIPE", "EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "build_parser", "main"]
 
 
 def build_parser() -> Parser:
@@ -45,11 +48,15 @@ def main(argv=None) -> int:
         print(f"esmicp {__version__}")
         return EXIT_OK
     args = build_parser().parse_args(argv)
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _library_log_on_stderr(args.command):
         warnings.simplefilter("always", EsmicpWarning)
         warnings.showwarning = _show_warning
         try:
-            return args.handler(args)
+            status = args.handler(args)
+            sys.stdout.flush()  # a reader that closed the pipe (esmicp ... | head) shows here, not at exit
+            return status
+        except BrokenPipeError:
+            return _stdout_closed()
         except EsmicpError as exc:
             print(f"esmicp {args.command}: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
@@ -64,6 +71,39 @@ def main(argv=None) -> int:
             where = f"{exc.filename}: " if exc.filename else ""
             print(f"esmicp {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
+
+
+def _stdout_closed() -> int:
+    """The reader of our output went away (``esmicp ... | head``): end quietly, as Unix tools do.
+    Standard output is pointed at the null device, so that Python's flush at exit cannot fail
+    again (the recipe of Python's documentation, "Note on SIGPIPE")."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, sys.stdout.fileno())
+    os.close(null)
+    return EXIT_BROKEN_PIPE
+
+
+class _CommandLogHandler(logging.Handler):
+    """Prints the library's log records (warnings and above) as the command's own lines:
+    ``esmicp merge: warning: ...``, not the bare text of Python's last-resort handler."""
+
+    def __init__(self, command: str):
+        super().__init__(logging.WARNING)
+        self.command = command
+
+    def emit(self, record: logging.LogRecord) -> None:
+        print(f"esmicp {self.command}: {record.levelname.lower()}: {record.getMessage()}", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def _library_log_on_stderr(command: str):
+    """:class:`_CommandLogHandler` on the ``esmicp`` logger while a command runs."""
+    handler = _CommandLogHandler(command)
+    logging.getLogger("esmicp").addHandler(handler)
+    try:
+        yield handler
+    finally:
+        logging.getLogger("esmicp").removeHandler(handler)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+from pathlib import Path
+from typing import Iterable, Mapping
 
 
 def whole_number(minimum: int):
@@ -49,12 +52,48 @@ def add_workers(parser, default: str = "every core") -> None:
     )
 
 
+def same_file(path: Path, other: Path) -> bool:
+    """True when ``path`` and ``other`` name one file: the same path once made absolute with its
+    symbolic links resolved, or, when both exist, the same file on disk (a hard link, a bind mount)."""
+    if os.path.realpath(path) == os.path.realpath(other):
+        return True
+    try:
+        return os.path.samefile(path, other)
+    except OSError:  # one of them does not exist (yet)
+        return False
+
+
+def check_distinct_files(outputs: Mapping[str, Path | None], inputs: Iterable[Path] = ()) -> None:
+    """Refuse, before any work, two outputs that are one file (the second would replace the
+    first) and an output that is one of the ``inputs`` (it would replace that input, ``--force`` or
+    not). ``outputs`` maps each output flag (``"--output"``) to its path, None when not given.
+
+    Raises
+    ------
+    InvalidInputError
+        One line naming both flags / files.
+    """
+    from ..errors import InvalidInputError
+
+    given = [(flag, path) for flag, path in outputs.items() if path is not None]
+    for index, (flag, path) in enumerate(given):
+        for source in inputs:
+            if same_file(path, source):
+                raise InvalidInputError(f"{flag} {path}: is the input file {source}; writing it would replace "
+                                        "that input (even with --force): give another output file")
+        for other_flag, other in given[index + 1:]:
+            if same_file(path, other):
+                raise InvalidInputError(f"{other_flag} {other}: is the same file as {flag} {path}; "
+                                        "give two different files")
+
+
 #: Exit statuses of every ``esmicp`` command.
 EXIT_OK = 0
 EXIT_FAILED = 1  # ``esmicp demo``: the transform was not recovered
 EXIT_BAD_INPUT = 2
 EXIT_UNTRUSTED = 3  # ``esmicp register --min-confidence``: the pose is below the bar, or ambiguous
 EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141  # the reader of the output closed it (128 + SIGPIPE, what a shell reports for Unix tools)
 
 
 class Parser(argparse.ArgumentParser):

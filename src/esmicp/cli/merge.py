@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .args import add_workers, positive_float, positive_int
+from .args import add_workers, check_distinct_files, positive_float, positive_int
 from ..batch import dask_client
 from ..errors import EsmicpError, InvalidInputError, OutputExistsError
 
@@ -85,10 +85,36 @@ def _write_view(path: Path, points, labels, names, force: bool) -> None:
     write_view(figure, path, overwrite=force)
 
 
+def check_paths(args) -> None:
+    """Refuse, before any scan is read or anything written, outputs (``--output``,
+    ``--poses-out``, ``--view``) that are one file, and an output that is one of the scans (even
+    with ``--force``): see :func:`.args.check_distinct_files`."""
+    check_distinct_files({"--output": args.output, "--poses-out": args.poses_out, "--view": args.view}, args.scans)
+
+
+def reference_among_readable(args, unreadable=()) -> int:
+    """The position, among the readable scans, of the scan ``--reference`` names (an index into the
+    scans as given on the command line, whichever of them ``--skip-bad`` leaves out).
+
+    Raises
+    ------
+    InvalidInputError
+        ``--reference`` is out of range, or names a scan that could not be read (``unreadable``:
+        indices into ``args.scans``).
+    """
+    if not 0 <= args.reference < len(args.scans):
+        raise InvalidInputError(f"--reference: expected a scan index in [0, {len(args.scans)}), got {args.reference}")
+    if args.reference in unreadable:
+        raise InvalidInputError(f"--reference {args.reference}: the scan {args.scans[args.reference]} could not be "
+                                "read, so it cannot be the world frame; choose another --reference")
+    return args.reference - sum(1 for index in unreadable if index < args.reference)
+
+
 def run_merge(args) -> int:
     from .. import io
     from ..multiview import register_scans
 
+    check_paths(args)
     outputs = [(args.output, "points"), (args.poses_out, "transform"), (args.view, "transform")]
     for path, kind in outputs:
         if path is None:
@@ -98,21 +124,21 @@ def run_merge(args) -> int:
             raise OutputExistsError(path)
     if args.view is not None and args.view.suffix.lower() not in (".html", ".htm"):
         raise InvalidInputError(f"--view: expected an .html file, got {str(args.view)!r}")
+    reference_among_readable(args)
     clouds, names, bad = [], [], []
-    for path in args.scans:
+    for index, path in enumerate(args.scans):
         try:
             clouds.append(io.read_points(path, bin_columns=args.bin_columns))
             names.append(path.name)
         except EsmicpError as exc:
             print(f"esmicp merge: error: {exc}", file=sys.stderr)
-            bad.append(path)
+            bad.append(index)
     if bad and not args.skip_bad:
         print(f"esmicp merge: {len(bad)} scan(s) unreadable; nothing written (--skip-bad merges the rest)", file=sys.stderr)
         return 2
     if len(clouds) < 2:
         raise InvalidInputError(f"scans: need at least 2 readable scans, got {len(clouds)}")
-    if not 0 <= args.reference < len(clouds):
-        raise InvalidInputError(f"--reference: expected a scan index in [0, {len(clouds)}), got {args.reference}")
+    reference = reference_among_readable(args, bad)
     client = None
     if args.scheduler:
         client = dask_client(args.scheduler)
@@ -120,7 +146,7 @@ def run_merge(args) -> int:
     # Without --workers the library picks the threads (one per registration run in parallel).
     threads = {} if args.workers is None else {"workers": args.workers}
     try:
-        result = register_scans(clouds, reference=args.reference, pair_points=args.pair_points,
+        result = register_scans(clouds, reference=reference, pair_points=args.pair_points,
                                 processes=args.processes, client=client, progress=progress, **threads)
     finally:
         close()

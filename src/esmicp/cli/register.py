@@ -15,7 +15,8 @@ from ..api import INIT_NAMES
 from ..errors import EsmicpError, OutputExistsError
 from ..io import READ_EXTENSIONS, WRITE_EXTENSIONS
 from ..methods import METHODS
-from .args import EXIT_OK, EXIT_UNTRUSTED, add_workers, positive_float, positive_int
+from ..types import check_geometry
+from .args import EXIT_OK, EXIT_UNTRUSTED, add_workers, check_distinct_files, positive_float, positive_int
 
 
 def trust_bar() -> float:
@@ -118,31 +119,19 @@ def _check_output(path: Path | None, force: bool, kind: str) -> None:
         raise OutputExistsError(path)
 
 
-def _check_distinct_outputs(**paths) -> None:
-    """Refuse two outputs that are one file (before any work: the second would replace the first)."""
-    given = [(flag, path) for flag, path in paths.items() if path is not None]
-    for index, (flag, path) in enumerate(given):
-        for other_flag, other in given[index + 1:]:
-            same = Path(os.path.abspath(path)) == Path(os.path.abspath(other))
-            if not same and path.exists() and other.exists():
-                same = os.path.samefile(path, other)
-            if same:
-                raise EsmicpError(f"--{other_flag.replace('_', '-')} {other}: is the same file as --{flag} "
-                                  f"{path}; give two different files")
-
-
 def _run_register(args) -> int:
     from .. import io
     from ..api import register
     from ..core.procrustes import apply
 
-    _check_distinct_outputs(output=args.output, transform_out=args.transform_out)
+    check_distinct_files({"--output": args.output, "--transform-out": args.transform_out}, [args.source, args.target])
     _check_output(args.output, args.force, "points")
     _check_output(args.transform_out, args.force, "transform")
     source = io.read_points(args.source, sample_points=args.sample_points, rng=args.seed, bin_columns=args.bin_columns)
     target = io.read_points(
         args.target, sample_points=args.sample_points, rng=args.seed + 1, bin_columns=args.bin_columns
     )
+    check_geometry({str(args.source): source, str(args.target): target})  # what register() checks first, by file
     init = args.init if args.init in INIT_NAMES else io.read_transform(Path(args.init))
     result = register(
         source, target, method=args.method, init=init, sigma=args.sigma, rng=args.seed,
