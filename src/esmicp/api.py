@@ -24,7 +24,7 @@ from .methods.guard import guarded_refine
 from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome, _budget_spent
 from .result import Correspondences, RegistrationResult
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
-from .types import PointsLike, check_geometry, check_representable
+from .types import PointsLike, check_geometry
 from .working_frame import WorkingFrame
 
 #: ``init`` strings meaning "no global search: start from the identity".
