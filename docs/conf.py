@@ -35,14 +35,7 @@ root_doc = "index"
 
 # Markdown: ``[text](page.md#a-heading)`` links resolve to heading anchors (and fail when missing).
 myst_heading_anchors = 4
-myst_enable_extensions = ["colon_fence", "dollarmath", "substitution"]
-# The viewer's screenshot on a 3DMatch pair (docs/images/view_3dmatch.png) is made by the commands of
-# visualisation.md; until it is committed, the page says so instead of failing the build.
-_VIEW_3DMATCH = DOCS / "images" / "view_3dmatch.png"
-myst_substitutions = {
-    "view_3dmatch": "![esmicp view on a 3DMatch fragment pair, registered by default](images/view_3dmatch.png)"
-    if _VIEW_3DMATCH.is_file() else "*(The screenshot `docs/images/view_3dmatch.png` is not in this build.)*",
-}
+myst_enable_extensions = ["colon_fence", "dollarmath"]
 
 # The API reference: numpy-style docstrings, signatures as written, members in source order.
 napoleon_google_docstring = False
