@@ -107,7 +107,7 @@ def view_figure(
         legend = column == 1
         figure.add_trace(scatter_trace(go, first.target[target_shown], "target", TARGET_COLOUR, scene, showlegend=legend), 1, column)
         figure.add_trace(
-            scatter_trace(go, first.source[source_shown], "source (start)", START_COLOUR, scene, 1.5, 0.35, legend), 1, column
+            scatter_trace(go, first.source[source_shown], "source (as given)", START_COLOUR, scene, 1.5, 0.35, legend), 1, column
         )
         figure.add_trace(
             scatter_trace(go, trace.aligned(min(opened, trace.iterations))[source_shown], "source (aligned)",
