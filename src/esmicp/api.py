@@ -21,6 +21,7 @@ from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimato
 from .methods.esm import COARSE_POINTS, TIGHT_START_QUANTILE, EsmEstimator
 from .methods.guard import guarded_refine
 from .methods.local import Callback, _budget_spent
+from . import uncertainty
 from .result import RegistrationResult
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
 from .types import check_representable
@@ -218,6 +219,10 @@ def register(
                                           start_distances, outcome, confidence)
     fitness, inlier_rmse, inlier_distance = _evaluate(source_points, target_index, outcome.transformation, request,
                                                       outcome.neighbours)
+    weights_sigma = None if method == "icp" else outcome.sigma  # ICP: unit weights
+    pose = uncertainty.from_registration(source_points, target_index, outcome.transformation, weights_sigma,
+                                         origin=frame.origin, workers=request.workers,
+                                         warm=outcome.neighbours)
     outcome = frame.outcome(outcome)
     return RegistrationResult(
         transformation=outcome.transformation,
@@ -239,6 +244,9 @@ def register(
         ),
         global_candidates=0 if estimate is None else estimate.candidates,
         confidence=confidence,
+        covariance=pose.covariance,
+        information=pose.information,
+        degenerate_directions=pose.degenerate_directions,
     )
 
 

@@ -95,6 +95,18 @@ class RegistrationResult:
         of freedom, a floor and one wall 5: :func:`esmicp.globalreg.scan.coincident_spread`). Below 0.55
         (:data:`esmicp.globalreg.scan.TRUSTED`): do not trust the pose. Measured figures:
         ``docs/measured-global.md``, "Scans".
+    covariance : (6, 6) float64 array or None
+        Covariance of the pose (:mod:`esmicp.uncertainty`): a small rotation vector (radians) then a
+        translation (cloud units), a perturbation applied on the LEFT of ``transformation``, in
+        the target frame (``T_true = Exp(delta) @ transformation``). Calibrated on repeated
+        registrations: ``docs/uncertainty.md``. None when not computed.
+    information : (6, 6) float64 array or None
+        The inverse of ``covariance`` (same convention); zero along any direction the data do not
+        constrain at all (a pseudo-inverse). For weighting pose-graph edges.
+    degenerate_directions : tuple of DegenerateDirection
+        The directions the overlap barely constrains (target frame), each with its ratio to the
+        best-constrained one (:class:`esmicp.uncertainty.DegenerateDirection`); empty for a
+        well-constrained pair.
     """
 
     transformation: np.ndarray
@@ -113,6 +125,9 @@ class RegistrationResult:
     runner_up_ratio: float | None = None
     global_candidates: int = 0
     confidence: float | None = None
+    covariance: np.ndarray | None = field(default=None, repr=False)
+    information: np.ndarray | None = field(default=None, repr=False)
+    degenerate_directions: tuple = ()
 
     @property
     def trusted(self) -> bool:
@@ -151,6 +166,9 @@ class RegistrationResult:
             "global_candidates": self.global_candidates,
             "confidence": self.confidence,
             "trusted": self.trusted,
+            "covariance": None if self.covariance is None else self.covariance.tolist(),
+            "information": None if self.information is None else self.information.tolist(),
+            "degenerate_directions": [direction.to_dict() for direction in self.degenerate_directions],
         }
         if include_history and self.history is not None:
             data["history"] = [record.to_dict() for record in self.history]
