@@ -167,9 +167,20 @@ class RegistrationResult:
             "confidence": self.confidence,
             "trusted": self.trusted,
             "covariance": None if self.covariance is None else self.covariance.tolist(),
+            "std_rotation_deg": None if self.covariance is None else _deviations(self.covariance)[0],
+            "std_translation": None if self.covariance is None else _deviations(self.covariance)[1],
             "information": None if self.information is None else self.information.tolist(),
             "degenerate_directions": [direction.to_dict() for direction in self.degenerate_directions],
         }
         if include_history and self.history is not None:
             data["history"] = [record.to_dict() for record in self.history]
         return data
+
+
+def _deviations(covariance: np.ndarray) -> tuple[list, list]:
+    """The standard deviations of ``covariance``: rotation about x, y, z (degrees), translation along
+    x, y, z (cloud units)."""
+    from .uncertainty import standard_deviations
+
+    rotation, translation = standard_deviations(covariance)
+    return rotation.tolist(), translation.tolist()

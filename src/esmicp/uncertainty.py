@@ -86,7 +86,7 @@ NEGLIGIBLE_WEIGHT = 1e-6
 #: Hessian comes from them, scaled to the whole weight of the pairs, while every pair enters the
 #: cluster-robust gradient sums (which need no normals). Keeps the cost a small fraction of a
 #: registration.
-MAX_NORMALS = 5_000
+MAX_NORMALS = 1_500
 
 AXES = ("x", "y", "z")
 
@@ -135,6 +135,7 @@ class DegenerateDirection:
         return {
             "kind": self.kind,
             "axis": self.axis.tolist(),
+            "description": self.describe(),
             "rotation": self.rotation.tolist(),
             "translation": self.translation.tolist(),
             "ratio": self.ratio,
@@ -218,9 +219,9 @@ def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarra
     scores = np.hstack([np.cross(unit_offsets, differences), differences]) * weights[:, None]
     clusters = _cluster_ids(placed, max(cluster_spacings * spacing, 1e-300))
     _, inverse = np.unique(clusters, return_inverse=True)
-    sums = np.zeros((int(inverse.max()) + 1, 6))
-    np.add.at(sums, inverse, scores)
-    count, groups = len(placed), len(sums)
+    groups = int(inverse.max()) + 1
+    sums = np.column_stack([np.bincount(inverse, weights=column, minlength=groups) for column in scores.T])
+    count = len(placed)
     # Small-sample corrections of the sandwich (the usual ones of cluster-robust estimates).
     correction = groups / max(groups - 1, 1) * count / max(count - 6, 1)
     meat = correction * (sums.T @ sums)
