@@ -106,7 +106,7 @@ def real_pairs():
         if pair.dataset == "kitti_00":
             continue  # its ground truth is coarse (0.18 m): no use for a covariance
         source, target, truth = load_pair(pair, bin_columns=3)
-        yield pair.name, source, target, truth
+        yield pair.dataset, source, target, truth
 
 
 def trial_sets(count: int, rng: np.random.Generator, names: list[str]):
@@ -133,8 +133,8 @@ def trial_sets(count: int, rng: np.random.Generator, names: list[str]):
                            truth, "real-GT"))
         sets["kitchen-walk-GT"] = trials
     if "real-pairs-GT" in names:
-        pairs = list(real_pairs())
-        sets["real-pairs-GT"] = [(s, t, T, "real-GT") for _, s, t, T in pairs]
+        for dataset, source, target, truth in real_pairs():
+            sets.setdefault(f"real_pairs {dataset}", []).append((source, target, truth, "real-GT"))
     return sets
 
 
@@ -297,6 +297,7 @@ def _plot(points, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     figure, axes = plt.subplots(1, 2, figsize=(8, 3.6))
     labels = ("rotation (deg)", "translation (cloud units)")
@@ -311,6 +312,7 @@ def _plot(points, path: Path) -> None:
         grid = np.geomspace(low, high, 10)
         axis.loglog(grid, grid, "k-", lw=0.8, label="1 sigma")
         axis.loglog(grid, 2 * grid, "k--", lw=0.8, label="2 sigma")
+        axis.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         axis.set_xlabel(f"predicted std, {label}")
         axis.set_ylabel(f"observed |error|, {label}")
     axes[0].legend(fontsize=7)

@@ -186,3 +186,21 @@ def test_left_error_is_the_left_perturbation():
     assert np.allclose(uncertainty.left_error(truth, estimate), delta, atol=1e-12)
     with pytest.raises(AssertionError):
         assert np.allclose(uncertainty.left_error(estimate @ exact, estimate), delta, atol=1e-6)
+
+
+def test_cli_register_prints_deviations_and_the_degenerate_direction(tmp_path, rng, capsys):
+    from esmicp import io
+    from esmicp.cli import main
+
+    io.write_points(tmp_path / "target.ply", corridor(6000, rng))
+    io.write_points(tmp_path / "source.ply", corridor(6000, rng) + [0.03, 0.01, 0.0])
+    arguments = ["register", str(tmp_path / "source.ply"), str(tmp_path / "target.ply"), "--init", "identity"]
+    assert main(arguments) == 0
+    out = capsys.readouterr().out
+    assert "std rotation (deg" in out and "std translation (cloud units" in out
+    assert "translation along x (target frame) is poorly constrained" in out
+    assert main([*arguments, "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert len(report["std_rotation_deg"]) == 3 and len(report["std_translation"]) == 3
+    assert report["std_translation"][0] > 10 * report["std_translation"][1]
+    assert "translation along x" in report["degenerate_directions"][0]["description"]
