@@ -204,3 +204,24 @@ def test_cli_register_prints_deviations_and_the_degenerate_direction(tmp_path, r
     assert len(report["std_rotation_deg"]) == 3 and len(report["std_translation"]) == 3
     assert report["std_translation"][0] > 10 * report["std_translation"][1]
     assert "translation along x" in report["degenerate_directions"][0]["description"]
+
+
+def test_too_few_pairs_give_no_covariance():
+    placed = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    estimate = uncertainty.pose_uncertainty(placed, placed, spacing=1.0)
+    assert estimate.covariance is None and estimate.information is None
+
+
+def test_pose_uncertainty_is_psd_and_symmetric_on_random_pairs(rng):
+    """Whatever the pairs (here random, with random normals and weights), the covariance is a
+    symmetric positive semi-definite 6x6 and the information its inverse."""
+    for _ in range(5):
+        placed = rng.normal(size=(500, 3))
+        matched = placed + rng.normal(0.0, 0.05, (500, 3))
+        normals = rng.normal(size=(500, 3))
+        normals /= np.linalg.norm(normals, axis=1)[:, None]
+        estimate = uncertainty.pose_uncertainty(placed, matched, rng.uniform(0, 1, 500), normals, spacing=0.1)
+        covariance = estimate.covariance
+        assert np.allclose(covariance, covariance.T)
+        assert np.linalg.eigvalsh(covariance).min() >= -1e-12 * np.abs(covariance).max()
+        assert np.allclose(estimate.information @ covariance, np.eye(6), atol=1e-6)

@@ -152,11 +152,12 @@ class PoseUncertainty:
     ``information`` (6, 6): its inverse; where the data constrain some direction not at all
     (eigenvalue below :data:`SINGULAR_RATIO`), the pseudo-inverse, zero along it.
     ``degenerate_directions``: the poorly constrained directions (empty when none).
-    ``pairs``: the number of pairs the estimate used.
+    ``pairs``: the number of pairs the estimate used. ``covariance`` and ``information`` are None
+    when fewer than 3 pairs carry weight, or they all lie at one point.
     """
 
-    covariance: np.ndarray
-    information: np.ndarray
+    covariance: np.ndarray | None
+    information: np.ndarray | None
     degenerate_directions: tuple[DegenerateDirection, ...]
     pairs: int
 
@@ -293,8 +294,8 @@ def _information(scaled: np.ndarray, null: np.ndarray, mapping: np.ndarray) -> n
 
 
 def _unconstrained(count: int) -> PoseUncertainty:
-    """Too few pairs to say anything."""
-    return PoseUncertainty(np.diag([math.pi ** 2] * 3 + [np.inf] * 3), np.zeros((6, 6)), (), count)
+    """Too few pairs (or no spread among them) to say anything: no covariance, no information."""
+    return PoseUncertainty(None, None, (), count)
 
 
 def _skew(vector: np.ndarray) -> np.ndarray:
