@@ -217,12 +217,11 @@ def register(
             and confidence < TRUSTED:
         outcome, confidence = _second_try(source_points, target_index, initial, request, diagonal, keypoints,
                                           start_distances, outcome, confidence)
-    fitness, inlier_rmse, inlier_distance = _evaluate(source_points, target_index, outcome.transformation, request,
-                                                      outcome.neighbours)
+    fitness, inlier_rmse, inlier_distance, pairs = _evaluate(source_points, target_index, outcome.transformation,
+                                                             request, outcome.neighbours)
     weights_sigma = None if method == "icp" else outcome.sigma  # ICP: unit weights
     pose = uncertainty.from_registration(source_points, target_index, outcome.transformation, weights_sigma,
-                                         origin=frame.origin, workers=request.workers,
-                                         warm=outcome.neighbours)
+                                         origin=frame.origin, workers=request.workers, pairs=pairs)
     outcome = frame.outcome(outcome)
     return RegistrationResult(
         transformation=outcome.transformation,
@@ -422,9 +421,10 @@ def _plane_start(points, target_index, initial, request: _Request, diagonal: flo
     return plane.transformation, plane.num_iterations, note
 
 
-def _evaluate(source, target_index, transformation, request: _Request, warm=None) -> tuple[float, float, float]:
-    """Stage 5: ``(fitness, inlier_rmse, inlier_distance)`` of the final pose, in Open3D's meaning
-    (and, for ``esm-paper``, a warning when the clouds were not index-aligned). ``warm``: the
+def _evaluate(source, target_index, transformation, request: _Request, warm=None):
+    """Stage 5: ``(fitness, inlier_rmse, inlier_distance, (distances, indices))`` of the final pose,
+    in Open3D's meaning, with each source point's nearest target distance and index (and, for
+    ``esm-paper``, a warning when the clouds were not index-aligned). ``warm``: the
     refinement's last neighbours of the source points, if it has them (the queries start there:
     the same answers, sooner)."""
     inlier_distance = request.inlier_distance
@@ -439,7 +439,7 @@ def _evaluate(source, target_index, transformation, request: _Request, warm=None
     inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
     if request.method == "esm-paper" and len(source) == len(target_index.points):
         _warn_if_not_index_aligned(indices)
-    return fitness, inlier_rmse, float(inlier_distance)
+    return fitness, inlier_rmse, float(inlier_distance), (distances, indices)
 
 
 def _warn_if_coincident(points: np.ndarray, name: str, coincident) -> None:

@@ -86,7 +86,7 @@ NEGLIGIBLE_WEIGHT = 1e-6
 #: Hessian comes from them, scaled to the whole weight of the pairs, while every pair enters the
 #: cluster-robust gradient sums (which need no normals). Keeps the cost a small fraction of a
 #: registration.
-MAX_NORMALS = 1_500
+MAX_NORMALS = 600
 
 AXES = ("x", "y", "z")
 
@@ -305,14 +305,16 @@ def _skew(vector: np.ndarray) -> np.ndarray:
 
 def from_registration(source: np.ndarray, target_index, transformation: np.ndarray, sigma: float | None, *,
                       origin: np.ndarray | None = None, workers: int | None = None,
-                      warm: np.ndarray | None = None) -> PoseUncertainty:
+                      warm: np.ndarray | None = None,
+                      pairs: tuple[np.ndarray, np.ndarray] | None = None) -> PoseUncertainty:
     """:func:`pose_uncertainty` of a registration's final pose.
 
     ``source`` (N, 3) and ``transformation`` (4x4 ``T_target_source``) in the frame of
     ``target_index`` (a :class:`~esmicp.core.correspondence.NearestNeighbors`), ``origin`` that
     frame's origin in the target's own coordinates (see :func:`pose_uncertainty`). Every source
-    point is paired with its nearest target point (``warm``: optional nearest target indices of
-    the source points near the final pose, where the queries start) and weighted by
+    point is paired with its nearest target point (``pairs``: their ``(distances, indices)`` at
+    this pose if already known; ``warm``: optional nearest target indices of the source points
+    near the final pose, where the queries start) and weighted by
     ``exp(-d^2 / (2 sigma^2))`` (all 1 when ``sigma`` is None: ICP); the target normals at the
     matches of :data:`MAX_NORMALS` of them come from the ``NORMAL_NEIGHBOURS`` nearest target
     points (as ``esm-plane``).
@@ -323,9 +325,12 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
     from .methods.plane import NORMAL_NEIGHBOURS
 
     placed = apply(transformation, source)
-    if warm is not None and len(warm) != len(source):
-        warm = None  # another source's (a subsample's)
-    distances, indices = target_index.query_near(placed, warm=warm)
+    if pairs is not None:
+        distances, indices = pairs
+    else:
+        if warm is not None and len(warm) != len(source):
+            warm = None  # another source's (a subsample's)
+        distances, indices = target_index.query_near(placed, warm=warm)
     weights = None if sigma is None else relative_gaussian_weights(distances, sigma)
     target = target_index.points
     normals = None
