@@ -104,7 +104,7 @@ def main(argv=None) -> int:
         "modelnet40 (tuning)": objects("modelnet40", None, rng),
         "modelnet40_extra (confirmation)": objects("modelnet40_extra", DATA / "modelnet40_extra", rng),
         "real_pairs (3DMatch, Newer College, KITTI)": real_pairs(),
-        "kitchen walk, frames 5 apart": kitchen_pairs(),
+        "kitchen walk, pairs 5 kept frames (50 raw frames) apart": kitchen_pairs(),
     }
     print(f"Threshold: eigenvalue ratio < {uncertainty.DEGENERATE_RATIO:g} "
           "(scaled point-to-plane Hessian, rotation x overlap radius).\n")
