@@ -22,6 +22,7 @@ from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimato
 from .methods.esm import COARSE_POINTS, TIGHT_START_QUANTILE, EsmEstimator
 from .methods.guard import guarded_refine
 from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome, _budget_spent
+from . import uncertainty
 from .result import Correspondences, RegistrationResult
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
 from .types import PointsLike, check_geometry
@@ -238,6 +239,9 @@ def register(
     correspondences = None
     if return_correspondences:
         correspondences = _correspondences(pairs, _estimator(method, request, target_index, diagonal), outcome.sigma)
+    weights_sigma = None if method == "icp" else outcome.sigma  # ICP: unit weights
+    pose = uncertainty.from_registration(source_points, target_index, outcome.transformation, weights_sigma,
+                                         origin=frame.origin, workers=request.workers, pairs=pairs[:2])
     outcome = frame.outcome(outcome)
     return RegistrationResult(
         transformation=outcome.transformation,
@@ -260,6 +264,9 @@ def register(
         global_candidates=0 if estimate is None else estimate.candidates,
         confidence=confidence,
         correspondences=correspondences,
+        covariance=pose.covariance,
+        information=pose.information,
+        degenerate_directions=pose.degenerate_directions,
     )
 
 

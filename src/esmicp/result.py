@@ -134,6 +134,18 @@ class RegistrationResult:
     correspondences : Correspondences or None
         The final pose's inlier pairs (:class:`Correspondences`), when asked for
         (``return_correspondences=True``); else None.
+    covariance : (6, 6) float64 array or None
+        Covariance of the pose (:mod:`esmicp.uncertainty`): a small rotation vector (radians) then a
+        translation (cloud units), a perturbation applied on the LEFT of ``transformation``, in
+        the target frame (``T_true = Exp(delta) @ transformation``). Calibrated on repeated
+        registrations: ``docs/uncertainty.md``. None when not computed.
+    information : (6, 6) float64 array or None
+        The inverse of ``covariance`` (same convention); zero along any direction the data do not
+        constrain at all (a pseudo-inverse). For weighting pose-graph edges.
+    degenerate_directions : tuple of DegenerateDirection
+        The directions the overlap barely constrains (target frame), each with its ratio to the
+        best-constrained one (:class:`esmicp.uncertainty.DegenerateDirection`); empty for a
+        well-constrained pair.
     """
 
     transformation: np.ndarray
@@ -153,6 +165,9 @@ class RegistrationResult:
     global_candidates: int = 0
     confidence: float | None = None
     correspondences: Correspondences | None = field(default=None, repr=False)
+    covariance: np.ndarray | None = field(default=None, repr=False)
+    information: np.ndarray | None = field(default=None, repr=False)
+    degenerate_directions: tuple = ()
 
     @property
     def trusted(self) -> bool:
@@ -191,7 +206,21 @@ class RegistrationResult:
             "global_candidates": self.global_candidates,
             "confidence": self.confidence,
             "trusted": self.trusted,
+            "covariance": None if self.covariance is None else self.covariance.tolist(),
+            "std_rotation_deg": None if self.covariance is None else _deviations(self.covariance)[0],
+            "std_translation": None if self.covariance is None else _deviations(self.covariance)[1],
+            "information": None if self.information is None else self.information.tolist(),
+            "degenerate_directions": [direction.to_dict() for direction in self.degenerate_directions],
         }
         if include_history and self.history is not None:
             data["history"] = [record.to_dict() for record in self.history]
         return data
+
+
+def _deviations(covariance: np.ndarray) -> tuple[list, list]:
+    """The standard deviations of ``covariance``: rotation about x, y, z (degrees), translation along
+    x, y, z (cloud units)."""
+    from .uncertainty import standard_deviations
+
+    rotation, translation = standard_deviations(covariance)
+    return rotation.tolist(), translation.tolist()

@@ -199,6 +199,11 @@ def print_summary(result) -> None:
         f"  overlap (not a verdict): fitness {result.fitness:.4f} of the source within {result.inlier_distance:.6g} "
         f"of the target, inlier RMSE {result.inlier_rmse:.6g}; sigma {sigma}"
     )
+    if result.covariance is not None:
+        from ..uncertainty import describe
+
+        for line in describe(result.covariance, result.degenerate_directions):
+            print(f"  {line}")
     print("T_target_source =")
     print(format_matrix(result.transformation))
 

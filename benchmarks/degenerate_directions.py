@@ -1,0 +1,166 @@
+"""Degenerate directions on shapes, real scan pairs and synthetic corridors: the smallest eigenvalue
+ratio of the scaled point-to-plane Hessian and the directions reported below
+``esmicp.uncertainty.DEGENERATE_RATIO``.
+
+Each cloud is registered from its ground truth (objects: a resample of the shape with a little
+noise onto the shape; real pairs: their recorded pose; kitchen-walk frames 10 apart: the walk's
+poses), so the figures describe the overlap, not a search.
+
+    python benchmarks/degenerate_directions.py [--plot docs/images/degenerate_corridor.png]
+
+Prints Markdown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "src"))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+import esmicp  # noqa: E402
+from esmicp import uncertainty  # noqa: E402
+from esmicp.bench.datasets import load_dataset  # noqa: E402
+
+DATA = REPO.parent / "shared" / "data"
+
+
+def smallest_ratio(result) -> float:
+    """The smallest eigenvalue ratio of the scaled point-to-plane Hessian (1 when none is below
+    the threshold is not known: computed from the result's information about the overlap)."""
+    ratios = [direction.ratio for direction in result.degenerate_directions]
+    return min(ratios) if ratios else float("nan")
+
+
+def hessian_ratio(source, target, transformation) -> float:
+    """The smallest eigenvalue ratio of the scaled point-to-plane Hessian at ``transformation``."""
+    from esmicp.core.correspondence import NearestNeighbors
+    from esmicp.core.procrustes import apply
+    from esmicp.globalreg.features import NormalEstimator
+
+    index = NearestNeighbors(target, workers=1)
+    placed = apply(transformation, source)
+    distances, indices = index.query_near(placed)
+    sigma = 2.0 * index.spacing()
+    weights = np.exp(-np.square(distances) / (2 * sigma * sigma))
+    keep = weights > 1e-6
+    placed, matched, weights = placed[keep], target[indices[keep]], weights[keep]
+    normals = NormalEstimator(target, 20).at(matched)
+    centre = weights @ placed / weights.sum()
+    offsets = placed - centre
+    radius = np.sqrt(weights @ np.einsum("ij,ij->i", offsets, offsets) / weights.sum())
+    hessian = uncertainty._hessian(offsets / radius, weights, normals)
+    values = np.linalg.eigvalsh(hessian)
+    return float(values[0] / values[-1])
+
+
+def objects(name: str, folder, rng):
+    dataset = load_dataset(str(folder) if folder else name, DATA, 2000)
+    for shape, cloud in sorted(dataset.clouds.items()):
+        source = cloud + rng.normal(0.0, 0.002 * np.ptp(cloud, axis=0).max(), cloud.shape)
+        yield shape, source, cloud, np.eye(4)
+
+
+def real_pairs():
+    from esmicp.bench.real_pairs import load_pair, read_pairs
+
+    for pair in read_pairs(DATA / "real_pairs"):
+        source, target, truth = load_pair(pair, bin_columns=3)
+        yield pair.name, source, target, truth
+
+
+def kitchen_pairs(step: int = 10):
+    from covariance_nees import kitchen_frames
+
+    frames, poses = kitchen_frames()
+    names = sorted(poses)
+    for a, b in zip(names[::step], names[step // 2::step]):
+        truth = np.linalg.inv(poses[a]) @ poses[b]
+        yield f"{a}<-{b}", np.load(frames / f"{b}.npy").astype(np.float64), np.load(frames / f"{a}.npy").astype(np.float64), truth
+
+
+def synthetic(rng):
+    sys.path.insert(0, str(REPO / "tests"))
+    from test_uncertainty import corridor
+
+    yield "corridor", corridor(15_000, rng) + rng.normal(0, 0.005, (15_000, 3)), corridor(15_000, rng), np.eye(4)
+    plane = np.column_stack([rng.uniform(-1, 1, (4000, 2)), np.zeros(4000)])
+    noisy = np.column_stack([rng.uniform(-1, 1, (4000, 2)), rng.normal(0, 0.002, 4000)])
+    yield "plane on plane", noisy, plane, np.eye(4)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--plot", type=Path, help="write a picture of the synthetic examples here")
+    args = parser.parse_args(argv)
+    rng = np.random.default_rng(0)
+    groups = {
+        "synthetic": synthetic(rng),
+        "modelnet40 (tuning)": objects("modelnet40", None, rng),
+        "modelnet40_extra (confirmation)": objects("modelnet40_extra", DATA / "modelnet40_extra", rng),
+        "real_pairs (3DMatch, Newer College, KITTI)": real_pairs(),
+        "kitchen walk, pairs 5 kept frames (50 raw frames) apart": kitchen_pairs(),
+    }
+    print(f"Threshold: eigenvalue ratio < {uncertainty.DEGENERATE_RATIO:g} "
+          "(scaled point-to-plane Hessian, rotation x overlap radius).\n")
+    print("| set | clouds | smallest ratio (min / median) | clouds with a degenerate direction | directions reported |")
+    print("|---|---:|---:|---:|---|")
+    examples = {}
+    for group, items in groups.items():
+        ratios, flagged, words = [], 0, []
+        for name, source, target, truth in items:
+            result = esmicp.register(source, target, init=truth, workers=1)
+            ratios.append(hessian_ratio(source, target, result.transformation))
+            if result.degenerate_directions:
+                flagged += 1
+                words.append(f"{name}: " + "; ".join(d.describe().split(" (ratio")[0]
+                                                     for d in result.degenerate_directions))
+            if group == "synthetic":
+                examples[name] = (source, target, result)
+        ratios = np.array(ratios)
+        print(f"| {group} | {len(ratios)} | {ratios.min():.2g} / {np.median(ratios):.2g} | {flagged} | "
+              f"{'<br>'.join(words) if words else '-'} |")
+    if args.plot is not None:
+        _plot(examples, args.plot)
+    return 0
+
+
+def _plot(examples, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure = plt.figure(figsize=(8, 3.6))
+    for panel, (name, (source, target, result)) in enumerate(examples.items(), start=1):
+        axis = figure.add_subplot(1, len(examples), panel, projection="3d")
+        shown = target[:: max(1, len(target) // 3000)]
+        axis.scatter(*shown.T, s=0.5, c="0.6")
+        centre = result.degenerate_directions[0].centre if result.degenerate_directions else shown.mean(axis=0)
+        scale = 0.5 * np.ptp(shown, axis=0).max()
+        for direction in result.degenerate_directions:
+            axis_vector = direction.axis * scale
+            colour = "tab:red" if direction.kind == "translation" else "tab:blue"
+            axis.quiver(*centre, *axis_vector, color=colour, linewidth=2, arrow_length_ratio=0.15)
+        axis.set_title(f"{name}: " + ", ".join(
+            f"{d.kind[:5]}. {'along' if d.kind == 'translation' else 'about'} "
+            f"{uncertainty.AXES[int(np.argmax(np.abs(d.axis)))]}" for d in result.degenerate_directions), fontsize=8)
+        low, high = shown.min(axis=0), shown.max(axis=0)
+        middle, half = 0.5 * (low + high), np.maximum(0.5 * (high - low), 0.6 * scale)
+        axis.set_xlim(middle[0] - half[0], middle[0] + half[0])
+        axis.set_ylim(middle[1] - half[1], middle[1] + half[1])
+        axis.set_zlim(middle[2] - half[2], middle[2] + half[2])
+        axis.set_box_aspect(half)
+        axis.tick_params(labelsize=5)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=90)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,390 @@
+"""How sure a registration is, and in which directions: the pose covariance and the degenerate
+directions, from the final correspondences.
+
+Convention (every array here)
+-----------------------------
+A pose error is a 6-vector ``delta = (omega, v)``: ``omega`` a small rotation vector (radians),
+then ``v`` a translation (cloud units), applied on the LEFT of ``T_target_source``, in the target
+frame: ``T_true = Exp(delta) @ T_estimated``, i.e. a target-frame point ``p`` of the placed source
+moves to ``p + omega x p + v`` (rotation about the target frame's origin). :func:`left_error` gives
+that vector for two poses.
+
+The covariance
+--------------
+Each pair joins a source point as placed, ``p_i`` (target frame), to its nearest target point
+``q_i``, with the method's weight ``w_i`` (ESM's Gaussian weight at the final sigma; 1 for ICP).
+The nearest-neighbour cost of a surface behaves like the point-to-plane cost: where the target's
+unit normal ``n_i`` at ``q_i`` is known, a pair constrains the pose through its residual
+``r_i = n_i . (p_i - q_i)`` and gradient ``a_i = (p_i x n_i, n_i)`` only (a plane slides freely
+along itself); without normals, through the three coordinates of ``p_i - q_i``.
+
+Censi's closed form (2007) for a least-squares estimate is ``H^-1 B H^-1`` with the Hessian
+``H = sum_i w_i a_i a_i^T`` and ``B`` the covariance of the gradient the estimate zeroes. Taking the
+residuals as independent, with one variance estimated from them (``B = sigma^2 sum_i w_i^2 a_i
+a_i^T``), is known to be over-confident, for two reasons this estimate corrects:
+
+- the correspondences themselves are in error: a nearest neighbour lies up to a point spacing
+  beside the true match, and the point-to-point cost the methods minimise feels that offset.
+  ``B`` is therefore built from each pair's share of that cost's gradient,
+  ``s_i = w_i (u_i x d_i, d_i)`` with ``d_i = p_i - q_i`` the whole 3-D residual, while ``H`` keeps
+  the point-to-plane curvature (the cost's true stiffness once the pairs may slide);
+- the residuals of neighbouring pairs are correlated (the same target points and surface patch
+  serve many source points; a cut or a depth camera's smooth errors pull whole regions one way),
+  so there are far fewer independent pairs than pairs. ``B`` is the cluster-robust estimate
+  (Liang and Zeger's sandwich): the pairs are grouped into cubes of :data:`CLUSTER_SPACINGS`
+  target point spacings and ``B = sum_c g_c g_c^T`` with ``g_c`` the sum of the cube's ``s_i``.
+  Within a cube the residuals may be correlated in any way; cubes are taken as independent.
+
+The result is multiplied by :data:`INFLATION`, fitted on one set of trials and confirmed on
+another (``docs/uncertainty.md``).
+
+Degenerate directions
+---------------------
+The eigenvectors of the point-to-plane Hessian ``H`` about the overlap's weighted centroid, with
+rotations scaled by the overlap's RMS radius ``L`` (so that a rotation and a translation compare
+in the same units: the motion of a point at distance ``L``), whose eigenvalue is below
+:data:`DEGENERATE_RATIO` times the largest: the overlap barely constrains the pose along them
+(Zhang and Singh's degeneracy factor, 2016; X-ICP's localizability, Tuna et al. 2023). A corridor
+leaves translation along its axis, a plane on a plane the two in-plane translations and the
+rotation about its normal.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Side of the cubes (in target point spacings) whose pairs' residuals are allowed to be correlated
+#: in the cluster-robust covariance (see the module docstring). On resamples of a 3DMatch fragment
+#: the mean NEES (before :data:`INFLATION`) fell from 40 at 8 spacings to 33 at 16 and 28 at 32,
+#: and rose again at 64 (too few cubes); on kitchen-walk frames 58, 42, 38, 269.
+CLUSTER_SPACINGS = 16.0
+
+#: The covariance is the cluster-robust sandwich times this factor (dimensionless). Fitted so that
+#: the mean NEES is 6 on the tuning trials of ``benchmarks/covariance_nees.py`` (20 resamples of
+#: the 3DMatch fragment ``cloud_bin_0``: mean 32.5 without it). Confirmation on resamples of the
+#: kitchen walk's depth frames: mean NEES 12.5 and 9.5 on two draws of 20 (about 2x over-confident
+#: in NEES there; ``docs/uncertainty.md``).
+INFLATION = 5.4
+
+#: A direction whose eigenvalue in the scaled point-to-plane Hessian is below this fraction of the
+#: largest one is reported in ``degenerate_directions`` (dimensionless: the square of the ratio of
+#: the pose's sensitivities). Chosen on the 12 ModelNet40 shapes (only the bottle and the lamp,
+#: bodies of revolution, fall below it, about their axes), confirmed on the 69 of
+#: ``modelnet40_extra`` (only three vases); no pair of ``real_pairs`` or of the kitchen walk falls
+#: below it (smallest 0.04), the synthetic corridor and plane-on-plane far below
+#: (``benchmarks/degenerate_directions.py``, ``docs/uncertainty.md``).
+DEGENERATE_RATIO = 0.01
+
+#: Eigenvalues of the scaled Hessian below this fraction of the largest are treated as zero: the
+#: data give no information at all along them (``information`` is zero there, and the covariance
+#: holds a variance of one overlap radius, or one radian, along them).
+SINGULAR_RATIO = 1e-9
+
+#: Pairs whose weight is below this fraction of the largest are left out (they carry nothing).
+NEGLIGIBLE_WEIGHT = 1e-6
+
+#: Target normals are estimated at the matches of at most this many pairs (evenly strided): the
+#: Hessian comes from them, scaled to the whole weight of the pairs, while every pair enters the
+#: cluster-robust gradient sums (which need no normals). Keeps the cost a small fraction of a
+#: registration.
+MAX_NORMALS = 600
+
+AXES = ("x", "y", "z")
+
+
+@dataclass(frozen=True)
+class DegenerateDirection:
+    """A direction of pose change the overlap barely constrains (target frame).
+
+    ``rotation`` (3,) and ``translation`` (3,) are the parts of a unit 6-vector, the rotation part
+    scaled by ``radius`` (a rotation of ``omega`` radians counts as ``omega * radius`` cloud units:
+    the motion it gives a point at the overlap's RMS radius); the rotation is about ``centre``
+    (the overlap's weighted centroid, target frame, cloud units). ``ratio`` is its eigenvalue
+    divided by the best-constrained direction's (0-1; below :data:`DEGENERATE_RATIO`).
+    """
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    ratio: float
+    centre: np.ndarray
+    radius: float
+
+    @property
+    def kind(self) -> str:
+        """``"translation"`` or ``"rotation"``, whichever part of the direction is larger."""
+        return "translation" if np.linalg.norm(self.translation) >= np.linalg.norm(self.rotation) else "rotation"
+
+    @property
+    def axis(self) -> np.ndarray:
+        """The unit axis of the larger part (target frame), its sign chosen with its largest entry positive."""
+        part = self.translation if self.kind == "translation" else self.rotation
+        unit = part / max(float(np.linalg.norm(part)), 1e-300)
+        return unit if unit[np.argmax(np.abs(unit))] >= 0 else -unit
+
+    def describe(self) -> str:
+        """In words, e.g. ``"translation along x (target frame) is poorly constrained (ratio 2.1e-05)"``."""
+        axis = self.axis
+        dominant = int(np.argmax(np.abs(axis)))
+        if abs(axis[dominant]) > 0.9:
+            where = AXES[dominant]
+        else:
+            where = "(" + ", ".join(f"{value:.2f}" for value in axis) + ")"
+        preposition = "along" if self.kind == "translation" else "about"
+        return f"{self.kind} {preposition} {where} (target frame) is poorly constrained (ratio {self.ratio:.1e})"
+
+    def to_dict(self) -> dict:
+        return {
+            "kind": self.kind,
+            "axis": self.axis.tolist(),
+            "description": self.describe(),
+            "rotation": self.rotation.tolist(),
+            "translation": self.translation.tolist(),
+            "ratio": self.ratio,
+            "centre": self.centre.tolist(),
+            "radius": self.radius,
+        }
+
+
+@dataclass(frozen=True)
+class PoseUncertainty:
+    """The uncertainty of one pose (see the module docstring for the convention).
+
+    ``covariance`` (6, 6): of ``(omega [rad], v [cloud units])``, left perturbation, target frame.
+    ``information`` (6, 6): its inverse; where the data constrain some direction not at all
+    (eigenvalue below :data:`SINGULAR_RATIO`), the pseudo-inverse, zero along it.
+    ``degenerate_directions``: the poorly constrained directions (empty when none).
+    ``pairs``: the number of pairs the estimate used. ``covariance`` and ``information`` are None
+    when fewer than 3 pairs carry weight, or they all lie at one point.
+    """
+
+    covariance: np.ndarray | None
+    information: np.ndarray | None
+    degenerate_directions: tuple[DegenerateDirection, ...]
+    pairs: int
+
+
+def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarray | None = None,
+                     normals: np.ndarray | None = None, *, spacing: float, origin: np.ndarray | None = None,
+                     cluster_spacings: float = CLUSTER_SPACINGS, inflation: float = INFLATION) -> PoseUncertainty:
+    """The covariance, information and degenerate directions of a pose from its final pairs.
+
+    Parameters
+    ----------
+    placed : (N, 3) array
+        Source points as placed by the pose (target frame, cloud units).
+    matched : (N, 3) array
+        Their target points.
+    weights : (N,) array, optional
+        The method's weights of the pairs (>= 0; None: all 1).
+    normals : (N, 3) array, optional
+        Unit target normals at ``matched`` (None: point-to-point residuals). Rows of NaN: no normal
+        for that pair; the Hessian then comes from the pairs that have one, scaled to the total
+        weight of all of them.
+    spacing : float
+        The target's point spacing (cloud units): sets the cube size of the cluster-robust estimate.
+    origin : (3,) array, optional
+        Where the frame of ``placed`` and ``matched`` has its origin in the frame the result is
+        wanted in (a registration's working frame is shifted by it); default 0.
+    cluster_spacings, inflation : float
+        See :data:`CLUSTER_SPACINGS` and :data:`INFLATION`.
+
+    Returns
+    -------
+    PoseUncertainty
+    """
+    placed = np.asarray(placed, dtype=np.float64)
+    matched = np.asarray(matched, dtype=np.float64)
+    weights = np.ones(len(placed)) if weights is None else np.asarray(weights, dtype=np.float64)
+    keep = weights > NEGLIGIBLE_WEIGHT * (float(weights.max()) if len(weights) else 0.0)
+    placed, matched, weights = placed[keep], matched[keep], weights[keep]
+    if normals is not None:
+        normals = np.asarray(normals, dtype=np.float64)[keep]
+    origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
+    if len(placed) < 3:
+        return _unconstrained(len(placed))
+    total = float(weights.sum())
+    centre = weights @ placed / total
+    offsets = placed - centre
+    radius = math.sqrt(float(weights @ np.einsum("ij,ij->i", offsets, offsets)) / total)
+    if not radius > 0:
+        return _unconstrained(len(placed))
+    unit_offsets, differences = offsets / radius, placed - matched
+    if normals is not None and np.isnan(normals[:, 0]).any():
+        known = ~np.isnan(normals[:, 0])
+        share = float(weights[known].sum())
+        if not share > 0:
+            return _unconstrained(len(placed))
+        hessian = _hessian(unit_offsets[known], weights[known], normals[known]) * (total / share)
+    else:
+        hessian = _hessian(unit_offsets, weights, normals)
+    # Each pair's share of the gradient of the point-to-point cost the methods minimise, J_i^T w_i d_i.
+    scores = np.hstack([np.cross(unit_offsets, differences), differences]) * weights[:, None]
+    clusters = _cluster_ids(placed, max(cluster_spacings * spacing, 1e-300))
+    _, inverse = np.unique(clusters, return_inverse=True)
+    groups = int(inverse.max()) + 1
+    sums = np.column_stack([np.bincount(inverse, weights=column, minlength=groups) for column in scores.T])
+    count = len(placed)
+    # Small-sample corrections of the sandwich (the usual ones of cluster-robust estimates).
+    correction = groups / max(groups - 1, 1) * count / max(count - 6, 1)
+    meat = correction * (sums.T @ sums)
+
+    values, vectors = np.linalg.eigh(hessian)
+    largest = max(float(values[-1]), 0.0)
+    ratios = np.clip(values / largest, 0.0, None) if largest > 0 else np.zeros(6)
+    constrained = ratios > SINGULAR_RATIO
+    inverse_values = np.where(constrained, 1.0 / np.where(constrained, values, 1.0), 0.0)
+    pseudo = (vectors * inverse_values) @ vectors.T
+    scaled = inflation * pseudo @ meat @ pseudo
+    # No information at all along a direction: one radian, or one overlap radius (scaled units:
+    # one radius either way).
+    null = vectors[:, ~constrained]
+    scaled = scaled + radius * radius * (null @ null.T)
+    scaled = 0.5 * (scaled + scaled.T)
+    mapping = _to_frame(centre + origin, radius)
+    covariance = mapping @ scaled @ mapping.T
+    information = _information(scaled, null, mapping)
+    degenerate = tuple(
+        DegenerateDirection(vectors[:3, k].copy(), vectors[3:, k].copy(), float(ratios[k]), centre + origin, radius)
+        for k in range(6) if ratios[k] < DEGENERATE_RATIO
+    )
+    return PoseUncertainty(0.5 * (covariance + covariance.T), information, degenerate, count)
+
+
+def _hessian(unit_offsets: np.ndarray, weights: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
+    """The 6x6 Hessian ``sum_i w_i a_i a_i^T`` (scaled rotation, translation): point-to-plane rows
+    ``a_i = (u_i x n_i, n_i)`` with normals, else the three point-to-point rows of each pair."""
+    if normals is not None:
+        rows = np.hstack([np.cross(unit_offsets, normals), normals])
+        return (rows * weights[:, None]).T @ rows
+    hessian = np.zeros((6, 6))
+    for axis in np.eye(3):
+        axes = np.broadcast_to(axis, unit_offsets.shape)
+        rows = np.hstack([np.cross(unit_offsets, axes), axes])
+        hessian += (rows * weights[:, None]).T @ rows
+    return hessian
+
+
+def _cluster_ids(points: np.ndarray, size: float) -> np.ndarray:
+    """One integer per point naming its cube of side ``size``."""
+    cells = np.floor((points - points.min(axis=0)) / size).astype(np.int64)
+    extent = cells.max(axis=0) + 1
+    return (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
+
+
+def _to_frame(centre: np.ndarray, radius: float) -> np.ndarray:
+    """The 6x6 map from the scaled perturbation about ``centre`` (``(omega * radius, v_c)``) to the
+    perturbation about the frame's origin (``(omega, v)``, ``v = v_c + centre x omega``)."""
+    mapping = np.zeros((6, 6))
+    mapping[:3, :3] = np.eye(3) / radius
+    mapping[3:, :3] = _skew(centre) / radius
+    mapping[3:, 3:] = np.eye(3)
+    return mapping
+
+
+def _information(scaled: np.ndarray, null: np.ndarray, mapping: np.ndarray) -> np.ndarray:
+    """The inverse of ``mapping @ scaled @ mapping.T``, zero along the ``null`` directions."""
+    inverse_mapping = np.linalg.inv(mapping)
+    values, vectors = np.linalg.eigh(scaled)
+    positive = values > SINGULAR_RATIO * max(float(values[-1]), 1e-300)
+    scaled_information = (vectors[:, positive] / values[positive]) @ vectors[:, positive].T
+    if null.shape[1]:
+        keep = np.eye(6) - null @ null.T
+        scaled_information = keep @ scaled_information @ keep
+    information = inverse_mapping.T @ scaled_information @ inverse_mapping
+    return 0.5 * (information + information.T)
+
+
+def _unconstrained(count: int) -> PoseUncertainty:
+    """Too few pairs (or no spread among them) to say anything: no covariance, no information."""
+    return PoseUncertainty(None, None, (), count)
+
+
+def _skew(vector: np.ndarray) -> np.ndarray:
+    x, y, z = vector
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def from_registration(source: np.ndarray, target_index, transformation: np.ndarray, sigma: float | None, *,
+                      origin: np.ndarray | None = None, workers: int | None = None,
+                      warm: np.ndarray | None = None,
+                      pairs: tuple[np.ndarray, np.ndarray] | None = None) -> PoseUncertainty:
+    """:func:`pose_uncertainty` of a registration's final pose.
+
+    ``source`` (N, 3) and ``transformation`` (4x4 ``T_target_source``) in the frame of
+    ``target_index`` (a :class:`~esmicp.core.correspondence.NearestNeighbors`), ``origin`` that
+    frame's origin in the target's own coordinates (see :func:`pose_uncertainty`). Every source
+    point is paired with its nearest target point (``pairs``: their ``(distances, indices)`` at
+    this pose if already known; ``warm``: optional nearest target indices of the source points
+    near the final pose, where the queries start) and weighted by
+    ``exp(-d^2 / (2 sigma^2))`` (all 1 when ``sigma`` is None: ICP); the target normals at the
+    matches of :data:`MAX_NORMALS` of them come from the ``NORMAL_NEIGHBOURS`` nearest target
+    points (as ``esm-plane``).
+    """
+    from .core.procrustes import apply
+    from .core.weights import relative_gaussian_weights
+    from .globalreg.features import NormalEstimator
+    from .methods.plane import NORMAL_NEIGHBOURS
+
+    placed = apply(transformation, source)
+    if pairs is not None:
+        distances, indices = pairs
+    else:
+        if warm is not None and len(warm) != len(source):
+            warm = None  # another source's (a subsample's)
+        distances, indices = target_index.query_near(placed, warm=warm)
+    weights = None if sigma is None else relative_gaussian_weights(distances, sigma)
+    target = target_index.points
+    normals = None
+    if len(target) >= 3:
+        normals = np.full((len(placed), 3), np.nan)
+        chosen = np.unique(np.linspace(0, len(placed) - 1, min(MAX_NORMALS, len(placed))).astype(np.intp))
+        unique, inverse = np.unique(indices[chosen], return_inverse=True)
+        estimator = NormalEstimator(target, min(NORMAL_NEIGHBOURS, len(target)), tree=target_index.exact_tree(),
+                                    workers=workers)
+        normals[chosen] = estimator.at(target[unique])[inverse]
+    return pose_uncertainty(placed, target[indices], weights, normals, spacing=target_index.spacing(), origin=origin)
+
+
+def rotation_log(rotation: np.ndarray) -> np.ndarray:
+    """The rotation vector (axis x angle, radians) of a 3x3 rotation."""
+    cosine = min(1.0, max(-1.0, (float(np.trace(rotation)) - 1.0) / 2.0))
+    angle = math.acos(cosine)
+    axis = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]])
+    if angle < 1e-7:
+        return 0.5 * axis
+    if angle > math.pi - 1e-6:
+        values, vectors = np.linalg.eigh(0.5 * (rotation + rotation.T))
+        unit = vectors[:, -1]
+        return angle * unit
+    return angle / (2.0 * math.sin(angle)) * axis
+
+
+def left_error(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
+    """The 6-vector ``delta`` with ``truth ~= Exp(delta) @ estimate`` (both 4x4 ``T_target_source``):
+    ``(omega [rad], v [cloud units])`` in the target frame, first order in ``delta``
+    (``omega`` exact, ``v`` the translation of ``truth @ inv(estimate)``)."""
+    correction = truth @ np.linalg.inv(estimate)
+    return np.concatenate([rotation_log(correction[:3, :3]), correction[:3, 3]])
+
+
+def standard_deviations(covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(rotation_deg, translation)``: the standard deviations of the rotation about x, y, z
+    (degrees) and of the translation along x, y, z (cloud units) of a 6x6 covariance."""
+    deviations = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    return np.degrees(deviations[:3]), deviations[3:]
+
+
+def describe(covariance: np.ndarray | None, degenerate: tuple[DegenerateDirection, ...] = ()) -> list[str]:
+    """Lines for a person: the standard deviations, then each degenerate direction in words."""
+    lines = []
+    if covariance is not None:
+        rotation, translation = standard_deviations(covariance)
+        lines.append("std rotation (deg, about x y z of the target frame): "
+                     + " ".join(f"{value:.3g}" for value in rotation))
+        lines.append("std translation (cloud units, along x y z of the target frame): "
+                     + " ".join(f"{value:.3g}" for value in translation))
+    lines.extend(direction.describe() for direction in degenerate)
+    return lines
