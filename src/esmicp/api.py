@@ -14,6 +14,7 @@ from .core.correspondence import NearestNeighbors
 from .core.procrustes import bounding_box_diagonal
 from .core.correspondence import coincident_points
 from .errors import CoincidentPointsWarning, IndexAlignmentWarning, InvalidInputError
+from .globalreg.config import SearchConfig, as_config
 from .globalreg.scan import TRUSTED, Keypoints, overlap_confidence
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
@@ -64,23 +65,23 @@ PLANE_ITERATIONS = 30
 #: ... on this many of the strided points (evenly strided again): the stage only has to pull a
 #: slid pose back within ``esm``'s reach, and ``esm`` on all ``REFINE_POINTS`` settles it from
 #: there, so fewer points end where 20,000 do, to the refinement's own noise, at less cost
-#: (``docs/speed.md``, "Issue 13, session 37").
+#: (``docs/speed.md``).
 PLANE_POINTS = 5_000
 #: The ``esm-plane`` stage is undone when it lowers the overlap confidence
 #: (:func:`~esmicp.globalreg.scan.overlap_confidence`, 0-1, on the pair's keypoints) by more than
 #: this: where scans overlap by 15% or so, most pairs join points the other scan never saw, the
 #: stage's sigma grows with them and can pull a right global pose far off, where ``esm`` from the
-#: same start converges (``docs/scans-partial-overlap.md``, session 26).
+#: same start converges (``docs/scans-partial-overlap.md``).
 PLANE_CONFIDENCE_DROP = 0.25
 #: The strided stages stop at this tolerance when the caller's is finer (the polish keeps the
 #: caller's): the subsample's optimum is not the whole source's, and on fragment pairs the strided
 #: ``esm`` then creeps on by 1e-5 rad per iteration in no steady direction (3DMatch ``t00_s04``:
 #: 45 of 50 iterations), which the polish's first step (4e-5 rad) undoes. A steady slide toward the
 #: truth still runs to its end (the bunny's ``bun180 -> bun090`` stops too early at 1e-5, not at
-#: 3e-6). Measured: ``docs/speed.md``, "Issue 13, session 24". After a global search, a source too
+#: 3e-6). Measured: ``docs/speed.md``. After a global search, a source too
 #: small for the strided stages is refined at this tolerance too: from the global pose, ``esm``
 #: on all of ``t04_s06``'s 16k source points crept for 94 iterations (0.4 s) and moved the pose by
-#: 0.004 degrees (``docs/speed.md``, "Issue 13, session 29").
+#: 0.004 degrees (``docs/speed.md``).
 STRIDED_TOLERANCE = 3e-6
 #: ... but only from this many source points on. On 2,000-point objects with 60% outliers the
 #: refinement can still be sliding steadily at 3e-6 (a cup 0.8 -> 5.1 degrees, a chair 1.8 -> 2.2),
@@ -102,6 +103,7 @@ class _Request:
     rng: np.random.Generator
     inlier_distance: float | None
     workers: int | None  # threads of every compiled kernel (None: every core)
+    config: SearchConfig  # the global search's tuned values
 
 
 @keeps_keyboard_interrupt
@@ -119,6 +121,7 @@ def register(
     record_history: bool = False,
     inlier_distance: float | None = None,
     workers: int | None = None,
+    config: SearchConfig | None = None,
 ) -> RegistrationResult:
     """Rigidly register ``source`` onto ``target``.
 
@@ -177,6 +180,9 @@ def register(
         the refinement alike. None (the default) uses every core; pass 1 when registering many
         pairs in parallel processes (as :func:`esmicp.register_many` does). The result is the same
         for every value (the kernels sum in a fixed order).
+    config : esmicp.globalreg.config.SearchConfig or dict, optional
+        The global search's tuned values (and the overlap confidence's); None: the measured
+        defaults (:data:`esmicp.globalreg.config.DEFAULT`).
 
     Returns
     -------
@@ -190,7 +196,8 @@ def register(
         or non-positive ``sigma``, ``max_iterations``, ``inlier_distance`` or ``workers``.
     """
     started = time.perf_counter()
-    request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers)
+    request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
+                        config)
     frame = WorkingFrame.for_target(request.target)
     source_points, target_points = frame.points(request.source), frame.points(request.target)
     target_index = NearestNeighbors(target_points, workers=request.workers)
@@ -200,7 +207,7 @@ def register(
     initial, init_name, estimate = _start(request, source_points, target_points, target_index, frame)
     keypoints = getattr(estimate, "keypoints", None)
     if keypoints is None:
-        keypoints = Keypoints.of(source_points, target_points, target_index.spacing())
+        keypoints = Keypoints.of(source_points, target_points, target_index.spacing(), request.config)
     # After a global search (which ends at the finest sigma) the pose is already close: start in
     # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
     estimator = _estimator(method, request, target_index, diagonal, start_fine=estimate is not None)
@@ -211,7 +218,7 @@ def register(
         estimator.start_from(start_distances)
     outcome = _refine(source_points, target_index, estimator, initial, request, diagonal, keypoints, estimate,
                       frame.callback(callback), record_history)
-    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers)
+    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers, request.config)
     if start_distances is not None and request.sigma is None and callback is None and not record_history \
             and confidence < TRUSTED:
         outcome, confidence = _second_try(source_points, target_index, initial, request, diagonal, keypoints,
@@ -233,16 +240,14 @@ def register(
         history=outcome.history,
         init=init_name,
         ambiguous=bool(estimate is not None and estimate.ambiguous),
-        runner_up_ratio=(
-            None if estimate is None or estimate.runner_up_score is None
-            else estimate.runner_up_score / max(estimate.score, 1e-300)
-        ),
+        runner_up_ratio=None if estimate is None else estimate.runner_up_ratio,
         global_candidates=0 if estimate is None else estimate.candidates,
         confidence=confidence,
     )
 
 
-def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers) -> _Request:
+def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
+              config=None) -> _Request:
     """Stage 1: every argument checked (one clear :class:`InvalidInputError` otherwise)."""
     source_points = as_points(source, "source")
     target_points = as_points(target, "target")
@@ -261,6 +266,7 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
         rng=as_generator(rng, default_seed=DEFAULT_SEED),
         inlier_distance=None if inlier_distance is None else as_positive(inlier_distance, "inlier_distance"),
         workers=as_workers(workers),
+        config=as_config(config),
     )
     if method == "esm-paper" and len(source_points) != len(target_points):
         warnings.warn(
@@ -278,7 +284,7 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
         return frame.transform_in(request.initial), request.init_name, None
     estimate = global_estimate(
         source, target, strategy=request.init_name, rng=request.rng, target_index=target_index,
-        target_spacing=target_index.spacing(), workers=request.workers,
+        target_spacing=target_index.spacing(), workers=request.workers, config=request.config,
     )
     return estimate.transformation, f"global:{estimate.strategies[0]}", estimate
 
@@ -312,11 +318,11 @@ def _second_try(source, target_index, initial, request: _Request, diagonal: floa
     (scans cut to 15-50%), that sigma pulls a good start apart; the tight one keeps it, but
     narrows the reach from a poor start on a whole object, so it only comes second, and only
     where the first run is not trusted (measured on the ModelNet40 halves and whole objects:
-    ``docs/scans-start-drift.md``, session 38)."""
+    ``docs/scans-start-drift.md``)."""
     tight = _estimator(request.method, request, target_index, diagonal)
     tight.start_from(start_distances, TIGHT_START_QUANTILE)
     second = _refine(source, target_index, tight, initial, request, diagonal, keypoints, None, None, False)
-    second_confidence = overlap_confidence(second.transformation, keypoints, request.workers)
+    second_confidence = overlap_confidence(second.transformation, keypoints, request.workers, request.config)
     if second_confidence > confidence:
         note = (f"; a second try with a tighter coarse sigma (the start's {TIGHT_START_QUANTILE:.0%} distance "
                 f"quantile) raised the overlap confidence {confidence:.2f} -> {second_confidence:.2f}")
@@ -404,8 +410,8 @@ def _plane_start(points, target_index, initial, request: _Request, diagonal: flo
         return initial, 0, ""
     before = initial_confidence
     if before is None:
-        before = overlap_confidence(initial, keypoints, request.workers)
-    after = overlap_confidence(plane.transformation, keypoints, request.workers)
+        before = overlap_confidence(initial, keypoints, request.workers, request.config)
+    after = overlap_confidence(plane.transformation, keypoints, request.workers, request.config)
     if after < before - PLANE_CONFIDENCE_DROP:
         return initial, plane.num_iterations, (
             f"{plane.num_iterations} esm-plane iteration(s) on {len(points):,} points undone (overlap confidence "
