@@ -1,46 +1,44 @@
-"""Global registration: a pose from anywhere, with a confidence.
+"""Global registration: a pose ``T_target_source`` from anywhere, with the evidence to judge it.
 
-Candidate poses come from one or both strategies:
+The default search (``"auto"``, :func:`global_estimate`) is one pipeline; the tuned values it
+names are fields of :class:`~esmicp.globalreg.config.SearchConfig` (``config.<field>``).
 
-``rotation-search``
-    :func:`~esmicp.globalreg.rotation_search.rotation_search`: ``SEARCH_ROTATIONS`` starting rotations
-    spread over SO(3), centroids aligned, all refined together by a short batched ESM on a few
-    hundred points, through an O(1) nearest-neighbour lookup table.
-``features``
-    FPFH features matched between the clouds and pruned by geometric consistency
-    (:mod:`esmicp.globalreg.feature_matching`); suited to partial overlap, where centroids differ.
-``scan``
-    :mod:`esmicp.globalreg.scan`, on its own: correspondences pruned by second-order spatial
-    compatibility and verified on the overlap, both ways (partially overlapping scans); its
-    scores are its own overlap scores, not the verification below.
+**Generators** (each returns rigid ``(4, 4)`` poses ``T_target_source``):
 
-Every candidate is then *verified* the same way (successive halving, ``VERIFY_ROUNDS``): batched
-ESM at the data's resolution on a subsample, scored by the soft fraction of source points lying on
-the target (:func:`~esmicp.globalreg.rotation_search.gaussian_overlap_score`). Poses that still score
-alike (runner-up within ``DECIDE_RATIO``) are *decided* on (up to) the full clouds: ESM at a
-finer sigma on up to ``DECIDE_POINTS`` points, scored both ways, source on target and target on
-source (the target's own points are clean, while up to 60% of a noisy source is not, and a
-symmetric twin leaves the target's asymmetric details uncovered). The best one wins. When a clearly different
-pose (rotation more than ``DISTINCT_ROTATION_DEG`` away) scores within ``AMBIGUITY_RATIO`` of it,
-the result is flagged ambiguous: the object is probably symmetric, or the overlap too small to
-decide.
+- the *rotation search* (:func:`_rotation_candidates`), for whole objects:
+  ``config.search_rotations`` starting rotations spread over SO(3), centroids aligned, refined
+  together by a short batched ESM on ``config.search_points`` source points
+  (:func:`~esmicp.globalreg.rotation_search.rotation_search`);
+- *correspondences pruned by consistency* (:func:`_scan`, :mod:`esmicp.globalreg.scan`), for
+  partially overlapping scans: FPFH matches kept by second-order spatial compatibility, each
+  pose checked on the overlap both ways; and the *feature hypotheses* of
+  :mod:`esmicp.globalreg.feature_matching` (:func:`_feature_candidates`);
+- the *twins* of a pose (:func:`_twins`): turned by 180 degrees about each principal axis of the
+  target, which a near-symmetric object under heavy noise otherwise ends on.
 
-``"auto"`` (the default) runs the rotation search first; when its result is not confident (see
-:func:`global_estimate`; a pose just short of it is settled first, :data:`SETTLE_FROM`; one
-confident on its score but not on the overlap is checked by the scan strategy's first search
-only, :func:`_on_the_overlap`) the scan strategy runs, and its pose wins outright when it is
-confident on the overlap and overlaps clearly more (``SCAN_MARGIN``); otherwise the feature
-candidates join, with the *twins* of its best pose (turned by 180 degrees about each principal
-axis of the target): under heavy noise a near-symmetric object (a box-like night stand)
-otherwise ends on a twin of the truth that neither strategy proposes; and so do the scan
-strategy's best poses when it is not confident (``SCAN_CANDIDATES``): on a small partial overlap
-they are often right without being confident. Last, a pose chosen this way that is not
-confident on the overlap gives way to the scan strategy's pose most confident there, if that one
-is clearly more confident (``SHARPER_THAN_CHOSEN``): the verification counts how much of the source
-lies on the target, which a cut object's flip can satisfy better than the truth.
-The rotation search alone and the features alone each miss cases the other catches, so the
-default uses both (the measurements: ``docs/measured-global.md``, "Why these
-choices").
+**Verifier** (:func:`_verify`, then :func:`_decide`): every candidate is refined by batched ESM at
+the data's resolution and scored by the soft fraction (0-1) of source points lying on the target
+(Gaussian of width ``config.score_width_spacings`` target spacings), in successive-halving rounds.
+When the runner-up scores at least ``config.decide_ratio`` of the best, the contenders are
+re-scored on up to the full clouds, both ways (source on target and target on source).
+
+**Decision**: the best verified pose, unless one of the scan strategy's poses is confident on the
+overlap (:func:`~esmicp.globalreg.scan.overlap_confidence` at least ``config.confident``) and
+overlaps more (:func:`_scan_leads`), or the chosen pose is not confident there and a scan pose is
+clearly more (:func:`_sharper_on_the_overlap`, ``config.sharper_than_chosen``): the verifier
+counts how much of the source lies on the target, which a cut object's flip can satisfy better
+than the truth. The result is *ambiguous* when a clearly different pose (rotation more than
+:data:`~esmicp.globalreg.DISTINCT_ROTATION_DEG` away) scores at least ``config.ambiguity_ratio``
+of the returned one, or more (the returned pose then won on sharpness);
+:attr:`GlobalEstimate.runner_up_ratio` is the lower of the two scores over the higher.
+
+**Exits for cost**: the rotation search's pose is final before the scan strategy runs when it
+scores ``config.confident_score``, unambiguously, and is confident on the overlap or covers the
+target (``config.full_cover``); or when, just short of that (``config.settle_from``), a few more
+ESM iterations make it so (:func:`_settle`). Most whole objects end there.
+
+``init="rotation-search"`` / ``"features"`` / ``"scan"`` run one generator alone, through the same
+verifier (the scan strategy through its own verification on the overlap).
 """
 
 from __future__ import annotations
@@ -104,7 +102,7 @@ class GlobalEstimate:
 
     ``transformations`` ``(K, 4, 4)`` and ``scores`` ``(K,)`` (soft fraction, 0-1, of the
     verification source points lying on the target) hold the best pose and every distinct pose
-    scoring at least ``AMBIGUITY_RATIO`` of it, plus the best distinct runner-up below that, if any.
+    scoring at least ``ambiguity_ratio`` of it, plus the best distinct runner-up below that, if any.
     ``strategies`` names where each came from; ``candidates`` counts the poses verified.
     """
 
@@ -227,111 +225,91 @@ def global_estimate(
     workers: int | None = None,
     config: SearchConfig = DEFAULT,
 ) -> GlobalEstimate:
-    """Find ``T_target_source`` from any initial pose (see the module docstring).
+    """Find ``T_target_source`` from any initial pose (the stages: the module docstring).
 
     ``source`` and ``target`` are validated ``(N, 3)`` / ``(M, 3)`` float64 arrays; ``rng`` drives
     every random subsample, so a seeded generator makes the result reproducible. ``target_index``
     (a :class:`NearestNeighbors` over ``target``) is reused when given, and so is
     ``target_spacing`` (its :meth:`~NearestNeighbors.spacing`, cloud units). ``workers``: threads
     of the compiled kernels (None: every core; a given ``target_index`` keeps its own).
-
-    ``"auto"`` runs the rotation search first; when its verified best pose already puts at least
-    ``CONFIDENT_SCORE`` of the source on the target, no distinct pose comes close and it is
-    confident on the overlap (:func:`_on_the_overlap`) or covers the whole target
-    (:func:`_covers_the_target`), that is final (clouds that overlap fully, as most objects do).
-    A pose just short of ``CONFIDENT_SCORE`` is final once settled by a few more iterations, if it
-    is then confident on the overlap (:func:`_settle`); so is a confident one that is neither. If
-    settling does not make it confident, that pose stands unless the scan strategy's first search
-    leads it (:func:`_scan_leads`).
-    Otherwise the scan strategy runs (:mod:`esmicp.globalreg.scan`, for partial overlaps); its pose
-    is final when it is confident on the overlap and overlaps clearly more than the rotation
-    search's best. Otherwise the feature
-    candidates, the twins of that pose (:func:`_twins`) and, when it is not confident, the scan
-    strategy's best poses (:data:`SCAN_CANDIDATES`) join, and everything is verified together;
-    the scan pose still wins if it is confident and overlaps strictly more than the winner. A
-    pose that stands or wins after the scan strategy ran, and is not confident on the overlap,
-    gives way to a clearly more confident scan pose (:func:`_sharper_on_the_overlap`). The
-    scan's keypoints come back in ``keypoints`` either way, for the confidence.
+    ``strategy``: one of :data:`STRATEGIES`; ``config``: the tuned values.
     """
     full_index = target_index if target_index is not None else NearestNeighbors(target, workers=workers)
     if strategy == "scan":
         return _scan(source, target, full_index, target_spacing, config=config)
+    work = _workspace(source, target, rng, full_index, target_spacing, config)
+    if strategy == "rotation-search":
+        return _decide(work, _verify(work, _rotation_candidates(work), "rotation-search"))
+    if strategy == "features":
+        found = _feature_candidates(work)
+        if found:
+            return _decide(work, _verify(work, found, "features"))
+        # Too few feature matches to propose anything: the rotation search rather than a failure.
+        return global_estimate(source, target, strategy="rotation-search", rng=rng, target_index=full_index,
+                               target_spacing=target_spacing, workers=full_index.workers, config=config)
+    return _auto(work, target_spacing)
+
+
+def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
+    """The default search: generators, one verification, one decision (module docstring)."""
+    config, workers = work.config, work.full_index.workers
+    # 1. Whole objects: the rotation search's poses, verified.
+    rotation = _verify(work, _rotation_candidates(work), "rotation-search")
+    searched = rotation.candidates
+    # Exits for cost: a confident rotation-search pose (most whole objects) is final here.
+    scored = None  # that pose, when its score alone is confident
+    if rotation.score >= config.confident_score and not rotation.ambiguous:
+        scored = _on_the_overlap(work, _decide(work, rotation))
+        if scored.confidence >= config.confident or _covers_the_target(work, scored.transformation):
+            return scored
+    if rotation.score >= config.settle_from * config.confident_score and not rotation.ambiguous:
+        settled = _settle(work, rotation)
+        if settled is not None:
+            return settled
+    # 2. Partial overlaps: correspondences pruned by consistency (the scan strategy); a pose
+    # confident on its score alone is only checked by its first search.
+    scanned = _scan(work.source, work.target, work.full_index, target_spacing,
+                    searches=None if scored is None else 1, config=config)
+    if _scan_leads(scanned, rotation.transformation, margin=config.scan_margin, workers=workers, config=config):
+        return replace(scanned, candidates=searched + scanned.candidates)
+    if scored is not None:
+        return _sharper_on_the_overlap(replace(scored, candidates=searched + scanned.candidates), scanned,
+                                       workers, config)
+    # 3. Everything else verified together: the twins of the rotation search's pose, the scan
+    # strategy's unconfident poses and the feature hypotheses, with the rotation search's
+    # verified contenders carried into the last round.
+    twins = _twins(work.index.points, rotation.transformation)
+    scan_poses = _unconfident_scan_poses(scanned, config)
+    found = _feature_candidates(work)
+    origins = ["rotation-search"] * len(twins) + ["scan"] * len(scan_poses) + ["features"] * len(found)
+    chosen = _decide(work, _verify(work, twins + scan_poses + found, origins, carried=rotation))
+    # Each pose counted once: the scan strategy's in ``scanned.candidates``.
+    chosen = replace(chosen, candidates=searched + len(twins) + len(found) + scanned.candidates)
+    # 4. The decision: the best verified pose, unless the scan strategy's is confident and
+    # overlaps more, or this one is not confident on the overlap and a scan pose is clearly more.
+    if _scan_leads(scanned, chosen.transformation, workers=workers, config=config):
+        return replace(scanned, candidates=chosen.candidates)
+    return _sharper_on_the_overlap(replace(chosen, keypoints=scanned.keypoints), scanned, workers, config)
+
+
+def _workspace(source, target, rng, full_index: NearestNeighbors, target_spacing: float | None,
+               config: SearchConfig) -> _Workspace:
+    """The :class:`_Workspace` of one search: the target indexed (a subsample of
+    :data:`TARGET_POINTS` drawn from ``rng`` when larger), its spacing and the score width."""
     if len(target) <= TARGET_POINTS:
         index = full_index
     else:
         index = NearestNeighbors(_subsample(target, TARGET_POINTS, rng), workers=full_index.workers)
     spacing = target_spacing if target_spacing is not None and index is full_index else index.spacing()
     width = config.score_width_spacings * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target)
-    work = _Workspace(source, target, rng, full_index, index, spacing, width, config)
-
-    candidates: list[np.ndarray] = []
-    origins: list[str] = []
-    if strategy in ("auto", "rotation-search"):
-        candidates += _rotation_candidates(work)
-        origins += ["rotation-search"] * (len(candidates) - len(origins))
-    searched = len(candidates)
-    carried = None
-    if strategy == "auto":
-        estimate = _verify(work, candidates, origins)
-        scored = None  # the rotation search's pose when its score alone made it confident
-        if estimate.score >= config.confident_score and not estimate.ambiguous:
-            scored = _on_the_overlap(work, _decide(work, estimate))
-            if scored.confidence >= config.confident or _covers_the_target(work, scored.transformation):
-                return scored
-        if estimate.score >= config.settle_from * config.confident_score and not estimate.ambiguous:
-            settled = _settle(work, estimate)
-            if settled is not None:
-                return settled
-        # Not confident: probably a partial overlap. The scan strategy's pose wins at once when it
-        # is confident on the overlap and overlaps clearly more than the rotation search's. A pose
-        # confident on its score alone is only checked, by the scan strategy's first search.
-        scanned = _scan(source, target, full_index, target_spacing, searches=None if scored is None else 1,
-                        config=config)
-        if _scan_leads(scanned, estimate.transformation, margin=config.scan_margin, workers=full_index.workers,
-                       config=config):
-            return replace(scanned, candidates=searched + scanned.candidates)
-        if scored is not None:
-            return _sharper_on_the_overlap(replace(scored, candidates=searched + scanned.candidates), scanned,
-                                           full_index.workers, config)
-        # The rotation search's verified contenders join the feature candidates in the last round.
-        carried = (estimate.transformations, estimate.scores, list(estimate.strategies))
-        candidates = _twins(work.index.points, estimate.transformation)
-        origins = ["rotation-search"] * len(candidates)
-        searched += len(candidates)
-        scan_poses = _unconfident_scan_poses(scanned, config)
-        candidates += scan_poses
-        origins += ["scan"] * len(scan_poses)
-    found_count = 0
-    if strategy in ("auto", "features"):
-        found = _feature_candidates(work)
-        found_count = len(found)
-        candidates += found
-        origins += ["features"] * len(found)
-    if not candidates:
-        if carried is not None:
-            return _decide(work, estimate)
-        # Only the feature strategy can come back empty (too few feature matches): fall back to
-        # the rotation search rather than fail.
-        return global_estimate(
-            source, target, strategy="rotation-search", rng=rng, target_index=full_index,
-            target_spacing=target_spacing, workers=full_index.workers, config=config,
-        )
-    estimate = _decide(work, _verify(work, candidates, origins, carried=carried))
-    # Count each candidate pose once (the carried rotation-search contenders are not new ones).
-    estimate = replace(estimate, candidates=searched + found_count)
-    if strategy == "auto":
-        if _scan_leads(scanned, estimate.transformation, workers=full_index.workers, config=config):
-            return replace(scanned, candidates=estimate.candidates + scanned.candidates)
-        chosen = replace(estimate, candidates=estimate.candidates + scanned.candidates, keypoints=scanned.keypoints)
-        return _sharper_on_the_overlap(chosen, scanned, full_index.workers, config)
-    return estimate
+    return _Workspace(source, target, rng, full_index, index, spacing, width, config)
 
 
 def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     """``estimate`` with the pair's keypoints and the overlap confidence of its best pose
     (:func:`~esmicp.globalreg.scan.overlap_confidence`). ``"auto"`` takes the rotation search's
     pose, confident on its score, at once only when this is at least
-    :data:`~esmicp.globalreg.scan.CONFIDENT` (the search's own bar; ``register``'s result is
+    ``config.confident`` (the search's own bar; ``register``'s result is
     trusted from :data:`~esmicp.globalreg.scan.TRUSTED`) or the pose covers the whole target
     (:func:`_covers_the_target`); otherwise the scan strategy's first search checks it
     (:func:`global_estimate`).
@@ -359,8 +337,9 @@ def _covers_the_target(work: _Workspace, transformation: np.ndarray) -> bool:
 
 
 def _settle(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate | None:
-    """``estimate`` with its best pose settled (see :data:`SETTLE_FROM`), and the pair's keypoints
-    (for the confidence), when the settled pose scores ``CONFIDENT_SCORE`` and is confident on the
+    """``estimate`` with its best pose settled (:data:`SETTLE_ITERATIONS` more ESM iterations on
+    :data:`SETTLE_POINTS` strided source points), and the pair's keypoints (for the confidence),
+    when the settled pose scores ``config.confident_score`` and is ``config.confident`` on the
     overlap; else None. The source points are strided, not drawn: the generator's later draws stay
     those of a search without this step."""
     from .scan import overlap_confidence
@@ -398,7 +377,7 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
     """True when the scan strategy's best pose is confident on the overlap
     (:func:`~esmicp.globalreg.scan.overlap_confidence`) and either its overlap score (keypoints of
     both clouds on the other cloud) is above ``margin`` times that of ``other``, or it overlaps at
-    least ``SHARPER_SCORE_RATIO`` as much and is sharper by ``SHARPER_BY``: a pose slid along a
+    least ``config.sharper_score_ratio`` as much and is sharper by ``config.sharper_by``: a pose slid along a
     wall or a floor can overlap a little more, while only the true one makes the overlap coincide
     (``docs/scans-partial-overlap.md``). ``workers``: threads of the queries."""
     from .scan import overlap_confidence, overlap_score
@@ -416,8 +395,8 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
 def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
                             workers: int | None = None, config: SearchConfig = DEFAULT) -> GlobalEstimate:
     """``chosen`` (its keypoints set) with the overlap confidence of its best pose on its keypoints,
-    unless that is below :data:`~esmicp.globalreg.scan.CONFIDENT` and one of the scan strategy's
-    poses is more confident by :data:`SHARPER_THAN_CHOSEN`: then the most confident of those, with
+    unless that is below ``config.confident`` and one of the scan strategy's
+    poses is more confident by ``config.sharper_than_chosen``: then the most confident of those, with
     the chosen pose as its runner-up when the two are distinct (rotations more than
     ``DISTINCT_ROTATION_DEG`` apart), each scored by its overlap score on the keypoints. The
     chosen pose usually overlaps more, so such a result is usually flagged ambiguous, and its
@@ -455,7 +434,7 @@ def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
 
 
 def _unconfident_scan_poses(scanned: GlobalEstimate, config: SearchConfig = DEFAULT) -> list[np.ndarray]:
-    """The scan strategy's best :data:`SCAN_CANDIDATES` poses when its best is not confident on the
+    """The scan strategy's best ``config.scan_candidates`` poses when its best is not confident on the
     overlap, else none: a confident one keeps the way to win it had (:func:`_scan_leads`), and its
     runner-ups get no chance to beat it in a verification that scores differently (sending them
     whatever the confidence gave the same results on the crops and the object protocols measured:
@@ -510,15 +489,17 @@ def _batched_verification(work, index, source_points, transformations, iteration
 def _verify(
     work: _Workspace,
     candidates: list[np.ndarray],
-    origins: list[str],
+    origins: list[str] | str,
     *,
-    carried: tuple[np.ndarray, np.ndarray, list[str]] | None = None,
+    carried: GlobalEstimate | None = None,
 ) -> GlobalEstimate:
-    """Successive halving over ``candidates``, then a full-resolution decision between poses that
-    still score alike. ``carried`` poses (with their scores and origins), verified before by the
-    same rounds, join the survivors after the last round."""
+    """The verifier: successive halving over ``candidates`` (:data:`VERIFY_ROUNDS`: batched ESM on
+    a source subsample, each pose scored by the soft fraction of those points on the target);
+    ``origins`` names each candidate's generator (one name for all). ``carried`` poses (with their
+    scores and origins), verified before by the same rounds, join the survivors after the last
+    round. Returns the contenders (:func:`_contenders`), best first."""
     verified = np.stack(candidates)
-    origins_array = np.array(origins)
+    origins_array = np.array([origins] * len(candidates) if isinstance(origins, str) else origins)
     for points, iterations, keep in VERIFY_ROUNDS:
         verified, scores = _batched_verification(
             work, work.index, _subsample(work.source, points, work.rng), verified, iterations, work.width
@@ -526,9 +507,9 @@ def _verify(
         survivors = _distinct(verified, np.argsort(-scores, kind="stable"), keep)
         verified, scores, origins_array = verified[survivors], scores[survivors], origins_array[survivors]
     if carried is not None:
-        verified = np.concatenate([verified, carried[0]])
-        scores = np.concatenate([scores, carried[1]])
-        origins_array = np.concatenate([origins_array, np.array(carried[2])])
+        verified = np.concatenate([verified, carried.transformations])
+        scores = np.concatenate([scores, carried.scores])
+        origins_array = np.concatenate([origins_array, np.array(carried.strategies)])
     kept = _contenders(verified, scores, work.config.ambiguity_ratio)
     return GlobalEstimate(verified[kept], scores[kept], tuple(origins_array[kept]), candidates=len(candidates),
                           ambiguity_ratio=work.config.ambiguity_ratio)
@@ -536,7 +517,7 @@ def _verify(
 
 def _decide(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     """Re-verify ``estimate``'s contenders on (up to) the full clouds when the runner-up scores at
-    least ``DECIDE_RATIO`` of the best: ``DECIDE_ITERATIONS`` ESM iterations at a sigma of
+    least ``config.decide_ratio`` of the best: ``DECIDE_ITERATIONS`` ESM iterations at a sigma of
     ``DECIDE_SIGMA_SPACINGS`` target spacings on ``DECIDE_POINTS`` source points, then the mean of
     two Gaussian overlap scores: those source points on the full target, and ``DECIDE_POINTS``
     target points on the full placed source. Returns the contenders re-ranked by it."""
