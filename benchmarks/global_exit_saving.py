@@ -1,5 +1,5 @@
 """What the global search's exits for cost save: the default search against the same search with
-those exits closed (``SearchConfig(confident_score=1.0)``: no rotation-search pose is final before
+those exits closed (``SearchConfig(confident_score=2.0)``: no rotation-search pose is final before
 the scan strategy runs), on the same trials, interleaved trial by trial (A, B, A, B, ...).
 
 Trials: ``--trials`` per object protocol (``copy``, ``outliers-30``, ``outliers-60``) and ModelNet40
@@ -49,7 +49,7 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=12)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    closed = dataclasses.replace(DEFAULT, confident_score=1.0)
+    closed = dataclasses.replace(DEFAULT, confident_score=2.0)
     totals: dict[str, dict[str, list]] = {}
     for number, (group, source, target, truth, clean, diagonal) in enumerate(trials(args.data, args.trials, args.seed)):
         for name, config in (("default", DEFAULT), ("closed", closed)):

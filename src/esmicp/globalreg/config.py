@@ -49,9 +49,10 @@ class SearchConfig:
         exit of the verification, for cost.
     confident_score : float
         ``"auto"`` stops after the rotation search when its best pose puts at least this soft
-        fraction of the source on the target (0-1) and is unambiguous and confident on the overlap
-        or covers the target. Measured on outliers-30 / outliers-60 of the development shapes (the
-        right poses scored 0.58-0.78, 5th percentile 0.63; wrong ones reached 0.62 once).
+        fraction of the source on the target (0-1; above 1: never) and is unambiguous and
+        confident on the overlap or covers the target. Measured on outliers-30 / outliers-60 of
+        the development shapes (the right poses scored 0.58-0.78, 5th percentile 0.63; wrong ones
+        reached 0.62 once).
     full_cover : float
         Such a pose is also final when at least this fraction (0-1) of the target's points lie
         within two score widths of the placed source: the full overlap the score assumes holds
@@ -127,12 +128,11 @@ class SearchConfig:
         if isinstance(self.scan_candidates, bool) or not isinstance(self.scan_candidates, numbers.Integral) \
                 or self.scan_candidates < 0:
             raise InvalidInputError(f"config.scan_candidates: expected an integer >= 0, got {self.scan_candidates!r}")
-        for name in ("ambiguity_ratio", "decide_ratio", "confident_score", "full_cover", "sharper_score_ratio",
-                     "confident"):
+        for name in ("ambiguity_ratio", "decide_ratio", "full_cover", "sharper_score_ratio", "confident"):
             value = getattr(self, name)
             if not _is_number(value) or not 0.0 <= value <= 1.0:
                 raise InvalidInputError(f"config.{name}: expected a number in [0, 1], got {value!r}")
-        for name in ("settle_from", "sharper_by", "sharper_than_chosen"):  # above 1: never
+        for name in ("confident_score", "settle_from", "sharper_by", "sharper_than_chosen"):  # above 1: never
             value = getattr(self, name)
             if not _is_number(value) or not 0.0 <= value < float("inf"):
                 raise InvalidInputError(f"config.{name}: expected a finite number >= 0, got {value!r}")
