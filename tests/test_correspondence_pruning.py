@@ -309,9 +309,8 @@ def _right_3dmatch(pose: np.ndarray, truth: np.ndarray) -> bool:
 def test_a_real_pair_cropped_to_15_percent_overlap_succeeds():
     """3DMatch fragments 0 and 4 (~300k points each) cropped by a seeded plane slab until 15% of
     the source lies on the target (``benchmarks/lomatch_crop.py``'s crop, as recorded): the
-    default ``register`` finds the pose by the 3DMatch criteria, confidently. Before session 26
-    its seeds (64, spread in the source only) held no true group and it ended 35 degrees off; with
-    the seeds right, the ``esm-plane`` stage still pulled the pose from 2 to 37 degrees off, and is
+    default ``register`` finds the pose by the 3DMatch criteria, confidently. With 64 seeds spread
+    in the source only, no true group survived and it ended 35 degrees off; with the seeds right, the ``esm-plane`` stage still pulled the pose from 2 to 37 degrees off, and is
     now undone."""
     cropped, truth = _lomatch_crop("t00_s04", 0, (0, 1, 0))
     assert cropped.source_overlap < 0.2
@@ -346,7 +345,7 @@ def test_an_unconfident_scan_search_is_run_again_with_other_settings():
 def test_a_sharper_scan_pose_wins_over_a_slid_pose_that_overlaps_a_little_more(monkeypatch):
     """3DMatch fragments 0 and 4 cropped to 15% overlap (``benchmarks/lomatch_crop.py --crops 3
     --seed 100``'s crop 1 of that pair): the scan strategy's best pose is right and confident but
-    overlaps a little less than the rotation search's (measured in session 28: 0.19 against 0.22,
+    overlaps a little less than the rotation search's (measured: 0.19 against 0.22,
     confidence 0.70 against 0.16), which the refinement then slid to 0.49 m off. The scan pose
     now wins on its sharpness (``SearchConfig.sharper_by``). With that rule off, the rotation search's
     unconfident pose still gives way to the sharper scan pose at the very end
@@ -371,7 +370,7 @@ def test_a_flip_that_lays_a_floor_on_a_floor_is_not_confident(monkeypatch):
     """The 3DMatch pair ``t00_s06`` cropped to 15% overlap (``benchmarks/lomatch_crop.py --crops 3
     --seed 200``'s crop 1 of that pair, as recorded): no right pose is found, and the one returned
     (150-166 degrees off) lays a patch of floor on a patch of floor, which coincides as sharply as
-    the truth: it came back with confidence 0.85 (session 29). The coincident normals all point
+    the truth: it came back with confidence 0.85. The coincident normals all point
     one way (``SearchConfig.spread_range``, ``third_range``), so it must now come back unconfident, or
     right. Fails with the spread terms off."""
     from esmicp.globalreg import scan
@@ -393,7 +392,7 @@ def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, co
     """The 3DMatch pair ``t04_s06`` cropped to 15% overlap (``benchmarks/lomatch_crop.py --crops 4
     --seed 0``'s crops 0 and 1 of that pair, as recorded): no search at the standard voxel is
     confident (30-180 degrees off), and only the search at the voxel of ``count`` target keypoints
-    (of ``scan.LAST_KEYPOINTS``) finds the pose, confidently (sessions 30 and 31). The estimate
+    (of ``scan.LAST_KEYPOINTS``) finds the pose, confidently. The estimate
     carries the standard keypoints, so that its confidence is on the data's one scale. Fails if
     that search is dropped."""
     from esmicp.globalreg import scan
@@ -415,8 +414,8 @@ def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, co
 def test_a_small_cloud_skips_the_last_searches(monkeypatch):
     """Two unrelated 1,000-point clouds: no search is confident, and the voxels of every count of
     ``scan.LAST_KEYPOINTS`` are the standard one (all at ``MIN_VOXEL_SPACINGS``), so those searches
-    would repeat the first: they must not run (objects reach the scan strategy often, and issue 14
-    times them)."""
+    would repeat the first: they must not run (objects reach the scan strategy often, and every
+    search costs time)."""
     from esmicp.globalreg import scan
 
     generator = np.random.default_rng(3)

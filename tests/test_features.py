@@ -161,7 +161,7 @@ def test_normals_use_the_k_nearest_within_the_radius_as_scipys_tree_finds_them()
 
 
 def test_normals_use_the_neighbours_at_exactly_the_radius():
-    """The k-nearest search starts bounded by the radius (session 32): a point at exactly the
+    """The k-nearest search starts bounded by the radius: a point at exactly the
     radius is still a neighbour, as it was when the search was unbounded. Here four points at
     exactly 1.0 in the plane z = 0 make the normal; without them the query would have fewer than 3
     neighbours and take the fallback (the direction from the centroid, far from the z axis)."""
@@ -446,7 +446,7 @@ def test_the_feature_strategy_pools_both_kinds_of_normals_on_a_bunny_scan_pair(m
     feature hypotheses of the dense points' normals alone ``register`` ended 121 degrees off; those
     of the keypoints' own normals join them (``search._feature_candidates``) and the pose is found.
     Fails if either kind is dropped from the pool (checked: the dense kind alone fails here). The
-    scan strategy's unconfident poses, which also find this pose since session 33, are kept out of
+    scan strategy's unconfident poses, which also find this pose, are kept out of
     the verification, so that the features alone are tested."""
     import esmicp
     from esmicp.io.stanford_conf import load_scans

@@ -131,8 +131,8 @@ def test_a_lidar_pose_just_short_of_confident_is_settled(monkeypatch):
 def test_a_settled_pose_must_be_confident_on_the_overlap(monkeypatch):
     """A piano cut to 70% (``esmicp bench --datasets partial-overlap``'s trial 21): the rotation
     search proposes the other half flipped end to end, and settling lifts its score (0.595 ->
-    0.621 on session 30's host, 0.585 -> 0.598 on session 34's), while its overlap confidence is
-    0.10. With ``confident_score`` between the two scores, as on session 30's host, the settled
+    0.621 on one host, 0.585 -> 0.598 on another), while its overlap confidence is
+    0.10. With ``confident_score`` between the two scores, as on the first host, the settled
     flip must not be final (the scan strategy finds the pose); without the overlap check it is.
     The bar is set from the scores measured here: a bar fixed at 0.6 is crossed on one host and
     not on another. Fails if a settled pose is final without the overlap check."""

@@ -179,7 +179,7 @@ def test_a_corner_of_floor_and_wall_slid_along_their_line_is_not_confident(monke
     truth, and their normals span two directions (the middle eigenvalue is the wall's share), so
     the spread term read that as confident; but the slide along the line is free, and the smallest
     eigenvalue is 0 (``SearchConfig.third_range``; on the 3DMatch crops, two wrong
-    poses 120 degrees and 1 m off, session 30). A room (floor and two walls) at the truth stays
+    poses 120 degrees and 1 m off). A room (floor and two walls) at the truth stays
     confident. Fails if the third-direction term is dropped."""
     from esmicp.core.procrustes import to_matrix
     from esmicp.globalreg import scan
