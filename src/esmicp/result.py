@@ -93,7 +93,7 @@ class RegistrationResult:
         span fewer than three directions (one plane laid on another holds only 3 of the 6 degrees
         of freedom, a floor and one wall 5: :func:`esmicp.globalreg.scan.coincident_spread`). Below 0.55
         (:data:`esmicp.globalreg.scan.TRUSTED`): do not trust the pose. Measured figures:
-        ``docs/measured-global.md``, "Scans".
+        ``docs/measured-global.md``, "How far the confidence can be trusted".
     """
 
     transformation: np.ndarray
