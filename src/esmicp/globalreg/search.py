@@ -32,10 +32,12 @@ than the truth. The result is *ambiguous* when a clearly different pose (rotatio
 of the returned one, or more (the returned pose then won on sharpness);
 :attr:`GlobalEstimate.runner_up_ratio` is the lower of the two scores over the higher.
 
-**Exits for cost**: the rotation search's pose is final before the scan strategy runs when it
-scores ``config.confident_score``, unambiguously, and is confident on the overlap or covers the
-target (``config.full_cover``); or when, just short of that (``config.settle_from``), a few more
-ESM iterations make it so (:func:`_settle`). Most whole objects end there.
+**One exit, for cost**: the rotation search's pose is final before the scan strategy runs when
+it scores ``config.confident_score`` (after a few more ESM iterations, :func:`_settle`, when it
+scored just short of it: ``config.settle_from``), unambiguously, and is confident on the overlap
+or covers the target (``config.full_cover``). Most whole objects end there; closing the exit
+costs 1.5 times the time on the development objects and halves, for the same successes
+(``docs/measured-global.md``, "Exits for cost").
 
 ``init="rotation-search"`` / ``"features"`` / ``"scan"`` run one generator alone, through the same
 verifier (the scan strategy through its own verification on the overlap).
@@ -256,16 +258,17 @@ def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
     # 1. Whole objects: the rotation search's poses, verified.
     rotation = _verify(work, _rotation_candidates(work), "rotation-search")
     searched = rotation.candidates
-    # Exits for cost: a confident rotation-search pose (most whole objects) is final here.
+    # The one exit, for cost: a confident rotation-search pose (most whole objects) is final here;
+    # one just short of the score (``config.settle_from``) is settled by a few more iterations first.
     scored = None  # that pose, when its score alone is confident
-    if rotation.score >= config.confident_score and not rotation.ambiguous:
-        scored = _on_the_overlap(work, _decide(work, rotation))
-        if scored.confidence >= config.confident or _covers_the_target(work, scored.transformation):
-            return scored
     if rotation.score >= config.settle_from * config.confident_score and not rotation.ambiguous:
-        settled = _settle(work, rotation)
-        if settled is not None:
-            return settled
+        if rotation.score >= config.confident_score:
+            final = scored = _on_the_overlap(work, _decide(work, rotation))
+        else:
+            final = _settle(work, rotation)
+        if final is not None and (final.confidence >= config.confident
+                                  or _covers_the_target(work, final.transformation)):
+            return final
     # 2. Partial overlaps: correspondences pruned by consistency (the scan strategy); a pose
     # confident on its score alone is only checked by its first search.
     scanned = _scan(work.source, work.target, work.full_index, target_spacing,
@@ -338,10 +341,10 @@ def _covers_the_target(work: _Workspace, transformation: np.ndarray) -> bool:
 
 def _settle(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate | None:
     """``estimate`` with its best pose settled (:data:`SETTLE_ITERATIONS` more ESM iterations on
-    :data:`SETTLE_POINTS` strided source points), and the pair's keypoints (for the confidence),
-    when the settled pose scores ``config.confident_score`` and is ``config.confident`` on the
-    overlap; else None. The source points are strided, not drawn: the generator's later draws stay
-    those of a search without this step."""
+    :data:`SETTLE_POINTS` strided source points), the pair's keypoints and the settled pose's
+    overlap confidence, when the settled pose scores ``config.confident_score``; else None. The
+    source points are strided, not drawn: the generator's later draws stay those of a search
+    without this step."""
     from .scan import overlap_confidence
 
     stride = np.linspace(0, len(work.source) - 1, min(SETTLE_POINTS, len(work.source))).astype(np.intp)
@@ -351,8 +354,6 @@ def _settle(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate | None
         return None
     keypoints = work.keypoints()
     confidence = overlap_confidence(settled[0], keypoints, work.full_index.workers, work.config)
-    if confidence < work.config.confident:
-        return None
     return replace(estimate, transformations=np.concatenate([settled, estimate.transformations[1:]]),
                    scores=np.concatenate([scores, estimate.scores[1:]]), keypoints=keypoints, confidence=confidence)
 
