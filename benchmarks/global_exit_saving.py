@@ -1,5 +1,5 @@
-"""What the global search's exits for cost save: the default search against the same search with
-those exits closed (``SearchConfig(confident_score=2.0)``: no rotation-search pose is final before
+"""What the global search's exit for cost saves: the default search against the same search with
+that exit closed (``SearchConfig(confident_score=2.0)``: no rotation-search pose is final before
 the scan strategy runs), on the same trials, interleaved trial by trial (A, B, A, B, ...).
 
 Trials: ``--trials`` per object protocol (``copy``, ``outliers-30``, ``outliers-60``) and ModelNet40
@@ -58,7 +58,7 @@ def main() -> None:
             elapsed = time.perf_counter() - started
             ok = bool(up_to_symmetry_success(clean, result.transformation, truth, diagonal))
             totals.setdefault(group, {}).setdefault(name, []).append((elapsed, ok))
-    print("| trials | n | right, default | right, exits closed | time closed / default |")
+    print("| trials | n | right, default | right, exit closed | time closed / default |")
     print("|---|---|---|---|---|")
     every: dict[str, list] = {"default": [], "closed": []}
     for group, runs in totals.items():
