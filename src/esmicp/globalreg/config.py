@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import numbers
 from dataclasses import dataclass
+from typing import Any
 
 from ..errors import InvalidInputError
 
@@ -166,7 +167,9 @@ class SearchConfig:
         if unknown:
             raise InvalidInputError(f"config: unknown field(s) {', '.join(map(repr, unknown))}; "
                                     f"known: {', '.join(sorted(known))}")
-        return cls(**{name: tuple(value) if isinstance(value, list) else value for name, value in data.items()})
+        values: dict[str, Any] = {name: tuple(value) if isinstance(value, list) else value
+                                  for name, value in data.items()}
+        return cls(**values)
 
 
 def _is_number(value) -> bool:

@@ -261,13 +261,14 @@ def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
     # The one exit, for cost: a confident rotation-search pose (most whole objects) is final here;
     # one just short of the score (``config.settle_from``) is settled by a few more iterations first.
     scored = None  # that pose, when its score alone is confident
+    final: GlobalEstimate | None
     if rotation.score >= config.settle_from * config.confident_score and not rotation.ambiguous:
         if rotation.score >= config.confident_score:
             final = scored = _on_the_overlap(work, _decide(work, rotation))
         else:
             final = _settle(work, rotation)
-        if final is not None and (final.confidence >= config.confident
-                                  or _covers_the_target(work, final.transformation)):
+        confident = final is not None and final.confidence is not None and final.confidence >= config.confident
+        if final is not None and (confident or _covers_the_target(work, final.transformation)):
             return final
     # 2. Partial overlaps: correspondences pruned by consistency (the scan strategy); a pose
     # confident on its score alone is only checked by its first search.
