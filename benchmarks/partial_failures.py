@@ -29,6 +29,7 @@ from esmicp.bench.scans import PARTIAL_KEEPS, _modelnet_clouds, _seed_of
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import bounding_box_diagonal, to_matrix
 from esmicp.globalreg import search
+from esmicp.globalreg.config import DEFAULT
 from esmicp.globalreg.rotation_search import batched_esm, gaussian_overlap_score
 from esmicp.metrics import symmetric_placement_error
 
@@ -44,7 +45,7 @@ def both_ways_overlap(source, target, transformation, spacing) -> float:
     )
     refined = to_matrix(rotations[0], translations[0])
     backward, _ = NearestNeighbors(source).query((target - refined[:3, 3]) @ refined[:3, :3])
-    width = search.SCORE_WIDTH_SPACINGS * spacing
+    width = DEFAULT.score_width_spacings * spacing
     return float(0.5 * (gaussian_overlap_score(forward, width)[0] + gaussian_overlap_score(backward, width)))
 
 
@@ -53,7 +54,7 @@ def candidates(source, target, seed) -> dict[str, list[np.ndarray]]:
     index = NearestNeighbors(target)
     spacing = index.spacing()
     work = search._Workspace(source, target, np.random.default_rng(seed), index, index, spacing,
-                             search.SCORE_WIDTH_SPACINGS * spacing)
+                             DEFAULT.score_width_spacings * spacing)
     proposed = search._rotation_candidates(work)
     verified = search._verify(work, proposed, ["rotation-search"] * len(proposed))
     return {

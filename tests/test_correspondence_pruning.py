@@ -4,6 +4,8 @@ turned."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -13,7 +15,8 @@ from esmicp.core.procrustes import to_matrix
 from esmicp.globalreg.feature_matching import _inlier_mask
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.compiled_tree import CompiledTree
-from esmicp.globalreg.scan import CONFIDENT, Keypoints, _icp, overlap_confidence, prune, rank_poses
+from esmicp.globalreg.config import DEFAULT
+from esmicp.globalreg.scan import Keypoints, _icp, overlap_confidence, prune, rank_poses
 from esmicp.metrics import rotation_error_deg
 
 from conftest import require_shared
@@ -152,7 +155,7 @@ def test_a_real_3dmatch_pair_succeeds_as_recorded_and_turned(real_pair, turned):
     assert rotation_error_deg(result.rotation, truth[:3, :3]) < 15.0  # the 3DMatch criteria
     assert np.linalg.norm(result.translation - truth[:3, 3]) < 0.30
     assert result.init == "global:scan"
-    assert result.confidence >= CONFIDENT
+    assert result.confidence >= DEFAULT.confident
 
 
 @pytest.mark.parametrize("angle_deg", [45.0, 90.0, 180.0])
@@ -163,13 +166,13 @@ def test_a_wrong_pose_does_not_come_back_confident(real_pair, angle_deg):
     wrong = to_matrix(turn, centre - turn @ centre) @ truth
     result = esmicp.register(source, target, init=wrong, max_iterations=3)
     assert rotation_error_deg(result.rotation, truth[:3, :3]) > 15.0, "the refinement found the truth: no test"
-    assert result.confidence < CONFIDENT
-    assert overlap_confidence(wrong, Keypoints.of(source, target, NearestNeighbors(target).spacing())) < CONFIDENT
+    assert result.confidence < DEFAULT.confident
+    assert overlap_confidence(wrong, Keypoints.of(source, target, NearestNeighbors(target).spacing())) < DEFAULT.confident
 
 
 def test_confidence_is_high_at_the_truth(real_pair):
     source, target, truth = real_pair
-    assert overlap_confidence(truth, Keypoints.of(source, target, NearestNeighbors(target).spacing())) >= CONFIDENT
+    assert overlap_confidence(truth, Keypoints.of(source, target, NearestNeighbors(target).spacing())) >= DEFAULT.confident
 
 
 def test_occupied_voxels_equal_the_distinct_cell_keys():
@@ -306,15 +309,14 @@ def _right_3dmatch(pose: np.ndarray, truth: np.ndarray) -> bool:
 def test_a_real_pair_cropped_to_15_percent_overlap_succeeds():
     """3DMatch fragments 0 and 4 (~300k points each) cropped by a seeded plane slab until 15% of
     the source lies on the target (``benchmarks/lomatch_crop.py``'s crop, as recorded): the
-    default ``register`` finds the pose by the 3DMatch criteria, confidently. With its 64 seeds
-    spread in the source only, no seed group was true and it ended 35 degrees off; with
-    the seeds right, the ``esm-plane`` stage still pulled the pose from 2 to 37 degrees off, and is
+    default ``register`` finds the pose by the 3DMatch criteria, confidently. With 64 seeds spread
+    in the source only, no true group survived and it ended 35 degrees off; with the seeds right, the ``esm-plane`` stage still pulled the pose from 2 to 37 degrees off, and is
     now undone."""
     cropped, truth = _lomatch_crop("t00_s04", 0, (0, 1, 0))
     assert cropped.source_overlap < 0.2
     result = esmicp.register(cropped.source, cropped.target)
     assert _right_3dmatch(result.transformation, truth)
-    assert result.confidence >= CONFIDENT
+    assert result.confidence >= DEFAULT.confident
 
 
 def test_an_unconfident_scan_search_is_run_again_with_other_settings():
@@ -334,10 +336,10 @@ def test_an_unconfident_scan_search_is_run_again_with_other_settings():
     assert NORMALS_FROM_KEYPOINTS == (True, False)
     first = scan_estimate(cropped.source, cropped.target, spacing=spacing, normals_from_keypoints=True)
     assert not right(first.transformations[0])
-    assert overlap_confidence(first.transformations[0], first.keypoints) < CONFIDENT
+    assert overlap_confidence(first.transformations[0], first.keypoints) < DEFAULT.confident
     chosen = scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
     assert right(chosen.transformations[0])
-    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= CONFIDENT
+    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= DEFAULT.confident
 
 
 def test_a_sharper_scan_pose_wins_over_a_slid_pose_that_overlaps_a_little_more(monkeypatch):
@@ -345,11 +347,9 @@ def test_a_sharper_scan_pose_wins_over_a_slid_pose_that_overlaps_a_little_more(m
     --seed 100``'s crop 1 of that pair): the scan strategy's best pose is right and confident but
     overlaps a little less than the rotation search's (measured: 0.19 against 0.22,
     confidence 0.70 against 0.16), which the refinement then slid to 0.49 m off. The scan pose
-    now wins on its sharpness (``search.SHARPER_BY``). With that rule off, the rotation search's
+    now wins on its sharpness (``SearchConfig.sharper_by``). With that rule off, the rotation search's
     unconfident pose still gives way to the sharper scan pose at the very end
-    (``search.SHARPER_THAN_CHOSEN``), flagged ambiguous; with both off this crop fails."""
-    from esmicp.globalreg import search
-
+    (``SearchConfig.sharper_than_chosen``), flagged ambiguous; with both off this crop fails."""
     cropped, truth = _lomatch_crop("t00_s04", 100, (0, 1, 1))
 
     def right(result):
@@ -358,12 +358,12 @@ def test_a_sharper_scan_pose_wins_over_a_slid_pose_that_overlaps_a_little_more(m
     result = esmicp.register(cropped.source, cropped.target, rng=100)
     assert result.init == "global:scan"
     assert right(result)
-    assert result.confidence >= CONFIDENT
-    monkeypatch.setattr(search, "SHARPER_BY", 2.0)  # the rule off (confidences are 0-1)
-    late = esmicp.register(cropped.source, cropped.target, rng=100)
-    assert right(late) and late.ambiguous and late.runner_up_ratio > 1.0
-    monkeypatch.setattr(search, "SHARPER_THAN_CHOSEN", 2.0)  # and the last one
-    assert not right(esmicp.register(cropped.source, cropped.target, rng=100))
+    assert result.confidence >= DEFAULT.confident
+    rule_off = replace(DEFAULT, sharper_by=2.0)  # confidences are 0-1
+    late = esmicp.register(cropped.source, cropped.target, rng=100, config=rule_off)
+    assert right(late) and late.ambiguous and late.runner_up_ratio <= 1.0  # the runner-up overlaps more
+    both_off = replace(rule_off, sharper_than_chosen=2.0)  # and the last one
+    assert not right(esmicp.register(cropped.source, cropped.target, rng=100, config=both_off))
 
 
 def test_a_flip_that_lays_a_floor_on_a_floor_is_not_confident(monkeypatch):
@@ -371,7 +371,7 @@ def test_a_flip_that_lays_a_floor_on_a_floor_is_not_confident(monkeypatch):
     --seed 200``'s crop 1 of that pair, as recorded): no right pose is found, and the one returned
     (150-166 degrees off) lays a patch of floor on a patch of floor, which coincides as sharply as
     the truth: it came back with confidence 0.85. The coincident normals all point
-    one way (``scan.SPREAD_RANGE``, ``scan.THIRD_RANGE``), so it must now come back unconfident, or
+    one way (``SearchConfig.spread_range``, ``third_range``), so it must now come back unconfident, or
     right. Fails with the spread terms off."""
     from esmicp.globalreg import scan
 
@@ -381,11 +381,10 @@ def test_a_flip_that_lays_a_floor_on_a_floor_is_not_confident(monkeypatch):
         return _right_3dmatch(result.transformation, truth)
 
     result = esmicp.register(cropped.source, cropped.target, rng=200)
-    assert right(result) or result.confidence < CONFIDENT
-    monkeypatch.setattr(scan, "SPREAD_RANGE", (-2.0, -1.0))  # the spread terms off
-    monkeypatch.setattr(scan, "THIRD_RANGE", (-2.0, -1.0))
-    result = esmicp.register(cropped.source, cropped.target, rng=200)
-    assert not right(result) and result.confidence >= CONFIDENT
+    assert right(result) or result.confidence < DEFAULT.confident
+    spread_off = replace(DEFAULT, spread_range=(-2.0, -1.0), third_range=(-2.0, -1.0))
+    result = esmicp.register(cropped.source, cropped.target, rng=200, config=spread_off)
+    assert not right(result) and result.confidence >= DEFAULT.confident
 
 
 @pytest.mark.parametrize("crop, count", [((2, 1, 0), 10000), ((2, 1, 1), 2500)])
@@ -403,20 +402,20 @@ def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, co
     standard = scan.keypoint_voxel(cropped.target, spacing)
     chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
     assert _right_3dmatch(chosen.transformations[0], truth)
-    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= CONFIDENT
+    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= DEFAULT.confident
     assert chosen.voxel == standard
     assert count in scan.LAST_KEYPOINTS
     monkeypatch.setattr(scan, "LAST_KEYPOINTS", tuple(c for c in scan.LAST_KEYPOINTS if c != count))
     chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
     assert not _right_3dmatch(chosen.transformations[0], truth)
-    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) < CONFIDENT
+    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) < DEFAULT.confident
 
 
 def test_a_small_cloud_skips_the_last_searches(monkeypatch):
     """Two unrelated 1,000-point clouds: no search is confident, and the voxels of every count of
     ``scan.LAST_KEYPOINTS`` are the standard one (all at ``MIN_VOXEL_SPACINGS``), so those searches
-    would repeat the first: they must not run (objects reach the scan strategy often, and issue 14
-    times them)."""
+    would repeat the first: they must not run (objects reach the scan strategy often, and every
+    search costs time)."""
     from esmicp.globalreg import scan
 
     generator = np.random.default_rng(3)
@@ -431,14 +430,13 @@ def test_a_small_cloud_skips_the_last_searches(monkeypatch):
     monkeypatch.setattr(scan, "scan_estimate", counted)
     spacing = NearestNeighbors(target).spacing()
     found = scan.scan_estimate_until_confident(source, target, spacing=spacing)
-    assert overlap_confidence(found.transformations[0], found.keypoints) < CONFIDENT
+    assert overlap_confidence(found.transformations[0], found.keypoints) < DEFAULT.confident
     assert len(calls) == 2 and calls[0] == calls[1]  # both standard searches, at one voxel
     # With a standard voxel above the floor, the searches at other voxels run, each voxel once:
     # 10,000 and 2,500 keypoints are both at the floor here, 50 above the standard voxel.
-    monkeypatch.setattr(scan, "KEYPOINTS", 200)
     monkeypatch.setattr(scan, "LAST_KEYPOINTS", (10000, 2500, 50))
     calls.clear()
-    scan.scan_estimate_until_confident(source, target, spacing=spacing)
+    scan.scan_estimate_until_confident(source, target, spacing=spacing, config=replace(DEFAULT, keypoints=200))
     assert len(calls) == 4 and calls[2] < calls[0] < calls[3]
 
 

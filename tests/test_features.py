@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from esmicp.core.procrustes import apply, to_matrix
 from esmicp.errors import InvalidInputError
+from esmicp.globalreg.config import DEFAULT
 from esmicp.globalreg import feature_matching
 from esmicp.globalreg.feature_matching import Hypothesis, feature_hypotheses, match_features
 from esmicp.globalreg.features import (
@@ -447,10 +449,9 @@ def test_the_feature_strategy_pools_both_kinds_of_normals_on_a_bunny_scan_pair(m
     scan strategy's unconfident poses, which also find this pose, are kept out of
     the verification, so that the features alone are tested."""
     import esmicp
-    from esmicp.globalreg import search
     from esmicp.io.stanford_conf import load_scans
 
-    monkeypatch.setattr(search, "SCAN_CANDIDATES", 0)
+    no_scan_poses = replace(DEFAULT, scan_candidates=0)
 
     scans = load_scans(require_shared("bunny_scans"), max_points=2000, rng=0)
     trial = next(t for t in scan_pairs(scans, 0) if t.cloud == "bun000->bun090")
@@ -460,11 +461,11 @@ def test_the_feature_strategy_pools_both_kinds_of_normals_on_a_bunny_scan_pair(m
     def rotation_off(result):
         return rotation_error_deg(result.transformation, truth)
 
-    assert rotation_off(esmicp.register(trial.source, trial.target, rng=seed)) < 5.0
+    assert rotation_off(esmicp.register(trial.source, trial.target, rng=seed, config=no_scan_poses)) < 5.0
     original = feature_hypotheses
 
     def dense_only(*args, **kwargs):
         return [] if kwargs.get("normals_from_keypoints") else original(*args, **kwargs)
 
     monkeypatch.setattr(feature_matching, "feature_hypotheses", dense_only)
-    assert rotation_off(esmicp.register(trial.source, trial.target, rng=seed)) > 20.0
+    assert rotation_off(esmicp.register(trial.source, trial.target, rng=seed, config=no_scan_poses)) > 20.0

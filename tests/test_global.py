@@ -6,11 +6,14 @@ Small, fast samples of the acceptance protocols; the full figures come from
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 import esmicp
 from conftest import require_shared
+from esmicp.globalreg.config import DEFAULT
 from esmicp.globalreg.rotation_search import so3_grid
 from esmicp.metrics import rotation_error_deg, strict_success, up_to_symmetry_success
 from esmicp.bench.protocols import make_trial
@@ -107,9 +110,9 @@ def test_so3_grid_covers_every_rotation():
 
 def test_a_lidar_pose_just_short_of_confident_is_settled(monkeypatch):
     """Newer College scans 40 frames apart, with rng 9: the rotation search ends its verification
-    2.6 degrees and 1.2 m short of the truth, scoring 0.597 against ``CONFIDENT_SCORE`` 0.6, and
+    2.6 degrees and 1.2 m short of the truth, scoring 0.597 against ``confident_score`` 0.6, and
     the scan strategy used to run too (0.29 s against 0.08 s). Settled by a few more iterations
-    (``search.SETTLE_FROM``), the pose is final and right. Fails if the settling is dropped."""
+    (``SearchConfig.settle_from``), the pose is final and right. Fails if the settling is dropped."""
     from esmicp.bench.real_pairs import load_pair, pair_errors, read_pairs
     from esmicp.globalreg import search
 
@@ -121,15 +124,15 @@ def test_a_lidar_pose_just_short_of_confident_is_settled(monkeypatch):
     rotation, translation = pair_errors(result.transformation, truth)
     assert rotation < 5.0 and translation < 0.6
     assert result.confidence >= 0.5
-    monkeypatch.setattr(search, "SETTLE_FROM", 2.0)  # never settle
-    assert esmicp.register(source, target, rng=9).init == "global:scan"
+    never_settle = replace(DEFAULT, settle_from=2.0)
+    assert esmicp.register(source, target, rng=9, config=never_settle).init == "global:scan"
 
 
 def test_a_settled_pose_must_be_confident_on_the_overlap(monkeypatch):
     """A piano cut to 70% (``esmicp bench --datasets partial-overlap``'s trial 21): the rotation
     search proposes the other half flipped end to end, and settling lifts its score (0.595 ->
     0.621 on one host, 0.585 -> 0.598 on another), while its overlap confidence is
-    0.10. With ``CONFIDENT_SCORE`` between the two scores, as on the first host, the settled
+    0.10. With ``confident_score`` between the two scores, as on the first host, the settled
     flip must not be final (the scan strategy finds the pose); without the overlap check it is.
     The bar is set from the scores measured here: a bar fixed at 0.6 is crossed on one host and
     not on another. Fails if a settled pose is final without the overlap check."""
@@ -141,10 +144,8 @@ def test_a_settled_pose_must_be_confident_on_the_overlap(monkeypatch):
 
     def probe(work, estimate):
         """Measures the verified and the settled score, and settles nothing."""
-        with monkeypatch.context() as patched:
-            patched.setattr(search, "CONFIDENT_SCORE", 0.0)
-            patched.setattr(search, "SETTLED_CONFIDENCE", 0.0)
-            seen.update(verified=estimate.score, settled=original(work, estimate).score)
+        anything = replace(work, config=replace(work.config, confident_score=0.0, confident=0.0))
+        seen.update(verified=estimate.score, settled=original(anything, estimate).score)
         return None
 
     monkeypatch.setattr(search, "_settle", probe)
@@ -152,12 +153,10 @@ def test_a_settled_pose_must_be_confident_on_the_overlap(monkeypatch):
     monkeypatch.setattr(search, "_settle", original)
     assert seen["settled"] > seen["verified"]
     bar = 0.5 * (seen["verified"] + seen["settled"])
-    assert seen["verified"] >= search.SETTLE_FROM * bar
-    monkeypatch.setattr(search, "CONFIDENT_SCORE", bar)
-    result = register()
+    assert seen["verified"] >= DEFAULT.settle_from * bar
+    result = register(config=replace(DEFAULT, confident_score=bar))
     assert right(result) and result.init != "global:rotation-search"
-    monkeypatch.setattr(search, "SETTLED_CONFIDENCE", 0.0)  # no overlap check
-    result = register()
+    result = register(config=replace(DEFAULT, confident_score=bar, confident=0.0))  # no overlap check
     assert result.init == "global:rotation-search" and not right(result)
 
 
@@ -174,8 +173,8 @@ def _partial_overlap_trial(name: str, *, keep_index: int, index: int, bench_seed
     seed = _seed_of(bench_seed, 1, keep_index, index)
     diagonal = float(np.linalg.norm(trial.target.max(axis=0) - trial.target.min(axis=0)))
 
-    def register():
-        return esmicp.register(trial.source, trial.target, rng=seed)
+    def register(**options):
+        return esmicp.register(trial.source, trial.target, rng=seed, **options)
 
     def right(result):
         return up_to_symmetry_success(trial.source, result.transformation, trial.T_target_source, diagonal)
@@ -206,7 +205,6 @@ def test_a_pose_covering_the_whole_target_is_final_without_the_scan_search(monke
     keypoints too). It covers the whole target, so it is final without the scan strategy. Fails
     if the coverage is not checked: the scan search then runs."""
     from esmicp.globalreg import search
-    from esmicp.globalreg.scan import CONFIDENT
 
     trial = make_trial("outliers-30", _cloud("chair_0848"), seed=0, index=2, name="chair_0848")
     searched, decided = [], []
@@ -217,7 +215,7 @@ def test_a_pose_covering_the_whole_target_is_final_without_the_scan_search(monke
     result = esmicp.register(trial.source, trial.target, rng=3141116543)
     assert strict_success(result.transformation, trial.T_target_source, trial.diagonal, pivot=trial.source.mean(axis=0))
     assert result.init == "global:rotation-search" and not searched
-    assert decided and decided[0].confidence < CONFIDENT  # final on the coverage, not on the confidence
+    assert decided and decided[0].confidence < DEFAULT.confident  # final on the coverage, not on the confidence
     monkeypatch.setattr(search, "_covers_the_target", lambda work, transformation: False)
     esmicp.register(trial.source, trial.target, rng=3141116543)
     assert searched
@@ -227,20 +225,17 @@ def test_the_scan_strategys_unconfident_poses_join_the_verification(monkeypatch)
     """A stool cut to 50% (``esmicp bench --datasets partial-overlap``'s trial 22 of
     ``partial-50``): the scan strategy's best pose is right but not confident on the overlap (a
     few hundred keypoints), so it does not win at once; the rotation search and the feature
-    strategy end 158 degrees off. Joining the verification (``search.SCAN_CANDIDATES``), the scan
+    strategy end 158 degrees off. Joining the verification (``SearchConfig.scan_candidates``), the scan
     pose wins on the clouds' points. Left out of it, it still wins at the very end, over the
-    feature strategy's unconfident pose (``search.SHARPER_THAN_CHOSEN``). Fails if both are off."""
+    feature strategy's unconfident pose (``SearchConfig.sharper_than_chosen``). Fails if both are off."""
     from esmicp.globalreg import search
-    from esmicp.globalreg.scan import CONFIDENT
 
     register, right = _partial_overlap_trial("stool_0072", keep_index=1, index=22)
     result = register()
     assert right(result) and result.init == "global:scan"
-    assert result.confidence < CONFIDENT  # it did not win on its own confidence
-    monkeypatch.setattr(search, "SCAN_CANDIDATES", 0)
-    assert right(register())
-    monkeypatch.setattr(search, "SHARPER_THAN_CHOSEN", 2.0)
-    assert not right(register())
+    assert result.confidence < DEFAULT.confident  # it did not win on its own confidence
+    assert right(register(config=replace(DEFAULT, scan_candidates=0)))
+    assert not right(register(config=replace(DEFAULT, scan_candidates=0, sharper_than_chosen=2.0)))
 
 
 def test_an_unconfident_choice_gives_way_to_a_sharper_scan_pose(monkeypatch):
@@ -249,14 +244,12 @@ def test_an_unconfident_choice_gives_way_to_a_sharper_scan_pose(monkeypatch):
     target as any, but the overlap does not coincide (confidence 0); one of the scan strategy's
     poses is right and confident. Fails if the chosen pose is kept whatever its confidence."""
     from esmicp.globalreg import search
-    from esmicp.globalreg.scan import CONFIDENT
 
     register, right = _partial_overlap_trial("guitar_0165", keep_index=1, index=17, bench_seed=1)
     result = register()
-    assert right(result) and result.init == "global:scan" and result.confidence >= CONFIDENT
-    monkeypatch.setattr(search, "SHARPER_THAN_CHOSEN", 2.0)  # never sharper enough
-    kept = register()
-    assert not right(kept) and kept.init == "global:rotation-search" and kept.confidence < CONFIDENT
+    assert right(result) and result.init == "global:scan" and result.confidence >= DEFAULT.confident
+    kept = register(config=replace(DEFAULT, sharper_than_chosen=2.0))  # never sharper enough
+    assert not right(kept) and kept.init == "global:rotation-search" and kept.confidence < DEFAULT.confident
 
 
 def test_sharper_on_the_overlap_replaces_only_an_unconfident_choice(monkeypatch):
@@ -268,7 +261,7 @@ def test_sharper_on_the_overlap_replaces_only_an_unconfident_choice(monkeypatch)
 
     from esmicp.core.correspondence import NearestNeighbors
     from esmicp.globalreg import search
-    from esmicp.globalreg.scan import CONFIDENT, Keypoints
+    from esmicp.globalreg.scan import Keypoints
 
     cloud = _cloud("chair_0848")
     keypoints = Keypoints.of(cloud, cloud, NearestNeighbors(cloud).spacing())
@@ -285,21 +278,22 @@ def test_sharper_on_the_overlap_replaces_only_an_unconfident_choice(monkeypatch)
 
     chosen, scanned = estimate([wrong], [0.7]), estimate([wrong, right], [0.6, 0.5])
     better = search._sharper_on_the_overlap(chosen, scanned)
-    assert better.strategies == ("scan", "rotation-search") and better.confidence >= CONFIDENT
+    assert better.strategies == ("scan", "rotation-search") and better.confidence >= DEFAULT.confident
     assert np.array_equal(better.transformations, np.stack([right, wrong]))
     kept = search._sharper_on_the_overlap(chosen, estimate([wrong], [0.6]))
-    assert np.array_equal(kept.transformations, np.stack([wrong])) and kept.confidence < CONFIDENT
+    assert np.array_equal(kept.transformations, np.stack([wrong])) and kept.confidence < DEFAULT.confident
     assert np.array_equal(choice(chosen, estimate([right], [0.0])), np.stack([wrong]))
     assert np.array_equal(choice(estimate([right], [0.7]), scanned), np.stack([right]))
-    monkeypatch.setattr(search, "SHARPER_THAN_CHOSEN", 2.0)
-    assert np.array_equal(choice(chosen, scanned), np.stack([wrong]))
+    never = replace(DEFAULT, sharper_than_chosen=2.0)
+    assert np.array_equal(search._sharper_on_the_overlap(chosen, scanned, config=never).transformations,
+                          np.stack([wrong]))
 
 
 def test_only_an_unconfident_scan_search_sends_its_poses_to_the_verification():
     """A confident scan pose keeps its own way to win (``_scan_leads``) and sends nothing; an
-    unconfident one sends its best ``SCAN_CANDIDATES`` poses, never the identity that stands for
+    unconfident one sends its best ``SearchConfig.scan_candidates`` poses, never the identity that stands for
     "found nothing" (score 0)."""
-    from esmicp.globalreg.search import SCAN_CANDIDATES, GlobalEstimate, _unconfident_scan_poses
+    from esmicp.globalreg.search import GlobalEstimate, _unconfident_scan_poses
 
     poses = np.stack([np.eye(4)] * 5)
     poses[:, 0, 3] = np.arange(5)  # tell them apart
@@ -309,7 +303,7 @@ def test_only_an_unconfident_scan_search_sends_its_poses_to_the_verification():
                               candidates=len(scores), confidence=confidence)
 
     sent = _unconfident_scan_poses(scanned([0.4, 0.3, 0.2, 0.1, 0.05], 0.3))
-    assert len(sent) == SCAN_CANDIDATES == 3
+    assert len(sent) == DEFAULT.scan_candidates == 3
     assert [pose[0, 3] for pose in sent] == [0.0, 1.0, 2.0]  # best first
     assert _unconfident_scan_poses(scanned([0.4, 0.3, 0.2], 0.5)) == []
     assert _unconfident_scan_poses(scanned([0.0], 0.0)) == []

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -10,6 +12,7 @@ import esmicp
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.nearest_grid import NearestGrid
 from esmicp.globalreg import search as global_search
+from esmicp.globalreg.config import DEFAULT
 from esmicp.core.procrustes import batched_rotation_from_cross_covariance
 from esmicp.globalreg.rotation_search import NeighbourGraph, batched_esm, so3_grid
 from esmicp.methods import ConvergenceCriteria, EsmEstimator, SigmaSchedule
@@ -120,11 +123,11 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
         def ramp(value, bounds):
             return float(np.clip((value - bounds[0]) / (bounds[1] - bounds[0]), 0.0, 1.0))
 
-        sharp = ramp(min(sharpness), scan.SHARPNESS_RANGE)
+        sharp = ramp(min(sharpness), DEFAULT.sharpness_range)
         if min(shares) >= scan.SPREAD_BELOW:
             return sharp
-        return min(sharp, *(ramp(values[1], scan.SPREAD_RANGE) for values in spread),
-                   *(ramp(values[0], scan.THIRD_RANGE) for values in spread))
+        return min(sharp, *(ramp(values[1], DEFAULT.spread_range) for values in spread),
+                   *(ramp(values[0], DEFAULT.third_range) for values in spread))
 
     rng = np.random.default_rng(12)
     target = asymmetric_shape(2000, rng)
@@ -152,11 +155,11 @@ def test_a_floor_slid_over_a_floor_is_not_confident(monkeypatch):
     """A patch of floor slid along the target's floor coincides with it as sharply as at the truth,
     and the sharpness alone read that as confident; but all its coincident normals point one way,
     which fixes 3 of the 6 degrees of freedom, so the confidence is now low
-    (:data:`~esmicp.globalreg.scan.SPREAD_RANGE`). A room (floor and two walls) at the truth stays
+    (``SearchConfig.spread_range``). A room (floor and two walls) at the truth stays
     confident. Fails if the spread term is dropped."""
     from esmicp.core.procrustes import to_matrix
     from esmicp.globalreg import scan
-    from esmicp.globalreg.scan import CONFIDENT, Keypoints, overlap_confidence
+    from esmicp.globalreg.scan import Keypoints, overlap_confidence
 
     rng = np.random.default_rng(21)
 
@@ -164,24 +167,23 @@ def test_a_floor_slid_over_a_floor_is_not_confident(monkeypatch):
     floor = source[(source[:, 2] == 0.0) & (source[:, 0] > 1.0) & (source[:, 1] > 1.0)]
     spacing = NearestNeighbors(target).spacing()
     slid = to_matrix(np.eye(3), [-0.6, -0.4, 0.0])  # stays on the target's floor
-    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing)) >= CONFIDENT
+    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing)) >= DEFAULT.confident
     floor_keys = Keypoints.of(floor, target, spacing)
-    assert overlap_confidence(slid, floor_keys) < CONFIDENT
-    monkeypatch.setattr(scan, "SPREAD_RANGE", (-2.0, -1.0))  # the spread terms off
-    monkeypatch.setattr(scan, "THIRD_RANGE", (-2.0, -1.0))
-    assert overlap_confidence(slid, floor_keys) >= CONFIDENT
+    assert overlap_confidence(slid, floor_keys) < DEFAULT.confident
+    spread_off = replace(DEFAULT, spread_range=(-2.0, -1.0), third_range=(-2.0, -1.0))
+    assert overlap_confidence(slid, floor_keys, config=spread_off) >= DEFAULT.confident
 
 
 def test_a_corner_of_floor_and_wall_slid_along_their_line_is_not_confident(monkeypatch):
     """A floor and one wall slid along the line where they meet coincide as sharply as at the
     truth, and their normals span two directions (the middle eigenvalue is the wall's share), so
     the spread term read that as confident; but the slide along the line is free, and the smallest
-    eigenvalue is 0 (:data:`~esmicp.globalreg.scan.THIRD_RANGE`; on the 3DMatch crops, two wrong
+    eigenvalue is 0 (``SearchConfig.third_range``; on the 3DMatch crops, two wrong
     poses 120 degrees and 1 m off). A room (floor and two walls) at the truth stays
     confident. Fails if the third-direction term is dropped."""
     from esmicp.core.procrustes import to_matrix
     from esmicp.globalreg import scan
-    from esmicp.globalreg.scan import CONFIDENT, Keypoints, overlap_confidence
+    from esmicp.globalreg.scan import Keypoints, overlap_confidence
 
     rng = np.random.default_rng(22)
 
@@ -190,11 +192,11 @@ def test_a_corner_of_floor_and_wall_slid_along_their_line_is_not_confident(monke
     corner = source[(source[:, 0] > 1.5) & (source[:, 0] < 3.0) & (source[:, 1] < 1.5) & (source[:, 2] < 1.2)]
     spacing = NearestNeighbors(target).spacing()
     slid = to_matrix(np.eye(3), [-0.7, 0.0, 0.0])  # along the line: stays on the target's floor and wall
-    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing)) >= CONFIDENT
+    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing)) >= DEFAULT.confident
     corner_keys = Keypoints.of(corner, target, spacing)
-    assert overlap_confidence(slid, corner_keys) < CONFIDENT
-    monkeypatch.setattr(scan, "THIRD_RANGE", (-2.0, -1.0))  # the third-direction term off
-    assert overlap_confidence(slid, corner_keys) >= CONFIDENT
+    assert overlap_confidence(slid, corner_keys) < DEFAULT.confident
+    third_off = replace(DEFAULT, third_range=(-2.0, -1.0))  # the third-direction term off
+    assert overlap_confidence(slid, corner_keys, config=third_off) >= DEFAULT.confident
 
 
 def test_distinct_selects_what_a_loop_over_rotation_angles_selects():
@@ -385,7 +387,7 @@ def test_auto_stops_after_the_rotation_search_on_a_confident_full_overlap(monkey
     target = asymmetric_shape(2000, rng)
     source = target[rng.permutation(len(target))] @ random_rotation(rng).T
     estimate = global_search.global_estimate(source, target, rng=np.random.default_rng(0))
-    assert estimate.score >= global_search.CONFIDENT_SCORE
+    assert estimate.score >= DEFAULT.confident_score
     assert called == [] and set(estimate.strategies) == {"rotation-search"}
 
 

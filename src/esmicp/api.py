@@ -15,6 +15,7 @@ from .core.correspondence import NearestNeighbors
 from .core.procrustes import bounding_box_diagonal
 from .core.correspondence import coincident_points
 from .errors import CoincidentPointsWarning, IndexAlignmentWarning, InvalidInputError
+from .globalreg.config import SearchConfig, as_config
 from .globalreg.scan import TRUSTED, Keypoints, overlap_confidence
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
@@ -104,6 +105,7 @@ class _Request:
     rng: np.random.Generator
     inlier_distance: float | None
     workers: int | None  # threads of every compiled kernel (None: every core)
+    config: SearchConfig  # the global search's tuned values
 
 
 @keeps_keyboard_interrupt
@@ -122,6 +124,7 @@ def register(
     inlier_distance: float | None = None,
     workers: int | None = None,
     return_correspondences: bool = False,
+    config: SearchConfig | None = None,
 ) -> RegistrationResult:
     """Rigidly register ``source`` onto ``target``.
 
@@ -190,6 +193,9 @@ def register(
         (:class:`~esmicp.result.Correspondences`: source and target indices, weights, distances
         of the pairs within ``inlier_distance``, Open3D's ``correspondence_set``); they cost
         nothing more to find, but hold four arrays per pair.
+    config : esmicp.globalreg.config.SearchConfig or dict, optional
+        The global search's tuned values (and the overlap confidence's); None: the measured
+        defaults (:data:`esmicp.globalreg.config.DEFAULT`).
 
     Returns
     -------
@@ -203,7 +209,8 @@ def register(
         or non-positive ``sigma``, ``max_iterations``, ``inlier_distance`` or ``workers``.
     """
     started = time.perf_counter()
-    request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers)
+    request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
+                        config)
     frame = WorkingFrame.for_target(request.target)
     source_points, target_points = frame.points(request.source), frame.points(request.target)
     target_index = NearestNeighbors(target_points, workers=request.workers)
@@ -213,7 +220,7 @@ def register(
     initial, init_name, estimate = _start(request, source_points, target_points, target_index, frame)
     keypoints = getattr(estimate, "keypoints", None)
     if keypoints is None:
-        keypoints = Keypoints.of(source_points, target_points, target_index.spacing())
+        keypoints = Keypoints.of(source_points, target_points, target_index.spacing(), request.config)
     # After a global search (which ends at the finest sigma) the pose is already close: start in
     # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
     estimator = _estimator(method, request, target_index, diagonal, start_fine=estimate is not None)
@@ -227,7 +234,7 @@ def register(
         observer = Observer(source_points, target_index, frame.callback(callback), record_history)
     outcome = _refine(source_points, target_index, estimator, initial, request, diagonal, keypoints, estimate,
                       observer)
-    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers)
+    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers, request.config)
     if start_distances is not None and request.sigma is None and confidence < TRUSTED \
             and not (observer is not None and observer.stopped):
         outcome, confidence = _second_try(source_points, target_index, initial, request, diagonal, keypoints,
@@ -257,10 +264,7 @@ def register(
         history=outcome.history,
         init=init_name,
         ambiguous=bool(estimate is not None and estimate.ambiguous),
-        runner_up_ratio=(
-            None if estimate is None or estimate.runner_up_score is None
-            else estimate.runner_up_score / max(estimate.score, 1e-300)
-        ),
+        runner_up_ratio=None if estimate is None else estimate.runner_up_ratio,
         global_candidates=0 if estimate is None else estimate.candidates,
         confidence=confidence,
         correspondences=correspondences,
@@ -270,7 +274,8 @@ def register(
     )
 
 
-def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers) -> _Request:
+def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
+              config=None) -> _Request:
     """Stage 1: every argument checked (one clear :class:`InvalidInputError` otherwise)."""
     source_points = as_points(source, "source")
     target_points = as_points(target, "target")
@@ -289,6 +294,7 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
         rng=as_generator(rng, default_seed=DEFAULT_SEED),
         inlier_distance=None if inlier_distance is None else as_positive(inlier_distance, "inlier_distance"),
         workers=as_workers(workers),
+        config=as_config(config),
     )
     if method == "esm-paper" and len(source_points) != len(target_points):
         warnings.warn(
@@ -306,7 +312,7 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
         return frame.transform_in(request.initial), request.init_name, None
     estimate = global_estimate(
         source, target, strategy=request.init_name, rng=request.rng, target_index=target_index,
-        target_spacing=target_index.spacing(), workers=request.workers,
+        target_spacing=target_index.spacing(), workers=request.workers, config=request.config,
     )
     return estimate.transformation, f"global:{estimate.strategies[0]}", estimate
 
@@ -348,7 +354,7 @@ def _second_try(source, target_index, initial, request: _Request, diagonal: floa
     tight.start_from(start_distances, TIGHT_START_QUANTILE)
     first_history = None if observer is None else observer.new_run()
     second = _refine(source, target_index, tight, initial, request, diagonal, keypoints, None, observer)
-    second_confidence = overlap_confidence(second.transformation, keypoints, request.workers)
+    second_confidence = overlap_confidence(second.transformation, keypoints, request.workers, request.config)
     if observer is not None and observer.stopped:
         return second, second_confidence
     if second_confidence > confidence:
@@ -450,8 +456,8 @@ def _plane_start(points, target_index, initial, request: _Request, diagonal: flo
         return plane.transformation, plane.num_iterations, ""
     before = initial_confidence
     if before is None:
-        before = overlap_confidence(initial, keypoints, request.workers)
-    after = overlap_confidence(plane.transformation, keypoints, request.workers)
+        before = overlap_confidence(initial, keypoints, request.workers, request.config)
+    after = overlap_confidence(plane.transformation, keypoints, request.workers, request.config)
     if after < before - PLANE_CONFIDENCE_DROP:
         return initial, plane.num_iterations, (
             f"{plane.num_iterations} esm-plane iteration(s) on {len(points):,} points undone (overlap confidence "

@@ -113,12 +113,11 @@ class RegistrationResult:
         symmetric, or the overlap too small to tell. The pose returned is the best-fitting one,
         but treat it with care. Always False without a global search.
     runner_up_ratio : float or None
-        Score of the best clearly different pose divided by the winner's (lower is more
-        confident); None without a global search or without a distinct runner-up. Usually 0-1;
-        above 1 when the winner was preferred to a pose that overlaps more because, unlike that
-        pose, it makes the overlap coincide (a cut object's flip lies on more of the other part
-        than the truth: ``esmicp.globalreg.search.SHARPER_THAN_CHOSEN``); such a result is
-        ambiguous.
+        The lower of two scores, the returned pose's and the best clearly different pose's, over
+        the higher: 0-1, lower is more decisive; None without a global search or without a
+        distinct runner-up. When the runner-up scores higher (the returned pose was preferred
+        because, unlike it, it makes the overlap coincide: a cut object's flip lies on more of the
+        other part than the truth), the result is ambiguous.
     global_candidates : int
         Number of candidate poses the global search verified (0 without one).
     confidence : float or None
@@ -130,7 +129,7 @@ class RegistrationResult:
         span fewer than three directions (one plane laid on another holds only 3 of the 6 degrees
         of freedom, a floor and one wall 5: :func:`esmicp.globalreg.scan.coincident_spread`). Below 0.55
         (:data:`esmicp.globalreg.scan.TRUSTED`): do not trust the pose. Measured figures:
-        ``docs/measured-global.md``, "Scans".
+        ``docs/measured-global.md``, "How far the confidence can be trusted".
     correspondences : Correspondences or None
         The final pose's inlier pairs (:class:`Correspondences`), when asked for
         (``return_correspondences=True``); else None.

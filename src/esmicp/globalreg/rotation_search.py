@@ -65,7 +65,7 @@ class Hypotheses:
 #: Neighbours per target point in a :class:`NeighbourGraph`. On the verification calls of 4
 #: ModelNet40 trials (2,000 points), 67 % of the warm-started queries were certified with 8
 #: neighbours, 79 % with 16, 83 % with 24 (the rest go to the tree); counting the graph's build,
-#: 8 to 16 cost about the same, 4 and 24 more (``docs/speed.md``, "Issue 14, third pass").
+#: 8 to 16 cost about the same, 4 and 24 more (``docs/speed.md``).
 GRAPH_NEIGHBOURS = 12
 
 

@@ -5,7 +5,7 @@ The pipeline of :func:`scan_estimate` (every length is a multiple of one voxel t
 so a pair scaled by 1000 gives the same pose):
 
 1. **Scale.** :func:`keypoint_voxel`: the voxel edge at which the target has about
-   ``KEYPOINTS`` occupied voxels (found from the voxel counts, which scale as the inverse square of
+   ``SearchConfig.keypoints`` occupied voxels (found from the voxel counts, which scale as the inverse square of
    the edge on a surface), never below ``MIN_VOXEL_SPACINGS`` target point spacings.
 2. **Keypoints and descriptors.** Voxel centroids of each cloud, isolated ones dropped; PCA
    normals from the keypoints (or from the dense points), FPFH within ``FEATURE_RADIUS_VOXELS``
@@ -51,14 +51,13 @@ from ..core.correspondence import coincident_points
 from ..core.procrustes import axis_bounds, batched_weighted_procrustes, rigid_inverse, rotation_angle, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .feature_matching import _keypoints, _inlier_counts, _inlier_mask, _distinct_order
+from .config import DEFAULT, SearchConfig
 from .features import estimate_normals, voxel_grid
 
 
-#: Occupied voxels of the target the keypoint voxel aims at.
-KEYPOINTS = 5000
 
 #: The searches of :func:`scan_estimate_until_confident`, tried in order until one's best pose is
-#: confident (:data:`CONFIDENT`): ``normals_from_keypoints`` of :func:`scan_estimate` (normals from
+#: confident (``SearchConfig.confident``): ``normals_from_keypoints`` of :func:`scan_estimate` (normals from
 #: the keypoints, then from the dense points). Each finds 3DMatch crops at 15-25% overlap that the
 #: other misses.
 NORMALS_FROM_KEYPOINTS = (True, False)
@@ -67,13 +66,10 @@ NORMALS_FROM_KEYPOINTS = (True, False)
 #: target has about each of these many occupied voxels (normals from the keypoints). At 10-25%
 #: overlap only a few hundred keypoints lie in the overlap, and often no true correspondence
 #: survives the pruning: a finer voxel puts more keypoints there, a coarser one gives descriptors
-#: of a larger part of the scene, and each scale finds crops that the others miss. Session 28
-#: tried a finer search when a flat patch laid on another still came back confident, and its
-#: confident wrong poses overrode the other strategies; with the confidence's spread terms these
-#: searches gained crops and lost none (``docs/scans-partial-overlap.md``, sessions 30 and 31;
-#: 7,000 keypoints gained on the crops the choice was made on and on no fresh one: not kept). A
-#: search whose voxel was searched already is skipped (a small cloud is at ``MIN_VOXEL_SPACINGS``
-#: for every count).
+#: of a larger part of the scene, and each scale finds crops that the others miss (measured on
+#: the 3DMatch crops, with the confidence's spread terms: crops gained, none lost;
+#: ``docs/scans-partial-overlap.md``). A search whose voxel was searched already is skipped (a
+#: small cloud is at ``MIN_VOXEL_SPACINGS`` for every count).
 LAST_KEYPOINTS = (10000, 2500)
 
 #: The keypoint voxel is at least this many target point spacings.
@@ -97,7 +93,7 @@ COMPATIBILITY_VOXELS = 1.5
 #: a better seed's), and the size of the group each grows. Many seeds, spread in both clouds: at
 #: 15-25% overlap the few true correspondences rank far down the leading eigenvector, and a spread
 #: in the source alone skipped most of them, each near a better-ranked wrong one
-#: (``docs/scans-partial-overlap.md``, session 26).
+#: (``docs/scans-partial-overlap.md``).
 SEEDS = 512
 SEED_SPREAD_VOXELS = 3.0
 GROUP_SIZE = 30
@@ -132,25 +128,8 @@ TIE_RATIO = 0.5
 
 #: :func:`overlap_confidence`: the overlap is what lies within ``OVERLAP_VOXELS`` of the other
 #: cloud; of it, the part within ``VERIFY_VOXELS`` coincides. That fraction (the smaller of the two
-#: directions) maps linearly from ``SHARPNESS_RANGE`` onto confidence 0-1.
+#: directions) maps linearly from ``config.sharpness_range`` onto confidence 0-1.
 OVERLAP_VOXELS = 3.0
-SHARPNESS_RANGE = (0.5, 0.8)
-#: :func:`overlap_confidence` also asks the coincident part to hold the pose: the middle eigenvalue
-#: of the second moment of its normals (0 for one plane, 1/3 for normals in every direction; for a
-#: floor and a wall, the wall's share) maps linearly from ``SPREAD_RANGE`` onto 0-1, and the
-#: confidence is the smaller of the two. At 15-25% overlap, wrong poses that laid one flat patch on
-#: another came back confident (14 of 82 failures on the 3DMatch crops); their coincident normals
-#: had a middle eigenvalue of 0.014-0.083, the right poses' 0.11-0.38, the real pairs' at the ground
-#: truth 0.19-0.36 (``docs/scans-partial-overlap.md``, session 29).
-SPREAD_RANGE = (0.05, 0.15)
-#: ... and a third direction: the smallest eigenvalue (0 for normals on two planes, a floor and one
-#: wall, which leave the slide along their line free) maps linearly from ``THIRD_RANGE`` onto 0-1.
-#: Its low end is the normals' own noise (a tilt of 3-5 degrees on one plane alone gives
-#: 0.003-0.008); 0.009 is about 1% of the coincident normals on a third plane. Two wrong poses on
-#: the 3DMatch crops, 120 degrees and 1 m off, laid a floor and a wall on a floor and a wall and came
-#: back with confidence 0.80-0.88 (smallest eigenvalue 0.001-0.003); the right poses had
-#: 0.007-0.164, the ground truths of all 156 crops 0.010-0.19 (session 30).
-THIRD_RANGE = (0.003, 0.009)
 #: The spread is measured on at most this many coincident keypoints (evenly strided), each one's
 #: normal from its 30 nearest keypoints within ``NORMAL_RADIUS_VOXELS``: normals at every keypoint
 #: of both clouds took 8 ms of a 24 ms registration of 2,000 points.
@@ -160,13 +139,10 @@ SPREAD_POINTS = 500
 #: registered whole skip the normals' cost).
 SPREAD_BELOW = 0.5
 
-#: The search's own bar: a pose at least this confident on the overlap ends the scan strategy's
-#: searches and may win over the other strategies' (``docs/measured-global.md``).
-CONFIDENT = 0.5
 #: The bar a result must reach to be trusted (``register``'s ``confidence``, ``esmicp register``'s
 #: LOW): higher than the search's own, because the search stops at, and chooses among its poses
-#: for, the first that reaches ``CONFIDENT``, so a wrong pose just over that bar is the one it keeps
-#: (``docs/scans-partial-overlap.md``, session 37).
+#: for, the first that reaches ``SearchConfig.confident``, so a wrong pose just over that bar is the
+#: one it keeps (measured on the 3DMatch crops, ``docs/scans-partial-overlap.md``).
 TRUSTED = 0.55
 
 
@@ -179,9 +155,11 @@ class Keypoints:
     voxel: float
 
     @classmethod
-    def of(cls, source: np.ndarray, target: np.ndarray, spacing: float) -> "Keypoints":
-        """Both clouds voxel-downsampled at :func:`keypoint_voxel` of the target."""
-        voxel = keypoint_voxel(target, spacing) if spacing > 0 else keypoint_voxel(target, 0.0)
+    def of(cls, source: np.ndarray, target: np.ndarray, spacing: float,
+           config: SearchConfig = DEFAULT) -> "Keypoints":
+        """Both clouds voxel-downsampled at :func:`keypoint_voxel` of the target (``config.keypoints``
+        voxels)."""
+        voxel = keypoint_voxel(target, max(spacing, 0.0), config.keypoints)
         return cls(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
 
     @cached_property
@@ -231,13 +209,14 @@ def overlap_score(transformation: np.ndarray, keypoints: Keypoints, workers: int
     return float(forward[0] + backward[0]) / (len(keypoints.source) + len(keypoints.target))
 
 
-def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers: int | None = None) -> float:
+def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers: int | None = None,
+                       config: SearchConfig = DEFAULT) -> float:
     """How sharply the clouds coincide where they overlap under ``transformation``
     (``T_target_source``), 0-1: of the keypoints within ``OVERLAP_VOXELS`` of the other cloud,
     the fraction within ``VERIFY_VOXELS``, the smaller of the two directions, mapped from
-    ``SHARPNESS_RANGE``; or, when smaller and when less than :data:`SPREAD_BELOW` of either cloud
-    coincides, how well the coincident part's normals hold the pose (:func:`coincident_spread`:
-    its middle eigenvalue mapped from :data:`SPREAD_RANGE`, its smallest from :data:`THIRD_RANGE`),
+    ``config.sharpness_range``; or, when smaller and when less than :data:`SPREAD_BELOW` of either
+    cloud coincides, how well the coincident part's normals hold the pose (:func:`coincident_spread`:
+    its middle eigenvalue mapped from ``config.spread_range``, its smallest from ``config.third_range``),
     the smallest of these in either direction. 0 when nothing overlaps or a cloud has fewer than 3
     keypoints. ``workers``: threads of the compiled tree's queries (None: every core)."""
     if not np.isfinite(transformation).all() or min(len(keypoints.source), len(keypoints.target)) < 3:
@@ -260,8 +239,8 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
     if min(share for *_, share in coincident) < SPREAD_BELOW:
         for points, tree, touched, _ in coincident:
             third, second = coincident_spread(points, tree, touched, voxel, workers)
-            held = min(held, _ramp(second, SPREAD_RANGE), _ramp(third, THIRD_RANGE))
-    return float(min(_ramp(min(sharpness), SHARPNESS_RANGE), held))
+            held = min(held, _ramp(second, config.spread_range), _ramp(third, config.third_range))
+    return float(min(_ramp(min(sharpness), config.sharpness_range), held))
 
 
 def _ramp(value: float, bounds: tuple[float, float]) -> float:
@@ -288,13 +267,14 @@ def coincident_spread(points: np.ndarray, tree: CompiledTree, touched: np.ndarra
 
 def keypoint_voxel(points: np.ndarray, spacing: float, count: int | None = None) -> float:
     """The voxel edge (cloud units) at which ``points`` occupy about ``count`` (default
-    :data:`KEYPOINTS`) voxels (at least ``MIN_VOXEL_SPACINGS * spacing``)."""
-    count = KEYPOINTS if count is None else count
+    ``SearchConfig.keypoints``) voxels (at least ``MIN_VOXEL_SPACINGS * spacing``)."""
+    count = DEFAULT.keypoints if count is None else count
     floor = MIN_VOXEL_SPACINGS * spacing
     low, high = axis_bounds(points)
     # Start from a surface guess (the bounding box's largest face) and correct by the 1/v^2 law.
     faces = np.sort(high - low)[1:]
-    voxel = max(float(np.sqrt(faces[0] * faces[1] / count)), floor, 1e-12)
+    # Floor relative to the extent (a cloud on a line has no face): the voxel is scale-free.
+    voxel = max(float(np.sqrt(faces[0] * faces[1] / count)), floor, 1e-12 * float(faces[1]))
     for _ in range(4):
         occupied = _occupied(points, voxel, low)
         if abs(occupied - count) <= 0.1 * count:
@@ -480,13 +460,14 @@ def _slide_votes(first, second, source, target_tree: CompiledTree, target_normal
 
 
 def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, workers: int | None = None,
-                  normals_from_keypoints: bool = True, voxel: float | None = None) -> ScanEstimate:
+                  normals_from_keypoints: bool = True, voxel: float | None = None,
+                  config: SearchConfig = DEFAULT) -> ScanEstimate:
     """Poses ``T_target_source`` of two partially overlapping scans, best first (the module
     docstring). ``spacing``: the target's median point spacing (cloud units);
     ``normals_from_keypoints``: the keypoints' normals from the keypoints themselves, else from the
     dense points (:func:`~esmicp.globalreg.feature_matching._keypoints`); ``voxel``: the keypoint
     voxel (cloud units; default :func:`keypoint_voxel` of the target). Deterministic."""
-    voxel = keypoint_voxel(target, spacing) if voxel is None else voxel
+    voxel = keypoint_voxel(target, spacing, config.keypoints) if voxel is None else voxel
     normal_radius, feature_radius = NORMAL_RADIUS_VOXELS * voxel, FEATURE_RADIUS_VOXELS * voxel
     filter_radius = FILTER_RADIUS_VOXELS * voxel
     with ThreadPoolExecutor(max_workers=1 if workers == 1 else 2) as pool:
@@ -532,9 +513,10 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
 
 
 def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spacing: float,
-                                  workers: int | None = None, searches: int | None = None) -> ScanEstimate:
+                                  workers: int | None = None, searches: int | None = None,
+                                  config: SearchConfig = DEFAULT) -> ScanEstimate:
     """:func:`scan_estimate` with each setting of ``NORMALS_FROM_KEYPOINTS`` in turn until one's
-    best pose is confident (:func:`overlap_confidence` at least :data:`CONFIDENT`), then, while
+    best pose is confident (:func:`overlap_confidence` at least ``config.confident``), then, while
     none is, at the voxel of each count of :data:`LAST_KEYPOINTS` in turn (skipped when its voxel
     was searched already): the estimate whose best pose is the most confident (the first on a
     tie). The first searches are each judged on their own keypoints; the last ones on those of the
@@ -553,16 +535,18 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
         """Judge ``found`` on its keypoints, keep it if more confident; True once one is confident
         or ``searches`` have run."""
         nonlocal best, done
-        found = replace(found, confidence=overlap_confidence(found.transformations[0], found.keypoints, workers))
+        found = replace(found, confidence=overlap_confidence(found.transformations[0], found.keypoints, workers,
+                                                             config))
         if best is None or found.confidence > best.confidence:
             best = found
         done += 1
-        return best.confidence >= CONFIDENT or done == searches
+        return best.confidence >= config.confident or done == searches
 
-    voxel = keypoint_voxel(target, spacing)  # the same for each standard search: found once
+    voxel = keypoint_voxel(target, spacing, config.keypoints)  # the same for each standard search: found once
     for normals_from_keypoints in NORMALS_FROM_KEYPOINTS:
         if keep_if_better(scan_estimate(source, target, spacing=spacing, workers=workers,
-                                        normals_from_keypoints=normals_from_keypoints, voxel=voxel)):
+                                        normals_from_keypoints=normals_from_keypoints, voxel=voxel,
+                                        config=config)):
             return best
     searched = {voxel}
     for count in LAST_KEYPOINTS:
@@ -570,7 +554,7 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
         if other in searched:
             continue  # a repeat (a small cloud is at the floor, MIN_VOXEL_SPACINGS, for every count)
         searched.add(other)
-        found = scan_estimate(source, target, spacing=spacing, workers=workers, voxel=other)
+        found = scan_estimate(source, target, spacing=spacing, workers=workers, voxel=other, config=config)
         if keep_if_better(replace(found, keypoints=best.keypoints)):
             break
     return best

@@ -1,46 +1,46 @@
-"""Global registration: a pose from anywhere, with a confidence.
+"""Global registration: a pose ``T_target_source`` from anywhere, with the evidence to judge it.
 
-Candidate poses come from one or both strategies:
+The default search (``"auto"``, :func:`global_estimate`) is one pipeline; the tuned values it
+names are fields of :class:`~esmicp.globalreg.config.SearchConfig` (``config.<field>``).
 
-``rotation-search``
-    :func:`~esmicp.globalreg.rotation_search.rotation_search`: ``SEARCH_ROTATIONS`` starting rotations
-    spread over SO(3), centroids aligned, all refined together by a short batched ESM on a few
-    hundred points, through an O(1) nearest-neighbour lookup table.
-``features``
-    FPFH features matched between the clouds and pruned by geometric consistency
-    (:mod:`esmicp.globalreg.feature_matching`); suited to partial overlap, where centroids differ.
-``scan``
-    :mod:`esmicp.globalreg.scan`, on its own: correspondences pruned by second-order spatial
-    compatibility and verified on the overlap, both ways (partially overlapping scans); its
-    scores are its own overlap scores, not the verification below.
+**Generators** (each returns rigid ``(4, 4)`` poses ``T_target_source``):
 
-Every candidate is then *verified* the same way (successive halving, ``VERIFY_ROUNDS``): batched
-ESM at the data's resolution on a subsample, scored by the soft fraction of source points lying on
-the target (:func:`~esmicp.globalreg.rotation_search.gaussian_overlap_score`). Poses that still score
-alike (runner-up within ``DECIDE_RATIO``) are *decided* on (up to) the full clouds: ESM at a
-finer sigma on up to ``DECIDE_POINTS`` points, scored both ways, source on target and target on
-source (the target's own points are clean, while up to 60% of a noisy source is not, and a
-symmetric twin leaves the target's asymmetric details uncovered). The best one wins. When a clearly different
-pose (rotation more than ``DISTINCT_ROTATION_DEG`` away) scores within ``AMBIGUITY_RATIO`` of it,
-the result is flagged ambiguous: the object is probably symmetric, or the overlap too small to
-decide.
+- the *rotation search* (:func:`_rotation_candidates`), for whole objects:
+  ``config.search_rotations`` starting rotations spread over SO(3), centroids aligned, refined
+  together by a short batched ESM on ``config.search_points`` source points
+  (:func:`~esmicp.globalreg.rotation_search.rotation_search`);
+- *correspondences pruned by consistency* (:func:`_scan`, :mod:`esmicp.globalreg.scan`), for
+  partially overlapping scans: FPFH matches kept by second-order spatial compatibility, each
+  pose checked on the overlap both ways; and the *feature hypotheses* of
+  :mod:`esmicp.globalreg.feature_matching` (:func:`_feature_candidates`);
+- the *twins* of a pose (:func:`_twins`): turned by 180 degrees about each principal axis of the
+  target, which a near-symmetric object under heavy noise otherwise ends on.
 
-``"auto"`` (the default) runs the rotation search first; when its result is not confident (see
-:func:`global_estimate`; a pose just short of it is settled first, :data:`SETTLE_FROM`; one
-confident on its score but not on the overlap is checked by the scan strategy's first search
-only, :func:`_on_the_overlap`) the scan strategy runs, and its pose wins outright when it is
-confident on the overlap and overlaps clearly more (``SCAN_MARGIN``); otherwise the feature
-candidates join, with the *twins* of its best pose (turned by 180 degrees about each principal
-axis of the target): under heavy noise a near-symmetric object (a box-like night stand)
-otherwise ends on a twin of the truth that neither strategy proposes; and so do the scan
-strategy's best poses when it is not confident (``SCAN_CANDIDATES``): on a small partial overlap
-they are often right without being confident. Last, a pose chosen this way that is not
-confident on the overlap gives way to the scan strategy's pose most confident there, if that one
-is clearly more confident (``SHARPER_THAN_CHOSEN``): the verification counts how much of the source
-lies on the target, which a cut object's flip can satisfy better than the truth.
-The rotation search alone and the features alone each miss cases the other catches, so the
-default uses both (the measurements: ``docs/measured-global.md``, "Why these
-choices").
+**Verifier** (:func:`_verify`, then :func:`_decide`): every candidate is refined by batched ESM at
+the data's resolution and scored by the soft fraction (0-1) of source points lying on the target
+(Gaussian of width ``config.score_width_spacings`` target spacings), in successive-halving rounds.
+When the runner-up scores at least ``config.decide_ratio`` of the best, the contenders are
+re-scored on up to the full clouds, both ways (source on target and target on source).
+
+**Decision**: the best verified pose, unless one of the scan strategy's poses is confident on the
+overlap (:func:`~esmicp.globalreg.scan.overlap_confidence` at least ``config.confident``) and
+overlaps more (:func:`_scan_leads`), or the chosen pose is not confident there and a scan pose is
+clearly more (:func:`_sharper_on_the_overlap`, ``config.sharper_than_chosen``): the verifier
+counts how much of the source lies on the target, which a cut object's flip can satisfy better
+than the truth. The result is *ambiguous* when a clearly different pose (rotation more than
+:data:`~esmicp.globalreg.DISTINCT_ROTATION_DEG` away) scores at least ``config.ambiguity_ratio``
+of the returned one, or more (the returned pose then won on sharpness);
+:attr:`GlobalEstimate.runner_up_ratio` is the lower of the two scores over the higher.
+
+**One exit, for cost**: the rotation search's pose is final before the scan strategy runs when
+it scores ``config.confident_score`` (after a few more ESM iterations, :func:`_settle`, when it
+scored just short of it: ``config.settle_from``), unambiguously, and is confident on the overlap
+or covers the target (``config.full_cover``). Most whole objects end there; closing the exit
+costs 1.5 times the time on the development objects and halves, for the same successes
+(``docs/measured-global.md``, "Exits for cost").
+
+``init="rotation-search"`` / ``"features"`` / ``"scan"`` run one generator alone, through the same
+verifier (the scan strategy through its own verification on the overlap).
 """
 
 from __future__ import annotations
@@ -54,6 +54,7 @@ from ..core.correspondence import NearestNeighbors
 from ..core.nearest_grid import NearestGrid
 from ..core.procrustes import apply, batched_rotation_angle, bounding_box_diagonal, rigid_inverse, to_matrix
 from . import DISTINCT_ROTATION_DEG
+from .config import DEFAULT, SearchConfig
 from .rotation_search import NeighbourGraph, batched_esm, gaussian_overlap_score, rotation_search
 
 if TYPE_CHECKING:  # for the annotations only: the functions below import scan where they use it
@@ -62,49 +63,25 @@ if TYPE_CHECKING:  # for the annotations only: the functions below import scan w
 #: Names accepted as ``init=`` strategies for global registration.
 STRATEGIES = ("auto", "rotation-search", "features", "scan")
 
-#: Points of the source used to search / verify, and of the target indexed for both.
-SEARCH_POINTS = 200
+# Fixed design values (the tuned ones are :class:`~esmicp.globalreg.config.SearchConfig`'s).
+
+#: Target points (a random subsample) indexed for the rotation search and the verification.
 TARGET_POINTS = 3000
 
-#: Cell size and margin of the search's nearest-neighbour grid, as fractions of the target's
-#: bounding-box diagonal (see :class:`~esmicp.core.nearest_grid.NearestGrid`).
+#: Cell size and margin of the rotation search's nearest-neighbour grid, as fractions of the
+#: target's bounding-box diagonal (see :class:`~esmicp.core.nearest_grid.NearestGrid`).
 SEARCH_GRID_CELL = 1.0 / 40.0
 SEARCH_GRID_MARGIN = 0.25
 
-#: Starting rotations of the rotation search and their ESM iterations.
-SEARCH_ROTATIONS = 64
+#: ESM iterations from each starting rotation of the rotation search.
 SEARCH_ITERATIONS = 10
-
-#: Candidates kept from the rotation search for verification.
-VERIFY_CANDIDATES = 16
 
 #: Verification rounds (successive halving): ``(source points, ESM iterations at the finest sigma,
 #: distinct poses kept)``. Every candidate runs the first round; the survivors the next.
 VERIFY_ROUNDS = ((200, 6, 6), (400, 12, 4))
 
-#: Width of the Gaussian overlap score and floor of the annealed sigma, in target point spacings.
-SCORE_WIDTH_SPACINGS = 2.0
-
-#: ``"auto"`` stops after the rotation search when its best verified pose puts at least this soft
-#: fraction of the source on the target, unambiguously (full overlap: features would not help; on
-#: a symmetric object, an exact copy's features find the exact pose among the twins, which the
-#: rotation search's few contenders often miss). Measured on 130 outliers-30 trials: the rotation
-#: search alone was right in all 130, scoring 0.58-0.78 (5th percentile 0.63); on outliers-60,
-#: where it was wrong in 25 trials, its best score reached 0.62 only once. Such a pose is final at
-#: once only when it is confident on the overlap too (:func:`_on_the_overlap`).
-CONFIDENT_SCORE = 0.6
-
-#: ``"auto"``: a rotation-search pose confident on its score but not on the overlap is still final at
-#: once when at least this fraction of (up to ``COVER_POINTS`` strided) target points lie within two
-#: score widths of the placed source (:func:`_covers_the_target`): the full overlap its score assumes
-#: holds. Measured on the poses that ended there: an object under 30% outliers (its clean points
-#: cover the target) 1.0 every time; a cut ModelNet half, right or wrong, or a bunny scan pair at
-#: most 0.96 (``docs/scans-partial-overlap.md``, session 35).
-FULL_COVER = 0.99
+#: Target points (evenly strided, at most) checked by :func:`_covers_the_target`.
 COVER_POINTS = 1000
-
-#: A distinct runner-up scoring at least this fraction of the best score makes the result ambiguous.
-AMBIGUITY_RATIO = 0.97
 
 #: At most this many poses are returned as contenders for a full-resolution decision.
 MAX_CONTENDERS = 3
@@ -116,47 +93,9 @@ DECIDE_POINTS = 2000
 DECIDE_ITERATIONS = 10
 DECIDE_SIGMA_SPACINGS = 1.0
 
-#: ``"auto"``: the scan strategy's pose is final before the feature strategy runs when it overlaps
-#: more than this times the rotation search's best pose (on a cup under 30% outliers, a scan pose
-#: turned 18 degrees about the cup's axis overlapped as much as the exact one).
-SCAN_MARGIN = 1.1
-
-#: ``"auto"``: when the scan strategy's best pose is not confident on the overlap, its best this many
-#: poses (distinct, best first) join the feature candidates and the twins in the verification.
-#: Before, a scan pose could only win on its own confidence, and on a small partial overlap (a cut
-#: object, a bunny scan pair at 2,000 points: a few hundred keypoints) the right one is often not
-#: confident, while the verification on the clouds' points tells it from the rotation search's
-#: wrong ones (``docs/measured-global.md``, session 33).
-SCAN_CANDIDATES = 3
-
-#: ``"auto"``: the scan strategy's confident pose also wins when it overlaps at least this fraction
-#: as much as the other pose and its overlap confidence is higher by ``SHARPER_BY`` (0-1).
-SHARPER_SCORE_RATIO = 0.8
-SHARPER_BY = 0.2
-
-#: ``"auto"``: once the scan strategy has run, a chosen pose that is not confident on the overlap
-#: (below :data:`~esmicp.globalreg.scan.CONFIDENT`) gives way to the scan strategy's pose most
-#: confident on the overlap when that one is more confident by at least this much (0-1)
-#: (:func:`_sharper_on_the_overlap`).
-SHARPER_THAN_CHOSEN = 0.1
-
-#: The full-resolution decision runs when the runner-up scores at least this fraction of the best.
-DECIDE_RATIO = 0.9
-
-#: ``"auto"``: an unambiguous rotation-search pose scoring at least this fraction of
-#: ``CONFIDENT_SCORE`` is *settled* before the scan strategy is called on: ``SETTLE_ITERATIONS``
-#: more ESM iterations on ``SETTLE_POINTS`` evenly strided source points. It is final when it then
-#: scores ``CONFIDENT_SCORE`` and is confident on the overlap (at least ``SETTLED_CONFIDENCE``, by
-#: :func:`~esmicp.globalreg.scan.overlap_confidence` on the pair's keypoints). A LiDAR pair whose
-#: scans are metres apart can end the verification short of the truth (Newer College ``t00_s40``
-#: with rng 9: 2.6 degrees and 1.2 m, score 0.597), and the scan strategy then took 0.21 s of its
-#: 0.29 s. Without the overlap check, settling lifted wrong poses of cut objects over the threshold
-#: (a piano half flipped end to end: 0.595 -> 0.621, overlap confidence 0.10;
-#: ``docs/scans-partial-overlap.md``, session 30).
-SETTLE_FROM = 0.9
+#: Source points (evenly strided) and ESM iterations of :func:`_settle`.
 SETTLE_POINTS = 400
 SETTLE_ITERATIONS = 12
-SETTLED_CONFIDENCE = 0.5
 
 
 @dataclass(frozen=True)
@@ -165,7 +104,7 @@ class GlobalEstimate:
 
     ``transformations`` ``(K, 4, 4)`` and ``scores`` ``(K,)`` (soft fraction, 0-1, of the
     verification source points lying on the target) hold the best pose and every distinct pose
-    scoring at least ``AMBIGUITY_RATIO`` of it, plus the best distinct runner-up below that, if any.
+    scoring at least ``ambiguity_ratio`` of it, plus the best distinct runner-up below that, if any.
     ``strategies`` names where each came from; ``candidates`` counts the poses verified.
     """
 
@@ -175,6 +114,7 @@ class GlobalEstimate:
     candidates: int
     keypoints: object = None  # the scan strategy's :class:`~esmicp.globalreg.scan.Keypoints`, for confidence
     confidence: float | None = None  # overlap confidence of transformations[0] on keypoints, when already judged
+    ambiguity_ratio: float = DEFAULT.ambiguity_ratio  # the config's, for :attr:`ambiguous`
 
     @property
     def transformation(self) -> np.ndarray:
@@ -190,8 +130,19 @@ class GlobalEstimate:
 
     @property
     def ambiguous(self) -> bool:
-        """True when a distinct pose scored at least ``AMBIGUITY_RATIO`` of the best."""
-        return len(self.scores) > 1 and self.scores[1] >= AMBIGUITY_RATIO * self.scores[0]
+        """True when the distinct runner-up scores at least ``ambiguity_ratio`` of the returned
+        pose's score, or more than it (the returned pose then won on a tie-break the score does not
+        see: it is sharper on the overlap, or better constrained along a slide)."""
+        return len(self.scores) > 1 and self.scores[1] >= self.ambiguity_ratio * self.scores[0]
+
+    @property
+    def runner_up_ratio(self) -> float | None:
+        """The lower of the two scores (the returned pose's and the distinct runner-up's) over the
+        higher, 0-1 (1: they score alike; 1 also when both are 0); None without a runner-up."""
+        if len(self.scores) < 2:
+            return None
+        low, high = sorted((float(self.scores[0]), float(self.scores[1])))
+        return low / high if high > 0 else 1.0
 
 
 def _subsample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -208,7 +159,7 @@ def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> lis
     rotations = transformations[order, :3, :3]
     count = len(order)
     # R_a^T R_b for every pair from one (3K, 3) x (3, 3K) product
-    # (cheaper than K^2 separate 3x3 products: docs/speed.md, "Issue 14, fourth pass").
+    # (cheaper than K^2 separate 3x3 products: docs/speed.md).
     columns = np.swapaxes(rotations, 1, 2).reshape(3 * count, 3)
     relative = (columns @ columns.T).reshape(count, 3, count, 3).transpose(0, 2, 1, 3)  # [a, b] = R_a^T R_b
     angles = np.degrees(batched_rotation_angle(relative))
@@ -232,6 +183,7 @@ class _Workspace:
     index: NearestNeighbors  # over ``target`` or a subsample of it
     spacing: float
     width: float
+    config: SearchConfig = DEFAULT
     graphs: dict[int, NeighbourGraph] = field(default_factory=dict)  # by id() of ``index`` / ``full_index``
     grid: NearestGrid | None = None  # the rotation search's lookup grid over ``index``, once built
     _keypoints: "Keypoints | None" = field(default=None, repr=False)  # once built (:meth:`keypoints`)
@@ -243,7 +195,7 @@ class _Workspace:
         from .scan import Keypoints
 
         if self._keypoints is None:
-            self._keypoints = Keypoints.of(self.source, self.target, self.full_index.spacing())
+            self._keypoints = Keypoints.of(self.source, self.target, self.full_index.spacing(), self.config)
         return self._keypoints
 
     def source_index(self) -> NearestNeighbors:
@@ -273,112 +225,95 @@ def global_estimate(
     target_index: NearestNeighbors | None = None,
     target_spacing: float | None = None,
     workers: int | None = None,
+    config: SearchConfig = DEFAULT,
 ) -> GlobalEstimate:
-    """Find ``T_target_source`` from any initial pose (see the module docstring).
+    """Find ``T_target_source`` from any initial pose (the stages: the module docstring).
 
     ``source`` and ``target`` are validated ``(N, 3)`` / ``(M, 3)`` float64 arrays; ``rng`` drives
     every random subsample, so a seeded generator makes the result reproducible. ``target_index``
     (a :class:`NearestNeighbors` over ``target``) is reused when given, and so is
     ``target_spacing`` (its :meth:`~NearestNeighbors.spacing`, cloud units). ``workers``: threads
     of the compiled kernels (None: every core; a given ``target_index`` keeps its own).
-
-    ``"auto"`` runs the rotation search first; when its verified best pose already puts at least
-    ``CONFIDENT_SCORE`` of the source on the target, no distinct pose comes close and it is
-    confident on the overlap (:func:`_on_the_overlap`) or covers the whole target
-    (:func:`_covers_the_target`), that is final (clouds that overlap fully, as most objects do).
-    A pose just short of ``CONFIDENT_SCORE`` is final once settled by a few more iterations, if it
-    is then confident on the overlap (:func:`_settle`); so is a confident one that is neither. If
-    settling does not make it confident, that pose stands unless the scan strategy's first search
-    leads it (:func:`_scan_leads`).
-    Otherwise the scan strategy runs (:mod:`esmicp.globalreg.scan`, for partial overlaps); its pose
-    is final when it is confident on the overlap and overlaps clearly more than the rotation
-    search's best. Otherwise the feature
-    candidates, the twins of that pose (:func:`_twins`) and, when it is not confident, the scan
-    strategy's best poses (:data:`SCAN_CANDIDATES`) join, and everything is verified together;
-    the scan pose still wins if it is confident and overlaps strictly more than the winner. A
-    pose that stands or wins after the scan strategy ran, and is not confident on the overlap,
-    gives way to a clearly more confident scan pose (:func:`_sharper_on_the_overlap`). The
-    scan's keypoints come back in ``keypoints`` either way, for the confidence.
+    ``strategy``: one of :data:`STRATEGIES`; ``config``: the tuned values.
     """
     full_index = target_index if target_index is not None else NearestNeighbors(target, workers=workers)
     if strategy == "scan":
-        return _scan(source, target, full_index, target_spacing)
+        return _scan(source, target, full_index, target_spacing, config=config)
+    work = _workspace(source, target, rng, full_index, target_spacing, config)
+    if strategy == "rotation-search":
+        return _decide(work, _verify(work, _rotation_candidates(work), "rotation-search"))
+    if strategy == "features":
+        found = _feature_candidates(work)
+        if found:
+            return _decide(work, _verify(work, found, "features"))
+        # Too few feature matches to propose anything: the rotation search rather than a failure.
+        return global_estimate(source, target, strategy="rotation-search", rng=rng, target_index=full_index,
+                               target_spacing=target_spacing, workers=full_index.workers, config=config)
+    return _auto(work, target_spacing)
+
+
+def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
+    """The default search: generators, one verification, one decision (module docstring)."""
+    config, workers = work.config, work.full_index.workers
+    # 1. Whole objects: the rotation search's poses, verified.
+    rotation = _verify(work, _rotation_candidates(work), "rotation-search")
+    searched = rotation.candidates
+    # The one exit, for cost: a confident rotation-search pose (most whole objects) is final here;
+    # one just short of the score (``config.settle_from``) is settled by a few more iterations first.
+    scored = None  # that pose, when its score alone is confident
+    final: GlobalEstimate | None
+    if rotation.score >= config.settle_from * config.confident_score and not rotation.ambiguous:
+        if rotation.score >= config.confident_score:
+            final = scored = _on_the_overlap(work, _decide(work, rotation))
+        else:
+            final = _settle(work, rotation)
+        confident = final is not None and final.confidence is not None and final.confidence >= config.confident
+        if final is not None and (confident or _covers_the_target(work, final.transformation)):
+            return final
+    # 2. Partial overlaps: correspondences pruned by consistency (the scan strategy); a pose
+    # confident on its score alone is only checked by its first search.
+    scanned = _scan(work.source, work.target, work.full_index, target_spacing,
+                    searches=None if scored is None else 1, config=config)
+    if _scan_leads(scanned, rotation.transformation, margin=config.scan_margin, workers=workers, config=config):
+        return replace(scanned, candidates=searched + scanned.candidates)
+    if scored is not None:
+        return _sharper_on_the_overlap(replace(scored, candidates=searched + scanned.candidates), scanned,
+                                       workers, config)
+    # 3. Everything else verified together: the twins of the rotation search's pose, the scan
+    # strategy's unconfident poses and the feature hypotheses, with the rotation search's
+    # verified contenders carried into the last round.
+    twins = _twins(work.index.points, rotation.transformation)
+    scan_poses = _unconfident_scan_poses(scanned, config)
+    found = _feature_candidates(work)
+    origins = ["rotation-search"] * len(twins) + ["scan"] * len(scan_poses) + ["features"] * len(found)
+    chosen = _decide(work, _verify(work, twins + scan_poses + found, origins, carried=rotation))
+    # Each pose counted once: the scan strategy's in ``scanned.candidates``.
+    chosen = replace(chosen, candidates=searched + len(twins) + len(found) + scanned.candidates)
+    # 4. The decision: the best verified pose, unless the scan strategy's is confident and
+    # overlaps more, or this one is not confident on the overlap and a scan pose is clearly more.
+    if _scan_leads(scanned, chosen.transformation, workers=workers, config=config):
+        return replace(scanned, candidates=chosen.candidates)
+    return _sharper_on_the_overlap(replace(chosen, keypoints=scanned.keypoints), scanned, workers, config)
+
+
+def _workspace(source, target, rng, full_index: NearestNeighbors, target_spacing: float | None,
+               config: SearchConfig) -> _Workspace:
+    """The :class:`_Workspace` of one search: the target indexed (a subsample of
+    :data:`TARGET_POINTS` drawn from ``rng`` when larger), its spacing and the score width."""
     if len(target) <= TARGET_POINTS:
         index = full_index
     else:
         index = NearestNeighbors(_subsample(target, TARGET_POINTS, rng), workers=full_index.workers)
     spacing = target_spacing if target_spacing is not None and index is full_index else index.spacing()
-    width = SCORE_WIDTH_SPACINGS * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target)
-    work = _Workspace(source, target, rng, full_index, index, spacing, width)
-
-    candidates: list[np.ndarray] = []
-    origins: list[str] = []
-    if strategy in ("auto", "rotation-search"):
-        candidates += _rotation_candidates(work)
-        origins += ["rotation-search"] * (len(candidates) - len(origins))
-    searched = len(candidates)
-    carried = None
-    if strategy == "auto":
-        from .scan import CONFIDENT
-
-        estimate = _verify(work, candidates, origins)
-        scored = None  # the rotation search's pose when its score alone made it confident
-        if estimate.score >= CONFIDENT_SCORE and not estimate.ambiguous:
-            scored = _on_the_overlap(work, _decide(work, estimate))
-            if scored.confidence >= CONFIDENT or _covers_the_target(work, scored.transformation):
-                return scored
-        if estimate.score >= SETTLE_FROM * CONFIDENT_SCORE and not estimate.ambiguous:
-            settled = _settle(work, estimate)
-            if settled is not None:
-                return settled
-        # Not confident: probably a partial overlap. The scan strategy's pose wins at once when it
-        # is confident on the overlap and overlaps clearly more than the rotation search's. A pose
-        # confident on its score alone is only checked, by the scan strategy's first search.
-        scanned = _scan(source, target, full_index, target_spacing, searches=None if scored is None else 1)
-        if _scan_leads(scanned, estimate.transformation, margin=SCAN_MARGIN, workers=full_index.workers):
-            return replace(scanned, candidates=searched + scanned.candidates)
-        if scored is not None:
-            return _sharper_on_the_overlap(replace(scored, candidates=searched + scanned.candidates), scanned,
-                                           full_index.workers)
-        # The rotation search's verified contenders join the feature candidates in the last round.
-        carried = (estimate.transformations, estimate.scores, list(estimate.strategies))
-        candidates = _twins(work.index.points, estimate.transformation)
-        origins = ["rotation-search"] * len(candidates)
-        searched += len(candidates)
-        scan_poses = _unconfident_scan_poses(scanned)
-        candidates += scan_poses
-        origins += ["scan"] * len(scan_poses)
-    found_count = 0
-    if strategy in ("auto", "features"):
-        found = _feature_candidates(work)
-        found_count = len(found)
-        candidates += found
-        origins += ["features"] * len(found)
-    if not candidates:
-        if carried is not None:
-            return _decide(work, estimate)
-        # Only the feature strategy can come back empty (too few feature matches): fall back to
-        # the rotation search rather than fail.
-        return global_estimate(
-            source, target, strategy="rotation-search", rng=rng, target_index=full_index,
-            target_spacing=target_spacing, workers=full_index.workers,
-        )
-    estimate = _decide(work, _verify(work, candidates, origins, carried=carried))
-    # Count each candidate pose once (the carried rotation-search contenders are not new ones).
-    estimate = replace(estimate, candidates=searched + found_count)
-    if strategy == "auto":
-        if _scan_leads(scanned, estimate.transformation, workers=full_index.workers):
-            return replace(scanned, candidates=estimate.candidates + scanned.candidates)
-        chosen = replace(estimate, candidates=estimate.candidates + scanned.candidates, keypoints=scanned.keypoints)
-        return _sharper_on_the_overlap(chosen, scanned, full_index.workers)
-    return estimate
+    width = config.score_width_spacings * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target)
+    return _Workspace(source, target, rng, full_index, index, spacing, width, config)
 
 
 def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     """``estimate`` with the pair's keypoints and the overlap confidence of its best pose
     (:func:`~esmicp.globalreg.scan.overlap_confidence`). ``"auto"`` takes the rotation search's
     pose, confident on its score, at once only when this is at least
-    :data:`~esmicp.globalreg.scan.CONFIDENT` (the search's own bar; ``register``'s result is
+    ``config.confident`` (the search's own bar; ``register``'s result is
     trusted from :data:`~esmicp.globalreg.scan.TRUSTED`) or the pose covers the whole target
     (:func:`_covers_the_target`); otherwise the scan strategy's first search checks it
     (:func:`global_estimate`).
@@ -389,81 +324,81 @@ def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimat
     On the ModelNet40 halves, seeds 0-7, 10 such wrong poses become right and none is lost. One
     search only, and not when the pose covers the whole target: a clean pose of an object under
     30% outliers is often not confident on the overlap (its outliers are keypoints too), and
-    every search costs time (``docs/scans-partial-overlap.md``, session 35)."""
+    every search costs time (``docs/scans-partial-overlap.md``)."""
     from .scan import overlap_confidence
 
     keypoints = work.keypoints()
-    confidence = overlap_confidence(estimate.transformation, keypoints, work.full_index.workers)
+    confidence = overlap_confidence(estimate.transformation, keypoints, work.full_index.workers, work.config)
     return replace(estimate, keypoints=keypoints, confidence=confidence)
 
 
 def _covers_the_target(work: _Workspace, transformation: np.ndarray) -> bool:
-    """True when at least :data:`FULL_COVER` of up to :data:`COVER_POINTS` evenly strided target
+    """True when at least ``config.full_cover`` of up to :data:`COVER_POINTS` evenly strided target
     points lie within two score widths of the source placed by ``transformation``."""
     target = work.target[np.linspace(0, len(work.target) - 1, min(COVER_POINTS, len(work.target))).astype(np.intp)]
     distances, _ = work.source_index().query(apply(rigid_inverse(transformation), target))
-    return bool(np.mean(distances <= 2.0 * work.width) >= FULL_COVER)
+    return bool(np.mean(distances <= 2.0 * work.width) >= work.config.full_cover)
 
 
 def _settle(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate | None:
-    """``estimate`` with its best pose settled (see :data:`SETTLE_FROM`), and the pair's keypoints
-    (for the confidence), when the settled pose scores ``CONFIDENT_SCORE`` and is confident on the
-    overlap; else None. The source points are strided, not drawn: the generator's later draws stay
-    those of a search without this step."""
+    """``estimate`` with its best pose settled (:data:`SETTLE_ITERATIONS` more ESM iterations on
+    :data:`SETTLE_POINTS` strided source points), the pair's keypoints and the settled pose's
+    overlap confidence, when the settled pose scores ``config.confident_score``; else None. The
+    source points are strided, not drawn: the generator's later draws stay those of a search
+    without this step."""
     from .scan import overlap_confidence
 
     stride = np.linspace(0, len(work.source) - 1, min(SETTLE_POINTS, len(work.source))).astype(np.intp)
     settled, scores = _batched_verification(work, work.index, work.source[stride], estimate.transformations[:1],
                                             SETTLE_ITERATIONS, work.width)
-    if scores[0] < CONFIDENT_SCORE:
+    if scores[0] < work.config.confident_score:
         return None
     keypoints = work.keypoints()
-    confidence = overlap_confidence(settled[0], keypoints, work.full_index.workers)
-    if confidence < SETTLED_CONFIDENCE:
-        return None
+    confidence = overlap_confidence(settled[0], keypoints, work.full_index.workers, work.config)
     return replace(estimate, transformations=np.concatenate([settled, estimate.transformations[1:]]),
                    scores=np.concatenate([scores, estimate.scores[1:]]), keypoints=keypoints, confidence=confidence)
 
 
 def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | None,
-          searches: int | None = None) -> GlobalEstimate:
+          searches: int | None = None, config: SearchConfig = DEFAULT) -> GlobalEstimate:
     """The ``"scan"`` strategy (:mod:`esmicp.globalreg.scan`): its poses and overlap scores, from at
     most ``searches`` of its searches (None: until one is confident)."""
     from .scan import scan_estimate_until_confident
 
     spacing = full_index.spacing() if target_spacing is None else target_spacing
     found = scan_estimate_until_confident(source, target, spacing=spacing, workers=full_index.workers,
-                                          searches=searches)
+                                          searches=searches, config=config)
     return GlobalEstimate(
         found.transformations, found.scores, ("scan",) * len(found.scores), candidates=len(found.scores),
-        keypoints=found.keypoints, confidence=found.confidence,
+        keypoints=found.keypoints, confidence=found.confidence, ambiguity_ratio=config.ambiguity_ratio,
     )
 
 
 def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1.0,
-                workers: int | None = None) -> bool:
+                workers: int | None = None, config: SearchConfig = DEFAULT) -> bool:
     """True when the scan strategy's best pose is confident on the overlap
     (:func:`~esmicp.globalreg.scan.overlap_confidence`) and either its overlap score (keypoints of
     both clouds on the other cloud) is above ``margin`` times that of ``other``, or it overlaps at
-    least ``SHARPER_SCORE_RATIO`` as much and is sharper by ``SHARPER_BY``: a pose slid along a
+    least ``config.sharper_score_ratio`` as much and is sharper by ``config.sharper_by``: a pose slid along a
     wall or a floor can overlap a little more, while only the true one makes the overlap coincide
-    (``docs/scans-partial-overlap.md``, session 28). ``workers``: threads of the queries."""
-    from .scan import CONFIDENT, overlap_confidence, overlap_score
+    (``docs/scans-partial-overlap.md``). ``workers``: threads of the queries."""
+    from .scan import overlap_confidence, overlap_score
 
     keypoints, confidence = scanned.keypoints, scanned.confidence  # judged by the scan strategy itself
-    if confidence < CONFIDENT:
+    if confidence < config.confident:
         return False
     mine, theirs = overlap_score(scanned.transformation, keypoints, workers), overlap_score(other, keypoints, workers)
     if mine > margin * theirs:
         return True
-    return mine >= SHARPER_SCORE_RATIO * theirs and confidence >= overlap_confidence(other, keypoints, workers) + SHARPER_BY
+    return mine >= config.sharper_score_ratio * theirs and \
+        confidence >= overlap_confidence(other, keypoints, workers, config) + config.sharper_by
 
 
 def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
-                            workers: int | None = None) -> GlobalEstimate:
+                            workers: int | None = None, config: SearchConfig = DEFAULT) -> GlobalEstimate:
     """``chosen`` (its keypoints set) with the overlap confidence of its best pose on its keypoints,
-    unless that is below :data:`~esmicp.globalreg.scan.CONFIDENT` and one of the scan strategy's
-    poses is more confident by :data:`SHARPER_THAN_CHOSEN`: then the most confident of those, with
+    unless that is below ``config.confident`` and one of the scan strategy's
+    poses is more confident by ``config.sharper_than_chosen``: then the most confident of those, with
     the chosen pose as its runner-up when the two are distinct (rotations more than
     ``DISTINCT_ROTATION_DEG`` apart), each scored by its overlap score on the keypoints. The
     chosen pose usually overlaps more, so such a result is usually flagged ambiguous, and its
@@ -474,45 +409,43 @@ def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
     whose cut-away part hangs free; the scan strategy often has the truth among its poses, ranked
     below by the same overlap but sharper where the clouds do coincide. On the ModelNet40 halves
     (seeds 0-7) the pose chosen was wrong in 54 of 326 trials, and in 30 of them a right pose had
-    been weighed (``docs/scans-partial-overlap.md``, session 36)."""
-    from .scan import CONFIDENT, overlap_confidence, overlap_score
+    been weighed (``docs/scans-partial-overlap.md``)."""
+    from .scan import overlap_confidence, overlap_score
 
     keypoints = chosen.keypoints
     confidence = chosen.confidence
     if confidence is None:
-        confidence = overlap_confidence(chosen.transformation, keypoints, workers)
+        confidence = overlap_confidence(chosen.transformation, keypoints, workers, config)
     chosen = replace(chosen, confidence=confidence)
     poses = scanned.transformations[scanned.scores > 0]  # a search that found nothing sends nothing
-    if confidence >= CONFIDENT or not len(poses):
+    if confidence >= config.confident or not len(poses):
         return chosen
     # The scan strategy judged its best pose already, on these keypoints when they are its own.
     known = scanned.confidence if keypoints is scanned.keypoints and scanned.scores[0] > 0 else None
-    confidences = [known if k == 0 and known is not None else overlap_confidence(pose, keypoints, workers)
+    confidences = [known if k == 0 and known is not None else overlap_confidence(pose, keypoints, workers, config)
                    for k, pose in enumerate(poses)]
     best = int(np.argmax(confidences))
-    if confidences[best] < confidence + SHARPER_THAN_CHOSEN:
+    if confidences[best] < confidence + config.sharper_than_chosen:
         return chosen
     pair = np.stack([poses[best], chosen.transformation])
     pair = pair[_distinct(pair, np.arange(2), 2)]  # the same pose, sharpened: no runner-up
     scores = np.array([overlap_score(pose, keypoints, workers) for pose in pair])
     strategies = ("scan",) + chosen.strategies[:1] * (len(pair) - 1)
     return GlobalEstimate(pair, scores, strategies, candidates=chosen.candidates, keypoints=keypoints,
-                          confidence=confidences[best])
+                          confidence=confidences[best], ambiguity_ratio=config.ambiguity_ratio)
 
 
-def _unconfident_scan_poses(scanned: GlobalEstimate) -> list[np.ndarray]:
-    """The scan strategy's best :data:`SCAN_CANDIDATES` poses when its best is not confident on the
+def _unconfident_scan_poses(scanned: GlobalEstimate, config: SearchConfig = DEFAULT) -> list[np.ndarray]:
+    """The scan strategy's best ``config.scan_candidates`` poses when its best is not confident on the
     overlap, else none: a confident one keeps the way to win it had (:func:`_scan_leads`), and its
     runner-ups get no chance to beat it in a verification that scores differently (sending them
     whatever the confidence gave the same results on the crops and the object protocols measured:
-    ``docs/scans-partial-overlap.md``, session 33). A search that found nothing
+    ``docs/scans-partial-overlap.md``). A search that found nothing
     (:meth:`~esmicp.globalreg.scan.ScanEstimate.nothing`: the identity, score 0) sends nothing.
     They are counted once, in ``scanned.candidates``."""
-    from .scan import CONFIDENT
-
-    if scanned.confidence >= CONFIDENT:
+    if scanned.confidence >= config.confident:
         return []
-    return list(scanned.transformations[scanned.scores > 0][:SCAN_CANDIDATES])
+    return list(scanned.transformations[scanned.scores > 0][:config.scan_candidates])
 
 
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
@@ -520,17 +453,18 @@ def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
     diagonal = bounding_box_diagonal(target)
     grid = work.grid = NearestGrid(target, SEARCH_GRID_CELL * diagonal, margin=SEARCH_GRID_MARGIN * diagonal)
     found = rotation_search(
-        _subsample(work.source, SEARCH_POINTS, work.rng), grid,
-        rotations=SEARCH_ROTATIONS, iterations=SEARCH_ITERATIONS, score_width=work.width, sigma_floor=work.width,
+        _subsample(work.source, work.config.search_points, work.rng), grid,
+        rotations=work.config.search_rotations, iterations=SEARCH_ITERATIONS, score_width=work.width, sigma_floor=work.width,
         workers=work.full_index.workers,
     )
-    return [found.transformations[k] for k in _distinct(found.transformations, np.arange(len(found.scores)), VERIFY_CANDIDATES)]
+    return [found.transformations[k] for k in _distinct(found.transformations, np.arange(len(found.scores)),
+                                                         work.config.verify_candidates)]
 
 
 def _feature_candidates(work: _Workspace) -> list[np.ndarray]:
     """The feature strategy's hypotheses, with normals from the dense points and from the
     keypoints (each kind finds poses the other misses; on the bunny scan pairs the pool gained 4
-    of 111 object-protocol trials and lost none, ``docs/measured-global.md``, session 28)."""
+    of 111 object-protocol trials and lost none, ``docs/measured-global.md``)."""
     from .feature_matching import feature_hypotheses
 
     hypotheses = [
@@ -557,15 +491,17 @@ def _batched_verification(work, index, source_points, transformations, iteration
 def _verify(
     work: _Workspace,
     candidates: list[np.ndarray],
-    origins: list[str],
+    origins: list[str] | str,
     *,
-    carried: tuple[np.ndarray, np.ndarray, list[str]] | None = None,
+    carried: GlobalEstimate | None = None,
 ) -> GlobalEstimate:
-    """Successive halving over ``candidates``, then a full-resolution decision between poses that
-    still score alike. ``carried`` poses (with their scores and origins), verified before by the
-    same rounds, join the survivors after the last round."""
+    """The verifier: successive halving over ``candidates`` (:data:`VERIFY_ROUNDS`: batched ESM on
+    a source subsample, each pose scored by the soft fraction of those points on the target);
+    ``origins`` names each candidate's generator (one name for all). ``carried`` poses (with their
+    scores and origins), verified before by the same rounds, join the survivors after the last
+    round. Returns the contenders (:func:`_contenders`), best first."""
     verified = np.stack(candidates)
-    origins_array = np.array(origins)
+    origins_array = np.array([origins] * len(candidates) if isinstance(origins, str) else origins)
     for points, iterations, keep in VERIFY_ROUNDS:
         verified, scores = _batched_verification(
             work, work.index, _subsample(work.source, points, work.rng), verified, iterations, work.width
@@ -573,24 +509,25 @@ def _verify(
         survivors = _distinct(verified, np.argsort(-scores, kind="stable"), keep)
         verified, scores, origins_array = verified[survivors], scores[survivors], origins_array[survivors]
     if carried is not None:
-        verified = np.concatenate([verified, carried[0]])
-        scores = np.concatenate([scores, carried[1]])
-        origins_array = np.concatenate([origins_array, np.array(carried[2])])
-    kept = _contenders(verified, scores)
-    return GlobalEstimate(verified[kept], scores[kept], tuple(origins_array[kept]), candidates=len(candidates))
+        verified = np.concatenate([verified, carried.transformations])
+        scores = np.concatenate([scores, carried.scores])
+        origins_array = np.concatenate([origins_array, np.array(carried.strategies)])
+    kept = _contenders(verified, scores, work.config.ambiguity_ratio)
+    return GlobalEstimate(verified[kept], scores[kept], tuple(origins_array[kept]), candidates=len(candidates),
+                          ambiguity_ratio=work.config.ambiguity_ratio)
 
 
 def _decide(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     """Re-verify ``estimate``'s contenders on (up to) the full clouds when the runner-up scores at
-    least ``DECIDE_RATIO`` of the best: ``DECIDE_ITERATIONS`` ESM iterations at a sigma of
+    least ``config.decide_ratio`` of the best: ``DECIDE_ITERATIONS`` ESM iterations at a sigma of
     ``DECIDE_SIGMA_SPACINGS`` target spacings on ``DECIDE_POINTS`` source points, then the mean of
     two Gaussian overlap scores: those source points on the full target, and ``DECIDE_POINTS``
     target points on the full placed source. Returns the contenders re-ranked by it."""
     scores = estimate.scores
-    if len(scores) < 2 or scores[1] < DECIDE_RATIO * scores[0]:
+    if len(scores) < 2 or scores[1] < work.config.decide_ratio * scores[0]:
         return estimate
     full_spacing = work.spacing if work.index is work.full_index else work.full_index.spacing()
-    full_width = SCORE_WIDTH_SPACINGS * full_spacing if full_spacing > 0 else work.width
+    full_width = work.config.score_width_spacings * full_spacing if full_spacing > 0 else work.width
     sigma = DECIDE_SIGMA_SPACINGS * full_spacing if full_spacing > 0 else None
     refined, decided = _batched_verification(
         work, work.full_index, _subsample(work.source, DECIDE_POINTS, work.rng), estimate.transformations,
@@ -604,17 +541,18 @@ def _decide(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     in_source = np.matmul(target_points[None] - refined[:, None, :3, 3], refined[:, :3, :3])
     backward, _ = source_index.query(in_source.reshape(-1, 3))
     decided = 0.5 * (decided + gaussian_overlap_score(backward.reshape(len(refined), -1), full_width))
-    order = _contenders(refined, decided)
+    order = _contenders(refined, decided, work.config.ambiguity_ratio)
     strategies = tuple(estimate.strategies[k] for k in order)
-    return GlobalEstimate(refined[order], decided[order], strategies, candidates=estimate.candidates)
+    return GlobalEstimate(refined[order], decided[order], strategies, candidates=estimate.candidates,
+                          ambiguity_ratio=work.config.ambiguity_ratio)
 
 
-def _contenders(transformations: np.ndarray, scores: np.ndarray) -> list[int]:
-    """Indices of the best pose, every distinct pose within ``AMBIGUITY_RATIO`` of it (at most
+def _contenders(transformations: np.ndarray, scores: np.ndarray, ratio: float) -> list[int]:
+    """Indices of the best pose, every distinct pose within ``ratio`` of it (at most
     ``MAX_CONTENDERS`` in all), and the best distinct pose below that, best first."""
     order = np.argsort(-scores, kind="stable")
     distinct = _distinct(transformations, order, MAX_CONTENDERS + 1)
-    close = sum(scores[index] >= AMBIGUITY_RATIO * scores[distinct[0]] for index in distinct)
+    close = sum(scores[index] >= ratio * scores[distinct[0]] for index in distinct)
     return distinct[: min(close + 1, MAX_CONTENDERS + 1)]
 
 

@@ -1,0 +1,250 @@
+"""A fixed sample of global registrations, recorded so that a change to the global search can be
+compared with the code before it, row by row.
+
+Sets (``--sets``, comma-separated):
+
+``objects``
+    the five object protocols (:data:`esmicp.bench.protocols.PROTOCOLS`) on the 12 ModelNet40
+    shapes of ``modelnet40/``, ``--trials`` trials each (round-robin over the shapes).
+``halves``
+    ModelNet40 halves cut to 70% and 50% (:func:`esmicp.bench.real_pairs.partial_trial`),
+    ``--trials`` each; success up to symmetry on the whole half.
+``real``
+    every pair of ``real_pairs/pairs.csv`` as recorded, and the 3DMatch pairs turned.
+``crops``
+    the 3DMatch pairs cropped to 25% and 15% overlap (:func:`esmicp.bench.real_pairs.crop_to_overlap`),
+    turned.
+``extra-halves``, ``extra-objects``
+    as ``halves`` / the ``outliers-60`` protocol, on the shapes of ``modelnet40_extra/`` (a
+    confirmation set: nothing is tuned on it).
+``kitchen``
+    frame pairs 10-50 frames apart of the kitchen walk (``sequences/redkitchen_seq01_every10``),
+    as recorded: a confirmation set for the scan thresholds (success: rotation < 5 deg and
+    translation < 0.1 m, the depth camera's walk).
+
+Each registration is ``esmicp.register(source, target, rng=seed)`` with every default (``workers=1``).
+Writes one JSON line per registration (pose, success, confidence, trusted, ambiguous,
+runner_up_ratio, where the pose came from, time) to ``--out``. ``--compare BEFORE.jsonl`` instead
+compares two such files: the rows whose pose moved, whose success changed, and the totals.
+
+    python benchmarks/global_regression.py --out /tmp/runs/before.jsonl
+    python benchmarks/global_regression.py --out /tmp/runs/after.jsonl --compare /tmp/runs/before.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+import esmicp
+from esmicp.bench.protocols import PROTOCOLS, make_trials
+from esmicp.bench.real_pairs import (
+    criteria_for, crop_to_overlap, estimate_in_pair_frame, load_pair, pair_errors, partial_trial, read_pairs,
+    turn_source,
+)
+from esmicp.core.procrustes import bounding_box_diagonal, rotation_angle
+from esmicp.metrics import strict_success, up_to_symmetry_success
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SETS = ("objects", "halves", "real", "crops", "extra-halves", "extra-objects", "kitchen")
+KITCHEN_GAPS = (10, 20, 30, 40, 50)
+
+
+def _clouds(folder: Path) -> dict[str, np.ndarray]:
+    return {path.stem: esmicp.read_points(path) for path in sorted(folder.glob("*/*.txt"))}
+
+
+def _seed(*key) -> int:
+    return int(np.random.SeedSequence(list(key)).generate_state(1)[0])
+
+
+def _record(name: str, source, target, seed: int, judge) -> dict:
+    started = time.perf_counter()
+    result = esmicp.register(source, target, rng=seed, workers=1)
+    elapsed = time.perf_counter() - started
+    row = {"row": name, "seed": seed, "time_s": elapsed, "init": result.init,
+           "confidence": result.confidence, "trusted": result.trusted, "ambiguous": result.ambiguous,
+           "runner_up_ratio": result.runner_up_ratio, "candidates": result.global_candidates,
+           "transformation": result.transformation.tolist()}
+    row.update(judge(result.transformation))
+    return row
+
+
+def object_rows(data: Path, trials: int, seed: int, folder: str = "modelnet40", protocols=PROTOCOLS):
+    clouds = _clouds(data / folder)
+    for protocol in protocols:
+        for trial in make_trials(protocol, clouds, trials, seed):
+            pivot = trial.source.mean(axis=0)
+
+            def judge(estimate, trial=trial, pivot=pivot):
+                truth = trial.T_target_source
+                return {"success": bool(up_to_symmetry_success(trial.clean_source, estimate, truth, trial.diagonal)),
+                        "strict": bool(strict_success(estimate, truth, trial.diagonal, pivot=pivot))}
+
+            yield _record(f"{folder}/{protocol}/{trial.seed[1]}/{trial.cloud}", trial.source, trial.target,
+                          _seed(seed, 0, PROTOCOLS.index(protocol), trial.seed[1]), judge)
+
+
+def half_rows(data: Path, trials: int, seed: int, folder: str = "modelnet40"):
+    clouds = _clouds(data / folder)
+    names = list(clouds)
+    for number, keep in enumerate((0.7, 0.5)):
+        for index in range(trials):
+            name = names[index % len(names)]
+            rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(1, number, index)))
+            trial = partial_trial(clouds[name], keep, rng)
+            diagonal = bounding_box_diagonal(trial.target)
+
+            def judge(estimate, trial=trial, diagonal=diagonal):
+                return {"success": bool(up_to_symmetry_success(trial.source_half, estimate, trial.T_target_source,
+                                                               diagonal)),
+                        "overlap": trial.overlap}
+
+            yield _record(f"{folder}/half-{round(100 * keep)}/{index}/{name}", trial.source, trial.target,
+                          _seed(seed, 1, number, index), judge)
+
+
+def _pair_judge(truth, moved_by, kind):
+    criteria = criteria_for(kind)
+
+    def judge(estimate):
+        rotation, translation = pair_errors(estimate_in_pair_frame(estimate, moved_by), truth)
+        return {"success": bool(criteria.success(rotation, translation)), "rotation_error_deg": rotation,
+                "translation_error": translation}
+
+    return judge
+
+
+def real_rows(data: Path, seed: int):
+    for number, pair in enumerate(read_pairs(data / "real_pairs")):
+        source, target, truth = load_pair(pair, bin_columns=3)
+        yield _record(f"real/{pair.name}/as-recorded", source, target, _seed(seed, 2, number),
+                      _pair_judge(truth, None, pair.kind))
+        if pair.kind == "3DMatch":
+            rng = np.random.default_rng(_seed(seed, 3, number))
+            turned, _, moved_by = turn_source(source, truth, rng)
+            yield _record(f"real/{pair.name}/turned", turned, target, _seed(seed, 3, number),
+                          _pair_judge(truth, moved_by, pair.kind))
+
+
+def crop_rows(data: Path, seed: int, crops: int = 1):
+    pairs = [pair for pair in read_pairs(data / "real_pairs") if pair.kind == "3DMatch"]
+    cases = [(overlap_number, overlap, crop) for overlap_number, overlap in enumerate((0.25, 0.15))
+             for crop in range(crops)]
+    for number, pair in enumerate(pairs):
+        source, target, truth = load_pair(pair, bin_columns=3)
+        for overlap_number, overlap, crop in cases:
+            rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(number, overlap_number, crop)))
+            cropped = crop_to_overlap(source, target, truth, overlap, rng)
+            turned, _, moved_by = turn_source(cropped.source, truth, rng)
+            key = (number, overlap_number) if crop == 0 else (number, overlap_number, crop)
+            row = _record(f"crop/{pair.name}/{round(100 * overlap)}" + (f"/{crop}" if crop else ""), turned,
+                          cropped.target, _seed(seed, 4, *key), _pair_judge(truth, moved_by, "3DLoMatch"))
+            row["overlap"] = cropped.source_overlap
+            yield row
+
+
+def kitchen_rows(data: Path, seed: int, pairs_per_gap: int = 3):
+    folder = data / "sequences" / "redkitchen_seq01_every10"
+    poses = {}
+    for line in (folder / "poses.txt").read_text().splitlines():
+        fields = line.split()
+        if len(fields) == 13:
+            matrix = np.eye(4)
+            matrix[:3, :] = np.array(fields[1:], dtype=float).reshape(3, 4)
+            poses[fields[0]] = matrix
+    names = sorted(poses)
+    criteria = {"success": lambda rotation, translation: rotation < 5.0 and translation < 0.1}
+    for gap_index, gap in enumerate(KITCHEN_GAPS):
+        steps = gap // 10
+        starts = np.linspace(0, len(names) - 1 - steps, pairs_per_gap).round().astype(int)
+        for start in starts:
+            target_name, source_name = names[start], names[start + steps]
+            target = np.load(folder / "frames" / f"{target_name}.npy").astype(np.float64)
+            source = np.load(folder / "frames" / f"{source_name}.npy").astype(np.float64)
+            truth = np.linalg.inv(poses[target_name]) @ poses[source_name]
+
+            def judge(estimate, truth=truth):
+                rotation, translation = pair_errors(estimate, truth)
+                return {"success": bool(criteria["success"](rotation, translation)),
+                        "rotation_error_deg": rotation, "translation_error": translation}
+
+            yield _record(f"kitchen/gap{gap}/{target_name}-{source_name}", source, target,
+                          _seed(seed, 5, gap_index, int(start)), judge)
+
+
+def compare(before_path: Path, after_path: Path) -> str:
+    def load(path):
+        return {row["row"]: row for row in map(json.loads, path.read_text().splitlines())}
+
+    before, after = load(before_path), load(after_path)
+    lines, moved = [], 0
+    for name, old in before.items():
+        new = after.get(name)
+        if new is None:
+            continue
+        a, b = np.array(old["transformation"]), np.array(new["transformation"])
+        turn = float(np.degrees(rotation_angle(a[:3, :3].T @ b[:3, :3])))
+        shift = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+        if turn > 1e-6 or shift > 1e-9 * max(1.0, float(np.abs(a[:3, 3]).max())) or old["success"] != new["success"]:
+            moved += 1
+            lines.append(f"{name}: pose moved {turn:.3g} deg / {shift:.3g}; success {old['success']} -> "
+                         f"{new['success']}; confidence {old['confidence']:.3f} -> {new['confidence']:.3f}")
+    groups: dict[str, list] = {}
+    for name in after:
+        if name in before:
+            groups.setdefault("/".join(name.split("/")[:2]), []).append(name)
+    lines.append("")
+    lines.append("| group | rows | success before | success after | time after / before |")
+    lines.append("|---|---|---|---|---|")
+    for group, names in groups.items():
+        ok_before = sum(before[n]["success"] for n in names)
+        ok_after = sum(after[n]["success"] for n in names)
+        ratio = sum(after[n]["time_s"] for n in names) / max(sum(before[n]["time_s"] for n in names), 1e-12)
+        lines.append(f"| {group} | {len(names)} | {ok_before} | {ok_after} | {ratio:.2f} |")
+    ratios = [after[n]["runner_up_ratio"] for n in after if after[n]["runner_up_ratio"] is not None]
+    lines.append(f"\nrows moved: {moved} of {len(after)}; largest runner_up_ratio after: "
+                 f"{max(ratios) if ratios else None}")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--sets", default="objects,halves,real,crops")
+    parser.add_argument("--trials", type=int, default=12, help="trials per object protocol / per half keep")
+    parser.add_argument("--crops", type=int, default=1, help="seeded crops per 3DMatch pair and overlap")
+    parser.add_argument("--kitchen-pairs", type=int, default=3, help="kitchen frame pairs per gap")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path)
+    parser.add_argument("--compare", type=Path, help="a JSON-lines file of an earlier run to compare --out with")
+    args = parser.parse_args()
+    if args.out is not None and not (args.compare and args.out.exists() and args.sets == "none"):
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        makers = {
+            "objects": lambda: object_rows(args.data, args.trials, args.seed),
+            "halves": lambda: half_rows(args.data, args.trials, args.seed),
+            "real": lambda: real_rows(args.data, args.seed),
+            "crops": lambda: crop_rows(args.data, args.seed, args.crops),
+            "extra-halves": lambda: half_rows(args.data, args.trials, args.seed, "modelnet40_extra"),
+            "extra-objects": lambda: object_rows(args.data, args.trials, args.seed, "modelnet40_extra",
+                                                 ("outliers-60",)),
+            "kitchen": lambda: kitchen_rows(args.data, args.seed, args.kitchen_pairs),
+        }
+        with open(args.out, "w", encoding="utf-8") as handle:
+            for name in args.sets.split(","):
+                for row in makers[name]():
+                    handle.write(json.dumps(row) + "\n")
+                    handle.flush()
+                    print(f"{row['row']}: {'ok' if row['success'] else 'FAIL'} confidence {row['confidence']:.2f} "
+                          f"{row['time_s']:.2f}s", flush=True)
+    if args.compare is not None:
+        print(compare(args.compare, args.out))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,66 @@
+"""The global search's configuration object: frozen, round-trips, validated, taken by register."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+import esmicp
+from esmicp.errors import InvalidInputError
+from esmicp.globalreg.config import DEFAULT, SearchConfig, as_config
+from esmicp.shapes import asymmetric_shape
+
+
+def test_the_config_round_trips_through_a_dict_and_json():
+    changed = dataclasses.replace(DEFAULT, ambiguity_ratio=0.9, keypoints=3000, spread_range=(0.04, 0.2))
+    for config in (DEFAULT, changed):
+        data = json.loads(json.dumps(config.to_dict()))
+        assert SearchConfig.from_dict(data) == config
+    assert SearchConfig.from_dict({}) == DEFAULT
+
+
+def test_the_config_is_frozen_and_small():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        DEFAULT.confident = 0.1  # type: ignore[misc]
+    assert len(dataclasses.fields(SearchConfig)) <= 20
+
+
+@pytest.mark.parametrize("changes, field", [
+    ({"ambiguity_ratio": 1.5}, "ambiguity_ratio"),
+    ({"confident": -0.1}, "confident"),
+    ({"search_rotations": 0}, "search_rotations"),
+    ({"keypoints": 2.5}, "keypoints"),
+    ({"sharpness_range": (0.8, 0.5)}, "sharpness_range"),
+    ({"score_width_spacings": float("nan")}, "score_width_spacings"),
+    ({"scan_candidates": True}, "scan_candidates"),
+])
+def test_an_invalid_value_is_refused_naming_its_field(changes, field):
+    with pytest.raises(InvalidInputError, match=f"config.{field}"):
+        SearchConfig(**changes)
+
+
+def test_unknown_fields_and_wrong_types_are_refused():
+    with pytest.raises(InvalidInputError, match="unknown field.*'confidance'"):
+        SearchConfig.from_dict({"confidance": 0.5})
+    with pytest.raises(InvalidInputError, match="config: expected"):
+        as_config(0.5)
+    with pytest.raises(InvalidInputError, match="config.decide_ratio"):
+        esmicp.register(np.eye(3) + 1, np.eye(3), config={"decide_ratio": 2.0})
+
+
+def test_register_takes_a_config_and_its_values_reach_the_search():
+    """The same registration with the default passed explicitly, as a dict, or implied gives the
+    same pose; a config whose ambiguity ratio is 0 flags any distinct runner-up as ambiguous."""
+    rng = np.random.default_rng(5)
+    target = asymmetric_shape(800, rng)
+    source = target[rng.permutation(len(target))][:600] + 0.2
+    implied = esmicp.register(source, target, rng=1)
+    explicit = esmicp.register(source, target, rng=1, config=DEFAULT)
+    as_dict = esmicp.register(source, target, rng=1, config=DEFAULT.to_dict())
+    assert np.array_equal(implied.transformation, explicit.transformation)
+    assert np.array_equal(implied.transformation, as_dict.transformation)
+    anything = esmicp.register(source, target, rng=1, config=dataclasses.replace(DEFAULT, ambiguity_ratio=0.0))
+    assert anything.ambiguous == (anything.runner_up_ratio is not None)
