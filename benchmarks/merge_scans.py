@@ -32,8 +32,9 @@ the reference for "the merge costs K pairwise registrations"; its errors show wh
 give.
 
 Errors: each scan's estimated ``T_reference_scan`` against the truth's (the reference: ``bun000``,
-the first frame, ``v0``), rotation in degrees and translation; a scan off by more than the data
-set's ``wrong`` bound and reported placed (not doubtful) is *silently wrong*. ATE:
+the first frame, ``v0``), rotation in degrees and translation, over the scans reported placed
+(a method that reports no status: every scan it poses). A posed scan off by more than the data
+set's ``wrong`` bound is *wrong*; *silently* wrong when reported placed (not doubtful). ATE:
 :func:`esmicp.metrics.absolute_trajectory_error` over the placed scans; relative errors:
 :func:`esmicp.metrics.relative_pose_errors` over consecutive frames both placed. Times are wall
 clock, loading excluded except for the CLI; with ``--repeat`` the methods take turns and the
@@ -209,6 +210,7 @@ def scan_status(result, count) -> list[str] | None:
 
 
 def _status_word(value) -> str:
+    """The benchmark's word for a status as a merge result reports it."""
     text = str(getattr(value, "value", value)).lower()
     if "unplaced" in text or "not placed" in text or "left out" in text:
         return "unplaced"
@@ -251,43 +253,32 @@ def cli_supports(option: str) -> bool:
 
 def run_cli(data: Dataset) -> Run:
     """``esmicp merge FILE...`` at every default (the files in the data set's order), in a
-    subprocess; the poses from ``--poses-out`` (index, file, 16 numbers per line)."""
+    subprocess; the poses from ``--poses-out`` (index, file, [status,] 16 numbers per line)."""
     with tempfile.TemporaryDirectory() as folder:
         poses_file = Path(folder) / "poses.txt"
         command = [sys.executable, "-m", "esmicp", "merge", *map(str, data.files), "-o", str(Path(folder) / "merged.ply"),
                    "--poses-out", str(poses_file)]
         if cli_supports("--no-progress"):
             command.append("--no-progress")
-        json_file = Path(folder) / "merge.json"
-        with_json = cli_supports("--json")
-        if with_json:
-            command += ["--json", str(json_file)]
         start = time.perf_counter()
         done = subprocess.run(command, capture_output=True, text=True)
         seconds = time.perf_counter() - start
         if not poses_file.exists():
             return Run("esmicp merge (CLI)", None, None, note=f"exit {done.returncode}: {done.stderr.strip()[-300:]}")
         poses = np.full((len(data.files), 4, 4), np.nan)
+        status: list[str] | None = ["placed"] * len(data.files)
         for line in poses_file.read_text().splitlines():
             fields = line.split()
             if fields and not line.startswith("#"):
-                poses[int(fields[0])] = np.array(fields[-16:], dtype=float).reshape(4, 4)
-        status = None
-        if with_json and json_file.exists():
-            try:
-                status = _cli_json_status(json.loads(json_file.read_text()), len(data.files))
-            except (ValueError, KeyError, TypeError):
-                status = None
-    return Run("esmicp merge (CLI)", poses, seconds, status, note=f"exit status {done.returncode}")
-
-
-def _cli_json_status(report, count):
-    scans = report.get("scans") if isinstance(report, dict) else None
-    if isinstance(scans, list) and len(scans) == count:
-        return [_status_word(scan.get("status", "placed")) for scan in scans]
-    if isinstance(report, dict) and isinstance(report.get("status"), list) and len(report["status"]) == count:
-        return [_status_word(value) for value in report["status"]]
-    return None
+                k = int(fields[0])
+                poses[k] = np.array(fields[-16:], dtype=float).reshape(4, 4)
+                word = fields[-17] if len(fields) >= 18 else ""
+                if word in ("placed", "doubtful", "unplaced"):
+                    status[k] = word
+                else:
+                    status = None  # this CLI writes no status
+    return Run("esmicp merge (CLI)", poses, seconds, status if status is not None else None,
+               note=f"exit status {done.returncode}")
 
 
 def run_pairwise(data: Dataset) -> Run:
@@ -340,8 +331,10 @@ def evaluate(data: Dataset, run: Run) -> dict:
             rotation[k] = rotation_error_deg(estimate, true)
             translation[k] = float(np.linalg.norm(estimate[:3, 3] - true[:3, 3]))
     others = [k for k in range(count) if k != data.reference]
-    measured = [k for k in others if np.isfinite(rotation[k])]
-    wrong = [k for k in measured if rotation[k] > data.wrong[0] or translation[k] > data.wrong[1]]
+    posed = [k for k in others if np.isfinite(rotation[k])]
+    wrong = [k for k in posed if rotation[k] > data.wrong[0] or translation[k] > data.wrong[1]]
+    measured = [k for k in posed if status[k] == "placed"]  # the errors: of the scans reported placed
+    placed = finite & np.array([s == "placed" for s in status])
     out = {
         "supported": True, "note": run.note, "seconds": run.seconds, "times": run.times,
         "scans": count, "placed": status.count("placed"), "doubtful": status.count("doubtful"),
@@ -353,12 +346,12 @@ def evaluate(data: Dataset, run: Run) -> dict:
         "median_translation": float(np.median(translation[measured])) if measured else float("nan"),
         "per_scan": {data.names[k]: [float(rotation[k]), float(translation[k]), status[k]] for k in range(count)},
     }
-    if finite.sum() >= 3:
-        out["ate"], _ = absolute_trajectory_error(run.poses[finite], data.truth[finite])
+    if placed.sum() >= 3:
+        out["ate"], _ = absolute_trajectory_error(run.poses[placed], data.truth[placed])
     if data.ordered:
-        pairs = [(k, k + 1) for k in range(count - 1) if finite[k] and finite[k + 1]]
+        pairs = [(k, k + 1) for k in range(count - 1) if placed[k] and placed[k + 1]]
         if pairs:
-            rpe_rotation, rpe_translation = relative_pose_errors(np.where(finite[:, None, None], run.poses, np.eye(4)),
+            rpe_rotation, rpe_translation = relative_pose_errors(np.where(placed[:, None, None], run.poses, np.eye(4)),
                                                                  data.truth, pairs)
             out |= {"rpe_pairs": len(pairs), "median_rpe_deg": float(np.median(rpe_rotation)),
                     "median_rpe": float(np.median(rpe_translation)), "worst_rpe_deg": float(rpe_rotation.max()),
@@ -504,8 +497,9 @@ def markdown(report: dict) -> str:
     for name, entry in report["datasets"].items():
         wrong_deg, wrong_units = entry["wrong"]
         lines += [f"**{entry['title']}** (`{name}`; reference `{entry['reference']}`; *wrong*: more than "
-                  f"{wrong_deg:g} deg or {wrong_units * entry['scale']:g} {entry['unit']} off; *silently*: of those, "
-                  "reported placed and not doubtful).", ""]
+                  f"{wrong_deg:g} deg or {wrong_units * entry['scale']:g} {entry['unit']} off, counted over every "
+                  "posed scan; *silently*: of those, reported placed; the errors, ATE and pair errors are of the "
+                  "scans reported placed).", ""]
         lines += dataset_table(entry)
         notes = [f"{r['method']}: {r['note']}" for r in entry["results"].values() if r["supported"] and r["note"]]
         if notes:
