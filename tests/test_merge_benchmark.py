@@ -73,14 +73,15 @@ def test_status_words_of_a_merge_result():
     assert merge_scans.scan_status(object(), 3) is None
 
 
-def test_the_doc_section_is_replaced_between_its_markers(tmp_path):
+def test_the_doc_blocks_are_replaced_between_their_markers(tmp_path):
+    (a_start, a_end), (b_start, b_end) = merge_scans.markers("a"), merge_scans.markers("b")
     doc = tmp_path / "merge.md"
-    doc.write_text(f"# Title\nprose\n{merge_scans.DOC_START}\nold table\n{merge_scans.DOC_END}\nafter\n")
-    merge_scans.write_doc(doc, f"{merge_scans.DOC_START}\nnew table\n{merge_scans.DOC_END}")
-    assert doc.read_text() == f"# Title\nprose\n{merge_scans.DOC_START}\nnew table\n{merge_scans.DOC_END}\nafter\n"
+    doc.write_text(f"# Title\n{a_start}\nold a\n{a_end}\nprose\n{b_start}\nold b\n{b_end}\nafter\n")
+    merge_scans.write_doc(doc, {"b": f"{b_start}\nnew b\n{b_end}"})
+    assert doc.read_text() == f"# Title\n{a_start}\nold a\n{a_end}\nprose\n{b_start}\nnew b\n{b_end}\nafter\n"
     (tmp_path / "plain.md").write_text("no markers\n")
     with pytest.raises(SystemExit, match="markers"):
-        merge_scans.write_doc(tmp_path / "plain.md", "x")
+        merge_scans.write_doc(tmp_path / "plain.md", {"a": "x"})
 
 
 def test_every_method_on_four_kitchen_frames():
@@ -101,9 +102,10 @@ def test_every_method_on_four_kitchen_frames():
     # Frames 20 raw frames apart overlap well: the pairs and Open3D's odometry place every frame
     # within the data set's "wrong" bound (5 deg, 10 cm); anything else is a harness error.
     assert results["pairwise"]["wrong"] == 0 and results["open3d"]["wrong"] == 0
-    report = {"started": "now", "settings": {"command": "test"}, "versions": merge_scans.versions(), "load": [0, 0],
-              "datasets": {"kitchen": entry}}
-    text = merge_scans.markdown(report)
-    assert text.startswith(merge_scans.DOC_START) and text.endswith(merge_scans.DOC_END)
+    report = {"started": "now", "settings": {"command": "test"}, "versions": merge_scans.versions(),
+              "datasets": {"kitchen": entry | {"load": [0.0, 0.0]}}}
+    text = merge_scans.markdown(report)["kitchen"]
+    start, end = merge_scans.markers("kitchen")
+    assert text.startswith(start) and text.endswith(end)
     assert "\n| esmicp register_scans, shuffled | " in text and "\n| Open3D reconstruction system" in text
     assert "\n| esmicp register_scans, sequence=True | " in text  # its figures, or "not supported"
