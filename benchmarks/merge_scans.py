@@ -263,20 +263,29 @@ def run_cli(data: Dataset) -> Run:
         seconds = time.perf_counter() - start
         if not poses_file.exists():
             return Run("esmicp merge (CLI)", None, None, note=f"exit {done.returncode}: {done.stderr.strip()[-300:]}")
-        poses = np.full((len(data.files), 4, 4), np.nan)
-        status: list[str] | None = ["placed"] * len(data.files)
-        for line in poses_file.read_text().splitlines():
-            fields = line.split()
-            if fields and not line.startswith("#"):
-                k = int(fields[0])
-                poses[k] = np.array(fields[-16:], dtype=float).reshape(4, 4)
-                word = fields[-17] if len(fields) >= 18 else ""
-                if word in ("placed", "doubtful", "unplaced"):
-                    status[k] = word
-                else:
-                    status = None  # this CLI writes no status
-    return Run("esmicp merge (CLI)", poses, seconds, status if status is not None else None,
-               note=f"exit status {done.returncode}")
+        poses, status = read_poses_file(poses_file, len(data.files))
+    return Run("esmicp merge (CLI)", poses, seconds, status, note=f"exit status {done.returncode}")
+
+
+def read_poses_file(path: Path, count: int) -> tuple[np.ndarray, list[str] | None]:
+    """``esmicp merge --poses-out``'s file: one line per scan, its index first and the 16 numbers
+    of ``T_world_scan`` last, with its status just before them when the CLI writes one.
+
+    Returns the (count, 4, 4) poses (NaN where no line or ``nan``) and the statuses (None when the
+    file has none)."""
+    poses = np.full((count, 4, 4), np.nan)
+    status: list[str] | None = ["unplaced"] * count
+    for line in path.read_text().splitlines():
+        fields = line.split()
+        if fields and not line.startswith("#"):
+            k = int(fields[0])
+            poses[k] = np.array(fields[-16:], dtype=float).reshape(4, 4)
+            word = fields[-17] if len(fields) >= 19 else ""
+            if status is not None and word in ("placed", "doubtful", "unplaced"):
+                status[k] = word
+            else:
+                status = None
+    return poses, status
 
 
 def run_pairwise(data: Dataset) -> Run:

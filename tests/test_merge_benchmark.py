@@ -73,6 +73,19 @@ def test_status_words_of_a_merge_result():
     assert merge_scans.scan_status(object(), 3) is None
 
 
+def test_the_cli_pose_file_with_and_without_statuses(tmp_path):
+    numbers = " ".join(["1", "0", "0", "0.5", "0", "1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1"])
+    nan = " ".join(["nan"] * 16)
+    old = tmp_path / "old.txt"
+    old.write_text(f"# header\n0 a.ply {numbers}\n1 b.ply {nan}\n")
+    poses, status = merge_scans.read_poses_file(old, 2)
+    assert status is None and poses[0, 0, 3] == 0.5 and np.isnan(poses[1]).all()
+    new = tmp_path / "new.txt"
+    new.write_text(f"# header\n0 a.ply placed {numbers}\n1 \"b c.ply\" doubtful {numbers}\n2 d.ply unplaced {nan}\n")
+    poses, status = merge_scans.read_poses_file(new, 3)
+    assert status == ["placed", "doubtful", "unplaced"] and poses[1, 0, 3] == 0.5
+
+
 def test_the_doc_blocks_are_replaced_between_their_markers(tmp_path):
     (a_start, a_end), (b_start, b_end) = merge_scans.markers("a"), merge_scans.markers("b")
     doc = tmp_path / "merge.md"
