@@ -556,6 +556,10 @@ def write_doc(path: Path, blocks: dict[str, str]) -> None:
 def versions() -> dict:
     out = {"esmicp": esmicp.__version__, "numpy": np.__version__, "python": platform.python_version(),
            "cpus": os.cpu_count()}
+    commit = subprocess.run(["git", "-C", str(Path(esmicp.__file__).parent), "rev-parse", "--short", "HEAD"],
+                            capture_output=True, text=True)
+    if commit.returncode == 0:
+        out["esmicp"] += f" at commit {commit.stdout.strip()}"
     try:
         import open3d
 
