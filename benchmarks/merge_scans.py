@@ -34,7 +34,8 @@ give.
 Errors: each scan's estimated ``T_reference_scan`` against the truth's (the reference: ``bun000``,
 the first frame, ``v0``), rotation in degrees and translation, over the scans reported placed
 (a method that reports no status: every scan it poses). A posed scan off by more than the data
-set's ``wrong`` bound is *wrong*; *silently* wrong when reported placed (not doubtful). ATE:
+set's ``wrong`` bound is *wrong* (a walk's frame positions after the best rigid fit of the
+whole trajectory, as for the ATE); *silently* wrong when reported placed (not doubtful). ATE:
 :func:`esmicp.metrics.absolute_trajectory_error` over the placed scans; relative errors:
 :func:`esmicp.metrics.relative_pose_errors` over consecutive frames both placed. Times are wall
 clock, loading excluded except for the CLI; with ``--repeat`` the methods take turns and the
@@ -123,7 +124,7 @@ def kitchen(frames: int, step: int = 1) -> Dataset:
     names = [f.stem for f in files]
     data = Dataset("kitchen", f"redkitchen walk, {len(names)} depth frames", names,
                    [np.load(f).astype(float) for f in files], np.array([truth_of[n] for n in names]), 0, "cm", 100.0,
-                   (5.0, 0.10), files=files, ordered=True)
+                   (5.0, 0.20), files=files, ordered=True)
     data.tree = [(k, k + 1) for k in range(len(names) - 1)]
     return data
 
@@ -339,9 +340,21 @@ def evaluate(data: Dataset, run: Run) -> dict:
             translation[k] = float(np.linalg.norm(estimate[:3, 3] - true[:3, 3]))
     others = [k for k in range(count) if k != data.reference]
     posed = [k for k in others if np.isfinite(rotation[k])]
-    wrong = [k for k in posed if rotation[k] > data.wrong[0] or translation[k] > data.wrong[1]]
     measured = [k for k in posed if status[k] == "placed"]  # the errors: of the scans reported placed
     placed = finite & np.array([s == "placed" for s in status])
+    off_translation = translation
+    alignment = None
+    if placed.sum() >= 3:
+        ate, alignment = absolute_trajectory_error(run.poses[placed], data.truth[placed])
+    if data.ordered and alignment is not None:
+        # A walk's frame positions are judged where the best rigid fit of the whole trajectory
+        # puts them: drift seen from the reference frame is the ATE's business, not a misplaced
+        # frame. Rotations stay judged from the reference (no lever arm; the fit is of positions).
+        off_translation = np.full(count, np.nan)
+        for k in posed:
+            off_translation[k] = float(np.linalg.norm(alignment[:3, :3] @ run.poses[k][:3, 3] + alignment[:3, 3]
+                                                      - data.truth[k][:3, 3]))
+    wrong = [k for k in posed if rotation[k] > data.wrong[0] or off_translation[k] > data.wrong[1]]
     out = {
         "supported": True, "note": run.note, "seconds": run.seconds, "times": run.times,
         "scans": count, "placed": status.count("placed"), "doubtful": status.count("doubtful"),
@@ -353,8 +366,8 @@ def evaluate(data: Dataset, run: Run) -> dict:
         "median_translation": float(np.median(translation[measured])) if measured else float("nan"),
         "per_scan": {data.names[k]: [float(rotation[k]), float(translation[k]), status[k]] for k in range(count)},
     }
-    if placed.sum() >= 3:
-        out["ate"], _ = absolute_trajectory_error(run.poses[placed], data.truth[placed])
+    if alignment is not None:
+        out["ate"] = ate
     if data.ordered:
         pairs = [(k, k + 1) for k in range(count - 1) if placed[k] and placed[k + 1]]
         if pairs:
@@ -525,7 +538,8 @@ def markdown(report: dict) -> dict[str, str]:
                  f"on {report['started']} (esmicp {versions_['esmicp']}, Open3D {versions_.get('open3d', 'not installed')}, "
                  f"{versions_['cpus']} cores shared with other jobs, load average {_f(entry['load'][0], 1)} at the "
                  f"start and {_f(entry['load'][1], 1)} at the end: read the times as ratios within the run). "
-                 f"*Wrong*: more than {wrong_deg:g} deg or {wrong_units * entry['scale']:g} {entry['unit']} off, "
+                 f"*Wrong*: more than {wrong_deg:g} deg or {wrong_units * entry['scale']:g} {entry['unit']} off"
+                 f"{' (positions after the best rigid fit of the trajectory, as for the ATE)' if entry['ordered'] else ''}, "
                  "over every posed scan; *silently*: of those, reported placed. The errors, ATE and pair errors "
                  "are of the scans reported placed.", ""]
         lines += dataset_table(entry)

@@ -16,16 +16,16 @@ sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
 import merge_scans  # noqa: E402
 
 
-def _toy(count=5):
+def _toy(count=5, ordered=True):
     """A walk of ``count`` tiny clouds with known poses (metres)."""
     rng = np.random.default_rng(0)
     truth = np.array([np.eye(4) for _ in range(count)])
     for k in range(count):
         truth[k, :3, :3] = Rotation.from_rotvec([0, 0, np.radians(4.0 * k)]).as_matrix()
-        truth[k, :3, 3] = [0.1 * k, 0.0, 0.0]
+        truth[k, :3, 3] = [0.1 * k, 0.03 * k * k, 0.05 * (k % 2)]  # not on a line: one best fit
     clouds = [rng.normal(size=(50, 3)) for _ in range(count)]
     data = merge_scans.Dataset("toy", "toy walk", [f"f{k}" for k in range(count)], clouds, truth, 0, "cm", 100.0,
-                               (5.0, 0.10), ordered=True)
+                               (5.0, 0.10), ordered=ordered)
     data.tree = [(k, k + 1) for k in range(count - 1)]
     return data
 
@@ -59,6 +59,20 @@ def test_evaluate_counts_wrong_doubtful_and_unplaced_scans():
     assert result["rpe_pairs"] == 2  # (0,1), (1,2): frame 3 is doubtful, frame 4 unplaced
     table = "\n".join(merge_scans.dataset_table({"unit": "cm", "scale": 100.0, "results": {"api": {"method": "x"} | result}}))
     assert "| 3 / 1 / 1 | 2 (1) | 20.00 |" in table
+
+
+def test_a_walk_is_judged_after_the_best_fit_not_from_the_reference():
+    data = _toy(count=12)
+    poses = data.truth.copy()
+    tilt = np.eye(4)
+    tilt[:3, :3] = Rotation.from_rotvec([np.radians(3.0), 0, 0]).as_matrix()
+    tilt[:3, 3] = np.array([0.0, 3.0, 0.0]) - tilt[:3, :3] @ [0.0, 3.0, 0.0]  # about a point 3 m away
+    poses[1:] = tilt @ poses[1:]  # frames 1-11 swung about a far point: a drift
+    poses[5, :3, 3] += [0.0, 0.0, 0.4]  # frame 5 misplaced by 40 cm
+    result = merge_scans.evaluate(data, merge_scans.Run("walk", poses, 1.0))
+    assert result["wrong"] == 1  # only frame 5, however the drift looks from frame 0
+    unordered = merge_scans.evaluate(_toy(count=12, ordered=False), merge_scans.Run("set", poses, 1.0))
+    assert unordered["wrong"] > 1  # seen from the reference, the drift moves frames beyond 10 cm
 
 
 def test_status_words_of_a_merge_result():
