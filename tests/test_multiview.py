@@ -1,4 +1,4 @@
-"""register_scans(): many scans into one model (issue 17)."""
+"""register_scans(): many scans into one model; every scan placed, doubtful or unplaced with a reason."""
 
 from __future__ import annotations
 
@@ -67,22 +67,31 @@ def _truth(n, rng):
     return poses
 
 
-def _fake_pairwise(truth, *, wrong=(), low=()):
-    """Stand-in for the pairwise registrations: exact relative poses, except the listed pairs."""
+def _fake_pairwise(truth, *, wrong=(), low=(), wrong_untrusted=(), missing=()):
+    """Stand-in for the pairwise registrations: exact, trusted relative poses, except the listed
+    pairs (``wrong``: off by 40 degrees yet trusted and the most confident; ``wrong_untrusted``:
+    off and below the trust bar; ``low``: every pair of these scans untrusted; ``missing``: the
+    registration failed)."""
 
     def run(jobs, *, pairs):
         out = []
         for i, j in pairs:
             T = np.linalg.inv(truth[i]) @ truth[j]
-            fitness = 0.9
-            if (i, j) in wrong or (j, i) in wrong:
+            fitness, confidence, ambiguous = 0.9, 0.9, False
+            if {(i, j), (j, i)} & set(wrong) or {(i, j), (j, i)} & set(wrong_untrusted):
                 bad = np.eye(4)
                 bad[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 0.7]).as_matrix()
                 T = T @ bad
-                fitness = 0.95  # the wrong edge is the most confident one
+                fitness, confidence = 0.95, 0.95  # the wrong edge is the most confident one
+                if {(i, j), (j, i)} & set(wrong_untrusted):
+                    confidence, ambiguous = 0.33, True
             if i in low or j in low:
-                fitness = 0.05
-            out.append(SimpleNamespace(transformation=T, fitness=fitness, inlier_distance=0.05, ambiguous=False))
+                fitness, confidence = 0.05, 0.1
+            if {(i, j), (j, i)} & set(missing):
+                out.append("pair failed")
+                continue
+            out.append(SimpleNamespace(transformation=T, fitness=fitness, inlier_distance=0.05, ambiguous=ambiguous,
+                                       confidence=confidence, trusted=confidence >= 0.55 and not ambiguous))
         return out
 
     return run
@@ -92,7 +101,7 @@ def _patch(monkeypatch, truth, clouds, **kwargs):
     fake = _fake_pairwise(truth, **kwargs)
     captured = {}
 
-    def wrapper(jobs, *, processes, client, progress, **register_kwargs):
+    def wrapper(jobs, *, progress=None, inits=None, **register_kwargs):
         # recover which (i, j) each job is from the subsampled clouds' identity
         index = {id(c): k for k, c in enumerate(captured["small"])}
         pairs = [(index[id(t)], index[id(s)]) for s, t in jobs]
@@ -120,8 +129,8 @@ def test_a_wrong_edge_is_rejected_by_the_robust_graph(monkeypatch):
     truth = _truth(5, rng)
     clouds = _clouds(truth, rng)
     _patch(monkeypatch, truth, clouds, wrong={(1, 3)})
-    # min_overlap=0: the wrong edge passes the overlap test, so only the graph can reject it
-    result = register_scans(clouds, refine_rounds=0, processes=1, min_overlap=0.0)
+    # the wrong edge is trusted (the most confident one), so only the graph can reject it; partners=4: every pair
+    result = register_scans(clouds, refine_rounds=0, threads=1, partners=4)
     assert result.unplaced == ()
     assert [sorted((e.i, e.j)) for e in result.rejected_edges] == [[1, 3]]
     assert "cycle inconsistent" in result.rejected_edges[0].reason
@@ -136,8 +145,9 @@ def test_an_unplaceable_scan_is_reported_not_forced_in(monkeypatch):
     truth = _truth(4, rng)
     clouds = _clouds(truth, rng)
     _patch(monkeypatch, truth, clouds, low={2})
-    result = register_scans(clouds, refine_rounds=0, processes=1)
+    result = register_scans(clouds, refine_rounds=0, threads=1)
     assert result.unplaced == (2,)
+    assert result.status[2] == "unplaced" and "no trusted edge" in result.reasons[2][0]
     assert result.placed == (True, True, False, True)
     assert np.isnan(result.poses[2]).all()
     assert any("scan 2" in note for note in result.notes)
