@@ -103,7 +103,8 @@ def _patch(monkeypatch, truth, clouds, **kwargs):
 
     def wrapper(jobs, *, progress=None, inits=None, **register_kwargs):
         # recover which (i, j) each job is from the subsampled clouds' identity
-        index = {id(c): k for k, c in enumerate(captured["small"])}
+        # (each scan is subsampled twice, for the global searches and for the dense checks)
+        index = {id(c): k % (len(captured["small"]) // 2) for k, c in enumerate(captured["small"])}
         pairs = [(index[id(t)], index[id(s)]) for s, t in jobs]
         return fake(jobs, pairs=pairs)
 

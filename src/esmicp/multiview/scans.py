@@ -180,10 +180,16 @@ def _subsample(points: np.ndarray, count: int) -> np.ndarray:
 
 class _Pairwise:
     """The edges of one merge: runs pairwise registrations and keeps every edge tried (one per
-    pair of scans; a later registration of the same pair replaces it only when more confident)."""
+    pair of scans; a later registration of the same pair replaces it only when more confident).
 
-    def __init__(self, small, keys, sequence, run_options, progress):
-        self.small, self.keys, self.sequence = small, keys, sequence
+    A pair is searched globally on the sparse subsets (``small``), then refined locally on the
+    dense subsets (``dense``) from the pose found, and judged there: the overlap confidence of a
+    registration is only meaningful at a density where the clouds' noise is finer than their
+    spacing (on the bunny's scans, right pairs score 0.0-0.76 at 1,500 points, 0.74-1.0 at 10,000;
+    wrong ones stay below 0.25)."""
+
+    def __init__(self, small, dense, keys, sequence, run_options, progress):
+        self.small, self.dense, self.keys, self.sequence = small, dense, keys, sequence
         self.run_options, self.progress = run_options, progress
         self.edges: dict[tuple[int, int], Edge] = {}
         self.done = 0  # registrations run, for progress and the result
@@ -196,6 +202,18 @@ class _Pairwise:
             return (min(a, b), max(a, b))
         return (a, b) if (self.keys[a], a) <= (self.keys[b], b) else (b, a)
 
+    def _register(self, clouds, oriented, inits, total):
+        offset = self.done
+
+        def report(done, _):
+            if self.progress is not None:
+                self.progress(offset + done, total)
+
+        jobs = [(clouds[j], clouds[i]) for i, j in oriented]  # source j onto target i: T_i_j
+        outcomes = register_many(jobs, progress=report, inits=inits, **self.run_options)
+        self.done += len(jobs)
+        return outcomes
+
     def run(self, requests) -> list[Edge]:
         """Register ``requests`` (``(a, b, T_a_b or None)``: None for a global search) and record
         their edges; returns the new edges."""
@@ -207,18 +225,23 @@ class _Pairwise:
             T = T_a_b if T_a_b is None or (i, j) == (a, b) else np.linalg.inv(T_a_b)
             oriented.append((i, j))
             inits.append(T)
-        offset, total = self.done, self.done + len(requests)
-
-        def report(done, _):
-            if self.progress is not None:
-                self.progress(offset + done, total)
-
-        jobs = [(self.small[j], self.small[i]) for i, j in oriented]  # source j onto target i: T_i_j
-        outcomes = register_many(jobs, progress=report, inits=inits, **self.run_options)
-        self.done = total
+        searched = [n for n, T in enumerate(inits) if T is None]
+        total = self.done + len(searched) + len(requests)
+        found = self._register(self.small, [oriented[n] for n in searched], [None] * len(searched), total)
+        starts = list(inits)
+        failures = {}
+        for n, outcome in zip(searched, found):
+            if hasattr(outcome, "transformation"):
+                starts[n] = outcome.transformation
+            else:
+                failures[n] = outcome
+        verify = [n for n in range(len(requests)) if n not in failures]
+        checked = self._register(self.dense, [oriented[n] for n in verify], [starts[n] for n in verify], total)
+        outcomes = dict(failures)
+        outcomes.update(zip(verify, checked))
         new = []
-        for (i, j), init, outcome in zip(oriented, inits, outcomes):
-            edge = self._edge(i, j, outcome, LOCAL if init is not None else GLOBAL)
+        for n, (i, j) in enumerate(oriented):
+            edge = self._edge(i, j, outcomes[n], LOCAL if inits[n] is not None else GLOBAL)
             key = (min(i, j), max(i, j))
             self.tried.add(key)
             old = self.edges.get(key)
@@ -234,8 +257,8 @@ class _Pairwise:
             return Edge(i, j, np.full((4, 4), np.nan), 0.0, 0.0, 0.0, False, False, f"failed: {outcome}", kind=kind)
         T = outcome.transformation
         inverse = np.linalg.inv(T)
-        moved = self.small[i] @ inverse[:3, :3].T + inverse[:3, 3]
-        d, _ = cKDTree(self.small[j]).query(moved, distance_upper_bound=outcome.inlier_distance)
+        moved = self.dense[i] @ inverse[:3, :3].T + inverse[:3, 3]
+        d, _ = cKDTree(self.dense[j]).query(moved, distance_upper_bound=outcome.inlier_distance)
         reverse = float(np.isfinite(d).mean())
         confidence = getattr(outcome, "confidence", None)
         trusted = bool(getattr(outcome, "trusted", False))
@@ -332,8 +355,9 @@ def register_scans(
         (the next one locally from the identity first), then loop closures are sought among
         placed scans that overlap in the world. Without it the order means nothing.
     pair_points, refine_points : int
-        Points per scan (a content-seeded random subset) for the pairwise registrations and for
-        the joint refinement.
+        Points per scan (a content-seeded random subset) for the pairwise global searches, and for
+        the local refinement that checks each pair (and judges it: its confidence) and the joint
+        refinement.
     partners : int
         Without ``sequence``: each scan is first registered with its ``partners`` most similar
         scans (a shape descriptor); a scan not yet confirmed (on no cycle of agreeing edges) gets
@@ -392,9 +416,10 @@ def register_scans(
             raise InvalidInputError(f"{name}: expected a positive integer, got {value!r}")
     reference = int(reference)
     small = [_subsample(s, pair_points) for s in scans]
+    dense = [_subsample(s, refine_points) for s in scans]
     keys = [zlib.crc32(np.ascontiguousarray(s).tobytes()) for s in scans]
     run_options = {"threads": threads, "processes": processes, "client": client, **register_kwargs}
-    pairwise = _Pairwise(small, keys, bool(sequence), run_options, progress)
+    pairwise = _Pairwise(small, dense, keys, bool(sequence), run_options, progress)
 
     ranked = None
     if sequence:
@@ -432,7 +457,7 @@ def register_scans(
     rmse, residual = None, {}
     kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
     if kept_pairs and refine_rounds > 0:
-        fine = {k: _subsample(scans[k], refine_points) for k in poses}
+        fine = {k: dense[k] for k in poses}
         fine_normals = {k: normals(fine[k]) for k in fine}
         scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
         fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
