@@ -26,24 +26,26 @@ def _errors(T_estimate, T_truth):
 def bunny():
     from esmicp.io.stanford_conf import load_scans
 
-    scans = load_scans(require_shared("bunny_scans"), max_points=4000, rng=7)
+    # 12,000 points a scan: at 4,000 the right pairs' overlap confidence falls below the trust bar
+    # (the surface noise is no longer finer than the spacing), and the scans are rightly left out
+    scans = load_scans(require_shared("bunny_scans"), max_points=12000, rng=7)
     return [scans[name][0] for name in BUNNY], [scans[name][1] for name in BUNNY]
 
 
 @pytest.fixture(scope="module")
 def bunny_result(bunny):
     clouds, _ = bunny
-    return register_scans(clouds, pair_points=600, processes=1)
+    return register_scans(clouds, threads=2)
 
 
 def test_bunny_scans_recover_the_stanford_poses(bunny, bunny_result):
     _, truth = bunny
     result = bunny_result
-    assert result.unplaced == ()
+    assert result.unplaced == () and result.status == ("placed",) * 4, result.reasons
     np.testing.assert_allclose(result.poses[0], np.eye(4))
     for k in range(len(truth)):
         angle, shift = _errors(result.poses[k], np.linalg.inv(truth[0]) @ truth[k])
-        # 4000-point subsets (the docs' full-resolution run is held to 1 deg / 1 mm)
+        # 12,000-point subsets (the docs' full-resolution run is held to 1 deg / 1 mm)
         assert angle < 1.0 and shift < 0.002, (BUNNY[k], angle, shift)
     assert all(e.reason for e in result.edges)
     assert result.to_dict()["unplaced"] == []
@@ -52,7 +54,7 @@ def test_bunny_scans_recover_the_stanford_poses(bunny, bunny_result):
 def test_input_order_does_not_matter(bunny, bunny_result):
     clouds, _ = bunny
     order = [2, 0, 3, 1]
-    shuffled = register_scans([clouds[k] for k in order], reference=order.index(0), pair_points=600, processes=1)
+    shuffled = register_scans([clouds[k] for k in order], reference=order.index(0), threads=2)
     for position, k in enumerate(order):
         np.testing.assert_allclose(shuffled.poses[position], bunny_result.poses[k], atol=1e-6)
 
@@ -226,7 +228,7 @@ def test_cli_merge_end_to_end(tmp_path, bunny_files):
     assert main(["merge", *argv]) == 0
     assert out.exists() and view.exists()
     rows = [line.split() for line in poses.read_text().splitlines() if not line.startswith("#")]
-    assert [row[1] for row in rows] == [p.name for p in bunny_files]
+    assert [row[1] for row in rows] == [str(p) for p in bunny_files]  # the paths as given
     np.testing.assert_allclose(np.array(rows[0][2:], float).reshape(4, 4), np.eye(4))
     assert main(["merge", *argv]) == 2  # no overwrite without --force
 

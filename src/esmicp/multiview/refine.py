@@ -10,6 +10,11 @@ from scipy.spatial import cKDTree
 from . import pose_graph
 
 
+#: Points of a scan that each direction of an edge queries in the joint refinement (evenly
+#: strided): a 6-degree-of-freedom step needs no more, and the queries are its cost.
+QUERY_POINTS = 2000
+
+
 def normals(points: np.ndarray, k: int = 12) -> np.ndarray:
     """Unit normals (sign arbitrary) from the ``k`` nearest neighbours' covariance."""
     _, idx = cKDTree(points).query(points, k=min(k, len(points)))
@@ -27,27 +32,34 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
     ``rounds_per_distance`` Gauss-Newton steps. ``rmse`` is the point-to-plane RMS over all
     correspondences of the last step; the residual of scan k is the same over the correspondences
     it takes part in (None for a scan with none, and everything None without a step)."""
+    from ..core.compiled_tree import CompiledTree
+
     free = [k for k in sorted(poses) if k != reference]
     slot = {k: n for n, k in enumerate(free)}
+    trees = {k: CompiledTree(clouds[k]) for k in poses}  # each in its scan's frame, built once
+    # each direction of an edge queries an evenly strided subset of at most QUERY_POINTS points
+    queried = {k: np.arange(0, len(clouds[k]), max(1, len(clouds[k]) // QUERY_POINTS)) for k in poses}
+    warm: dict[tuple[int, int], np.ndarray] = {}  # last nearest neighbours: seeds (speed only)
     rmse, per_scan = None, {}
     for cutoff in distances:
         for _ in range(rounds_per_distance):
-            world = {k: clouds[k] @ poses[k][:3, :3].T + poses[k][:3, 3] for k in poses}
-            world_n = {k: clouds_normals[k] @ poses[k][:3, :3].T for k in poses}
-            trees = {k: cKDTree(world[k]) for k in poses}
             blocks_H: dict[tuple[int, int], np.ndarray] = {}  # sparse: 6x6 blocks of the scans' pairs
             g = np.zeros(6 * len(free))
             squares, count = 0.0, 0
             scan_squares = {k: [0.0, 0] for k in poses}
             for i, j in edges:
                 for a_scan, b_scan in ((i, j), (j, i)):
-                    d, idx = trees[a_scan].query(world[b_scan], distance_upper_bound=cutoff)
-                    ok = np.isfinite(d)
+                    P_a, P_b = poses[a_scan], poses[b_scan]
+                    mine = clouds[b_scan][queried[b_scan]]
+                    d, idx = trees[a_scan].query(mine, transform=np.linalg.inv(P_a) @ P_b,
+                                                 warm=warm.get((a_scan, b_scan)))
+                    warm[(a_scan, b_scan)] = idx
+                    ok = d <= cutoff
                     if ok.sum() < 10:
                         continue
-                    b = world[b_scan][ok]
-                    a = world[a_scan][idx[ok]]
-                    n = world_n[a_scan][idx[ok]]
+                    b = mine[ok] @ P_b[:3, :3].T + P_b[:3, 3]  # world frame
+                    a = clouds[a_scan][idx[ok]] @ P_a[:3, :3].T + P_a[:3, 3]
+                    n = clouds_normals[a_scan][idx[ok]] @ P_a[:3, :3].T
                     r = np.einsum("ij,ij->i", n, a - b)
                     huber = cutoff / 3
                     w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-300))
@@ -58,17 +70,19 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
                     for scan in (a_scan, b_scan):
                         scan_squares[scan][0] += sum_sq
                         scan_squares[scan][1] += len(r)
+                    JtJ = (J * w[:, None]).T @ J
+                    Jtr = (J * (w * r)[:, None]).sum(axis=0)
                     blocks = [(a_scan, 1.0), (b_scan, -1.0)]
                     for p, sp in blocks:
                         if p == reference:
                             continue
                         gp = slice(6 * slot[p], 6 * slot[p] + 6)
-                        g[gp] += sp * (J * (w * r)[:, None]).sum(axis=0)
+                        g[gp] += sp * Jtr
                         for q, sq in blocks:
                             if q == reference:
                                 continue
-                            block = sp * sq * (J * w[:, None]).T @ J
                             key = (slot[p], slot[q])
+                            block = sp * sq * JtJ
                             blocks_H[key] = blocks_H[key] + block if key in blocks_H else block
             if not free or count == 0:
                 return poses, rmse, per_scan

@@ -1,9 +1,11 @@
 """``register_scans()``: many scans into one model, with no initial poses.
 
 1. Pairwise, O(N) pairs: with the capture order (``sequence=True``), each scan with its next
-   ``sequence_neighbours`` scans (consecutive scans refined locally from the identity, the others
-   searched globally); without, each scan with its ``partners`` most similar scans by a cheap
-   shape descriptor (:mod:`esmicp.multiview.pairs`), searched globally by :func:`esmicp.register`.
+   ``sequence_neighbours`` scans (refined locally from the identity or the chain of consecutive
+   edges, searched globally where those are not trusted); without, each scan with its
+   ``partners`` most similar scans by a cheap shape descriptor (:mod:`esmicp.multiview.pairs`),
+   searched globally by :func:`esmicp.register`. Every pair is then refined locally on denser
+   subsets and judged there.
    The jobs run on a thread pool, a process pool or a Dask cluster (:func:`esmicp.register_many`).
 2. Pose graph over the *usable* edges only: those whose pairwise result is trusted
    (:attr:`esmicp.RegistrationResult.trusted`). A consensus spanning tree gives initial poses, a
@@ -352,8 +354,9 @@ def register_scans(
     sequence : bool
         The input order is the capture order, consecutive scans close in pose (a walk, a turntable
         with small steps): each scan is registered with its next ``sequence_neighbours`` scans
-        (the next one locally from the identity first), then loop closures are sought among
-        placed scans that overlap in the world. Without it the order means nothing.
+        (the next one locally from the identity, the farther ones locally from the chain of
+        consecutive edges; globally where those are not trusted), then loop closures are sought
+        among placed scans that overlap in the world. Without it the order means nothing.
     pair_points, refine_points : int
         Points per scan (a content-seeded random subset) for the pairwise global searches, and for
         the local refinement that checks each pair (and judges it: its confidence) and the joint
@@ -426,7 +429,15 @@ def register_scans(
         pairwise.run([(i, i + 1, np.eye(4)) for i in range(n - 1)])
         retry = [(e.i, e.j, None) for e in pairwise.edges.values() if not e.trusted]
         pairwise.run(retry)  # a consecutive pair the identity start did not bring to trust: globally
-        pairwise.run([(i, j, None) for i, j in candidates.sequence_pairs(n, sequence_neighbours) if j - i > 1])
+        farther = []
+        for i, j in candidates.sequence_pairs(n, sequence_neighbours):
+            if j - i > 1:  # locally from the chain of trusted consecutive edges, else globally
+                chain = [pairwise.edges.get((k, k + 1)) for k in range(i, j)]
+                start = None
+                if all(e is not None and e.trusted for e in chain):
+                    start = np.linalg.multi_dot([e.T_i_j for e in chain] + [np.eye(4)])
+                farther.append((i, j, start))
+        pairwise.run(farther)
     elif n > 1:
         ranked = candidates.ranked_partners(small)
         first = {(min(i, j), max(i, j)) for i in range(n) for j in ranked[i][:partners]}
@@ -441,12 +452,13 @@ def register_scans(
         extents = candidates.world_extents(poses, small)
         wanted: list[tuple[int, int]] = []
         for k in _unconfirmed(n, reference, poses, edges):
-            near = candidates.near_pairs([k], extents, pairwise.tried | set(wanted), partners)
+            # each scan's choice against the pairs tried so far only, so that the union does not
+            # depend on the input order
+            near = candidates.near_pairs([k], extents, pairwise.tried, partners)
             if k not in poses:  # not placed at all: its next most similar scans
                 if ranked is None:
                     ranked = candidates.ranked_partners(small)
-                near = [(min(k, j), max(k, j)) for j in ranked[k]
-                        if (min(k, j), max(k, j)) not in pairwise.tried and (min(k, j), max(k, j)) not in wanted]
+                near = [(min(k, j), max(k, j)) for j in ranked[k] if (min(k, j), max(k, j)) not in pairwise.tried]
                 near = near[:partners]
             wanted.extend(p for p in near if p not in wanted)
         if not wanted:
