@@ -229,7 +229,8 @@ def test_cli_merge_end_to_end(tmp_path, bunny_files):
     assert out.exists() and view.exists()
     rows = [line.split() for line in poses.read_text().splitlines() if not line.startswith("#")]
     assert [row[1] for row in rows] == [str(p) for p in bunny_files]  # the paths as given
-    np.testing.assert_allclose(np.array(rows[0][2:], float).reshape(4, 4), np.eye(4))
+    assert [row[2] for row in rows] == ["placed"] * 3  # each scan's status, then its pose
+    np.testing.assert_allclose(np.array(rows[0][3:], float).reshape(4, 4), np.eye(4))
     assert main(["merge", *argv]) == 2  # no overwrite without --force
 
 

@@ -13,8 +13,9 @@
    result carries one, else weighted by its confidence), and edges that disagree with the poses are
    rejected as cycle inconsistent.
 3. More pairs only where a scan is not yet confirmed (not on a cycle of agreeing edges): a placed
-   scan with the placed scans whose extents overlap it in the world frame, an unplaced one with
-   its next most similar scans; then the graph is solved again. With a sequence, placed scans close in the world but
+   scan with the placed scans whose extents overlap it in the world frame (refined locally from
+   the graph's poses), an unplaced one with its next most similar scans (searched globally); then
+   the graph is solved again. With a sequence, placed scans close in the world but
    far apart in the order are refined locally from the graph's poses first (loop closures).
 4. Joint refinement: all placed scans against each other (multi-view point-to-plane over the
    kept edges, a few rounds with a shrinking correspondence distance).
@@ -463,7 +464,10 @@ def register_scans(
             wanted.extend(p for p in near if p not in wanted)
         if not wanted:
             break
-        pairwise.run([(i, j, None) for i, j in wanted])
+        # a pair of placed scans is refined locally from the graph's poses (if either pose is
+        # wrong, the refinement is not trusted, or it is and contradicts it); others searched
+        pairwise.run([(i, j, np.linalg.inv(poses[i]) @ poses[j] if i in poses and j in poses else None)
+                      for i, j in wanted])
         poses, edges = _solve(list(pairwise.edges.values()), reference, max_edge_error_deg)
 
     rmse, residual = None, {}
