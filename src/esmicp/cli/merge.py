@@ -30,7 +30,7 @@ SCAN_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b"
 
 def library_defaults() -> dict:
     """:func:`esmicp.register_scans`'s keyword defaults, the one source of the command's defaults."""
-    from ..multiview import register_scans
+    from ..multiview.scans import register_scans  # the definition itself, whatever wraps the export
 
     return {name: p.default for name, p in inspect.signature(register_scans).parameters.items()
             if p.default is not inspect.Parameter.empty}
