@@ -179,19 +179,22 @@ def _merge_parser():
     return commands.choices["merge"]
 
 
-def test_cli_merge_takes_every_default_from_register_scans():
-    """Every option of ``esmicp merge`` that is a keyword of register_scans has the library's
-    default: fails if the CLI and the library disagree (e.g. --pair-points 800 against 1500)."""
+def test_cli_merge_takes_every_default_from_register_scans(monkeypatch):
+    """Every option of ``esmicp merge`` that is a keyword of register_scans either has the library's
+    default or (argparse.SUPPRESS) is not passed at all unless given, and --help shows the library's
+    value: fails if the CLI and the library disagree (e.g. --pair-points 800 against 1500)."""
+    from esmicp.cli.merge import LIBRARY_OPTIONS
+
     signature = inspect.signature(register_scans).parameters
     parser = _merge_parser()
-    compared = 0
-    for action in parser._actions:
-        if action.dest in signature and signature[action.dest].default is not inspect.Parameter.empty:
-            assert action.default == signature[action.dest].default, action.dest
-            compared += 1
-    assert compared >= 7  # reference, sequence, pair/refine points, partners, neighbours, threads, processes
-
-
+    options = [a for a in parser._actions if a.dest in signature]
+    assert {a.dest for a in options} >= set(LIBRARY_OPTIONS) >= {"pair_points", "refine_points", "reference", "sequence"}
+    for action in options:
+        assert action.default is argparse.SUPPRESS or action.default == signature[action.dest].default, action.dest
+    parsed = vars(parser.parse_args(["a.ply", "b.ply"]))
+    for name in LIBRARY_OPTIONS:
+        assert parsed.get(name, signature[name].default) == signature[name].default, name
+    assert f"default: {signature['pair_points'].default})" in " ".join(parser.format_help().split())
 def test_cli_pose_file_tells_two_scans_of_the_same_name_apart(tmp_path, capsys):
     """Two ``scan.npy`` in different folders: each row of --poses-out names its scan by the path
     as given; the table too, and --json gives every scan's verdict."""

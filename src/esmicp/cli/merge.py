@@ -10,6 +10,7 @@ scan (file as given, status, edges kept, confidence, residual), or everything as
 
 from __future__ import annotations
 
+import argparse
 import inspect
 import json
 import sys
@@ -36,14 +37,33 @@ def library_defaults() -> dict:
             if p.default is not inspect.Parameter.empty}
 
 
+class _LibraryDefault(str):
+    """A help text that ends with the library's default for ``name``, looked up only when the help
+    is shown (building the parser must not import the library: ``esmicp demo`` stays light)."""
+
+    def __new__(cls, text: str, name: str):
+        made = super().__new__(cls, text)
+        made.name = name
+        return made
+
+    def __mod__(self, params) -> str:
+        value = library_defaults()[self.name]
+        return (str(self) + f" (default: {'every core' if value is None else value})") % params
+
+
+#: The options that are :func:`esmicp.register_scans` keywords: absent from the parsed arguments
+#: unless given (``argparse.SUPPRESS``), so that the library's own defaults apply.
+LIBRARY_OPTIONS = ("reference", "sequence", "pair_points", "refine_points", "partners", "sequence_neighbours",
+                   "threads", "processes")
+
+
 def add_parser(commands) -> None:
-    defaults = library_defaults()
     merge = commands.add_parser(
         "merge", help="register many scans into one model (no initial poses, any order)",
         description="Register scans pairwise (global, no initial poses), keep only the trusted pairs in a "
         "robust pose graph, refine all scans jointly, and write the merged cloud of the placed scans and one "
         "pose per scan. Prints one row per scan; exit status 3 when a scan is doubtful or unplaced "
-        "(see --allow-partial).",
+        "(see --allow-partial). Every default is register_scans's own.",
     )
     merge.add_argument("scans", nargs="+", type=Path, metavar="SCAN", help="point-cloud files (2 or more)")
     merge.add_argument("-o", "--output", type=Path, default=Path("merged.ply"), help="merged cloud (default merged.ply)")
@@ -54,27 +74,29 @@ def add_parser(commands) -> None:
     merge.add_argument("--bin-columns", type=int, choices=(3, 4), metavar="{3,4}",
                        help=".bin scans: float32 values per point (4: KITTI x y z intensity, 3: x y z); "
                        "needed when a file's size fits both")
-    merge.add_argument("--reference", type=int, default=defaults["reference"],
-                       help=f"index of the scan whose frame is the world (default {defaults['reference']})")
-    merge.add_argument("--sequence", action="store_true", default=defaults["sequence"],
+    library = argparse.SUPPRESS
+    merge.add_argument("--reference", type=int, default=library,
+                       help=_LibraryDefault("index of the scan whose frame is the world", "reference"))
+    merge.add_argument("--sequence", action="store_true", default=library,
                        help="the scans are given in capture order, consecutive scans close in pose (a walk): "
                        "register neighbours in the order plus loop closures")
     merge.add_argument("--skip-bad", action="store_true", help="merge the readable scans when some cannot be read")
     merge.add_argument("--allow-partial", action="store_true",
                        help="exit 0 even when some scans are doubtful or unplaced (default: exit status 3)")
     merge.add_argument("--json", action="store_true", help="print the whole result as JSON instead of the table")
-    merge.add_argument("--pair-points", type=positive_int, default=defaults["pair_points"],
-                       help=f"points per scan for the pairwise registrations (default {defaults['pair_points']})")
-    merge.add_argument("--refine-points", type=positive_int, default=defaults["refine_points"],
-                       help=f"points per scan for the joint refinement (default {defaults['refine_points']})")
-    merge.add_argument("--partners", type=positive_int, default=defaults["partners"],
-                       help=f"without --sequence: scans each scan is first registered with (default {defaults['partners']})")
-    merge.add_argument("--sequence-neighbours", type=positive_int, default=defaults["sequence_neighbours"],
-                       help="with --sequence: next scans each scan is registered with "
-                       f"(default {defaults['sequence_neighbours']})")
-    merge.add_argument("--threads", type=positive_int, default=defaults["threads"],
-                       help="pairwise registrations run at once on threads (default: all cores)")
-    merge.add_argument("--processes", type=positive_int, default=defaults["processes"],
+    merge.add_argument("--pair-points", type=positive_int, default=library,
+                       help=_LibraryDefault("points per scan for the pairwise global searches", "pair_points"))
+    merge.add_argument("--refine-points", type=positive_int, default=library,
+                       help=_LibraryDefault("points per scan for checking each pair and the joint refinement",
+                                            "refine_points"))
+    merge.add_argument("--partners", type=positive_int, default=library,
+                       help=_LibraryDefault("without --sequence: scans each scan is first registered with", "partners"))
+    merge.add_argument("--sequence-neighbours", type=positive_int, default=library,
+                       help=_LibraryDefault("with --sequence: next scans each scan is registered with",
+                                            "sequence_neighbours"))
+    merge.add_argument("--threads", type=positive_int, default=library,
+                       help=_LibraryDefault("pairwise registrations run at once on threads", "threads"))
+    merge.add_argument("--processes", type=positive_int, default=library,
                        help="run the pairwise registrations on this many worker processes instead of threads")
     add_workers(merge, "1 per registration when several run at once, else every core")
     merge.add_argument("--scheduler", help="address of an existing Dask scheduler to run the pairwise jobs on")
@@ -153,8 +175,10 @@ def run_merge(args) -> int:
         return 2
     if len(clouds) < 2:
         raise InvalidInputError(f"scans: need at least 2 readable scans, got {len(clouds)}")
-    if not 0 <= args.reference < len(clouds):
-        raise InvalidInputError(f"--reference: expected a scan index in [0, {len(clouds)}), got {args.reference}")
+    options = {name: getattr(args, name) for name in LIBRARY_OPTIONS if hasattr(args, name)}
+    reference = options.get("reference", library_defaults()["reference"])
+    if not 0 <= reference < len(clouds):
+        raise InvalidInputError(f"--reference: expected a scan index in [0, {len(clouds)}), got {reference}")
     client = None
     if args.scheduler:
         client = dask_client(args.scheduler)
@@ -162,11 +186,7 @@ def run_merge(args) -> int:
     # Without --workers the library picks the threads (one per registration run in parallel).
     threads = {} if args.workers is None else {"workers": args.workers}
     try:
-        result = register_scans(clouds, reference=args.reference, sequence=args.sequence,
-                                pair_points=args.pair_points, refine_points=args.refine_points,
-                                partners=args.partners, sequence_neighbours=args.sequence_neighbours,
-                                threads=args.threads, processes=args.processes, client=client,
-                                progress=progress, **threads)
+        result = register_scans(clouds, client=client, progress=progress, **options, **threads)
     finally:
         close()
         if client is not None:
