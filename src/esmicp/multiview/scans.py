@@ -402,15 +402,21 @@ def register_scans(
 
     Notes
     -----
-    Work: without ``sequence``, about ``N * partners`` global registrations plus a few per scan
-    not yet confirmed; with it, about ``N * sequence_neighbours`` (the consecutive ones local) plus
-    local loop closures. Memory, for 1,000 scans of 20,000 points: the pairwise subsets hold
-    1,000 x ``pair_points`` x 24 bytes (36 MB); the pose graph a few kilobytes per edge (its
-    least-squares Jacobian is sparse: 72 numbers per edge per pose, about 3 MB for 5,000
-    edges); the joint refinement holds, per scan, ``refine_points`` points, their normals, both
-    in the world frame and a KD-tree (about 5 x 24 bytes x ``refine_points``: 1 MB at 8,000, so
-    about 1 GB for 1,000 scans), and a sparse normal matrix of two 6x6 blocks per kept edge. The
-    input clouds themselves (480 MB as float64) stay the caller's.
+    Work: without ``sequence``, about ``N * partners`` global searches, each followed by a local
+    check on the dense subsets, plus up to ``partners`` per scan not yet confirmed in each of
+    ``EXTRA_ROUNDS`` rounds; with it, about ``N * sequence_neighbours`` pairs (the consecutive ones
+    local) plus one loop-closure candidate per scan.
+
+    Memory, for 1,000 scans of 20,000 points (the input clouds, 480 MB as float64, stay the
+    caller's): per scan, the sparse subset (``pair_points`` x 24 bytes: 36 KB) and the dense one
+    (``refine_points`` x 24 bytes: 192 KB), its normals (192 KB) and, in the joint refinement, a
+    compiled KD-tree over it (about 320 KB): about 0.75 MB a scan, 0.75 GB for 1,000 at the
+    defaults (linear in ``refine_points``). Per kept edge, the refinement's last neighbours
+    (2 x :data:`esmicp.multiview.refine.QUERY_POINTS` x 8 bytes: 32 KB; about 0.1 GB for 3,000
+    edges); the pose graph's sparse Jacobian (72 numbers per edge and residual block, a few MB
+    for 5,000 edges) and the refinement's block-sparse normal matrix (two 6x6 blocks per kept
+    edge). The only N x N array is the descriptors' distances (8 MB for 1,000 scans). Each
+    registration running at once holds its own pair's working set besides.
     """
     start = time.perf_counter()
     try:
