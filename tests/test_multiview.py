@@ -257,7 +257,7 @@ def test_cli_merge_reads_three_column_bin_scans_with_bin_columns(tmp_path, bunny
     clouds, _ = bunny
     paths = []
     for name, cloud in zip(BUNNY[:3], clouds[:3]):
-        points = cloud[::2][:1996].astype(np.float32)
+        points = cloud[::2][:6000].astype(np.float32)
         assert (points.size * 4) % 48 == 0  # ambiguous: fits 3 and 4 columns
         path = tmp_path / f"{name}.bin"
         points.tofile(path)

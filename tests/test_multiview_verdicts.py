@@ -56,6 +56,24 @@ def test_a_trusted_wrong_edge_contradicted_by_a_trusted_right_one_makes_the_scan
     assert 3 in set(result.merged(clouds, include_doubtful=True)[1].tolist())
 
 
+def test_a_scan_held_by_one_unchecked_trusted_edge_is_doubtful(monkeypatch):
+    """Scan 3's one edge is trusted but wrong (a kitchen frame was placed 90 degrees off by one
+    such edge, confidence 0.61): no cycle checks it, so the scan is doubtful, below the trust bar,
+    however right or wrong the edge; in a merge of two scans the one trusted edge places it."""
+    from esmicp.globalreg.scan import TRUSTED
+
+    rng = np.random.default_rng(14)
+    truth = _truth(4, rng)
+    clouds = _clouds(truth, rng)
+    _patch(monkeypatch, truth, clouds, wrong={(0, 3)}, missing={(1, 3), (2, 3)})
+    result = register_scans(clouds, refine_rounds=0, threads=1)
+    assert result.status == ("placed", "placed", "placed", "doubtful")
+    assert result.scan_confidence[3] < TRUSTED and "no cycle" in result.reasons[3][0]
+    _patch(monkeypatch, truth[:2], clouds[:2])
+    two = register_scans(clouds[:2], refine_rounds=0, threads=1)
+    assert two.status == ("placed", "placed") and "only pair" in two.reasons[1][0]
+
+
 def test_a_scan_confirmed_around_a_cycle_says_so(monkeypatch):
     rng = np.random.default_rng(13)
     truth = _truth(4, rng)

@@ -53,6 +53,13 @@ logger = logging.getLogger(__name__)
 #: on scans that can never be confirmed (another object, a scan at the end of a chain).
 EXTRA_ROUNDS = 3
 
+#: Iterations of the local check of a pair on the dense subsets (unless ``max_iterations`` is
+#: passed to :func:`register_scans`): it starts at a converged pose, and a wrong pose refined
+#: for longer only costs time. On the bunny's scans (8,000 points) right pairs settle in 28-36
+#: iterations with the same confidence at 30; a wrong pair ran 68 iterations and a second try
+#: (6.7 s against 1.8 s capped, confidence 0.10 either way).
+CHECK_ITERATIONS = 30
+
 #: Kinds of :attr:`Edge.kind`: how the pairwise registration started.
 GLOBAL, LOCAL = "global", "local"
 
@@ -213,7 +220,7 @@ class _Pairwise:
             return (min(a, b), max(a, b))
         return (a, b) if (self.keys[a], a) <= (self.keys[b], b) else (b, a)
 
-    def _register(self, clouds, oriented, inits, total):
+    def _register(self, clouds, oriented, inits, total, **extra):
         offset = self.done
 
         def report(done, _):
@@ -221,7 +228,7 @@ class _Pairwise:
                 self.progress(offset + done, total)
 
         jobs = [(clouds[j], clouds[i]) for i, j in oriented]  # source j onto target i: T_i_j
-        outcomes = register_many(jobs, progress=report, inits=inits, **self.run_options)
+        outcomes = register_many(jobs, progress=report, inits=inits, **{**extra, **self.run_options})
         self.done += len(jobs)
         return outcomes
 
@@ -246,10 +253,12 @@ class _Pairwise:
                 starts[n] = outcome.transformation
             else:
                 failures[n] = outcome
-        verify = [n for n in range(len(requests)) if n not in failures]
-        checked = self._register(self.dense, [oriented[n] for n in verify], [starts[n] for n in verify], total)
         outcomes = dict(failures)
-        outcomes.update(zip(verify, checked))
+        # the check of a searched pair starts at a converged pose (capped); a given start is refined in full
+        for group, extra in (([n for n in searched if n not in failures], {"max_iterations": CHECK_ITERATIONS}),
+                             ([n for n in range(len(requests)) if inits[n] is not None], {})):
+            checked = self._register(self.dense, [oriented[n] for n in group], [starts[n] for n in group], total, **extra)
+            outcomes.update(zip(group, checked))
         new = []
         for n, (i, j) in enumerate(oriented):
             edge = self._edge(i, j, outcomes[n], LOCAL if inits[n] is not None else GLOBAL)

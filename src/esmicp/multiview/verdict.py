@@ -5,17 +5,20 @@ pairwise result is trusted (:attr:`esmicp.RegistrationResult.trusted`: confidenc
 and not ambiguous); the pose graph keeps the usable edges that agree with the solved poses and
 rejects the others as cycle inconsistent. A scan is then
 
-* ``"placed"``: the reference scan; or posed and confirmed, lying on a cycle of kept edges (edges
-  that agree around the cycle) with more kept edges than contradicting ones; or posed by a tree of
-  kept edges (no cycle) that no usable edge contradicts, not hanging on a doubtful scan;
-* ``"doubtful"``: posed, but usable edges contradict its pose (as many as confirm it on a cycle,
-  or any without a cycle), or it hangs on a doubtful scan by edges on no cycle;
+* ``"placed"``: the reference scan; or posed and confirmed: joined to the reference by two paths
+  of kept edges with no edge in common (its pose is checked around a cycle), with more kept
+  edges than contradicting ones; or, in a merge of two scans, posed by their one trusted edge
+  (no third scan could check it);
+* ``"doubtful"``: posed, but usable edges contradict its pose, or it is joined to the reference
+  only across a bridge (an edge on no cycle, which nothing checks: one wrong trusted edge would
+  place it, and every scan beyond it, wrongly);
 * ``"unplaced"``: no pose, with the reason (no usable edge at all: another object, no shared
   surface, too few points; or usable edges only to scans not joined to the reference).
 
 ``scan_confidence`` is the strongest kept edge's confidence for a placed scan (1.0 for the
-reference), that minus the strongest contradicting edge's for a doubtful one (so it falls below
-the trust bar), None for an unplaced one.
+reference); for a doubtful one, that minus the strongest contradicting edge's when contradicted,
+else half of it (one unchecked edge counts as half a checked one), so that it falls below the
+trust bar; None for an unplaced one.
 """
 
 from __future__ import annotations
@@ -86,6 +89,23 @@ def bridges(edges: list[tuple[int, int]]) -> set[tuple[int, int]]:
     return out
 
 
+def _core(reference: int, kept_pairs, on_no_cycle) -> set[int]:
+    """The reference's 2-edge-connected component: scans joined to it by kept edges after removing
+    the bridges (each is joined to the reference by two paths with no edge in common)."""
+    adjacency: dict[int, list[int]] = {}
+    for a, b in kept_pairs:
+        if (min(a, b), max(a, b)) not in on_no_cycle:
+            adjacency.setdefault(a, []).append(b)
+            adjacency.setdefault(b, []).append(a)
+    seen, stack = {reference}, [reference]
+    while stack:
+        for other in adjacency.get(stack.pop(), []):
+            if other not in seen:
+                seen.add(other)
+                stack.append(other)
+    return seen
+
+
 def scan_verdicts(n: int, reference: int, posed: set, edges) -> list[ScanVerdict]:
     """The verdict of every scan ``0..n-1``; ``posed`` are the scans the pose graph placed (joined to
     ``reference`` by kept edges), ``edges`` every :class:`~esmicp.multiview.Edge` tried."""
@@ -94,38 +114,35 @@ def scan_verdicts(n: int, reference: int, posed: set, edges) -> list[ScanVerdict
         touching[e.i].append(e)
         touching[e.j].append(e)
     kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in posed and e.j in posed]
-    on_no_cycle = bridges(kept_pairs)
-    status: dict[int, str] = {}
-    confidence: dict[int, float | None] = {}
-    reasons: dict[int, list[str]] = {}
-    counts = {}
+    core = _core(reference, kept_pairs, bridges(kept_pairs))
+    out = []
     for k in range(n):
         mine = touching[k]
         kept = [e for e in mine if e.kept and e.i in posed and e.j in posed]
         contradicting = [e for e in mine if e.trusted and not e.kept and e.reason.startswith("cycle")]
-        counts[k] = (len(kept), len(contradicting))
-        best_kept = max((e.confidence for e in kept), default=None)
-        cyclic = [e for e in kept if (min(e.i, e.j), max(e.i, e.j)) not in on_no_cycle]
+        best_kept = max((e.confidence for e in kept), default=0.0)
         if k == reference:
-            status[k], confidence[k] = "placed", 1.0
-            reasons[k] = ["the reference: its frame is the world frame"]
+            status, confidence, reason = "placed", 1.0, "the reference: its frame is the world frame"
         elif k not in posed:
-            status[k], confidence[k] = "unplaced", None
-            reasons[k] = [_why_unplaced(k, mine, reference)]
-        elif cyclic and len(kept) > len(contradicting):
-            status[k], confidence[k] = "placed", best_kept
-            reasons[k] = [f"confirmed: on a cycle of trusted edges that agree ({len(kept)} kept"
-                          + (f", {len(contradicting)} disagreeing rejected)" if contradicting else ")")]
-        elif not cyclic and not contradicting:
-            status[k], confidence[k] = "placed", best_kept
-            reasons[k] = [f"{len(kept)} trusted edge(s) on no cycle, nothing contradicts them"]
-        else:
+            status, confidence, reason = "unplaced", None, _why_unplaced(k, mine, reference)
+        elif contradicting and (k not in core or len(contradicting) >= len(kept)):
             against = max(e.confidence for e in contradicting)
-            status[k], confidence[k] = "doubtful", max(0.0, (best_kept or 0.0) - against)
-            reasons[k] = [f"{len(contradicting)} trusted edge(s) contradict its pose, {len(kept)} agree"
-                          + ("" if cyclic else " on no cycle")]
-    _spread_doubt(reference, kept_pairs, on_no_cycle, status, confidence, reasons)
-    return [ScanVerdict(status[k], confidence[k], counts[k][0], counts[k][1], tuple(reasons[k])) for k in range(n)]
+            status, confidence = "doubtful", max(0.0, best_kept - against)
+            reason = f"{len(contradicting)} trusted edge(s) contradict its pose, {len(kept)} agree"
+        elif k in core:
+            status, confidence = "placed", best_kept
+            reason = (f"confirmed: joined to the reference by two paths of trusted edges that agree ({len(kept)} kept"
+                      + (f", {len(contradicting)} disagreeing rejected)" if contradicting else ")"))
+        elif n == 2:
+            status, confidence = "placed", best_kept
+            reason = "the only pair: one trusted edge, nothing contradicts it (no third scan can check it)"
+        else:
+            # one unchecked trusted edge counts as half of a checked one: below the trust bar
+            status, confidence = "doubtful", best_kept / 2
+            reason = ("joined to the reference only across an edge on no cycle: no other pair checks that "
+                      "edge, and one wrong trusted edge would place it wrongly")
+        out.append(ScanVerdict(status, confidence, len(kept), len(contradicting), (reason,)))
+    return out
 
 
 def _why_unplaced(k: int, mine, reference: int) -> str:
@@ -142,26 +159,3 @@ def _why_unplaced(k: int, mine, reference: int) -> str:
     if all(e.reason.startswith("cycle") for e in usable):
         return f"its {len(usable)} trusted edge(s) all disagree with the pose graph (cycle inconsistent)"
     return f"its trusted edges join it only to scans not connected to the reference scan {reference}"
-
-
-def _spread_doubt(reference, kept_pairs, on_no_cycle, status, confidence, reasons) -> None:
-    """A placed scan reached from the reference only across a bridge (an edge on no cycle) from a
-    doubtful scan rests on that scan's pose: it becomes doubtful too (breadth first from the
-    reference, so doubt flows outwards along the tree of bridges)."""
-    adjacency: dict[int, list[int]] = {}
-    for a, b in kept_pairs:
-        adjacency.setdefault(a, []).append(b)
-        adjacency.setdefault(b, []).append(a)
-    seen, queue = {reference}, [reference]
-    while queue:
-        node = queue.pop(0)
-        for other in adjacency.get(node, []):
-            if other in seen:
-                continue
-            seen.add(other)
-            queue.append(other)
-            bridge = (min(node, other), max(node, other)) in on_no_cycle
-            if bridge and status[node] == "doubtful" and status[other] == "placed":
-                status[other] = "doubtful"
-                confidence[other] = min(confidence[other], confidence[node])
-                reasons[other].append(f"it hangs on doubtful scan {node} by an edge on no cycle")
