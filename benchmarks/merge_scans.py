@@ -1,282 +1,639 @@
-"""Many scans into one model: ``esmicp.register_scans`` against Open3D's multiway registration, same run.
+"""Many scans into one model: esmicp's merge against Open3D's pipelines and against pairwise
+registration, measured in the same run; writes the results section of docs/merge.md.
 
 Usage::
 
-    python benchmarks/merge_scans.py                     # bunny, bunny shuffled, Newer College; Open3D on both
-    python benchmarks/merge_scans.py --cases bunny --no-open3d --processes 1
-    python benchmarks/merge_scans.py --check-harness     # Open3D from the truth with 0 iterations: errors ~0
+    python benchmarks/merge_scans.py --doc docs/merge.md       # everything; rewrites the results section
+    python benchmarks/merge_scans.py --datasets kitchen --frames 20 --skip-peer   # a quick look
+    python benchmarks/merge_scans.py --datasets bunny newer-college --json results.json
+    python benchmarks/merge_scans.py --check-harness            # Open3D from the truth, 0 ICP iterations: errors ~0
 
-Data (``../shared/data`` or ``$ESMICP_SHARED_DATA``):
+Data sets (``../shared/data`` or ``$ESMICP_SHARED_DATA``), each given to every method in the
+same order:
 
 - ``bunny``: the Stanford bunny's 10 raw range scans (``bunny_scans``, ground truth ``bun.conf``
-  read by :func:`esmicp.io.stanford_conf.load_scans`), every point of every scan, reference
-  ``bun000``; ``bunny-shuffled``: the same scans in a seeded random order (``--seed``), the
-  reference moved with ``bun000``, the poses mapped back to the conf order before comparing.
-- ``newer-college``: the 5 LiDAR scans of ``real_pairs/newer_college_01`` (headerless float32
-  ``x y z``, ``planes_0000K0.bin``), ground truth ``graph.txt`` (``vK x y z qx qy qz qw``,
-  ``T_v0_vK``), reference ``v0``.
+  read by :func:`esmicp.io.stanford_conf.load_scans`), in a seeded shuffled order (``--seed``),
+  every point. Methods: ``esmicp merge`` (the CLI, every default, a subprocess: its time includes
+  Python's start and reading the files), ``register_scans`` (the library, every default), Open3D's
+  multiway registration (its tutorial, from the identity), and the pairwise chain.
+- ``kitchen``: the redkitchen walk (``sequences/redkitchen_seq01_every10``: depth frames as points
+  in the camera frame, ``poses.txt`` = ``T_world_frame``), the first ``--frames`` frames.
+  Methods: ``register_scans`` with the frames shuffled (order not given), ``register_scans(...,
+  sequence=True)`` in order when the library has that argument (else reported "not supported"),
+  Open3D's reconstruction-system pipeline in order (:func:`merge_open3d.reconstruction_walk`), and
+  the pairwise chain.
+- ``newer-college``: 5 LiDAR scans of ``real_pairs/newer_college_01`` (ground truth
+  ``graph.txt``), listed order. Methods: ``register_scans``, Open3D multiway, the pairwise chain.
 
-Every method is given the scans with no initial pose. Errors: for every scan k, the estimated
-``T_reference_k`` against the truth's, rotation (degrees) and translation (mm for the bunny, m for
-the LiDAR); worst and median over the non-reference scans; unplaced scans count as failures.
+The pairwise chain: the N-1 neighbouring pairs registered one at a time with
+``esmicp.register`` at its defaults (the walk: consecutive frames; the bunny: the spanning tree of
+the pairs that overlap most under the ground truth) and chained from the reference. Its time is
+the reference for "the merge costs K pairwise registrations"; its errors show what the pairs alone
+give.
 
-Open3D's multiway registration, with the settings of its tutorial
-(``pipelines/multiway_registration``): voxel downsampling, normals (radius 2 voxels, 30
-neighbours), every pair registered by point-to-plane ICP coarse (``voxel * 15``) then fine
-(``voxel * 1.5``), the information matrix from ``get_information_matrix_from_point_clouds``, a
-``PoseGraph`` with odometry edges (k, k+1, certain) and loop edges (all other pairs, uncertain),
-nodes from the chained odometry, ``global_optimization`` with Levenberg-Marquardt, its default
-``GlobalOptimizationConvergenceCriteria`` and ``GlobalOptimizationOption(max_correspondence_distance
-= fine, edge_prune_threshold = 0.25, reference_node = 0)``. Run twice: from the identity (the
-tutorial's start, no initial poses) and from the ground-truth poses (each ICP from the true
-``T_target_source``, the nodes at the true ``T_world_scan``). Frames: an Open3D node pose is
-``T_world_scan``; an edge (source, target) holds ``T_target_source``.
-
-Times are wall clock of the registration call only (loading excluded); the machine is shared, so
-read the ratios of the same run. Nothing is written unless ``--json`` is given.
+Errors: each scan's estimated ``T_reference_scan`` against the truth's (the reference: ``bun000``,
+the first frame, ``v0``), rotation in degrees and translation, over the scans reported placed
+(a method that reports no status: every scan it poses). A posed scan off by more than the data
+set's ``wrong`` bound is *wrong* (a walk's frame positions after the best rigid fit of the
+whole trajectory, as for the ATE); *silently* wrong when reported placed (not doubtful). ATE:
+:func:`esmicp.metrics.absolute_trajectory_error` over the placed scans; relative errors:
+:func:`esmicp.metrics.relative_pose_errors` over consecutive frames both placed. Times are wall
+clock, loading excluded except for the CLI; with ``--repeat`` the methods take turns and the
+median time is reported. Nothing is written unless ``--json`` or ``--doc`` is given; ``--doc`` replaces the blocks of the
+data sets run, so each can be regenerated on its own.
 """
 
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import platform
+import subprocess
 import sys
+import tempfile
 import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 import esmicp
 from esmicp.io import read_points
 from esmicp.io.stanford_conf import load_scans
-from esmicp.metrics import rotation_error_deg
+from esmicp.metrics import absolute_trajectory_error, relative_pose_errors, rotation_error_deg
 
-#: Open3D voxel size per case (the tutorial's 0.02 m is for room-scale scans; the bunny is 0.15 m).
-OPEN3D_VOXEL = {"bunny": 0.002, "bunny-shuffled": 0.002, "newer-college": 0.2}
-CASES = ("bunny", "bunny-shuffled", "newer-college")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import merge_open3d  # noqa: E402  (a sibling module of this script)
+
+DATASETS = ("bunny", "kitchen", "newer-college")
 
 
 def shared_data() -> Path:
     return Path(os.environ.get("ESMICP_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
-def bunny_case():
-    """(names, clouds, truth T_world_scan, reference index, unit name, unit scale)."""
-    scans = load_scans(shared_data() / "bunny_scans")
-    names = list(scans)
-    return names, [scans[n][0] for n in names], [scans[n][1] for n in names], names.index("bun000")
+@dataclass
+class Dataset:
+    """Scans in the order every method is given them, with their truth (``T_world_scan``)."""
+
+    name: str
+    title: str
+    names: list[str]
+    clouds: list[np.ndarray]
+    truth: np.ndarray
+    reference: int  # index into the given order
+    unit: str  # translation unit of the tables
+    scale: float  # metres (or cloud units) -> unit
+    wrong: tuple[float, float]  # (deg, cloud units): beyond either, a scan is wrong
+    files: list[Path] = field(default_factory=list)
+    #: N-1 neighbouring pairs (parent, child) as a tree from the reference, for the pairwise chain.
+    tree: list[tuple[int, int]] = field(default_factory=list)
+    ordered: bool = False  # the given order is the walk's order (consecutive relative errors mean something)
 
 
-def newer_college_case():
+def bunny(seed: int, max_points: int | None = None) -> Dataset:
+    folder = shared_data() / "bunny_scans"
+    scans = load_scans(folder, max_points=max_points, rng=0)
+    listed = list(scans)
+    order = [int(k) for k in np.random.default_rng(seed).permutation(len(listed))]
+    names = [listed[k] for k in order]
+    clouds = [scans[n][0] for n in names]
+    truth = np.array([scans[n][1] for n in names])
+    data = Dataset("bunny", f"Stanford bunny, {len(names)} raw scans, shuffled (seed {seed})", names, clouds, truth,
+                   names.index("bun000") if "bun000" in names else 0, "mm", 1000.0, (1.0, 0.002),
+                   files=[folder / f"{n}.ply" for n in names])
+    data.tree = overlap_tree(clouds, truth, data.reference, radius=0.002)
+    return data
+
+
+def kitchen(frames: int, step: int = 1) -> Dataset:
+    folder = shared_data() / "sequences" / "redkitchen_seq01_every10"
+    truth_of = {}
+    for line in (folder / "poses.txt").read_text().splitlines():
+        fields = line.split()
+        if len(fields) == 13 and not line.startswith("#"):
+            pose = np.eye(4)
+            pose[:3, :] = np.array(fields[1:], dtype=float).reshape(3, 4)
+            truth_of[fields[0]] = pose
+    files = sorted((folder / "frames").glob("frame-*.npy"))[::step][:frames]
+    names = [f.stem for f in files]
+    data = Dataset("kitchen", f"redkitchen walk, {len(names)} depth frames", names,
+                   [np.load(f).astype(float) for f in files], np.array([truth_of[n] for n in names]), 0, "cm", 100.0,
+                   (5.0, 0.20), files=files, ordered=True)
+    data.tree = [(k, k + 1) for k in range(len(names) - 1)]
+    return data
+
+
+def newer_college() -> Dataset:
     folder = shared_data() / "real_pairs" / "newer_college_01"
     truth = {}
     for line in (folder / "graph.txt").read_text().splitlines():
         fields = line.split()
         if len(fields) == 8 and fields[0].startswith("v"):
-            T = np.eye(4)
-            T[:3, :3] = Rotation.from_quat([float(v) for v in fields[4:8]]).as_matrix()
-            T[:3, 3] = [float(v) for v in fields[1:4]]
-            truth[int(fields[0][1:])] = T
+            pose = np.eye(4)
+            pose[:3, :3] = Rotation.from_quat([float(v) for v in fields[4:8]]).as_matrix()
+            pose[:3, 3] = [float(v) for v in fields[1:4]]
+            truth[int(fields[0][1:])] = pose
     names = [f"planes_{10 * k:06d}" for k in sorted(truth)]
-    clouds = [read_points(folder / f"{name}.bin", bin_columns=3) for name in names]
-    return names, clouds, [truth[k] for k in sorted(truth)], 0
+    files = [folder / f"{name}.bin" for name in names]
+    data = Dataset("newer-college", f"Newer College, {len(names)} LiDAR scans", names,
+                   [read_points(f, bin_columns=3) for f in files], np.array([truth[k] for k in sorted(truth)]), 0,
+                   "m", 1.0, (2.0, 0.5), files=files, ordered=True)
+    data.tree = [(k, k + 1) for k in range(len(names) - 1)]
+    return data
 
 
-def errors(poses, truth, reference):
-    """Per scan (rotation deg, translation) of T_reference_k against the truth; NaN if unplaced."""
-    out = []
-    for k in range(len(truth)):
-        true = np.linalg.inv(truth[reference]) @ truth[k]
-        if not np.isfinite(poses[k]).all() or not np.isfinite(poses[reference]).all():
-            out.append((float("nan"), float("nan")))
-            continue
-        estimate = np.linalg.inv(poses[reference]) @ poses[k]
-        out.append((rotation_error_deg(estimate, true), float(np.linalg.norm(estimate[:3, 3] - true[:3, 3]))))
+def overlap_tree(clouds, truth, reference, radius, points=3000):
+    """The N-1 pairs (parent, child) of the maximum spanning tree of the true overlaps, from the
+    reference: the neighbouring pairs a person knowing the truth would register. Overlap of a
+    pair: the smaller fraction of either scan's points (a seeded subset) within ``radius`` of the
+    other, both placed by the truth."""
+    rng = np.random.default_rng(0)
+    placed = []
+    for cloud, pose in zip(clouds, truth):
+        subset = cloud[rng.choice(len(cloud), min(points, len(cloud)), replace=False)]
+        placed.append(subset @ pose[:3, :3].T + pose[:3, 3])
+    trees = [cKDTree(p) for p in placed]
+    count = len(clouds)
+    overlap = np.zeros((count, count))
+    for i in range(count):
+        for j in range(count):
+            if i != j:
+                overlap[i, j] = np.mean(trees[j].query(placed[i], distance_upper_bound=radius)[0] <= radius)
+    overlap = np.minimum(overlap, overlap.T)
+    inside, pairs = {reference}, []
+    while len(inside) < count:
+        parent, child = max(((i, j) for i in inside for j in range(count) if j not in inside),
+                            key=lambda pair: overlap[pair])
+        pairs.append((parent, child))
+        inside.add(child)
+    return pairs
+
+
+# -- methods: each returns a Run ---------------------------------------------------------------
+
+
+@dataclass
+class Run:
+    """One method's result on one data set: ``T_world_scan`` per given scan (NaN: unplaced)."""
+
+    method: str
+    poses: np.ndarray | None  # None: the method could not run (see note)
+    seconds: float | None
+    status: list[str] | None = None  # per scan "placed" / "doubtful" / "unplaced", None if not reported
+    note: str = ""
+    times: list[float] = field(default_factory=list)
+
+
+def supports_sequence() -> bool:
+    """Whether this esmicp's ``register_scans`` takes ``sequence=``."""
+    return "sequence" in inspect.signature(esmicp.register_scans).parameters
+
+
+def scan_status(result, count) -> list[str] | None:
+    """Per-scan "placed" / "doubtful" / "unplaced" from a merge result, as far as it reports one.
+
+    Reads a per-scan status (``result.status``, or ``result.scans[k].status``) when the result
+    has one, else only placed / unplaced (``result.placed``); None when neither is there."""
+    raw = getattr(result, "status", None)
+    if raw is None and getattr(result, "scans", None) is not None:
+        raw = [getattr(scan, "status", None) for scan in result.scans]
+    if raw is not None and len(raw) == count and all(value is not None for value in raw):
+        return [_status_word(value) for value in raw]
+    return None
+
+
+def _status_word(value) -> str:
+    """The benchmark's word for a status as a merge result reports it."""
+    text = str(getattr(value, "value", value)).lower()
+    if "unplaced" in text or "not placed" in text or "left out" in text:
+        return "unplaced"
+    if "doubt" in text or "uncertain" in text or "low" in text:
+        return "doubtful"
+    return "placed"
+
+
+def run_api(data: Dataset, *, sequence=False, shuffle_seed=None) -> Run:
+    """``register_scans`` at its defaults; ``shuffle_seed``: give the scans in that seeded order
+    (the poses are mapped back)."""
+    label = "esmicp register_scans" + (", sequence=True" if sequence else "")
+    if sequence and not supports_sequence():
+        return Run(label, None, None, note="not supported by this esmicp (register_scans has no sequence=)")
+    order = list(range(len(data.clouds)))
+    if shuffle_seed is not None:
+        order = [int(k) for k in np.random.default_rng(shuffle_seed).permutation(len(order))]
+        label += ", shuffled"
+    kwargs = {"sequence": True} if sequence else {}
+    start = time.perf_counter()
+    result = esmicp.register_scans([data.clouds[k] for k in order], reference=order.index(data.reference), **kwargs)
+    seconds = time.perf_counter() - start
+    poses = np.full((len(order), 4, 4), np.nan)
+    given_status = scan_status(result, len(order))
+    status = None if given_status is None else [""] * len(order)
+    for position, k in enumerate(order):
+        poses[k] = result.poses[position]
+        if status is not None:
+            status[k] = given_status[position]
+    kept = getattr(result, "kept_edges", ())
+    note = f"{len(kept)} of {len(result.edges)} edges kept" if hasattr(result, "edges") else ""
+    return Run(label, poses, seconds, status, note)
+
+
+def cli_supports(option: str) -> bool:
+    help_text = subprocess.run([sys.executable, "-m", "esmicp", "merge", "--help"], capture_output=True,
+                               text=True).stdout
+    return option in help_text
+
+
+def run_cli(data: Dataset) -> Run:
+    """``esmicp merge FILE...`` at every default (the files in the data set's order), in a
+    subprocess; the poses from ``--poses-out`` (index, file, [status,] 16 numbers per line)."""
+    with tempfile.TemporaryDirectory() as folder:
+        poses_file = Path(folder) / "poses.txt"
+        command = [sys.executable, "-m", "esmicp", "merge", *map(str, data.files), "-o", str(Path(folder) / "merged.ply"),
+                   "--poses-out", str(poses_file)]
+        if cli_supports("--no-progress"):
+            command.append("--no-progress")
+        start = time.perf_counter()
+        done = subprocess.run(command, capture_output=True, text=True)
+        seconds = time.perf_counter() - start
+        if not poses_file.exists():
+            return Run("esmicp merge (CLI)", None, None, note=f"exit {done.returncode}: {done.stderr.strip()[-300:]}")
+        poses, status = read_poses_file(poses_file, len(data.files))
+    return Run("esmicp merge (CLI)", poses, seconds, status, note=f"exit status {done.returncode}")
+
+
+def read_poses_file(path: Path, count: int) -> tuple[np.ndarray, list[str] | None]:
+    """``esmicp merge --poses-out``'s file: one line per scan, its index first and the 16 numbers
+    of ``T_world_scan`` last, with its status just before them when the CLI writes one.
+
+    Returns the (count, 4, 4) poses (NaN where no line or ``nan``) and the statuses (None when the
+    file has none)."""
+    poses = np.full((count, 4, 4), np.nan)
+    status: list[str] | None = ["unplaced"] * count
+    for line in path.read_text().splitlines():
+        fields = line.split()
+        if fields and not line.startswith("#"):
+            k = int(fields[0])
+            poses[k] = np.array(fields[-16:], dtype=float).reshape(4, 4)
+            word = fields[-17] if len(fields) >= 19 else ""
+            if status is not None and word in ("placed", "doubtful", "unplaced"):
+                status[k] = word
+            else:
+                status = None
+    return poses, status
+
+
+def run_pairwise(data: Dataset) -> Run:
+    """The N-1 neighbouring pairs (``data.tree``) registered one by one by ``esmicp.register``
+    at its defaults (child onto parent), chained from the reference."""
+    poses = np.full((len(data.clouds), 4, 4), np.nan)
+    poses[data.reference] = np.eye(4)
+    start = time.perf_counter()
+    results = [(parent, child, esmicp.register(data.clouds[child], data.clouds[parent]).transformation)
+               for parent, child in data.tree]
+    seconds = time.perf_counter() - start
+    for parent, child, T_parent_child in results:  # the tree lists parents before their children
+        poses[child] = poses[parent] @ T_parent_child
+    return Run(f"{len(data.tree)} pairwise esmicp.register, chained", poses, seconds)
+
+
+def run_open3d_multiway(data: Dataset, voxel: float) -> Run:
+    poses, seconds, _ = merge_open3d.multiway(data.clouds, voxel)
+    return Run("Open3D multiway (tutorial, identity start)", poses, seconds)
+
+
+def run_open3d_walk(data: Dataset, loop_gap: int, loop_stride: int) -> Run:
+    poses, seconds, info = merge_open3d.reconstruction_walk(data.clouds, loop_gap=loop_gap, loop_stride=loop_stride)
+    return Run("Open3D reconstruction system (odometry + FPFH loops + pose graph)", poses, seconds,
+               note=f"{info['loops_kept']} of {info['loop_candidates']} loop candidates kept")
+
+
+#: Open3D downsampling voxel of the multiway tutorial per data set (its 2 cm is for rooms; the bunny is 15 cm).
+MULTIWAY_VOXEL = {"bunny": 0.002, "newer-college": 0.2}
+
+
+# -- evaluation ------------------------------------------------------------------------------
+
+
+def evaluate(data: Dataset, run: Run) -> dict:
+    """Every figure of one run against the truth (translations in cloud units; see ``data.scale``)."""
+    if run.poses is None:
+        return {"supported": False, "note": run.note}
+    count = len(data.clouds)
+    finite = np.array([np.isfinite(pose).all() for pose in run.poses])
+    status = list(run.status) if run.status is not None else ["placed" if ok else "unplaced" for ok in finite]
+    status = [s if finite[k] else "unplaced" for k, s in enumerate(status)]
+    true_reference = np.linalg.inv(data.truth[data.reference])
+    rotation, translation = np.full(count, np.nan), np.full(count, np.nan)
+    if finite[data.reference]:
+        estimated_reference = np.linalg.inv(run.poses[data.reference])
+        for k in np.flatnonzero(finite):
+            estimate = estimated_reference @ run.poses[k]
+            true = true_reference @ data.truth[k]
+            rotation[k] = rotation_error_deg(estimate, true)
+            translation[k] = float(np.linalg.norm(estimate[:3, 3] - true[:3, 3]))
+    others = [k for k in range(count) if k != data.reference]
+    posed = [k for k in others if np.isfinite(rotation[k])]
+    measured = [k for k in posed if status[k] == "placed"]  # the errors: of the scans reported placed
+    placed = finite & np.array([s == "placed" for s in status])
+    off_translation = translation
+    alignment = None
+    if placed.sum() >= 3:
+        ate, alignment = absolute_trajectory_error(run.poses[placed], data.truth[placed])
+    if data.ordered and alignment is not None:
+        # A walk's frame positions are judged where the best rigid fit of the whole trajectory
+        # puts them: drift seen from the reference frame is the ATE's business, not a misplaced
+        # frame. Rotations stay judged from the reference (no lever arm; the fit is of positions).
+        off_translation = np.full(count, np.nan)
+        for k in posed:
+            off_translation[k] = float(np.linalg.norm(alignment[:3, :3] @ run.poses[k][:3, 3] + alignment[:3, 3]
+                                                      - data.truth[k][:3, 3]))
+    wrong = [k for k in posed if rotation[k] > data.wrong[0] or off_translation[k] > data.wrong[1]]
+    out = {
+        "supported": True, "note": run.note, "seconds": run.seconds, "times": run.times,
+        "scans": count, "placed": status.count("placed"), "doubtful": status.count("doubtful"),
+        "unplaced": status.count("unplaced"), "status_reported": run.status is not None,
+        "wrong": len(wrong), "silently_wrong": sum(status[k] == "placed" for k in wrong),
+        "worst_rotation_deg": max((rotation[k] for k in measured), default=float("nan")),
+        "median_rotation_deg": float(np.median(rotation[measured])) if measured else float("nan"),
+        "worst_translation": max((translation[k] for k in measured), default=float("nan")),
+        "median_translation": float(np.median(translation[measured])) if measured else float("nan"),
+        "per_scan": {data.names[k]: [float(rotation[k]), float(translation[k]), status[k]] for k in range(count)},
+    }
+    if alignment is not None:
+        out["ate"] = ate
+    if data.ordered:
+        pairs = [(k, k + 1) for k in range(count - 1) if placed[k] and placed[k + 1]]
+        if pairs:
+            rpe_rotation, rpe_translation = relative_pose_errors(np.where(placed[:, None, None], run.poses, np.eye(4)),
+                                                                 data.truth, pairs)
+            out |= {"rpe_pairs": len(pairs), "median_rpe_deg": float(np.median(rpe_rotation)),
+                    "median_rpe": float(np.median(rpe_translation)), "worst_rpe_deg": float(rpe_rotation.max()),
+                    "worst_rpe": float(rpe_translation.max())}
     return out
 
 
-def run_esmicp(clouds, reference, processes):
-    start = time.perf_counter()
-    result = esmicp.register_scans(clouds, reference=reference, processes=processes)
-    return result.poses, time.perf_counter() - start, result
+# -- running ---------------------------------------------------------------------------------
 
 
-def run_open3d(clouds, voxel, initial=None, *, icp_iterations=None, nodes_from_initial=True):
-    """Open3D's tutorial multiway registration; ``initial``: T_world_scan per scan (else identity
-    ICP starts and nodes from the chained odometry, as in the tutorial). ``icp_iterations=0`` with
-    the truth and ``nodes_from_initial=False`` is the harness check: ICP leaves the true edges
-    as they are, the chained odometry must rebuild the true nodes, and the optimisation must keep
-    them."""
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    start = time.perf_counter()
-    pcds = []
-    for points in clouds:
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=voxel * 2, max_nn=30))
-        pcds.append(pcd)
-    coarse, fine = voxel * 15, voxel * 1.5
-    icp_criteria = (reg.ICPConvergenceCriteria() if icp_iterations is None
-                    else reg.ICPConvergenceCriteria(max_iteration=icp_iterations))
-
-    def pairwise(source, target):
-        if initial is None:
-            T_target_source = np.eye(4)
-        else:
-            T_target_source = np.linalg.inv(initial[target]) @ initial[source]
-        estimation = reg.TransformationEstimationPointToPlane()
-        rough = reg.registration_icp(pcds[source], pcds[target], coarse, T_target_source, estimation, icp_criteria)
-        final = reg.registration_icp(pcds[source], pcds[target], fine, rough.transformation, estimation, icp_criteria)
-        information = reg.get_information_matrix_from_point_clouds(pcds[source], pcds[target], fine, final.transformation)
-        return final.transformation, information
-
-    pairs = []  # (source, target, T_target_source, odometry?) as registered, before the optimisation
-    graph = reg.PoseGraph()
-    odometry = np.eye(4)  # T_scan_world of the last node (the tutorial's chained odometry)
-    from_initial = initial is not None and nodes_from_initial
-    if initial is not None and not nodes_from_initial:
-        odometry = np.linalg.inv(initial[0])
-    graph.nodes.append(reg.PoseGraphNode(np.linalg.inv(odometry) if not from_initial else np.array(initial[0])))
-    for source in range(len(pcds)):
-        for target in range(source + 1, len(pcds)):
-            T_target_source, information = pairwise(source, target)
-            pairs.append((source, target, np.array(T_target_source), target == source + 1))
-            if target == source + 1:
-                odometry = T_target_source @ odometry
-                node = np.array(initial[target]) if from_initial else np.linalg.inv(odometry)
-                graph.nodes.append(reg.PoseGraphNode(node))
-                graph.edges.append(reg.PoseGraphEdge(source, target, T_target_source, information, uncertain=False))
-            else:
-                graph.edges.append(reg.PoseGraphEdge(source, target, T_target_source, information, uncertain=True))
-    option = reg.GlobalOptimizationOption(max_correspondence_distance=fine, edge_prune_threshold=0.25,
-                                          reference_node=0)
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(),
-                                reg.GlobalOptimizationConvergenceCriteria(), option)
-    poses = np.array([np.asarray(node.pose) for node in graph.nodes])
-    return poses, time.perf_counter() - start, pairs
-
-
-def edge_report(pairs, truth, max_angle_deg=1.0):
-    """How many pairwise ICP results (all, odometry) are off the true T_target_source."""
-    off = [odometry for s, t, T, odometry in pairs
-           if rotation_error_deg(T, np.linalg.inv(truth[t]) @ truth[s]) > max_angle_deg]
-    return (f"{len(off)} of {len(pairs)} pairwise ICP results > {max_angle_deg:g} deg off the truth "
-            f"({sum(off)} of {sum(o for *_, o in pairs)} odometry edges, which the optimisation never prunes)")
-
-
-def summary(errs, reference, scale):
-    rows = [e for k, e in enumerate(errs) if k != reference]
-    rotation = np.array([r for r, _ in rows])
-    shift = np.array([t for _, t in rows]) * scale
-    placed = np.isfinite(rotation)
-    if not placed.all():
-        worst_r = worst_t = float("inf")
+def methods_for(data: Dataset, args) -> list[tuple[str, callable]]:
+    """(key, zero-argument runner) of every method on this data set, in the order they take turns."""
+    out = []
+    if data.name == "bunny":
+        out.append(("cli", lambda: run_cli(data)))
+        out.append(("api", lambda: run_api(data)))
+    elif data.name == "kitchen":
+        out.append(("api", lambda: run_api(data, shuffle_seed=args.seed)))
+        out.append(("api-sequence", lambda: run_api(data, sequence=True)))
     else:
-        worst_r, worst_t = float(rotation.max()), float(shift.max())
-    return {
-        "worst_rotation_deg": worst_r, "median_rotation_deg": float(np.nanmedian(rotation)) if placed.any() else float("nan"),
-        "worst_translation": worst_t, "median_translation": float(np.nanmedian(shift)) if placed.any() else float("nan"),
-        "placed": int(placed.sum()) + 1, "scans": len(errs),
-    }
-
-
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
-    parser.add_argument("--seed", type=int, default=0, help="seed of the shuffled order")
-    parser.add_argument("--processes", type=int, help="register_scans processes (default: all cores)")
-    parser.add_argument("--no-open3d", action="store_true")
-    parser.add_argument("--check-harness", action="store_true",
-                        help="only run Open3D with true edges (ICP from the truth, 0 iterations), nodes from "
-                        "their chained odometry, and the global optimisation: every error must be ~0")
-    parser.add_argument("--per-scan", action="store_true", help="print every scan's errors")
-    parser.add_argument("--json", type=Path, help="write every figure, the settings and the versions here")
-    args = parser.parse_args(argv)
-
-    loaded = {}
-    report = {"settings": vars(args) | {"json": str(args.json) if args.json else None,
-                                        "open3d_voxel": OPEN3D_VOXEL},
-              "versions": versions(), "cases": {}}
-    for case in args.cases:
-        if case.startswith("bunny"):
-            names, clouds, truth, reference = loaded.setdefault("bunny", bunny_case())
-            unit, scale, target = "mm", 1000.0, (1.0, 1.0)
+        out.append(("api", lambda: run_api(data)))
+    if not args.skip_peer:
+        if data.name == "kitchen":
+            out.append(("open3d", lambda: run_open3d_walk(data, args.loop_gap, args.loop_stride)))
         else:
-            names, clouds, truth, reference = newer_college_case()
-            unit, scale, target = "m", 1.0, (1.0, 0.1)
-        order = list(range(len(clouds)))
-        if case == "bunny-shuffled":
-            order = [int(k) for k in np.random.default_rng(args.seed).permutation(len(clouds))]
-        given = [clouds[k] for k in order]
-        given_truth = [truth[k] for k in order]
-        given_reference = order.index(reference)
+            out.append(("open3d", lambda: run_open3d_multiway(data, MULTIWAY_VOXEL[data.name])))
+    if not args.skip_pairwise:
+        out.append(("pairwise", lambda: run_pairwise(data)))
+    return out
 
-        def back(poses):  # poses in the given order -> the original order
-            out = np.full((len(clouds), 4, 4), np.nan)
-            for position, k in enumerate(order):
-                out[k] = poses[position]
-            return out
 
-        print(f"\n== {case}: {len(clouds)} scans ({sum(len(c) for c in clouds)} points), reference "
-              f"{names[reference]}, order {[names[k] for k in order] if order != sorted(order) else 'as listed'}")
-        runs = {}
-        if args.check_harness:
-            poses, seconds, _ = run_open3d(given, OPEN3D_VOXEL[case], initial=given_truth, icp_iterations=0,
-                                           nodes_from_initial=False)
-            runs["open3d, truth edges, odometry nodes"] = (back(poses), seconds)
-        else:
-            poses, seconds, result = run_esmicp(given, given_reference, args.processes)
-            runs["esmicp register_scans"] = (back(poses), seconds)
-            rejected = [(names[order[e.i]], names[order[e.j]], e.reason) for e in result.rejected_edges]
-            print(f"esmicp: {len(result.kept_edges)} edges kept, {len(rejected)} rejected, unplaced "
-                  f"{[names[order[k]] for k in result.unplaced]}")
-            if not args.no_open3d:
-                poses, seconds, pairs = run_open3d(given, OPEN3D_VOXEL[case])
-                runs["open3d multiway, identity start"] = (back(poses), seconds)
-                print("open3d, identity start: " + edge_report(pairs, given_truth))
-                poses, seconds, pairs = run_open3d(given, OPEN3D_VOXEL[case], initial=given_truth)
-                runs["open3d multiway, truth start"] = (back(poses), seconds)
-                print("open3d, truth start: " + edge_report(pairs, given_truth))
-        base = next(iter(runs.values()))[1]
-        print(f"{'method':36s} {'worst deg':>10s} {'median deg':>10s} {'worst ' + unit:>10s} "
-              f"{'median ' + unit:>10s} {'placed':>7s} {'time s':>7s} {'x esmicp':>8s} target")
-        report["cases"][case] = {"order": [names[k] for k in order], "runs": {}}
-        for label, (poses, seconds) in runs.items():
-            errs = errors(poses, truth, reference)
-            s = summary(errs, reference, scale)
-            met = s["worst_rotation_deg"] <= target[0] and s["worst_translation"] <= target[1]
-            print(f"{label:36s} {s['worst_rotation_deg']:10.3f} {s['median_rotation_deg']:10.3f} "
-                  f"{s['worst_translation']:10.3f} {s['median_translation']:10.3f} {s['placed']:3d}/{s['scans']:<3d} "
-                  f"{seconds:7.1f} {seconds / base:8.2f} {'met' if met else 'MISSED'}")
-            if args.per_scan:
-                for k, (r, t) in enumerate(errs):
-                    print(f"    {names[k]:14s} {r:9.4f} deg {t * scale:10.4f} {unit}")
-            report["cases"][case]["runs"][label] = s | {"time_s": seconds, "target_met": bool(met),
-                                                        "per_scan": {names[k]: e for k, e in enumerate(errs)}}
-    if args.json:
-        args.json.write_text(json.dumps(report, indent=2, default=float))
-    return 0
+def run_dataset(data: Dataset, args, log=print) -> dict:
+    """Every method on ``data``, taking turns ``args.repeat`` times; figures of the last turn,
+    the median time."""
+    methods = methods_for(data, args)
+    runs: dict[str, Run] = {}
+    for _ in range(args.repeat):
+        for key, runner in methods:
+            run = runner()
+            if key in runs:
+                run.times = runs[key].times
+            run.times.append(run.seconds)
+            runs[key] = run
+            log(f"  {run.method}: {'%.1f s' % run.seconds if run.seconds is not None else '-'} {run.note}")
+    results = {}
+    for key, run in runs.items():
+        if run.seconds is not None:
+            run.seconds = float(np.median(run.times))
+        results[key] = {"method": run.method} | evaluate(data, run)
+    return {"title": data.title, "unit": data.unit, "scale": data.scale, "wrong": data.wrong,
+            "ordered": data.ordered, "reference": data.names[data.reference], "order": data.names,
+            "pairs": [[data.names[p], data.names[c]] for p, c in data.tree], "results": results}
+
+
+def load(name: str, args) -> Dataset:
+    if name == "bunny":
+        return bunny(args.seed, args.bunny_points)
+    if name == "kitchen":
+        return kitchen(args.frames, args.frame_step)
+    return newer_college()
+
+
+# -- tables ----------------------------------------------------------------------------------
+
+
+def _f(value, digits=2):
+    if value is None or (isinstance(value, float) and not np.isfinite(value)):
+        return "-"
+    return f"{value:.{digits}f}"
+
+
+def dataset_table(entry: dict) -> list[str]:
+    """Markdown rows of one data set: one row per method."""
+    unit, scale = entry["unit"], entry["scale"]
+    rows = [f"| method | placed / doubtful / unplaced | wrong (silently) | worst deg | median deg | worst {unit} | "
+            f"median {unit} | ATE {unit} | median pair error deg / {unit} | time s | time / esmicp |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    base = entry["results"].get("api", {}).get("seconds")
+    for result in entry["results"].values():
+        if not result["supported"]:
+            rows.append(f"| {result['method']} | {result['note']} | | | | | | | | | |")
+            continue
+        doubtful = str(result["doubtful"]) if result["status_reported"] else "n/a"
+        rpe = (f"{_f(result['median_rpe_deg'])} / {_f(result['median_rpe'] * scale)}"
+               if "median_rpe_deg" in result else "-")
+        ratio = _f(result["seconds"] / base) if base else "-"
+        rows.append(
+            f"| {result['method']} | {result['placed']} / {doubtful} / {result['unplaced']} | "
+            f"{result['wrong']} ({result['silently_wrong']}) | {_f(result['worst_rotation_deg'])} | "
+            f"{_f(result['median_rotation_deg'])} | {_f(result['worst_translation'] * scale)} | "
+            f"{_f(result['median_translation'] * scale)} | {_f(result.get('ate', float('nan')) * scale)} | {rpe} | "
+            f"{_f(result['seconds'], 1)} | {ratio} |")
+    return rows
+
+
+def ratio_rows(name: str, entry: dict) -> list[str]:
+    """One row per esmicp run: its time against Open3D's and against the pairwise chain's."""
+    rows = ["| esmicp run | esmicp time / Open3D time | esmicp time / its pairwise registrations' time |",
+            "|---|---|---|"]
+    results = entry["results"]
+    peer = results.get("open3d", {}).get("seconds")
+    pairwise = results.get("pairwise", {}).get("seconds")
+    for key, result in results.items():
+        if key in ("open3d", "pairwise") or not result["supported"]:
+            continue
+        rows.append(f"| {result['method']} | {_f(result['seconds'] / peer) if peer else '-'} | "
+                    f"{_f(result['seconds'] / pairwise) if pairwise else '-'} |")
+    return rows
+
+
+#: Figures that are counts of scans: any difference is a difference.
+COUNTED = ("wrong", "silently_wrong", "unplaced")
+#: A measured figure (an error, a time) counts as better only when it is smaller by more than this
+#: fraction: rounding and run-to-run noise are not a lead.
+MARGIN = 0.05
+
+
+def _better(theirs, mine, *, counted=False) -> bool:
+    if not np.isfinite(theirs):
+        return False
+    if not np.isfinite(mine):
+        return True
+    return theirs < mine if counted else theirs < (1.0 - MARGIN) * mine
+
+
+def where_we_lose(name: str, entry: dict) -> list[str]:
+    """Bullets: every figure where Open3D's run or the pairwise chain beats an esmicp run."""
+    figures = (("worst_rotation_deg", "worst rotation"), ("median_rotation_deg", "median rotation"),
+               ("worst_translation", "worst translation"), ("median_translation", "median translation"),
+               ("ate", "ATE"), ("median_rpe_deg", "median pair rotation"), ("median_rpe", "median pair translation"),
+               ("wrong", "wrong scans"), ("silently_wrong", "silently wrong scans"), ("unplaced", "unplaced scans"),
+               ("seconds", "time"))
+    lines = []
+    results = entry["results"]
+    for key, mine in results.items():
+        if key in ("open3d", "pairwise") or not mine["supported"]:
+            continue
+        for other_key in ("open3d", "pairwise"):
+            other = results.get(other_key)
+            if not other or not other["supported"]:
+                continue
+            lost = [label for figure, label in figures if figure in mine and figure in other
+                    and _better(other[figure], mine[figure], counted=figure in COUNTED)]
+            if lost:
+                lines.append(f"- {mine['method']} against {other['method']}: {', '.join(lost)}.")
+    return lines or ["- Nothing: every esmicp run matched (within 5%) or beat both references on every figure."]
+
+
+def markers(name: str) -> tuple[str, str]:
+    """The comment lines around one data set's generated block in docs/merge.md."""
+    return f"<!-- merge_scans.py {name}: start -->", f"<!-- merge_scans.py {name}: end -->"
+
+
+def markdown(report: dict) -> dict[str, str]:
+    """One Markdown block per data set (between its markers): the run's settings, one row per
+    method, the time ratios and where a reference does better."""
+    settings, versions_ = report["settings"], report["versions"]
+    blocks = {}
+    for name, entry in report["datasets"].items():
+        start, end = markers(name)
+        wrong_deg, wrong_units = entry["wrong"]
+        lines = [start, "",
+                 f"**{entry['title']}** (reference `{entry['reference']}`). Generated by `{settings['command']}` "
+                 f"on {report['started']} (esmicp {versions_['esmicp']}, Open3D {versions_.get('open3d', 'not installed')}, "
+                 f"{versions_['cpus']} cores shared with other jobs, load average {_f(entry['load'][0], 1)} at the "
+                 f"start and {_f(entry['load'][1], 1)} at the end: read the times as ratios within the run). "
+                 f"*Wrong*: more than {wrong_deg:g} deg or {wrong_units * entry['scale']:g} {entry['unit']} off"
+                 f"{' (positions after the best rigid fit of the trajectory, as for the ATE)' if entry['ordered'] else ''}, "
+                 "over every posed scan; *silently*: of those, reported placed. The errors, ATE and pair errors "
+                 "are of the scans reported placed.", ""]
+        lines += dataset_table(entry)
+        notes = [f"{r['method']}: {r['note']}" for r in entry["results"].values() if r["supported"] and r["note"]]
+        if notes:
+            lines += ["", "; ".join(notes) + "."]
+        lines += ["", "Time ratios, same run:", ""] + ratio_rows(name, entry)
+        lines += ["", "Where a reference does better in this run (by more than 5%, or by a scan; computed from "
+                  "the table):", ""]
+        lines += where_we_lose(name, entry) + ["", end]
+        blocks[name] = "\n".join(lines)
+    return blocks
+
+
+def write_doc(path: Path, blocks: dict[str, str]) -> None:
+    """Replace each data set's block of ``path`` (between its markers) with the new one; the rest
+    of the file, and the blocks of data sets not run, are kept."""
+    text = path.read_text()
+    for name, block in blocks.items():
+        start, end = markers(name)
+        if start not in text or end not in text:
+            raise SystemExit(f"{path}: no '{start}' ... '{end}' markers to replace between")
+        before, rest = text.split(start, 1)
+        text = before + block + rest.split(end, 1)[1]
+    path.write_text(text)
 
 
 def versions() -> dict:
     out = {"esmicp": esmicp.__version__, "numpy": np.__version__, "python": platform.python_version(),
            "cpus": os.cpu_count()}
+    commit = subprocess.run(["git", "-C", str(Path(esmicp.__file__).parent), "rev-parse", "--short", "HEAD"],
+                            capture_output=True, text=True)
+    if commit.returncode == 0:
+        out["esmicp"] += f" at commit {commit.stdout.strip()}"
     try:
         import open3d
 
         out["open3d"] = open3d.__version__
     except ImportError:
         pass
-    try:
-        out["load_average"] = os.getloadavg()
-    except OSError:
-        pass
     return out
+
+
+def check_harness(args) -> int:
+    """Open3D multiway from the true edges (0 ICP iterations), nodes from the chained odometry:
+    every error must be ~0, or the frames and inversions of the harness are wrong."""
+    worst = 0.0
+    for name in ("bunny", "newer-college"):
+        data = load(name, args)
+        poses, _, _ = merge_open3d.multiway(data.clouds, MULTIWAY_VOXEL[name], initial=data.truth, icp_iterations=0,
+                                            nodes_from_initial=False)
+        result = evaluate(data, Run("harness", poses, 0.0))
+        worst = max(worst, result["worst_rotation_deg"])
+        print(f"{name}: worst {result['worst_rotation_deg']:.2e} deg, {result['worst_translation']:.2e} units")
+    return 0 if worst < 1e-3 else 1
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--datasets", nargs="+", choices=DATASETS, default=["bunny", "kitchen"])
+    parser.add_argument("--frames", type=int, default=100, help="kitchen: the first N frames (default all 100)")
+    parser.add_argument("--frame-step", type=int, default=1, help="kitchen: every K-th frame (default 1)")
+    parser.add_argument("--bunny-points", type=int, help="bunny: a seeded subset of this many points per scan")
+    parser.add_argument("--loop-gap", type=int, default=20,
+                        help="Open3D walk: loop candidates this many frames apart or more (default 20)")
+    parser.add_argument("--loop-stride", type=int, default=10,
+                        help="Open3D walk: loop candidates among every K-th frame (default 10: one per 100 raw "
+                        "frames, the reconstruction system's fragment length, matched against every non-adjacent one)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the shuffled orders")
+    parser.add_argument("--repeat", type=int, default=1, help="turns of every method (median time)")
+    parser.add_argument("--skip-peer", action="store_true", help="no Open3D runs")
+    parser.add_argument("--skip-pairwise", action="store_true", help="no pairwise chain")
+    parser.add_argument("--check-harness", action="store_true", help="only check the Open3D harness on the truth")
+    parser.add_argument("--json", type=Path, help="write every figure here")
+    parser.add_argument("--doc", type=Path, help="replace the generated section of this Markdown file")
+    args = parser.parse_args(argv)
+    if args.check_harness:
+        return check_harness(args)
+    report = {"started": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+              "settings": {"command": "python benchmarks/merge_scans.py " + " ".join(argv if argv is not None
+                                                                                      else sys.argv[1:])},
+              "versions": versions(), "datasets": {}}
+    for name in args.datasets:
+        data = load(name, args)
+        print(f"== {data.title}: {sum(len(c) for c in data.clouds)} points, reference {data.names[data.reference]}")
+        load_before = os.getloadavg()[0]
+        report["datasets"][name] = run_dataset(data, args) | {"load": [load_before, os.getloadavg()[0]]}
+    blocks = markdown(report)
+    print("\n\n".join(blocks.values()))
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=2, default=float))
+    if args.doc:
+        write_doc(args.doc, blocks)
+    return 0
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""``esmicp.register_many``: many pairs on a process pool or a Dask cluster, results in input order
+"""``esmicp.register_many``: many pairs on a thread pool (the default), a process pool or a Dask cluster, results in input order
 and equal to sequential ``register``, a failing pair reported in its place without losing the
 others. Dask is optional: locally its test skips when it is missing; in CI (``CI=true``) it fails.
 """
@@ -50,6 +50,26 @@ def test_process_pool_equals_sequential_register_in_input_order():
     _assert_same(register_many(pairs, processes=1, **KWARGS), expected)
 
 
+def test_thread_pool_is_the_default_and_equals_sequential_register():
+    """The default pool is threads (the kernels release the GIL; no ``__main__`` guard needed):
+    the same results, in input order, as registering pair by pair."""
+    pairs = _pairs(4)
+    expected = [esmicp.register(source, target, **KWARGS) for source, target in pairs]
+    _assert_same(register_many(pairs, threads=2, **KWARGS), expected)
+    _assert_same(register_many(pairs, **KWARGS), expected)
+
+
+def test_per_pair_inits_start_each_pair_where_given():
+    """``inits``: one start per pair (None: the common ``init``); a pair started at its exact pose
+    stays there, and the result equals ``register`` with that ``init``."""
+    pairs = _pairs(2)
+    start = np.eye(4)
+    results = register_many(pairs, threads=2, inits=[None, start], init="identity", max_iterations=60)
+    _assert_same(results, [esmicp.register(*pairs[0], **KWARGS), esmicp.register(*pairs[1], init=start, max_iterations=60)])
+    with pytest.raises(InvalidInputError, match="inits"):
+        register_many(pairs, inits=[None])
+
+
 @pytest.mark.parametrize("processes", [1, 2])
 def test_progress_is_reported_after_every_pair(processes):
     calls = []
@@ -72,6 +92,8 @@ def test_failing_pair_is_reported_in_place_and_the_others_survive():
 def test_bad_arguments_raise_one_clear_error():
     with pytest.raises(InvalidInputError, match="processes"):
         register_many(_pairs(1), processes=0)
+    with pytest.raises(InvalidInputError, match="threads"):
+        register_many(_pairs(1), threads=0)
     with pytest.raises(InvalidInputError, match=r"pairs\[0\]"):
         register_many([(np.zeros((4, 3)),)])
     with pytest.raises(InvalidInputError, match="pairs"):

@@ -1,7 +1,10 @@
 """``register_many()``: register many (source, target) pairs on all cores, or on a Dask cluster.
 
-Each pair is registered by :func:`esmicp.register` with the same keyword arguments, in a worker
-process (a local process pool) or a Dask worker (when a ``dask.distributed.Client`` is given).
+Each pair is registered by :func:`esmicp.register` with the same keyword arguments, on a thread of
+a local thread pool (the default: the compiled kernels release the GIL, and a thread pool works from
+any script, notebook, ``python -c`` or stdin, with no ``if __name__ == "__main__":`` guard), in a
+worker process (``processes=``, a spawned pool, which re-imports the caller's ``__main__``) or a
+Dask worker (when a ``dask.distributed.Client`` is given).
 Results come back in input order. A pair that fails (bad input, or any error inside
 ``register``) is returned as a :class:`RegistrationFailure` in its place, so one bad scan never
 costs the others. ``register`` is deterministic (its default global-search seed is fixed), so the
@@ -9,8 +12,8 @@ results equal those of calling it pair by pair (the compiled kernels sum in a fi
 number of threads does not change a bit).
 
 Each worker runs its kernels on one thread (``workers=1`` of :func:`esmicp.register`, unless the
-caller's keyword arguments say otherwise): the processes themselves use the cores, and a pool of
-processes each starting a thread per core would oversubscribe them.
+caller's keyword arguments say otherwise): the pool's threads or processes themselves use the
+cores, and a pool each starting a thread per core would oversubscribe them.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Callable, Iterable, Sequence
 
@@ -48,18 +51,20 @@ class RegistrationFailure:
         return f"pair {self.index}: {self.error_type}: {self.message}"
 
 
-def _register_one(index: int, source, target, kwargs: dict) -> "RegistrationResult | RegistrationFailure":
+def _register_one(index: int, source, target, kwargs: dict, init=None) -> "RegistrationResult | RegistrationFailure":
     from .api import register
 
     try:
+        if init is not None:
+            kwargs = {**kwargs, "init": init}
         return register(source, target, **kwargs)
     except Exception as exc:  # one failing pair must not lose the others: report it in its place
         return RegistrationFailure(index, type(exc).__name__, str(exc))
 
 
 def per_process_kwargs(register_kwargs: dict) -> dict:
-    """``register_kwargs`` for a registration in one of several parallel processes (or Dask
-    tasks): ``workers=1`` unless the caller chose a number of threads."""
+    """``register_kwargs`` for a registration in one of several parallel threads, processes or
+    Dask tasks: ``workers=1`` unless the caller chose a number of threads."""
     if "workers" in register_kwargs:
         return register_kwargs
     return {**register_kwargs, "workers": 1}
@@ -68,9 +73,11 @@ def per_process_kwargs(register_kwargs: dict) -> dict:
 def register_many(
     pairs: Iterable[Sequence],
     *,
+    threads: int | None = None,
     processes: int | None = None,
     client=None,
     progress: Callable[[int, int], None] | None = None,
+    inits: Sequence | None = None,
     **register_kwargs,
 ) -> list["RegistrationResult | RegistrationFailure"]:
     """Register every ``(source, target)`` pair; results (or failures) in input order.
@@ -79,19 +86,27 @@ def register_many(
     ----------
     pairs : iterable of (source, target)
         Each element is two (N, 3) / (M, 3) array-likes, as :func:`esmicp.register` takes them.
+    threads : int, optional
+        Threads of the local thread pool, the default way (default: all cores). 1 registers in
+        this thread, one pair after the other. Ignored when ``processes`` or ``client`` is given.
     processes : int, optional
-        Local worker processes (default: all cores). 1 registers in this process, one pair after
-        the other. Ignored when ``client`` is given.
+        Run on a pool of this many spawned worker processes instead of threads (the caller's
+        script must then guard its top level with ``if __name__ == "__main__":``, as every
+        spawned pool needs). 1 registers in this process, one pair after the other. Ignored
+        when ``client`` is given.
     client : dask.distributed.Client, optional
         Run the registrations on this Dask cluster instead (Dask is an optional dependency:
         ``pip install 'esmicp[dask]'``); the clouds are sent to the workers with the tasks.
     progress : callable, optional
         ``progress(done, total)`` in this process after every finished pair (in finishing order);
         for a progress bar.
+    inits : sequence, optional
+        One ``init`` per pair (None: the ``init`` of ``register_kwargs``, else the global search):
+        e.g. a predicted ``T_target_source`` for a local refinement of that pair only.
     **register_kwargs
         Passed to every :func:`esmicp.register` call (``method``, ``init``, ``max_iterations``,
         ...). A callback must be picklable to reach worker processes. ``workers`` (threads per
-        registration) defaults to 1 with several processes or a Dask client, every core otherwise.
+        registration) defaults to 1 when several registrations run at once, every core otherwise.
 
     Returns
     -------
@@ -102,33 +117,46 @@ def register_many(
     Raises
     ------
     InvalidInputError
-        When ``pairs`` is not a sequence of pairs, or ``processes`` is not a positive integer.
+        When ``pairs`` is not a sequence of pairs, ``inits`` not one per pair, or ``threads`` /
+        ``processes`` not a positive integer.
     """
     items = _as_pairs(pairs)
+    if inits is None:
+        inits = [None] * len(items)
+    else:
+        inits = list(inits)
+        if len(inits) != len(items):
+            raise InvalidInputError(f"inits: expected one per pair ({len(items)}), got {len(inits)}")
     if progress is not None and not callable(progress):
         raise InvalidInputError(f"progress: expected a callable(done, total), got {type(progress).__name__}")
     report = progress or (lambda done, total: None)
     if client is not None:
-        return _on_dask(client, items, per_process_kwargs(register_kwargs), report)
-    if processes is None:
-        processes = os.cpu_count() or 1
-    if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
-        raise InvalidInputError(f"processes: expected a positive integer, got {processes!r}")
-    processes = min(processes, max(len(items), 1))
-    if processes == 1:
+        return _on_dask(client, items, inits, per_process_kwargs(register_kwargs), report)
+    pool_kind, size = "threads", threads
+    if processes is not None:
+        pool_kind, size = "processes", processes
+    if size is None:
+        size = os.cpu_count() or 1
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise InvalidInputError(f"{pool_kind}: expected a positive integer, got {size!r}")
+    size = min(size, max(len(items), 1))
+    if size == 1:
         results = []
-        for i, (source, target) in enumerate(items):
-            results.append(_register_one(i, source, target, register_kwargs))
+        for i, ((source, target), init) in enumerate(zip(items, inits)):
+            results.append(_register_one(i, source, target, register_kwargs, init))
             report(i + 1, len(items))
     else:
-        # "spawn": the caller may hold threads of other libraries (BLAS, torch) that fork() would not survive.
-        context = multiprocessing.get_context("spawn")
         kwargs = per_process_kwargs(register_kwargs)
-        with ProcessPoolExecutor(processes, mp_context=context, initializer=ignore_interrupts) as pool, \
-                stops_pool_on_interrupt(pool):  # Ctrl-C: the workers ended at once, not after their jobs
+        if pool_kind == "processes":
+            # "spawn": the caller may hold threads of other libraries (BLAS, torch) that fork() would not survive.
+            pool = ProcessPoolExecutor(size, mp_context=multiprocessing.get_context("spawn"), initializer=ignore_interrupts)
+        else:
+            pool = ThreadPoolExecutor(size, thread_name_prefix="esmicp-register")
+        # Ctrl-C: the queued jobs cancelled and worker processes ended at once, not after their jobs.
+        with pool, stops_pool_on_interrupt(pool):
             futures = {
-                pool.submit(_register_one, i, source, target, kwargs): i
-                for i, (source, target) in enumerate(items)
+                pool.submit(_register_one, i, source, target, kwargs, init): i
+                for i, ((source, target), init) in enumerate(zip(items, inits))
             }
             results = [None] * len(items)
             for done, future in enumerate(as_completed(futures), 1):
@@ -161,7 +189,7 @@ def dask_client(address: str, *, timeout_s: float = 30.0):
         raise InvalidInputError(f"scheduler: cannot connect to {address!r} ({exc})") from None
 
 
-def _on_dask(client, items, register_kwargs, report):
+def _on_dask(client, items, inits, register_kwargs, report):
     try:
         from distributed import as_completed as dask_completed  # the client's own package
     except ImportError:  # pragma: no cover - a client cannot exist without it
@@ -169,8 +197,8 @@ def _on_dask(client, items, register_kwargs, report):
 
         raise MissingDependencyError(f"register_many(client=...) needs Dask: {DASK_INSTALL_HINT}") from None
     futures = {
-        client.submit(_register_one, i, source, target, register_kwargs, pure=False): i
-        for i, (source, target) in enumerate(items)
+        client.submit(_register_one, i, source, target, register_kwargs, init, pure=False): i
+        for i, ((source, target), init) in enumerate(zip(items, inits))
     }
     results = [None] * len(items)
     for done, future in enumerate(dask_completed(futures), 1):

@@ -1,4 +1,5 @@
-"""Errors between an estimated and a true transform (both ``T_target_source``, 4x4)."""
+"""Errors between an estimated and a true transform (both ``T_target_source``, 4x4), and between an
+estimated and a true trajectory (``T_world_frame`` per frame)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import math
 
 import numpy as np
 
-from .core.procrustes import rotation_angle
+from .core.procrustes import batched_rotation_angle, rotation_angle, weighted_procrustes
 
 
 def rotation_error_deg(estimate: np.ndarray, truth: np.ndarray) -> float:
@@ -124,3 +125,81 @@ def up_to_symmetry_success(
 ) -> bool:
     """True if :func:`symmetric_placement_error` is < ``fraction * diagonal``."""
     return bool(symmetric_placement_error(source, estimate, truth) < fraction * diagonal)
+
+
+def _trajectory(poses, name: str) -> np.ndarray:
+    poses = np.asarray(poses, dtype=float)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"{name}: expected an (N, 4, 4) array of poses, got shape {poses.shape}")
+    if not np.isfinite(poses).all():
+        raise ValueError(f"{name}: every pose must be finite (leave unplaced frames out of both trajectories)")
+    return poses
+
+
+def absolute_trajectory_error(estimate, truth) -> tuple[float, np.ndarray]:
+    """Absolute trajectory error as the TUM RGB-D benchmark computes it.
+
+    The estimated frame positions are aligned onto the true ones by the best rigid transform
+    (least squares, Horn / Umeyama without scale); the error is the RMSE of the remaining distances.
+    Only positions count: the orientations enter through the relative errors
+    (:func:`relative_pose_errors`). Both trajectories may be in different world frames.
+
+    Parameters
+    ----------
+    estimate, truth : (N, 4, 4) arrays
+        ``T_world_frame`` of the same N frames (N >= 3 for a unique alignment), finite.
+
+    Returns
+    -------
+    rmse : float
+        In the trajectories' length unit.
+    T_truth_estimate : (4, 4) array
+        The alignment: maps the estimate's world frame into the truth's.
+    """
+    estimate, truth = _trajectory(estimate, "estimate"), _trajectory(truth, "truth")
+    if len(estimate) != len(truth):
+        raise ValueError(f"estimate and truth: {len(estimate)} and {len(truth)} poses, expected the same frames")
+    if len(estimate) < 3:
+        raise ValueError(f"estimate: {len(estimate)} poses, need at least 3 for the alignment")
+    rotation, translation = weighted_procrustes(estimate[:, :3, 3], truth[:, :3, 3])
+    aligned = estimate[:, :3, 3] @ rotation.T + translation
+    rmse = float(np.sqrt(np.mean(np.sum((aligned - truth[:, :3, 3]) ** 2, axis=1))))
+    alignment = np.eye(4)
+    alignment[:3, :3], alignment[:3, 3] = rotation, translation
+    return rmse, alignment
+
+
+def relative_pose_errors(estimate, truth, pairs=None) -> tuple[np.ndarray, np.ndarray]:
+    """Relative pose errors per frame pair (the TUM benchmark's RPE, one value per pair).
+
+    For a pair ``(i, j)`` the error transform is ``inv(Q_i^-1 Q_j) P_i^-1 P_j`` (``P`` estimated,
+    ``Q`` true ``T_world_frame``): how far the estimated ``T_i_j`` is from the true one. It does not
+    depend on either world frame.
+
+    Parameters
+    ----------
+    estimate, truth : (N, 4, 4) arrays
+        ``T_world_frame`` of the same N frames, finite.
+    pairs : sequence of (i, j), optional
+        Frame index pairs; default the consecutive ones ``(k, k + 1)``.
+
+    Returns
+    -------
+    rotation_deg, translation : (len(pairs),) arrays
+        The error's rotation angle in degrees and its translation's length in the trajectories'
+        unit (expressed in frame i).
+    """
+    estimate, truth = _trajectory(estimate, "estimate"), _trajectory(truth, "truth")
+    if len(estimate) != len(truth):
+        raise ValueError(f"estimate and truth: {len(estimate)} and {len(truth)} poses, expected the same frames")
+    if pairs is None:
+        pairs = [(k, k + 1) for k in range(len(estimate) - 1)]
+    pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    if len(pairs) and (pairs.min() < 0 or pairs.max() >= len(estimate)):
+        raise ValueError(f"pairs: frame indices must be in [0, {len(estimate) - 1}]")
+    first, second = pairs[:, 0], pairs[:, 1]
+    estimated = np.linalg.inv(estimate[first]) @ estimate[second]
+    true = np.linalg.inv(truth[first]) @ truth[second]
+    error = np.linalg.inv(true) @ estimated
+    rotation_deg = np.degrees(batched_rotation_angle(error[:, :3, :3])) if len(error) else np.zeros(0)
+    return rotation_deg, np.linalg.norm(error[:, :3, 3], axis=1)

@@ -1,11 +1,18 @@
 """``esmicp merge``: many scans into one model (see :func:`esmicp.register_scans`).
 
 All inputs are read and all outputs checked before any work; a scan that cannot be read is named
-on stderr and, without ``--skip-bad``, nothing is written (exit status 2).
+on stderr and, without ``--skip-bad``, nothing is written (exit status 2). Every default is
+:func:`esmicp.register_scans`'s own (read from its signature). The command prints one row per
+scan (file as given, status, edges kept, confidence, residual), or everything as JSON with
+``--json``, and exits with status 3 (:data:`EXIT_PARTIAL`) when a scan is doubtful or unplaced
+(the placed scans are still written), unless ``--allow-partial``.
 """
 
 from __future__ import annotations
 
+import argparse
+import inspect
+import json
 import sys
 from pathlib import Path
 
@@ -13,29 +20,84 @@ from .args import add_workers, check_distinct_files, positive_float, positive_in
 from ..batch import dask_client
 from ..errors import EsmicpError, InvalidInputError, OutputExistsError
 
+#: Exit status when some scan is doubtful or unplaced (the placed scans are written); 0 with
+#: ``--allow-partial``.
+EXIT_PARTIAL = 3
+
 #: Colours of the scans in the HTML view (cycled).
 SCAN_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
                 "#7f7f7f", "#bcbd22", "#17becf")
 
 
+def library_defaults() -> dict:
+    """:func:`esmicp.register_scans`'s keyword defaults, the one source of the command's defaults."""
+    from ..multiview.scans import register_scans  # the definition itself, whatever wraps the export
+
+    return {name: p.default for name, p in inspect.signature(register_scans).parameters.items()
+            if p.default is not inspect.Parameter.empty}
+
+
+class _LibraryDefault(str):
+    """A help text that ends with the library's default for ``name``, looked up only when the help
+    is shown (building the parser must not import the library: ``esmicp demo`` stays light)."""
+
+    def __new__(cls, text: str, name: str):
+        made = super().__new__(cls, text)
+        made.name = name
+        return made
+
+    def __mod__(self, params) -> str:
+        value = library_defaults()[self.name]
+        return (str(self) + f" (default: {'every core' if value is None else value})") % params
+
+
+#: The options that are :func:`esmicp.register_scans` keywords: absent from the parsed arguments
+#: unless given (``argparse.SUPPRESS``), so that the library's own defaults apply.
+LIBRARY_OPTIONS = ("reference", "sequence", "pair_points", "refine_points", "partners", "sequence_neighbours",
+                   "threads", "processes")
+
+
 def add_parser(commands) -> None:
     merge = commands.add_parser(
         "merge", help="register many scans into one model (no initial poses, any order)",
-        description="Register every scan against the others (global, no initial poses), solve a robust "
-        "pose graph, refine all scans jointly, and write the merged cloud and one pose per scan.",
+        description="Register scans pairwise (global, no initial poses), keep only the trusted pairs in a "
+        "robust pose graph, refine all scans jointly, and write the merged cloud of the placed scans and one "
+        "pose per scan. Prints one row per scan; exit status 3 when a scan is doubtful or unplaced "
+        "(see --allow-partial). Every default is register_scans's own.",
     )
     merge.add_argument("scans", nargs="+", type=Path, metavar="SCAN", help="point-cloud files (2 or more)")
     merge.add_argument("-o", "--output", type=Path, default=Path("merged.ply"), help="merged cloud (default merged.ply)")
-    merge.add_argument("--poses-out", type=Path, help="write T_world_scan per scan (text: index, file, 16 numbers)")
+    merge.add_argument("--poses-out", type=Path,
+                       help="write T_world_scan per scan (text: index, file as given, 16 numbers; nan: not placed)")
     merge.add_argument("--voxel", type=positive_float, help="voxel size of the merged cloud (cloud units)")
     merge.add_argument("--view", type=Path, help="write an HTML view of the merged model coloured by scan")
     merge.add_argument("--bin-columns", type=int, choices=(3, 4), metavar="{3,4}",
                        help=".bin scans: float32 values per point (4: KITTI x y z intensity, 3: x y z); "
                        "needed when a file's size fits both")
-    merge.add_argument("--reference", type=int, default=0, help="index of the scan whose frame is the world (default 0)")
+    library = argparse.SUPPRESS
+    merge.add_argument("--reference", type=int, default=library,
+                       help=_LibraryDefault("index of the scan whose frame is the world", "reference"))
+    merge.add_argument("--sequence", action="store_true", default=library,
+                       help="the scans are given in capture order, consecutive scans close in pose (a walk): "
+                       "register neighbours in the order plus loop closures")
     merge.add_argument("--skip-bad", action="store_true", help="merge the readable scans when some cannot be read")
-    merge.add_argument("--pair-points", type=positive_int, default=800, help="points per scan for the pairwise registrations")
-    merge.add_argument("--processes", type=positive_int, help="local worker processes (default: all cores)")
+    merge.add_argument("--allow-partial", action="store_true",
+                       help="exit 0 even when some scans are doubtful or unplaced (default: exit status 3)")
+    merge.add_argument("--json", action="store_true", help="print the whole result as JSON instead of the table")
+    merge.add_argument("--pair-points", type=positive_int, default=library,
+                       help=_LibraryDefault("points per scan for the pairwise global searches", "pair_points"))
+    merge.add_argument("--refine-points", type=positive_int, default=library,
+                       help=_LibraryDefault("points per scan for checking each pair and the joint refinement",
+                                            "refine_points"))
+    merge.add_argument("--partners", type=positive_int, default=library,
+                       help=_LibraryDefault("without --sequence: scans each scan is first registered with", "partners"))
+    merge.add_argument("--sequence-neighbours", type=positive_int, default=library,
+                       help=_LibraryDefault("with --sequence: next scans each scan is registered with",
+                                            "sequence_neighbours"))
+    merge.add_argument("--threads", type=positive_int, default=library,
+                       help=_LibraryDefault("pairwise registrations run at once on threads", "threads"))
+    merge.add_argument("--processes", type=positive_int, default=library,
+                       help="run the pairwise registrations on this many worker processes instead of threads")
     add_workers(merge, "1 per registration when several run at once, else every core")
     merge.add_argument("--scheduler", help="address of an existing Dask scheduler to run the pairwise jobs on")
     merge.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -67,8 +129,10 @@ def _write_poses(path: Path, names, result, force: bool) -> None:
 
     with atomic_write(path, force, mode="w") as handle:
         handle.write(f"# T_world_scan per scan (world = scan {result.reference}), row-major 4x4; nan: not placed\n")
+        handle.write("# columns: index, file as given (JSON-quoted when it holds spaces), status, then 16 numbers\n")
         for k, name in enumerate(names):
-            handle.write(f"{k} {name} " + " ".join(f"{v:.17g}" for v in result.poses[k].ravel()) + "\n")
+            shown = json.dumps(name) if any(c.isspace() or c == '"' for c in name) else name
+            handle.write(f"{k} {shown} {result.status[k]} " + " ".join(f"{v:.17g}" for v in result.poses[k].ravel()) + "\n")
 
 
 def _write_view(path: Path, points, labels, names, force: bool) -> None:
@@ -102,12 +166,15 @@ def reference_among_readable(args, unreadable=()) -> int:
         ``--reference`` is out of range, or names a scan that could not be read (``unreadable``:
         indices into ``args.scans``).
     """
-    if not 0 <= args.reference < len(args.scans):
-        raise InvalidInputError(f"--reference: expected a scan index in [0, {len(args.scans)}), got {args.reference}")
-    if args.reference in unreadable:
-        raise InvalidInputError(f"--reference {args.reference}: the scan {args.scans[args.reference]} could not be "
+    given = getattr(args, "reference", None)
+    if given is None:
+        given = library_defaults()["reference"]
+    if not 0 <= given < len(args.scans):
+        raise InvalidInputError(f"--reference: expected a scan index in [0, {len(args.scans)}), got {given}")
+    if given in unreadable:
+        raise InvalidInputError(f"--reference {given}: the scan {args.scans[given]} could not be "
                                 "read, so it cannot be the world frame; choose another --reference")
-    return args.reference - sum(1 for index in unreadable if index < args.reference)
+    return given - sum(1 for index in unreadable if index < given)
 
 
 def run_merge(args) -> int:
@@ -129,7 +196,7 @@ def run_merge(args) -> int:
     for index, path in enumerate(args.scans):
         try:
             clouds.append(io.read_points(path, bin_columns=args.bin_columns))
-            names.append(path.name)
+            names.append(str(path))
         except EsmicpError as exc:
             print(f"esmicp merge: error: {exc}", file=sys.stderr)
             bad.append(index)
@@ -138,7 +205,8 @@ def run_merge(args) -> int:
         return 2
     if len(clouds) < 2:
         raise InvalidInputError(f"scans: need at least 2 readable scans, got {len(clouds)}")
-    reference = reference_among_readable(args, bad)
+    options = {name: getattr(args, name) for name in LIBRARY_OPTIONS if hasattr(args, name)}
+    options["reference"] = reference_among_readable(args, bad)
     client = None
     if args.scheduler:
         client = dask_client(args.scheduler)
@@ -146,21 +214,45 @@ def run_merge(args) -> int:
     # Without --workers the library picks the threads (one per registration run in parallel).
     threads = {} if args.workers is None else {"workers": args.workers}
     try:
-        result = register_scans(clouds, reference=reference, pair_points=args.pair_points,
-                                processes=args.processes, client=client, progress=progress, **threads)
+        result = register_scans(clouds, client=client, progress=progress, **options, **threads)
     finally:
         close()
         if client is not None:
             client.close()
+    if not any(result.placed):  # pragma: no cover - the reference is always placed
+        raise InvalidInputError("scans: no scan could be placed")
     points, labels = result.merged(clouds, voxel=args.voxel)
     io.write_points(args.output, points, overwrite=args.force)
     if args.poses_out is not None:
         _write_poses(args.poses_out, names, result, args.force)
     if args.view is not None:
         _write_view(args.view, points, labels, names, args.force)
-    kept = len(result.kept_edges)
-    print(f"merged {sum(result.placed)} of {len(clouds)} scans ({len(points)} points) into {args.output}; "
-          f"{kept} edges kept, {len(result.edges) - kept} rejected; {result.runtime_s:.1f} s")
-    for k in result.unplaced:
-        print(f"esmicp merge: warning: scan {names[k]} could not be placed (no confident, consistent edge)", file=sys.stderr)
+    if args.json:
+        print(json.dumps({**result.to_dict(), "files": names, "output": str(args.output)}, indent=1))
+    else:
+        print(scan_table(result, names))
+        kept = len(result.kept_edges)
+        print(f"merged {sum(result.placed)} of {len(clouds)} scans ({len(points)} points) into {args.output}; "
+              f"{result.pairs_registered} pairwise registrations, {kept} edges kept; {result.runtime_s:.1f} s")
+    left_out = [k for k in range(len(clouds)) if not result.placed[k]]
+    for k in left_out:
+        print(f"esmicp merge: warning: scan {names[k]} {result.status[k]}: {'; '.join(result.reasons[k])}",
+              file=sys.stderr)
+    if left_out and not args.allow_partial:
+        print(f"esmicp merge: {len(left_out)} scan(s) doubtful or unplaced, not merged (exit status {EXIT_PARTIAL}; "
+              "--allow-partial exits 0)", file=sys.stderr)
+        return EXIT_PARTIAL
     return 0
+
+
+def scan_table(result, names) -> str:
+    """One row per scan: index, file as given, status, edges kept, confidence, residual (cloud units)."""
+    rows = [("#", "scan", "status", "edges", "confidence", "residual")]
+    for k, name in enumerate(names):
+        confidence = result.scan_confidence[k]
+        residual = result.residual[k]
+        rows.append((str(k), name, result.status[k], str(result.edges_kept[k]),
+                     "-" if confidence is None else f"{confidence:.2f}",
+                     "-" if residual is None else f"{residual:.3g}"))
+    widths = [max(len(row[c]) for row in rows) for c in range(len(rows[0]))]
+    return "\n".join("  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip() for row in rows)

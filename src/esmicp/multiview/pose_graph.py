@@ -108,25 +108,81 @@ def consensus_tree(edges, reference: int, *, max_angle_deg: float, max_shift) ->
     return {k: np.linalg.inv(T_root_reference) @ frames[k] for k in nodes if component[k] == root}
 
 
+def whitening(weight: float, information, T_i_j: np.ndarray, *, translation_scale: float,
+              rotation_scale_deg: float = 1.0) -> np.ndarray:
+    """The 6x6 ``W`` whose ``W @ error`` is an edge's whitened residual, ``error`` being the 6-vector
+    (rotation vector, rad, then translation) of ``E = T_i_j^-1 T_world_i^-1 T_world_j`` (a right
+    perturbation of the measured ``T_i_j``).
+
+    With a 6x6 ``information`` matrix (inverse covariance of the *left* perturbation ``delta`` of
+    ``T_i_j`` in frame i, rotation vector then translation, ``T = pose_from_vector(delta) @ T_i_j``):
+    ``W = L^T A`` with ``L L^T = information`` and ``A`` the first-order map ``delta = A error``
+    (``A = [[R, 0], [[t]x R, R]]`` for ``T_i_j = (R, t)``), so ``|W error|^2 = delta^T information
+    delta``. Without one (or one that is not positive definite): ``sqrt(weight)`` over the units
+    ``rotation_scale_deg`` (rotation) and ``translation_scale`` (translation)."""
+    if information is not None:
+        matrix = np.asarray(information, dtype=float)
+        if matrix.shape == (6, 6) and np.isfinite(matrix).all():
+            try:
+                factor = np.linalg.cholesky(0.5 * (matrix + matrix.T))
+            except np.linalg.LinAlgError:
+                factor = None
+            if factor is not None:
+                R, t = T_i_j[:3, :3], T_i_j[:3, 3]
+                skew = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+                A = np.zeros((6, 6))
+                A[:3, :3] = R
+                A[3:, :3] = skew @ R
+                A[3:, 3:] = R
+                return factor.T @ A
+    root = np.sqrt(weight)
+    return np.diag([root / np.radians(rotation_scale_deg)] * 3 + [root / translation_scale] * 3)
+
+
+def _sparsity(first: np.ndarray, second: np.ndarray, free: int):
+    """Which parameters each residual depends on: edge e's 6 residuals on the 6 parameters of each
+    of its two poses (the reference, slot ``free``, has none). Sparse, so the solver's memory grows
+    with the edges, not with edges x scans."""
+    from scipy.sparse import coo_matrix
+
+    rows, cols = [], []
+    block_rows = np.repeat(np.arange(6), 6)
+    block_cols = np.tile(np.arange(6), 6)
+    for e, (a, b) in enumerate(zip(first, second)):
+        for k in (a, b):
+            if k < free:
+                rows.append(6 * e + block_rows)
+                cols.append(6 * k + block_cols)
+    if not rows:
+        return None
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    return coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(6 * len(first), 6 * free)).tocsr()
+
+
 def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation_scale: float,
              loss: str = "cauchy", rotation_scale_deg: float = 1.0) -> dict[int, np.ndarray]:
     """Minimise the robust edge errors over all placed poses (``reference`` held fixed).
 
-    Each edge's residual is its relative-pose error (rotation vector in units of
-    ``rotation_scale_deg``, translation in units of ``translation_scale``), weighted by the square
-    root of its weight; the Cauchy loss (scale 1) flattens the pull of edges that disagree.
+    ``edges`` are ``(i, j, T_i_j, weight)`` or ``(i, j, T_i_j, weight, information)`` (information
+    None or a 6x6 matrix). Each edge's residual is its relative-pose error
+    ``E = T_i_j^-1 T_world_i^-1 T_world_j`` (rotation vector, then translation), whitened by
+    :func:`whitening`: by the edge's 6x6 information matrix when it has one, else by the square
+    root of its weight in units of ``rotation_scale_deg`` and ``translation_scale``. The Cauchy loss
+    (scale 1) flattens the pull of edges that disagree.
     """
     free = [k for k in sorted(poses) if k != reference]
     if not free:
         return dict(poses)
     slot = {k: n for n, k in enumerate(free)}
     slot[reference] = len(free)  # the fixed identity, after the free poses
-    used = [(i, j, T, w) for i, j, T, w in edges if i in poses and j in poses]
-    first = np.array([slot[i] for i, _, _, _ in used], dtype=np.intp)
-    second = np.array([slot[j] for _, j, _, _ in used], dtype=np.intp)
-    inverse_measured = np.array([np.linalg.inv(T) for _, _, T, _ in used]).reshape(-1, 4, 4)
-    roots = np.sqrt(np.array([w for _, _, _, w in used], dtype=float))[:, None]
-    rotation_unit = np.radians(rotation_scale_deg)
+    used = [e for e in edges if e[0] in poses and e[1] in poses]
+    if not used:
+        return dict(poses)
+    first = np.array([slot[e[0]] for e in used], dtype=np.intp)
+    second = np.array([slot[e[1]] for e in used], dtype=np.intp)
+    inverse_measured = np.array([np.linalg.inv(e[2]) for e in used]).reshape(-1, 4, 4)
+    whiten = np.array([whitening(e[3], e[4] if len(e) > 4 else None, e[2], translation_scale=translation_scale,
+                                 rotation_scale_deg=rotation_scale_deg) for e in used])
 
     def current(x, k):
         return np.eye(4) if k == reference else pose_from_vector(x[6 * slot[k]: 6 * slot[k] + 6])
@@ -141,13 +197,12 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
         shift = np.einsum("nab,nb->na", back, translations[second] - translations[first])
         error_rotation = inverse_measured[:, :3, :3] @ relative
         error_shift = np.einsum("nab,nb->na", inverse_measured[:, :3, :3], shift) + inverse_measured[:, :3, 3]
-        out = np.empty((len(used), 6))
-        out[:, :3] = roots * Rotation.from_matrix(error_rotation).as_rotvec() / rotation_unit
-        out[:, 3:] = roots * error_shift / translation_scale
-        return out.ravel()
+        error = np.concatenate([Rotation.from_matrix(error_rotation).as_rotvec(), error_shift], axis=1)
+        return np.einsum("nab,nb->na", whiten, error).ravel()
 
     x0 = np.concatenate([vector_from_pose(poses[k]) for k in free])
-    solution = least_squares(residuals, x0, loss=loss, f_scale=1.0, x_scale="jac", max_nfev=200)
+    solution = least_squares(residuals, x0, loss=loss, f_scale=1.0, x_scale="jac", max_nfev=200,
+                             jac_sparsity=_sparsity(first, second, len(free)))
     result = {reference: np.eye(4)}
     for k in free:
         result[k] = current(solution.x, k)

@@ -1,0 +1,115 @@
+"""The joint refinement of :func:`esmicp.register_scans`: all placed scans against each other at once
+(multi-view point-to-plane over the kept edges, Gauss-Newton with Huber weights, the reference held
+fixed, a few rounds with a shrinking correspondence distance)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import pose_graph
+
+
+#: Points of a scan that each direction of an edge queries in the joint refinement (evenly
+#: strided): a 6-degree-of-freedom step needs no more, and the queries are its cost.
+QUERY_POINTS = 2000
+
+
+def normals(points: np.ndarray, k: int = 12) -> np.ndarray:
+    """Unit normals (sign arbitrary) from the ``k`` nearest neighbours' covariance."""
+    _, idx = cKDTree(points).query(points, k=min(k, len(points)))
+    neighbourhoods = points[idx] - points[idx].mean(axis=1, keepdims=True)
+    covariances = np.einsum("nki,nkj->nij", neighbourhoods, neighbourhoods)
+    return np.linalg.eigh(covariances)[1][:, :, 0]
+
+
+def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: int, distances,
+           rounds_per_distance: int = 2):
+    """``(poses, rmse, residual per scan)`` after refining ``poses`` (``T_world_scan``, modified in
+    place) over the pairs ``edges``; ``clouds`` and ``clouds_normals`` in each scan's frame.
+
+    ``distances`` are the correspondence cutoffs (cloud units), each used for
+    ``rounds_per_distance`` Gauss-Newton steps. ``rmse`` is the point-to-plane RMS over all
+    correspondences of the last step; the residual of scan k is the same over the correspondences
+    it takes part in (None for a scan with none, and everything None without a step)."""
+    from ..core.compiled_tree import CompiledTree
+
+    free = [k for k in sorted(poses) if k != reference]
+    slot = {k: n for n, k in enumerate(free)}
+    trees = {k: CompiledTree(clouds[k]) for k in poses}  # each in its scan's frame, built once
+    # each direction of an edge queries an evenly strided subset of at most QUERY_POINTS points
+    queried = {k: np.arange(0, len(clouds[k]), max(1, len(clouds[k]) // QUERY_POINTS)) for k in poses}
+    warm: dict[tuple[int, int], np.ndarray] = {}  # last nearest neighbours: seeds (speed only)
+    rmse, per_scan = None, {}
+    for cutoff in distances:
+        for _ in range(rounds_per_distance):
+            blocks_H: dict[tuple[int, int], np.ndarray] = {}  # sparse: 6x6 blocks of the scans' pairs
+            g = np.zeros(6 * len(free))
+            squares, count = 0.0, 0
+            scan_squares = {k: [0.0, 0] for k in poses}
+            for i, j in edges:
+                for a_scan, b_scan in ((i, j), (j, i)):
+                    P_a, P_b = poses[a_scan], poses[b_scan]
+                    mine = clouds[b_scan][queried[b_scan]]
+                    d, idx = trees[a_scan].query(mine, transform=np.linalg.inv(P_a) @ P_b,
+                                                 warm=warm.get((a_scan, b_scan)))
+                    warm[(a_scan, b_scan)] = idx
+                    ok = d <= cutoff
+                    if ok.sum() < 10:
+                        continue
+                    b = mine[ok] @ P_b[:3, :3].T + P_b[:3, 3]  # world frame
+                    a = clouds[a_scan][idx[ok]] @ P_a[:3, :3].T + P_a[:3, 3]
+                    n = clouds_normals[a_scan][idx[ok]] @ P_a[:3, :3].T
+                    r = np.einsum("ij,ij->i", n, a - b)
+                    huber = cutoff / 3
+                    w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-300))
+                    J = np.hstack([np.cross(b, n), n])  # d r / d xi of scan a; scan b: -J
+                    sum_sq = float(np.sum(r * r))
+                    squares += sum_sq
+                    count += len(r)
+                    for scan in (a_scan, b_scan):
+                        scan_squares[scan][0] += sum_sq
+                        scan_squares[scan][1] += len(r)
+                    JtJ = (J * w[:, None]).T @ J
+                    Jtr = (J * (w * r)[:, None]).sum(axis=0)
+                    blocks = [(a_scan, 1.0), (b_scan, -1.0)]
+                    for p, sp in blocks:
+                        if p == reference:
+                            continue
+                        gp = slice(6 * slot[p], 6 * slot[p] + 6)
+                        g[gp] += sp * Jtr
+                        for q, sq in blocks:
+                            if q == reference:
+                                continue
+                            key = (slot[p], slot[q])
+                            block = sp * sq * JtJ
+                            blocks_H[key] = blocks_H[key] + block if key in blocks_H else block
+            if not free or count == 0:
+                return poses, rmse, per_scan
+            rmse = float(np.sqrt(squares / count))
+            per_scan = {k: (float(np.sqrt(s / c)) if c else None) for k, (s, c) in scan_squares.items()}
+            step = _solve(blocks_H, g)
+            for k in free:
+                poses[k] = pose_graph.pose_from_vector(step[6 * slot[k]: 6 * slot[k] + 6]) @ poses[k]
+    return poses, rmse, per_scan
+
+
+def _solve(blocks: dict, g: np.ndarray) -> np.ndarray:
+    """``H^-1 (-g)`` for the block-sparse ``H`` (6x6 blocks keyed by slot pairs), with a tiny
+    damping so that a scan without correspondences stays where it is. Sparse: the memory is that of
+    the blocks (two per kept edge and one per scan), not of a dense (6N)^2 matrix."""
+    from scipy.sparse import coo_matrix, identity
+    from scipy.sparse.linalg import spsolve
+
+    size = len(g)
+    rows, cols, values = [], [], []
+    offsets = np.arange(6)
+    for (p, q), block in blocks.items():
+        rows.append(np.repeat(6 * p + offsets, 6))
+        cols.append(np.tile(6 * q + offsets, 6))
+        values.append(block.ravel())
+    if not values:
+        return np.zeros(size)
+    H = coo_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size)).tocsc()
+    damping = 1e-9 * H.diagonal().sum() / size
+    return np.atleast_1d(spsolve(H + damping * identity(size, format="csc"), -g))

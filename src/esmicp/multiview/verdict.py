@@ -1,0 +1,161 @@
+"""Per-scan verdicts of :func:`esmicp.register_scans`: placed, doubtful or unplaced, and why.
+
+The evidence is the pairwise edges (:class:`esmicp.multiview.Edge`). An edge is *usable* when its
+pairwise result is trusted (:attr:`esmicp.RegistrationResult.trusted`: confidence at the trust bar
+and not ambiguous); the pose graph keeps the usable edges that agree with the solved poses and
+rejects the others as cycle inconsistent. A scan is then
+
+* ``"placed"``: the reference scan; or posed and confirmed: joined to the reference by two paths
+  of kept edges with no edge in common (its pose is checked around a cycle), with more kept
+  edges than contradicting ones; or, in a merge of two scans, posed by their one trusted edge
+  (no third scan could check it);
+* ``"doubtful"``: posed, but usable edges contradict its pose, or it is joined to the reference
+  only across a bridge (an edge on no cycle, which nothing checks: one wrong trusted edge would
+  place it, and every scan beyond it, wrongly);
+* ``"unplaced"``: no pose, with the reason (no usable edge at all: another object, no shared
+  surface, too few points; or usable edges only to scans not joined to the reference).
+
+``scan_confidence`` is the strongest kept edge's confidence for a placed scan (1.0 for the
+reference); for a doubtful one, that minus the strongest contradicting edge's when contradicted,
+else half of it (one unchecked edge counts as half a checked one), so that it falls below the
+trust bar; None for an unplaced one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ScanVerdict:
+    """One scan's verdict: ``status`` ("placed" / "doubtful" / "unplaced"), ``confidence`` (0-1, None
+    when unplaced), ``edges_kept`` (kept edges touching it), ``edges_contradicting`` (usable edges
+    touching it rejected as cycle inconsistent) and ``reasons`` (plain sentences)."""
+
+    status: str
+    confidence: float | None
+    edges_kept: int
+    edges_contradicting: int
+    reasons: tuple[str, ...]
+
+
+def _best(edges, k):
+    """The edge touching ``k`` with the highest confidence (None if none has one)."""
+    scored = [e for e in edges if e.confidence is not None]
+    return max(scored, key=lambda e: e.confidence, default=None)
+
+
+def _describe(edge, k) -> str:
+    other = edge.j if edge.i == k else edge.i
+    flags = ", ambiguous" if edge.ambiguous else ""
+    return f"scan {other}: confidence {edge.confidence:.2f}{flags}"
+
+
+def bridges(edges: list[tuple[int, int]]) -> set[tuple[int, int]]:
+    """The bridges of an undirected graph (edges on no cycle), as ``(min, max)`` pairs (Tarjan's
+    low-link, iterative; parallel edges count as a cycle)."""
+    adjacency: dict[int, list[tuple[int, int]]] = {}
+    for n, (a, b) in enumerate(edges):
+        adjacency.setdefault(a, []).append((b, n))
+        adjacency.setdefault(b, []).append((a, n))
+    order: dict[int, int] = {}
+    low: dict[int, int] = {}
+    out: set[tuple[int, int]] = set()
+    for root in adjacency:
+        if root in order:
+            continue
+        order[root] = low[root] = len(order)
+        stack = [(root, -1, iter(adjacency[root]))]
+        while stack:
+            node, via, neighbours = stack[-1]
+            advanced = False
+            for other, n in neighbours:
+                if n == via:
+                    continue
+                if other in order:
+                    low[node] = min(low[node], order[other])
+                else:
+                    order[other] = low[other] = len(order)
+                    stack.append((other, n, iter(adjacency[other])))
+                    advanced = True
+                    break
+            if not advanced:
+                stack.pop()
+                if stack:
+                    parent = stack[-1][0]
+                    low[parent] = min(low[parent], low[node])
+                    if low[node] > order[parent]:
+                        out.add((min(parent, node), max(parent, node)))
+    return out
+
+
+def _core(reference: int, kept_pairs, on_no_cycle) -> set[int]:
+    """The reference's 2-edge-connected component: scans joined to it by kept edges after removing
+    the bridges (each is joined to the reference by two paths with no edge in common)."""
+    adjacency: dict[int, list[int]] = {}
+    for a, b in kept_pairs:
+        if (min(a, b), max(a, b)) not in on_no_cycle:
+            adjacency.setdefault(a, []).append(b)
+            adjacency.setdefault(b, []).append(a)
+    seen, stack = {reference}, [reference]
+    while stack:
+        for other in adjacency.get(stack.pop(), []):
+            if other not in seen:
+                seen.add(other)
+                stack.append(other)
+    return seen
+
+
+def scan_verdicts(n: int, reference: int, posed: set, edges) -> list[ScanVerdict]:
+    """The verdict of every scan ``0..n-1``; ``posed`` are the scans the pose graph placed (joined to
+    ``reference`` by kept edges), ``edges`` every :class:`~esmicp.multiview.Edge` tried."""
+    touching: dict[int, list] = {k: [] for k in range(n)}
+    for e in edges:
+        touching[e.i].append(e)
+        touching[e.j].append(e)
+    kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in posed and e.j in posed]
+    core = _core(reference, kept_pairs, bridges(kept_pairs))
+    out = []
+    for k in range(n):
+        mine = touching[k]
+        kept = [e for e in mine if e.kept and e.i in posed and e.j in posed]
+        contradicting = [e for e in mine if e.trusted and not e.kept and e.reason.startswith("cycle")]
+        best_kept = max((e.confidence for e in kept), default=0.0)
+        if k == reference:
+            status, confidence, reason = "placed", 1.0, "the reference: its frame is the world frame"
+        elif k not in posed:
+            status, confidence, reason = "unplaced", None, _why_unplaced(k, mine, reference)
+        elif contradicting and (k not in core or len(contradicting) >= len(kept)):
+            against = max(e.confidence for e in contradicting)
+            status, confidence = "doubtful", max(0.0, best_kept - against)
+            reason = f"{len(contradicting)} trusted edge(s) contradict its pose, {len(kept)} agree"
+        elif k in core:
+            status, confidence = "placed", best_kept
+            reason = (f"confirmed: joined to the reference by two paths of trusted edges that agree ({len(kept)} kept"
+                      + (f", {len(contradicting)} disagreeing rejected)" if contradicting else ")"))
+        elif n == 2:
+            status, confidence = "placed", best_kept
+            reason = "the only pair: one trusted edge, nothing contradicts it (no third scan can check it)"
+        else:
+            # one unchecked trusted edge counts as half of a checked one: below the trust bar
+            status, confidence = "doubtful", best_kept / 2
+            reason = ("joined to the reference only across an edge on no cycle: no other pair checks that "
+                      "edge, and one wrong trusted edge would place it wrongly")
+        out.append(ScanVerdict(status, confidence, len(kept), len(contradicting), (reason,)))
+    return out
+
+
+def _why_unplaced(k: int, mine, reference: int) -> str:
+    usable = [e for e in mine if e.trusted]
+    if not mine:
+        return "no pair with this scan was registered"
+    if not usable:
+        best = _best(mine, k)
+        failed = sum(1 for e in mine if e.reason.startswith("failed"))
+        detail = f"best {_describe(best, k)}" if best is not None else "every registration failed"
+        note = f"; {failed} failed" if failed and best is not None else ""
+        return (f"no trusted edge among {len(mine)} tried ({detail}{note}): another object, no surface "
+                f"shared with the other scans, or too few points")
+    if all(e.reason.startswith("cycle") for e in usable):
+        return f"its {len(usable)} trusted edge(s) all disagree with the pose graph (cycle inconsistent)"
+    return f"its trusted edges join it only to scans not connected to the reference scan {reference}"
