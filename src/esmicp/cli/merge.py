@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import inspect
 import json
+import logging
 import sys
 from pathlib import Path
 
@@ -213,9 +214,15 @@ def run_merge(args) -> int:
     progress, close = _progress(not args.no_progress)
     # Without --workers the library picks the threads (one per registration run in parallel).
     threads = {} if args.workers is None else {"workers": args.workers}
+    # The library logs each doubtful or unplaced scan by its index; the command names it by its file
+    # below, so the library's own lines would only repeat them.
+    scans_log = logging.getLogger("esmicp.multiview.scans")
+    level = scans_log.level
+    scans_log.setLevel(logging.ERROR)
     try:
         result = register_scans(clouds, client=client, progress=progress, **options, **threads)
     finally:
+        scans_log.setLevel(level)
         close()
         if client is not None:
             client.close()
