@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import esmicp
 from esmicp.multiview import pose_graph, register_scans
 from esmicp.multiview.verdict import bridges
 
 from conftest import require_shared
 from test_multiview import _clouds, _errors, _patch, _truth
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 def test_a_scan_whose_only_edge_is_wrong_and_untrusted_is_left_out(monkeypatch):
@@ -183,7 +183,10 @@ def test_no_main_guard_needed_from_stdin():
         "result = register_scans(clouds, threads=2, pair_points=600, refine_points=1500)\n"
         "print('STATUS', ' '.join(result.status))\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(REPO / "src") + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    # The child imports the same esmicp as this test process (installed, or a source tree with its
+    # kernels built in place), not whatever src/ happens to sit beside the tests.
+    package_root = str(Path(esmicp.__file__).parent.parent)
+    env = {**os.environ, "PYTHONPATH": package_root + os.pathsep + os.environ.get("PYTHONPATH", "")}
     done = subprocess.run([sys.executable, "-"], input=script, capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "STATUS" in done.stdout and "Traceback" not in done.stderr
