@@ -69,7 +69,9 @@ def _record(name: str, source, target, seed: int, judge) -> dict:
     row = {"row": name, "seed": seed, "time_s": elapsed, "init": result.init,
            "confidence": result.confidence, "trusted": result.trusted, "ambiguous": result.ambiguous,
            "runner_up_ratio": result.runner_up_ratio, "candidates": result.global_candidates,
-           "transformation": result.transformation.tolist()}
+           "transformation": result.transformation.tolist(),
+           "degenerate": len(result.degenerate_directions)}
+    row.update({key: value for key, value in result.to_dict().items() if key.startswith("std_")})
     row.update(judge(result.transformation))
     return row
 

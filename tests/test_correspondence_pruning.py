@@ -16,7 +16,7 @@ from esmicp.globalreg.feature_matching import _inlier_mask
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.compiled_tree import CompiledTree
 from esmicp.globalreg.config import DEFAULT
-from esmicp.globalreg.scan import Keypoints, _icp, overlap_confidence, prune, rank_poses
+from esmicp.globalreg.scan import MIN_COINCIDENT, Keypoints, _icp, overlap_confidence, prune, rank_poses
 from esmicp.metrics import rotation_error_deg
 
 from conftest import require_shared
@@ -443,7 +443,8 @@ def test_a_small_cloud_skips_the_last_searches(monkeypatch):
 def test_the_confidence_of_keypoints_too_few_to_compare_is_zero():
     """A search whose keypoints were all dropped (isolated) returns an empty keypoint cloud; its
     confidence is 0, not an error from the tree over no points."""
-    points = np.random.default_rng(0).normal(size=(50, 3))
+    points = np.random.default_rng(0).normal(size=(200, 3))
     assert overlap_confidence(np.eye(4), Keypoints(points, points[:0], 0.1)) == 0.0
     assert overlap_confidence(np.eye(4), Keypoints(points[:2], points, 0.1)) == 0.0
+    assert overlap_confidence(np.eye(4), Keypoints(points[:MIN_COINCIDENT - 1], points, 0.5)) == 0.0
     assert overlap_confidence(np.eye(4), Keypoints(points, points, 0.5)) > 0.0

@@ -124,3 +124,29 @@ def test_the_confidence_is_scale_free_over_the_range_register_accepts(scale):
     scaled = esmicp.register(trial.source * scale, trial.target * scale, rng=0)
     assert scaled.confidence == pytest.approx(at_one.confidence, abs=0.02)
     assert rotation_error_deg(scaled.transformation, at_one.transformation) < 1.0
+
+
+@pytest.mark.parametrize("count", [21, 40])
+@pytest.mark.parametrize("init", ["identity", None])
+def test_too_few_points_to_resolve_the_pose_are_never_trusted(count, init):
+    """Two independent samples of a few dozen points of one shape, turned 30 degrees: at the
+    keypoint voxel such clouds "coincide" under poses tens of degrees off, so whatever pose comes
+    back, the result is not trusted (too few coinciding keypoints: ``MIN_COINCIDENT``)."""
+    from esmicp.globalreg.scan import MIN_COINCIDENT
+
+    assert count < MIN_COINCIDENT
+    rng = np.random.default_rng(count)
+    shape = asymmetric_shape(3000, rng)
+    turn = np.eye(4)
+    turn[:3, :3] = random_rigid_transform(rng, 1.0)[:3, :3]
+    source = shape[rng.choice(3000, count, replace=False)]
+    target = apply(turn, shape[rng.choice(3000, count, replace=False)])
+    result = esmicp.register(source, target, init=init, rng=0)
+    assert result.confidence == 0.0 and not result.trusted
+
+
+def test_a_dense_exact_copy_is_still_trusted():
+    """The evidence floor leaves well-sampled clouds alone: 300 points onto their own copy."""
+    cloud = asymmetric_shape(300, np.random.default_rng(2))
+    result = esmicp.register(cloud, cloud, init="identity")
+    assert result.trusted

@@ -296,6 +296,10 @@ def main():
         print("finished")
     except KeyboardInterrupt:
         latency = time.perf_counter() - sent[0]
+        # a worker the pool was starting as Ctrl-C came may still be on its way out: allow it 2 s
+        deadline = time.perf_counter() + 2.0
+        while multiprocessing.active_children() and time.perf_counter() < deadline:
+            time.sleep(0.05)
         print(f"interrupted {latency:.4f} {len(multiprocessing.active_children())}")
 
 

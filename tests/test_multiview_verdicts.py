@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 import esmicp
 from esmicp.multiview import pose_graph, register_scans
 from esmicp.multiview.verdict import bridges
+from esmicp.shapes import asymmetric_shape
 
 from conftest import require_shared
 from test_multiview import _clouds, _errors, _patch, _truth
@@ -263,3 +264,16 @@ def test_cli_exit_status_3_when_a_scan_is_left_out_unless_allowed(tmp_path, bunn
     table = [line for line in captured.out.splitlines() if str(chair) in line]
     assert table and "placed" not in table[0].split()
     assert main([*argv, "--allow-partial", "--force"]) == 0
+
+
+def test_scans_too_sparse_to_resolve_a_pose_are_left_unplaced():
+    """Eight scans of 40 points each, sampled independently from one shape and turned at random:
+    no pair of them can certify a pose, so none but the reference is placed (they used to come back
+    placed, most of them wrongly)."""
+    rng = np.random.default_rng(0)
+    world = asymmetric_shape(5000, rng=rng)
+    clouds = [world[rng.choice(5000, 40, replace=False)] @ Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+              for _ in range(8)]
+    result = register_scans(clouds, threads=2)
+    assert result.status == ("placed",) + ("unplaced",) * 7
+    assert all("too few points" in result.reasons[k][0] for k in range(1, 8))

@@ -227,3 +227,20 @@ def test_pose_uncertainty_is_psd_and_symmetric_on_random_pairs(rng):
         assert np.allclose(covariance, covariance.T)
         assert np.linalg.eigvalsh(covariance).min() >= -1e-12 * np.abs(covariance).max()
         assert np.allclose(estimate.information @ covariance, np.eye(6), atol=1e-6)
+
+
+def test_a_few_pairs_in_one_cube_still_carry_their_noise(rng):
+    """25 noisy pairs at their least-squares optimum, all inside one cluster cube: the gradient
+    terms sum to zero there, so a one-cube cluster-robust estimate would claim a pose known exactly.
+    The covariance must instead match the one computed with every pair its own cluster."""
+    from esmicp.core.procrustes import weighted_procrustes
+
+    source = rng.uniform(-1.0, 1.0, (25, 3))
+    matched = source + rng.normal(0.0, 0.05, source.shape)
+    rotation, translation = weighted_procrustes(source, matched, np.ones(len(source)))
+    placed = source @ rotation.T + translation  # the optimum: the point-to-point gradient is zero
+    one_cube = uncertainty.pose_uncertainty(placed, matched, spacing=1.0).covariance  # 16 spacings: one cube
+    per_pair = uncertainty.pose_uncertainty(placed, matched, spacing=1e-3, cluster_spacings=1.0).covariance
+    rotation_std, _ = uncertainty.standard_deviations(one_cube)
+    assert rotation_std.min() > 0.5  # degrees: 25 points, 5% noise cannot fix the pose to better
+    assert 0.5 < np.trace(one_cube) / np.trace(per_pair) < 2.0

@@ -127,7 +127,9 @@ class RegistrationResult:
         fraction within 1 voxel, the worse of the two directions, mapped from 0.5-0.8 onto 0-1;
         lower when less than half of either cloud coincides and the coincident part's normals
         span fewer than three directions (one plane laid on another holds only 3 of the 6 degrees
-        of freedom, a floor and one wall 5: :func:`esmicp.globalreg.scan.coincident_spread`). Below 0.55
+        of freedom, a floor and one wall 5: :func:`esmicp.globalreg.scan.coincident_spread`); 0 when
+        fewer than 60 keypoints of either cloud coincide (:data:`esmicp.globalreg.scan.MIN_COINCIDENT`:
+        clouds of a few dozen points cannot resolve the pose, so are never trusted). Below 0.55
         (:data:`esmicp.globalreg.scan.TRUSTED`): do not trust the pose. Measured figures:
         ``docs/measured-global.md``, "How far the confidence can be trusted".
     correspondences : Correspondences or None

@@ -62,6 +62,15 @@ import numpy as np
 #: and rose again at 64 (too few cubes); on kitchen-walk frames 58, 42, 38, 269.
 CLUSTER_SPACINGS = 16.0
 
+#: Fewest cubes the cluster-robust estimate is computed over: with fewer, the cube is halved until
+#: there are this many (or it is smaller than one spacing: each pair its own cluster). The sums of
+#: the pairs' gradient terms over all cubes add to the gradient, zero at the optimum, so with one
+#: cube the noise term vanishes and the covariance claims a pose known exactly (measured: clouds of
+#: 21-60 points of the 12 ModelNet40 shapes, one cube of 16 spacings, every deviation 0.0 while
+#: 10-170 degrees off); 30 is the usual floor below which cluster-robust variances are unreliable.
+#: Dense scans (3DMatch fragments, kitchen frames: hundreds of cubes) are unaffected.
+MIN_CLUSTERS = 30
+
 #: The covariance is the cluster-robust sandwich times this factor (dimensionless). Fitted so that
 #: the mean NEES is 6 on the tuning trials of ``benchmarks/covariance_nees.py`` (20 resamples of
 #: the 3DMatch fragment ``cloud_bin_0``: mean 32.5 without it). Confirmation on resamples of the
@@ -222,9 +231,7 @@ def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarra
         hessian = _hessian(unit_offsets, weights, normals)
     # Each pair's share of the gradient of the point-to-point cost the methods minimise, J_i^T w_i d_i.
     scores = np.hstack([np.cross(unit_offsets, differences), differences]) * weights[:, None]
-    clusters = _cluster_ids(placed, max(cluster_spacings * spacing, 1e-300))
-    _, inverse = np.unique(clusters, return_inverse=True)
-    groups = int(inverse.max()) + 1
+    inverse, groups = _clusters(placed, max(cluster_spacings * spacing, 1e-300), max(spacing, 1e-300))
     sums = np.column_stack([np.bincount(inverse, weights=column, minlength=groups) for column in scores.T])
     count = len(placed)
     # Small-sample corrections of the sandwich (the usual ones of cluster-robust estimates).
@@ -265,6 +272,20 @@ def _hessian(unit_offsets: np.ndarray, weights: np.ndarray, normals: np.ndarray 
         rows = np.hstack([np.cross(unit_offsets, axes), axes])
         hessian += (rows * weights[:, None]).T @ rows
     return hessian
+
+
+def _clusters(points: np.ndarray, size: float, smallest: float) -> tuple[np.ndarray, int]:
+    """(cluster index per point, number of clusters): cubes of side ``size``, halved while they
+    make fewer than :data:`MIN_CLUSTERS` clusters; below ``smallest`` (or with fewer points than
+    that), each point its own cluster."""
+    count = len(points)
+    while count >= MIN_CLUSTERS and size >= smallest:
+        _, inverse = np.unique(_cluster_ids(points, size), return_inverse=True)
+        groups = int(inverse.max()) + 1
+        if groups >= MIN_CLUSTERS:
+            return inverse, groups
+        size /= 2.0
+    return np.arange(count), count
 
 
 def _cluster_ids(points: np.ndarray, size: float) -> np.ndarray:
