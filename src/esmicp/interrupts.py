@@ -75,6 +75,7 @@ def stops_pool_on_interrupt(pool):
         yield pool
     except BaseException:
         workers = list((getattr(pool, "_processes", None) or {}).values())  # private, but the only handle
+        jobs = getattr(pool, "_call_queue", None)  # private too; shutdown drops it
         pool.shutdown(wait=False, cancel_futures=True)
         ended: list = []
         for _ in range(3):  # a worker the pool starts while these end is ended in the next round
@@ -86,4 +87,11 @@ def stops_pool_on_interrupt(pool):
             workers = [child for child in multiprocessing.active_children() if child not in earlier and child not in ended]
             if not workers:
                 break
+        # The pool's feeder thread may be blocked writing a large job into the pipe the ended
+        # workers read; with every read end closed its write fails at once, and the pool's exit
+        # (which waits for that thread) does not hang.
+        reader = getattr(jobs, "_reader", None)
+        if reader is not None:
+            with contextlib.suppress(OSError):
+                reader.close()
         raise
