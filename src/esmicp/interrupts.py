@@ -15,7 +15,6 @@ A process pool is stopped by its parent: :func:`ignore_interrupts` starts each w
 from __future__ import annotations
 
 import contextlib
-import multiprocessing
 import functools
 import signal
 from collections.abc import Callable
@@ -68,25 +67,16 @@ def stops_pool_on_interrupt(pool):
     exception (Ctrl-C above all) leaves the body, the pool's queued jobs are cancelled and its
     worker processes terminated, so that the pool's own ``__exit__`` does not wait for the jobs
     still running (each a registration of seconds)."""
-    # Workers start on demand while the body submits jobs, and the pool may start one as it shuts
-    # down (it replaces a worker that died), so every child started during the body is ended too.
-    earlier = set(multiprocessing.active_children())
     try:
         yield pool
     except BaseException:
         workers = list((getattr(pool, "_processes", None) or {}).values())  # private, but the only handle
         jobs = getattr(pool, "_call_queue", None)  # private too; shutdown drops it
         pool.shutdown(wait=False, cancel_futures=True)
-        ended: list = []
-        for _ in range(3):  # a worker the pool starts while these end is ended in the next round
-            for worker in workers:
-                worker.terminate()
-            for worker in workers:
-                worker.join(WORKER_EXIT_WAIT_S)
-            ended += workers
-            workers = [child for child in multiprocessing.active_children() if child not in earlier and child not in ended]
-            if not workers:
-                break
+        for worker in workers:
+            worker.terminate()
+        for worker in workers:
+            worker.join(WORKER_EXIT_WAIT_S)
         # The pool's feeder thread may be blocked writing a large job into the pipe the ended
         # workers read; with every read end closed its write fails at once, and the pool's exit
         # (which waits for that thread) does not hang.
