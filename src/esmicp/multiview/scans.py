@@ -22,7 +22,12 @@
    a refinement from its own wrong pose).
 4. Joint refinement: all placed scans against each other (multi-view point-to-plane over the
    kept edges, a few rounds with a shrinking correspondence distance).
-5. A verdict per scan (:mod:`esmicp.multiview.verdict`): ``"placed"``, ``"doubtful"`` or
+5. A free-space check (:mod:`esmicp.multiview.visibility`), when the scans are range images
+   from their origins (depth frames, LiDAR scans in their sensor frames): placed scans whose
+   extents overlap must not put surfaces where the other saw empty space. A conflict disproves
+   an edge between them, and the scans the weakest such edges join to the reference are doubtful.
+   This catches wrong edges that agree with each other around every cycle (repeated structure).
+6. A verdict per scan (:mod:`esmicp.multiview.verdict`): ``"placed"``, ``"doubtful"`` or
    ``"unplaced"`` with its reasons; a doubtful or unplaced scan is never silently merged.
 """
 
@@ -42,9 +47,9 @@ from ..errors import InvalidInputError
 from ..globalreg.features import voxel_grid
 from ..types import as_points
 from . import pairs as candidates
-from . import pose_graph
+from . import pose_graph, visibility
 from .refine import normals, refine
-from .verdict import scan_verdicts
+from .verdict import cut_off, scan_verdicts
 
 logger = logging.getLogger(__name__)
 
@@ -59,6 +64,10 @@ EXTRA_ROUNDS = 3
 #: iterations with the same confidence at 30; a wrong pair ran 68 iterations and a second try
 #: (6.7 s against 1.8 s capped, confidence 0.10 either way).
 CHECK_ITERATIONS = 30
+
+#: Placed scans each scan is checked against for free-space conflicts (its nearest in the world
+#: whose extents overlap its own), besides the scans it shares a kept edge with.
+VISIBILITY_PARTNERS = 8
 
 #: Kinds of :attr:`Edge.kind`: how the pairwise registration started.
 GLOBAL, LOCAL = "global", "local"
@@ -117,7 +126,9 @@ class MultiRegistrationResult:
     ``edges_kept[k]`` kept edges touching it; ``residual[k]`` its RMS point-to-plane residual
     (cloud units) in the last step of the joint refinement (None without one). ``placed[k]`` is
     ``status[k] == "placed"``; ``unplaced`` and ``doubtful`` list those scans' indices.
-    ``pairs_registered``: pairwise registrations run (global and local).
+    ``pairs_registered``: pairwise registrations run (global and local). ``free_space_check``:
+    ``"applied"``, ``"not range images"`` (the kept edges fail it: the scans are not seen from
+    their origins, so it says nothing) or ``"too few edges"``.
     """
 
     poses: np.ndarray
@@ -134,6 +145,7 @@ class MultiRegistrationResult:
     edges_kept: tuple[int, ...] = ()
     residual: tuple[float | None, ...] = ()
     pairs_registered: int = 0
+    free_space_check: str = "too few edges"
 
     @property
     def doubtful(self) -> tuple[int, ...]:
@@ -183,7 +195,7 @@ class MultiRegistrationResult:
                 for k in range(len(self.status))
             ],
             "edges": [e.to_dict() for e in self.edges], "runtime_s": self.runtime_s,
-            "pairs_registered": self.pairs_registered,
+            "pairs_registered": self.pairs_registered, "free_space_check": self.free_space_check,
             "refinement_rmse": self.refinement_rmse, "notes": list(self.notes),
         }
 
@@ -336,6 +348,32 @@ def _solve(edges: list[Edge], reference: int, max_edge_error_deg: float):
     edges = [e if not e.kept or (e.i in poses and e.j in poses) else replace(e, kept=False, reason="not connected to the reference")
              for e in edges]
     return poses, edges
+
+
+def _free_space_conflicts(n, reference, poses, dense, small, edges) -> tuple[dict, str]:
+    """(scans a free-space conflict cuts off from the reference, as :func:`cut_off` gives them;
+    what the check did: ``"applied"``, ``"not range images"`` or ``"too few edges"``)."""
+    kept = [e for e in edges if e.kept and e.i in poses and e.j in poses]
+    if len(kept) < 3:
+        return {}, "too few edges"
+    tolerance = visibility.TOLERANCE_INLIERS * float(np.median([e.inlier_distance for e in kept]))
+    points = {k: _subsample(dense[k], visibility.CHECK_POINTS) for k in poses}
+    views = {k: visibility.RangeView(points[k]) for k in poses}
+
+    def fraction(a, b):
+        return visibility.pair_free_space(views, points, poses, a, b, tolerance)
+
+    on_kept = {(min(e.i, e.j), max(e.i, e.j)): fraction(e.i, e.j) for e in kept}
+    judged = [f for f in on_kept.values() if f is not None]
+    if len(judged) < 3:
+        return {}, "too few edges"
+    if not visibility.applies(judged):
+        return {}, "not range images"
+    near = candidates.near_pairs(sorted(poses), candidates.world_extents(poses, small), set(on_kept),
+                                 VISIBILITY_PARTNERS)
+    measured = {**on_kept, **{pair: fraction(*pair) for pair in near}}
+    conflicts = [(a, b, f) for (a, b), f in sorted(measured.items()) if f is not None and f > visibility.MAX_FREE_SPACE]
+    return cut_off(n, reference, [(e.i, e.j, e.confidence) for e in kept], conflicts), "applied"
 
 
 def _unconfirmed(n, reference, poses, edges) -> list[int]:
@@ -492,7 +530,8 @@ def register_scans(
         distances = np.geomspace(3.0 * scale, max(3.0 * fine_spacing, 1e-12), refine_rounds)
         poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, reference, distances)
 
-    verdicts = scan_verdicts(n, reference, set(poses), edges)
+    conflicted, checked = _free_space_conflicts(n, reference, poses, dense, small, edges)
+    verdicts = scan_verdicts(n, reference, set(poses), edges, conflicted)
     all_poses = np.full((n, 4, 4), np.nan)
     for k, T in poses.items():
         all_poses[k] = T
@@ -508,4 +547,5 @@ def register_scans(
         rmse, notes, status=status, scan_confidence=tuple(v.confidence for v in verdicts),
         reasons=tuple(v.reasons for v in verdicts), edges_kept=tuple(v.edges_kept for v in verdicts),
         residual=tuple(residual.get(k) for k in range(n)), pairs_registered=pairwise.done,
+        free_space_check=checked,
     )

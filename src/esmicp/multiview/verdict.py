@@ -11,19 +11,25 @@ rejects the others as cycle inconsistent. A scan is then
   (no third scan could check it);
 * ``"doubtful"``: posed, but usable edges contradict its pose, or it is joined to the reference
   only across a bridge (an edge on no cycle, which nothing checks: one wrong trusted edge would
-  place it, and every scan beyond it, wrongly);
+  place it, and every scan beyond it, wrongly), or its pose puts surfaces where another placed
+  scan saw empty space (:mod:`esmicp.multiview.visibility`; :func:`cut_off` says which side of
+  the conflict is cut off from the reference);
 * ``"unplaced"``: no pose, with the reason (no usable edge at all: another object, no shared
   surface, too few points; or usable edges only to scans not joined to the reference).
 
 ``scan_confidence`` is the strongest kept edge's confidence for a placed scan (1.0 for the
 reference); for a doubtful one, that minus the strongest contradicting edge's when contradicted,
 else half of it (one unchecked edge counts as half a checked one), so that it falls below the
-trust bar; None for an unplaced one.
+trust bar; 0 when a free-space conflict disproves it; None for an unplaced one.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components, maximum_flow
 
 
 @dataclass(frozen=True)
@@ -106,7 +112,51 @@ def _core(reference: int, kept_pairs, on_no_cycle) -> set[int]:
     return seen
 
 
-def scan_verdicts(n: int, reference: int, posed: set, edges) -> list[ScanVerdict]:
+def cut_off(n: int, reference: int, kept, conflicts) -> dict[int, tuple[int, float]]:
+    """The scans whose placement a free-space conflict disproves, each with its evidence.
+
+    ``kept``: the kept edges as ``(i, j, confidence)``; ``conflicts``: pairs of placed scans that
+    cannot both be right, as ``(a, b, free-space fraction)``. Some edge on every path between a
+    conflicting pair is wrong. For each conflict in turn (worst first) whose scans are still joined,
+    the minimum cut between them (edges weighted by the log-odds of their confidence: the likeliest
+    set of wrong edges) is removed; the scans the cuts separate from the reference are returned, as
+    ``scan -> (the scan it conflicts with, fraction)`` of the conflict that cut it off.
+    """
+    capacity = np.zeros((n, n), dtype=np.int32)
+    for i, j, confidence in kept:
+        # the log-odds of the edge being right: the minimum cut is then the likeliest set of wrong
+        # edges, if each is right with probability its confidence, independently
+        p = min(max(confidence or 0.0, 0.55), 0.999)
+        weight = 1 + int(round(1000 * np.log(p / (1 - p))))
+        capacity[i, j] += weight
+        capacity[j, i] += weight
+    cut: dict[int, tuple[int, float]] = {}
+    for a, b, fraction in sorted(conflicts, key=lambda c: -c[2]):
+        _, label = connected_components(csr_matrix(capacity > 0), directed=False)
+        if label[a] != label[b]:
+            continue
+        flow = maximum_flow(csr_matrix(capacity), a, b).flow.toarray()
+        residual = capacity - flow
+        side = {a}  # scans reachable from a in the residual graph: a's side of the minimum cut
+        stack = [a]
+        while stack:
+            node = stack.pop()
+            for other in np.flatnonzero(residual[node] > 0):
+                if int(other) not in side:
+                    side.add(int(other))
+                    stack.append(int(other))
+        for i in side:
+            for j in range(n):
+                if j not in side:
+                    capacity[i, j] = capacity[j, i] = 0
+        _, label = connected_components(csr_matrix(capacity > 0), directed=False)
+        for k in range(n):
+            if label[k] != label[reference] and k not in cut:
+                cut[k] = (b if label[a] != label[reference] else a, fraction)
+    return cut
+
+
+def scan_verdicts(n: int, reference: int, posed: set, edges, conflicted: dict | None = None) -> list[ScanVerdict]:
     """The verdict of every scan ``0..n-1``; ``posed`` are the scans the pose graph placed (joined to
     ``reference`` by kept edges), ``edges`` every :class:`~esmicp.multiview.Edge` tried."""
     touching: dict[int, list] = {k: [] for k in range(n)}
@@ -125,6 +175,11 @@ def scan_verdicts(n: int, reference: int, posed: set, edges) -> list[ScanVerdict
             status, confidence, reason = "placed", 1.0, "the reference: its frame is the world frame"
         elif k not in posed:
             status, confidence, reason = "unplaced", None, _why_unplaced(k, mine, reference)
+        elif conflicted and k in conflicted:
+            other, fraction = conflicted[k]
+            status, confidence = "doubtful", 0.0
+            reason = (f"its pose contradicts what scan {other} saw ({100 * fraction:.0f}% of one scan's surface "
+                      f"lies in the space the other saw empty): an edge joining it to the reference is wrong")
         elif contradicting and (k not in core or len(contradicting) >= len(kept)):
             against = max(e.confidence for e in contradicting)
             status, confidence = "doubtful", max(0.0, best_kept - against)
