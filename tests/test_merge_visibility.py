@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from esmicp.multiview import register_scans, visibility
-from esmicp.multiview.verdict import cut_off
+from esmicp.multiview.verdict import cut_off, scan_verdicts
 
 from test_multiview import _clouds, _patch, _truth
 
@@ -86,31 +86,46 @@ def test_right_poses_leave_free_space_empty_and_a_turned_scan_does_not(walk):
 def test_a_conflict_cuts_off_the_side_without_the_reference():
     ring = [(k, (k + 1) % 6, 0.95) for k in range(6)] + [(0, 3, 0.95)]
     cluster = [(6, 7, 0.95), (4, 6, 0.6), (5, 7, 0.6)]  # joined to the ring by two weak edges
-    cut = cut_off(8, 0, ring + cluster, [(2, 7, 0.4)])
-    assert set(cut) == {6, 7} and cut[7] == (2, 0.4)
+    cut, removed = cut_off(8, 0, ring + cluster, [(2, 7, 0.4)])
+    assert set(cut) == {6, 7} and cut[7] == (2, 0.4) and removed == {(4, 6): (2, 7, 0.4), (5, 7): (2, 7, 0.4)}
     # seen from a reference inside the cluster, the ring is what the conflict cuts off
-    assert set(cut_off(8, 6, ring + cluster, [(2, 7, 0.4)])) == set(range(6))
-    assert cut_off(8, 0, ring + cluster, []) == {}
+    assert set(cut_off(8, 6, ring + cluster, [(2, 7, 0.4)])[0]) == set(range(6))
+    assert cut_off(8, 0, ring + cluster, []) == ({}, {})
 
 
-def test_wrong_edges_that_agree_around_every_cycle_make_their_scan_doubtful(walk, monkeypatch):
+def test_wrong_edges_that_agree_around_every_cycle_are_cut_and_their_scan_left_out(walk, monkeypatch):
     """Scan 9 is registered to the others as if turned 90 degrees, by trusted edges that agree with
     each other (views of one repeated structure, as on the kitchen walk): every cycle closes, and
-    only what the frames saw tells that it is wrong. Its edges are trusted, but weaker than the
-    others (0.6, as the wrong edges on the kitchen walk)."""
+    only what the frames saw tells that they are wrong. Its edges are trusted, but weaker than the
+    others (0.6, as the wrong edges on the kitchen walk). Each round cuts the edges a conflict
+    disproves and searches again; every pair with scan 9 is wrong here, so it ends unplaced."""
     clouds, truth, room_frame = walk
     _patch(monkeypatch, _turned(truth, {9}, room_frame), clouds, apart={9})
     result = register_scans(clouds, refine_rounds=0, threads=1)
     crossing = [e for e in result.edges if 9 in (e.i, e.j)]
-    assert len(crossing) >= 2 and all(e.kept for e in crossing)  # the cycles found nothing wrong
+    assert len(crossing) >= 2 and all(e.trusted and not e.kept for e in crossing)
+    assert any(e.reason.startswith("free-space conflict") for e in crossing)
     assert result.free_space_check == "applied"
-    assert result.status == ("placed",) * 9 + ("doubtful",)
-    assert "saw empty" in result.reasons[9][0] and result.scan_confidence[9] == 0.0
-    assert 9 not in set(result.merged(clouds)[1].tolist())
+    assert result.status == ("placed",) * 9 + ("unplaced",)
+    assert "empty space" in result.reasons[9][0] and np.isnan(result.poses[9]).all()
+    assert all(e.kept for e in result.edges if 9 not in (e.i, e.j))
     # the same walk registered right: nothing is doubted
     _patch(monkeypatch, truth, clouds)
     right = register_scans(clouds, refine_rounds=0, threads=1)
     assert right.free_space_check == "applied" and right.all_placed
+
+
+def test_a_scan_a_conflict_cuts_off_is_doubtful_with_the_reason():
+    from esmicp.multiview.scans import Edge
+
+    def edge(i, j):
+        return Edge(i, j, np.eye(4), 0.5, 0.5, 0.5, False, True, "kept", confidence=0.9, trusted=True)
+
+    edges = [edge(0, 1), edge(1, 2), edge(2, 0), edge(2, 3), edge(3, 0)]
+    verdicts = scan_verdicts(4, 0, {0, 1, 2, 3}, edges, {3: (1, 0.4)})
+    assert [v.status for v in verdicts] == ["placed", "placed", "placed", "doubtful"]
+    assert verdicts[3].confidence == 0.0 and "scan 1 saw" in verdicts[3].reasons[0]
+    assert "40%" in verdicts[3].reasons[0]
 
 
 def test_scans_not_seen_from_their_origins_are_not_checked(monkeypatch):

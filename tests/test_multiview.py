@@ -111,7 +111,8 @@ def _patch(monkeypatch, truth, clouds, **kwargs):
     def wrapper(jobs, *, progress=None, inits=None, **register_kwargs):
         # recover which (i, j) each job is from the subsampled clouds' identity
         # (each scan is subsampled twice, for the global searches and for the dense checks)
-        index = {id(c): k % (len(captured["small"]) // 2) for k, c in enumerate(captured["small"])}
+        # (the first 2 n subsamples; later ones, for the free-space check, are not registered)
+        index = {id(c): k % len(truth) for k, c in enumerate(captured["small"][: 2 * len(truth)])}
         pairs = [(index[id(t)], index[id(s)]) for s, t in jobs]
         return fake(jobs, pairs=pairs)
 

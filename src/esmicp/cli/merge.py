@@ -240,7 +240,8 @@ def run_merge(args) -> int:
         print(scan_table(result, names))
         kept = len(result.kept_edges)
         print(f"merged {sum(result.placed)} of {len(clouds)} scans ({len(points)} points) into {args.output}; "
-              f"{result.pairs_registered} pairwise registrations, {kept} edges kept; {result.runtime_s:.1f} s")
+              f"{result.pairs_registered} pairwise registrations, {kept} edges kept; "
+              f"free-space check: {result.free_space_check}; {result.runtime_s:.1f} s")
     left_out = [k for k in range(len(clouds)) if not result.placed[k]]
     for k in left_out:
         print(f"esmicp merge: warning: scan {names[k]} {result.status[k]}: {'; '.join(result.reasons[k])}",

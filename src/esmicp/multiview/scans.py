@@ -15,18 +15,20 @@
 3. More pairs only where a scan is not yet confirmed (not on a cycle of agreeing edges): a placed
    scan with the placed scans whose extents overlap it in the world frame, an unplaced one with
    its next most similar scans; then the graph is solved again (at most ``EXTRA_ROUNDS``
-   times). With a sequence, placed scans close in the world but far apart in the order are
-   paired first (loop closures). These pairs are chosen from the graph's poses but searched
-   globally, never refined from those poses: a refinement started at a wrong pose can settle
-   next to it and confirm it (measured on the kitchen walk: a scan 90 degrees off "confirmed" by
-   a refinement from its own wrong pose).
+   times). Each round first runs the free-space check of step 5 on the graph's poses: the edges
+   it disproves are cut, and the scans they placed lose their pose and are searched again. With
+   a sequence, placed scans close in the world but far apart in the order are paired first (loop
+   closures). These pairs are chosen from the graph's poses but searched globally, never refined
+   from those poses: a refinement started at a wrong pose can settle next to it and confirm it
+   (measured on the kitchen walk: a scan 90 degrees off "confirmed" by a refinement from its own
+   wrong pose).
 4. Joint refinement: all placed scans against each other (multi-view point-to-plane over the
    kept edges, a few rounds with a shrinking correspondence distance).
 5. A free-space check (:mod:`esmicp.multiview.visibility`), when the scans are range images
    from their origins (depth frames, LiDAR scans in their sensor frames): placed scans whose
    extents overlap must not put surfaces where the other saw empty space. A conflict disproves
-   an edge between them, and the scans the weakest such edges join to the reference are doubtful.
-   This catches wrong edges that agree with each other around every cycle (repeated structure).
+   an edge between them, and the scans the likeliest wrong edges join to the reference are
+   doubtful. This catches wrong edges that agree with each other around every cycle (repeated structure).
 6. A verdict per scan (:mod:`esmicp.multiview.verdict`): ``"placed"``, ``"doubtful"`` or
    ``"unplaced"`` with its reasons; a doubtful or unplaced scan is never silently merged.
 """
@@ -305,10 +307,19 @@ class _Pairwise:
                     information=getattr(outcome, "information", None))
 
 
-def _solve(edges: list[Edge], reference: int, max_edge_error_deg: float):
+def _solve(edges: list[Edge], reference: int, max_edge_error_deg: float, vetoed: dict | None = None):
     """(poses of the scans joined to ``reference``, every edge with ``kept``/``reason`` set): the
-    pose graph over the trusted edges (consensus tree, robust optimisation, cycle check, again)."""
-    edges = [replace(e, kept=e.trusted, reason=e.reason if not e.trusted else "kept") for e in edges]
+    pose graph over the trusted edges (consensus tree, robust optimisation, cycle check, again),
+    except the ``vetoed`` pairs (``(min, max) -> reason``: cut by a free-space conflict)."""
+    vetoed = vetoed or {}
+
+    def start(e):
+        pair = (min(e.i, e.j), max(e.i, e.j))
+        if e.trusted and pair in vetoed:
+            return replace(e, kept=False, reason=vetoed[pair])
+        return replace(e, kept=e.trusted, reason=e.reason if not e.trusted else "kept")
+
+    edges = [start(e) for e in edges]
     usable = [e for e in edges if e.kept]
     if not usable:
         return {reference: np.eye(4)}, edges
@@ -350,12 +361,13 @@ def _solve(edges: list[Edge], reference: int, max_edge_error_deg: float):
     return poses, edges
 
 
-def _free_space_conflicts(n, reference, poses, dense, small, edges) -> tuple[dict, str]:
-    """(scans a free-space conflict cuts off from the reference, as :func:`cut_off` gives them;
-    what the check did: ``"applied"``, ``"not range images"`` or ``"too few edges"``)."""
+def _free_space_conflicts(n, reference, poses, dense, small, edges) -> tuple[dict, dict, str]:
+    """(scans a free-space conflict cuts off from the reference, and the edges it cuts, as
+    :func:`cut_off` gives them; what the check did: ``"applied"``, ``"not range images"`` or
+    ``"too few edges"``)."""
     kept = [e for e in edges if e.kept and e.i in poses and e.j in poses]
     if len(kept) < 3:
-        return {}, "too few edges"
+        return {}, {}, "too few edges"
     tolerance = visibility.TOLERANCE_INLIERS * float(np.median([e.inlier_distance for e in kept]))
     points = {k: _subsample(dense[k], visibility.CHECK_POINTS) for k in poses}
     views = {k: visibility.RangeView(points[k]) for k in poses}
@@ -366,14 +378,21 @@ def _free_space_conflicts(n, reference, poses, dense, small, edges) -> tuple[dic
     on_kept = {(min(e.i, e.j), max(e.i, e.j)): fraction(e.i, e.j) for e in kept}
     judged = [f for f in on_kept.values() if f is not None]
     if len(judged) < 3:
-        return {}, "too few edges"
+        return {}, {}, "too few edges"
     if not visibility.applies(judged):
-        return {}, "not range images"
+        return {}, {}, "not range images"
     near = candidates.near_pairs(sorted(poses), candidates.world_extents(poses, small), set(on_kept),
                                  VISIBILITY_PARTNERS)
     measured = {**on_kept, **{pair: fraction(*pair) for pair in near}}
     conflicts = [(a, b, f) for (a, b), f in sorted(measured.items()) if f is not None and f > visibility.MAX_FREE_SPACE]
-    return cut_off(n, reference, [(e.i, e.j, e.confidence) for e in kept], conflicts), "applied"
+    cut, removed = cut_off(n, reference, [(e.i, e.j, e.confidence) for e in kept], conflicts)
+    return cut, removed, "applied"
+
+
+def _veto_reasons(removed: dict) -> dict:
+    """``pair -> edge reason`` of the edges a free-space conflict cut."""
+    return {pair: f"free-space conflict (scans {a} and {b} at these poses: {100 * f:.0f}% of one scan's surface "
+                  f"where the other saw empty space)" for pair, (a, b, f) in removed.items()}
 
 
 def _unconfirmed(n, reference, poses, edges) -> list[int]:
@@ -496,13 +515,24 @@ def register_scans(
         ranked = candidates.ranked_partners(small)
         first = {(min(i, j), max(i, j)) for i in range(n) for j in ranked[i][:partners]}
         pairwise.run([(i, j, None) for i, j in sorted(first)])
-    poses, edges = _solve(list(pairwise.edges.values()), reference, max_edge_error_deg)
+    vetoed: dict[tuple[int, int], str] = {}  # edges cut by a free-space conflict -> why
+
+    def solve():
+        return _solve(list(pairwise.edges.values()), reference, max_edge_error_deg, vetoed)
+
+    poses, edges = solve()
     if sequence and n > sequence_neighbours + 1:
         extents = candidates.world_extents(poses, small)
         loops = candidates.near_pairs(sorted(poses), extents, pairwise.tried, 1, min_gap=sequence_neighbours + 1)
         pairwise.run([(i, j, None) for i, j in loops])
-        poses, edges = _solve(list(pairwise.edges.values()), reference, max_edge_error_deg)
+        poses, edges = solve()
     for _ in range(EXTRA_ROUNDS if n > 1 else 0):  # more pairs only where a scan is not yet confirmed
+        # edges a free-space conflict disproves are cut first: the scans they placed lose their
+        # pose and are searched again with their next most similar scans
+        _, removed, _ = _free_space_conflicts(n, reference, poses, dense, small, edges)
+        if removed:
+            vetoed.update(_veto_reasons(removed))
+            poses, edges = solve()
         extents = candidates.world_extents(poses, small)
         wanted: list[tuple[int, int]] = []
         for k in _unconfirmed(n, reference, poses, edges):
@@ -518,7 +548,7 @@ def register_scans(
         if not wanted:
             break
         pairwise.run([(i, j, None) for i, j in wanted])
-        poses, edges = _solve(list(pairwise.edges.values()), reference, max_edge_error_deg)
+        poses, edges = solve()
 
     rmse, residual = None, {}
     kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
@@ -530,7 +560,7 @@ def register_scans(
         distances = np.geomspace(3.0 * scale, max(3.0 * fine_spacing, 1e-12), refine_rounds)
         poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, reference, distances)
 
-    conflicted, checked = _free_space_conflicts(n, reference, poses, dense, small, edges)
+    conflicted, _, checked = _free_space_conflicts(n, reference, poses, dense, small, edges)
     verdicts = scan_verdicts(n, reference, set(poses), edges, conflicted)
     all_poses = np.full((n, 4, 4), np.nan)
     for k, T in poses.items():

@@ -112,7 +112,7 @@ def _core(reference: int, kept_pairs, on_no_cycle) -> set[int]:
     return seen
 
 
-def cut_off(n: int, reference: int, kept, conflicts) -> dict[int, tuple[int, float]]:
+def cut_off(n: int, reference: int, kept, conflicts) -> tuple[dict[int, tuple[int, float]], dict[tuple[int, int], tuple[int, int, float]]]:
     """The scans whose placement a free-space conflict disproves, each with its evidence.
 
     ``kept``: the kept edges as ``(i, j, confidence)``; ``conflicts``: pairs of placed scans that
@@ -131,6 +131,7 @@ def cut_off(n: int, reference: int, kept, conflicts) -> dict[int, tuple[int, flo
         capacity[i, j] += weight
         capacity[j, i] += weight
     cut: dict[int, tuple[int, float]] = {}
+    removed: dict[tuple[int, int], tuple[int, int, float]] = {}
     for a, b, fraction in sorted(conflicts, key=lambda c: -c[2]):
         _, label = connected_components(csr_matrix(capacity > 0), directed=False)
         if label[a] != label[b]:
@@ -146,14 +147,15 @@ def cut_off(n: int, reference: int, kept, conflicts) -> dict[int, tuple[int, flo
                     side.add(int(other))
                     stack.append(int(other))
         for i in side:
-            for j in range(n):
-                if j not in side:
+            for j in np.flatnonzero(capacity[i] > 0):
+                if int(j) not in side:
+                    removed[(min(i, int(j)), max(i, int(j)))] = (a, b, fraction)
                     capacity[i, j] = capacity[j, i] = 0
         _, label = connected_components(csr_matrix(capacity > 0), directed=False)
         for k in range(n):
             if label[k] != label[reference] and k not in cut:
                 cut[k] = (b if label[a] != label[reference] else a, fraction)
-    return cut
+    return cut, removed
 
 
 def scan_verdicts(n: int, reference: int, posed: set, edges, conflicted: dict | None = None) -> list[ScanVerdict]:
@@ -213,4 +215,7 @@ def _why_unplaced(k: int, mine, reference: int) -> str:
                 f"shared with the other scans, or too few points")
     if all(e.reason.startswith("cycle") for e in usable):
         return f"its {len(usable)} trusted edge(s) all disagree with the pose graph (cycle inconsistent)"
+    if all(e.reason.startswith(("cycle", "free-space")) for e in usable):
+        return (f"its {len(usable)} trusted edge(s) disagree with the pose graph or would put surfaces where "
+                f"other scans saw empty space")
     return f"its trusted edges join it only to scans not connected to the reference scan {reference}"
