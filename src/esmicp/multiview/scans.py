@@ -15,10 +15,8 @@
 3. More pairs only where a scan is not yet confirmed (not on a cycle of agreeing edges): a placed
    scan with the placed scans whose extents overlap it in the world frame, an unplaced one with
    its next most similar scans; then the graph is solved again (at most ``EXTRA_ROUNDS``
-   times). Each round first runs the free-space check of step 5 on the graph's poses: the edges
-   it disproves are cut, and the scans they placed lose their pose and are searched again. With
-   a sequence, placed scans close in the world but far apart in the order are paired first (loop
-   closures). These pairs are chosen from the graph's poses but searched globally, never refined
+   times). With a sequence, placed scans close in the world but far apart in the order are
+   paired first (loop closures). These pairs are chosen from the graph's poses but searched globally, never refined
    from those poses: a refinement started at a wrong pose can settle next to it and confirm it
    (measured on the kitchen walk: a scan 90 degrees off "confirmed" by a refinement from its own
    wrong pose).
@@ -28,7 +26,9 @@
    from their origins (depth frames, LiDAR scans in their sensor frames): placed scans whose
    extents overlap must not put surfaces where the other saw empty space. A conflict disproves
    an edge between them, and the scans the likeliest wrong edges join to the reference are
-   doubtful. This catches wrong edges that agree with each other around every cycle (repeated structure).
+   doubtful. This catches wrong edges that agree with each other around every cycle (repeated
+   structure). The first time a conflict cuts edges, they are vetoed and steps 2-5 run again:
+   the scans they placed lose their pose and are searched again.
 6. A verdict per scan (:mod:`esmicp.multiview.verdict`): ``"placed"``, ``"doubtful"`` or
    ``"unplaced"`` with its reasons; a doubtful or unplaced scan is never silently merged.
 """
@@ -526,41 +526,43 @@ def register_scans(
         loops = candidates.near_pairs(sorted(poses), extents, pairwise.tried, 1, min_gap=sequence_neighbours + 1)
         pairwise.run([(i, j, None) for i, j in loops])
         poses, edges = solve()
-    for _ in range(EXTRA_ROUNDS if n > 1 else 0):  # more pairs only where a scan is not yet confirmed
-        # edges a free-space conflict disproves are cut first: the scans they placed lose their
-        # pose and are searched again with their next most similar scans
-        _, removed, _ = _free_space_conflicts(n, reference, poses, dense, small, edges)
-        if removed:
-            vetoed.update(_veto_reasons(removed))
+    for check in range(2):
+        for _ in range(EXTRA_ROUNDS if n > 1 else 0):  # more pairs only where a scan is not yet confirmed
+            extents = candidates.world_extents(poses, small)
+            wanted: list[tuple[int, int]] = []
+            for k in _unconfirmed(n, reference, poses, edges):
+                # each scan's choice against the pairs tried so far only, so that the union does not
+                # depend on the input order
+                near = candidates.near_pairs([k], extents, pairwise.tried, partners)
+                if k not in poses:  # not placed at all: its next most similar scans
+                    if ranked is None:
+                        ranked = candidates.ranked_partners(small)
+                    near = [(min(k, j), max(k, j)) for j in ranked[k] if (min(k, j), max(k, j)) not in pairwise.tried]
+                    near = near[:partners]
+                wanted.extend(p for p in near if p not in wanted)
+            if not wanted:
+                break
+            pairwise.run([(i, j, None) for i, j in wanted])
             poses, edges = solve()
-        extents = candidates.world_extents(poses, small)
-        wanted: list[tuple[int, int]] = []
-        for k in _unconfirmed(n, reference, poses, edges):
-            # each scan's choice against the pairs tried so far only, so that the union does not
-            # depend on the input order
-            near = candidates.near_pairs([k], extents, pairwise.tried, partners)
-            if k not in poses:  # not placed at all: its next most similar scans
-                if ranked is None:
-                    ranked = candidates.ranked_partners(small)
-                near = [(min(k, j), max(k, j)) for j in ranked[k] if (min(k, j), max(k, j)) not in pairwise.tried]
-                near = near[:partners]
-            wanted.extend(p for p in near if p not in wanted)
-        if not wanted:
+
+        rmse, residual = None, {}
+        kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
+        if kept_pairs and refine_rounds > 0:
+            fine = {k: dense[k] for k in poses}
+            fine_normals = {k: normals(fine[k]) for k in fine}
+            scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
+            fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
+            distances = np.geomspace(3.0 * scale, max(3.0 * fine_spacing, 1e-12), refine_rounds)
+            poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, reference, distances)
+
+        # on the refined poses (the graph's alone drift along a walk and conflict falsely): the
+        # edges a conflict disproves are cut once, and the scans they placed searched again
+        conflicted, removed, checked = _free_space_conflicts(n, reference, poses, dense, small, edges)
+        if not removed or check == 1:
             break
-        pairwise.run([(i, j, None) for i, j in wanted])
+        vetoed.update(_veto_reasons(removed))
         poses, edges = solve()
 
-    rmse, residual = None, {}
-    kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
-    if kept_pairs and refine_rounds > 0:
-        fine = {k: dense[k] for k in poses}
-        fine_normals = {k: normals(fine[k]) for k in fine}
-        scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
-        fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
-        distances = np.geomspace(3.0 * scale, max(3.0 * fine_spacing, 1e-12), refine_rounds)
-        poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, reference, distances)
-
-    conflicted, _, checked = _free_space_conflicts(n, reference, poses, dense, small, edges)
     verdicts = scan_verdicts(n, reference, set(poses), edges, conflicted)
     all_poses = np.full((n, 4, 4), np.nan)
     for k, T in poses.items():
