@@ -16,10 +16,10 @@
    scan with the placed scans whose extents overlap it in the world frame, an unplaced one with
    its next most similar scans; then the graph is solved again (at most ``EXTRA_ROUNDS``
    times). With a sequence, placed scans close in the world but far apart in the order are
-   paired first (loop closures). These pairs are chosen from the graph's poses but searched globally, never refined
-   from those poses: a refinement started at a wrong pose can settle next to it and confirm it
-   (measured on the kitchen walk: a scan 90 degrees off "confirmed" by a refinement from its own
-   wrong pose).
+   paired first (loop closures). These pairs are chosen from the graph's poses but searched
+   globally, never refined from those poses: a refinement started at a wrong pose can settle
+   next to it and confirm it (measured on the kitchen walk: a scan 90 degrees off "confirmed" by
+   a refinement from its own wrong pose).
 4. Joint refinement: all placed scans against each other (multi-view point-to-plane over the
    kept edges, a few rounds with a shrinking correspondence distance).
 5. A free-space check (:mod:`esmicp.multiview.visibility`), when the scans are range images
@@ -481,7 +481,9 @@ def register_scans(
     (2 x :data:`esmicp.multiview.refine.QUERY_POINTS` x 8 bytes: 32 KB; about 0.1 GB for 3,000
     edges); the pose graph's sparse Jacobian (72 numbers per edge and residual block, a few MB
     for 5,000 edges) and the refinement's block-sparse normal matrix (two 6x6 blocks per kept
-    edge). The only N x N array is the descriptors' distances (8 MB for 1,000 scans). Each
+    edge). The free-space check holds, per posed scan, a 4,000-point subset and a KD-tree of its
+    directions (about 0.25 MB; 0.25 GB for 1,000 scans). The only N x N array is the descriptors'
+    distances (8 MB for 1,000 scans). Each
     registration running at once holds its own pair's working set besides.
     """
     start = time.perf_counter()
@@ -526,7 +528,7 @@ def register_scans(
         loops = candidates.near_pairs(sorted(poses), extents, pairwise.tried, 1, min_gap=sequence_neighbours + 1)
         pairwise.run([(i, j, None) for i, j in loops])
         poses, edges = solve()
-    for check in range(2):
+    for attempt in range(2):
         for _ in range(EXTRA_ROUNDS if n > 1 else 0):  # more pairs only where a scan is not yet confirmed
             extents = candidates.world_extents(poses, small)
             wanted: list[tuple[int, int]] = []
@@ -558,7 +560,7 @@ def register_scans(
         # on the refined poses (the graph's alone drift along a walk and conflict falsely): the
         # edges a conflict disproves are cut once, and the scans they placed searched again
         conflicted, removed, checked = _free_space_conflicts(n, reference, poses, dense, small, edges)
-        if not removed or check == 1:
+        if not removed or attempt == 1:
             break
         vetoed.update(_veto_reasons(removed))
         poses, edges = solve()

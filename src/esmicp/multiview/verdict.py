@@ -122,36 +122,45 @@ def cut_off(n: int, reference: int, kept, conflicts) -> tuple[dict[int, tuple[in
     set of wrong edges) is removed; the scans the cuts separate from the reference are returned, as
     ``scan -> (the scan it conflicts with, fraction)`` of the conflict that cut it off.
     """
-    capacity = np.zeros((n, n), dtype=np.int32)
+    from ..globalreg.scan import TRUSTED
+
+    capacity: dict[tuple[int, int], int] = {}  # sparse: a few entries per scan, never n x n
     for i, j, confidence in kept:
         # the log-odds of the edge being right: the minimum cut is then the likeliest set of wrong
         # edges, if each is right with probability its confidence, independently
-        p = min(max(confidence or 0.0, 0.55), 0.999)
+        p = min(max(confidence or 0.0, TRUSTED), 0.999)
         weight = 1 + int(round(1000 * np.log(p / (1 - p))))
-        capacity[i, j] += weight
-        capacity[j, i] += weight
+        for key in ((i, j), (j, i)):
+            capacity[key] = capacity.get(key, 0) + weight
+
+    def matrix(values):
+        keys = list(values)
+        rows, cols = (np.array([k[m] for k in keys], dtype=np.int32) for m in (0, 1))
+        return csr_matrix((np.array([values[k] for k in keys], dtype=np.int32), (rows, cols)), shape=(n, n))
+
+    def labels():
+        return connected_components(matrix(capacity), directed=False)[1]
+
     cut: dict[int, tuple[int, float]] = {}
     removed: dict[tuple[int, int], tuple[int, int, float]] = {}
     for a, b, fraction in sorted(conflicts, key=lambda c: -c[2]):
-        _, label = connected_components(csr_matrix(capacity > 0), directed=False)
-        if label[a] != label[b]:
+        if not capacity or (label := labels())[a] != label[b]:
             continue
-        flow = maximum_flow(csr_matrix(capacity), a, b).flow.toarray()
-        residual = capacity - flow
-        side = {a}  # scans reachable from a in the residual graph: a's side of the minimum cut
-        stack = [a]
+        flow = maximum_flow(matrix(capacity), a, b).flow.todok()
+        neighbours: dict[int, list[int]] = {}
+        for (i, j), c in capacity.items():
+            if c - flow.get((i, j), 0) > 0:  # residual capacity left
+                neighbours.setdefault(i, []).append(j)
+        side, stack = {a}, [a]  # scans reachable from a in the residual graph: a's side of the cut
         while stack:
-            node = stack.pop()
-            for other in np.flatnonzero(residual[node] > 0):
-                if int(other) not in side:
-                    side.add(int(other))
-                    stack.append(int(other))
-        for i in side:
-            for j in np.flatnonzero(capacity[i] > 0):
-                if int(j) not in side:
-                    removed[(min(i, int(j)), max(i, int(j)))] = (a, b, fraction)
-                    capacity[i, j] = capacity[j, i] = 0
-        _, label = connected_components(csr_matrix(capacity > 0), directed=False)
+            for other in neighbours.get(stack.pop(), []):
+                if other not in side:
+                    side.add(other)
+                    stack.append(other)
+        for i, j in [key for key in capacity if key[0] in side and key[1] not in side]:
+            removed[(min(i, j), max(i, j))] = (a, b, fraction)
+            del capacity[(i, j)], capacity[(j, i)]
+        label = labels() if capacity else np.arange(n)
         for k in range(n):
             if label[k] != label[reference] and k not in cut:
                 cut[k] = (b if label[a] != label[reference] else a, fraction)
@@ -213,9 +222,8 @@ def _why_unplaced(k: int, mine, reference: int) -> str:
         note = f"; {failed} failed" if failed and best is not None else ""
         return (f"no trusted edge among {len(mine)} tried ({detail}{note}): another object, no surface "
                 f"shared with the other scans, or too few points")
-    if all(e.reason.startswith("cycle") for e in usable):
-        return f"its {len(usable)} trusted edge(s) all disagree with the pose graph (cycle inconsistent)"
     if all(e.reason.startswith(("cycle", "free-space")) for e in usable):
-        return (f"its {len(usable)} trusted edge(s) disagree with the pose graph or would put surfaces where "
-                f"other scans saw empty space")
+        seen = any(e.reason.startswith("free-space") for e in usable)
+        return (f"its {len(usable)} trusted edge(s) all disagree with the pose graph (cycle inconsistent"
+                + (", or surfaces where other scans saw empty space)" if seen else ")"))
     return f"its trusted edges join it only to scans not connected to the reference scan {reference}"
