@@ -169,17 +169,33 @@ Pool &pool_of(int helpers) {
     return *the_pool;
 }
 
+// Releases the GIL for its lifetime when the calling thread holds it (a kernel called from Python),
+// and does nothing when it does not (a kernel called from a helper thread or a released region).
+struct ReleaseIfHeld {
+    PyThreadState *state = nullptr;
+    ReleaseIfHeld() {
+        if (PyGILState_Check()) state = PyEval_SaveThread();
+    }
+    ~ReleaseIfHeld() {
+        if (state != nullptr) PyEval_RestoreThread(state);
+    }
+    ReleaseIfHeld(const ReleaseIfHeld &) = delete;
+    ReleaseIfHeld &operator=(const ReleaseIfHeld &) = delete;
+};
+
 template <class F>
 void pooled_pieces(int64_t pieces, int threads, F &&work) {
     if (pieces <= 0) return;
     unsigned hw = std::max(1u, std::thread::hardware_concurrency());
     if (threads <= 0) threads = int(hw);
     threads = int(std::min<int64_t>(threads, pieces));
+    // The GIL is released on every path, one thread included: several Python threads each running
+    // a registration on one thread (register_many's thread pool, workers=1) then run in parallel.
+    ReleaseIfHeld release;
     if (threads <= 1) {
         for (int64_t piece = 0; piece < pieces; ++piece) work(piece);
         return;
     }
-    nb::gil_scoped_release release;
     Pool &pool = pool_of(threads - 1);
     std::atomic<int64_t> next{0};
     {

@@ -1,14 +1,15 @@
-"""A robust SE(3) pose graph: spanning-tree initial poses, SciPy ``least_squares`` optimisation.
+"""A robust SE(3) pose graph: spanning-tree initial poses by consensus, then a robust least-squares
+over every edge at once.
 
-Why SciPy: it is already a core dependency, ``least_squares`` is maintained and offers robust losses
-(``cauchy``), and a graph of a few dozen scans is small enough for its dense-free trust-region solver.
-No pose-graph library (g2o, GTSAM) is needed for that size.
+The optimiser is a Levenberg-Marquardt on left increments of the poses with the Jacobian in
+closed form and iteratively reweighted Cauchy residuals (the loss of SciPy's ``least_squares``
+with ``loss="cauchy"``), each step one sparse solve: its memory grows with the edges, and a
+100-scan walk solves in a fraction of a second. No pose-graph library (g2o, GTSAM) is needed.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 
@@ -27,11 +28,34 @@ def vector_from_pose(T: np.ndarray) -> np.ndarray:
     return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
 
 
+def _rigid_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms (..., 4, 4)."""
+    R = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = R
+    out[..., :3, 3] = -np.einsum("...ab,...b->...a", R, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _angles(R: np.ndarray) -> np.ndarray:
+    """Rotation angles (rad) of rotation matrices (..., 3, 3), accurate near 0 and near pi."""
+    cos = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    axis = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    return np.arctan2(0.5 * np.linalg.norm(axis, axis=-1), cos)
+
+
+def edge_errors(T_world_i, T_world_j, T_i_j) -> tuple[np.ndarray, np.ndarray]:
+    """(rotation errors in degrees, translation errors) of measured ``T_i_j`` against two poses:
+    ``E = T_i_j^-1 T_world_i^-1 T_world_j``; arrays of rigid transforms (..., 4, 4), broadcast."""
+    E = _rigid_inverse(np.asarray(T_i_j)) @ _rigid_inverse(np.asarray(T_world_i)) @ np.asarray(T_world_j)
+    return np.degrees(_angles(E[..., :3, :3])), np.linalg.norm(E[..., :3, 3], axis=-1)
+
+
 def edge_error(T_world_i, T_world_j, T_i_j) -> tuple[float, float]:
     """(rotation error in degrees, translation error) of a measured ``T_i_j`` against two poses."""
-    E = np.linalg.inv(T_i_j) @ np.linalg.inv(T_world_i) @ T_world_j
-    angle = float(np.degrees(np.linalg.norm(Rotation.from_matrix(E[:3, :3]).as_rotvec())))
-    return angle, float(np.linalg.norm(E[:3, 3]))
+    angle, shift = edge_errors(T_world_i, T_world_j, T_i_j)
+    return float(angle), float(shift)
 
 
 def consistent(T_world_i, T_world_j, T_i_j, max_angle_deg: float, max_shift: float) -> bool:
@@ -40,23 +64,53 @@ def consistent(T_world_i, T_world_j, T_i_j, max_angle_deg: float, max_shift: flo
 
 
 def _triangle_supported(edges, max_angle_deg, max_shift):
-    by_pair = {}
-    for n, (i, j, T, w) in enumerate(edges):
+    """Each edge's weight plus, for every triangle it closes consistently, the smaller weight of the
+    triangle's two other edges."""
+    by_pair: dict[tuple[int, int], tuple[np.ndarray, float]] = {}
+    neighbours: dict[int, set[int]] = {}
+    for i, j, T, w in edges:
         by_pair[(i, j)] = (T, w)
-        by_pair[(j, i)] = (np.linalg.inv(T), w)
-    nodes = sorted({i for e in edges for i in e[:2]})
+        by_pair[(j, i)] = (_rigid_inverse(T), w)
+        neighbours.setdefault(i, set()).add(j)
+        neighbours.setdefault(j, set()).add(i)
     out = []
     for n, (i, j, T_i_j, w) in enumerate(edges):
+        common = sorted((neighbours[i] & neighbours[j]) - {i, j})
         support = w
-        for k in nodes:
-            if k in (i, j) or (i, k) not in by_pair or (k, j) not in by_pair:
-                continue
-            T_i_k, w_ik = by_pair[(i, k)]
-            T_k_j, w_kj = by_pair[(k, j)]
-            if consistent(np.eye(4), T_i_k @ T_k_j, T_i_j, max_angle_deg, max_shift(n)):
-                support += min(w_ik, w_kj)
+        if common:
+            through = np.array([by_pair[(i, k)][0] @ by_pair[(k, j)][0] for k in common])
+            angle, shift = edge_errors(np.eye(4), through, T_i_j)
+            ok = (angle <= max_angle_deg) & (shift <= max_shift(n))
+            support += sum(min(by_pair[(i, k)][1], by_pair[(k, j)][1]) for k, good in zip(common, ok) if good)
         out.append((i, j, T_i_j, support))
     return out
+
+
+def _best_proposal(a, members, edges, component, frames, max_angle_deg, max_shift):
+    """(support, T_a_b) of the relative pose of components a and b that the largest total weight of
+    the edges between them (``members``) agrees with; each edge proposes one."""
+    T_left, T_right, measured, weights, tolerance, from_a = [], [], [], [], [], []
+    for m in members:
+        p, q, T_p_q, v = edges[m]
+        T_left.append(frames[p])
+        T_right.append(frames[q])
+        measured.append(T_p_q)
+        weights.append(v)
+        tolerance.append(max_shift(m))
+        from_a.append(component[p] == a)
+    T_left, T_right, measured = np.array(T_left), np.array(T_right), np.array(measured)
+    weights, tolerance, from_a = np.array(weights), np.array(tolerance), np.array(from_a)
+    # each member's proposal T_a_b (component b's frame into component a's)
+    proposals = np.where(from_a[:, None, None],
+                         T_left @ measured @ _rigid_inverse(T_right),
+                         T_right @ _rigid_inverse(measured) @ _rigid_inverse(T_left))
+    # every proposal (rows) against every member (columns): move the member's b-side scan by it
+    moved_left = np.where(from_a[None, :, None, None], T_left[None], proposals[:, None] @ T_left[None])
+    moved_right = np.where(from_a[None, :, None, None], proposals[:, None] @ T_right[None], T_right[None])
+    angle, shift = edge_errors(moved_left, moved_right, measured[None])
+    support = ((angle <= max_angle_deg) & (shift <= tolerance[None])) @ weights
+    best = int(np.argmax(support))  # the first of equals, as a loop would keep it
+    return float(support[best]), proposals[best]
 
 
 def consensus_tree(edges, reference: int, *, max_angle_deg: float, max_shift) -> dict[int, np.ndarray]:
@@ -72,8 +126,8 @@ def consensus_tree(edges, reference: int, *, max_angle_deg: float, max_shift) ->
     nodes = {i for e in edges for i in e[:2]} | {reference}
     component = {k: k for k in nodes}  # scan -> component label
     frames = {k: np.eye(4) for k in nodes}  # T_component_scan
+    votes: dict[tuple[int, int], tuple[float, np.ndarray]] = {}  # valid until either component changes
     while True:
-        best = None
         groups: dict[tuple, list] = {}
         for n, (i, j, _, _) in enumerate(edges):
             a, b = component[i], component[j]
@@ -81,32 +135,21 @@ def consensus_tree(edges, reference: int, *, max_angle_deg: float, max_shift) ->
                 groups.setdefault((min(a, b), max(a, b)), []).append(n)
         if not groups:
             break
+        best = None
         for (a, b), members in groups.items():
-            for n in members:
-                i, j, T_i_j, w = edges[n]
-                # proposal: T_a_b (component b's frame into component a's)
-                if component[i] == a:
-                    T_a_b = frames[i] @ T_i_j @ np.linalg.inv(frames[j])
-                else:
-                    T_a_b = frames[j] @ np.linalg.inv(T_i_j) @ np.linalg.inv(frames[i])
-                support = 0.0
-                for m in members:
-                    p, q, T_p_q, v = edges[m]
-                    if component[p] == a:
-                        ok = consistent(frames[p], T_a_b @ frames[q], T_p_q, max_angle_deg, max_shift(m))
-                    else:
-                        ok = consistent(T_a_b @ frames[p], frames[q], T_p_q, max_angle_deg, max_shift(m))
-                    support += v if ok else 0.0
-                if best is None or support > best[0]:
-                    best = (support, a, b, T_a_b)
+            if (a, b) not in votes:
+                votes[(a, b)] = _best_proposal(a, members, edges, component, frames, max_angle_deg, max_shift)
+            support, T_a_b = votes[(a, b)]
+            if best is None or support > best[0]:
+                best = (support, a, b, T_a_b)
         _, a, b, T_a_b = best
         for k in nodes:
             if component[k] == b:
                 component[k], frames[k] = a, T_a_b @ frames[k]
+        votes = {key: vote for key, vote in votes.items() if a not in key and b not in key}
     root = component[reference]
     T_root_reference = frames[reference]
     return {k: np.linalg.inv(T_root_reference) @ frames[k] for k in nodes if component[k] == root}
-
 
 def whitening(weight: float, information, T_i_j: np.ndarray, *, translation_scale: float,
               rotation_scale_deg: float = 1.0) -> np.ndarray:
@@ -139,71 +182,128 @@ def whitening(weight: float, information, T_i_j: np.ndarray, *, translation_scal
     return np.diag([root / np.radians(rotation_scale_deg)] * 3 + [root / translation_scale] * 3)
 
 
-def _sparsity(first: np.ndarray, second: np.ndarray, free: int):
-    """Which parameters each residual depends on: edge e's 6 residuals on the 6 parameters of each
-    of its two poses (the reference, slot ``free``, has none). Sparse, so the solver's memory grows
-    with the edges, not with edges x scans."""
-    from scipy.sparse import coo_matrix
+def _skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (..., 3, 3) of vectors (..., 3)."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
 
-    rows, cols = [], []
-    block_rows = np.repeat(np.arange(6), 6)
-    block_cols = np.tile(np.arange(6), 6)
-    for e, (a, b) in enumerate(zip(first, second)):
-        for k in (a, b):
-            if k < free:
-                rows.append(6 * e + block_rows)
-                cols.append(6 * k + block_cols)
-    if not rows:
-        return None
-    rows, cols = np.concatenate(rows), np.concatenate(cols)
-    return coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(6 * len(first), 6 * free)).tocsr()
+
+def _right_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
+    """``J_r^-1(phi)`` (..., 3, 3): ``log(exp(phi) exp(d)) = phi + J_r^-1(phi) d`` to first order."""
+    theta = np.linalg.norm(phi, axis=-1)[..., None, None]
+    K = _skew(phi)
+    small = theta < 1e-6
+    safe = np.where(small, 1.0, theta)
+    coefficient = np.where(small, 1.0 / 12.0,
+                           1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(np.where(small, 1.0, safe))))
+    return np.eye(3) + 0.5 * K + coefficient * (K @ K)
 
 
 def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation_scale: float,
-             loss: str = "cauchy", rotation_scale_deg: float = 1.0) -> dict[int, np.ndarray]:
+             loss: str = "cauchy", rotation_scale_deg: float = 1.0, max_iterations: int = 100) -> dict[int, np.ndarray]:
     """Minimise the robust edge errors over all placed poses (``reference`` held fixed).
 
     ``edges`` are ``(i, j, T_i_j, weight)`` or ``(i, j, T_i_j, weight, information)`` (information
     None or a 6x6 matrix). Each edge's residual is its relative-pose error
     ``E = T_i_j^-1 T_world_i^-1 T_world_j`` (rotation vector, then translation), whitened by
     :func:`whitening`: by the edge's 6x6 information matrix when it has one, else by the square
-    root of its weight in units of ``rotation_scale_deg`` and ``translation_scale``. The Cauchy loss
-    (scale 1) flattens the pull of edges that disagree.
+    root of its weight in units of ``rotation_scale_deg`` and ``translation_scale``. The cost is
+    ``sum log(1 + r^2)`` over the whitened residuals' components (``loss="cauchy"``, scale 1: it
+    flattens the pull of edges that disagree) or ``sum r^2`` (``loss="linear"``).
+
+    Levenberg-Marquardt over left increments of the free poses (``R <- exp(phi) R``,
+    ``t <- t + rho``), the Jacobian in closed form, the Cauchy loss as weights ``1 / (1 + r^2)``
+    recomputed every step; at most ``max_iterations`` steps, until the cost changes by less than
+    one part in 10^8.
     """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import spsolve
+
+    if loss not in ("cauchy", "linear"):
+        raise ValueError(f"loss: expected 'cauchy' or 'linear', got {loss!r}")
     free = [k for k in sorted(poses) if k != reference]
-    if not free:
+    used = [e for e in edges if e[0] in poses and e[1] in poses and e[0] != e[1]]
+    if not free or not used:
         return dict(poses)
     slot = {k: n for n, k in enumerate(free)}
     slot[reference] = len(free)  # the fixed identity, after the free poses
-    used = [e for e in edges if e[0] in poses and e[1] in poses]
-    if not used:
-        return dict(poses)
     first = np.array([slot[e[0]] for e in used], dtype=np.intp)
     second = np.array([slot[e[1]] for e in used], dtype=np.intp)
     inverse_measured = np.array([np.linalg.inv(e[2]) for e in used]).reshape(-1, 4, 4)
+    M_R, M_t = inverse_measured[:, :3, :3], inverse_measured[:, :3, 3]
     whiten = np.array([whitening(e[3], e[4] if len(e) > 4 else None, e[2], translation_scale=translation_scale,
                                  rotation_scale_deg=rotation_scale_deg) for e in used])
+    rotations = np.array([poses[k][:3, :3] for k in free] + [np.eye(3)])
+    translations = np.array([poses[k][:3, 3] for k in free] + [np.zeros(3)])
 
-    def current(x, k):
-        return np.eye(4) if k == reference else pose_from_vector(x[6 * slot[k]: 6 * slot[k] + 6])
+    def errors(R, t):
+        back = np.swapaxes(R[first], 1, 2)  # R_world_i^T
+        relative = M_R @ back @ R[second]
+        d = t[second] - t[first]
+        shift = np.einsum("nab,nb->na", M_R @ back, d) + M_t
+        phi = Rotation.from_matrix(relative).as_rotvec()
+        return np.einsum("nab,nb->na", whiten, np.concatenate([phi, shift], axis=1)), phi, back, d
 
-    def residuals(x):
-        # Every edge at once: E = T_i_j^-1 T_world_i^-1 T_world_j, as rotation vector and translation.
-        vectors = x.reshape(-1, 6)
-        rotations = np.concatenate([Rotation.from_rotvec(vectors[:, :3]).as_matrix(), np.eye(3)[None]])
-        translations = np.concatenate([vectors[:, 3:], np.zeros((1, 3))])
-        back = np.transpose(rotations[first], (0, 2, 1))  # R_world_i^T
-        relative = back @ rotations[second]
-        shift = np.einsum("nab,nb->na", back, translations[second] - translations[first])
-        error_rotation = inverse_measured[:, :3, :3] @ relative
-        error_shift = np.einsum("nab,nb->na", inverse_measured[:, :3, :3], shift) + inverse_measured[:, :3, 3]
-        error = np.concatenate([Rotation.from_matrix(error_rotation).as_rotvec(), error_shift], axis=1)
-        return np.einsum("nab,nb->na", whiten, error).ravel()
+    def cost(r):
+        return float(np.sum(np.log1p(r**2)) if loss == "cauchy" else np.sum(r**2))
 
-    x0 = np.concatenate([vector_from_pose(poses[k]) for k in free])
-    solution = least_squares(residuals, x0, loss=loss, f_scale=1.0, x_scale="jac", max_nfev=200,
-                             jac_sparsity=_sparsity(first, second, len(free)))
+    # each edge's 6x12 Jacobian of its error with respect to (phi_i, rho_i, phi_j, rho_j)
+    blocks = [(first, 0), (first, 3), (second, 0), (second, 3)]
+    size = 6 * len(free)
+    r, phi, back, d = errors(rotations, translations)
+    current = cost(r)
+    damping = 1e-4
+    for _ in range(max_iterations):
+        Jinv = _right_jacobian_inverse(phi)
+        R_j_T = np.swapaxes(rotations[second], 1, 2)
+        rotate_i = M_R @ back
+        J = np.zeros((len(used), 6, 12))
+        J[:, :3, 0:3] = -Jinv @ R_j_T
+        J[:, 3:, 0:3] = rotate_i @ _skew(d)
+        J[:, 3:, 3:6] = -rotate_i
+        J[:, :3, 6:9] = Jinv @ R_j_T
+        J[:, 3:, 9:12] = rotate_i
+        J = whiten @ J
+        weight = 1.0 / (1.0 + r**2) if loss == "cauchy" else np.ones_like(r)
+        H = np.einsum("nai,na,naj->nij", J, weight, J)
+        g = np.einsum("nai,na->ni", J, weight * r)
+        # scatter into the free poses' 6-blocks (the reference's columns dropped)
+        index = np.concatenate([6 * first[:, None] + np.arange(6), 6 * second[:, None] + np.arange(6)], axis=1)
+        keep = index < size
+        pair = keep[:, :, None] & keep[:, None, :]
+        H_rows = np.broadcast_to(index[:, :, None], H.shape)[pair]
+        H_cols = np.broadcast_to(index[:, None, :], H.shape)[pair]
+        normal = coo_matrix((H[pair], (H_rows, H_cols)), shape=(size, size)).tocsc()
+        gradient = np.bincount(index[keep], weights=g[keep], minlength=size)
+        diagonal = normal.diagonal()
+        while True:
+            damped = normal + coo_matrix((damping * np.maximum(diagonal, 1e-12), (np.arange(size), np.arange(size))),
+                                         shape=(size, size)).tocsc()
+            step = -spsolve(damped, gradient).reshape(-1, 6)
+            trial_R = rotations.copy()
+            trial_t = translations.copy()
+            trial_R[:-1] = Rotation.from_rotvec(step[:, :3]).as_matrix() @ rotations[:-1]
+            trial_t[:-1] = translations[:-1] + step[:, 3:]
+            trial = errors(trial_R, trial_t)
+            trial_cost = cost(trial[0])
+            if trial_cost <= current or damping > 1e8:
+                break
+            damping *= 10.0
+        if trial_cost > current:
+            break
+        rotations, translations = trial_R, trial_t
+        r, phi, back, d = trial
+        change = current - trial_cost
+        current = trial_cost
+        damping = max(damping / 10.0, 1e-10)
+        if change <= 1e-8 * max(current, 1e-300) or np.abs(step).max() < 1e-12:
+            break
     result = {reference: np.eye(4)}
     for k in free:
-        result[k] = current(solution.x, k)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = rotations[slot[k]], translations[slot[k]]
+        result[k] = T
     return result

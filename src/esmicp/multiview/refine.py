@@ -5,7 +5,6 @@ fixed, a few rounds with a shrinking correspondence distance)."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from . import pose_graph
 
@@ -13,14 +12,6 @@ from . import pose_graph
 #: Points of a scan that each direction of an edge queries in the joint refinement (evenly
 #: strided): a 6-degree-of-freedom step needs no more, and the queries are its cost.
 QUERY_POINTS = 2000
-
-
-def normals(points: np.ndarray, k: int = 12) -> np.ndarray:
-    """Unit normals (sign arbitrary) from the ``k`` nearest neighbours' covariance."""
-    _, idx = cKDTree(points).query(points, k=min(k, len(points)))
-    neighbourhoods = points[idx] - points[idx].mean(axis=1, keepdims=True)
-    covariances = np.einsum("nki,nkj->nij", neighbourhoods, neighbourhoods)
-    return np.linalg.eigh(covariances)[1][:, :, 0]
 
 
 def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: int, distances,
@@ -32,6 +23,8 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
     ``rounds_per_distance`` Gauss-Newton steps. ``rmse`` is the point-to-plane RMS over all
     correspondences of the last step; the residual of scan k is the same over the correspondences
     it takes part in (None for a scan with none, and everything None without a step)."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from ..core.compiled_tree import CompiledTree
 
     free = [k for k in sorted(poses) if k != reference]
@@ -40,38 +33,47 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
     # each direction of an edge queries an evenly strided subset of at most QUERY_POINTS points
     queried = {k: np.arange(0, len(clouds[k]), max(1, len(clouds[k]) // QUERY_POINTS)) for k in poses}
     warm: dict[tuple[int, int], np.ndarray] = {}  # last nearest neighbours: seeds (speed only)
+    directions = [(a, b) for i, j in edges for a, b in ((i, j), (j, i))]
+
+    def linearise(a_scan, b_scan, cutoff):
+        """(J^T W J, J^T W r, sum of r^2, count) of scan b's points against scan a's planes, J the
+        derivative of the residuals by scan a's increment (scan b's is -J); None with under 10."""
+        P_a, P_b = poses[a_scan], poses[b_scan]
+        mine = clouds[b_scan][queried[b_scan]]
+        d, idx = trees[a_scan].query(mine, transform=np.linalg.inv(P_a) @ P_b, warm=warm.get((a_scan, b_scan)),
+                                     workers=1)
+        warm[(a_scan, b_scan)] = idx
+        ok = d <= cutoff
+        if ok.sum() < 10:
+            return None
+        b = mine[ok] @ P_b[:3, :3].T + P_b[:3, 3]  # world frame
+        a = clouds[a_scan][idx[ok]] @ P_a[:3, :3].T + P_a[:3, 3]
+        n = clouds_normals[a_scan][idx[ok]] @ P_a[:3, :3].T
+        r = np.einsum("ij,ij->i", n, a - b)
+        huber = cutoff / 3
+        w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-300))
+        J = np.hstack([np.cross(b, n), n])
+        return (J * w[:, None]).T @ J, (J * (w * r)[:, None]).sum(axis=0), float(np.sum(r * r)), len(r)
+
     rmse, per_scan = None, {}
-    for cutoff in distances:
-        for _ in range(rounds_per_distance):
-            blocks_H: dict[tuple[int, int], np.ndarray] = {}  # sparse: 6x6 blocks of the scans' pairs
-            g = np.zeros(6 * len(free))
-            squares, count = 0.0, 0
-            scan_squares = {k: [0.0, 0] for k in poses}
-            for i, j in edges:
-                for a_scan, b_scan in ((i, j), (j, i)):
-                    P_a, P_b = poses[a_scan], poses[b_scan]
-                    mine = clouds[b_scan][queried[b_scan]]
-                    d, idx = trees[a_scan].query(mine, transform=np.linalg.inv(P_a) @ P_b,
-                                                 warm=warm.get((a_scan, b_scan)))
-                    warm[(a_scan, b_scan)] = idx
-                    ok = d <= cutoff
-                    if ok.sum() < 10:
+    # the directions run on a thread each (the queries release the GIL), the sums in order
+    with ThreadPoolExecutor() as pool:
+        for cutoff in distances:
+            for _ in range(rounds_per_distance):
+                blocks_H: dict[tuple[int, int], np.ndarray] = {}  # sparse: 6x6 blocks of the scans' pairs
+                g = np.zeros(6 * len(free))
+                squares, count = 0.0, 0
+                scan_squares = {k: [0.0, 0] for k in poses}
+                terms = pool.map(lambda direction: linearise(*direction, cutoff), directions)
+                for (a_scan, b_scan), term in zip(directions, terms):
+                    if term is None:
                         continue
-                    b = mine[ok] @ P_b[:3, :3].T + P_b[:3, 3]  # world frame
-                    a = clouds[a_scan][idx[ok]] @ P_a[:3, :3].T + P_a[:3, 3]
-                    n = clouds_normals[a_scan][idx[ok]] @ P_a[:3, :3].T
-                    r = np.einsum("ij,ij->i", n, a - b)
-                    huber = cutoff / 3
-                    w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-300))
-                    J = np.hstack([np.cross(b, n), n])  # d r / d xi of scan a; scan b: -J
-                    sum_sq = float(np.sum(r * r))
+                    JtJ, Jtr, sum_sq, used = term
                     squares += sum_sq
-                    count += len(r)
+                    count += used
                     for scan in (a_scan, b_scan):
                         scan_squares[scan][0] += sum_sq
-                        scan_squares[scan][1] += len(r)
-                    JtJ = (J * w[:, None]).T @ J
-                    Jtr = (J * (w * r)[:, None]).sum(axis=0)
+                        scan_squares[scan][1] += used
                     blocks = [(a_scan, 1.0), (b_scan, -1.0)]
                     for p, sp in blocks:
                         if p == reference:
@@ -84,13 +86,13 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
                             key = (slot[p], slot[q])
                             block = sp * sq * JtJ
                             blocks_H[key] = blocks_H[key] + block if key in blocks_H else block
-            if not free or count == 0:
-                return poses, rmse, per_scan
-            rmse = float(np.sqrt(squares / count))
-            per_scan = {k: (float(np.sqrt(s / c)) if c else None) for k, (s, c) in scan_squares.items()}
-            step = _solve(blocks_H, g)
-            for k in free:
-                poses[k] = pose_graph.pose_from_vector(step[6 * slot[k]: 6 * slot[k] + 6]) @ poses[k]
+                if not free or count == 0:
+                    return poses, rmse, per_scan
+                rmse = float(np.sqrt(squares / count))
+                per_scan = {k: (float(np.sqrt(s / c)) if c else None) for k, (s, c) in scan_squares.items()}
+                step = _solve(blocks_H, g)
+                for k in free:
+                    poses[k] = pose_graph.pose_from_vector(step[6 * slot[k]: 6 * slot[k] + 6]) @ poses[k]
     return poses, rmse, per_scan
 
 

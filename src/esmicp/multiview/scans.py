@@ -1,8 +1,8 @@
 """``register_scans()``: many scans into one model, with no initial poses.
 
 1. Pairwise, O(N) pairs: with the capture order (``sequence=True``), each scan with its next
-   ``sequence_neighbours`` scans (the next one refined locally from the identity, the others and
-   the consecutive pairs it leaves untrusted searched globally); without, each scan with its
+   ``sequence_neighbours`` scans, refined locally from the identity (the pairs it leaves
+   untrusted searched globally); without, each scan with its
    ``partners`` most similar scans by a cheap shape descriptor (:mod:`esmicp.multiview.pairs`),
    searched globally by :func:`esmicp.register`. Every pair is then refined locally on denser
    subsets and judged there.
@@ -46,11 +46,11 @@ from scipy.spatial import cKDTree
 
 from ..batch import register_many
 from ..errors import InvalidInputError
-from ..globalreg.features import voxel_grid
+from ..globalreg.features import estimate_normals, voxel_grid
 from ..types import as_points
 from . import pairs as candidates
 from . import pose_graph, visibility
-from .refine import normals, refine
+from .refine import refine
 from .verdict import cut_off, scan_verdicts
 
 logger = logging.getLogger(__name__)
@@ -214,8 +214,9 @@ class _Pairwise:
     """The edges of one merge: runs pairwise registrations and keeps every edge tried (one per
     pair of scans; a later registration of the same pair replaces it only when more confident).
 
-    A pair is searched globally on the sparse subsets (``small``), then refined locally on the
-    dense subsets (``dense``) from the pose found, and judged there: the overlap confidence of a
+    A pair is searched globally on the sparse subsets (``small``), or refined there from a given
+    start, then refined locally on the dense subsets (``dense``) from the pose found, and judged
+    there: the overlap confidence of a
     registration is only meaningful at a density where the clouds' noise is finer than their
     spacing (on the bunny's scans, right pairs score 0.0-0.76 at 1,500 points, 0.74-1.0 at 10,000;
     wrong ones stay below 0.25)."""
@@ -257,22 +258,15 @@ class _Pairwise:
             T = T_a_b if T_a_b is None or (i, j) == (a, b) else np.linalg.inv(T_a_b)
             oriented.append((i, j))
             inits.append(T)
-        searched = [n for n, T in enumerate(inits) if T is None]
-        total = self.done + len(searched) + len(requests)
-        found = self._register(self.small, [oriented[n] for n in searched], [None] * len(searched), total)
-        starts = list(inits)
-        failures = {}
-        for n, outcome in zip(searched, found):
-            if hasattr(outcome, "transformation"):
-                starts[n] = outcome.transformation
-            else:
-                failures[n] = outcome
-        outcomes = dict(failures)
-        # the check of a searched pair starts at a converged pose (capped); a given start is refined in full
-        for group, extra in (([n for n in searched if n not in failures], {"max_iterations": CHECK_ITERATIONS}),
-                             ([n for n in range(len(requests)) if inits[n] is not None], {})):
-            checked = self._register(self.dense, [oriented[n] for n in group], [starts[n] for n in group], total, **extra)
-            outcomes.update(zip(group, checked))
+        total = self.done + 2 * len(requests)
+        # on the sparse subsets: a global search, or a local refinement from the given start
+        found = self._register(self.small, oriented, inits, total)
+        outcomes = {n: outcome for n, outcome in enumerate(found) if not hasattr(outcome, "transformation")}
+        # the check on the dense subsets starts at a converged pose: capped
+        group = [n for n in range(len(requests)) if n not in outcomes]
+        checked = self._register(self.dense, [oriented[n] for n in group], [found[n].transformation for n in group],
+                                 total, max_iterations=CHECK_ITERATIONS)
+        outcomes.update(zip(group, checked))
         new = []
         for n, (i, j) in enumerate(oriented):
             edge = self._edge(i, j, outcomes[n], LOCAL if inits[n] is not None else GLOBAL)
@@ -429,9 +423,8 @@ def register_scans(
     sequence : bool
         The input order is the capture order, consecutive scans close in pose (a walk, a turntable
         with small steps): each scan is registered with its next ``sequence_neighbours`` scans
-        (the next one locally from the identity, globally when that is not trusted; the farther
-        ones globally), then loop closures are sought among placed scans that overlap in the
-        world. Without it the order means nothing.
+        (locally from the identity, globally when that is not trusted), then loop closures are
+        sought among placed scans that overlap in the world. Without it the order means nothing.
     pair_points, refine_points : int
         Points per scan (a content-seeded random subset) for the pairwise global searches, and for
         the local refinement that checks each pair (and judges it: its confidence) and the joint
@@ -470,8 +463,8 @@ def register_scans(
     -----
     Work: without ``sequence``, about ``N * partners`` global searches, each followed by a local
     check on the dense subsets, plus up to ``partners`` per scan not yet confirmed in each of
-    ``EXTRA_ROUNDS`` rounds; with it, about ``N * sequence_neighbours`` pairs (the consecutive ones
-    local) plus one loop-closure candidate per scan.
+    ``EXTRA_ROUNDS`` rounds; with it, about ``N * sequence_neighbours`` local refinements (a global
+    search for each they leave untrusted) plus one loop-closure candidate per scan.
 
     Memory, for 1,000 scans of 20,000 points (the input clouds, 480 MB as float64, stay the
     caller's): per scan, the sparse subset (``pair_points`` x 24 bytes: 36 KB) and the dense one
@@ -509,10 +502,9 @@ def register_scans(
 
     ranked = None
     if sequence:
-        pairwise.run([(i, i + 1, np.eye(4)) for i in range(n - 1)])
+        pairwise.run([(i, j, np.eye(4)) for i, j in candidates.sequence_pairs(n, sequence_neighbours)])
         retry = [(e.i, e.j, None) for e in pairwise.edges.values() if not e.trusted]
-        pairwise.run(retry)  # a consecutive pair the identity start did not bring to trust: globally
-        pairwise.run([(i, j, None) for i, j in candidates.sequence_pairs(n, sequence_neighbours) if j - i > 1])
+        pairwise.run(retry)  # a pair the identity start did not bring to trust: globally
     elif n > 1:
         ranked = candidates.ranked_partners(small)
         first = {(min(i, j), max(i, j)) for i in range(n) for j in ranked[i][:partners]}
@@ -551,7 +543,7 @@ def register_scans(
         kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
         if kept_pairs and refine_rounds > 0:
             fine = {k: dense[k] for k in poses}
-            fine_normals = {k: normals(fine[k]) for k in fine}
+            fine_normals = {k: estimate_normals(fine[k], k=12, workers=None) for k in fine}
             scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
             fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
             distances = np.geomspace(3.0 * scale, max(3.0 * fine_spacing, 1e-12), refine_rounds)
