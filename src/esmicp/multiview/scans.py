@@ -484,7 +484,9 @@ def register_scans(
     edge). The free-space check holds, per posed scan, a 4,000-point subset and a KD-tree of its
     directions (about 0.25 MB; 0.25 GB for 1,000 scans). The only N x N array is the descriptors'
     distances (8 MB for 1,000 scans). Each
-    registration running at once holds its own pair's working set besides.
+    registration running at once holds its own pair's working set besides. Measured
+    (``benchmarks/merge_scale.py``: 1,000 scans of 8,000 points, 2,997 edges): peak memory 1.15
+    GB; consensus tree, pose graph and joint refinement 32 s, 7 s and 143 s on 2 cores.
     """
     start = time.perf_counter()
     try:
