@@ -486,7 +486,7 @@ def register_scans(
     distances (8 MB for 1,000 scans). Each
     registration running at once holds its own pair's working set besides. Measured
     (``benchmarks/merge_scale.py``: 1,000 scans of 8,000 points, 2,997 edges): peak memory 1.15
-    GB; consensus tree, pose graph and joint refinement 32 s, 7 s and 143 s on 2 cores.
+    GB; consensus tree, pose graph and joint refinement 1.7 s, 6 s and 136 s on 2 cores.
     """
     start = time.perf_counter()
     try:
