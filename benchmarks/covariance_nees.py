@@ -87,16 +87,10 @@ def _cut(points: np.ndarray, rng, keep: float) -> np.ndarray:
 
 
 def kitchen_frames():
+    from esmicp.bench.sequences import read_poses
+
     folder = DATA / "sequences" / "redkitchen_seq01_every10"
-    poses = {}
-    for line in (folder / "poses.txt").read_text().splitlines():
-        if line.startswith("#") or not line.strip():
-            continue
-        name, *numbers = line.split()
-        pose = np.eye(4)
-        pose[:3, :] = np.array(numbers, dtype=np.float64).reshape(3, 4)
-        poses[name] = pose
-    return folder / "frames", poses
+    return folder / "frames", read_poses(folder)
 
 
 def real_pairs():

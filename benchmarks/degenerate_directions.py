@@ -84,6 +84,39 @@ def kitchen_pairs(step: int = 10):
         yield f"{a}<-{b}", np.load(frames / f"{b}.npy").astype(np.float64), np.load(frames / f"{a}.npy").astype(np.float64), truth
 
 
+KITCHEN_CROPS = ("frame-000000", "frame-000300", "frame-000600", "frame-000900")
+
+
+def kitchen_crops():
+    """Real surfaces seen alone: kitchen-walk frames and the next kept frame, both cut down to the
+    target's dominant plane (points within 1.5 cm; ``esmicp.bench.sequences.plane_crop_pair``)."""
+    from esmicp.bench.sequences import plane_crop_pair, read_frame, read_poses
+
+    folder = DATA / "sequences" / "redkitchen_seq01_every10"
+    poses = read_poses(folder)
+    names = sorted(poses)
+    for name in KITCHEN_CROPS:
+        after = names[names.index(name) + 1]
+        truth = np.linalg.inv(poses[name]) @ poses[after]
+        source, target, normal = plane_crop_pair(read_frame(folder, name), read_frame(folder, after), truth, 0.015,
+                                                 np.random.default_rng(0))
+        yield f"{name}<-{after}", source, target, truth
+
+
+def slide_check(source, target, truth, result) -> tuple[float, float, float]:
+    """(predicted standard deviation along the weakest translation, and the distance left off the
+    truth after starts 5 cm off along it, each way): does the pose really slide there?"""
+    spread = result.covariance[3:, 3:]
+    weakest = np.linalg.eigh(spread)[1][:, -1]
+    left = []
+    for sign in (1.0, -1.0):
+        start = truth.copy()
+        start[:3, 3] += 0.05 * sign * weakest
+        moved = esmicp.register(source, target, init=start, workers=1).transformation
+        left.append(abs(float((moved[:3, 3] - truth[:3, 3]) @ weakest)))
+    return float(np.sqrt(weakest @ spread @ weakest)), left[0], left[1]
+
+
 def synthetic(rng):
     sys.path.insert(0, str(REPO / "tests"))
     from test_uncertainty import corridor
@@ -105,12 +138,13 @@ def main(argv=None) -> int:
         "modelnet40_extra (confirmation)": objects("modelnet40_extra", DATA / "modelnet40_extra", rng),
         "real_pairs (3DMatch, Newer College, KITTI)": real_pairs(),
         "kitchen walk, pairs 5 kept frames (50 raw frames) apart": kitchen_pairs(),
+        "kitchen walk frames cut to their dominant plane (real surfaces)": kitchen_crops(),
     }
     print(f"Threshold: eigenvalue ratio < {uncertainty.DEGENERATE_RATIO:g} "
           "(scaled point-to-plane Hessian, rotation x overlap radius).\n")
     print("| set | clouds | smallest ratio (min / median) | clouds with a degenerate direction | directions reported |")
     print("|---|---:|---:|---:|---|")
-    examples = {}
+    examples, slides = {}, []
     for group, items in groups.items():
         ratios, flagged, words = [], 0, []
         for name, source, target, truth in items:
@@ -122,9 +156,17 @@ def main(argv=None) -> int:
                                                      for d in result.degenerate_directions))
             if group == "synthetic":
                 examples[name] = (source, target, result)
+            if "real surfaces" in group:
+                slides.append((name, bool(result.degenerate_directions), *slide_check(source, target, truth, result)))
         ratios = np.array(ratios)
         print(f"| {group} | {len(ratios)} | {ratios.min():.2g} / {np.median(ratios):.2g} | {flagged} | "
               f"{'<br>'.join(words) if words else '-'} |")
+    print("\nDoes a real surface slide? Each crop registered from starts 5 cm off the truth along its "
+          "weakest translation (the covariance's widest), each way:\n")
+    print("| crop | degenerate direction reported | predicted sd along it (cm) | left off after +5 cm / -5 cm (cm) |")
+    print("|---|---|---:|---:|")
+    for name, reported, deviation, plus, minus in slides:
+        print(f"| {name} | {'yes' if reported else 'no'} | {100 * deviation:.1f} | {100 * plus:.1f} / {100 * minus:.1f} |")
     if args.plot is not None:
         _plot(examples, args.plot)
     return 0

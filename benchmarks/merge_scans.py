@@ -112,14 +112,10 @@ def bunny(seed: int, max_points: int | None = None) -> Dataset:
 
 
 def kitchen(frames: int, step: int = 1) -> Dataset:
+    from esmicp.bench.sequences import read_poses
+
     folder = shared_data() / "sequences" / "redkitchen_seq01_every10"
-    truth_of = {}
-    for line in (folder / "poses.txt").read_text().splitlines():
-        fields = line.split()
-        if len(fields) == 13 and not line.startswith("#"):
-            pose = np.eye(4)
-            pose[:3, :] = np.array(fields[1:], dtype=float).reshape(3, 4)
-            truth_of[fields[0]] = pose
+    truth_of = read_poses(folder)
     files = sorted((folder / "frames").glob("frame-*.npy"))[::step][:frames]
     names = [f.stem for f in files]
     data = Dataset("kitchen", f"redkitchen walk, {len(names)} depth frames", names,
