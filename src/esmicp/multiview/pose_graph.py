@@ -5,8 +5,10 @@ The optimiser is a Levenberg-Marquardt on left increments of the poses with the 
 closed form and iteratively reweighted Cauchy residuals (the loss of SciPy's ``least_squares``
 with ``loss="cauchy"``), each step's sparse normal equations solved by conjugate gradients: its
 memory grows with the edges. Measured (one solve, 2 cores): a 100-scan walk in 0.2 s; 1,000 scans
-with 3,000 edges (1,000 of them random loop closures) in 6 s. No pose-graph library (g2o, GTSAM)
-is needed.
+with 3,000 edges (1,000 of them random loop closures) in 6 s; a 1,000-scan walk with only local
+loop closures (2,327 edges) in 14 s, where conjugate gradients need the most steps (a sparse
+direct solve is faster on a walk, but fills in on random loop closures: 400 s). No pose-graph
+library (g2o, GTSAM) is needed.
 """
 
 from __future__ import annotations
@@ -221,7 +223,7 @@ def _conjugate_gradients(matrix, right, blocks: np.ndarray) -> np.ndarray:
 
     inverse = np.linalg.inv(blocks)
     preconditioner = LinearOperator(matrix.shape, matvec=lambda v: np.einsum("kab,kb->ka", inverse, v.reshape(-1, 6)).ravel())
-    solution, _ = cg(matrix, right, M=preconditioner, rtol=1e-10, atol=0.0, maxiter=10 * len(right))
+    solution, _ = cg(matrix, right, M=preconditioner, rtol=1e-6, atol=0.0, maxiter=10 * len(right))
     return solution
 
 

@@ -38,6 +38,7 @@ from __future__ import annotations
 import logging
 import time
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -370,21 +371,25 @@ def _free_space_conflicts(n, reference, poses, dense, small, edges) -> tuple[dic
     if len(kept) < 3:
         return {}, {}, "too few edges"
     tolerance = visibility.TOLERANCE_INLIERS * float(np.median([e.inlier_distance for e in kept]))
-    points = {k: _subsample(dense[k], visibility.CHECK_POINTS) for k in poses}
-    views = {k: visibility.RangeView(points[k]) for k in poses}
+    posed = sorted(poses)
+    # on threads: the KD-tree builds and queries release the GIL
+    with ThreadPoolExecutor() as pool:
+        points = dict(zip(posed, pool.map(lambda k: _subsample(dense[k], visibility.CHECK_POINTS), posed)))
+        views = dict(zip(posed, pool.map(lambda k: visibility.RangeView(points[k]), posed)))
 
-    def fraction(a, b):
-        return visibility.pair_free_space(views, points, poses, a, b, tolerance)
+        def fractions(pairs):
+            return dict(zip(pairs, pool.map(
+                lambda pair: visibility.pair_free_space(views, points, poses, *pair, tolerance), pairs)))
 
-    on_kept = {(min(e.i, e.j), max(e.i, e.j)): fraction(e.i, e.j) for e in kept}
-    judged = [f for f in on_kept.values() if f is not None]
-    if len(judged) < 3:
-        return {}, {}, "too few edges"
-    if not visibility.applies(judged):
-        return {}, {}, "not range images"
-    near = candidates.near_pairs(sorted(poses), candidates.world_extents(poses, small), set(on_kept),
-                                 VISIBILITY_PARTNERS)
-    measured = {**on_kept, **{pair: fraction(*pair) for pair in near}}
+        on_kept = fractions(sorted({(min(e.i, e.j), max(e.i, e.j)) for e in kept}))
+        judged = [f for f in on_kept.values() if f is not None]
+        if len(judged) < 3:
+            return {}, {}, "too few edges"
+        if not visibility.applies(judged):
+            return {}, {}, "not range images"
+        near = candidates.near_pairs(posed, candidates.world_extents(poses, small), set(on_kept),
+                                     VISIBILITY_PARTNERS)
+        measured = {**on_kept, **fractions(near)}
     conflicts = [(a, b, f) for (a, b), f in sorted(measured.items()) if f is not None and f > visibility.MAX_FREE_SPACE]
     cut, removed = cut_off(n, reference, [(e.i, e.j, e.confidence) for e in kept], conflicts)
     return cut, removed, "applied"
