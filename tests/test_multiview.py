@@ -210,6 +210,31 @@ def _robust_cost(poses, edges, translation_scale):
     return total
 
 
+def test_conjugate_gradients_solve_the_pose_graph_normal_equations():
+    """The solver of large pose graphs (beyond ``DIRECT_SOLVE_MAX_POSES``): on a sparse symmetric
+    positive definite matrix of 6x6 blocks coupled like a pose graph's, it returns the solution a
+    direct solve gives."""
+    from scipy.sparse import bsr_matrix
+    from scipy.sparse.linalg import spsolve
+
+    rng = np.random.default_rng(2)
+    poses = 40
+    dense = np.zeros((6 * poses, 6 * poses))
+    for _ in range(120):  # each "edge" adds J^T J over its two poses' 12 unknowns
+        a, b = rng.choice(poses, 2, replace=False)
+        J = rng.normal(size=(6, 12))
+        index = np.r_[6 * a: 6 * a + 6, 6 * b: 6 * b + 6]
+        dense[np.ix_(index, index)] += J.T @ J
+    dense += 1e-3 * np.eye(6 * poses)
+    blocks = np.array([dense[6 * k: 6 * k + 6, 6 * k: 6 * k + 6] for k in range(poses)])
+    right = rng.normal(size=6 * poses)
+    matrix = bsr_matrix(dense, blocksize=(6, 6)).tocsr()
+    solved = pose_graph._conjugate_gradients(matrix, right, blocks)
+    exact = spsolve(matrix.tocsc(), right)
+    assert np.linalg.norm(matrix @ solved - right) <= 1e-5 * np.linalg.norm(right)
+    np.testing.assert_allclose(solved, exact, rtol=1e-3, atol=1e-6 * np.abs(exact).max())
+
+
 def test_pose_graph_optimisation_ends_at_a_minimum_of_its_documented_cost():
     """On a noisy 12-scan graph with a wrong edge and mixed weights (information matrices on some
     edges), the solved poses are a minimum of the documented robust cost: no small motion of any
