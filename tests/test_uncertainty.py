@@ -10,7 +10,7 @@ import pytest
 
 import esmicp
 from esmicp import uncertainty
-from esmicp.core.procrustes import apply
+from esmicp.core.procrustes import apply, skew
 from esmicp.metrics import random_rotation
 from esmicp.shapes import asymmetric_shape
 
@@ -156,7 +156,7 @@ def test_pose_uncertainty_ignores_the_working_frame_shift(rng):
     far = esmicp.register(source + offset, target + offset, init=np.eye(4))
     # Moving both clouds by o maps a left perturbation (omega, v) to (omega, v - o x omega).
     mapping = np.eye(6)
-    mapping[3:, :3] = uncertainty._skew(offset)
+    mapping[3:, :3] = skew(offset)
     expected = mapping @ near.covariance @ mapping.T
     assert np.allclose(far.covariance, expected, rtol=1e-3, atol=1e-12 * np.abs(expected).max())
 

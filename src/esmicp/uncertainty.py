@@ -56,6 +56,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .core.procrustes import skew
+
 #: Side of the cubes (in target point spacings) whose pairs' residuals are allowed to be correlated
 #: in the cluster-robust covariance (see the module docstring). On resamples of a 3DMatch fragment
 #: the mean NEES (before :data:`INFLATION`) fell from 40 at 8 spacings to 33 at 16 and 28 at 32,
@@ -301,7 +303,7 @@ def _to_frame(centre: np.ndarray, radius: float) -> np.ndarray:
     perturbation about the frame's origin (``(omega, v)``, ``v = v_c + centre x omega``)."""
     mapping = np.zeros((6, 6))
     mapping[:3, :3] = np.eye(3) / radius
-    mapping[3:, :3] = _skew(centre) / radius
+    mapping[3:, :3] = skew(centre) / radius
     mapping[3:, 3:] = np.eye(3)
     return mapping
 
@@ -322,11 +324,6 @@ def _information(scaled: np.ndarray, null: np.ndarray, mapping: np.ndarray) -> n
 def _unconstrained(count: int) -> PoseUncertainty:
     """Too few pairs (or no spread among them) to say anything: no covariance, no information."""
     return PoseUncertainty(None, None, (), count)
-
-
-def _skew(vector: np.ndarray) -> np.ndarray:
-    x, y, z = vector
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 def from_registration(source: np.ndarray, target_index, transformation: np.ndarray, sigma: float | None, *,

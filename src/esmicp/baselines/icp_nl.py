@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from .base import BaselineResult
-from ..core.procrustes import apply, bounding_box_diagonal
+from ..core.procrustes import apply, bounding_box_diagonal, skew
 from ._common import checked_inputs, local_distance
 from ..types import as_positive
 
@@ -51,26 +51,16 @@ STEP_TOLERANCE = 1e-7
 LM_MAX_EVALUATIONS = 20
 
 
-def _skew_rows(points: np.ndarray) -> np.ndarray:
-    """``(N, 3, 3)`` matrices ``-[p]_x``: the derivative of ``R p`` by the rotation vector at 0."""
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    zero = np.zeros_like(x)
-    return -np.stack(
-        [np.stack([zero, -z, y], axis=1), np.stack([z, zero, -x], axis=1), np.stack([-y, x, zero], axis=1)],
-        axis=1,
-    )
-
-
 def _left_jacobian(rotation_vector: np.ndarray) -> np.ndarray:
     """SO(3)'s left Jacobian ``I + (1 - cos a)/a^2 [w]_x + (a - sin a)/a^3 [w]_x^2``."""
     angle = float(np.linalg.norm(rotation_vector))
-    skew = -_skew_rows(rotation_vector[None])[0]
+    cross = skew(rotation_vector)
     if angle < 1e-8:
-        return np.eye(3) + 0.5 * skew
+        return np.eye(3) + 0.5 * cross
     return (
         np.eye(3)
-        + (1.0 - np.cos(angle)) / angle**2 * skew
-        + (angle - np.sin(angle)) / angle**3 * (skew @ skew)
+        + (1.0 - np.cos(angle)) / angle**2 * cross
+        + (angle - np.sin(angle)) / angle**3 * (cross @ cross)
     )
 
 
@@ -86,7 +76,7 @@ def _increment(moved: np.ndarray, matched: np.ndarray, sqrt_weights: np.ndarray)
     def jacobian(x):
         # d(R(x) p)/dx = -[R(x) p]_x J_left(x), exactly (J_left: SO(3)'s left Jacobian).
         rotated = local @ Rotation.from_rotvec(x[:3]).as_matrix().T
-        rotation_block = _skew_rows(rotated) @ _left_jacobian(x[:3])
+        rotation_block = -skew(rotated) @ _left_jacobian(x[:3])  # d(R p)/d(rotation vector) at 0: -[p]_x
         block = np.concatenate([rotation_block, np.broadcast_to(np.eye(3), (len(local), 3, 3))], axis=2)
         return (block * sqrt_weights[:, None, None]).reshape(-1, 6)
 

@@ -119,9 +119,25 @@ def apply(transform: np.ndarray, points: np.ndarray, workers: int | None = None)
 
 
 def rigid_inverse(transform: np.ndarray) -> np.ndarray:
-    """Inverse of a 4x4 rigid transform: ``[R^T | -R^T t]``."""
-    rotation = transform[:3, :3]
-    return to_matrix(rotation.T, -rotation.T @ transform[:3, 3])
+    """Inverse of a 4x4 rigid transform, or of each of ``(..., 4, 4)``: ``[R^T | -R^T t]``."""
+    transform = np.asarray(transform, dtype=np.float64)
+    rotation = np.swapaxes(transform[..., :3, :3], -1, -2)
+    out = np.zeros_like(transform)
+    out[..., :3, :3] = rotation
+    out[..., :3, 3] = -np.einsum("...ab,...b->...a", rotation, transform[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def skew(vectors: np.ndarray) -> np.ndarray:
+    """Cross-product matrices ``[v]_x`` (``[v]_x w = v x w``) of a 3-vector, or of each of ``(..., 3)``."""
+    vectors = np.asarray(vectors, dtype=np.float64)
+    out = np.zeros(vectors.shape[:-1] + (3, 3))
+    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
+    out[..., 0, 1], out[..., 0, 2] = -z, y
+    out[..., 1, 0], out[..., 1, 2] = z, -x
+    out[..., 2, 0], out[..., 2, 1] = -y, x
+    return out
 
 
 def axis_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -4,6 +4,8 @@ fixed, a few rounds with a shrinking correspondence distance)."""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from . import pose_graph
@@ -23,8 +25,6 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
     ``rounds_per_distance`` Gauss-Newton steps. ``rmse`` is the point-to-plane RMS over all
     correspondences of the last step; the residual of scan k is the same over the correspondences
     it takes part in (None for a scan with none, and everything None without a step)."""
-    from concurrent.futures import ThreadPoolExecutor
-
     from ..core.compiled_tree import CompiledTree
 
     free = [k for k in sorted(poses) if k != reference]
