@@ -21,6 +21,14 @@ Sets (``--sets``, comma-separated):
     frame pairs 10-50 frames apart of the kitchen walk (``sequences/redkitchen_seq01_every10``),
     as recorded: a confirmation set for the scan thresholds (success: rotation < 5 deg and
     translation < 0.1 m, the depth camera's walk).
+``kitchen-far``
+    frame pairs 60-150 frames apart of the same walk, the source turned by a random rotation
+    (``--kitchen-pairs`` per gap, same success). Some share little or no surface: each row also
+    records ``truth_overlap``, the overlap score (:func:`esmicp.globalreg.scan.overlap_score`) of
+    the ground-truth pose refined from itself, so that "no pose was there to find" can be told
+    apart from "the search chose the wrong one", and ``free_space``, the larger fraction of either
+    frame that the pose puts in the space the other camera saw empty (the merge's free-space test,
+    :mod:`esmicp.multiview.visibility`).
 
 Each registration is ``esmicp.register(source, target, rng=seed)`` with every default (``workers=1``).
 Writes one JSON line per registration (pose, success, confidence, trusted, ambiguous,
@@ -46,12 +54,17 @@ from esmicp.bench.real_pairs import (
     criteria_for, crop_to_overlap, estimate_in_pair_frame, load_pair, pair_errors, partial_trial, read_pairs,
     turn_source,
 )
+from esmicp.bench.sequences import read_frame, read_poses
+from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import bounding_box_diagonal, rotation_angle
+from esmicp.globalreg.scan import Keypoints, overlap_score
 from esmicp.metrics import strict_success, up_to_symmetry_success
+from esmicp.multiview import visibility
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-SETS = ("objects", "halves", "real", "crops", "extra-halves", "extra-objects", "kitchen")
+SETS = ("objects", "halves", "real", "crops", "extra-halves", "extra-objects", "kitchen", "kitchen-far")
 KITCHEN_GAPS = (10, 20, 30, 40, 50)
+KITCHEN_FAR_GAPS = tuple(range(60, 160, 10))
 
 
 def _clouds(folder: Path) -> dict[str, np.ndarray]:
@@ -150,33 +163,61 @@ def crop_rows(data: Path, seed: int, crops: int = 1):
             yield row
 
 
-def kitchen_rows(data: Path, seed: int, pairs_per_gap: int = 3):
-    folder = data / "sequences" / "redkitchen_seq01_every10"
-    poses = {}
-    for line in (folder / "poses.txt").read_text().splitlines():
-        fields = line.split()
-        if len(fields) == 13:
-            matrix = np.eye(4)
-            matrix[:3, :] = np.array(fields[1:], dtype=float).reshape(3, 4)
-            poses[fields[0]] = matrix
+KITCHEN = Path("sequences") / "redkitchen_seq01_every10"
+
+
+def _kitchen_pairs(data: Path, gaps, pairs_per_gap: int):
+    """``(gap index, gap, start, target name, source name, target, source, T_target_source)`` of
+    ``pairs_per_gap`` pairs ``gap`` frames apart, their starts spread evenly over the walk."""
+    folder = data / KITCHEN
+    poses = read_poses(folder)
     names = sorted(poses)
-    criteria = {"success": lambda rotation, translation: rotation < 5.0 and translation < 0.1}
-    for gap_index, gap in enumerate(KITCHEN_GAPS):
+    for gap_index, gap in enumerate(gaps):
         steps = gap // 10
-        starts = np.linspace(0, len(names) - 1 - steps, pairs_per_gap).round().astype(int)
-        for start in starts:
+        for start in np.linspace(0, len(names) - 1 - steps, pairs_per_gap).round().astype(int):
             target_name, source_name = names[start], names[start + steps]
-            target = np.load(folder / "frames" / f"{target_name}.npy").astype(np.float64)
-            source = np.load(folder / "frames" / f"{source_name}.npy").astype(np.float64)
             truth = np.linalg.inv(poses[target_name]) @ poses[source_name]
+            yield (gap_index, gap, int(start), target_name, source_name, read_frame(folder, target_name),
+                   read_frame(folder, source_name), truth)
 
-            def judge(estimate, truth=truth):
-                rotation, translation = pair_errors(estimate, truth)
-                return {"success": bool(criteria["success"](rotation, translation)),
-                        "rotation_error_deg": rotation, "translation_error": translation}
 
-            yield _record(f"kitchen/gap{gap}/{target_name}-{source_name}", source, target,
-                          _seed(seed, 5, gap_index, int(start)), judge)
+def _kitchen_success(rotation: float, translation: float) -> bool:
+    return rotation < 5.0 and translation < 0.1
+
+
+def kitchen_rows(data: Path, seed: int, pairs_per_gap: int = 3):
+    for gap_index, gap, start, target_name, source_name, target, source, truth in _kitchen_pairs(
+            data, KITCHEN_GAPS, pairs_per_gap):
+
+        def judge(estimate, truth=truth):
+            rotation, translation = pair_errors(estimate, truth)
+            return {"success": _kitchen_success(rotation, translation), "rotation_error_deg": rotation,
+                    "translation_error": translation}
+
+        yield _record(f"kitchen/gap{gap}/{target_name}-{source_name}", source, target,
+                      _seed(seed, 5, gap_index, start), judge)
+
+
+def kitchen_far_rows(data: Path, seed: int, pairs_per_gap: int = 3):
+    for gap_index, gap, start, target_name, source_name, target, source, truth in _kitchen_pairs(
+            data, KITCHEN_FAR_GAPS, pairs_per_gap):
+        rng = np.random.default_rng(_seed(seed, 6, gap_index, start))
+        turned, turned_truth, moved_by = turn_source(source, truth, rng)
+        refined = esmicp.register(turned, target, init=turned_truth, workers=1)
+        keypoints = Keypoints.of(turned, target, NearestNeighbors(target, workers=1).spacing())
+        truth_overlap = overlap_score(refined.transformation, keypoints, workers=1)
+        tolerance = visibility.TOLERANCE_INLIERS * refined.inlier_distance
+
+        def judge(estimate, truth=truth, moved_by=moved_by, truth_overlap=truth_overlap, source=source,
+                  target=target, tolerance=tolerance):
+            in_pair_frame = estimate_in_pair_frame(estimate, moved_by)
+            rotation, translation = pair_errors(in_pair_frame, truth)
+            return {"success": _kitchen_success(rotation, translation), "rotation_error_deg": rotation,
+                    "translation_error": translation, "truth_overlap": truth_overlap,
+                    "free_space": visibility.free_space_fraction(target, source, in_pair_frame, tolerance)}
+
+        yield _record(f"kitchen-far/gap{gap}/{target_name}-{source_name}", turned, target,
+                      _seed(seed, 7, gap_index, start), judge)
 
 
 def compare(before_path: Path, after_path: Path) -> str:
@@ -236,6 +277,7 @@ def main() -> None:
             "extra-objects": lambda: object_rows(args.data, args.trials, args.seed, "modelnet40_extra",
                                                  ("outliers-60",)),
             "kitchen": lambda: kitchen_rows(args.data, args.seed, args.kitchen_pairs),
+            "kitchen-far": lambda: kitchen_far_rows(args.data, args.seed, args.kitchen_pairs),
         }
         with open(args.out, "w", encoding="utf-8") as handle:
             for name in args.sets.split(","):

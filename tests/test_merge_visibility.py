@@ -139,3 +139,25 @@ def test_scans_not_seen_from_their_origins_are_not_checked(monkeypatch):
     _patch(monkeypatch, truth, clouds)
     result = register_scans(clouds, refine_rounds=0, threads=1, partners=4)
     assert result.free_space_check in ("not range images", "too few edges") and result.all_placed
+
+
+def test_one_pair_free_space_passes_the_right_pose_and_not_one_slid_a_metre(walk):
+    clouds, poses, _ = walk
+    T_0_1 = poses[1]
+    right = visibility.free_space_fraction(clouds[0], clouds[1], T_0_1, tolerance=0.03)
+    slid = np.eye(4)
+    slid[:3, 3] = [0.0, 0.0, -1.0]  # 1 m towards the target camera: its walls now stand in the empty room
+    wrong = visibility.free_space_fraction(clouds[0], clouds[1], slid @ T_0_1, tolerance=0.03)
+    assert right is not None and wrong is not None
+    assert right <= visibility.MAX_FREE_SPACE < wrong
+    # the same pair as the merge judges it (both ways, from each origin)
+    views = {k: visibility.RangeView(clouds[k]) for k in (0, 1)}
+    assert right == pytest.approx(visibility.pair_free_space(views, {0: clouds[0], 1: clouds[1]},
+                                                             {0: np.eye(4), 1: T_0_1}, 0, 1, 0.03), abs=0.02)
+
+
+def test_one_pair_free_space_says_nothing_when_neither_sensor_sees_the_other(walk):
+    clouds, poses, _ = walk
+    away = np.diag([-1.0, 1.0, -1.0, 1.0])  # turned to face away, 50 m behind the target camera
+    away[:3, 3] = [0.0, 0.0, -50.0]
+    assert visibility.free_space_fraction(clouds[0], clouds[1], away @ poses[1], tolerance=0.03) is None

@@ -130,8 +130,10 @@ class RegistrationResult:
         of freedom, a floor and one wall 5: :func:`esmicp.globalreg.scan.coincident_spread`); 0 when
         fewer than 60 keypoints of either cloud coincide (:data:`esmicp.globalreg.scan.MIN_COINCIDENT`:
         clouds of a few dozen points cannot resolve the pose, so are never trusted). Below 0.55
-        (:data:`esmicp.globalreg.scan.TRUSTED`): do not trust the pose. Measured figures:
-        ``docs/measured-global.md``, "How far the confidence can be trusted".
+        (:data:`esmicp.globalreg.scan.TRUSTED`): do not trust the pose. At or above it the pose
+        is usually right, not always: a repeated structure matched in the wrong place coincides
+        sharply too (kitchen depth frames that share no surface: 4 of 5 trusted, metres off).
+        Measured figures: ``docs/measured-global.md``, "How far the confidence can be trusted".
     correspondences : Correspondences or None
         The final pose's inlier pairs (:class:`Correspondences`), when asked for
         (``return_correspondences=True``); else None.

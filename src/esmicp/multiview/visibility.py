@@ -88,6 +88,29 @@ def pair_free_space(views: dict, points: dict, poses: dict, a: int, b: int, tole
     return worst
 
 
+def free_space_fraction(target: np.ndarray, source: np.ndarray, T_target_source: np.ndarray,
+                        tolerance: float) -> float | None:
+    """The free-space test of one registered pair: the larger fraction of either cloud that
+    ``T_target_source`` puts in the space the other's sensor saw empty (0-1), or None when neither
+    sees at least :data:`MIN_SEEN` of the other's points.
+
+    Both clouds must be range images in their sensor frames (depth-camera frames, LiDAR scans as
+    recorded: the sensor at the origin). ``tolerance``: how far in front of a surface a point must
+    lie to count (cloud units; the merge uses :data:`TOLERANCE_INLIERS` times the registration's
+    ``inlier_distance``). Each cloud is reduced to :data:`CHECK_POINTS` evenly strided points.
+    Above :data:`MAX_FREE_SPACE` the pose contradicts what the sensors saw: on kitchen depth
+    frames 60-150 frames apart, right poses reached 0.028, poses placed a metre or more off
+    0.093-0.452 (``docs/measured-global.md``).
+    """
+    points = {}
+    for key, cloud in ((0, target), (1, source)):
+        cloud = np.asarray(cloud, dtype=np.float64)
+        points[key] = cloud[np.linspace(0, len(cloud) - 1, min(len(cloud), CHECK_POINTS)).astype(np.intp)]
+    views = {key: RangeView(cloud) for key, cloud in points.items()}
+    poses = {0: np.eye(4), 1: np.asarray(T_target_source, dtype=np.float64)}
+    return pair_free_space(views, points, poses, 0, 1, tolerance)
+
+
 def applies(fractions: list[float]) -> bool:
     """Whether the scans are range images from their origins, as far as the merge can tell: at
     least :data:`APPLIES_FRACTION` of the pairs joined by a kept edge (right, as far as the cycles
