@@ -98,9 +98,9 @@ def free_space_fraction(target: np.ndarray, source: np.ndarray, T_target_source:
     recorded: the sensor at the origin). ``tolerance``: how far in front of a surface a point must
     lie to count (cloud units; the merge uses :data:`TOLERANCE_INLIERS` times the registration's
     ``inlier_distance``). Each cloud is reduced to :data:`CHECK_POINTS` evenly strided points.
-    Above :data:`MAX_FREE_SPACE` the pose contradicts what the sensors saw: on kitchen depth
-    frames 60-150 frames apart, right poses reached 0.028, poses placed a metre or more off
-    0.093-0.452 (``docs/measured-global.md``).
+    Above :data:`MAX_FREE_SPACE` (the merge's bar) the pose contradicts what the sensors saw. On
+    kitchen depth frames 60-150 frames apart, right poses reached 0.028 and poses 0.8 m or more
+    off 0.093-0.452, so a pose between the two is doubtful too (``docs/measured-global.md``).
     """
     points = {}
     for key, cloud in ((0, target), (1, source)):
