@@ -22,15 +22,17 @@ Sets (``--sets``, comma-separated):
     as recorded: a confirmation set for the scan thresholds (success: rotation < 5 deg and
     translation < 0.1 m, the depth camera's walk).
 ``kitchen-far``
-    frame pairs 60-150 frames apart of the same walk, the source turned by a random rotation
-    (``--kitchen-pairs`` per gap, same success). Some share little or no surface: each row also
-    records ``truth_overlap``, the overlap score (:func:`esmicp.globalreg.scan.overlap_score`) of
-    the ground-truth pose refined from itself, so that "no pose was there to find" can be told
-    apart from "the search chose the wrong one", and ``free_space``, the larger fraction of either
-    frame that the pose puts in the space the other camera saw empty (the merge's free-space test,
-    :mod:`esmicp.multiview.visibility`).
+    frame pairs 60-150 frames apart of the same walk, the source turned about its camera by a
+    random rotation (``--kitchen-pairs`` per gap, same success). Some share little or no surface:
+    each row also records ``truth_overlap``, the overlap score
+    (:func:`esmicp.globalreg.scan.overlap_score`) of the ground-truth pose refined from itself, so
+    that "no pose was there to find" can be told apart from "the search chose the wrong one".
+    Registered with ``range_images=True`` (both frames stay range images): each row records
+    ``free_space`` (the free-space test, :func:`esmicp.multiview.visibility.free_space_fraction`)
+    and ``trusted_without_free_space``.
 
-Each registration is ``esmicp.register(source, target, rng=seed)`` with every default (``workers=1``).
+Each registration is ``esmicp.register(source, target, rng=seed)`` with every default (``workers=1``)
+but for ``kitchen-far``'s ``range_images=True``.
 Writes one JSON line per registration (pose, success, confidence, trusted, ambiguous,
 runner_up_ratio, where the pose came from, time) to ``--out``. ``--compare BEFORE.jsonl`` instead
 compares two such files: the rows whose pose moved, whose success changed, and the totals.
@@ -42,6 +44,7 @@ compares two such files: the rows whose pose moved, whose success changed, and t
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -59,7 +62,6 @@ from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import bounding_box_diagonal, rotation_angle
 from esmicp.globalreg.scan import Keypoints, overlap_score
 from esmicp.metrics import strict_success, up_to_symmetry_success
-from esmicp.multiview import visibility
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SETS = ("objects", "halves", "real", "crops", "extra-halves", "extra-objects", "kitchen", "kitchen-far")
@@ -75,15 +77,18 @@ def _seed(*key) -> int:
     return int(np.random.SeedSequence(list(key)).generate_state(1)[0])
 
 
-def _record(name: str, source, target, seed: int, judge) -> dict:
+def _record(name: str, source, target, seed: int, judge, **options) -> dict:
     started = time.perf_counter()
-    result = esmicp.register(source, target, rng=seed, workers=1)
+    result = esmicp.register(source, target, rng=seed, workers=1, **options)
     elapsed = time.perf_counter() - started
     row = {"row": name, "seed": seed, "time_s": elapsed, "init": result.init,
            "confidence": result.confidence, "trusted": result.trusted, "ambiguous": result.ambiguous,
            "runner_up_ratio": result.runner_up_ratio, "candidates": result.global_candidates,
            "transformation": result.transformation.tolist(),
            "degenerate": len(result.degenerate_directions)}
+    if options.get("range_images"):
+        row["free_space"] = result.free_space
+        row["trusted_without_free_space"] = dataclasses.replace(result, free_space=None).trusted
     row.update({key: value for key, value in result.to_dict().items() if key.startswith("std_")})
     row.update(judge(result.transformation))
     return row
@@ -202,22 +207,20 @@ def kitchen_far_rows(data: Path, seed: int, pairs_per_gap: int = 3):
     for gap_index, gap, start, target_name, source_name, target, source, truth in _kitchen_pairs(
             data, KITCHEN_FAR_GAPS, pairs_per_gap):
         rng = np.random.default_rng(_seed(seed, 6, gap_index, start))
-        turned, turned_truth, moved_by = turn_source(source, truth, rng)
-        refined = esmicp.register(turned, target, init=turned_truth, workers=1)
+        # turned about the sensor (the origin), so that both clouds stay range images: the
+        # free-space test (range_images=True) is measured on every pair
+        turned, turned_truth, moved_by = turn_source(source, truth, rng, about=np.zeros(3))
+        refined = esmicp.register(turned, target, init=turned_truth, workers=1).transformation
         keypoints = Keypoints.of(turned, target, NearestNeighbors(target, workers=1).spacing())
-        truth_overlap = overlap_score(refined.transformation, keypoints, workers=1)
-        tolerance = visibility.TOLERANCE_INLIERS * refined.inlier_distance
+        truth_overlap = overlap_score(refined, keypoints, workers=1)
 
-        def judge(estimate, truth=truth, moved_by=moved_by, truth_overlap=truth_overlap, source=source,
-                  target=target, tolerance=tolerance):
-            in_pair_frame = estimate_in_pair_frame(estimate, moved_by)
-            rotation, translation = pair_errors(in_pair_frame, truth)
+        def judge(estimate, truth=truth, moved_by=moved_by, truth_overlap=truth_overlap):
+            rotation, translation = pair_errors(estimate_in_pair_frame(estimate, moved_by), truth)
             return {"success": _kitchen_success(rotation, translation), "rotation_error_deg": rotation,
-                    "translation_error": translation, "truth_overlap": truth_overlap,
-                    "free_space": visibility.free_space_fraction(target, source, in_pair_frame, tolerance)}
+                    "translation_error": translation, "truth_overlap": truth_overlap}
 
         yield _record(f"kitchen-far/gap{gap}/{target_name}-{source_name}", turned, target,
-                      _seed(seed, 7, gap_index, start), judge)
+                      _seed(seed, 7, gap_index, start), judge, range_images=True)
 
 
 def compare(before_path: Path, after_path: Path) -> str:

@@ -125,6 +125,7 @@ def register(
     workers: int | None = None,
     return_correspondences: bool = False,
     config: SearchConfig | None = None,
+    range_images: bool = False,
 ) -> RegistrationResult:
     """Rigidly register ``source`` onto ``target``.
 
@@ -196,6 +197,16 @@ def register(
     config : esmicp.globalreg.config.SearchConfig or dict, optional
         The global search's tuned values (and the overlap confidence's); None: the measured
         defaults (:data:`esmicp.globalreg.config.DEFAULT`).
+    range_images : bool
+        Both clouds are range images in their sensor frames: every point as its sensor saw it,
+        the sensor at the origin (depth-camera frames, LiDAR scans as recorded). The final pose
+        is then also checked against the space each sensor saw empty
+        (:func:`esmicp.multiview.visibility.free_space_fraction`, in ``result.free_space``): a pose
+        that puts more than :data:`esmicp.multiview.visibility.MAX_FREE_SPACE_PAIR` of either
+        cloud there is not trusted, however sharply the clouds coincide (a repeated structure
+        matched in the wrong place, a pair that shares no surface). The pose itself is the same.
+        False (the default): no such check (clouds in another frame, such as meshes, fused
+        fragments or maps, would fail it).
 
     Returns
     -------
@@ -211,6 +222,8 @@ def register(
     started = time.perf_counter()
     request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
                         config)
+    if not isinstance(range_images, (bool, np.bool_)):
+        raise InvalidInputError(f"range_images: expected True or False, got {range_images!r}")
     frame = WorkingFrame.for_target(request.target)
     source_points, target_points = frame.points(request.source), frame.points(request.target)
     target_index = NearestNeighbors(target_points, workers=request.workers)
@@ -250,6 +263,10 @@ def register(
     pose = uncertainty.from_registration(source_points, target_index, outcome.transformation, weights_sigma,
                                          origin=frame.origin, workers=request.workers, pairs=pairs[:2])
     outcome = frame.outcome(outcome)
+    free_space = None
+    if range_images:
+        free_space = _free_space(request, outcome.transformation, inlier_distance)
+        outcome = dataclasses.replace(outcome, message=outcome.message + _free_space_note(free_space))
     return RegistrationResult(
         transformation=outcome.transformation,
         converged=outcome.converged,
@@ -271,7 +288,29 @@ def register(
         covariance=pose.covariance,
         information=pose.information,
         degenerate_directions=pose.degenerate_directions,
+        free_space=free_space,
     )
+
+
+def _free_space(request: _Request, transformation: np.ndarray, inlier_distance: float) -> float | None:
+    """The free-space test of the pair at ``transformation`` (``T_target_source``, the clouds' own
+    frames), at :data:`~esmicp.multiview.visibility.TOLERANCE_INLIERS` inlier distances."""
+    from .multiview import visibility  # here: esmicp.multiview imports this module
+
+    return visibility.free_space_fraction(request.target, request.source, transformation,
+                                          visibility.TOLERANCE_INLIERS * inlier_distance)
+
+
+def _free_space_note(free_space: float | None) -> str:
+    """What the free-space test found, for ``result.message``."""
+    from .multiview.visibility import MAX_FREE_SPACE_PAIR
+
+    if free_space is None:
+        return "; free-space test: neither sensor sees enough of the other cloud to judge"
+    if free_space > MAX_FREE_SPACE_PAIR:
+        return (f"; free-space test failed: {100 * free_space:.0f}% of a cloud lies where the other's sensor saw "
+                f"empty space (bar {100 * MAX_FREE_SPACE_PAIR:.0f}%): the pose contradicts what the sensors saw")
+    return f"; free-space test passed ({100 * free_space:.1f}% in the other's empty space)"
 
 
 def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,

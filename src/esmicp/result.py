@@ -149,6 +149,12 @@ class RegistrationResult:
         The directions the overlap barely constrains (target frame), each with its ratio to the
         best-constrained one (:class:`esmicp.uncertainty.DegenerateDirection`); empty for a
         well-constrained pair.
+    free_space : float or None
+        With ``register(..., range_images=True)``: the larger fraction (0-1) of either cloud that
+        the pose puts in the space the other's sensor saw empty
+        (:func:`esmicp.multiview.visibility.free_space_fraction`); above
+        :data:`esmicp.multiview.visibility.MAX_FREE_SPACE_PAIR` the result is not trusted. None
+        without that option, or when neither sensor sees enough of the other cloud to judge.
     """
 
     transformation: np.ndarray
@@ -171,14 +177,19 @@ class RegistrationResult:
     covariance: np.ndarray | None = field(default=None, repr=False)
     information: np.ndarray | None = field(default=None, repr=False)
     degenerate_directions: tuple = ()
+    free_space: float | None = None
 
     @property
     def trusted(self) -> bool:
-        """True when ``confidence`` reaches the trust bar (:data:`esmicp.globalreg.scan.TRUSTED`) and
-        the result is not ``ambiguous``: the one test callers (``register_scans``, the CLI) apply."""
+        """True when ``confidence`` reaches the trust bar (:data:`esmicp.globalreg.scan.TRUSTED`), the
+        result is not ``ambiguous``, and ``free_space`` (when measured) is within
+        :data:`esmicp.multiview.visibility.MAX_FREE_SPACE_PAIR`: the one test callers
+        (``register_scans``, the CLI) apply."""
         from .globalreg.scan import TRUSTED
+        from .multiview.visibility import MAX_FREE_SPACE_PAIR
 
-        return self.confidence is not None and self.confidence >= TRUSTED and not self.ambiguous
+        return (self.confidence is not None and self.confidence >= TRUSTED and not self.ambiguous
+                and (self.free_space is None or self.free_space <= MAX_FREE_SPACE_PAIR))
 
     @property
     def rotation(self) -> np.ndarray:
@@ -214,6 +225,7 @@ class RegistrationResult:
             "std_translation": None if self.covariance is None else _deviations(self.covariance)[1],
             "information": None if self.information is None else self.information.tolist(),
             "degenerate_directions": [direction.to_dict() for direction in self.degenerate_directions],
+            "free_space": self.free_space,
         }
         if include_history and self.history is not None:
             data["history"] = [record.to_dict() for record in self.history]

@@ -186,16 +186,18 @@ def pair_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     return rotation_error_deg(estimate, truth), float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))
 
 
-def turn_source(source: np.ndarray, truth: np.ndarray, rng: np.random.Generator):
+def turn_source(source: np.ndarray, truth: np.ndarray, rng: np.random.Generator, about: np.ndarray | None = None):
     """The ``turned`` variant: ``source`` rotated about its centroid by a rotation uniform on SO(3).
 
-    Returns ``(turned_source, turned_truth, M)``: ``turned_source = apply(M, source)`` and
-    ``turned_truth = truth @ M^-1``, so ``apply(turned_truth, turned_source) = apply(truth, source)``.
+    ``about``: the point (source frame) to turn about instead of the centroid; the origin keeps a
+    range image a range image (its sensor turned in place). Returns ``(turned_source,
+    turned_truth, M)``: ``turned_source = apply(M, source)`` and ``turned_truth = truth @ M^-1``, so
+    ``apply(turned_truth, turned_source) = apply(truth, source)``.
     """
     source = np.asarray(source, dtype=np.float64)
     rotation = random_rotation(rng)
-    centroid = source.mean(axis=0)
-    moved_by = to_matrix(rotation, centroid - rotation @ centroid)
+    centre = source.mean(axis=0) if about is None else np.asarray(about, dtype=np.float64)
+    moved_by = to_matrix(rotation, centre - rotation @ centre)
     return apply(moved_by, source), np.asarray(truth, dtype=np.float64) @ rigid_inverse(moved_by), moved_by
 
 

@@ -96,9 +96,15 @@ def add_parser(commands) -> None:
     reg.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     reg.add_argument(
         "--min-confidence", type=_confidence_bar, nargs="?", const="trusted", metavar="X",
-        help="exit with status 3 when the overlap confidence is below X (0-1), or the pose is "
-        "ambiguous (another pose fits almost as well); without X, or 'trusted': the library's trust "
+        help="exit with status 3 when the overlap confidence is below X (0-1), the pose is "
+        "ambiguous (another pose fits almost as well) or fails the --range-images test; without X, or 'trusted': the library's trust "
         "bar (RegistrationResult.trusted). For scripts: 'esmicp register A B --min-confidence && ...'",
+    )
+    reg.add_argument(
+        "--range-images", action="store_true",
+        help="the clouds are range images in their sensor frames (depth-camera frames, LiDAR scans as "
+        "recorded): also check the pose against the space each sensor saw empty, and do not trust a "
+        "pose that contradicts it (not for meshes, fused fragments or maps)",
     )
     add_workers(reg)
     reg.set_defaults(handler=_run_register)
@@ -136,7 +142,7 @@ def _run_register(args) -> int:
     result = register(
         source, target, method=args.method, init=init, sigma=args.sigma, rng=args.seed,
         max_iterations=args.max_iterations, tolerance=args.tolerance, inlier_distance=args.inlier_distance,
-        workers=args.workers,
+        workers=args.workers, range_images=args.range_images,
     )
     if args.output is not None:
         io.write_points(args.output, apply(result.transformation, source), overwrite=args.force)
@@ -158,17 +164,27 @@ def _run_register(args) -> int:
 
 def _status(result, bar: float | str | None) -> int:
     """``EXIT_UNTRUSTED`` (with one line on stderr) when ``--min-confidence`` was given and the
-    confidence is below ``bar`` or the pose ambiguous; else ``EXIT_OK``."""
+    confidence is below ``bar``, the pose ambiguous or the free-space test failed; else ``EXIT_OK``."""
     if bar is None:
         return EXIT_OK
     bar = trust_bar() if bar == "trusted" else bar
     confidence = result.confidence
-    if confidence is not None and confidence >= bar and not result.ambiguous:
+    if confidence is None or confidence < bar:
+        why = f"confidence {'unknown' if confidence is None else f'{confidence:.2f}'} is below {bar:g}"
+    elif result.ambiguous:
+        why = "the pose is ambiguous"
+    elif _free_space_failed(result):
+        why = "the pose failed the free-space test"
+    else:
         return EXIT_OK
-    why = "the pose is ambiguous" if result.ambiguous and confidence is not None and confidence >= bar else (
-        f"confidence {'unknown' if confidence is None else f'{confidence:.2f}'} is below {bar:g}")
     print(f"esmicp register: --min-confidence {bar:g}: {why} (exit status {EXIT_UNTRUSTED})", file=sys.stderr)
     return EXIT_UNTRUSTED
+
+
+def _free_space_failed(result) -> bool:
+    from ..multiview.visibility import MAX_FREE_SPACE_PAIR
+
+    return result.free_space is not None and result.free_space > MAX_FREE_SPACE_PAIR
 
 
 def verdict(result) -> str:
@@ -184,6 +200,9 @@ def verdict(result) -> str:
         return (f"{text} (>= {bar:g}, but AMBIGUOUS: a clearly different pose fits almost as well, score ratio "
                 f"{result.runner_up_ratio:.3f}; do not trust this pose: the object may be symmetric or the "
                 "overlap too small to tell)")
+    if _free_space_failed(result):
+        return (f"{text} (>= {bar:g}, but the FREE-SPACE TEST FAILED: {100 * result.free_space:.0f}% of a cloud lies "
+                "where the other's sensor saw empty space; do not trust this pose: the clouds may share no surface)")
     return f"{text} (trusted: >= {bar:g})"
 
 
