@@ -186,10 +186,14 @@ class RegistrationResult:
         :data:`esmicp.multiview.visibility.MAX_FREE_SPACE_PAIR`: the one test callers
         (``register_scans``, the CLI) apply."""
         from .globalreg.scan import TRUSTED
-        from .multiview.visibility import MAX_FREE_SPACE_PAIR
 
-        return (self.confidence is not None and self.confidence >= TRUSTED and not self.ambiguous
-                and (self.free_space is None or self.free_space <= MAX_FREE_SPACE_PAIR))
+        if self.confidence is None or self.confidence < TRUSTED or self.ambiguous:
+            return False
+        if self.free_space is None:
+            return True
+        from .multiview.visibility import MAX_FREE_SPACE_PAIR  # here: it loads SciPy
+
+        return self.free_space <= MAX_FREE_SPACE_PAIR
 
     @property
     def rotation(self) -> np.ndarray:

@@ -182,9 +182,11 @@ def _status(result, bar: float | str | None) -> int:
 
 
 def _free_space_failed(result) -> bool:
-    from ..multiview.visibility import MAX_FREE_SPACE_PAIR
+    if result.free_space is None:
+        return False
+    from ..multiview.visibility import MAX_FREE_SPACE_PAIR  # here: it loads SciPy
 
-    return result.free_space is not None and result.free_space > MAX_FREE_SPACE_PAIR
+    return result.free_space > MAX_FREE_SPACE_PAIR
 
 
 def verdict(result) -> str:
