@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -11,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from esmicp.errors import InvalidInputError
 from esmicp.multiview import register_scans, scans as scans_module
 from esmicp.multiview import pose_graph
+from esmicp.result import RegistrationResult
 
 from conftest import require_module, require_shared
 
@@ -97,8 +96,9 @@ def _fake_pairwise(truth, *, wrong=(), low=(), wrong_untrusted=(), missing=(), a
             if {(i, j), (j, i)} & set(missing):
                 out.append("pair failed")
                 continue
-            out.append(SimpleNamespace(transformation=T, fitness=fitness, inlier_distance=0.05, ambiguous=ambiguous,
-                                       confidence=confidence, trusted=confidence >= 0.55 and not ambiguous))
+            out.append(RegistrationResult(transformation=T, converged=True, num_iterations=1, fitness=fitness,
+                                          inlier_rmse=0.0, inlier_distance=0.05, runtime_s=0.0, method="esm",
+                                          sigma=None, message="", ambiguous=ambiguous, confidence=confidence))
         return out
 
     return run

@@ -48,6 +48,9 @@ def test_corridor_is_degenerate_along_its_axis(rng):
     assert abs(direction.axis[0]) > 0.95
     assert direction.ratio < uncertainty.DEGENERATE_RATIO
     assert "translation along x (target frame) is poorly constrained" in direction.describe()
+    # However sharply the walls coincide, a pose that may slide is not trusted, and says why.
+    assert result.confidence >= 0.55 and not result.ambiguous
+    assert not result.trusted and result.doubts() == [direction.describe()]
     # The covariance says so too: x translation far less certain than y and z.
     deviations = np.sqrt(np.diag(result.covariance))
     assert deviations[3] > 10 * max(deviations[4], deviations[5])
@@ -66,6 +69,7 @@ def test_plane_on_plane_leaves_three_directions(rng):
     for direction in directions:
         if direction.kind == "translation":
             assert abs(direction.axis[2]) < 0.05  # in the plane
+    assert not result.trusted and len(result.doubts()) >= 3
     # Nothing at all constrains them: no information along them.
     for direction in directions:
         vector = np.concatenate([direction.rotation / direction.radius, direction.translation])
@@ -82,6 +86,7 @@ def test_well_constrained_object_has_none_and_a_psd_covariance():
     source = apply(np.linalg.inv(truth), cloud + rng.normal(0.0, 0.0005, cloud.shape))
     result = esmicp.register(source, cloud, init=truth @ pose([0, 0, 1], 2.0, [0.002, 0, 0]))
     assert result.degenerate_directions == ()
+    assert result.trusted and result.doubts() == []
     covariance = result.covariance
     assert covariance.shape == (6, 6)
     assert np.allclose(covariance, covariance.T)
@@ -201,6 +206,10 @@ def test_cli_register_prints_deviations_and_the_degenerate_direction(tmp_path, r
     out = capsys.readouterr().out
     assert "std rotation (deg" in out and "std translation (cloud units" in out
     assert "translation along x (target frame) is poorly constrained" in out
+    assert "DEGENERATE" in out.splitlines()[1]  # the verdict, after the line naming the files
+    # for scripts: not trusted, exit status 3, the reason on stderr
+    assert main([*arguments, "--min-confidence"]) == 3
+    assert "translation along x (target frame) is poorly constrained" in capsys.readouterr().err
     assert main([*arguments, "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert len(report["std_rotation_deg"]) == 3 and len(report["std_translation"]) == 3

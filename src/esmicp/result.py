@@ -181,19 +181,38 @@ class RegistrationResult:
 
     @property
     def trusted(self) -> bool:
-        """True when ``confidence`` reaches the trust bar (:data:`esmicp.globalreg.scan.TRUSTED`), the
-        result is not ``ambiguous``, and ``free_space`` (when measured) is within
-        :data:`esmicp.multiview.visibility.MAX_FREE_SPACE_PAIR`: the one test callers
+        """True when nothing casts doubt on the pose (:meth:`doubts` is empty): ``confidence``
+        reaches the trust bar (:data:`esmicp.globalreg.scan.TRUSTED`), the result is not
+        ``ambiguous``, the overlap constrains the pose in every direction (no
+        ``degenerate_directions``: a floor or a wall seen alone, or a corridor, lets the pose slide
+        however sharply the clouds coincide), and ``free_space`` (when measured) is within
+        :data:`esmicp.multiview.visibility.MAX_FREE_SPACE_PAIR`. The one test callers
         (``register_scans``, the CLI) apply."""
-        from .globalreg.scan import TRUSTED
+        return not self.doubts()
 
-        if self.confidence is None or self.confidence < TRUSTED or self.ambiguous:
-            return False
-        if self.free_space is None:
-            return True
-        from .multiview.visibility import MAX_FREE_SPACE_PAIR  # here: it loads SciPy
+    def doubts(self, bar: float | None = None) -> list[str]:
+        """Why the pose is not to be trusted, one phrase per reason (empty: :attr:`trusted`).
+        ``bar``: the confidence asked for (default the trust bar,
+        :data:`esmicp.globalreg.scan.TRUSTED`)."""
+        if bar is None:
+            from .globalreg.scan import TRUSTED as bar
 
-        return self.free_space <= MAX_FREE_SPACE_PAIR
+        reasons = []
+        if self.confidence is None:
+            reasons.append("no overlap confidence")
+        elif self.confidence < bar:
+            reasons.append(f"confidence {self.confidence:.2f} is below {bar:g}")
+        if self.ambiguous:
+            ratio = "" if self.runner_up_ratio is None else f" (score ratio {self.runner_up_ratio:.3f})"
+            reasons.append(f"ambiguous: a clearly different pose fits almost as well{ratio}")
+        reasons.extend(direction.describe() for direction in self.degenerate_directions)
+        if self.free_space is not None:
+            from .multiview.visibility import MAX_FREE_SPACE_PAIR  # here: it loads SciPy
+
+            if self.free_space > MAX_FREE_SPACE_PAIR:
+                reasons.append(f"free-space test failed: {100 * self.free_space:.0f}% of a cloud lies where the "
+                               f"other's sensor saw empty space (bar {100 * MAX_FREE_SPACE_PAIR:.0f}%)")
+        return reasons
 
     @property
     def rotation(self) -> np.ndarray:

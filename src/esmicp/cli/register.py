@@ -163,30 +163,18 @@ def _run_register(args) -> int:
 
 
 def _status(result, bar: float | str | None) -> int:
-    """``EXIT_UNTRUSTED`` (with one line on stderr) when ``--min-confidence`` was given and the
-    confidence is below ``bar``, the pose ambiguous or the free-space test failed; else ``EXIT_OK``."""
+    """``EXIT_UNTRUSTED`` (with one line on stderr) when ``--min-confidence`` was given and the pose
+    is in doubt (:meth:`~esmicp.result.RegistrationResult.doubts` against ``bar``: the confidence
+    below it, the pose ambiguous, degenerate or failing the free-space test); else ``EXIT_OK``."""
     if bar is None:
         return EXIT_OK
     bar = trust_bar() if bar == "trusted" else bar
-    confidence = result.confidence
-    if confidence is None or confidence < bar:
-        why = f"confidence {'unknown' if confidence is None else f'{confidence:.2f}'} is below {bar:g}"
-    elif result.ambiguous:
-        why = "the pose is ambiguous"
-    elif _free_space_failed(result):
-        why = "the pose failed the free-space test"
-    else:
+    doubts = result.doubts(bar)
+    if not doubts:
         return EXIT_OK
-    print(f"esmicp register: --min-confidence {bar:g}: {why} (exit status {EXIT_UNTRUSTED})", file=sys.stderr)
+    print(f"esmicp register: --min-confidence {bar:g}: {'; '.join(doubts)} (exit status {EXIT_UNTRUSTED})",
+          file=sys.stderr)
     return EXIT_UNTRUSTED
-
-
-def _free_space_failed(result) -> bool:
-    if result.free_space is None:
-        return False
-    from ..multiview.visibility import MAX_FREE_SPACE_PAIR  # here: it loads SciPy
-
-    return result.free_space > MAX_FREE_SPACE_PAIR
 
 
 def verdict(result) -> str:
@@ -202,9 +190,13 @@ def verdict(result) -> str:
         return (f"{text} (>= {bar:g}, but AMBIGUOUS: a clearly different pose fits almost as well, score ratio "
                 f"{result.runner_up_ratio:.3f}; do not trust this pose: the object may be symmetric or the "
                 "overlap too small to tell)")
-    if _free_space_failed(result):
-        return (f"{text} (>= {bar:g}, but the FREE-SPACE TEST FAILED: {100 * result.free_space:.0f}% of a cloud lies "
-                "where the other's sensor saw empty space; do not trust this pose: the clouds may share no surface)")
+    doubts = result.doubts()
+    if result.degenerate_directions:
+        return (f"{text} (>= {bar:g}, but DEGENERATE: {'; '.join(doubts)}; do not trust this pose: the overlap "
+                "lets it slide or turn there)")
+    if doubts:
+        return (f"{text} (>= {bar:g}, but the FREE-SPACE TEST FAILED: {'; '.join(doubts)}; do not trust this pose: "
+                "the clouds may share no surface)")
     return f"{text} (trusted: >= {bar:g})"
 
 

@@ -287,8 +287,6 @@ class _Pairwise:
         return new
 
     def _edge(self, i: int, j: int, outcome, kind: str) -> Edge:
-        from ..globalreg.scan import TRUSTED
-
         if not hasattr(outcome, "transformation"):
             return Edge(i, j, np.full((4, 4), np.nan), 0.0, 0.0, 0.0, False, False, f"failed: {outcome}", kind=kind)
         T = outcome.transformation
@@ -297,12 +295,9 @@ class _Pairwise:
         d, _ = cKDTree(self.dense[j]).query(moved, distance_upper_bound=outcome.inlier_distance)
         reverse = float(np.isfinite(d).mean())
         confidence = getattr(outcome, "confidence", None)
-        trusted = bool(getattr(outcome, "trusted", False))
-        if trusted:
-            reason = "trusted"
-        else:
-            shown = "none" if confidence is None else f"{confidence:.2f}"
-            reason = f"untrusted (confidence {shown}, bar {TRUSTED}" + (", ambiguous)" if outcome.ambiguous else ")")
+        doubts = outcome.doubts()
+        trusted = not doubts
+        reason = "trusted" if trusted else f"untrusted ({'; '.join(doubts)})"
         return Edge(i, j, T, min(outcome.fitness, reverse), outcome.fitness, reverse, bool(outcome.ambiguous),
                     False, reason, confidence=confidence, trusted=trusted, kind=kind,
                     inlier_distance=float(outcome.inlier_distance),

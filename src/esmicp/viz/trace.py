@@ -70,7 +70,8 @@ class RegistrationTrace:
         state = "converged" if self.result.converged else "not converged"
         text = f"{self.method} from {self.start}: {self.iterations} iterations, {state}"
         if self.result.confidence is not None:
-            verdict = "trusted" if self.result.trusted else ("ambiguous" if self.result.ambiguous else "LOW")
+            verdict = "trusted" if self.result.trusted else (
+                "ambiguous" if self.result.ambiguous else "degenerate" if self.result.degenerate_directions else "LOW")
             text += f"; confidence {self.result.confidence:.2f} ({verdict})"
         return text
 
