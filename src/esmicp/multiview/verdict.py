@@ -1,8 +1,8 @@
 """Per-scan verdicts of :func:`esmicp.register_scans`: placed, doubtful or unplaced, and why.
 
 The evidence is the pairwise edges (:class:`esmicp.multiview.Edge`). An edge is *usable* when its
-pairwise result is trusted (:attr:`esmicp.RegistrationResult.trusted`: confidence at the trust bar
-and not ambiguous); the pose graph keeps the usable edges that agree with the solved poses and
+pairwise result is trusted (:attr:`esmicp.RegistrationResult.trusted`: confidence at the trust bar,
+not ambiguous, no degenerate direction); the pose graph keeps the usable edges that agree with the solved poses and
 rejects the others as cycle inconsistent. A scan is then
 
 * ``"placed"``: the reference scan; or posed and confirmed: joined to the reference by two paths
