@@ -38,7 +38,7 @@ import esmicp  # noqa: E402
 from esmicp import uncertainty  # noqa: E402
 from esmicp.bench.protocols import paper_noise  # noqa: E402
 from esmicp.core.correspondence import NearestNeighbors  # noqa: E402
-from esmicp.core.procrustes import apply, bounding_box_diagonal  # noqa: E402
+from esmicp.core.procrustes import apply, bounding_box_diagonal, skew  # noqa: E402
 from esmicp.metrics import random_rotation  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -64,12 +64,15 @@ def random_pose(rng, degrees: float, distance: float) -> np.ndarray:
 
 def exact_trial(cloud: np.ndarray, rng: np.random.Generator, points: int):
     """Two disjoint resamples of ``cloud`` with their own noise, each cut by a random plane, the source
-    moved by a random pose; a third of the trials add the bench's outlier noise to 20% of the source."""
+    moved by a random pose; a third of the trials add the bench's outlier noise to 20% of the source.
+    Returns ``(source, target, truth, noise)``: ``noise`` the added noise's standard deviation in
+    point spacings of ``cloud`` (uniform in 0-1)."""
     spacing = spacing_of(cloud)
     order = rng.permutation(len(cloud))
     half = min(points, len(cloud) // 2)
     source, target = cloud[order[:half]].astype(np.float64), cloud[order[half:2 * half]].astype(np.float64)
-    noise = rng.uniform(0.0, 1.0) * spacing
+    fraction = rng.uniform(0.0, 1.0)
+    noise = fraction * spacing
     source = source + rng.normal(0.0, noise, source.shape)
     target = target + rng.normal(0.0, noise, target.shape)
     source, target = _cut(source, rng, 0.75), _cut(target, rng, 0.75)
@@ -77,7 +80,7 @@ def exact_trial(cloud: np.ndarray, rng: np.random.Generator, points: int):
         source, _ = paper_noise(source, 0.2, rng, 0.5 * bounding_box_diagonal(cloud))
     truth = random_pose(rng, 180.0, 0.5 * bounding_box_diagonal(cloud))
     source = apply(np.linalg.inv(truth), source)  # truth maps the source back onto the target
-    return source, target, truth
+    return source, target, truth, fraction
 
 
 def _cut(points: np.ndarray, rng, keep: float) -> np.ndarray:
@@ -103,8 +106,10 @@ def real_pairs():
         yield pair.dataset, source, target, truth
 
 
-def trial_sets(count: int, rng: np.random.Generator, names: list[str]):
-    """``{set name: [(source, target, truth, kind)]}``."""
+def trial_sets(count: int, rng: np.random.Generator, names: list[str], points_scale: float = 1.0):
+    """``{set name: [(source, target, truth, kind, noise)]}`` (``noise``: :func:`exact_trial`'s, None
+    for real pairs). ``points_scale`` scales the resamples' sizes (15,000 points of the 3DMatch
+    fragment's 80,000, 8,000 of a kitchen frame's about 17,000), each at most half of its scan."""
     sets = {}
     frames, poses = kitchen_frames()
     if "3dmatch-resampled" in names:
@@ -112,11 +117,11 @@ def trial_sets(count: int, rng: np.random.Generator, names: list[str]):
 
         cloud = io.read_points(DATA / "real_pairs" / "3dmatch_redkitchen" / "cloud_bin_0.ply")
         cloud = cloud[rng.permutation(len(cloud))[:80_000]]
-        sets["3dmatch-resampled"] = [(*exact_trial(cloud, rng, 15_000), "exact") for _ in range(count)]
+        sets["3dmatch-resampled"] = [_exact(exact_trial(cloud, rng, round(15_000 * points_scale))) for _ in range(count)]
     if "kitchen-resampled" in names:
         chosen = rng.choice(sorted(poses), size=count, replace=False)
         sets["kitchen-resampled"] = [
-            (*exact_trial(np.load(frames / f"{name}.npy").astype(np.float64), rng, 8_000), "exact") for name in chosen]
+            _exact(exact_trial(np.load(frames / f"{name}.npy").astype(np.float64), rng, round(8_000 * points_scale))) for name in chosen]
     if "kitchen-walk-GT" in names:
         ordered = sorted(poses)
         trials = []
@@ -124,12 +129,17 @@ def trial_sets(count: int, rng: np.random.Generator, names: list[str]):
             a, b = ordered[k], ordered[k + 1]
             truth = np.linalg.inv(poses[a]) @ poses[b]
             trials.append((np.load(frames / f"{b}.npy").astype(np.float64), np.load(frames / f"{a}.npy").astype(np.float64),
-                           truth, "real-GT"))
+                           truth, "real-GT", None))
         sets["kitchen-walk-GT"] = trials
     if "real-pairs-GT" in names:
         for dataset, source, target, truth in real_pairs():
-            sets.setdefault(f"real_pairs {dataset}", []).append((source, target, truth, "real-GT"))
+            sets.setdefault(f"real_pairs {dataset}", []).append((source, target, truth, "real-GT", None))
     return sets
+
+
+def _exact(trial):
+    source, target, truth, noise = trial
+    return source, target, truth, "exact", noise
 
 
 def nees(error: np.ndarray, covariance: np.ndarray | None) -> float:
@@ -171,7 +181,7 @@ def global_cost(trials, count: int) -> np.ndarray:
     """The covariance's share of the run time of default registrations (global search) of the
     first ``count`` trials."""
     shares = []
-    for source, target, _, _ in trials[:count]:
+    for source, target, *_ in trials[:count]:
         timed = _Timed()
         uncertainty.from_registration = timed
         try:
@@ -216,7 +226,7 @@ def run_small_gicp(source, target, start, spacing):
     rotation, translation = estimate[:3, :3], estimate[:3, 3]
     adjoint[:3, :3] = rotation
     adjoint[3:, 3:] = rotation
-    adjoint[3:, :3] = uncertainty._skew(translation) @ rotation
+    adjoint[3:, :3] = skew(translation) @ rotation
     left = adjoint @ right @ adjoint.T
     mse = 2.0 * result.error / max(3 * result.num_inliers - 6, 1)
     return estimate, {"small_gicp H^-1 (as returned)": left, "small_gicp H^-1 (x MSE)": left * mse}
@@ -237,15 +247,17 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--sets", default="3dmatch-resampled,kitchen-resampled,kitchen-walk-GT,real-pairs-GT")
     parser.add_argument("--no-peers", action="store_true", help="esmicp only")
+    parser.add_argument("--points-scale", type=float, default=1.0,
+                        help="scale the exact sets' resample sizes (default 1: 15,000 and 8,000 points)")
     parser.add_argument("--global-cost", type=int, default=0, help="also time N default (global) registrations")
     parser.add_argument("--plot", type=Path, help="write a PNG of predicted against observed errors (esmicp)")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     names = args.sets.split(",")
-    sets = trial_sets(args.trials, rng, names)
-    table, ratios, points = {}, [], []
+    sets = trial_sets(args.trials, rng, names, args.points_scale)
+    table, ratios, points, by_noise = {}, [], [], {}
     for set_name, trials in sets.items():
-        for source, target, truth, kind in trials:
+        for source, target, truth, kind, noise in trials:
             spacing = spacing_of(target)
             for _ in range(args.starts if kind == "real-GT" else 1):
                 start = random_pose(rng, START_DEGREES, START_SPACINGS * spacing) @ truth
@@ -262,7 +274,11 @@ def main(argv=None) -> int:
                         table.setdefault((set_name, kind, peer), []).append(nees(error, covariance))
                         if peer == "esmicp" and covariance is not None:
                             points.append((set_name, np.abs(error), np.sqrt(np.diag(covariance))))
-    print(f"Trials: {args.trials} per exact set, {args.starts} starts per real-GT pair, seed {args.seed}; "
+                        if peer == "esmicp" and noise is not None:
+                            band = min(int(3 * noise), 2)
+                            by_noise.setdefault((set_name, band), []).append(nees(error, covariance))
+    print(f"Trials: {args.trials} per exact set (resample sizes x{args.points_scale:g}), {args.starts} starts per "
+          f"real-GT pair, seed {args.seed}; "
           f"start {START_DEGREES:g} deg and {START_SPACINGS:g} target spacings from the truth.\n")
     print("| set | truth | method | trials | mean NEES | median NEES | inside chi2(6) 95% |")
     print("|---|---|---|---:|---:|---:|---:|")
@@ -273,6 +289,14 @@ def main(argv=None) -> int:
         median = f"{np.median(valid):.3g}" if len(valid) else "n/a"
         inside = np.mean(np.nan_to_num(values, nan=np.inf) <= CHI2_6_95)
         print(f"| {set_name} | {kind} | {peer} | {len(values)} | {mean} | {median} | {100 * inside:.0f}% |")
+    if by_noise:
+        print("\nesmicp on the exact sets, by the added noise (standard deviation, in point spacings):\n")
+        print("| set | added noise | trials | mean NEES | median NEES | inside chi2(6) 95% |")
+        print("|---|---|---:|---:|---:|---:|")
+        for (set_name, band), values in sorted(by_noise.items()):
+            values = np.array(values, dtype=np.float64)
+            print(f"| {set_name} | {band / 3:.2f}-{(band + 1) / 3:.2f} | {len(values)} | {np.nanmean(values):.3g} | "
+                  f"{np.nanmedian(values):.3g} | {100 * np.mean(np.nan_to_num(values, nan=np.inf) <= CHI2_6_95):.0f}% |")
     ratios = np.array(ratios)
     print(f"\nCost of the covariance (esmicp): median {100 * np.median(ratios):.1f}% of the registration that "
           f"computed it (max {100 * ratios.max():.1f}%), {len(ratios)} registrations from a given start, one thread.")
