@@ -27,3 +27,16 @@ def test_no_pose_far_off_is_trusted_on_a_box_room(walk, frame):  # noqa: F811
         if rotation > 5.0 or translation > 0.2:
             assert not result.trusted, (name, rotation, translation, result.confidence)
             assert result.doubts(), name
+
+
+def test_the_trace_caption_says_why_a_sharp_pose_is_not_trusted():
+    """A corridor registered from the identity coincides sharply but slides along its axis: the
+    visualisation's caption names the direction, not LOW."""
+    from esmicp.viz.trace import trace_registration
+    from test_uncertainty import corridor
+
+    rng = np.random.default_rng(2)
+    target, source = corridor(6000, rng), corridor(6000, rng) + [0.03, 0.01, 0.0]
+    trace = trace_registration(source, target, init="identity", per_point=False)
+    assert trace.result.confidence >= 0.55
+    assert "not trusted: translation along x (target frame) is poorly constrained" in trace.label

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..api import register
 from ..core.procrustes import apply
+from ..globalreg.scan import TRUSTED
 from ..result import RegistrationResult
 from ..types import as_points, as_transform
 
@@ -70,8 +71,9 @@ class RegistrationTrace:
         state = "converged" if self.result.converged else "not converged"
         text = f"{self.method} from {self.start}: {self.iterations} iterations, {state}"
         if self.result.confidence is not None:
-            verdict = "trusted" if self.result.trusted else (
-                "ambiguous" if self.result.ambiguous else "degenerate" if self.result.degenerate_directions else "LOW")
+            doubts = self.result.doubts()
+            verdict = "trusted" if not doubts else "LOW" if self.result.confidence < TRUSTED else (
+                "ambiguous" if self.result.ambiguous else "not trusted: " + "; ".join(doubts))
             text += f"; confidence {self.result.confidence:.2f} ({verdict})"
         return text
 
