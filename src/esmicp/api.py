@@ -265,8 +265,10 @@ def register(
     outcome = frame.outcome(outcome)
     free_space = None
     if range_images:
+        from .multiview.visibility import pair_verdict
+
         free_space = _free_space(request, outcome.transformation, inlier_distance)
-        outcome = dataclasses.replace(outcome, message=outcome.message + _free_space_note(free_space))
+        outcome = dataclasses.replace(outcome, message=f"{outcome.message}; {pair_verdict(free_space)[1]}")
     return RegistrationResult(
         transformation=outcome.transformation,
         converged=outcome.converged,
@@ -299,18 +301,6 @@ def _free_space(request: _Request, transformation: np.ndarray, inlier_distance: 
 
     return visibility.free_space_fraction(request.target, request.source, transformation,
                                           visibility.TOLERANCE_INLIERS * inlier_distance)
-
-
-def _free_space_note(free_space: float | None) -> str:
-    """What the free-space test found, for ``result.message``."""
-    from .multiview.visibility import MAX_FREE_SPACE_PAIR
-
-    if free_space is None:
-        return "; free-space test: neither sensor sees enough of the other cloud to judge"
-    if free_space > MAX_FREE_SPACE_PAIR:
-        return (f"; free-space test failed: {100 * free_space:.0f}% of a cloud lies where the other's sensor saw "
-                f"empty space (bar {100 * MAX_FREE_SPACE_PAIR:.0f}%): the pose contradicts what the sensors saw")
-    return f"; free-space test passed ({100 * free_space:.1f}% in the other's empty space)"
 
 
 def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,

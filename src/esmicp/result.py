@@ -207,11 +207,11 @@ class RegistrationResult:
             reasons.append(f"ambiguous: a clearly different pose fits almost as well{ratio}")
         reasons.extend(direction.describe() for direction in self.degenerate_directions)
         if self.free_space is not None:
-            from .multiview.visibility import MAX_FREE_SPACE_PAIR  # here: it loads SciPy
+            from .multiview.visibility import pair_verdict  # here: it loads SciPy
 
-            if self.free_space > MAX_FREE_SPACE_PAIR:
-                reasons.append(f"free-space test failed: {100 * self.free_space:.0f}% of a cloud lies where the "
-                               f"other's sensor saw empty space (bar {100 * MAX_FREE_SPACE_PAIR:.0f}%)")
+            failed, words = pair_verdict(self.free_space)
+            if failed:
+                reasons.append(words)
         return reasons
 
     @property

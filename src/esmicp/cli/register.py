@@ -96,9 +96,10 @@ def add_parser(commands) -> None:
     reg.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     reg.add_argument(
         "--min-confidence", type=_confidence_bar, nargs="?", const="trusted", metavar="X",
-        help="exit with status 3 when the overlap confidence is below X (0-1), the pose is "
-        "ambiguous (another pose fits almost as well) or fails the --range-images test; without X, or 'trusted': the library's trust "
-        "bar (RegistrationResult.trusted). For scripts: 'esmicp register A B --min-confidence && ...'",
+        help="exit with status 3 when the overlap confidence is below X (0-1), or the pose is ambiguous "
+        "(another pose fits almost as well), degenerate (the overlap lets it slide) or fails the --range-images "
+        "test (RegistrationResult.doubts); without X, or 'trusted': the library's trust bar "
+        "(RegistrationResult.trusted). For scripts: 'esmicp register A B --min-confidence && ...'",
     )
     reg.add_argument(
         "--range-images", action="store_true",

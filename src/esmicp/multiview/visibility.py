@@ -98,6 +98,17 @@ def pair_free_space(views: dict, points: dict, poses: dict, a: int, b: int, tole
     return worst
 
 
+def pair_verdict(fraction: float | None) -> tuple[bool, str]:
+    """``(failed, words)``: whether a pair's free-space fraction (:func:`free_space_fraction`, None:
+    not judged) fails :data:`MAX_FREE_SPACE_PAIR`, and the test's outcome in words."""
+    if fraction is None:
+        return False, "free-space test: neither sensor sees enough of the other cloud to judge"
+    if fraction > MAX_FREE_SPACE_PAIR:
+        return True, (f"free-space test failed: {100 * fraction:.0f}% of a cloud lies where the other's sensor "
+                      f"saw empty space (bar {100 * MAX_FREE_SPACE_PAIR:.0f}%)")
+    return False, f"free-space test passed ({100 * fraction:.1f}% in the other's empty space)"
+
+
 def free_space_fraction(target: np.ndarray, source: np.ndarray, T_target_source: np.ndarray,
                         tolerance: float) -> float | None:
     """The free-space test of one registered pair: the larger fraction of either cloud that
@@ -108,9 +119,9 @@ def free_space_fraction(target: np.ndarray, source: np.ndarray, T_target_source:
     recorded: the sensor at the origin). ``tolerance``: how far in front of a surface a point must
     lie to count (cloud units; the merge uses :data:`TOLERANCE_INLIERS` times the registration's
     ``inlier_distance``). Each cloud is reduced to :data:`CHECK_POINTS` evenly strided points.
-    Above :data:`MAX_FREE_SPACE` (the merge's bar) the pose contradicts what the sensors saw. On
-    kitchen depth frames 60-150 frames apart, right poses reached 0.028 and poses 0.8 m or more
-    off 0.093-0.452, so a pose between the two is doubtful too (``docs/measured-global.md``).
+    Above :data:`MAX_FREE_SPACE_PAIR` the pose contradicts what the sensors saw (:func:`pair_verdict`;
+    ``register(..., range_images=True)`` applies it); the merge, judging poses a whole set of scans
+    agreed on, uses :data:`MAX_FREE_SPACE`.
     """
     points = {}
     for key, cloud in ((0, target), (1, source)):
