@@ -267,9 +267,13 @@ def main() -> None:
     parser.add_argument("--kitchen-pairs", type=int, default=3, help="kitchen frame pairs per gap")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path)
-    parser.add_argument("--compare", type=Path, help="a JSON-lines file of an earlier run to compare --out with")
+    parser.add_argument("--compare", type=Path, help="a JSON-lines file of an earlier run to compare --out with "
+                        "(an existing --out is compared as it is, not run again)")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing --out")
     args = parser.parse_args()
-    if args.out is not None and not (args.compare and args.out.exists() and args.sets == "none"):
+    if args.out is not None and args.out.exists() and not args.compare and not args.force:
+        parser.error(f"{args.out} exists: pass --force to overwrite it, or --compare to compare it")
+    if args.out is not None and not (args.compare and args.out.exists()):
         args.out.parent.mkdir(parents=True, exist_ok=True)
         makers = {
             "objects": lambda: object_rows(args.data, args.trials, args.seed),

@@ -217,7 +217,7 @@ def test_a_non_finite_global_estimate_is_reported_and_not_refined(monkeypatch):
     def nan_estimate(*args, **kwargs):
         return types.SimpleNamespace(
             transformation=np.full((4, 4), np.nan), strategies=("rotation-search",), ambiguous=False,
-            runner_up_score=None, runner_up_ratio=None, score=1.0, candidates=1,
+            runner_up=None, runner_up_score=None, runner_up_ratio=None, score=1.0, candidates=1,
         )
 
     monkeypatch.setattr(esmicp.api, "global_estimate", nan_estimate)

@@ -285,6 +285,8 @@ def register(
         ambiguous=bool(estimate is not None and estimate.ambiguous),
         runner_up_ratio=None if estimate is None else estimate.runner_up_ratio,
         global_candidates=0 if estimate is None else estimate.candidates,
+        runner_up=None if estimate is None or estimate.runner_up is None else frame.transform_out(
+            np.array(estimate.runner_up, dtype=np.float64)),
         confidence=confidence,
         correspondences=correspondences,
         covariance=pose.covariance,

@@ -118,6 +118,12 @@ class RegistrationResult:
         distinct runner-up. When the runner-up scores higher (the returned pose was preferred
         because, unlike it, it makes the overlap coincide: a cut object's flip lies on more of the
         other part than the truth), the result is ambiguous.
+    runner_up : (4, 4) float64 array or None
+        The best clearly different pose the global search verified (``T_target_source``, in the
+        clouds' own frames, as verified: not polished by the final refinement), the one
+        ``runner_up_ratio`` compares with; None without a global search or without a distinct
+        runner-up. When the result is ambiguous or not trusted, it is the other place the source
+        may belong: the object's symmetric twin, or the same scan slid along a corridor or a road.
     global_candidates : int
         Number of candidate poses the global search verified (0 without one).
     confidence : float or None
@@ -172,6 +178,7 @@ class RegistrationResult:
     ambiguous: bool = False
     runner_up_ratio: float | None = None
     global_candidates: int = 0
+    runner_up: np.ndarray | None = field(default=None, repr=False)
     confidence: float | None = None
     correspondences: Correspondences | None = field(default=None, repr=False)
     covariance: np.ndarray | None = field(default=None, repr=False)
@@ -241,6 +248,7 @@ class RegistrationResult:
             "ambiguous": self.ambiguous,
             "runner_up_ratio": self.runner_up_ratio,
             "global_candidates": self.global_candidates,
+            "runner_up": None if self.runner_up is None else self.runner_up.tolist(),
             "confidence": self.confidence,
             "trusted": self.trusted,
             "covariance": None if self.covariance is None else self.covariance.tolist(),

@@ -254,9 +254,9 @@ def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarra
     null = vectors[:, ~constrained]
     scaled = scaled + radius * radius * (null @ null.T)
     scaled = 0.5 * (scaled + scaled.T)
-    mapping = _to_frame(centre + origin, radius)
+    mapping, inverse_mapping = _to_frame(centre + origin, radius)
     covariance = mapping @ scaled @ mapping.T
-    information = _information(scaled, null, mapping)
+    information = _information(scaled, null, inverse_mapping)
     degenerate = tuple(
         DegenerateDirection(vectors[:3, k].copy(), vectors[3:, k].copy(), float(ratios[k]), centre + origin, radius)
         for k in range(6) if ratios[k] < DEGENERATE_RATIO
@@ -299,19 +299,24 @@ def _cluster_ids(points: np.ndarray, size: float) -> np.ndarray:
     return (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
 
 
-def _to_frame(centre: np.ndarray, radius: float) -> np.ndarray:
+def _to_frame(centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """The 6x6 map from the scaled perturbation about ``centre`` (``(omega * radius, v_c)``) to the
-    perturbation about the frame's origin (``(omega, v)``, ``v = v_c + centre x omega``)."""
-    mapping = np.zeros((6, 6))
+    perturbation about the frame's origin (``(omega, v)``, ``v = v_c + centre x omega``), and its
+    inverse, written out (a numerical inverse fails on clouds of size 1e30, whose ``1 / radius``
+    block is 1e-30 beside the unit one)."""
+    mapping, inverse = np.zeros((6, 6)), np.zeros((6, 6))
     mapping[:3, :3] = np.eye(3) / radius
     mapping[3:, :3] = skew(centre) / radius
     mapping[3:, 3:] = np.eye(3)
-    return mapping
+    inverse[:3, :3] = np.eye(3) * radius
+    inverse[3:, :3] = -skew(centre)
+    inverse[3:, 3:] = np.eye(3)
+    return mapping, inverse
 
 
-def _information(scaled: np.ndarray, null: np.ndarray, mapping: np.ndarray) -> np.ndarray:
-    """The inverse of ``mapping @ scaled @ mapping.T``, zero along the ``null`` directions."""
-    inverse_mapping = np.linalg.inv(mapping)
+def _information(scaled: np.ndarray, null: np.ndarray, inverse_mapping: np.ndarray) -> np.ndarray:
+    """The inverse of ``mapping @ scaled @ mapping.T`` (``inverse_mapping``: the inverse of
+    ``mapping``), zero along the ``null`` directions."""
     values, vectors = np.linalg.eigh(scaled)
     positive = values > SINGULAR_RATIO * max(float(values[-1]), 1e-300)
     scaled_information = (vectors[:, positive] / values[positive]) @ vectors[:, positive].T

@@ -220,6 +220,10 @@ def print_summary(result) -> None:
             print(f"  {line}")
     print("T_target_source =")
     print(format_matrix(result.transformation))
+    if result.runner_up is not None and not result.trusted:
+        # The other place the source may belong (a symmetric twin, a slide along a road).
+        print(f"runner-up T_target_source (score ratio {result.runner_up_ratio:.3f}, as verified, not polished) =")
+        print(format_matrix(result.runner_up))
 
 
 def format_matrix(matrix: np.ndarray) -> str:
