@@ -307,7 +307,8 @@ def _sharper_or_chosen(work: _Workspace, chosen: GlobalEstimate, scanned: Global
     """:func:`_sharper_on_the_overlap`, its result on the verifier's scale: a scan pose that
     replaced ``chosen`` comes with overlap scores on keypoints (:func:`_on_the_verifier_scale`)."""
     result = _sharper_on_the_overlap(chosen, scanned, work.full_index.workers, work.config)
-    return result if result.transformations is chosen.transformations else _on_the_verifier_scale(work, result)
+    replaced = not np.array_equal(result.transformation, chosen.transformation)
+    return _on_the_verifier_scale(work, result) if replaced else result
 
 
 def _workspace(source, target, rng, full_index: NearestNeighbors, target_spacing: float | None,
@@ -578,8 +579,8 @@ def _full_resolution_scores(work: _Workspace, transformations: np.ndarray,
 def _on_the_verifier_scale(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     """The scan strategy's result (its poses ranked by its own overlap count on keypoints) with
     every pose's score on the verifier's scale (:func:`_full_resolution_scores`, each scored where
-    the scan strategy's ICP left it: refining them costs a neighbour graph of the full target, 1.3
-    to 1.6 times the time of a 3DMatch crop's whole registration), so that
+    the scan strategy's ICP left it: refining them first builds a neighbour graph of the full
+    target, and gave the same verdicts at up to 1.6 times a 3DMatch crop's registration time), so that
     ``ambiguous`` and ``runner_up_ratio`` read alike whichever generator won: the returned pose
     stays first (the decision stands; it may now score below its runner-up, which then makes the
     result ambiguous), the others follow by their new score, and the poses are not moved.
