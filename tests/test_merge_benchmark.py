@@ -136,3 +136,22 @@ def test_every_method_on_four_kitchen_frames():
     assert text.startswith(start) and text.endswith(end)
     assert "\n| esmicp register_scans, shuffled | " in text and "\n| Open3D reconstruction system" in text
     assert "\n| esmicp register_scans, sequence=True | " in text  # its figures, or "not supported"
+
+
+def test_the_reference_sweep_judges_each_run_from_its_own_reference():
+    require_shared("sequences/redkitchen_seq01_every10")
+    import merge_references
+
+    data = merge_scans.kitchen(frames=4, step=2)  # frames 0, 20, 40, 60 (raw 0-600)
+    rng = np.random.default_rng(0)
+    data.clouds = [cloud[rng.choice(len(cloud), 3000, replace=False)] for cloud in data.clouds]
+    chosen = merge_references.references(data, 3)
+    assert chosen[0] == data.reference and len(set(chosen)) == 3
+    assert merge_references.references(data, None) == [0, 1, 2, 3]
+    found = merge_references.rows(data, 2, log=lambda *_, **__: None)
+    assert [row["reference"] for row in found] == [data.names[k] for k in merge_references.references(data, 2)]
+    for row in found:
+        assert row["placed"] + row["doubtful"] + row["unplaced"] == 4
+        assert row["wrong"] == 0  # frames 20 raw frames apart: placed right from either reference
+    lines = merge_references.table(data, found)
+    assert len(lines) == 4 and lines[2].startswith(f"| `{data.names[chosen[0]]}` | ")

@@ -70,12 +70,13 @@ def _truth(n, rng):
     return poses
 
 
-def _fake_pairwise(truth, *, wrong=(), low=(), wrong_untrusted=(), missing=(), apart=()):
+def _fake_pairwise(truth, *, wrong=(), low=(), wrong_untrusted=(), missing=(), apart=(), overlapping=None):
     """Stand-in for the pairwise registrations: exact, trusted relative poses, except the listed
     pairs (``wrong``: off by 40 degrees yet trusted and the most confident; ``wrong_untrusted``:
     off and below the trust bar; ``low``: every pair of these scans untrusted; ``missing``: the
     registration failed; ``apart``: pairs with one scan in this set and one outside are trusted
-    at 0.6, the confidence of the wrong edges that placed kitchen frames 95 degrees off)."""
+    at 0.6, the confidence of the wrong edges that placed kitchen frames 95 degrees off;
+    ``overlapping``: when given, the only pairs that overlap, every other one untrusted)."""
 
     def run(jobs, *, pairs):
         out = []
@@ -89,7 +90,7 @@ def _fake_pairwise(truth, *, wrong=(), low=(), wrong_untrusted=(), missing=(), a
                 fitness, confidence = 0.95, 0.95  # the wrong edge is the most confident one
                 if {(i, j), (j, i)} & set(wrong_untrusted):
                     confidence, ambiguous = 0.33, True
-            if i in low or j in low:
+            if i in low or j in low or (overlapping is not None and (min(i, j), max(i, j)) not in overlapping):
                 fitness, confidence = 0.05, 0.1
             if (i in apart) != (j in apart):
                 confidence = 0.6
@@ -162,6 +163,32 @@ def test_an_unplaceable_scan_is_reported_not_forced_in(monkeypatch):
     assert any("scan 2" in note for note in result.notes)
     points, labels = result.merged(clouds)
     assert set(labels.tolist()) == {0, 1, 3}
+
+
+def test_a_reference_left_apart_by_its_first_pairs_still_reaches_the_other_scans(monkeypatch):
+    # Scans 0-2 (the reference's) and 3-14 look alike within their group and unlike across it,
+    # and only neighbours overlap (2-3 and 2-4 join the groups). The first pairs join each group
+    # within itself; the scans not placed must then be paired with the placed ones (pairs among
+    # themselves, however similar, cannot place them).
+    n = 15
+    rng = np.random.default_rng(5)
+    truth = _truth(n, rng)
+    clouds = _clouds(truth, rng)
+    overlapping = {(k, k + 1) for k in range(n - 1)} | {(k, k + 2) for k in range(n - 2)}
+    group = np.array([0, 0, 0] + [1] * (n - 3))
+    index = np.arange(n)
+    distances = 0.01 * np.abs(index[:, None] - index[None, :]) + (group[:, None] != group[None, :])
+    distances[2, 3:5] = distances[3:5, 2] = 0.9  # the views where the groups meet are the most alike across
+    np.fill_diagonal(distances, 0.0)
+    monkeypatch.setattr(scans_module.candidates, "descriptor_distances", lambda clouds: distances)
+    _patch(monkeypatch, truth, clouds, overlapping=overlapping)
+    result = register_scans(clouds, refine_rounds=0, threads=1, partners=2)
+    assert result.unplaced == (), result.reasons
+    for k in range(n):
+        angle, shift = _errors(result.poses[k], truth[k])
+        assert angle < 1e-6 and shift < 1e-6
+    # the first round alone leaves scans 3-14 apart: they were placed by pairs across the groups
+    assert any(group[e.i] != group[e.j] and e.kept for e in result.edges)
 
 
 def test_consensus_tree_outvotes_a_confident_wrong_edge():
@@ -344,3 +371,23 @@ def test_cli_merge_reads_three_column_bin_scans_with_bin_columns(tmp_path, bunny
     assert "bun000.bin" in capsys.readouterr().err
     assert main([*argv, "--bin-columns", "3"]) == 0
     assert out.exists()
+
+
+def test_bridging_pairs_join_a_placed_and_an_unplaced_scan_most_alike_first_each_scan_capped():
+    from esmicp.multiview.pairs import bridging_pairs
+
+    rng = np.random.default_rng(6)
+    distances = rng.random((12, 12))
+    distances = distances + distances.T
+    placed, unplaced, tried = [0, 4, 7], [1, 2, 3, 5, 6, 8, 9, 10, 11], {(0, 1), (4, 5)}
+    pairs = bridging_pairs(distances, placed, unplaced, tried, 2)
+    assert len(pairs) == len(set(pairs)) == 2 * len(placed)  # every placed scan used to its cap here
+    for i, j in pairs:
+        assert i < j and (i, j) not in tried
+        assert (i in placed) != (j in placed)
+    counts = np.bincount(np.array(pairs).ravel(), minlength=12)
+    assert counts.max() <= 2
+    gaps = [distances[i, j] for i, j in pairs]
+    assert gaps == sorted(gaps)
+    assert bridging_pairs(distances, [], unplaced, set(), 2) == []
+    assert bridging_pairs(distances, placed, [], set(), 2) == []

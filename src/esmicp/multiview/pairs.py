@@ -3,9 +3,10 @@
 * With the capture order (``sequence=True``): each scan with its next few scans
   (:func:`sequence_pairs`).
 * Without: each scan with the scans most similar to it by a cheap shape descriptor
-  (:func:`ranked_partners`, :func:`descriptor`).
+  (:func:`descriptor_distances`, :func:`ranked_partners`).
 * Once poses exist: scans whose placed extents overlap in the world frame (:func:`near_pairs`),
-  for loop closures and to confirm scans that hang on one edge.
+  for loop closures and to confirm scans that hang on one edge; and pairs that join a scan not
+  yet placed to the placed ones (:func:`bridging_pairs`).
 
 Pairs are unordered ``(i, j)`` with ``i < j``; the caller decides which is the target.
 """
@@ -36,14 +37,46 @@ def descriptor(points: np.ndarray) -> np.ndarray:
     return np.concatenate([eigen / (eigen.sum() + 1e-300), histogram, shape])
 
 
-def ranked_partners(clouds: Sequence[np.ndarray]) -> list[list[int]]:
-    """For every scan, every other scan, most similar first (by :func:`descriptor` distance;
-    ties by index)."""
+def descriptor_distances(clouds: Sequence[np.ndarray]) -> np.ndarray:
+    """``(N, N)`` Euclidean distances between the scans' :func:`descriptor` vectors (8 MB for
+    1,000 scans): small for similar views."""
     from scipy.spatial.distance import cdist
 
     descriptors = np.array([descriptor(c) for c in clouds])
-    distances = cdist(descriptors, descriptors)  # N x N: 8 MB for 1,000 scans
+    return cdist(descriptors, descriptors)
+
+
+def ranked_partners(distances: np.ndarray) -> list[list[int]]:
+    """For every scan, every other scan, most similar first (``distances`` from
+    :func:`descriptor_distances`; ties by index)."""
     return [[int(j) for j in np.argsort(row, kind="stable") if j != i] for i, row in enumerate(distances)]
+
+
+def bridging_pairs(distances: np.ndarray, placed: Iterable[int], unplaced: Iterable[int], tried: set,
+                   per_scan: int) -> list[tuple[int, int]]:
+    """Untried pairs of one scan of ``unplaced`` and one of ``placed``, most similar first
+    (``distances`` from :func:`descriptor_distances`), each scan in at most ``per_scan`` of them.
+
+    Only such a pair can place a scan that is not placed: one between two unplaced scans joins
+    them to each other, not to the reference. The cap holds on both sides, so the pairs are
+    spread over the scans whichever side is the larger (a few unplaced scans among many placed,
+    or a reference whose few placed scans face all the others): at most
+    ``per_scan * min(len(placed), len(unplaced))`` pairs."""
+    placed, unplaced = sorted(placed), sorted(unplaced)
+    if not placed or not unplaced or per_scan < 1:
+        return []
+    block = distances[np.ix_(unplaced, placed)]
+    rows, columns = np.unravel_index(np.argsort(block, axis=None, kind="stable"), block.shape)
+    used: dict[int, int] = {}
+    out: list[tuple[int, int]] = []
+    for row, column in zip(rows, columns):
+        i, j = unplaced[row], placed[column]
+        pair = (min(i, j), max(i, j))
+        if pair in tried or used.get(i, 0) >= per_scan or used.get(j, 0) >= per_scan:
+            continue
+        out.append(pair)
+        used[i], used[j] = used.get(i, 0) + 1, used.get(j, 0) + 1
+    return out
 
 
 def sequence_pairs(n: int, neighbours: int) -> list[tuple[int, int]]:

@@ -57,8 +57,9 @@ from .verdict import cut_off, scan_verdicts
 logger = logging.getLogger(__name__)
 
 #: Rounds in which the pose graph asks for more pairs where a scan is not yet confirmed (each
-#: round: up to ``partners`` pairs per such scan, then the graph solved again). Bounds the work
-#: on scans that can never be confirmed (another object, a scan at the end of a chain).
+#: round: up to ``partners`` pairs per such scan, with its posed neighbours when it is placed and
+#: with the placed scans most like it when not; then the graph solved again). Bounds the work on
+#: scans that can never be confirmed (another object, a scan at the end of a chain).
 EXTRA_ROUNDS = 3
 
 #: Iterations of the local check of a pair on the dense subsets (unless ``max_iterations`` is
@@ -438,8 +439,10 @@ def register_scans(
         refinement.
     partners : int
         Without ``sequence``: each scan is first registered with its ``partners`` most similar
-        scans (a shape descriptor); a scan not yet confirmed (on no cycle of agreeing edges) gets
-        up to ``partners`` more per round, until confirmed or every pair with it is tried.
+        scans (a shape descriptor). Then, each round, a placed scan not yet confirmed (on no cycle
+        of agreeing edges) gets up to ``partners`` more pairs with its posed neighbours, and the
+        scans not placed get pairs with the placed scans most similar to them, each scan in at
+        most ``partners`` of those.
     sequence_neighbours : int
         With ``sequence``: each scan with the next this many scans (2 gives triangles, so every
         scan can be confirmed around a cycle).
@@ -509,13 +512,14 @@ def register_scans(
     run_options = {"threads": threads, "processes": processes, "client": client, **register_kwargs}
     pairwise = _Pairwise(small, dense, keys, bool(sequence), run_options, progress)
 
-    ranked = None
+    unlike = None  # the scans' descriptor distances (candidates.descriptor_distances), when asked for
     if sequence:
         pairwise.run([(i, j, np.eye(4)) for i, j in candidates.sequence_pairs(n, sequence_neighbours)])
         retry = [(e.i, e.j, None) for e in pairwise.edges.values() if not e.trusted]
         pairwise.run(retry)  # a pair the identity start did not bring to trust: globally
     elif n > 1:
-        ranked = candidates.ranked_partners(small)
+        unlike = candidates.descriptor_distances(small)
+        ranked = candidates.ranked_partners(unlike)
         first = {(min(i, j), max(i, j)) for i in range(n) for j in ranked[i][:partners]}
         pairwise.run([(i, j, None) for i, j in sorted(first)])
     vetoed: dict[tuple[int, int], str] = {}  # edges cut by a free-space conflict -> why
@@ -533,16 +537,20 @@ def register_scans(
         for _ in range(EXTRA_ROUNDS if n > 1 else 0):  # more pairs only where a scan is not yet confirmed
             extents = candidates.world_extents(poses, small)
             wanted: list[tuple[int, int]] = []
-            for k in _unconfirmed(n, reference, poses, edges):
-                # each scan's choice against the pairs tried so far only, so that the union does not
-                # depend on the input order
-                near = candidates.near_pairs([k], extents, pairwise.tried, partners)
-                if k not in poses:  # not placed at all: its next most similar scans
-                    if ranked is None:
-                        ranked = candidates.ranked_partners(small)
-                    near = [(min(k, j), max(k, j)) for j in ranked[k] if (min(k, j), max(k, j)) not in pairwise.tried]
-                    near = near[:partners]
-                wanted.extend(p for p in near if p not in wanted)
+            unconfirmed = _unconfirmed(n, reference, poses, edges)
+            for k in unconfirmed:
+                if k in poses:
+                    # placed: its posed neighbours, each scan's choice against the pairs tried so
+                    # far only, so that the union does not depend on the input order
+                    near = candidates.near_pairs([k], extents, pairwise.tried, partners)
+                    wanted.extend(p for p in near if p not in wanted)
+            unplaced = [k for k in unconfirmed if k not in poses]
+            if unplaced:  # not placed at all: pairs with the placed scans most like them
+                if unlike is None:
+                    unlike = candidates.descriptor_distances(small)
+                bridges = candidates.bridging_pairs(unlike, poses, unplaced, pairwise.tried, partners)
+                asked = set(wanted)
+                wanted.extend(p for p in bridges if p not in asked)
             if not wanted:
                 break
             pairwise.run([(i, j, None) for i, j in wanted])
@@ -555,8 +563,8 @@ def register_scans(
             fine_normals = {k: estimate_normals(fine[k], k=12, workers=None) for k in fine}
             scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
             fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
-            distances = np.geomspace(3.0 * scale, max(REFINE_FLOOR_SPACINGS * fine_spacing, 1e-12), refine_rounds)
-            poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, reference, distances)
+            reach = np.geomspace(3.0 * scale, max(REFINE_FLOOR_SPACINGS * fine_spacing, 1e-12), refine_rounds)
+            poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, reference, reach)
 
         # on the refined poses (the graph's alone drift along a walk and conflict falsely): the
         # edges a conflict disproves are cut once, and the scans they placed searched again
