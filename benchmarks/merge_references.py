@@ -6,8 +6,8 @@ Usage::
     python benchmarks/merge_references.py --doc docs/merge.md            # bunny (every scan) and kitchen (5)
     python benchmarks/merge_references.py --datasets kitchen --references 3
 
-The scans of :mod:`merge_scans` (its ``bunny`` and ``kitchen`` data sets, in the seeded shuffled
-order of its ``register_scans, shuffled`` run, seed 0), given to ``esmicp.register_scans`` at its
+The scans of :mod:`merge_scans` (its ``bunny`` and ``kitchen`` data sets, in one seeded shuffled
+order: :func:`merge_scans.run_api` with shuffle seed 0), given to ``esmicp.register_scans`` at its
 defaults with each reference in turn: for the bunny every scan; for the kitchen walk its first
 frame (the reference of docs/merge.md's tables) and ``--references - 1`` more drawn with seed 0.
 Each row is judged as in :mod:`merge_scans` (:func:`merge_scans.evaluate`: errors against the
@@ -77,7 +77,7 @@ def main(argv=None) -> int:
         data = merge_scans.bunny(SHUFFLE_SEED) if name == "bunny" else merge_scans.kitchen(100)
         found = rows(data, None if name == "bunny" else args.references)
         wrong_deg, wrong_units = data.wrong
-        lines += [f"**{data.title}**, in the order of the `register_scans, shuffled` run above, one run per "
+        lines += [f"**{data.title}**: the scans in one seeded shuffled order (seed {SHUFFLE_SEED}), one run per "
                   f"reference. *Wrong*: more than {wrong_deg:g} deg or {wrong_units * data.scale:g} {data.unit} off; "
                   "*silently*: of those, reported placed.", ""]
         lines += table(data, found) + [""]
