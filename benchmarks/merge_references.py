@@ -86,11 +86,7 @@ def main(argv=None) -> int:
     block = "\n".join(lines)
     print(block)
     if args.doc is not None:
-        text = args.doc.read_text()
-        if MARKERS[0] not in text or MARKERS[1] not in text:
-            raise SystemExit(f"{args.doc}: no '{MARKERS[0]}' ... '{MARKERS[1]}' markers to replace between")
-        before, rest = text.split(MARKERS[0], 1)
-        args.doc.write_text(before + block + rest.split(MARKERS[1], 1)[1])
+        merge_scans.write_doc(args.doc, {"references": block}, markers_of=lambda _: MARKERS)
     return 0
 
 

@@ -550,12 +550,12 @@ def markdown(report: dict) -> dict[str, str]:
     return blocks
 
 
-def write_doc(path: Path, blocks: dict[str, str]) -> None:
-    """Replace each data set's block of ``path`` (between its markers) with the new one; the rest
-    of the file, and the blocks of data sets not run, are kept."""
+def write_doc(path: Path, blocks: dict[str, str], markers_of=markers) -> None:
+    """Replace each named block of ``path`` (between its markers, ``markers_of(name)``: by default
+    a data set's) with the new one; the rest of the file, and the blocks not given, are kept."""
     text = path.read_text()
     for name, block in blocks.items():
-        start, end = markers(name)
+        start, end = markers_of(name)
         if start not in text or end not in text:
             raise SystemExit(f"{path}: no '{start}' ... '{end}' markers to replace between")
         before, rest = text.split(start, 1)
