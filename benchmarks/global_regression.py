@@ -28,7 +28,7 @@ Sets (``--sets``, comma-separated):
     (:func:`esmicp.globalreg.scan.overlap_score`) of the ground-truth pose refined from itself, so
     that "no pose was there to find" can be told apart from "the search chose the wrong one".
     Registered with ``range_images=True`` (both frames stay range images): each row records
-    ``free_space`` (the free-space test, :func:`esmicp.multiview.visibility.free_space_fraction`)
+    ``free_space`` (the free-space test, :func:`esmicp.trust.free_space.free_space_fraction`)
     and ``trusted_without_free_space``.
 
 Each registration is ``esmicp.register(source, target, rng=seed)`` with every default (``workers=1``)

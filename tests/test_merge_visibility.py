@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from esmicp.multiview import register_scans, visibility
+from esmicp.multiview import register_scans
+from esmicp.trust import free_space
 from esmicp.multiview.verdict import cut_off, scan_verdicts
 
 from test_multiview import _clouds, _patch, _truth
@@ -55,12 +56,12 @@ def walk():
 
 
 def _fractions(clouds, poses):
-    views = {k: visibility.RangeView(c) for k, c in enumerate(clouds)}
+    views = {k: free_space.RangeView(c) for k, c in enumerate(clouds)}
     points = dict(enumerate(clouds))
     out = {}
     for a in range(len(clouds)):
         for b in range(a + 1, len(clouds)):
-            fraction = visibility.pair_free_space(views, points, dict(enumerate(poses)), a, b, 0.15)
+            fraction = free_space.pair_free_space(views, points, dict(enumerate(poses)), a, b, 0.15)
             if fraction is not None:
                 out[(a, b)] = fraction
     return out
@@ -77,10 +78,10 @@ def _turned(poses, scans, room_to_scan0, degrees=90.0):
 def test_right_poses_leave_free_space_empty_and_a_turned_scan_does_not(walk):
     clouds, truth, room_frame = walk
     right = _fractions(clouds, truth)
-    assert len(right) >= 9 and max(right.values()) <= visibility.MAX_FREE_SPACE / 4
+    assert len(right) >= 9 and max(right.values()) <= free_space.MAX_FREE_SPACE / 4
     turned = _fractions(clouds, _turned(truth, {9}, room_frame))
-    assert max(f for (a, b), f in turned.items() if 9 in (a, b)) > visibility.MAX_FREE_SPACE
-    assert all(f <= visibility.MAX_FREE_SPACE for (a, b), f in turned.items() if 9 not in (a, b))
+    assert max(f for (a, b), f in turned.items() if 9 in (a, b)) > free_space.MAX_FREE_SPACE
+    assert all(f <= free_space.MAX_FREE_SPACE for (a, b), f in turned.items() if 9 not in (a, b))
 
 
 def test_a_conflict_cuts_off_the_side_without_the_reference():
@@ -144,15 +145,15 @@ def test_scans_not_seen_from_their_origins_are_not_checked(monkeypatch):
 def test_one_pair_free_space_passes_the_right_pose_and_not_one_slid_a_metre(walk):
     clouds, poses, _ = walk
     T_0_1 = poses[1]
-    right = visibility.free_space_fraction(clouds[0], clouds[1], T_0_1, tolerance=0.03)
+    right = free_space.free_space_fraction(clouds[0], clouds[1], T_0_1, tolerance=0.03)
     slid = np.eye(4)
     slid[:3, 3] = [0.0, 0.0, -1.0]  # 1 m towards the target camera: its walls now stand in the empty room
-    wrong = visibility.free_space_fraction(clouds[0], clouds[1], slid @ T_0_1, tolerance=0.03)
+    wrong = free_space.free_space_fraction(clouds[0], clouds[1], slid @ T_0_1, tolerance=0.03)
     assert right is not None and wrong is not None
-    assert right <= visibility.MAX_FREE_SPACE < wrong
+    assert right <= free_space.MAX_FREE_SPACE < wrong
     # the same pair as the merge judges it (both ways, from each origin)
-    views = {k: visibility.RangeView(clouds[k]) for k in (0, 1)}
-    assert right == pytest.approx(visibility.pair_free_space(views, {0: clouds[0], 1: clouds[1]},
+    views = {k: free_space.RangeView(clouds[k]) for k in (0, 1)}
+    assert right == pytest.approx(free_space.pair_free_space(views, {0: clouds[0], 1: clouds[1]},
                                                              {0: np.eye(4), 1: T_0_1}, 0, 1, 0.03), abs=0.02)
 
 
@@ -160,4 +161,4 @@ def test_one_pair_free_space_says_nothing_when_neither_sensor_sees_the_other(wal
     clouds, poses, _ = walk
     away = np.diag([-1.0, 1.0, -1.0, 1.0])  # turned to face away, 50 m behind the target camera
     away[:3, 3] = [0.0, 0.0, -50.0]
-    assert visibility.free_space_fraction(clouds[0], clouds[1], away @ poses[1], tolerance=0.03) is None
+    assert free_space.free_space_fraction(clouds[0], clouds[1], away @ poses[1], tolerance=0.03) is None

@@ -201,8 +201,8 @@ def register(
         Both clouds are range images in their sensor frames: every point as its sensor saw it,
         the sensor at the origin (depth-camera frames, LiDAR scans as recorded). The final pose
         is then also checked against the space each sensor saw empty
-        (:func:`esmicp.multiview.visibility.free_space_fraction`, in ``result.free_space``): a pose
-        that puts more than :data:`esmicp.multiview.visibility.MAX_FREE_SPACE_PAIR` of either
+        (:func:`esmicp.trust.free_space.free_space_fraction`, in ``result.free_space``): a pose
+        that puts more than :data:`esmicp.trust.free_space.MAX_FREE_SPACE_PAIR` of either
         cloud there is not trusted, however sharply the clouds coincide (a repeated structure
         matched in the wrong place, a pair that shares no surface). The pose itself is the same.
         False (the default): no such check (clouds in another frame, such as meshes, fused
@@ -265,7 +265,7 @@ def register(
     outcome = frame.outcome(outcome)
     free_space = None
     if range_images:
-        from .multiview.visibility import pair_verdict
+        from .trust.free_space import pair_verdict
 
         free_space = _free_space(request, outcome.transformation, inlier_distance)
         outcome = dataclasses.replace(outcome, message=f"{outcome.message}; {pair_verdict(free_space)[1]}")
@@ -298,11 +298,11 @@ def register(
 
 def _free_space(request: _Request, transformation: np.ndarray, inlier_distance: float) -> float | None:
     """The free-space test of the pair at ``transformation`` (``T_target_source``, the clouds' own
-    frames), at :data:`~esmicp.multiview.visibility.TOLERANCE_INLIERS` inlier distances."""
-    from .multiview import visibility  # here: esmicp.multiview imports this module
+    frames), at :data:`~esmicp.trust.free_space.TOLERANCE_INLIERS` inlier distances."""
+    from .trust import free_space  # here: it loads SciPy
 
-    return visibility.free_space_fraction(request.target, request.source, transformation,
-                                          visibility.TOLERANCE_INLIERS * inlier_distance)
+    return free_space.free_space_fraction(request.target, request.source, transformation,
+                                          free_space.TOLERANCE_INLIERS * inlier_distance)
 
 
 def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,

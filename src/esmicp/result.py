@@ -158,8 +158,8 @@ class RegistrationResult:
     free_space : float or None
         With ``register(..., range_images=True)``: the larger fraction (0-1) of either cloud that
         the pose puts in the space the other's sensor saw empty
-        (:func:`esmicp.multiview.visibility.free_space_fraction`); above
-        :data:`esmicp.multiview.visibility.MAX_FREE_SPACE_PAIR` the result is not trusted. None
+        (:func:`esmicp.trust.free_space.free_space_fraction`); above
+        :data:`esmicp.trust.free_space.MAX_FREE_SPACE_PAIR` the result is not trusted. None
         without that option, or when neither sensor sees enough of the other cloud to judge.
     """
 
@@ -193,7 +193,7 @@ class RegistrationResult:
         ``ambiguous``, the overlap constrains the pose in every direction (no
         ``degenerate_directions``: a floor or a wall seen alone, or a corridor, lets the pose slide
         however sharply the clouds coincide), and ``free_space`` (when measured) is within
-        :data:`esmicp.multiview.visibility.MAX_FREE_SPACE_PAIR`. The one test callers
+        :data:`esmicp.trust.free_space.MAX_FREE_SPACE_PAIR`. The one test callers
         (``register_scans``, the CLI) apply."""
         return not self.doubts()
 
@@ -214,7 +214,7 @@ class RegistrationResult:
             reasons.append(f"ambiguous: a clearly different pose fits almost as well{ratio}")
         reasons.extend(direction.describe() for direction in self.degenerate_directions)
         if self.free_space is not None:
-            from .multiview.visibility import pair_verdict  # here: it loads SciPy
+            from .trust.free_space import pair_verdict  # here: it loads SciPy
 
             failed, words = pair_verdict(self.free_space)
             if failed:

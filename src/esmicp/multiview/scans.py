@@ -22,7 +22,7 @@
    a refinement from its own wrong pose).
 4. Joint refinement: all placed scans against each other (multi-view point-to-plane over the
    kept edges, a few rounds with a shrinking correspondence distance).
-5. A free-space check (:mod:`esmicp.multiview.visibility`), when the scans are range images
+5. A free-space check (:mod:`esmicp.trust.free_space`), when the scans are range images
    from their origins (depth frames, LiDAR scans in their sensor frames): placed scans whose
    extents overlap must not put surfaces where the other saw empty space. A conflict disproves
    an edge between them, and the scans the likeliest wrong edges join to the reference are
@@ -48,9 +48,10 @@ from scipy.spatial import cKDTree
 from ..batch import register_many
 from ..errors import InvalidInputError
 from ..globalreg.features import estimate_normals, voxel_grid
+from ..trust import free_space
 from ..types import as_points
 from . import pairs as candidates
-from . import pose_graph, visibility
+from . import pose_graph
 from .refine import refine
 from .verdict import cut_off, scan_verdicts
 
@@ -366,27 +367,27 @@ def _free_space_conflicts(n, reference, poses, dense, small, edges) -> tuple[dic
     kept = [e for e in edges if e.kept and e.i in poses and e.j in poses]
     if len(kept) < 3:
         return {}, {}, "too few edges"
-    tolerance = visibility.TOLERANCE_INLIERS * float(np.median([e.inlier_distance for e in kept]))
+    tolerance = free_space.TOLERANCE_INLIERS * float(np.median([e.inlier_distance for e in kept]))
     posed = sorted(poses)
     # on threads: the KD-tree builds and queries release the GIL
     with ThreadPoolExecutor() as pool:
-        points = dict(zip(posed, pool.map(lambda k: _subsample(dense[k], visibility.CHECK_POINTS), posed)))
-        views = dict(zip(posed, pool.map(lambda k: visibility.RangeView(points[k]), posed)))
+        points = dict(zip(posed, pool.map(lambda k: _subsample(dense[k], free_space.CHECK_POINTS), posed)))
+        views = dict(zip(posed, pool.map(lambda k: free_space.RangeView(points[k]), posed)))
 
         def fractions(pairs):
             return dict(zip(pairs, pool.map(
-                lambda pair: visibility.pair_free_space(views, points, poses, *pair, tolerance), pairs)))
+                lambda pair: free_space.pair_free_space(views, points, poses, *pair, tolerance), pairs)))
 
         on_kept = fractions(sorted({(min(e.i, e.j), max(e.i, e.j)) for e in kept}))
         judged = [f for f in on_kept.values() if f is not None]
         if len(judged) < 3:
             return {}, {}, "too few edges"
-        if not visibility.applies(judged):
+        if not free_space.applies(judged):
             return {}, {}, "not range images"
         near = candidates.near_pairs(posed, candidates.world_extents(poses, small), set(on_kept),
                                      VISIBILITY_PARTNERS)
         measured = {**on_kept, **fractions(near)}
-    conflicts = [(a, b, f) for (a, b), f in sorted(measured.items()) if f is not None and f > visibility.MAX_FREE_SPACE]
+    conflicts = [(a, b, f) for (a, b), f in sorted(measured.items()) if f is not None and f > free_space.MAX_FREE_SPACE]
     cut, removed = cut_off(n, reference, [(e.i, e.j, e.confidence) for e in kept], conflicts)
     return cut, removed, "applied"
 

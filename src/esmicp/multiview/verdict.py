@@ -12,7 +12,7 @@ rejects the others as cycle inconsistent. A scan is then
 * ``"doubtful"``: posed, but usable edges contradict its pose, or it is joined to the reference
   only across a bridge (an edge on no cycle, which nothing checks: one wrong trusted edge would
   place it, and every scan beyond it, wrongly), or its pose puts surfaces where another placed
-  scan saw empty space (:mod:`esmicp.multiview.visibility`; :func:`cut_off` says which side of
+  scan saw empty space (:mod:`esmicp.trust.free_space`; :func:`cut_off` says which side of
   the conflict is cut off from the reference);
 * ``"unplaced"``: no pose, with the reason (no usable edge at all: another object, no shared
   surface, too few points; or usable edges only to scans not joined to the reference).
