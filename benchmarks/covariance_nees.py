@@ -35,7 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
 import esmicp  # noqa: E402
-from esmicp import uncertainty  # noqa: E402
+from esmicp.trust import uncertainty  # noqa: E402
 from esmicp.bench.protocols import paper_noise  # noqa: E402
 from esmicp.core.correspondence import NearestNeighbors  # noqa: E402
 from esmicp.core.procrustes import apply, bounding_box_diagonal, skew  # noqa: E402

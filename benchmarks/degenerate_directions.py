@@ -1,6 +1,6 @@
 """Degenerate directions on shapes, real scan pairs and synthetic corridors: the smallest eigenvalue
 ratio of the scaled point-to-plane Hessian and the directions reported below
-``esmicp.uncertainty.DEGENERATE_RATIO``.
+``esmicp.trust.uncertainty.DEGENERATE_RATIO``.
 
 Each cloud is registered from its ground truth (objects: a resample of the shape with a little
 noise onto the shape; real pairs: their recorded pose; kitchen-walk frames 10 apart: the walk's
@@ -24,7 +24,7 @@ sys.path.insert(0, str(REPO / "src"))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 import esmicp  # noqa: E402
-from esmicp import uncertainty  # noqa: E402
+from esmicp.trust import uncertainty  # noqa: E402
 from esmicp.bench.datasets import load_dataset  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"

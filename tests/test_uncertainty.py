@@ -1,4 +1,4 @@
-"""The pose covariance and the degenerate directions (``esmicp.uncertainty``): their frame
+"""The pose covariance and the degenerate directions (``esmicp.trust.uncertainty``): their frame
 convention, their shape, and what they say of corridors, planes and well-constrained objects."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import esmicp
-from esmicp import uncertainty
+from esmicp.trust import uncertainty
 from esmicp.core.procrustes import apply, skew
 from esmicp.metrics import random_rotation
 from esmicp.shapes import asymmetric_shape

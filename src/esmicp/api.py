@@ -23,8 +23,8 @@ from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimato
 from .methods.esm import COARSE_POINTS, TIGHT_START_QUANTILE, EsmEstimator
 from .methods.guard import guarded_refine
 from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome, _budget_spent
-from . import uncertainty
 from .result import Correspondences, RegistrationResult
+from .trust import uncertainty
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
 from .types import PointsLike, check_geometry
 from .working_frame import WorkingFrame

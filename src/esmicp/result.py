@@ -144,7 +144,7 @@ class RegistrationResult:
         The final pose's inlier pairs (:class:`Correspondences`), when asked for
         (``return_correspondences=True``); else None.
     covariance : (6, 6) float64 array or None
-        Covariance of the pose (:mod:`esmicp.uncertainty`): a small rotation vector (radians) then a
+        Covariance of the pose (:mod:`esmicp.trust.uncertainty`): a small rotation vector (radians) then a
         translation (cloud units), a perturbation applied on the LEFT of ``transformation``, in
         the target frame (``T_true = Exp(delta) @ transformation``). Calibrated on repeated
         registrations: ``docs/uncertainty.md``. None when not computed.
@@ -153,7 +153,7 @@ class RegistrationResult:
         constrain at all (a pseudo-inverse). For weighting pose-graph edges.
     degenerate_directions : tuple of DegenerateDirection
         The directions the overlap barely constrains (target frame), each with its ratio to the
-        best-constrained one (:class:`esmicp.uncertainty.DegenerateDirection`); empty for a
+        best-constrained one (:class:`esmicp.trust.uncertainty.DegenerateDirection`); empty for a
         well-constrained pair.
     free_space : float or None
         With ``register(..., range_images=True)``: the larger fraction (0-1) of either cloud that
@@ -266,7 +266,7 @@ class RegistrationResult:
 def _deviations(covariance: np.ndarray) -> tuple[list, list]:
     """The standard deviations of ``covariance``: rotation about x, y, z (degrees), translation along
     x, y, z (cloud units)."""
-    from .uncertainty import standard_deviations
+    from .trust.uncertainty import standard_deviations
 
     rotation, translation = standard_deviations(covariance)
     return rotation.tolist(), translation.tolist()

@@ -214,7 +214,7 @@ def print_summary(result) -> None:
         f"of the target, inlier RMSE {result.inlier_rmse:.6g}; sigma {sigma}"
     )
     if result.covariance is not None:
-        from ..uncertainty import describe
+        from ..trust.uncertainty import describe
 
         for line in describe(result.covariance, result.degenerate_directions):
             print(f"  {line}")

@@ -56,7 +56,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .core.procrustes import skew
+from ..core.procrustes import skew
 
 #: Side of the cubes (in target point spacings) whose pairs' residuals are allowed to be correlated
 #: in the cluster-robust covariance (see the module docstring). On resamples of a 3DMatch fragment
@@ -348,10 +348,10 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
     matches of :data:`MAX_NORMALS` of them come from the ``NORMAL_NEIGHBOURS`` nearest target
     points (as ``esm-plane``).
     """
-    from .core.procrustes import apply
-    from .core.weights import relative_gaussian_weights
-    from .globalreg.features import NormalEstimator
-    from .methods.plane import NORMAL_NEIGHBOURS
+    from ..core.procrustes import apply
+    from ..core.weights import relative_gaussian_weights
+    from ..globalreg.features import NormalEstimator
+    from ..methods.plane import NORMAL_NEIGHBOURS
 
     placed = apply(transformation, source)
     if pairs is not None:
