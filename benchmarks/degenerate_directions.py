@@ -41,7 +41,7 @@ def hessian_ratio(source, target, transformation) -> float:
     """The smallest eigenvalue ratio of the scaled point-to-plane Hessian at ``transformation``."""
     from esmicp.core.correspondence import NearestNeighbors
     from esmicp.core.procrustes import apply
-    from esmicp.globalreg.features import NormalEstimator
+    from esmicp.core.features import NormalEstimator
 
     index = NearestNeighbors(target, workers=1)
     placed = apply(transformation, source)

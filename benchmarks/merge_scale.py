@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from esmicp.globalreg.features import estimate_normals  # noqa: E402
+from esmicp.core.features import estimate_normals  # noqa: E402
 from esmicp.multiview import pose_graph  # noqa: E402
 from esmicp.multiview.refine import refine  # noqa: E402
 

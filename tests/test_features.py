@@ -1,4 +1,4 @@
-"""Local shape features (:mod:`esmicp.globalreg.features`) and the feature-based global hypotheses
+"""Local shape features (:mod:`esmicp.core.features`) and the feature-based global hypotheses
 (:mod:`esmicp.globalreg.feature_matching`)."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from esmicp.errors import InvalidInputError
 from esmicp.globalreg.config import DEFAULT
 from esmicp.globalreg import feature_matching
 from esmicp.globalreg.feature_matching import Hypothesis, feature_hypotheses, match_features
-from esmicp.globalreg.features import (
+from esmicp.core.features import (
     FPFH_BINS,
     FPFH_BLOCK_SUM,
     FPFH_DIMENSION,
@@ -124,7 +124,7 @@ def test_normals_are_equivariant_and_can_be_evaluated_elsewhere():
 def test_a_normal_estimator_asked_piece_by_piece_gives_estimate_normals_results():
     """NormalEstimator (the cloud's tree and centroid made once, for esm-plane's
     many small requests) answers each request exactly as one estimate_normals call would."""
-    from esmicp.globalreg.features import NormalEstimator
+    from esmicp.core.features import NormalEstimator
 
     rng = np.random.default_rng(5)
     points = bumpy_sphere(3000, rng)

@@ -160,7 +160,7 @@ def test_normals_come_from_the_offered_tree_only_when_it_holds_the_target(scene,
     """``use_target_tree``: the target index's own tree serves the normals (no second tree) when
     its points are the target's; a tree over other points is refused and the normals stay right."""
     from esmicp.core.compiled_tree import CompiledTree
-    from esmicp.globalreg.features import estimate_normals
+    from esmicp.core.features import estimate_normals
     from esmicp.methods import plane
 
     _, target = scene

@@ -99,7 +99,7 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
     """The confidence (compiled tree) against the same counts from SciPy's KD-tree, at the truth,
     near it and far from it."""
     from esmicp.globalreg import scan
-    from esmicp.globalreg.features import estimate_normals
+    from esmicp.core.features import estimate_normals
     from esmicp.globalreg.scan import Keypoints, overlap_confidence
 
     def reference(transformation, keypoints):

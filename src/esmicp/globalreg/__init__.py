@@ -2,7 +2,7 @@
 
 :mod:`.search` runs the strategies and verifies every candidate the same way;
 :mod:`.rotation_search` (a rotation grid, batched ESM) and :mod:`.feature_matching` (FPFH
-features from :mod:`.features`, RANSAC / clique matching) propose the candidates.
+features from :mod:`esmicp.core.features`, RANSAC / clique matching) propose the candidates.
 """
 
 #: Two poses are distinct when their rotations differ by more than this (degrees): the runner-up

@@ -4,10 +4,10 @@ Pipeline of :func:`feature_hypotheses` (all lengths scale with the ``voxel`` arg
 
 1. Voxel-downsample each cloud (the keypoints), and drop isolated keypoints, with their points:
    fewer occupied voxels within ``2 voxel`` than 0.3 x the cloud's 75th percentile
-   (:func:`~esmicp.globalreg.features.dense_point_mask`). This removes scattered outliers, which
+   (:func:`~esmicp.core.features.dense_point_mask`). This removes scattered outliers, which
    otherwise corrupt the normals and histograms of the clean points near them.
 2. PCA normals at the keypoints from the remaining dense points (at most 60 within ``4 voxel``),
-   oriented away from the centroid; FPFH within ``7 voxel`` (:mod:`esmicp.globalreg.features`).
+   oriented away from the centroid; FPFH within ``7 voxel`` (:mod:`esmicp.core.features`).
 3. Mutual nearest neighbours in feature space (:func:`match_features`).
 4. A robust estimator over the correspondences, ``method``:
 
@@ -51,11 +51,11 @@ import numpy as np
 
 from .. import _kernels
 from ..core.compiled_tree import threads
+from ..core.features import dense_point_mask, estimate_normals, fpfh, voxel_grid
 from ..core.procrustes import batched_weighted_procrustes, to_matrix
 from ..errors import InvalidInputError
 from ..types import as_count, as_generator, as_points, as_positive, as_real
 from . import DISTINCT_ROTATION_DEG
-from .features import dense_point_mask, estimate_normals, fpfh, voxel_grid
 
 if TYPE_CHECKING:  # SciPy is imported where it is used: `register` on a clean pair never needs it
     from scipy.spatial import cKDTree
@@ -412,7 +412,7 @@ def _keypoints(
     points: np.ndarray, voxel: float, normal_radius: float, feature_radius: float, filter_radius: float | None,
     *, normals_from_keypoints: bool = False, grid: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Downsampled points and their FPFH. ``grid``: :func:`~esmicp.globalreg.features.voxel_grid`
+    """Downsampled points and their FPFH. ``grid``: :func:`~esmicp.core.features.voxel_grid`
     of ``points`` at ``voxel``, when the caller has it already.
 
     Isolated voxels (few occupied voxels within ``filter_radius``: scattered outliers) are dropped

@@ -48,11 +48,11 @@ import numpy as np
 from .. import _kernels
 from ..core.compiled_tree import CompiledTree, threads
 from ..core.correspondence import coincident_points
+from ..core.features import estimate_normals, voxel_grid
 from ..core.procrustes import axis_bounds, batched_weighted_procrustes, rigid_inverse, rotation_angle, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .feature_matching import _keypoints, _inlier_counts, _inlier_mask, _distinct_order
 from .config import DEFAULT, SearchConfig
-from .features import estimate_normals, voxel_grid
 
 
 

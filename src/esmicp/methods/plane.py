@@ -2,7 +2,7 @@
 
 Each iteration pairs every source point ``s_i`` (as currently placed, target frame) with its
 nearest target point ``t_c(i)``, whose unit normal ``n_c(i)`` comes from a PCA of the target
-around it (:func:`esmicp.globalreg.features.estimate_normals`, the ``NORMAL_NEIGHBOURS`` nearest
+around it (:func:`esmicp.core.features.estimate_normals`, the ``NORMAL_NEIGHBOURS`` nearest
 target points: a scale the sampling chooses, so the method is unit-free). The residual is the
 distance of the point to the target's tangent plane,
 
@@ -37,10 +37,10 @@ import math
 import numpy as np
 
 from ..core.compiled_tree import CompiledTree
+from ..core.features import NormalEstimator
 from ..core.pose_kernels import rotation_exp
 from ..core.procrustes import rotation_angle
 from ..core.weights import relative_gaussian_weights
-from ..globalreg.features import NormalEstimator
 from .base import Estimator, Step
 from .esm import FINE_PHASE_STEP
 

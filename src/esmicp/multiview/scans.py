@@ -46,8 +46,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..batch import register_many
+from ..core.features import estimate_normals, voxel_grid
 from ..errors import InvalidInputError
-from ..globalreg.features import estimate_normals, voxel_grid
 from ..trust import free_space
 from ..types import as_points
 from . import pairs as candidates

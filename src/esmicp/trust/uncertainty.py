@@ -350,7 +350,7 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
     """
     from ..core.procrustes import apply
     from ..core.weights import relative_gaussian_weights
-    from ..globalreg.features import NormalEstimator
+    from ..core.features import NormalEstimator
     from ..methods.plane import NORMAL_NEIGHBOURS
 
     placed = apply(transformation, source)

@@ -1,4 +1,5 @@
-"""Local shape features for global registration: voxel downsampling, PCA normals and FPFH.
+"""Local shape features: voxel downsampling, PCA normals and FPFH (the global search, the
+plane method, the pose covariance and the merge use them).
 
 No Python loop over points: the normals and FPFH are compiled passes (:mod:`esmicp._kernels`),
 deterministic whatever the number of threads. Lengths
@@ -58,8 +59,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import _kernels
-from ..core.compiled_tree import K_MAX, CompiledTree, threads
-from ..core.procrustes import axis_bounds
+from .compiled_tree import K_MAX, CompiledTree, threads
+from .procrustes import axis_bounds
 from ..errors import InvalidInputError
 from ..types import as_positive
 
