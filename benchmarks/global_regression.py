@@ -60,7 +60,9 @@ from esmicp.bench.real_pairs import (
 from esmicp.bench.sequences import read_frame, read_poses
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import bounding_box_diagonal, rotation_angle
-from esmicp.globalreg.scan import Keypoints, overlap_score
+from esmicp.core.keypoints import Keypoints
+from esmicp.globalreg.config import DEFAULT
+from esmicp.globalreg.scan import overlap_score
 from esmicp.metrics import strict_success, up_to_symmetry_success
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -211,7 +213,7 @@ def kitchen_far_rows(data: Path, seed: int, pairs_per_gap: int = 3):
         # free-space test (range_images=True) is measured on every pair
         turned, turned_truth, moved_by = turn_source(source, truth, rng, about=np.zeros(3))
         refined = esmicp.register(turned, target, init=turned_truth, workers=1).transformation
-        keypoints = Keypoints.of(turned, target, NearestNeighbors(target, workers=1).spacing())
+        keypoints = Keypoints.of(turned, target, NearestNeighbors(target, workers=1).spacing(), DEFAULT.keypoints)
         truth_overlap = overlap_score(refined, keypoints, workers=1)
 
         def judge(estimate, truth=truth, moved_by=moved_by, truth_overlap=truth_overlap):

@@ -16,7 +16,8 @@ from esmicp.globalreg.feature_matching import _inlier_mask
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.compiled_tree import CompiledTree
 from esmicp.globalreg.config import DEFAULT
-from esmicp.globalreg.scan import MIN_COINCIDENT, Keypoints, _icp, overlap_confidence, prune, rank_poses
+from esmicp.core.keypoints import Keypoints, keypoint_voxel
+from esmicp.globalreg.scan import MIN_COINCIDENT, _icp, overlap_confidence, prune, rank_poses
 from esmicp.metrics import rotation_error_deg
 
 from conftest import require_shared
@@ -167,16 +168,16 @@ def test_a_wrong_pose_does_not_come_back_confident(real_pair, angle_deg):
     result = esmicp.register(source, target, init=wrong, max_iterations=3)
     assert rotation_error_deg(result.rotation, truth[:3, :3]) > 15.0, "the refinement found the truth: no test"
     assert result.confidence < DEFAULT.confident
-    assert overlap_confidence(wrong, Keypoints.of(source, target, NearestNeighbors(target).spacing())) < DEFAULT.confident
+    assert overlap_confidence(wrong, Keypoints.of(source, target, NearestNeighbors(target).spacing(), DEFAULT.keypoints)) < DEFAULT.confident
 
 
 def test_confidence_is_high_at_the_truth(real_pair):
     source, target, truth = real_pair
-    assert overlap_confidence(truth, Keypoints.of(source, target, NearestNeighbors(target).spacing())) >= DEFAULT.confident
+    assert overlap_confidence(truth, Keypoints.of(source, target, NearestNeighbors(target).spacing(), DEFAULT.keypoints)) >= DEFAULT.confident
 
 
 def test_occupied_voxels_equal_the_distinct_cell_keys():
-    from esmicp.globalreg.scan import _occupied
+    from esmicp.core.keypoints import _occupied
 
     generator = np.random.default_rng(7)
     points = np.concatenate([generator.normal(-50.0, 20.0, (20000, 3)), np.repeat(generator.uniform(0, 1, (50, 3)), 40, axis=0)])
@@ -399,7 +400,7 @@ def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, co
 
     cropped, truth = _lomatch_crop("t04_s06", 0, crop)
     spacing = NearestNeighbors(cropped.target).spacing()
-    standard = scan.keypoint_voxel(cropped.target, spacing)
+    standard = keypoint_voxel(cropped.target, spacing, DEFAULT.keypoints)
     chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
     assert _right_3dmatch(chosen.transformations[0], truth)
     assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= DEFAULT.confident

@@ -261,10 +261,10 @@ def test_sharper_on_the_overlap_replaces_only_an_unconfident_choice(monkeypatch)
 
     from esmicp.core.correspondence import NearestNeighbors
     from esmicp.globalreg import search
-    from esmicp.globalreg.scan import Keypoints
+    from esmicp.core.keypoints import Keypoints
 
     cloud = _cloud("chair_0848")
-    keypoints = Keypoints.of(cloud, cloud, NearestNeighbors(cloud).spacing())
+    keypoints = Keypoints.of(cloud, cloud, NearestNeighbors(cloud).spacing(), DEFAULT.keypoints)
     right, wrong = np.eye(4), np.eye(4)
     wrong[:3, :3] = Rotation.from_euler("z", 180, degrees=True).as_matrix()
     wrong[:3, 3] = cloud.mean(axis=0) - wrong[:3, :3] @ cloud.mean(axis=0)

@@ -184,14 +184,16 @@ def test_the_plane_stage_is_undone_when_it_loses_the_overlap(monkeypatch, plane_
     scan pair, where its sigma grew with the pairs off the overlap) is undone, and the message says
     so. Here the stage is replaced by one that turns the pose by a set angle."""
     import esmicp.api as api
-    from esmicp.globalreg.scan import Keypoints, overlap_confidence
+    from esmicp.core.keypoints import Keypoints
+    from esmicp.globalreg.config import DEFAULT
+    from esmicp.globalreg.scan import overlap_confidence
     from esmicp.methods.local import RefinementOutcome
 
     rng = np.random.default_rng(5)
     target = room(1500, rng)
     truth = to_matrix(random_rotation(rng, 4.0), [0.08, -0.05, 0.06])
     source = apply(rigid_inverse(truth), target)
-    keypoints = Keypoints.of(source, target, NearestNeighbors(target).spacing())
+    keypoints = Keypoints.of(source, target, NearestNeighbors(target).spacing(), DEFAULT.keypoints)
     turned = to_matrix(random_rotation(np.random.default_rng(2), plane_moves_by_deg), [0.0, 0.0, 0.0]) @ truth
 
     def fake_stage(points, index, estimator, *, init, criteria, scale, **_):

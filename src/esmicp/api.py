@@ -14,9 +14,10 @@ import numpy.typing as npt
 from .core.correspondence import NearestNeighbors
 from .core.procrustes import bounding_box_diagonal
 from .core.correspondence import coincident_points
+from .core.keypoints import Keypoints
 from .errors import CoincidentPointsWarning, IndexAlignmentWarning, InvalidInputError
 from .globalreg.config import SearchConfig, as_config
-from .globalreg.scan import TRUSTED, Keypoints, overlap_confidence
+from .globalreg.scan import TRUSTED, overlap_confidence
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
 from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimator
@@ -233,7 +234,7 @@ def register(
     initial, init_name, estimate = _start(request, source_points, target_points, target_index, frame)
     keypoints = getattr(estimate, "keypoints", None)
     if keypoints is None:
-        keypoints = Keypoints.of(source_points, target_points, target_index.spacing(), request.config)
+        keypoints = Keypoints.of(source_points, target_points, target_index.spacing(), request.config.keypoints)
     # After a global search (which ends at the finest sigma) the pose is already close: start in
     # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
     estimator = _estimator(method, request, target_index, diagonal, start_fine=estimate is not None)

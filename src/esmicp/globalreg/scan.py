@@ -4,7 +4,7 @@ spatial compatibility, verified on the overlap.
 The pipeline of :func:`scan_estimate` (every length is a multiple of one voxel the data chooses,
 so a pair scaled by 1000 gives the same pose):
 
-1. **Scale.** :func:`keypoint_voxel`: the voxel edge at which the target has about
+1. **Scale.** :func:`~esmicp.core.keypoints.keypoint_voxel`: the voxel edge at which the target has about
    ``SearchConfig.keypoints`` occupied voxels (found from the voxel counts, which scale as the inverse square of
    the edge on a surface), never below ``MIN_VOXEL_SPACINGS`` target point spacings.
 2. **Keypoints and descriptors.** Voxel centroids of each cloud, isolated ones dropped; PCA
@@ -41,15 +41,14 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from functools import cached_property
 
 import numpy as np
 
 from .. import _kernels
 from ..core.compiled_tree import CompiledTree, threads
-from ..core.correspondence import coincident_points
 from ..core.features import estimate_normals, voxel_grid
-from ..core.procrustes import axis_bounds, batched_weighted_procrustes, rigid_inverse, rotation_angle, to_matrix
+from ..core.keypoints import NORMAL_RADIUS_VOXELS, VERIFY_VOXELS, Keypoints, keypoint_voxel
+from ..core.procrustes import batched_weighted_procrustes, rigid_inverse, rotation_angle, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .feature_matching import _keypoints, _inlier_counts, _inlier_mask, _distinct_order
 from .config import DEFAULT, SearchConfig
@@ -72,11 +71,8 @@ NORMALS_FROM_KEYPOINTS = (True, False)
 #: small cloud is at ``MIN_VOXEL_SPACINGS`` for every count).
 LAST_KEYPOINTS = (10000, 2500)
 
-#: The keypoint voxel is at least this many target point spacings.
-MIN_VOXEL_SPACINGS = 1.5
-
-#: Radii, in keypoint voxels: normals, FPFH, the isolated-keypoint filter.
-NORMAL_RADIUS_VOXELS = 3.0
+#: Radii, in keypoint voxels: FPFH, the isolated-keypoint filter (normals:
+#: :data:`~esmicp.core.keypoints.NORMAL_RADIUS_VOXELS`).
 FEATURE_RADIUS_VOXELS = 6.0
 FILTER_RADIUS_VOXELS = 2.0
 
@@ -118,9 +114,6 @@ ICP_SETTLED_VOXELS = 0.05
 #: each step queries every keypoint of every hypothesis.
 ICP_POINTS = 1500
 
-#: A keypoint lies on the other cloud when within this many voxels of one of its keypoints.
-VERIFY_VOXELS = 1.0
-
 #: A pose of about the leader's rotation scoring at least this fraction of its overlap score
 #: challenges it on the slide-constraining inliers (:func:`rank_poses`).
 TIE_RATIO = 0.5
@@ -155,33 +148,6 @@ SPREAD_BELOW = 0.5
 #: for, the first that reaches ``SearchConfig.confident``, so a wrong pose just over that bar is the
 #: one it keeps (measured on the 3DMatch crops, ``docs/scans-partial-overlap.md``).
 TRUSTED = 0.55
-
-
-@dataclass(frozen=True)
-class Keypoints:
-    """The keypoint clouds of a pair (voxel centroids, cloud units) and their voxel."""
-
-    source: np.ndarray
-    target: np.ndarray
-    voxel: float
-
-    @classmethod
-    def of(cls, source: np.ndarray, target: np.ndarray, spacing: float,
-           config: SearchConfig = DEFAULT) -> "Keypoints":
-        """Both clouds voxel-downsampled at :func:`keypoint_voxel` of the target (``config.keypoints``
-        voxels)."""
-        voxel = keypoint_voxel(target, max(spacing, 0.0), config.keypoints)
-        return cls(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
-
-    @cached_property
-    def source_tree(self) -> CompiledTree:
-        """A compiled tree over :attr:`source`, built once (every score of a pose queries it)."""
-        return CompiledTree(self.source)
-
-    @cached_property
-    def target_tree(self) -> CompiledTree:
-        """A compiled tree over :attr:`target`, built once."""
-        return CompiledTree(self.target)
 
 
 @dataclass(frozen=True)
@@ -274,36 +240,6 @@ def coincident_spread(points: np.ndarray, tree: CompiledTree, touched: np.ndarra
                                workers=workers)
     values = np.linalg.eigvalsh(normals.T @ normals / len(normals))
     return float(values[0]), float(values[1])
-
-
-def keypoint_voxel(points: np.ndarray, spacing: float, count: int | None = None) -> float:
-    """The voxel edge (cloud units) at which ``points`` occupy about ``count`` (default
-    ``SearchConfig.keypoints``) voxels (at least ``MIN_VOXEL_SPACINGS * spacing``)."""
-    count = DEFAULT.keypoints if count is None else count
-    floor = MIN_VOXEL_SPACINGS * spacing
-    low, high = axis_bounds(points)
-    # Start from a surface guess (the bounding box's largest face) and correct by the 1/v^2 law.
-    faces = np.sort(high - low)[1:]
-    # Floor relative to the extent (a cloud on a line has no face): the voxel is scale-free.
-    voxel = max(float(np.sqrt(faces[0] * faces[1] / count)), floor, 1e-12 * float(faces[1]))
-    for _ in range(4):
-        occupied = _occupied(points, voxel, low)
-        if abs(occupied - count) <= 0.1 * count:
-            break
-        voxel = max(voxel * float(np.sqrt(occupied / count)), floor)
-        if voxel == floor:
-            break
-    return voxel
-
-
-def _occupied(points: np.ndarray, voxel: float, low: np.ndarray) -> int:
-    """The number of voxels of edge ``voxel`` that ``points`` occupy, the grid's corner at
-    ``low`` (the points' per-axis minimum, computed once by the caller): the distinct integer cell
-    coordinates, counted by one compiled hash pass (exact while they stay below 2**53; cheaper
-    than a sort of every key, and the voxel search makes up to 4 counts: ``docs/speed.md``)."""
-    cells = np.floor((points - low) / voxel)
-    repeats, _, _, _ = coincident_points(cells)
-    return len(cells) - repeats
 
 
 def _correspondences(source_features: np.ndarray, target_features: np.ndarray, limit: int,
@@ -477,7 +413,7 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     docstring). ``spacing``: the target's median point spacing (cloud units);
     ``normals_from_keypoints``: the keypoints' normals from the keypoints themselves, else from the
     dense points (:func:`~esmicp.globalreg.feature_matching._keypoints`); ``voxel``: the keypoint
-    voxel (cloud units; default :func:`keypoint_voxel` of the target). Deterministic."""
+    voxel (cloud units; default :func:`~esmicp.core.keypoints.keypoint_voxel` of the target). Deterministic."""
     voxel = keypoint_voxel(target, spacing, config.keypoints) if voxel is None else voxel
     normal_radius, feature_radius = NORMAL_RADIUS_VOXELS * voxel, FEATURE_RADIUS_VOXELS * voxel
     filter_radius = FILTER_RADIUS_VOXELS * voxel

@@ -61,7 +61,7 @@ from .config import DEFAULT, SearchConfig
 from .rotation_search import NeighbourGraph, batched_esm, gaussian_overlap_score, rotation_search
 
 if TYPE_CHECKING:  # for the annotations only: the functions below import scan where they use it
-    from .scan import Keypoints
+    from ..core.keypoints import Keypoints
 
 #: Names accepted as ``init=`` strategies for global registration.
 STRATEGIES = ("auto", "rotation-search", "features", "scan")
@@ -115,7 +115,7 @@ class GlobalEstimate:
     scores: np.ndarray
     strategies: tuple[str, ...]
     candidates: int
-    keypoints: object = None  # the scan strategy's :class:`~esmicp.globalreg.scan.Keypoints`, for confidence
+    keypoints: object = None  # the scan strategy's :class:`~esmicp.core.keypoints.Keypoints`, for confidence
     confidence: float | None = None  # overlap confidence of transformations[0] on keypoints, when already judged
     ambiguity_ratio: float = DEFAULT.ambiguity_ratio  # the config's, for :attr:`ambiguous`
 
@@ -198,12 +198,12 @@ class _Workspace:
     _source_index: NearestNeighbors | None = field(default=None, repr=False)  # once built (:meth:`source_index`)
 
     def keypoints(self) -> "Keypoints":
-        """The pair's :class:`~esmicp.globalreg.scan.Keypoints` (the ones ``register`` judges its
+        """The pair's :class:`~esmicp.core.keypoints.Keypoints` (the ones ``register`` judges its
         confidence on), built once."""
-        from .scan import Keypoints
+        from ..core.keypoints import Keypoints
 
         if self._keypoints is None:
-            self._keypoints = Keypoints.of(self.source, self.target, self.full_index.spacing(), self.config)
+            self._keypoints = Keypoints.of(self.source, self.target, self.full_index.spacing(), self.config.keypoints)
         return self._keypoints
 
     def source_index(self) -> NearestNeighbors:

@@ -1,0 +1,84 @@
+"""The keypoints of a pair: both clouds voxel-downsampled at one voxel the data chooses, with a
+compiled tree over each.
+
+Every length at this scale is a multiple of the voxel, so a pair scaled by 1000 gives the same
+keypoints up to that scale. The scan strategy of the global search
+(:mod:`esmicp.globalreg.scan`) and the overlap confidence (:mod:`esmicp.trust.confidence`) work
+on the same keypoints, so that the confidence judges a pose on the search's own scale.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from .compiled_tree import CompiledTree
+from .correspondence import coincident_points
+from .features import voxel_grid
+from .procrustes import axis_bounds
+
+#: The keypoint voxel is at least this many target point spacings.
+MIN_VOXEL_SPACINGS = 1.5
+
+#: A keypoint lies on the other cloud when within this many voxels of one of its keypoints.
+VERIFY_VOXELS = 1.0
+
+#: Radius of a keypoint's normal, in voxels.
+NORMAL_RADIUS_VOXELS = 3.0
+
+
+@dataclass(frozen=True)
+class Keypoints:
+    """The keypoint clouds of a pair (voxel centroids, cloud units) and their voxel."""
+
+    source: np.ndarray
+    target: np.ndarray
+    voxel: float
+
+    @classmethod
+    def of(cls, source: np.ndarray, target: np.ndarray, spacing: float, count: int) -> "Keypoints":
+        """Both clouds voxel-downsampled at :func:`keypoint_voxel` of the target (``count``
+        voxels: ``SearchConfig.keypoints``)."""
+        voxel = keypoint_voxel(target, max(spacing, 0.0), count)
+        return cls(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
+
+    @cached_property
+    def source_tree(self) -> CompiledTree:
+        """A compiled tree over :attr:`source`, built once (every score of a pose queries it)."""
+        return CompiledTree(self.source)
+
+    @cached_property
+    def target_tree(self) -> CompiledTree:
+        """A compiled tree over :attr:`target`, built once."""
+        return CompiledTree(self.target)
+
+
+def keypoint_voxel(points: np.ndarray, spacing: float, count: int) -> float:
+    """The voxel edge (cloud units) at which ``points`` occupy about ``count`` voxels
+    (``SearchConfig.keypoints`` for the standard keypoints), at least ``MIN_VOXEL_SPACINGS * spacing``."""
+    floor = MIN_VOXEL_SPACINGS * spacing
+    low, high = axis_bounds(points)
+    # Start from a surface guess (the bounding box's largest face) and correct by the 1/v^2 law.
+    faces = np.sort(high - low)[1:]
+    # Floor relative to the extent (a cloud on a line has no face): the voxel is scale-free.
+    voxel = max(float(np.sqrt(faces[0] * faces[1] / count)), floor, 1e-12 * float(faces[1]))
+    for _ in range(4):
+        occupied = _occupied(points, voxel, low)
+        if abs(occupied - count) <= 0.1 * count:
+            break
+        voxel = max(voxel * float(np.sqrt(occupied / count)), floor)
+        if voxel == floor:
+            break
+    return voxel
+
+
+def _occupied(points: np.ndarray, voxel: float, low: np.ndarray) -> int:
+    """The number of voxels of edge ``voxel`` that ``points`` occupy, the grid's corner at
+    ``low`` (the points' per-axis minimum, computed once by the caller): the distinct integer cell
+    coordinates, counted by one compiled hash pass (exact while they stay below 2**53; cheaper
+    than a sort of every key, and the voxel search makes up to 4 counts: ``docs/speed.md``)."""
+    cells = np.floor((points - low) / voxel)
+    repeats, _, _, _ = coincident_points(cells)
+    return len(cells) - repeats
