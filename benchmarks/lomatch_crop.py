@@ -23,7 +23,7 @@ from esmicp.bench.real_pairs import (
     crop_to_overlap, criteria_for, estimate_in_pair_frame, load_pair, pair_errors, read_pairs, turn_source,
 )
 from esmicp.bench.scans import METHOD_LABELS, SCAN_METHODS, _timed
-from esmicp.globalreg.scan import TRUSTED
+from esmicp.trust.confidence import TRUSTED
 
 
 def main() -> None:

@@ -6,7 +6,7 @@ the source sample is turned by a random rotation of 30 degrees; the pair is regi
 identity and with the global search (``esmicp.register``, every other option default,
 ``workers=1``). A result is right when its placement is within 2% of the shape's diagonal up to
 the shape's symmetry (:func:`esmicp.metrics.up_to_symmetry_success`, on the whole shape).
-``--min-coincident`` overrides :data:`esmicp.globalreg.scan.MIN_COINCIDENT` for the run (to compare
+``--min-coincident`` overrides :data:`esmicp.trust.confidence.MIN_COINCIDENT` for the run (to compare
 values; the library's value is what ships).
 
     python benchmarks/sparse_trust.py --folder modelnet40                 # the 12 shapes (choice)
@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 import esmicp
-from esmicp.globalreg import scan
+from esmicp.trust import confidence
 from esmicp.metrics import random_rotation, up_to_symmetry_success
 
 DATA = Path(os.environ.get("ESMICP_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -57,9 +57,9 @@ def main() -> None:
     parser.add_argument("--min-coincident", type=int, help="override MIN_COINCIDENT for this run")
     args = parser.parse_args()
     if args.min_coincident is not None:
-        scan.MIN_COINCIDENT = args.min_coincident
+        confidence.MIN_COINCIDENT = args.min_coincident
     rows = list(trials(DATA / args.folder))
-    print(f"{args.folder}, MIN_COINCIDENT = {scan.MIN_COINCIDENT}\n")
+    print(f"{args.folder}, MIN_COINCIDENT = {confidence.MIN_COINCIDENT}\n")
     for start in ("identity", "global"):
         print(f"| {start}: points | trials | right | trusted | trusted and wrong |\n|---|---|---|---|---|")
         for size in SIZES:

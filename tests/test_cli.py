@@ -83,16 +83,16 @@ def test_register_summary_and_outputs(pair, tmp_path, capsys):
 
 
 def test_register_summary_calls_low_what_is_below_the_trust_bar(pair, monkeypatch, capsys):
-    """LOW follows ``scan.TRUSTED`` (the bar a result must reach), not the search's own
+    """LOW follows ``confidence.TRUSTED`` (the bar a result must reach), not the search's own
     ``CONFIDENT``: the same right pose is LOW once the bar is set above its confidence."""
-    from esmicp.globalreg import scan
+    from esmicp.trust import confidence as trust
 
     source, target, _, _ = pair
     code, out, err = run(capsys, "register", str(source), str(target), "--method", "icp", "--json")
     assert code == 0, err
     confidence = json.loads(out)["confidence"]
-    assert confidence >= scan.TRUSTED
-    monkeypatch.setattr(scan, "TRUSTED", confidence + 1e-6)
+    assert confidence >= trust.TRUSTED
+    monkeypatch.setattr(trust, "TRUSTED", confidence + 1e-6)
     code, out, err = run(capsys, "register", str(source), str(target), "--method", "icp")
     assert code == 0, err
     assert f"LOW: below {confidence + 1e-6:g}, do not trust this pose" in out

@@ -17,7 +17,8 @@ from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.compiled_tree import CompiledTree
 from esmicp.globalreg.config import DEFAULT
 from esmicp.core.keypoints import Keypoints, keypoint_voxel
-from esmicp.globalreg.scan import MIN_COINCIDENT, _icp, overlap_confidence, prune, rank_poses
+from esmicp.globalreg.scan import _icp, prune, rank_poses
+from esmicp.trust.confidence import MIN_COINCIDENT, overlap_confidence
 from esmicp.metrics import rotation_error_deg
 
 from conftest import require_shared
@@ -168,12 +169,12 @@ def test_a_wrong_pose_does_not_come_back_confident(real_pair, angle_deg):
     result = esmicp.register(source, target, init=wrong, max_iterations=3)
     assert rotation_error_deg(result.rotation, truth[:3, :3]) > 15.0, "the refinement found the truth: no test"
     assert result.confidence < DEFAULT.confident
-    assert overlap_confidence(wrong, Keypoints.of(source, target, NearestNeighbors(target).spacing(), DEFAULT.keypoints)) < DEFAULT.confident
+    assert overlap_confidence(wrong, Keypoints.of(source, target, NearestNeighbors(target).spacing(), DEFAULT.keypoints), config=DEFAULT) < DEFAULT.confident
 
 
 def test_confidence_is_high_at_the_truth(real_pair):
     source, target, truth = real_pair
-    assert overlap_confidence(truth, Keypoints.of(source, target, NearestNeighbors(target).spacing(), DEFAULT.keypoints)) >= DEFAULT.confident
+    assert overlap_confidence(truth, Keypoints.of(source, target, NearestNeighbors(target).spacing(), DEFAULT.keypoints), config=DEFAULT) >= DEFAULT.confident
 
 
 def test_occupied_voxels_equal_the_distinct_cell_keys():
@@ -337,10 +338,10 @@ def test_an_unconfident_scan_search_is_run_again_with_other_settings():
     assert NORMALS_FROM_KEYPOINTS == (True, False)
     first = scan_estimate(cropped.source, cropped.target, spacing=spacing, normals_from_keypoints=True)
     assert not right(first.transformations[0])
-    assert overlap_confidence(first.transformations[0], first.keypoints) < DEFAULT.confident
+    assert overlap_confidence(first.transformations[0], first.keypoints, config=DEFAULT) < DEFAULT.confident
     chosen = scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
     assert right(chosen.transformations[0])
-    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= DEFAULT.confident
+    assert overlap_confidence(chosen.transformations[0], chosen.keypoints, config=DEFAULT) >= DEFAULT.confident
 
 
 def test_a_sharper_scan_pose_wins_over_a_slid_pose_that_overlaps_a_little_more(monkeypatch):
@@ -403,13 +404,13 @@ def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, co
     standard = keypoint_voxel(cropped.target, spacing, DEFAULT.keypoints)
     chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
     assert _right_3dmatch(chosen.transformations[0], truth)
-    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) >= DEFAULT.confident
+    assert overlap_confidence(chosen.transformations[0], chosen.keypoints, config=DEFAULT) >= DEFAULT.confident
     assert chosen.voxel == standard
     assert count in scan.LAST_KEYPOINTS
     monkeypatch.setattr(scan, "LAST_KEYPOINTS", tuple(c for c in scan.LAST_KEYPOINTS if c != count))
     chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
     assert not _right_3dmatch(chosen.transformations[0], truth)
-    assert overlap_confidence(chosen.transformations[0], chosen.keypoints) < DEFAULT.confident
+    assert overlap_confidence(chosen.transformations[0], chosen.keypoints, config=DEFAULT) < DEFAULT.confident
 
 
 def test_a_small_cloud_skips_the_last_searches(monkeypatch):
@@ -431,7 +432,7 @@ def test_a_small_cloud_skips_the_last_searches(monkeypatch):
     monkeypatch.setattr(scan, "scan_estimate", counted)
     spacing = NearestNeighbors(target).spacing()
     found = scan.scan_estimate_until_confident(source, target, spacing=spacing)
-    assert overlap_confidence(found.transformations[0], found.keypoints) < DEFAULT.confident
+    assert overlap_confidence(found.transformations[0], found.keypoints, config=DEFAULT) < DEFAULT.confident
     assert len(calls) == 2 and calls[0] == calls[1]  # both standard searches, at one voxel
     # With a standard voxel above the floor, the searches at other voxels run, each voxel once:
     # 10,000 and 2,500 keypoints are both at the floor here, 50 above the standard voxel.
@@ -445,7 +446,7 @@ def test_the_confidence_of_keypoints_too_few_to_compare_is_zero():
     """A search whose keypoints were all dropped (isolated) returns an empty keypoint cloud; its
     confidence is 0, not an error from the tree over no points."""
     points = np.random.default_rng(0).normal(size=(200, 3))
-    assert overlap_confidence(np.eye(4), Keypoints(points, points[:0], 0.1)) == 0.0
-    assert overlap_confidence(np.eye(4), Keypoints(points[:2], points, 0.1)) == 0.0
-    assert overlap_confidence(np.eye(4), Keypoints(points[:MIN_COINCIDENT - 1], points, 0.5)) == 0.0
-    assert overlap_confidence(np.eye(4), Keypoints(points, points, 0.5)) > 0.0
+    assert overlap_confidence(np.eye(4), Keypoints(points, points[:0], 0.1), config=DEFAULT) == 0.0
+    assert overlap_confidence(np.eye(4), Keypoints(points[:2], points, 0.1), config=DEFAULT) == 0.0
+    assert overlap_confidence(np.eye(4), Keypoints(points[:MIN_COINCIDENT - 1], points, 0.5), config=DEFAULT) == 0.0
+    assert overlap_confidence(np.eye(4), Keypoints(points, points, 0.5), config=DEFAULT) > 0.0

@@ -132,7 +132,7 @@ def test_too_few_points_to_resolve_the_pose_are_never_trusted(count, init):
     """Two independent samples of a few dozen points of one shape, turned 30 degrees: at the
     keypoint voxel such clouds "coincide" under poses tens of degrees off, so whatever pose comes
     back, the result is not trusted (too few coinciding keypoints: ``MIN_COINCIDENT``)."""
-    from esmicp.globalreg.scan import MIN_COINCIDENT
+    from esmicp.trust.confidence import MIN_COINCIDENT
 
     assert count < MIN_COINCIDENT
     rng = np.random.default_rng(count)

@@ -42,7 +42,7 @@ def test_a_scan_whose_only_edge_is_wrong_and_untrusted_is_left_out(monkeypatch):
 def test_a_trusted_wrong_edge_contradicted_by_a_trusted_right_one_makes_the_scan_doubtful(monkeypatch):
     """Scan 3 has two trusted edges that disagree (one 40 degrees off) and no cycle to decide: it is
     doubtful, with a confidence below the trust bar, and left out of the merged cloud."""
-    from esmicp.globalreg.scan import TRUSTED
+    from esmicp.trust.confidence import TRUSTED
 
     rng = np.random.default_rng(12)
     truth = _truth(4, rng)
@@ -61,7 +61,7 @@ def test_a_scan_held_by_one_unchecked_trusted_edge_is_doubtful(monkeypatch):
     """Scan 3's one edge is trusted but wrong (a kitchen frame was placed 90 degrees off by one
     such edge, confidence 0.61): no cycle checks it, so the scan is doubtful, below the trust bar,
     however right or wrong the edge; in a merge of two scans the one trusted edge places it."""
-    from esmicp.globalreg.scan import TRUSTED
+    from esmicp.trust.confidence import TRUSTED
 
     rng = np.random.default_rng(14)
     truth = _truth(4, rng)

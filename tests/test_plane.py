@@ -186,7 +186,7 @@ def test_the_plane_stage_is_undone_when_it_loses_the_overlap(monkeypatch, plane_
     import esmicp.api as api
     from esmicp.core.keypoints import Keypoints
     from esmicp.globalreg.config import DEFAULT
-    from esmicp.globalreg.scan import overlap_confidence
+    from esmicp.trust.confidence import overlap_confidence
     from esmicp.methods.local import RefinementOutcome
 
     rng = np.random.default_rng(5)
@@ -204,7 +204,7 @@ def test_the_plane_stage_is_undone_when_it_loses_the_overlap(monkeypatch, plane_
     index = NearestNeighbors(target)
     pose, iterations, note = api._plane_start(source, index, truth, request, 1.0, keypoints)
     assert iterations == 7
-    dropped = overlap_confidence(truth, keypoints) - overlap_confidence(turned, keypoints)
+    dropped = overlap_confidence(truth, keypoints, config=DEFAULT) - overlap_confidence(turned, keypoints, config=DEFAULT)
     if kept:
         assert dropped <= api.PLANE_CONFIDENCE_DROP
         assert pose is turned and "undone" not in note

@@ -98,11 +98,11 @@ def test_spacing_matches_scipys_k_nearest(count):
 def test_overlap_confidence_counts_as_scipys_tree_does():
     """The confidence (compiled tree) against the same counts from SciPy's KD-tree, at the truth,
     near it and far from it."""
-    from esmicp.globalreg import scan
     from esmicp.core import keypoints as scale
+    from esmicp.trust import confidence as trust
     from esmicp.core.features import estimate_normals
     from esmicp.core.keypoints import Keypoints
-    from esmicp.globalreg.scan import overlap_confidence
+    from esmicp.trust.confidence import overlap_confidence
 
     def reference(transformation, keypoints):
         rotation, translation = transformation[:3, :3], transformation[:3, 3]
@@ -110,15 +110,15 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
         for moved, fixed in ((keypoints.source @ rotation.T + translation, keypoints.target),
                              ((keypoints.target - translation) @ rotation, keypoints.source)):
             distances, nearest = cKDTree(fixed).query(moved)
-            overlap = np.count_nonzero(distances <= scan.OVERLAP_VOXELS * keypoints.voxel)
+            overlap = np.count_nonzero(distances <= trust.OVERLAP_VOXELS * keypoints.voxel)
             coincide = distances <= scale.VERIFY_VOXELS * keypoints.voxel
             if overlap < 3 or np.count_nonzero(coincide) < 3:
                 return 0.0
             sharpness.append(np.count_nonzero(coincide) / overlap)
             shares.append(np.count_nonzero(coincide) / len(moved))
             touched = nearest[coincide]
-            if len(touched) > scan.SPREAD_POINTS:
-                touched = touched[np.linspace(0, len(touched) - 1, scan.SPREAD_POINTS).astype(int)]
+            if len(touched) > trust.SPREAD_POINTS:
+                touched = touched[np.linspace(0, len(touched) - 1, trust.SPREAD_POINTS).astype(int)]
             normals = estimate_normals(fixed, k=30, radius=scale.NORMAL_RADIUS_VOXELS * keypoints.voxel)[touched]
             spread.append(np.sort(np.linalg.eigvalsh(np.cov(normals.T, bias=True) + np.outer(*[normals.mean(axis=0)] * 2))))
 
@@ -126,7 +126,7 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
             return float(np.clip((value - bounds[0]) / (bounds[1] - bounds[0]), 0.0, 1.0))
 
         sharp = ramp(min(sharpness), DEFAULT.sharpness_range)
-        if min(shares) >= scan.SPREAD_BELOW:
+        if min(shares) >= trust.SPREAD_BELOW:
             return sharp
         return min(sharp, *(ramp(values[1], DEFAULT.spread_range) for values in spread),
                    *(ramp(values[0], DEFAULT.third_range) for values in spread))
@@ -141,8 +141,8 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
                                  DEFAULT.keypoints)
         for shift in (0.0, 0.9, 1.05, 1.2, 30.0):  # keypoint voxels along x
             pose = esmicp.core.procrustes.to_matrix(np.eye(3), [shift * keypoints.voxel, 0.0, 0.0]) @ truth
-            values.add(overlap_confidence(pose, keypoints))
-            assert overlap_confidence(pose, keypoints) == pytest.approx(reference(pose, keypoints), abs=1e-12)
+            values.add(overlap_confidence(pose, keypoints, config=DEFAULT))
+            assert overlap_confidence(pose, keypoints, config=DEFAULT) == pytest.approx(reference(pose, keypoints), abs=1e-12)
     assert len(values) > 2  # confident, unsure and wrong poses alike
 
 
@@ -163,7 +163,7 @@ def test_a_floor_slid_over_a_floor_is_not_confident(monkeypatch):
     from esmicp.core.procrustes import to_matrix
     from esmicp.globalreg import scan
     from esmicp.core.keypoints import Keypoints
-    from esmicp.globalreg.scan import overlap_confidence
+    from esmicp.trust.confidence import overlap_confidence
 
     rng = np.random.default_rng(21)
 
@@ -171,9 +171,9 @@ def test_a_floor_slid_over_a_floor_is_not_confident(monkeypatch):
     floor = source[(source[:, 2] == 0.0) & (source[:, 0] > 1.0) & (source[:, 1] > 1.0)]
     spacing = NearestNeighbors(target).spacing()
     slid = to_matrix(np.eye(3), [-0.6, -0.4, 0.0])  # stays on the target's floor
-    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing, DEFAULT.keypoints)) >= DEFAULT.confident
+    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing, DEFAULT.keypoints), config=DEFAULT) >= DEFAULT.confident
     floor_keys = Keypoints.of(floor, target, spacing, DEFAULT.keypoints)
-    assert overlap_confidence(slid, floor_keys) < DEFAULT.confident
+    assert overlap_confidence(slid, floor_keys, config=DEFAULT) < DEFAULT.confident
     spread_off = replace(DEFAULT, spread_range=(-2.0, -1.0), third_range=(-2.0, -1.0))
     assert overlap_confidence(slid, floor_keys, config=spread_off) >= DEFAULT.confident
 
@@ -188,7 +188,7 @@ def test_a_corner_of_floor_and_wall_slid_along_their_line_is_not_confident(monke
     from esmicp.core.procrustes import to_matrix
     from esmicp.globalreg import scan
     from esmicp.core.keypoints import Keypoints
-    from esmicp.globalreg.scan import overlap_confidence
+    from esmicp.trust.confidence import overlap_confidence
 
     rng = np.random.default_rng(22)
 
@@ -197,9 +197,9 @@ def test_a_corner_of_floor_and_wall_slid_along_their_line_is_not_confident(monke
     corner = source[(source[:, 0] > 1.5) & (source[:, 0] < 3.0) & (source[:, 1] < 1.5) & (source[:, 2] < 1.2)]
     spacing = NearestNeighbors(target).spacing()
     slid = to_matrix(np.eye(3), [-0.7, 0.0, 0.0])  # along the line: stays on the target's floor and wall
-    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing, DEFAULT.keypoints)) >= DEFAULT.confident
+    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing, DEFAULT.keypoints), config=DEFAULT) >= DEFAULT.confident
     corner_keys = Keypoints.of(corner, target, spacing, DEFAULT.keypoints)
-    assert overlap_confidence(slid, corner_keys) < DEFAULT.confident
+    assert overlap_confidence(slid, corner_keys, config=DEFAULT) < DEFAULT.confident
     third_off = replace(DEFAULT, third_range=(-2.0, -1.0))  # the third-direction term off
     assert overlap_confidence(slid, corner_keys, config=third_off) >= DEFAULT.confident
 

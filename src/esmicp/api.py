@@ -17,7 +17,6 @@ from .core.correspondence import coincident_points
 from .core.keypoints import Keypoints
 from .errors import CoincidentPointsWarning, IndexAlignmentWarning, InvalidInputError
 from .globalreg.config import SearchConfig, as_config
-from .globalreg.scan import TRUSTED, overlap_confidence
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
 from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimator
@@ -26,6 +25,7 @@ from .methods.guard import guarded_refine
 from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome, _budget_spent
 from .result import Correspondences, RegistrationResult
 from .trust import uncertainty
+from .trust.confidence import TRUSTED, overlap_confidence
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
 from .types import PointsLike, check_geometry
 from .working_frame import WorkingFrame
@@ -71,7 +71,7 @@ PLANE_ITERATIONS = 30
 #: (``docs/speed.md``, "Real scan pairs").
 PLANE_POINTS = 5_000
 #: The ``esm-plane`` stage is undone when it lowers the overlap confidence
-#: (:func:`~esmicp.globalreg.scan.overlap_confidence`, 0-1, on the pair's keypoints) by more than
+#: (:func:`~esmicp.trust.confidence.overlap_confidence`, 0-1, on the pair's keypoints) by more than
 #: this: where scans overlap by 15% or so, most pairs join points the other scan never saw, the
 #: stage's sigma grows with them and can pull a right global pose far off, where ``esm`` from the
 #: same start converges (``docs/scans-partial-overlap.md``).
@@ -248,7 +248,7 @@ def register(
         observer = Observer(source_points, target_index, frame.callback(callback), record_history)
     outcome = _refine(source_points, target_index, estimator, initial, request, diagonal, keypoints, estimate,
                       observer)
-    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers, request.config)
+    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers, config=request.config)
     if start_distances is not None and request.sigma is None and confidence < TRUSTED \
             and not (observer is not None and observer.stopped):
         outcome, confidence = _second_try(source_points, target_index, initial, request, diagonal, keypoints,
@@ -386,7 +386,7 @@ def _second_try(source, target_index, initial, request: _Request, diagonal: floa
     tight.start_from(start_distances, TIGHT_START_QUANTILE)
     first_history = None if observer is None else observer.new_run()
     second = _refine(source, target_index, tight, initial, request, diagonal, keypoints, None, observer)
-    second_confidence = overlap_confidence(second.transformation, keypoints, request.workers, request.config)
+    second_confidence = overlap_confidence(second.transformation, keypoints, request.workers, config=request.config)
     if observer is not None and observer.stopped:
         return second, second_confidence
     if second_confidence > confidence:
@@ -488,8 +488,8 @@ def _plane_start(points, target_index, initial, request: _Request, diagonal: flo
         return plane.transformation, plane.num_iterations, ""
     before = initial_confidence
     if before is None:
-        before = overlap_confidence(initial, keypoints, request.workers, request.config)
-    after = overlap_confidence(plane.transformation, keypoints, request.workers, request.config)
+        before = overlap_confidence(initial, keypoints, request.workers, config=request.config)
+    after = overlap_confidence(plane.transformation, keypoints, request.workers, config=request.config)
     if after < before - PLANE_CONFIDENCE_DROP:
         return initial, plane.num_iterations, (
             f"{plane.num_iterations} esm-plane iteration(s) on {len(points):,} points undone (overlap confidence "

@@ -128,15 +128,15 @@ class RegistrationResult:
         Number of candidate poses the global search verified (0 without one).
     confidence : float or None
         How sharply the clouds coincide *where they overlap* under the final pose, 0-1, whatever
-        the overlap's size (:func:`esmicp.globalreg.scan.overlap_confidence`): of the points (voxel
+        the overlap's size (:func:`esmicp.trust.confidence.overlap_confidence`): of the points (voxel
         centroids at the scale the data chooses) lying within 3 voxels of the other cloud, the
         fraction within 1 voxel, the worse of the two directions, mapped from 0.5-0.8 onto 0-1;
         lower when less than half of either cloud coincides and the coincident part's normals
         span fewer than three directions (one plane laid on another holds only 3 of the 6 degrees
-        of freedom, a floor and one wall 5: :func:`esmicp.globalreg.scan.coincident_spread`); 0 when
-        fewer than 60 keypoints of either cloud coincide (:data:`esmicp.globalreg.scan.MIN_COINCIDENT`:
+        of freedom, a floor and one wall 5: :func:`esmicp.trust.confidence.coincident_spread`); 0 when
+        fewer than 60 keypoints of either cloud coincide (:data:`esmicp.trust.confidence.MIN_COINCIDENT`:
         clouds of a few dozen points cannot resolve the pose, so are never trusted). Below 0.55
-        (:data:`esmicp.globalreg.scan.TRUSTED`): do not trust the pose. At or above it the pose
+        (:data:`esmicp.trust.confidence.TRUSTED`): do not trust the pose. At or above it the pose
         is usually right, not always: a repeated structure matched in the wrong place coincides
         sharply too (kitchen depth frames that share no surface: 4 of 5 trusted, metres off).
         Measured figures: ``docs/measured-global.md``, "How far the confidence can be trusted".
@@ -189,7 +189,7 @@ class RegistrationResult:
     @property
     def trusted(self) -> bool:
         """True when nothing casts doubt on the pose (:meth:`doubts` is empty): ``confidence``
-        reaches the trust bar (:data:`esmicp.globalreg.scan.TRUSTED`), the result is not
+        reaches the trust bar (:data:`esmicp.trust.confidence.TRUSTED`), the result is not
         ``ambiguous``, the overlap constrains the pose in every direction (no
         ``degenerate_directions``: a floor or a wall seen alone, or a corridor, lets the pose slide
         however sharply the clouds coincide), and ``free_space`` (when measured) is within
@@ -200,9 +200,9 @@ class RegistrationResult:
     def doubts(self, bar: float | None = None) -> list[str]:
         """Why the pose is not to be trusted, one phrase per reason (empty: :attr:`trusted`).
         ``bar``: the confidence asked for (default the trust bar,
-        :data:`esmicp.globalreg.scan.TRUSTED`)."""
+        :data:`esmicp.trust.confidence.TRUSTED`)."""
         if bar is None:
-            from .globalreg.scan import TRUSTED as bar
+            from .trust.confidence import TRUSTED as bar
 
         reasons = []
         if self.confidence is None:

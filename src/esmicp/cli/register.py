@@ -22,7 +22,7 @@ from .args import EXIT_OK, EXIT_UNTRUSTED, add_workers, check_distinct_files, po
 def trust_bar() -> float:
     """The confidence a pose must reach to be trusted (:attr:`esmicp.RegistrationResult.trusted`):
     the command line's one reading of it (imported late: ``esmicp --version`` stays light)."""
-    from ..globalreg.scan import TRUSTED
+    from ..trust.confidence import TRUSTED
 
     return TRUSTED
 

@@ -49,6 +49,7 @@ from ..core.compiled_tree import CompiledTree, threads
 from ..core.features import estimate_normals, voxel_grid
 from ..core.keypoints import NORMAL_RADIUS_VOXELS, VERIFY_VOXELS, Keypoints, keypoint_voxel
 from ..core.procrustes import batched_weighted_procrustes, rigid_inverse, rotation_angle, to_matrix
+from ..trust.confidence import overlap_confidence
 from . import DISTINCT_ROTATION_DEG
 from .feature_matching import _keypoints, _inlier_counts, _inlier_mask, _distinct_order
 from .config import DEFAULT, SearchConfig
@@ -119,43 +120,12 @@ ICP_POINTS = 1500
 TIE_RATIO = 0.5
 
 
-#: :func:`overlap_confidence`: the overlap is what lies within ``OVERLAP_VOXELS`` of the other
-#: cloud; of it, the part within ``VERIFY_VOXELS`` coincides. That fraction (the smaller of the two
-#: directions) maps linearly from ``config.sharpness_range`` onto confidence 0-1.
-OVERLAP_VOXELS = 3.0
-#: The spread is measured on at most this many coincident keypoints (evenly strided), each one's
-#: normal from its 30 nearest keypoints within ``NORMAL_RADIUS_VOXELS``: normals at every keypoint
-#: of both clouds took 8 ms of a 24 ms registration of 2,000 points.
-SPREAD_POINTS = 500
-#: :func:`overlap_confidence` is 0 when fewer than this many keypoints of either cloud coincide with
-#: the other: too little evidence to certify a pose. Clouds that sparse cannot resolve it at the
-#: keypoint voxel (never finer than ``MIN_VOXEL_SPACINGS`` spacings), where a pose tens of degrees
-#: off still makes every point "coincide". Chosen on the 12 ModelNet40 shapes resampled
-#: independently to 21-1,000 points and turned 30 degrees (``benchmarks/sparse_trust.py``):
-#: trusted-and-wrong went from 21 of 110 to 0 of 59 (3: 21, 30: 4, 60: 0); confirmed on the 69 of
-#: ``modelnet40_extra``: 115 of 712 to 2 of 403, global successes 351 -> 365 of 483, nothing
-#: changed at 300 points or more; the development and confirmation sets of
-#: ``docs/measured-global.md`` (1,024-point objects, 3DMatch crops, kitchen pairs) are unchanged.
-MIN_COINCIDENT = 60
-
-#: The spread is asked only when less than this share of either cloud's keypoints coincides: a
-#: pose that lays most of each cloud on the other is held by the clouds' whole shape (and objects
-#: registered whole skip the normals' cost).
-SPREAD_BELOW = 0.5
-
-#: The bar a result must reach to be trusted (``register``'s ``confidence``, ``esmicp register``'s
-#: LOW): higher than the search's own, because the search stops at, and chooses among its poses
-#: for, the first that reaches ``SearchConfig.confident``, so a wrong pose just over that bar is the
-#: one it keeps (measured on the 3DMatch crops, ``docs/scans-partial-overlap.md``).
-TRUSTED = 0.55
-
-
 @dataclass(frozen=True)
 class ScanEstimate:
     """Verified poses, best first (each distinct from those before it), their overlap scores (the
     fraction of keypoints of both clouds lying on the other cloud, 0-1), and the keypoints;
-    ``confidence``: :func:`overlap_confidence` of the best pose on those keypoints, once
-    :func:`scan_estimate_until_confident` has judged it (None before)."""
+    ``confidence``: :func:`~esmicp.trust.confidence.overlap_confidence` of the best pose on those
+    keypoints, once :func:`scan_estimate_until_confident` has judged it (None before)."""
 
     transformations: np.ndarray
     scores: np.ndarray
@@ -184,62 +154,6 @@ def overlap_score(transformation: np.ndarray, keypoints: Keypoints, workers: int
         keypoints.target_tree, VERIFY_VOXELS * keypoints.voxel, workers,
     )
     return float(forward[0] + backward[0]) / (len(keypoints.source) + len(keypoints.target))
-
-
-def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers: int | None = None,
-                       config: SearchConfig = DEFAULT) -> float:
-    """How sharply the clouds coincide where they overlap under ``transformation``
-    (``T_target_source``), 0-1: of the keypoints within ``OVERLAP_VOXELS`` of the other cloud,
-    the fraction within ``VERIFY_VOXELS``, the smaller of the two directions, mapped from
-    ``config.sharpness_range``; or, when smaller and when less than :data:`SPREAD_BELOW` of either
-    cloud coincides, how well the coincident part's normals hold the pose (:func:`coincident_spread`:
-    its middle eigenvalue mapped from ``config.spread_range``, its smallest from ``config.third_range``),
-    the smallest of these in either direction. 0 when fewer than :data:`MIN_COINCIDENT` keypoints of
-    either cloud coincide (too little evidence). ``workers``: threads of the compiled tree's queries (None: every core)."""
-    if not np.isfinite(transformation).all() or min(len(keypoints.source), len(keypoints.target)) < 3:
-        return 0.0
-    rotation, translation = transformation[:3, :3], transformation[:3, 3]
-    voxel = keypoints.voxel
-    sharpness, coincident = [], []
-    for moved, fixed, fixed_points in (
-        (keypoints.source @ rotation.T + translation, keypoints.target_tree, keypoints.target),
-        ((keypoints.target - translation) @ rotation, keypoints.source_tree, keypoints.source),
-    ):
-        distances, nearest = fixed.query(moved, workers=workers)  # the counts SciPy's tree gives, cheaper
-        overlap = np.count_nonzero(distances <= OVERLAP_VOXELS * voxel)
-        coincide = distances <= VERIFY_VOXELS * voxel
-        if np.count_nonzero(coincide) < MIN_COINCIDENT:
-            return 0.0
-        sharpness.append(np.count_nonzero(coincide) / overlap)
-        coincident.append((fixed_points, fixed, nearest[coincide], np.count_nonzero(coincide) / len(moved)))
-    held = 1.0
-    if min(share for *_, share in coincident) < SPREAD_BELOW:
-        for points, tree, touched, _ in coincident:
-            third, second = coincident_spread(points, tree, touched, voxel, workers)
-            held = min(held, _ramp(second, config.spread_range), _ramp(third, config.third_range))
-    return float(min(_ramp(min(sharpness), config.sharpness_range), held))
-
-
-def _ramp(value: float, bounds: tuple[float, float]) -> float:
-    """``value`` mapped linearly from ``bounds`` onto 0-1, clipped."""
-    low, high = bounds
-    return float(np.clip((value - low) / (high - low), 0.0, 1.0))
-
-
-def coincident_spread(points: np.ndarray, tree: CompiledTree, touched: np.ndarray, voxel: float,
-                      workers: int | None = None) -> tuple[float, float]:
-    """How many directions the normals of ``points[touched]`` span: the smallest and the middle
-    eigenvalue of their second moment (the middle one 0 when they are all parallel, as on one
-    plane; the smallest 0 when they lie in one plane's worth of directions, as on two planes; both
-    1/3 when they point every way). At most :data:`SPREAD_POINTS` of ``touched`` (evenly strided),
-    each normal from its 30 nearest of ``points`` (``tree`` is over them) within
-    ``NORMAL_RADIUS_VOXELS * voxel``."""
-    if len(touched) > SPREAD_POINTS:
-        touched = touched[np.linspace(0, len(touched) - 1, SPREAD_POINTS).astype(np.intp)]
-    normals = estimate_normals(points, k=30, radius=NORMAL_RADIUS_VOXELS * voxel, at=points[touched], tree=tree,
-                               workers=workers)
-    values = np.linalg.eigvalsh(normals.T @ normals / len(normals))
-    return float(values[0]), float(values[1])
 
 
 def _correspondences(source_features: np.ndarray, target_features: np.ndarray, limit: int,
@@ -463,10 +377,11 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
                                   workers: int | None = None, searches: int | None = None,
                                   config: SearchConfig = DEFAULT) -> ScanEstimate:
     """:func:`scan_estimate` with each setting of ``NORMALS_FROM_KEYPOINTS`` in turn until one's
-    best pose is confident (:func:`overlap_confidence` at least ``config.confident``), then, while
-    none is, at the voxel of each count of :data:`LAST_KEYPOINTS` in turn (skipped when its voxel
-    was searched already): the estimate whose best pose is the most confident (the first on a
-    tie). The first searches are each judged on their own keypoints; the last ones on those of the
+    best pose is confident (:func:`~esmicp.trust.confidence.overlap_confidence` at least
+    ``config.confident``), then, while none is, at the voxel of each count of
+    :data:`LAST_KEYPOINTS` in turn (skipped when its voxel was searched already): the estimate
+    whose best pose is the most confident (the first on a tie). The first searches are each judged
+    on their own keypoints; the last ones on those of the
     most confident before them, which they then carry: the confidence keeps the data's one scale,
     and :attr:`ScanEstimate.voxel` stays the standard keypoint voxel. ``searches``: stop after
     that many searches (None: no limit).
@@ -483,7 +398,7 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
         or ``searches`` have run."""
         nonlocal best, done
         found = replace(found, confidence=overlap_confidence(found.transformations[0], found.keypoints, workers,
-                                                             config))
+                                                             config=config))
         if best is None or found.confidence > best.confidence:
             best = found
         done += 1

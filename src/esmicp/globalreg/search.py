@@ -23,7 +23,7 @@ When the runner-up scores at least ``config.decide_ratio`` of the best, the cont
 re-scored on up to the full clouds, both ways (source on target and target on source).
 
 **Decision**: the best verified pose, unless one of the scan strategy's poses is confident on the
-overlap (:func:`~esmicp.globalreg.scan.overlap_confidence` at least ``config.confident``) and
+overlap (:func:`~esmicp.trust.confidence.overlap_confidence` at least ``config.confident``) and
 overlaps more (:func:`_scan_leads`), or the chosen pose is not confident there and a scan pose is
 clearly more (:func:`_sharper_on_the_overlap`, ``config.sharper_than_chosen``): the verifier
 counts how much of the source lies on the target, which a cut object's flip can satisfy better
@@ -326,10 +326,10 @@ def _workspace(source, target, rng, full_index: NearestNeighbors, target_spacing
 
 def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     """``estimate`` with the pair's keypoints and the overlap confidence of its best pose
-    (:func:`~esmicp.globalreg.scan.overlap_confidence`). ``"auto"`` takes the rotation search's
+    (:func:`~esmicp.trust.confidence.overlap_confidence`). ``"auto"`` takes the rotation search's
     pose, confident on its score, at once only when this is at least
     ``config.confident`` (the search's own bar; ``register``'s result is
-    trusted from :data:`~esmicp.globalreg.scan.TRUSTED`) or the pose covers the whole target
+    trusted from :data:`~esmicp.trust.confidence.TRUSTED`) or the pose covers the whole target
     (:func:`_covers_the_target`); otherwise the scan strategy's first search checks it
     (:func:`global_estimate`).
 
@@ -340,10 +340,10 @@ def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimat
     search only, and not when the pose covers the whole target: a clean pose of an object under
     30% outliers is often not confident on the overlap (its outliers are keypoints too), and
     every search costs time (``docs/scans-partial-overlap.md``)."""
-    from .scan import overlap_confidence
+    from ..trust.confidence import overlap_confidence
 
     keypoints = work.keypoints()
-    confidence = overlap_confidence(estimate.transformation, keypoints, work.full_index.workers, work.config)
+    confidence = overlap_confidence(estimate.transformation, keypoints, work.full_index.workers, config=work.config)
     return replace(estimate, keypoints=keypoints, confidence=confidence)
 
 
@@ -361,7 +361,7 @@ def _settle(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate | None
     overlap confidence, when the settled pose scores ``config.confident_score``; else None. The
     source points are strided, not drawn: the generator's later draws stay those of a search
     without this step."""
-    from .scan import overlap_confidence
+    from ..trust.confidence import overlap_confidence
 
     stride = np.linspace(0, len(work.source) - 1, min(SETTLE_POINTS, len(work.source))).astype(np.intp)
     settled, scores = _batched_verification(work, work.index, work.source[stride], estimate.transformations[:1],
@@ -369,7 +369,7 @@ def _settle(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate | None
     if scores[0] < work.config.confident_score:
         return None
     keypoints = work.keypoints()
-    confidence = overlap_confidence(settled[0], keypoints, work.full_index.workers, work.config)
+    confidence = overlap_confidence(settled[0], keypoints, work.full_index.workers, config=work.config)
     return replace(estimate, transformations=np.concatenate([settled, estimate.transformations[1:]]),
                    scores=np.concatenate([scores, estimate.scores[1:]]), keypoints=keypoints, confidence=confidence)
 
@@ -392,12 +392,13 @@ def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | 
 def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1.0,
                 workers: int | None = None, config: SearchConfig = DEFAULT) -> bool:
     """True when the scan strategy's best pose is confident on the overlap
-    (:func:`~esmicp.globalreg.scan.overlap_confidence`) and either its overlap score (keypoints of
+    (:func:`~esmicp.trust.confidence.overlap_confidence`) and either its overlap score (keypoints of
     both clouds on the other cloud) is above ``margin`` times that of ``other``, or it overlaps at
     least ``config.sharper_score_ratio`` as much and is sharper by ``config.sharper_by``: a pose slid along a
     wall or a floor can overlap a little more, while only the true one makes the overlap coincide
     (``docs/scans-partial-overlap.md``). ``workers``: threads of the queries."""
-    from .scan import overlap_confidence, overlap_score
+    from ..trust.confidence import overlap_confidence
+    from .scan import overlap_score
 
     keypoints, confidence = scanned.keypoints, scanned.confidence  # judged by the scan strategy itself
     if confidence < config.confident:
@@ -406,7 +407,7 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
     if mine > margin * theirs:
         return True
     return mine >= config.sharper_score_ratio * theirs and \
-        confidence >= overlap_confidence(other, keypoints, workers, config) + config.sharper_by
+        confidence >= overlap_confidence(other, keypoints, workers, config=config) + config.sharper_by
 
 
 def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
@@ -425,19 +426,21 @@ def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
     below by the same overlap but sharper where the clouds do coincide. On the ModelNet40 halves
     (seeds 0-7) the pose chosen was wrong in 54 of 326 trials, and in 30 of them a right pose had
     been weighed (``docs/scans-partial-overlap.md``)."""
-    from .scan import overlap_confidence, overlap_score
+    from ..trust.confidence import overlap_confidence
+    from .scan import overlap_score
 
     keypoints = chosen.keypoints
     confidence = chosen.confidence
     if confidence is None:
-        confidence = overlap_confidence(chosen.transformation, keypoints, workers, config)
+        confidence = overlap_confidence(chosen.transformation, keypoints, workers, config=config)
     chosen = replace(chosen, confidence=confidence)
     poses = scanned.transformations[scanned.scores > 0]  # a search that found nothing sends nothing
     if confidence >= config.confident or not len(poses):
         return chosen
     # The scan strategy judged its best pose already, on these keypoints when they are its own.
     known = scanned.confidence if keypoints is scanned.keypoints and scanned.scores[0] > 0 else None
-    confidences = [known if k == 0 and known is not None else overlap_confidence(pose, keypoints, workers, config)
+    confidences = [known if k == 0 and known is not None
+                   else overlap_confidence(pose, keypoints, workers, config=config)
                    for k, pose in enumerate(poses)]
     best = int(np.argmax(confidences))
     if confidences[best] < confidence + config.sharper_than_chosen:

@@ -122,7 +122,7 @@ def cut_off(n: int, reference: int, kept, conflicts) -> tuple[dict[int, tuple[in
     set of wrong edges) is removed; the scans the cuts separate from the reference are returned, as
     ``scan -> (the scan it conflicts with, fraction)`` of the conflict that cut it off.
     """
-    from ..globalreg.scan import TRUSTED
+    from ..trust.confidence import TRUSTED
 
     capacity: dict[tuple[int, int], int] = {}  # sparse: a few entries per scan, never n x n
     for i, j, confidence in kept:

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..api import register
 from ..core.procrustes import apply
-from ..globalreg.scan import TRUSTED
+from ..trust.confidence import TRUSTED
 from ..result import RegistrationResult
 from ..types import as_points, as_transform
 
