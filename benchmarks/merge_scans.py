@@ -265,12 +265,20 @@ def run_cli(data: Dataset) -> Run:
 
 
 def read_poses_file(path: Path, count: int) -> tuple[np.ndarray, list[str] | None]:
-    """``esmicp merge --poses-out``'s file: one line per scan, its index first and the 16 numbers
-    of ``T_world_scan`` last, with its status just before them when the CLI writes one.
+    """``esmicp merge --poses-out``'s file, read by :func:`esmicp.read_poses`; or, as esmicp
+    versions without it wrote it, one line per scan, its index first and the 16 numbers of
+    ``T_world_scan`` last, with its status just before them when the CLI writes one.
 
     Returns the (count, 4, 4) poses (NaN where no line or ``nan``) and the statuses (None when the
     file has none)."""
     poses = np.full((count, 4, 4), np.nan)
+    try:
+        written = esmicp.read_poses(path)
+    except (AttributeError, esmicp.EsmicpError):
+        pass
+    else:
+        poses[: len(written.poses)] = written.poses[:count]
+        return poses, None if written.status is None else list(written.status)
     status: list[str] | None = ["unplaced"] * count
     for line in path.read_text().splitlines():
         fields = line.split()

@@ -287,8 +287,8 @@ def _merge_scans(folder: Path) -> list[Path]:
 
 
 def _pose_rows(path: Path) -> dict:
-    rows = [line.split() for line in path.read_text().splitlines() if not line.startswith("#")]
-    return {Path(row[1]).name: np.array(row[3:], float).reshape(4, 4) for row in rows}
+    written = esmicp.read_poses(path)
+    return {Path(name).name: T for name, T in zip(written.names, written.poses)}
 
 
 def test_merge_reference_after_a_skipped_scan_is_the_scan_named(tmp_path, capsys):

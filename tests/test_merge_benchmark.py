@@ -12,6 +12,8 @@ import pytest
 from conftest import REPO_ROOT, require_module, require_shared
 from scipy.spatial.transform import Rotation
 
+import esmicp
+
 sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
 import merge_scans  # noqa: E402
 
@@ -98,6 +100,11 @@ def test_the_cli_pose_file_with_and_without_statuses(tmp_path):
     new.write_text(f"# header\n0 a.ply placed {numbers}\n1 \"b c.ply\" doubtful {numbers}\n2 d.ply unplaced {nan}\n")
     poses, status = merge_scans.read_poses_file(new, 3)
     assert status == ["placed", "doubtful", "unplaced"] and poses[1, 0, 3] == 0.5
+    written = tmp_path / "written.txt"
+    esmicp.write_poses(written, np.array(numbers.split(), float).reshape(1, 4, 4).repeat(2, axis=0),
+                       names=["a.ply", "b c.ply"], status=["placed", "doubtful"])
+    poses, status = merge_scans.read_poses_file(written, 2)
+    assert status == ["placed", "doubtful"] and poses[1, 0, 3] == 0.5
 
 
 def test_the_doc_blocks_are_replaced_between_their_markers(tmp_path):

@@ -329,10 +329,13 @@ def test_cli_merge_end_to_end(tmp_path, bunny_files):
             "--voxel", "0.002", "--processes", "1", "--pair-points", "500", "--no-progress"]
     assert main(["merge", *argv]) == 0
     assert out.exists() and view.exists()
-    rows = [line.split() for line in poses.read_text().splitlines() if not line.startswith("#")]
-    assert [row[1] for row in rows] == [str(p) for p in bunny_files]  # the paths as given
-    assert [row[2] for row in rows] == ["placed"] * 3  # each scan's status, then its pose
-    np.testing.assert_allclose(np.array(rows[0][3:], float).reshape(4, 4), np.eye(4))
+    from esmicp import read_poses
+
+    written = read_poses(poses)
+    assert written.names == tuple(str(p) for p in bunny_files)  # the paths as given
+    assert written.status == ("placed",) * 3 and written.reference == 0
+    np.testing.assert_allclose(written.poses[0], np.eye(4))
+    np.testing.assert_array_equal(np.loadtxt(poses).reshape(-1, 4, 4), written.poses)
     assert main(["merge", *argv]) == 2  # no overwrite without --force
 
 

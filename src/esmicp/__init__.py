@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:  # what type checkers see: the names of the lazy table below, with their types
     from .api import register
     from .batch import RegistrationFailure, register_many
-    from .io import read_points, read_transform, write_points, write_transform
+    from .io import PoseFile, read_points, read_poses, read_transform, write_points, write_poses, write_transform
     from .io.stanford_conf import read_stanford_conf
     from .methods import METHODS
     from .multiview import MultiRegistrationResult, register_scans
@@ -47,6 +47,9 @@ _LAZY = {
     "write_points": ".io",
     "read_transform": ".io",
     "write_transform": ".io",
+    "read_poses": ".io",
+    "write_poses": ".io",
+    "PoseFile": ".io",
     "read_stanford_conf": ".io.stanford_conf",
 }
 
@@ -79,15 +82,18 @@ __all__ = [
     "NonFinitePointsWarning",
     "OutputExistsError",
     "PointCloudFileError",
+    "PoseFile",
     "RegistrationFailure",
     "RegistrationResult",
     "__version__",
     "read_points",
+    "read_poses",
     "read_stanford_conf",
     "read_transform",
     "register",
     "register_many",
     "register_scans",
     "write_points",
+    "write_poses",
     "write_transform",
 ]

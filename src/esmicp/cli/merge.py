@@ -25,9 +25,9 @@ from ..errors import EsmicpError, InvalidInputError, OutputExistsError
 #: ``--allow-partial``.
 EXIT_PARTIAL = 3
 
-#: Colours of the scans in the HTML view (cycled).
-SCAN_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
-                "#7f7f7f", "#bcbd22", "#17becf")
+#: ``--poses-format`` choices, the default first: :data:`esmicp.io.POSE_FORMATS` (spelled out here so
+#: that building the parser loads no file reader).
+POSE_FORMATS = ("matrix", "tum", "kitti")
 
 
 def library_defaults() -> dict:
@@ -67,11 +67,18 @@ def add_parser(commands) -> None:
         "(see --allow-partial). Every default is register_scans's own.",
     )
     merge.add_argument("scans", nargs="+", type=Path, metavar="SCAN", help="point-cloud files (2 or more)")
-    merge.add_argument("-o", "--output", type=Path, default=Path("merged.ply"), help="merged cloud (default merged.ply)")
+    merge.add_argument("-o", "--output", type=Path, default=Path("merged.ply"),
+                       help="merged cloud (default merged.ply); .ply and .pcd hold each point's scan_index and its "
+                       "scan's colour, the other formats x y z only")
     merge.add_argument("--poses-out", type=Path,
-                       help="write T_world_scan per scan (text: index, file as given, 16 numbers; nan: not placed)")
+                       help="write T_world_scan per scan, as text in the --poses-format (esmicp.read_poses reads it back)")
+    merge.add_argument("--poses-format", choices=POSE_FORMATS, default=None,
+                       help="matrix (default): 16 numbers a line (row-major 4x4, nan: no pose), then '# index status "
+                       "file', np.loadtxt reads it; tum: 'timestamp tx ty tz qx qy qz qw', timestamp = scan index, no "
+                       "line for a scan with no pose; kitti: 12 numbers a line (top 3x4), nan: no pose")
     merge.add_argument("--voxel", type=positive_float, help="voxel size of the merged cloud (cloud units)")
-    merge.add_argument("--view", type=Path, help="write an HTML view of the merged model coloured by scan")
+    merge.add_argument("--view", type=Path, help="write an HTML view of the merged model coloured by scan (more "
+                       "than 12 scans: a colour scale by scan index, the scan's name on hover)")
     merge.add_argument("--bin-columns", type=int, choices=(3, 4), metavar="{3,4}",
                        help=".bin scans: float32 values per point (4: KITTI x y z intensity, 3: x y z); "
                        "needed when a file's size fits both")
@@ -107,47 +114,48 @@ def add_parser(commands) -> None:
 
 
 def _progress(enabled: bool):
+    """(``progress(stage, done, total)`` for :func:`esmicp.register_scans`, a function closing the
+    display): one bar per stage on stderr, labelled with the stage (tqdm when installed, else a
+    counter line)."""
     if not enabled:
         return None, lambda: None
     try:
         from tqdm import tqdm
     except ImportError:  # the bar is a nicety: tqdm is in the 'bench' extra
-        def report(done, total):
-            print(f"\rpairwise registrations: {done}/{total}", end="" if done < total else "\n", file=sys.stderr)
+        def report(stage, done, total):
+            print(f"\r{stage}: {done}/{total}", end="" if done < total else "\n", file=sys.stderr)
         return report, lambda: None
-    bar = tqdm(total=None, desc="pairwise registrations", unit="pair", file=sys.stderr)
+    bars: list = []
 
-    def update(done, total):
-        bar.total = total
-        bar.n = done
-        bar.refresh()
+    def close():
+        if bars:
+            bars.pop().close()
 
-    return update, bar.close
+    def update(stage, done, total):
+        if done == 0 or not bars:
+            close()
+            pairs = "pairs" in stage  # its bar stays; a one-step stage's goes when it is done
+            bars.append(tqdm(total=total, desc=stage, unit="registration" if pairs else "step", file=sys.stderr,
+                             leave=pairs))
+        bars[-1].n = done
+        bars[-1].refresh()
+        if done == total:
+            close()
+
+    return update, close
 
 
-def _write_poses(path: Path, names, result, force: bool) -> None:
-    from ..io.atomic import atomic_write
+def _write_poses(path: Path, names, result, format: str, force: bool) -> None:
+    from ..io import write_poses
 
-    with atomic_write(path, force, mode="w") as handle:
-        handle.write(f"# T_world_scan per scan (world = scan {result.reference}), row-major 4x4; nan: not placed\n")
-        handle.write("# columns: index, file as given (JSON-quoted when it holds spaces), status, then 16 numbers\n")
-        for k, name in enumerate(names):
-            shown = json.dumps(name) if any(c.isspace() or c == '"' for c in name) else name
-            handle.write(f"{k} {shown} {result.status[k]} " + " ".join(f"{v:.17g}" for v in result.poses[k].ravel()) + "\n")
+    write_poses(path, result.poses, format=format, names=names, status=result.status, reference=result.reference,
+                overwrite=force)
 
 
 def _write_view(path: Path, points, labels, names, force: bool) -> None:
-    from ..viz import display_subset, require, scatter_trace, write_view
+    from ..viz import merged_scans_figure, write_view
 
-    go = require("plotly.graph_objects")
-    figure = go.Figure()
-    for k in sorted(set(labels.tolist())):
-        mine = points[labels == k]
-        shown = display_subset(len(mine), 3000, seed=k)
-        figure.add_trace(scatter_trace(go, mine[shown], f"{k}: {names[k]}", SCAN_COLOURS[k % len(SCAN_COLOURS)], "scene"))
-    figure.update_layout(title="esmicp merge: merged model coloured by scan (subsampled for display)",
-                         scene={"aspectmode": "data"})
-    write_view(figure, path, overwrite=force)
+    write_view(merged_scans_figure(points, labels, names), path, overwrite=force)
 
 
 def check_paths(args) -> None:
@@ -190,6 +198,8 @@ def run_merge(args) -> int:
         io.check_writable(path, kind=kind)
         if path.exists() and not args.force:
             raise OutputExistsError(path)
+    if args.poses_format is not None and args.poses_out is None:
+        raise InvalidInputError("--poses-format: give --poses-out FILE too (the file the poses are written to)")
     if args.view is not None and args.view.suffix.lower() not in (".html", ".htm"):
         raise InvalidInputError(f"--view: expected an .html file, got {str(args.view)!r}")
     reference_among_readable(args)
@@ -229,9 +239,11 @@ def run_merge(args) -> int:
     if not any(result.placed):  # pragma: no cover - the reference is always placed
         raise InvalidInputError("scans: no scan could be placed")
     points, labels = result.merged(clouds, voxel=args.voxel)
-    io.write_points(args.output, points, overwrite=args.force)
+    # the scan index and a colour per scan, where the format holds them (a warning says when not)
+    io.write_points(args.output, points, overwrite=args.force, scan_index=labels,
+                    colors=io.scan_palette(len(clouds))[labels])
     if args.poses_out is not None:
-        _write_poses(args.poses_out, names, result, args.force)
+        _write_poses(args.poses_out, names, result, args.poses_format or POSE_FORMATS[0], args.force)
     if args.view is not None:
         _write_view(args.view, points, labels, names, args.force)
     if args.json:

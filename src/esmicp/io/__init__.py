@@ -26,30 +26,41 @@ from __future__ import annotations
 
 import logging
 import os
+import warnings
 from pathlib import Path
 from types import MappingProxyType
 
 import numpy as np
 
-from ..errors import EsmicpError, InvalidInputError, PointCloudFileError
+from ..errors import EsmicpError, EsmicpWarning, InvalidInputError, PointCloudFileError
+from ..types import _coordinate_array as coordinate_array
 from ..types import as_generator, as_points
 from . import las, npy, off, pcd, ply, text, velodyne
 from ._messages import one_line
 from ._files import as_path, check_input_file
 from .atomic import atomic_write
+from .palette import scan_palette
+from .poses import POSE_FORMATS, PoseFile, read_poses, write_poses
 from .transform import read_transform, write_transform
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "FIELD_EXTENSIONS",
+    "POSE_FORMATS",
+    "PoseFile",
     "READ_EXTENSIONS",
     "SUPPORTED_EXTENSIONS",
     "WRITE_EXTENSIONS",
     "atomic_write",
+    "DroppedFieldsWarning",
     "check_writable",
     "read_points",
+    "read_poses",
     "read_transform",
+    "scan_palette",
     "write_points",
+    "write_poses",
     "write_transform",
 ]
 
@@ -61,10 +72,17 @@ READ_EXTENSIONS = (
 )
 #: Extensions :func:`write_points` accepts.
 WRITE_EXTENSIONS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy")
+#: Extensions whose files :func:`write_points` gives the per-point ``scan_index`` and ``colors``.
+FIELD_EXTENSIONS = (".ply", ".pcd")
 #: Both lists, for help texts: ``SUPPORTED_EXTENSIONS["read"]`` and ``SUPPORTED_EXTENSIONS["write"]``.
 SUPPORTED_EXTENSIONS = MappingProxyType({"read": READ_EXTENSIONS, "write": WRITE_EXTENSIONS})
 
 _PLY_FORMATS = ("ascii", "binary")
+
+
+class DroppedFieldsWarning(EsmicpWarning):
+    """:func:`write_points` was given per-point fields (a scan index, colours) for a format that
+    holds ``x y z`` only: the file has the points without them."""
 
 
 def _strip_name(exc: Exception, name: str) -> str:
@@ -209,18 +227,26 @@ def check_writable(path, *, kind: str = "points") -> None:
 
 
 def write_points(
-    path, points, *, overwrite: bool = False, pcd_format: str = "binary", ply_format: str = "binary"
+    path, points, *, overwrite: bool = False, pcd_format: str = "binary", ply_format: str = "binary",
+    scan_index=None, colors=None,
 ) -> None:
     """Write a point cloud, choosing the format by extension; atomic, never partial.
 
     Precision kept (all exact float64 round trips):
 
-    - ``.ply``: ``double x, y, z`` vertices, binary little-endian or ascii (17 significant digits).
+    - ``.ply``: ``double x, y, z`` vertices, binary little-endian or ascii (17 significant digits);
+      with ``colors``, ``uchar red, green, blue``; with ``scan_index``, ``int scan_index``.
     - ``.pcd``: fields ``x y z`` TYPE F SIZE 8; ``binary``, ``binary_compressed`` (LZF) or
-      ``ascii`` (17 significant digits).
+      ``ascii`` (17 significant digits); with ``colors``, ``rgb`` (packed as PCL packs it, TYPE U
+      SIZE 4); with ``scan_index``, ``scan_index`` (TYPE I SIZE 4).
     - ``.xyz``, ``.txt``: ``x y z`` per line, space-separated, 17 significant digits; ``.csv``: the
       same, comma-separated.
     - ``.npy``: an ``(N, 3)`` float64 array.
+
+    The per-point fields (``scan_index``, ``colors``) are written to ``.ply`` and ``.pcd``
+    (:data:`FIELD_EXTENSIONS`), which CloudCompare, Open3D and PCL read; the plain formats hold
+    ``x y z`` only, and they are left out there with a :class:`DroppedFieldsWarning`.
+    :func:`read_points` reads ``x y z`` of any of them.
 
     Parameters
     ----------
@@ -234,13 +260,20 @@ def write_points(
         Encoding of ``.pcd`` output.
     ply_format : {"binary", "ascii"}
         Encoding of ``.ply`` output.
+    scan_index : array_like, optional
+        ``(N,)`` non-negative integers (below 2**31), one per point: which scan each point comes
+        from (``MultiRegistrationResult.merged``'s labels).
+    colors : array_like, optional
+        ``(N, 3)`` integers in 0..255, one red / green / blue per point (e.g.
+        ``scan_palette(n)[scan_index]``: one colour per scan).
 
     Raises
     ------
     PointCloudFileError
         Unsupported extension (raised before anything is created), or the file cannot be written.
     InvalidInputError
-        ``points`` is not a valid cloud, or ``pcd_format`` / ``ply_format`` is unknown.
+        ``points`` is not a valid cloud, ``pcd_format`` / ``ply_format`` is unknown, or
+        ``scan_index`` / ``colors`` is not one valid value per point.
     OutputExistsError
         ``path`` exists and ``overwrite`` is False.
     """
@@ -252,16 +285,19 @@ def write_points(
         raise InvalidInputError(f"pcd_format: expected one of {', '.join(pcd.ENCODINGS)}, got {pcd_format!r}")
     if ply_format not in _PLY_FORMATS:
         raise InvalidInputError(f"ply_format: expected one of {', '.join(_PLY_FORMATS)}, got {ply_format!r}")
-    array = as_points(points, name="points")
+    array, fields = _points_and_fields(points, scan_index, colors)
+    if fields and extension not in FIELD_EXTENSIONS:
+        warnings.warn(f"{path}: {extension} holds x y z only; {' and '.join(fields)} left out (write "
+                      f"{' or '.join(FIELD_EXTENSIONS)} to keep them)", DroppedFieldsWarning, stacklevel=2)
 
     if extension == ".ply":
 
         def writer(handle):
-            ply.write_ply(handle, array, binary=ply_format == "binary")
+            ply.write_ply(handle, array, binary=ply_format == "binary", **fields)
     elif extension == ".pcd":
 
         def writer(handle):
-            pcd.write_pcd(handle, array, encoding=pcd_format)
+            pcd.write_pcd(handle, array, encoding=pcd_format, **fields)
     elif extension == ".npy":
 
         def writer(handle):
@@ -275,3 +311,34 @@ def write_points(
     with atomic_write(path, overwrite) as handle:
         writer(handle)
     logger.debug("wrote %d points to %s", len(array), os.fspath(path))
+
+
+def _points_and_fields(points, scan_index, colors) -> tuple[np.ndarray, dict]:
+    """The validated ``(N, 3)`` points and their per-point fields (``scan_index`` int32,
+    ``colors`` uint8), the rows with NaN or infinite coordinates dropped from all of them."""
+    if scan_index is None and colors is None:
+        return as_points(points, name="points"), {}
+    raw = coordinate_array(points, "points")
+    fields = {}
+    for name, value in (("scan_index", scan_index), ("colors", colors)):
+        if value is None:
+            continue
+        shape = (len(raw),) if name == "scan_index" else (len(raw), 3)
+        try:
+            array = np.asarray(value)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"{name}: expected numbers, got {type(value).__name__}") from None
+        if array.shape != shape:
+            raise InvalidInputError(f"{name}: expected shape {shape} (one per point), got {array.shape}")
+        top = 2**31 - 1 if name == "scan_index" else 255
+        if array.dtype.kind not in "iu" and not (array.dtype.kind == "f" and np.isfinite(array).all()
+                                                 and (array == np.round(array)).all()):
+            raise InvalidInputError(f"{name}: expected integers, got dtype {array.dtype}")
+        if len(array) and (array.min() < 0 or array.max() > top):
+            raise InvalidInputError(f"{name}: expected integers in [0, {top}], got {array.min()}..{array.max()}")
+        fields[name] = array.astype(np.int32 if name == "scan_index" else np.uint8)
+    finite = np.isfinite(raw).all(axis=1)
+    array = as_points(raw, name="points")  # drops the non-finite rows, with a warning
+    if not finite.all():
+        fields = {name: value[finite] for name, value in fields.items()}
+    return array, fields

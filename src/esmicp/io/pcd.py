@@ -1,7 +1,8 @@
 """PCD (Point Cloud Library) point clouds, read and written with :mod:`pypcd4`.
 
 Reading: ``DATA ascii``, ``binary`` and ``binary_compressed``; fields ``x y z`` are required
-(any numeric type, COUNT 1), other fields are ignored. Organized clouds (``HEIGHT > 1``) are read
+(any numeric type, COUNT 1), other fields are ignored. Writing: ``x y z`` as float64, and
+optionally a colour (``rgb``) and a ``scan_index`` per point. Organized clouds (``HEIGHT > 1``) are read
 as their ``WIDTH * HEIGHT`` points in row order; their NaN points (invalid pixels) are dropped
 later by :func:`esmicp.types.as_points`, with a warning.
 
@@ -349,7 +350,8 @@ def read_pcd(path) -> np.ndarray:
     return points
 
 
-def write_pcd(handle, points: np.ndarray, *, encoding: str = "binary") -> None:
+def write_pcd(handle, points: np.ndarray, *, encoding: str = "binary", scan_index: np.ndarray | None = None,
+              colors: np.ndarray | None = None) -> None:
     """Write ``points`` as a PCD v0.7 file with fields ``x y z`` of TYPE F SIZE 8 (float64).
 
     Every encoding keeps full float64 precision, so round trips are exact: ``binary`` and
@@ -362,11 +364,30 @@ def write_pcd(handle, points: np.ndarray, *, encoding: str = "binary") -> None:
     points : numpy.ndarray
         ``(N, 3)`` float64, already validated.
     encoding : {"ascii", "binary", "binary_compressed"}
+    scan_index : numpy.ndarray, optional
+        ``(N,)`` int32 per point: the field ``scan_index`` (TYPE I SIZE 4; a scalar field in
+        CloudCompare).
+    colors : numpy.ndarray, optional
+        ``(N, 3)`` uint8 per point: the field ``rgb``, packed as PCL packs it (``r << 16 | g << 8
+        | b``), TYPE U SIZE 4 (so the ascii encoding keeps it exactly); Open3D and CloudCompare
+        read it as colours.
     """
     import lzf
     from pypcd4 import Encoding, PointCloud
 
-    cloud = PointCloud.from_points(points, ("x", "y", "z"), (np.float64, np.float64, np.float64))
+    columns = [points[:, 0], points[:, 1], points[:, 2]]
+    names, types = ["x", "y", "z"], [np.float64] * 3
+    if colors is not None:
+        rgb = colors.astype(np.uint32)
+        columns.append((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2])
+        names.append("rgb")
+        types.append(np.uint32)
+    if scan_index is not None:
+        columns.append(np.asarray(scan_index, dtype=np.int32))
+        names.append("scan_index")
+        types.append(np.int32)
+    columns = [np.ascontiguousarray(column, dtype=kind) for column, kind in zip(columns, types)]
+    cloud = PointCloud.from_points(columns, tuple(names), tuple(types))
     if encoding == "binary":
         cloud.save(handle, encoding=Encoding.BINARY)
         return
@@ -375,12 +396,18 @@ def write_pcd(handle, points: np.ndarray, *, encoding: str = "binary") -> None:
         # pypcd4 writes ascii floats with "%.10f" (ten decimals: small values lose their
         # digits); write the rows with round-trip precision instead.
         handle.write(header)
-        np.savetxt(handle, points, fmt="%.17g", delimiter=" ")
+        if len(columns) == 3:
+            np.savetxt(handle, points, fmt="%.17g", delimiter=" ")
+        else:
+            table = np.empty(len(points), dtype=[(name, kind) for name, kind in zip(names, types)])
+            for name, column in zip(names, columns):
+                table[name] = column
+            np.savetxt(handle, table, fmt=["%.17g"] * 3 + ["%d"] * (len(names) - 3), delimiter=" ")
         return
     # binary_compressed: pypcd4 falls back to writing DATA binary when LZF cannot shrink the data
     # (usual for random doubles). Keep the requested encoding, as PCL does, and store an LZF block
     # that may be slightly larger than the raw data.
-    raw = b"".join(np.ascontiguousarray(points[:, column]).tobytes() for column in range(3))
+    raw = b"".join(column.tobytes() for column in columns)  # field by field, as the encoding stores them
     compressed = lzf.compress(raw, len(raw) + len(raw) // 16 + 64) if raw else b""
     if compressed is None:  # pragma: no cover - the bound above is LZF's worst case
         raise RuntimeError("LZF compression failed")

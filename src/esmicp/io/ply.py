@@ -1,8 +1,9 @@
 """PLY (Stanford polygon file) point clouds, read and written with :mod:`plyfile`.
 
-Only the ``x``, ``y``, ``z`` properties of the ``vertex`` element are used. Other vertex
-properties (normals, colours, confidence, ...) and other elements (faces, the Stanford scans'
-``range_grid``, ...) are tolerated and ignored.
+Only the ``x``, ``y``, ``z`` properties of the ``vertex`` element are read. Other vertex
+properties (normals, colours, confidence, a scan index, ...) and other elements (faces, the
+Stanford scans' ``range_grid``, ...) are tolerated and ignored. :func:`write_ply` can add a colour
+(``uchar red green blue``) and an ``int scan_index`` per vertex.
 
 The header is parsed and checked here first, against the file's size, so that a header that
 declares more data than the file holds is refused before anything is allocated. plyfile then reads
@@ -610,7 +611,8 @@ def read_ply(path) -> np.ndarray:
         return _read_binary(path, handle, header, needed)
 
 
-def write_ply(handle, points: np.ndarray, *, binary: bool = True) -> None:
+def write_ply(handle, points: np.ndarray, *, binary: bool = True, scan_index: np.ndarray | None = None,
+              colors: np.ndarray | None = None) -> None:
     """Write ``points`` as the ``vertex`` element (``double x, y, z``) of a PLY file.
 
     Coordinates are stored as float64 ("double") in both variants, so round trips are exact:
@@ -624,9 +626,24 @@ def write_ply(handle, points: np.ndarray, *, binary: bool = True) -> None:
         ``(N, 3)`` float64, already validated.
     binary : bool
         ``binary_little_endian`` if True, else ``ascii``.
+    scan_index : numpy.ndarray, optional
+        ``(N,)`` int32 per point: the vertex property ``int scan_index`` (a scalar field in
+        CloudCompare).
+    colors : numpy.ndarray, optional
+        ``(N, 3)`` uint8 per point: the vertex properties ``uchar red, green, blue`` (the colours
+        Open3D, CloudCompare and MeshLab show).
     """
-    vertices = np.empty(len(points), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    if scan_index is not None:
+        fields.append(("scan_index", "<i4"))
+    vertices = np.empty(len(points), dtype=fields)
     vertices["x"], vertices["y"], vertices["z"] = points[:, 0], points[:, 1], points[:, 2]
+    if colors is not None:
+        vertices["red"], vertices["green"], vertices["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
+    if scan_index is not None:
+        vertices["scan_index"] = scan_index
     element = plyfile.PlyElement.describe(vertices, "vertex")
     data = plyfile.PlyData([element], text=not binary, byte_order="<", comments=["written by esmicp"])
     if binary:
@@ -635,4 +652,7 @@ def write_ply(handle, points: np.ndarray, *, binary: bool = True) -> None:
     # plyfile's own ascii writer formats every row with a separate numpy.savetxt call (about 15x
     # slower); write its header, then all rows at once with the same round-trip precision.
     handle.write((data.header + "\n").encode("ascii"))
-    np.savetxt(handle, points, fmt="%.17g", delimiter=" ")
+    if len(fields) == 3:
+        np.savetxt(handle, points, fmt="%.17g", delimiter=" ")
+        return
+    np.savetxt(handle, vertices, fmt=["%.17g"] * 3 + ["%d"] * (len(fields) - 3), delimiter=" ")

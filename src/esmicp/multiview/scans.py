@@ -220,6 +220,32 @@ def _subsample(points: np.ndarray, count: int) -> np.ndarray:
     return points[np.sort(generator.choice(len(points), count, replace=False))]
 
 
+class _Stages:
+    """The ``progress(stage, done, total)`` reports of one merge: each stage opens at ``done == 0``
+    with its total, and closes at ``done == total`` before the next opens."""
+
+    def __init__(self, progress):
+        self.progress = progress
+        self.stage, self.total, self.done = None, 0, 0
+
+    def open(self, stage: str, total: int) -> None:
+        self.close()
+        self.stage, self.total, self.done = stage, total, 0
+        if self.progress is not None:
+            self.progress(stage, 0, total)
+
+    def advance(self, done: int) -> None:
+        if self.stage is not None and done > self.done:
+            self.done = min(done, self.total)
+            if self.progress is not None:
+                self.progress(self.stage, self.done, self.total)
+
+    def close(self) -> None:
+        if self.stage is not None:
+            self.advance(self.total)
+            self.stage = None
+
+
 class _Pairwise:
     """The edges of one merge: runs pairwise registrations and keeps every edge tried (one per
     pair of scans; a later registration of the same pair replaces it only when more confident).
@@ -231,9 +257,9 @@ class _Pairwise:
     spacing (on the bunny's scans, right pairs score 0.0-0.76 at 1,500 points, 0.74-1.0 at 10,000;
     wrong ones stay below 0.25)."""
 
-    def __init__(self, small, dense, keys, sequence, run_options, progress):
+    def __init__(self, small, dense, keys, sequence, run_options, stages: _Stages):
         self.small, self.dense, self.keys, self.sequence = small, dense, keys, sequence
-        self.run_options, self.progress = run_options, progress
+        self.run_options, self.stages = run_options, stages
         self.edges: dict[tuple[int, int], Edge] = {}
         self.done = 0  # registrations run, for progress and the result
         self.tried: set[tuple[int, int]] = set()
@@ -245,21 +271,19 @@ class _Pairwise:
             return (min(a, b), max(a, b))
         return (a, b) if (self.keys[a], a) <= (self.keys[b], b) else (b, a)
 
-    def _register(self, clouds, oriented, inits, total, **extra):
-        offset = self.done
-
+    def _register(self, clouds, oriented, inits, offset, **extra):
         def report(done, _):
-            if self.progress is not None:
-                self.progress(offset + done, total)
+            self.stages.advance(offset + done)
 
         jobs = [(clouds[j], clouds[i]) for i, j in oriented]  # source j onto target i: T_i_j
         outcomes = register_many(jobs, progress=report, inits=inits, **{**extra, **self.run_options})
         self.done += len(jobs)
         return outcomes
 
-    def run(self, requests) -> list[Edge]:
+    def run(self, requests, stage: str = "pairs") -> list[Edge]:
         """Register ``requests`` (``(a, b, T_a_b or None)``: None for a global search) and record
-        their edges; returns the new edges."""
+        their edges; returns the new edges. One progress ``stage`` of two registrations a pair
+        (the search, the check; a pair whose search failed has its check counted as done)."""
         if not requests:
             return []
         oriented, inits = [], []
@@ -268,14 +292,15 @@ class _Pairwise:
             T = T_a_b if T_a_b is None or (i, j) == (a, b) else np.linalg.inv(T_a_b)
             oriented.append((i, j))
             inits.append(T)
-        total = self.done + 2 * len(requests)
+        self.stages.open(stage, 2 * len(requests))
         # on the sparse subsets: a global search, or a local refinement from the given start
-        found = self._register(self.small, oriented, inits, total)
+        found = self._register(self.small, oriented, inits, 0)
         outcomes = {n: outcome for n, outcome in enumerate(found) if not hasattr(outcome, "transformation")}
         # the check on the dense subsets starts at a converged pose: capped
         group = [n for n in range(len(requests)) if n not in outcomes]
         checked = self._register(self.dense, [oriented[n] for n in group], [found[n].transformation for n in group],
-                                 total, max_iterations=CHECK_ITERATIONS)
+                                 2 * len(requests) - len(group), max_iterations=CHECK_ITERATIONS)
+        self.stages.close()
         outcomes.update(zip(group, checked))
         new = []
         for n, (i, j) in enumerate(oriented):
@@ -418,7 +443,7 @@ def register_scans(
     threads: int | None = None,
     processes: int | None = None,
     client=None,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
     **register_kwargs,
 ) -> MultiRegistrationResult:
     """Register N scans into one frame, with no initial poses; say plainly which scans are placed.
@@ -459,8 +484,15 @@ def register_scans(
         spawned process pool of ``processes``; or a Dask ``client``. Each registration runs its
         kernels on one thread (``workers=1``) when several run at once, unless ``workers`` is given.
     progress : callable, optional
-        ``progress(done, total)`` after every pairwise registration (``total`` grows when the
-        graph asks for more pairs).
+        ``progress(stage, done, total)``, called in this thread as the merge goes through its
+        stages, one after the other: ``"pairs"`` (with ``sequence``, then ``"pairs (global
+        retry)"`` and ``"pairs (loop closures)"``), ``"more pairs (round r)"`` each time the graph
+        asks for more, ``"pose graph"`` whenever the graph is solved, ``"joint refinement"`` and
+        ``"free-space check"``. Each stage opens with ``done == 0`` and its ``total``, which stays
+        fixed; ``done`` never decreases, and the stage closes with ``done == total`` before the
+        next opens. A pairs stage counts registrations, two per pair (the search and its check);
+        the other stages count 1 when done. The pose graph, refinement and check stages recur
+        (after every round of pairs; once more when a free-space conflict vetoes edges).
     **register_kwargs
         Passed to every pairwise :func:`esmicp.register` call.
 
@@ -511,13 +543,16 @@ def register_scans(
     dense = [_subsample(s, refine_points) for s in scans]
     keys = [zlib.crc32(np.ascontiguousarray(s).tobytes()) for s in scans]
     run_options = {"threads": threads, "processes": processes, "client": client, **register_kwargs}
-    pairwise = _Pairwise(small, dense, keys, bool(sequence), run_options, progress)
+    if progress is not None and not callable(progress):
+        raise InvalidInputError(f"progress: expected a callable(stage, done, total), got {type(progress).__name__}")
+    stages = _Stages(progress)
+    pairwise = _Pairwise(small, dense, keys, bool(sequence), run_options, stages)
 
     unlike = None  # the scans' descriptor distances (candidates.descriptor_distances), when asked for
     if sequence:
         pairwise.run([(i, j, np.eye(4)) for i, j in candidates.sequence_pairs(n, sequence_neighbours)])
         retry = [(e.i, e.j, None) for e in pairwise.edges.values() if not e.trusted]
-        pairwise.run(retry)  # a pair the identity start did not bring to trust: globally
+        pairwise.run(retry, "pairs (global retry)")  # a pair the identity start did not bring to trust: globally
     elif n > 1:
         unlike = candidates.descriptor_distances(small)
         ranked = candidates.ranked_partners(unlike)
@@ -526,14 +561,18 @@ def register_scans(
     vetoed: dict[tuple[int, int], str] = {}  # edges cut by a free-space conflict -> why
 
     def solve():
-        return _solve(list(pairwise.edges.values()), reference, max_edge_error_deg, vetoed)
+        stages.open("pose graph", 1)
+        solved = _solve(list(pairwise.edges.values()), reference, max_edge_error_deg, vetoed)
+        stages.close()
+        return solved
 
     poses, edges = solve()
     if sequence and n > sequence_neighbours + 1:
         extents = candidates.world_extents(poses, small)
         loops = candidates.near_pairs(sorted(poses), extents, pairwise.tried, 1, min_gap=sequence_neighbours + 1)
-        pairwise.run([(i, j, None) for i, j in loops])
+        pairwise.run([(i, j, None) for i, j in loops], "pairs (loop closures)")
         poses, edges = solve()
+    rounds = 1  # rounds of pairs, for the progress stages' names
     for attempt in range(2):
         for _ in range(EXTRA_ROUNDS if n > 1 else 0):  # more pairs only where a scan is not yet confirmed
             extents = candidates.world_extents(poses, small)
@@ -554,22 +593,27 @@ def register_scans(
                 wanted.extend(p for p in bridges if p not in asked)
             if not wanted:
                 break
-            pairwise.run([(i, j, None) for i, j in wanted])
+            rounds += 1
+            pairwise.run([(i, j, None) for i, j in wanted], f"more pairs (round {rounds})")
             poses, edges = solve()
 
         rmse, residual = None, {}
         kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
         if kept_pairs and refine_rounds > 0:
+            stages.open("joint refinement", 1)
             fine = {k: dense[k] for k in poses}
             fine_normals = {k: estimate_normals(fine[k], k=12, workers=None) for k in fine}
             scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
             fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
             reach = np.geomspace(3.0 * scale, max(REFINE_FLOOR_SPACINGS * fine_spacing, 1e-12), refine_rounds)
             poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, reference, reach)
+            stages.close()
 
         # on the refined poses (the graph's alone drift along a walk and conflict falsely): the
         # edges a conflict disproves are cut once, and the scans they placed searched again
+        stages.open("free-space check", 1)
         conflicted, removed, checked = _free_space_conflicts(n, reference, poses, dense, small, edges)
+        stages.close()
         if not removed or attempt == 1:
             break
         vetoed.update(_veto_reasons(removed))

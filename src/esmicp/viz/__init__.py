@@ -17,6 +17,7 @@ from .bench_plots import (
 )
 from .files import save_figure
 from .heatmap import heatmap, heatmap_figure
+from .scans import merged_scans_figure
 from .inputs import builtin_pair, downsample, farthest_point_subset, moved_copy
 from .similarity import similarity_matrix
 from .trace import RegistrationTrace, fixed_trace, trace_registration
@@ -36,6 +37,7 @@ __all__ = [
     "farthest_point_subset",
     "heatmap",
     "heatmap_figure",
+    "merged_scans_figure",
     "moved_copy",
     "read_bench_rows",
     "save_figure",
