@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import require_module
 
 from esmicp.cli import main
 from esmicp.core.procrustes import apply, to_matrix
@@ -333,3 +334,87 @@ def test_a_bad_workers_value_is_one_line_and_exit_2(pair, tmp_path, capsys, comm
     _assert_one_line_error(err, "--workers", f"{command} --workers {bad}")
     assert bad in err
     assert not out.exists()
+
+
+@pytest.fixture
+def three_scans(tmp_path):
+    """Three files of independent samples of the built-in shape, each in its own frame."""
+    rng = np.random.default_rng(11)
+    paths = []
+    for k in range(3):
+        path = tmp_path / f"scan {k}.xyz"  # a space in the name: the pose file still names it
+        np.savetxt(path, apply(to_matrix(random_rotation(rng, 25.0), rng.normal(size=3)), asymmetric_shape(1500, rng)))
+        paths.append(path)
+    return paths
+
+
+def test_merge_writes_the_scan_index_and_colours_and_poses_that_place_the_points(three_scans, tmp_path, capsys):
+    """The merged .ply holds, per point, the scan it came from and that scan's colour; the TUM
+    poses read back by esmicp.read_poses move each scan's points onto its part of the cloud."""
+    import plyfile
+
+    from esmicp import read_points, read_poses
+    from esmicp.io import scan_palette
+
+    merged, poses = tmp_path / "merged.ply", tmp_path / "poses.tum"
+    code, out, err = run(capsys, "merge", *map(str, three_scans), "-o", str(merged), "--poses-out", str(poses),
+                         "--poses-format", "tum", "--threads", "1", "--pair-points", "300", "--no-progress", "--json")
+    assert code == 0, err
+    report = json.loads(out)
+    written = read_poses(poses)
+    assert written.format == "tum" and written.names == tuple(map(str, three_scans))
+    assert list(written.status) == [scan["status"] for scan in report["scans"]] == ["placed"] * 3
+    vertex = plyfile.PlyData.read(str(merged))["vertex"]
+    labels = np.asarray(vertex["scan_index"])
+    cloud = np.stack([vertex[c] for c in "xyz"], axis=1)
+    np.testing.assert_array_equal(read_points(merged), cloud)
+    colours = np.stack([vertex[c] for c in ("red", "green", "blue")], axis=1)
+    np.testing.assert_array_equal(colours, scan_palette(3)[labels])
+    for k, path in enumerate(three_scans):
+        T = written.poses[k]
+        np.testing.assert_allclose(cloud[labels == k], apply(T, read_points(path)), rtol=0, atol=1e-9)
+
+
+def test_merge_to_a_plain_format_says_what_it_leaves_out_and_kitti_poses_read_back(three_scans, tmp_path, capsys):
+    from esmicp import read_points, read_poses
+
+    merged, poses = tmp_path / "merged.xyz", tmp_path / "poses.txt"
+    code, _, err = run(capsys, "merge", *map(str, three_scans), "-o", str(merged), "--poses-out", str(poses),
+                       "--poses-format", "kitti", "--threads", "1", "--pair-points", "300", "--no-progress")
+    assert code == 0, err
+    assert "scan_index" in err and "warning" in err  # the scan index is not silently lost
+    assert read_points(merged).shape[1] == 3 and np.loadtxt(merged).shape[1] == 3
+    written = read_poses(poses)
+    assert written.format == "kitti" and len(written) == 3
+    np.testing.assert_array_equal(written.poses[0], np.eye(4))
+
+
+def test_poses_format_without_poses_out_is_refused_before_any_work(three_scans, tmp_path, capsys):
+    out = tmp_path / "merged.ply"
+    code, _, err = run(capsys, "merge", *map(str, three_scans), "-o", str(out), "--poses-format", "tum")
+    assert code == 2
+    _assert_one_line_error(err, "--poses-format", "--poses-format without --poses-out")
+    assert not out.exists()
+
+
+STAGES = [("pairs", 0, 4), ("pairs", 1, 4), ("pairs", 4, 4), ("pose graph", 0, 1), ("pose graph", 1, 1),
+          ("more pairs (round 2)", 0, 2), ("more pairs (round 2)", 2, 2), ("joint refinement", 0, 1),
+          ("joint refinement", 1, 1)]
+
+
+@pytest.mark.parametrize("with_tqdm", [True, False])
+def test_merge_progress_shows_one_bar_per_stage_with_its_label_and_total(capsys, monkeypatch, with_tqdm):
+    from esmicp.cli.merge import _progress
+
+    if with_tqdm:
+        require_module("tqdm", "bench")
+    else:
+        monkeypatch.setitem(sys.modules, "tqdm", None)  # the fallback without the 'bench' extra
+    report, close = _progress(True)
+    for call in STAGES:
+        report(*call)
+    close()
+    err = capsys.readouterr().err
+    for stage, _, total in STAGES:
+        assert f"{stage}" in err and f"{total}/{total}" in err
+    assert "4/4" in err.split("pose graph")[0]  # the pairs' bar ends full before the next stage

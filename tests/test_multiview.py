@@ -394,3 +394,54 @@ def test_bridging_pairs_join_a_placed_and_an_unplaced_scan_most_alike_first_each
     assert gaps == sorted(gaps)
     assert bridging_pairs(distances, [], unplaced, set(), 2) == []
     assert bridging_pairs(distances, placed, [], set(), 2) == []
+
+
+def _check_progress_contract(calls):
+    """Every stage opens at done == 0 with a total that then never changes; done never decreases
+    nor exceeds the total, and the stage closes at done == total before the next one opens."""
+    assert calls and calls[0][1] == 0
+    stages = []
+    for stage, done, total in calls:
+        assert isinstance(stage, str) and stage and total >= 1 and 0 <= done <= total, (stage, done, total)
+        if done == 0:
+            assert not stages or stages[-1][1][-1][1] == stages[-1][1][-1][2], f"{stages[-1][0]} left unfinished"
+            stages.append((stage, [(stage, done, total)]))
+            continue
+        name, seen = stages[-1]
+        assert stage == name and total == seen[-1][2], f"{stage} {done}/{total} inside {name} of total {seen[-1][2]}"
+        assert done >= seen[-1][1]
+        seen.append((stage, done, total))
+    assert stages[-1][1][-1][1] == stages[-1][1][-1][2], f"{stages[-1][0]} left unfinished"
+    return [(name, seen[0][2]) for name, seen in stages]
+
+
+def test_progress_announces_each_stage_with_a_total_that_never_grows():
+    """A sequence of four scans of one shape and an intruder: the pairs, the global retries, the
+    loop closures and the rounds of more pairs each announce their registrations up front; the
+    pose graph, the joint refinement and the free-space check follow, each counted to its end."""
+    from esmicp.shapes import asymmetric_shape
+
+    rng = np.random.default_rng(5)
+    clouds = [asymmetric_shape(1200, rng) @ Rotation.from_rotvec(rng.normal(size=3)).as_matrix().T + rng.normal(size=3)
+              for _ in range(4)]
+    clouds.append(rng.normal(size=(1200, 3)))  # another object: more pairs are asked for it
+    calls = []
+    result = register_scans(clouds, sequence=True, threads=2, pair_points=400, refine_points=1200,
+                            progress=lambda *call: calls.append(call))
+    stages = _check_progress_contract(calls)
+    names = [name for name, _ in stages]
+    assert names[0] == "pairs" and "pose graph" in names and names[-2:] == ["joint refinement", "free-space check"]
+    pairs = [total for name, total in stages if "pairs" in name]
+    assert len(pairs) >= 3  # the pairs, their retries, more: each its own stage, its total fixed at its start
+    assert sum(pairs) >= result.pairs_registered  # every registration run was announced
+    with pytest.raises(InvalidInputError, match="progress"):
+        register_scans(clouds[:2], progress=3)
+
+
+def test_progress_contract_check_catches_a_growing_total():
+    with pytest.raises(AssertionError):
+        _check_progress_contract([("pairs", 0, 4), ("pairs", 3, 4), ("pairs", 5, 8), ("pairs", 8, 8)])
+    with pytest.raises(AssertionError):
+        _check_progress_contract([("pairs", 0, 4), ("pairs", 2, 4), ("pose graph", 0, 1), ("pose graph", 1, 1)])
+    assert _check_progress_contract([("pairs", 0, 4), ("pairs", 4, 4), ("pose graph", 0, 1), ("pose graph", 1, 1)]) \
+        == [("pairs", 4), ("pose graph", 1)]

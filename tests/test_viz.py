@@ -354,3 +354,56 @@ def test_commands_start_from_a_given_transform_file(tmp_path, capsys):
     trace = trace_registration(pair.source, pair.target, init=pair.T_target_source)
     with image_module.open(out) as gif:
         assert gif.n_frames == trace.iterations + 1 <= 4
+
+
+# --- the merged model of many scans -----------------------------------------------------------
+
+
+def _scans(count, per_scan=500, seed=0):
+    rng = np.random.default_rng(seed)
+    points = np.concatenate([rng.normal(size=(per_scan, 3)) + [k, 0.0, 0.0] for k in range(count)])
+    return points, np.repeat(np.arange(count), per_scan), [f"walk/frame_{k:04d}.ply" for k in range(count)]
+
+
+def test_a_merged_view_of_a_few_scans_has_one_legend_entry_per_scan_in_the_files_colours(tmp_path):
+    require_plotting()
+    from esmicp.io import scan_palette
+    from esmicp.viz import merged_scans_figure
+
+    points, labels, names = _scans(5)
+    figure = merged_scans_figure(points, labels, names)
+    assert figure.layout.showlegend and len(figure.data) == 5
+    for k, trace in enumerate(figure.data):
+        assert trace.name == f"{k}: {names[k]}"
+        assert trace.marker.color == "#{:02x}{:02x}{:02x}".format(*scan_palette(5)[k])
+        drawn = np.stack([trace.x, trace.y, trace.z], axis=1)
+        assert len(drawn) == 500  # few scans: all their points
+        np.testing.assert_allclose(drawn, points[labels == k], atol=1e-5)  # each scan's own points
+
+
+def test_a_merged_view_of_100_scans_is_one_cloud_on_a_colour_scale_with_names_on_hover(tmp_path):
+    """100 scans: no legend of 100 lines taking the page; one trace coloured by scan index with
+    a colour bar, each point's hover text naming its scan, the drawn points bounded in all."""
+    require_plotting()
+    from esmicp.viz import merged_scans_figure
+    from esmicp.viz.scans import VIEW_POINTS_TOTAL
+
+    points, labels, names = _scans(100, per_scan=1500)
+    figure = merged_scans_figure(points, labels, names)
+    assert not figure.layout.showlegend and len(figure.data) == 1
+    trace = figure.data[0]
+    assert trace.marker.colorbar.title.text and trace.marker.cmax == 99
+    index = np.asarray(trace.marker.color)
+    assert set(index.tolist()) == set(range(100)) and len(index) <= VIEW_POINTS_TOTAL
+    assert [text.split(": ", 1)[1] for text in trace.hovertext] == [names[k] for k in index]
+    from scipy.spatial import cKDTree
+
+    distance, nearest = cKDTree(points).query(np.stack([trace.x, trace.y, trace.z], axis=1))
+    assert distance.max() < 1e-5  # float32 for display
+    np.testing.assert_array_equal(labels[nearest], index)  # every point drawn in its own scan's colour
+    assert figure.layout.meta["legend"] is False and figure.layout.meta["scans"] == list(range(100))
+    path = tmp_path / "merged.html"
+    write_view(figure, path)
+    assert path.stat().st_size < 20_000_000
+    with pytest.raises(InvalidInputError):
+        merged_scans_figure(points, labels, names[:50])  # a scan index with no name
