@@ -31,6 +31,9 @@ def pose(source: npt.NDArray[np.float64], target: npt.NDArray[np.float64], out: 
     read: npt.NDArray[np.float64] = esmicp.read_points(out / "source.ply")
     poses: dict[str, npt.NDArray[np.float64]] = esmicp.read_stanford_conf(out / "bun.conf")
     merged: esmicp.MultiRegistrationResult = esmicp.register_scans([source, target, read])
+    esmicp.write_poses(out / "poses.txt", merged.poses, format="tum", names=["a", "b", "c"], overwrite=True)
+    written: esmicp.PoseFile = esmicp.read_poses(out / "poses.txt")
+    stored: npt.NDArray[np.float64] = written.poses
     threads: int = _kernels.hardware_threads()
     methods: tuple[str, ...] = tuple(esmicp.METHODS)
-    return float(count + trusted + len(poses) + threads + len(methods) + len(merged.poses)) + (confidence or 0.0)
+    return float(count + trusted + len(poses) + threads + len(methods) + len(merged.poses) + len(stored)) + (confidence or 0.0)

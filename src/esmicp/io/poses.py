@@ -60,7 +60,7 @@ class PoseFile:
         One of :data:`POSE_FORMATS`.
     names : tuple of str, or None
         The scans' files as written (None when the file does not name them: KITTI, a TUM file
-        written elsewhere).
+        written elsewhere; an entry is None for a scan written without one).
     status : tuple of str, or None
         Per scan, ``"placed"``, ``"doubtful"`` or ``"unplaced"`` as the merge judged it (None when
         the file does not say; an entry is None for a scan written without one).
@@ -73,7 +73,7 @@ class PoseFile:
 
     poses: np.ndarray
     format: str
-    names: tuple[str, ...] | None = None
+    names: tuple[str | None, ...] | None = None
     status: tuple[str | None, ...] | None = None
     timestamps: np.ndarray | None = None
     reference: int | None = None
