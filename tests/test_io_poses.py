@@ -166,3 +166,15 @@ def test_write_refuses_bad_poses_and_existing_files_and_writes_nothing(tmp_path)
     assert esmicp.read_poses(path).format == "matrix"
     esmicp.write_poses(path, _poses(3), format="kitti", overwrite=True)
     assert esmicp.read_poses(path).format == "kitti"
+
+
+def test_a_point_cloud_given_by_mistake_is_refused_at_its_first_line(tmp_path):
+    points = np.random.default_rng(0).normal(size=(20000, 3))
+    for name in ("merged.xyz", "merged.ply"):
+        path = tmp_path / name
+        esmicp.write_points(path, points)
+        with pytest.raises(PointCloudFileError) as error:
+            esmicp.read_poses(path)
+        assert str(error.value).startswith(str(path)) and "\n" not in str(error.value)
+    with pytest.raises(PointCloudFileError, match="line 1: 3 values"):
+        esmicp.read_poses(tmp_path / "merged.xyz")

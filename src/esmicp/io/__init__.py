@@ -16,6 +16,9 @@ extension                 format                                                
 ========================  =======================================================  =========
 
 Every written format keeps full float64 precision, so write/read round trips are exact.
+``.ply`` and ``.pcd`` can also hold a scan index and a colour per point (:func:`write_points`).
+Poses of many scans (``T_world_scan`` per scan, as text): :func:`write_poses` / :func:`read_poses`
+(:mod:`.poses`).
 
 Every problem with an input file raises :class:`~esmicp.errors.PointCloudFileError` whose message
 starts with the file's path; NaN / infinite points are dropped with a

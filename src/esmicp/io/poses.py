@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InvalidInputError, PointCloudFileError
-from ..types import RIGID_TOLERANCE
+from ..types import as_transform
 from ._files import as_path, check_input_file
 from ._messages import excerpt
 from .atomic import atomic_write
@@ -117,26 +117,8 @@ def _as_poses(poses) -> np.ndarray:
         if not finite.all() and finite.any():
             raise InvalidInputError(f"poses[{k}]: some entries are NaN or infinite (all NaN means no pose)")
         if finite.all():
-            _check_rigid(T, f"poses[{k}]")
+            as_transform(T, name=f"poses[{k}]")
     return array
-
-
-def _check_rigid(T: np.ndarray, name: str) -> str | None:
-    """None when ``T`` is rigid (to :data:`esmicp.types.RIGID_TOLERANCE`); otherwise the problem
-    (raised as InvalidInputError named ``name`` when ``name`` is given)."""
-    problem = None
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
-        problem = f"last row must be [0 0 0 1], got {T[3].tolist()}"
-    else:
-        R = T[:3, :3]
-        off = float(np.abs(R.T @ R - np.eye(3)).max())
-        if off > RIGID_TOLERANCE:
-            problem = f"not rigid, its 3x3 block is not orthonormal (max |R^T R - I| = {off:.3g})"
-        elif np.linalg.det(R) < 0:
-            problem = "not rigid, its 3x3 block is a reflection"
-    if problem is not None and name:
-        raise InvalidInputError(f"{name}: {problem}")
-    return problem
 
 
 def _per_scan(values, count: int, name: str) -> tuple | None:
@@ -271,12 +253,10 @@ def _pose_from_row(path, number: int, format: str, values: list[float]) -> np.nd
         T = np.eye(4)
         T[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
         T[:3, 3] = array[1:4]
-    problem = _check_rigid(T, "")
-    if problem is not None:
-        raise _error(path, number, problem)
-    if format != "tum":
-        T[3] = [0.0, 0.0, 0.0, 1.0]
-    return T
+    try:
+        return as_transform(T, name="pose")
+    except InvalidInputError as exc:
+        raise _error(path, number, str(exc).removeprefix("pose: ")) from None
 
 
 def read_poses(path, *, format: str | None = None) -> PoseFile:
@@ -312,50 +292,48 @@ def read_poses(path, *, format: str | None = None) -> PoseFile:
         raise InvalidInputError(f"format: expected one of {', '.join(POSE_FORMATS)}, got {format!r}")
     check_input_file(path)
     header: list[tuple[int, str]] = []  # (line number, comment) before the first pose
-    rows: list[tuple[int, list[str], str | None]] = []  # (line number, words, trailing comment)
+    lines: list[int] = []  # per pose line: its number in the file
+    poses: list[np.ndarray] = []
+    comments: list[str | None] = []  # per pose line: what follows its '#'
+    stamps: list[float] = []  # TUM: per pose line, its timestamp
     try:
         for number, line in enumerate(text_lines(path), 1):
             stripped = line.strip()
             if not stripped or stripped.startswith("//"):
                 continue
             if stripped.startswith("#"):
-                if not rows:
+                if not poses:
                     header.append((number, stripped))
                 continue
             data, mark, comment = stripped.partition("#")
-            rows.append((number, data.translate(_SEPARATORS).split(), comment.strip() if mark else None))
+            words = data.translate(_SEPARATORS).split()
+            if format is None:  # the first pose line: the format from the header, else from it
+                named = _MARK.match(header[0][1]) if header else None
+                format = named.group(1) if named is not None and named.group(1) in POSE_FORMATS else next(
+                    (name for name, columns in _COLUMNS.items() if columns == len(words)), None)
+                if format is None:
+                    raise _error(path, number, f"{len(words)} values; a pose line has 16 (matrix), 12 (KITTI) "
+                                 "or 8 (TUM: timestamp tx ty tz qx qy qz qw)")
+            if len(words) != _COLUMNS[format]:
+                raise _error(path, number, f"{len(words)} values; a {format} pose line has {_COLUMNS[format]}")
+            values = _numbers(path, number, words)
+            poses.append(_pose_from_row(path, number, format, values))
+            lines.append(number)
+            comments.append(comment.strip() if mark else None)
+            if format == "tum":
+                stamps.append(values[0])
     except OSError as exc:
         raise PointCloudFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    if not poses:
+        raise PointCloudFileError(path, "no poses: only comments and blank lines")
     marked = _MARK.match(header[0][1]) if header else None
-    if format is None and marked is not None and marked.group(1) in POSE_FORMATS:
-        format = marked.group(1)
-    if format is None:
-        if not rows:
-            raise PointCloudFileError(path, "no poses: only comments and blank lines")
-        number, words, _ = rows[0]
-        format = next((name for name, columns in _COLUMNS.items() if columns == len(words)), None)
-        if format is None:
-            raise _error(path, number, f"{len(words)} values; a pose line has 16 (matrix), 12 (KITTI) "
-                         "or 8 (TUM: timestamp tx ty tz qx qy qz qw)")
-    columns = _COLUMNS[format]
-    reference = None
-    world = _WORLD.search(header[0][1]) if header else None
-    if world is not None and marked is not None:
-        reference = int(world.group(1))
-    poses, comments, stamps = [], [], []
-    for number, words, comment in rows:
-        if len(words) != columns:
-            raise _error(path, number, f"{len(words)} values; a {format} pose line has {columns}")
-        values = _numbers(path, number, words)
-        poses.append(_pose_from_row(path, number, format, values))
-        comments.append((number, comment))
-        if format == "tum":
-            stamps.append(values[0])
+    world = _WORLD.search(header[0][1]) if marked is not None else None
+    reference = int(world.group(1)) if world is not None else None
     if format == "matrix":
-        return _matrix_file(path, poses, comments, reference)
+        return _matrix_file(path, poses, list(zip(lines, comments)), reference)
     if format == "kitti":
         return PoseFile(np.array(poses).reshape(-1, 4, 4), "kitti", reference=reference)
-    return _tum_file(path, header, rows, poses, stamps, reference)
+    return _tum_file(path, header, lines, poses, stamps, reference)
 
 
 #: Separators accepted between numbers (as in the transform files).
@@ -391,7 +369,7 @@ def _matrix_file(path, poses, comments, reference) -> PoseFile:
 _SCAN_LINE = re.compile(r"^#\s*scan\s+(\d+)\s+(\S+)\s+(\S+)(?:\s+(.*))?$")
 
 
-def _tum_file(path, header, rows, poses, stamps, reference) -> PoseFile:
+def _tum_file(path, header, lines, poses, stamps, reference) -> PoseFile:
     listed = [(number, m) for number, m in ((n, _SCAN_LINE.match(line)) for n, line in header) if m is not None]
     if not listed:  # a trajectory written elsewhere: the lines in order
         return PoseFile(np.array(poses).reshape(-1, 4, 4), "tum", timestamps=np.array(stamps, dtype=np.float64),
@@ -417,7 +395,7 @@ def _tum_file(path, header, rows, poses, stamps, reference) -> PoseFile:
         names[index] = None if match.group(4) is None else _read_name(match.group(4))
     out = np.full((count, 4, 4), np.nan)
     seen: set[int] = set()
-    for (number, _, _), T, stamp in zip(rows, poses, stamps):
+    for number, T, stamp in zip(lines, poses, stamps):
         k = scan_of.get(stamp)
         if k is None:
             raise _error(path, number, f"timestamp {_number(stamp)} is none of the scans the header lists")
