@@ -1,4 +1,4 @@
-"""Every baseline adapter (esmicp.baselines.BASELINES) and ESM-ICP on the same trials of the bunny.
+"""Every baseline adapter (esmicp_lab.baselines.BASELINES) and ESM-ICP on the same trials of the bunny.
 
 Trials: the Stanford bunny (``bun_zipper.ply``); per trial the target is ``--points`` random
 vertices and the source ``--points`` other vertices (two different samples of one surface: no
@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import esmicp
-from esmicp.baselines import (
+from esmicp_lab.baselines import (
     BASELINE_KINDS,
     BASELINES,
     BaselineTimeoutError,

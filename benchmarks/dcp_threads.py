@@ -19,7 +19,7 @@ and target in independent point orders):
 The two alternate for ``--rounds`` rounds, so that both see the same load of a shared machine;
 the script prints the median per round and over all rounds, their ratio, and the load average
 before and after. The object comes from ``--data`` (default ``$ESMICP_SHARED_DATA`` or
-``../shared/data`` beside the repository), the weights from where ``esmicp.baselines.weights``
+``../shared/data`` beside the repository), the weights from where ``esmicp_lab.baselines.weights``
 looks for them.
 """
 

@@ -11,7 +11,7 @@ after one untimed warm-up call per method, so that imports are not counted). Met
 trial by trial, so that changes in the machine's load hit them alike.
 
 Methods (``--methods``, comma-separated): ``esm-global`` (``esmicp.register(source, target,
-rng=seed)``, the library's default method) and any name of :data:`esmicp.baselines.BASELINES`
+rng=seed)``, the library's default method) and any name of :data:`esmicp_lab.baselines.BASELINES`
 (``pip install 'esmicp[baselines]'``).
 
 Success: :func:`esmicp.metrics.strict_success` (rotation error < 2 deg and translation error,
@@ -94,7 +94,7 @@ def make_runner(method: str):
             }
 
         return run_esm
-    from esmicp.baselines import get_baseline
+    from esmicp_lab.baselines import get_baseline
 
     adapter = get_baseline(method)
 
@@ -231,7 +231,7 @@ def main(argv=None) -> int:
         parser.error(f"unknown protocol(s) {', '.join(unknown)}; choose from {', '.join(ALL_PROTOCOLS)}")
     methods = [m for m in args.methods.split(",") if m]
 
-    from esmicp.baselines import MissingDependencyError
+    from esmicp_lab.baselines import MissingDependencyError
 
     clouds = load_clouds(args.data)
     trials = build_trials(args, clouds)

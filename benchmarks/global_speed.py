@@ -11,7 +11,7 @@ them (same seeds, same per-trial method seed). Methods take turns trial by trial
 rotating), after one untimed warm-up call each; only the registration call is timed
 (``time.perf_counter``). Methods: ``esm-global``; ``kiss-matcher`` (KISS-Matcher's pose alone)
 and ``kiss-matcher-icp`` (then Open3D point-to-point ICP, as the suite compares it), both from
-:mod:`esmicp.baselines` (``pip install 'esmicp[baselines]'``).
+:mod:`esmicp_lab.baselines` (``pip install 'esmicp[baselines]'``).
 
 Prints, per protocol and over all trials: each method's median, p90 and strict success, and
 esm-global's time against each peer's: the ratio of the medians and, in brackets, the median of

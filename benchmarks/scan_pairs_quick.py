@@ -12,7 +12,7 @@ estimate mapped back before it is judged.
 
 Success: each kind's criteria (:func:`~esmicp.bench.real_pairs.criteria_for`: 3DMatch rotation
 error < 15 deg and translation error < 0.30 m; LiDAR < 5 deg and < 0.6 m). Methods (``--methods``): ``esm`` (``esmicp.register(source, target)`` with every
-default, or ``--init``), and any name of :data:`esmicp.baselines.BASELINES`, which get the voxel
+default, or ``--init``), and any name of :data:`esmicp_lab.baselines.BASELINES`, which get the voxel
 their documentation recommends (0.05 m indoor, 0.3 m LiDAR). Methods take turns pair by pair;
 only the registration call is timed. Prints one line per (pair, variant, method), a summary,
 each method's median time ratio to the last one, and a Markdown table: one row per (pair,
@@ -44,7 +44,7 @@ def run_method(name: str, source, target, kind: str, seed: int, init: str | None
         started = time.perf_counter()
         result = esmicp.register(source, target, init=init, rng=seed)
         return result.transformation, time.perf_counter() - started, result
-    from esmicp.baselines import get_baseline
+    from esmicp_lab.baselines import get_baseline
 
     result = get_baseline(name)(source, target, voxel_size=criteria_for(kind).voxel_m, rng=seed)
     return result.transformation, result.runtime_s, result

@@ -96,7 +96,7 @@ def run(method: str, source, target, start, kind: str, iterations: int, seed: in
     if method in OURS:
         result = esmicp.register(source, target, method=method, init=start, max_iterations=iterations)
         return result.transformation, result.runtime_s, result.num_iterations
-    from esmicp.baselines import get_baseline
+    from esmicp_lab.baselines import get_baseline
 
     voxel = 0.05 if family(kind) == "3DMatch" else 0.3
     result = get_baseline(method)(source, target, init=start, max_iterations=iterations, voxel_size=voxel)

@@ -1,4 +1,4 @@
-"""Baseline adapters (esmicp.baselines): the common interface, recovery on an easy real pair,
+"""Baseline adapters (esmicp_lab.baselines): the common interface, recovery on an easy real pair,
 determinism, and the error raised when an optional library is missing.
 
 The baseline libraries are optional: locally a test that needs a missing one is skipped; in CI
@@ -15,7 +15,7 @@ import pytest
 from conftest import require_module, require_shared
 from scipy.spatial.transform import Rotation
 
-from esmicp.baselines import (
+from esmicp_lab.baselines import (
     BASELINES,
     BaselineResult,
     MissingDependencyError,
@@ -155,7 +155,7 @@ def test_missing_library_raises_with_an_install_hint(method, monkeypatch):
 
 def test_broken_shared_library_is_a_missing_dependency(monkeypatch):
     # open3d-cpu without libusb-1.0 fails at import with an OSError-like error, not ImportError.
-    from esmicp.baselines import _common
+    from esmicp_lab.baselines import _common
 
     def broken(name):
         raise OSError("libusb-1.0.so.0: cannot open shared object file")

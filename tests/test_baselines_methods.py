@@ -1,4 +1,4 @@
-"""Every baseline adapter behind the one interface (esmicp.baselines.BASELINES): the contract
+"""Every baseline adapter behind the one interface (esmicp_lab.baselines.BASELINES): the contract
 (signature, kinds, init, max_iterations), recovery of a known pose on real data from a suitable
 start (a small offset for the local methods, anywhere for the global ones), and the errors for
 missing libraries, missing weights and Go-ICP's timeout.
@@ -21,7 +21,7 @@ from conftest import REPO_ROOT, require_shared
 from scipy.spatial.transform import Rotation
 from conftest import in_ci, require_module
 
-from esmicp.baselines import (
+from esmicp_lab.baselines import (
     BASELINE_KINDS,
     BASELINES,
     BaselineResult,
@@ -153,7 +153,7 @@ def test_import_esmicp_imports_no_optional_library():
     import subprocess
 
     code = (
-        "import sys, esmicp, esmicp.baselines; "
+        "import sys, esmicp, esmicp_lab.baselines; "
         "print(sorted(m for m in ('open3d', 'torch', 'probreg', 'py_goicp', 'small_gicp', 'kiss_matcher') "
         "if m in sys.modules))"
     )
@@ -265,8 +265,8 @@ def test_pointnetlk_weights_load_strictly_and_it_reduces_a_small_rotation():
     _require("pointnetlk")
     import torch
 
-    from esmicp.baselines.pointnetlk import load_model
-    from esmicp.baselines.pointnetlk_model import PointNetLK
+    from esmicp_lab.baselines.pointnetlk import load_model
+    from esmicp_lab.baselines.pointnetlk_model import PointNetLK
 
     path = require_weights(WEIGHTS)
     state = torch.load(path, map_location="cpu", weights_only=True)
@@ -346,7 +346,7 @@ def test_learned_without_weights_says_weights_not_available(method, tmp_path, mo
     assert str(tmp_path) in str(caught.value)
     assert "ESMICP_WEIGHTS_DIR" in str(caught.value)
     # Weights supplied, but the model is not written in the project: said so, not faked.
-    from esmicp.baselines.learned import WEIGHT_FILES
+    from esmicp_lab.baselines.learned import WEIGHT_FILES
 
     (tmp_path / WEIGHT_FILES[method]).parent.mkdir(parents=True)
     (tmp_path / WEIGHT_FILES[method]).write_bytes(b"")

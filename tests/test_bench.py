@@ -361,7 +361,7 @@ def test_sigma_sweep_runs_esm_once_per_sigma(tmp_path):
 
 
 def test_missing_library_is_unavailable_and_a_crash_is_failed(tmp_path, monkeypatch):
-    from esmicp import baselines
+    from esmicp_lab import baselines
 
     def missing(source, target, **kwargs):
         raise baselines.MissingDependencyError("fakelib is needed: pip install fakelib")

@@ -1,4 +1,4 @@
-"""DCP-v1 (esmicp.baselines.dcp, .dcp_model): the authors' state loads strictly from a
+"""DCP-v1 (esmicp_lab.baselines.dcp, .dcp_model): the authors' state loads strictly from a
 weights-only file, the model recovers poses inside its training distribution (rotations of up to 45
 degrees per Euler angle, translations of up to 0.5, ModelNet40 objects in the unit sphere), and the
 adapter maps the pose back to the caller's units and frames.
@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from conftest import require_module
 from test_baselines_methods import _weights_from_the_shared_folder, require_weights  # noqa: F401 (fixture)
 
-from esmicp.baselines import get_baseline
+from esmicp_lab.baselines import get_baseline
 from esmicp.metrics import rotation_error_deg, translation_error
 
 WEIGHTS = "dcp/dcp_v1.t7"
@@ -52,8 +52,8 @@ def _training_pair(cloud: np.ndarray, rng: np.random.Generator):
 def test_the_authors_state_loads_strictly_from_a_weights_only_file():
     import torch
 
-    from esmicp.baselines.dcp import load_model
-    from esmicp.baselines.dcp_model import DCPv1
+    from esmicp_lab.baselines.dcp import load_model
+    from esmicp_lab.baselines.dcp_model import DCPv1
 
     path = require_weights(WEIGHTS)
     state = torch.load(path, map_location="cpu", weights_only=True)  # raises on anything but tensors

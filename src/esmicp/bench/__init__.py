@@ -3,7 +3,7 @@ every method run the same way), serial or on Dask, resumable. See ``docs/bench.m
 
 The suite is a thin layer over the library: trials from :mod:`esmicp.bench.protocols` (and
 :mod:`.paper`, :mod:`.trials`), errors from :mod:`esmicp.metrics`, methods from
-:func:`esmicp.register` and :mod:`esmicp.baselines`.
+:func:`esmicp.register` and :mod:`esmicp_lab.baselines`.
 """
 
 from .config import BenchConfig, RunOptions

@@ -1,5 +1,5 @@
 """The methods a benchmark runs, behind one call: ours (through :func:`esmicp.register`) and the
-adapters of :mod:`esmicp.baselines`.
+adapters of :mod:`esmicp_lab.baselines`.
 
 Local methods (``esm``, ``esm-paper``, ``icp`` and the baselines of kind ``local``) all get the
 same start (``init``: a 4x4 ``T_target_source``) and the same iteration budget; global ones
@@ -43,7 +43,7 @@ class MethodOutcome:
 
 
 def _baselines():
-    from .. import baselines
+    from esmicp_lab import baselines
 
     return baselines
 

@@ -17,8 +17,8 @@ The adapter absorbs Go-ICP's quirks:
   target (an error at that level means the clouds lie on each other), no trimming (``trim_fraction``
   for outliers). Distance transform: :data:`DT_SIZE` cells a side, expansion factor 2.
 - **No time limit, prints to stdout.** It runs in a child process (``python -m
-  esmicp.baselines._goicp_child``, stdout discarded) killed after ``timeout_s`` seconds, which
-  raises :class:`~esmicp.baselines.BaselineTimeoutError`.
+  esmicp_lab.baselines._goicp_child``, stdout discarded) killed after ``timeout_s`` seconds, which
+  raises :class:`~esmicp_lab.baselines.BaselineTimeoutError`.
 
 ``runtime_s`` is the time of Go-ICP's distance transform and registration measured in the child;
 the process start and the transfer of the clouds (a temporary ``.npz``) are in ``notes`` as the wall
@@ -39,8 +39,8 @@ from scipy.spatial import cKDTree
 
 from .base import BaselineResult, BaselineTimeoutError
 from ._common import GOICP_HINT, checked_inputs, require
-from ..errors import InvalidInputError
-from ..types import as_positive
+from esmicp.errors import InvalidInputError
+from esmicp.types import as_positive
 
 NAME = "go-icp"
 
@@ -126,7 +126,7 @@ def register(
             trim_fraction=float(trim_fraction),
             translation_half_width=TRANSLATION_HALF_WIDTH,
         )
-        command = [sys.executable, "-m", "esmicp.baselines._goicp_child", str(inputs_path), str(result_path)]
+        command = [sys.executable, "-m", "esmicp_lab.baselines._goicp_child", str(inputs_path), str(result_path)]
         try:
             finished = subprocess.run(
                 command,
@@ -168,7 +168,7 @@ def register(
 
 
 def _child_pythonpath() -> str:
-    """``PYTHONPATH`` for the child: the folder holding this ``esmicp`` package first, so that the
-    child imports this very copy."""
+    """``PYTHONPATH`` for the child: the folder holding this ``esmicp_lab`` package (and the
+    ``esmicp`` installed beside it) first, so that the child imports this very copy."""
     folders = [str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH", "")]
     return os.pathsep.join(folder for folder in folders if folder)

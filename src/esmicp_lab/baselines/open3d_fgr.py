@@ -2,7 +2,7 @@
 
 With ``v`` the voxel size (given, or 1/40 of the target's bounding-box diagonal), both clouds are
 downsampled and described exactly as for ``open3d-ransac-fpfh``
-(:func:`esmicp.baselines.open3d_ransac.fpfh`: voxel ``v``, normals radius ``2v``, FPFH radius
+(:func:`esmicp_lab.baselines.open3d_ransac.fpfh`: voxel ``v``, normals radius ``2v``, FPFH radius
 ``5v``), then ``registration_fgr_based_on_feature_matching`` runs with
 ``FastGlobalRegistrationOption(maximum_correspondence_distance=0.5v)`` (Open3D's tutorial value)
 and Open3D's other defaults (64 iterations of graduated non-convexity, tuple test on). FGR's pose is

@@ -7,10 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InvalidInputError
-from ..types import as_count, as_generator, as_points, as_positive, as_transform, check_not_degenerate
-from ..core.procrustes import apply, bounding_box_diagonal
-from ..errors import MissingDependencyError
+from esmicp.errors import InvalidInputError
+from esmicp.types import as_count, as_generator, as_points, as_positive, as_transform, check_not_degenerate
+from esmicp.core.procrustes import apply, bounding_box_diagonal
+from esmicp.errors import MissingDependencyError
 from .base import INSTALL_HINT
 
 #: Default voxel size, as a fraction of the target's bounding-box diagonal. ModelNet40 objects

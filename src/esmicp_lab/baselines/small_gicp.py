@@ -9,7 +9,7 @@ diagonal): both clouds voxel-downsampled by ``v``, covariances from their 10 nea
 per voxel of size ``4v``, one voxel lookup per source point instead of a nearest-neighbour search;
 voxels of ``v`` hold too few points on 1,000-2,000-point objects, small_gicp's own defaults have the
 same 4:1 ratio). ``d`` follows the rule of every local adapter
-(:func:`esmicp.baselines._common.local_distance`: every source point paired at the start) unless
+(:func:`esmicp_lab.baselines._common.local_distance`: every source point paired at the start) unless
 ``max_correspondence_distance`` is given; VGICP has no correspondence distance (a point whose voxel
 is empty in the target is simply unpaired), so from far starts it cannot move. Deterministic: one
 thread, ``rng`` validated and unused.
@@ -23,8 +23,8 @@ import numpy as np
 
 from .base import BaselineResult
 from ._common import checked_inputs, local_distance, require
-from ..errors import InvalidInputError
-from ..types import as_positive
+from esmicp.errors import InvalidInputError
+from esmicp.types import as_positive
 
 NAME = "small-gicp"
 NAME_VGICP = "small-vgicp"

@@ -7,7 +7,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..errors import EsmicpError, MissingDependencyError
+from esmicp.errors import EsmicpError, MissingDependencyError
 
 #: What to tell a user whose baseline library is missing.
 INSTALL_HINT = (

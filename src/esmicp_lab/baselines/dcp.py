@@ -6,10 +6,10 @@ Euler angle, translations of up to 0.5 per axis on unit-sphere objects), so it i
 fares there. The ESM-ICP paper's "DCP" row used DCP **v2** (the transformer pointer), whose
 weights are not at hand: every result of this adapter is labelled ``dcp-v1``.
 
-The model is :mod:`esmicp.baselines.dcp_model` (written in the project). Its weights,
-``dcp/dcp_v1.t7``, are looked for by :func:`esmicp.baselines.weights.find_weights` (the
+The model is :mod:`esmicp_lab.baselines.dcp_model` (written in the project). Its weights,
+``dcp/dcp_v1.t7``, are looked for by :func:`esmicp_lab.baselines.weights.find_weights` (the
 ``weights_dir`` argument, ``$ESMICP_WEIGHTS_DIR``, ``../shared/weights`` beside the checkout) and
-never shipped; missing ones raise :class:`~esmicp.baselines.WeightsNotAvailableError`.
+never shipped; missing ones raise :class:`~esmicp_lab.baselines.WeightsNotAvailableError`.
 
 What the adapter does around the network (the authors' ModelNet40 pipeline feeds it 1,024 points
 of an object inside the unit sphere, centred at the origin, and the same object moved by at most
@@ -25,7 +25,7 @@ of an object inside the unit sphere, centred at the origin, and the same object 
 
 ``max_iterations`` passes (default 1, the authors' protocol): each pass re-runs the network on the
 source moved by the previous estimate. Runs in float32 on one torch thread (restored afterwards),
-as :mod:`esmicp.baselines.pointnetlk` does. ``voxel_size`` is validated and unused.
+as :mod:`esmicp_lab.baselines.pointnetlk` does. ``voxel_size`` is validated and unused.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ import time
 
 import numpy as np
 
-from ..core.procrustes import apply
+from esmicp.core.procrustes import apply
 from ._common import TORCH_HINT, checked_inputs, require
 from .base import BaselineResult
 from .weights import find_weights

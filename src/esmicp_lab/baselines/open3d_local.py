@@ -3,7 +3,7 @@
 
 All three call Open3D on the full clouds (no downsampling) with
 ``ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=max_iterations)``
-and a max correspondence distance given by :func:`esmicp.baselines._common.local_distance` (large
+and a max correspondence distance given by :func:`esmicp_lab.baselines._common.local_distance` (large
 enough that every source point is paired at the start, as in classic ICP), unless
 ``max_correspondence_distance`` is given. Point-to-plane needs the target's normals, GICP the
 covariances of both clouds: both from ``KDTreeSearchParamHybrid(radius=2v, max_nn=30)`` with ``v``
@@ -26,7 +26,7 @@ from ._common import (
     o3d_cloud,
     require,
 )
-from ..types import as_positive
+from esmicp.types import as_positive
 
 NAME_ICP = "open3d-icp"
 NAME_ICP_PLANE = "open3d-icp-p2l"

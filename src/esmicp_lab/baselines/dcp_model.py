@@ -2,7 +2,7 @@
 Representations for Point Cloud Registration", ICCV 2019), laid out so that the authors' pretrained
 state (``dcp/dcp_v1.t7``: ``emb_nn.conv1..conv5``, ``emb_nn.bn1..bn5`` and ``head.reflect``) loads
 into it with ``strict=True``. Written from the paper, with the authors' code read for its
-conventions only; imported only by :mod:`esmicp.baselines.dcp`, which imports torch lazily.
+conventions only; imported only by :mod:`esmicp_lab.baselines.dcp`, which imports torch lazily.
 
 - **Embedding (DGCNN, emb_dims 512).** For each point ``x_i`` of a ``(B, 3, N)`` cloud, its
   ``k = 20`` nearest neighbours ``x_j`` (in 3-D, the point itself included) give edge features

@@ -1,4 +1,4 @@
-"""Child process of the ``go-icp`` adapter: ``python -m esmicp.baselines._goicp_child IN OUT``.
+"""Child process of the ``go-icp`` adapter: ``python -m esmicp_lab.baselines._goicp_child IN OUT``.
 
 Reads the normalised clouds and settings from the ``.npz`` file IN, runs py-goicp (which prints its
 progress to stdout: the parent discards it) and writes the optimal rotation, translation and the

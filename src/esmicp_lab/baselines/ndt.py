@@ -40,9 +40,9 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from .base import BaselineResult
-from ..core.procrustes import apply, axis_bounds, bounding_box_diagonal
+from esmicp.core.procrustes import apply, axis_bounds, bounding_box_diagonal
 from ._common import checked_inputs
-from ..types import as_positive
+from esmicp.types import as_positive
 
 NAME = "ndt"
 

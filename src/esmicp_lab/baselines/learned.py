@@ -2,10 +2,10 @@
 
 No pretrained weights for these models are reachable from the project's machines, and the models
 are not (yet) written in the project, so these adapters validate their inputs and then raise
-:class:`~esmicp.baselines.WeightsNotAvailableError`, saying where weights would be looked for:
+:class:`~esmicp_lab.baselines.WeightsNotAvailableError`, saying where weights would be looked for:
 a benchmark shows the row as "weights not available" rather than dropping it, and never a made-up
-result. (PointNetLK and DCP-v1, whose weights are available, are :mod:`esmicp.baselines.pointnetlk` and
-:mod:`esmicp.baselines.dcp`; DCP-v2, the transformer-pointer model, has no weights at hand and no adapter.)
+result. (PointNetLK and DCP-v1, whose weights are available, are :mod:`esmicp_lab.baselines.pointnetlk` and
+:mod:`esmicp_lab.baselines.dcp`; DCP-v2, the transformer-pointer model, has no weights at hand and no adapter.)
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ Each outer iteration (at most ``max_iterations``, from ``init``):
 
 1. every source point, moved by the current pose, is paired with its nearest target point
    (a KD-tree on the target), if it lies within the max correspondence distance of every local
-   adapter (:func:`esmicp.baselines._common.local_distance`: all points at the start);
+   adapter (:func:`esmicp_lab.baselines._common.local_distance`: all points at the start);
 2. the Huber scale is ``k = 1.345 x 1.4826 x median pair distance`` (Huber's 95%-efficiency
    constant on a robust estimate of the residuals' spread), floored at the target's median point
    spacing so that it does not collapse on exact copies;
@@ -31,9 +31,9 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from .base import BaselineResult
-from ..core.procrustes import apply, bounding_box_diagonal, skew
+from esmicp.core.procrustes import apply, bounding_box_diagonal, skew
 from ._common import checked_inputs, local_distance
-from ..types import as_positive
+from esmicp.types import as_positive
 
 NAME = "icp-nl"
 

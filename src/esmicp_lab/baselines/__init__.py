@@ -15,13 +15,13 @@ is ``"local"`` (it starts from ``init`` and runs at most ``max_iterations`` iter
 The libraries are optional and imported only when an adapter runs; a missing one raises
 :class:`MissingDependencyError` with an install hint, missing model weights
 :class:`WeightsNotAvailableError`, Go-ICP past its time limit :class:`BaselineTimeoutError`.
-Nothing here is imported by ``import esmicp``. The methods, their
-settings and install commands: ``docs/baselines.md``.
+The library (``esmicp``) never imports this package. The methods, their settings and install
+commands: ``docs/baselines.md``.
 """
 
 from __future__ import annotations
 
-from ..errors import InvalidInputError, MissingDependencyError
+from esmicp.errors import InvalidInputError, MissingDependencyError
 from .base import INSTALL_HINT, Baseline, BaselineResult, BaselineTimeoutError, WeightsNotAvailableError
 
 def _registry() -> tuple[dict[str, Baseline], dict[str, str]]:

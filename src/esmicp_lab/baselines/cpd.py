@@ -28,7 +28,7 @@ import time
 import numpy as np
 
 from .base import BaselineResult
-from ..core.procrustes import apply
+from esmicp.core.procrustes import apply
 from ._common import PROBREG_HINT, checked_inputs, require
 
 NAME = "cpd"
@@ -61,7 +61,7 @@ def register(
     probreg_cpd = require("probreg.cpd", "probreg", PROBREG_HINT)
     inputs = checked_inputs(source, target, voxel_size, max_iterations, rng, init)
     if not 0.0 <= float(outlier_weight) < 1.0:
-        from ..errors import InvalidInputError
+        from esmicp.errors import InvalidInputError
 
         raise InvalidInputError(f"outlier_weight: expected a value in [0, 1), got {outlier_weight!r}")
 

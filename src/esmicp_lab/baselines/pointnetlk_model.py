@@ -1,7 +1,7 @@
 """PointNetLK's network in CPU torch (Aoki, Goforth, Srivatsan & Lucey, "PointNetLK: Robust &
 Efficient Point Cloud Registration using PointNet", CVPR 2019), laid out so that learning3d's
 pretrained state (``pointnetlk/best_model.t7``: ``dt`` and ``feature_model.*``) loads into it with
-``strict=True``. Written from the paper; imported only by :mod:`esmicp.baselines.pointnetlk`, which
+``strict=True``. Written from the paper; imported only by :mod:`esmicp_lab.baselines.pointnetlk`, which
 imports torch lazily.
 
 - **Features.** PointNet without its input/feature transform nets: five shared per-point layers

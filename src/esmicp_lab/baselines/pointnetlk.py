@@ -1,11 +1,11 @@
 """``pointnetlk``: PointNetLK with learning3d's pretrained ModelNet40 weights, in CPU torch. A LOCAL
 method (it refines from ``init``; the network was trained on perturbations of up to 45 degrees).
 
-The model is :mod:`esmicp.baselines.pointnetlk_model` (written in the project; learning3d's PyPI
+The model is :mod:`esmicp_lab.baselines.pointnetlk_model` (written in the project; learning3d's PyPI
 wheel is unusable). Its weights, ``pointnetlk/best_model.t7``, are looked for by
-:func:`esmicp.baselines.weights.find_weights` (the ``weights_dir`` argument, ``$ESMICP_WEIGHTS_DIR``,
+:func:`esmicp_lab.baselines.weights.find_weights` (the ``weights_dir`` argument, ``$ESMICP_WEIGHTS_DIR``,
 ``../shared/weights`` beside the checkout) and never shipped; missing ones raise
-:class:`~esmicp.baselines.WeightsNotAvailableError`.
+:class:`~esmicp_lab.baselines.WeightsNotAvailableError`.
 
 The adapter absorbs the network's training conditions:
 
@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from .base import BaselineResult
-from ..core.procrustes import apply
+from esmicp.core.procrustes import apply
 from ._common import TORCH_HINT, checked_inputs, require
 from .weights import find_weights
 

@@ -13,7 +13,7 @@ bounds to at most 1 (absolute units). So both clouds are centred and divided by 
 are passed (as float32), and KISS-Matcher runs with a voxel of exactly 1: the same problem in
 voxel units, whatever the clouds' units; the pose is mapped back.
 
-Its pose is refined exactly as in :mod:`esmicp.baselines.open3d_ransac`: point-to-point
+Its pose is refined exactly as in :mod:`esmicp_lab.baselines.open3d_ransac`: point-to-point
 ``registration_icp`` on the full clouds, max correspondence distance ``1.5v``
 (``refinement="point-to-plane"``, registered as ``kiss-matcher-p2l``: point-to-plane ICP;
 ``refinement="none"``, registered as ``kiss-matcher``: KISS-Matcher's pose as it is). KISS-Matcher
