@@ -28,8 +28,8 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-from esmicp.bench import read_rows
-from esmicp.bench.tables import (
+from esmicp_lab.bench import read_rows
+from esmicp_lab.bench.tables import (
     PAPER_METRICS,
     metrics_table,
     overview_table,

@@ -1,6 +1,6 @@
 """The benchmark plots of docs/visualisation.md from a few real local registrations.
 
-Runs :func:`esmicp.bench.trial_rows.local_trial_rows` (esm, icp, esm-paper from the identity on
+Runs :func:`esmicp_lab.bench.trial_rows.local_trial_rows` (esm, icp, esm-paper from the identity on
 seeded trials of the built-in shape, initial rotations spread over 0-180 degrees, plus a
 fixed-sigma sweep of esm) and draws them with :func:`esmicp.viz.write_bench_plots`.
 
@@ -14,7 +14,7 @@ import json
 import sys
 from pathlib import Path
 
-from esmicp.bench.trial_rows import local_trial_rows
+from esmicp_lab.bench.trial_rows import local_trial_rows
 from esmicp.errors import EsmicpError
 from esmicp.io.atomic import atomic_write
 from esmicp.viz.bench_plots import write_bench_plots

@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO / "src"))
 
 import esmicp  # noqa: E402
 from esmicp.trust import uncertainty  # noqa: E402
-from esmicp.bench.protocols import paper_noise  # noqa: E402
+from esmicp_lab.bench.protocols import paper_noise  # noqa: E402
 from esmicp.core.correspondence import NearestNeighbors  # noqa: E402
 from esmicp.core.procrustes import apply, bounding_box_diagonal, skew  # noqa: E402
 from esmicp.metrics import random_rotation  # noqa: E402
@@ -90,14 +90,14 @@ def _cut(points: np.ndarray, rng, keep: float) -> np.ndarray:
 
 
 def kitchen_frames():
-    from esmicp.bench.sequences import read_poses
+    from esmicp_lab.bench.sequences import read_poses
 
     folder = DATA / "sequences" / "redkitchen_seq01_every10"
     return folder / "frames", read_poses(folder)
 
 
 def real_pairs():
-    from esmicp.bench.real_pairs import load_pair, read_pairs
+    from esmicp_lab.bench.real_pairs import load_pair, read_pairs
 
     for pair in read_pairs(DATA / "real_pairs"):
         if pair.dataset == "kitti_00":

@@ -6,11 +6,11 @@ Usage::
     nice -n 5 python benchmarks/dcp_threads.py --workers 2 --calls 6 --rounds 3
 
 What it measures, each figure the ``time_s`` the bench writes in its rows (``time.perf_counter``
-around the adapter's forward passes, through :func:`esmicp.bench.methods.run_method`), on one
+around the adapter's forward passes, through :func:`esmicp_lab.bench.methods.run_method`), on one
 ModelNet40 object (``airplane_0126``, 1,024 points, a 45-degree turn and a shift of 0.3, source
 and target in independent point orders):
 
-- the threads of every worker of :func:`esmicp.bench.runner.local_cluster` (Dask's ``nthreads``,
+- the threads of every worker of :func:`esmicp_lab.bench.runner.local_cluster` (Dask's ``nthreads``,
   torch's intra-op threads, ``OMP_NUM_THREADS``), as ``esmicp bench`` starts them;
 - *alone*: ``--calls`` calls in this process, one after the other (``esmicp bench --workers 1``);
 - *on Dask*: every worker making ``--calls`` calls at once (``esmicp bench`` with ``--workers``
@@ -56,7 +56,7 @@ def _pair(data: Path, points: int):
 
 def dcp_call_times(source, target, calls: int, seed: int) -> list[float]:
     """``calls`` timed ``dcp-v1`` calls as the bench makes them, after one untimed (warm) call."""
-    from esmicp.bench.methods import run_method
+    from esmicp_lab.bench.methods import run_method
 
     call = dict(init=np.eye(4), max_iterations=1, sigma=None)
     run_method("dcp-v1", source, target, seed=seed, **call)
@@ -81,7 +81,7 @@ def main(argv=None) -> None:
 
     from dask.distributed import Client
 
-    from esmicp.bench.runner import local_cluster
+    from esmicp_lab.bench.runner import local_cluster
 
     source, target = _pair(args.data, args.points)
     print(f"load average before: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")

@@ -25,7 +25,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 import esmicp  # noqa: E402
 from esmicp.trust import uncertainty  # noqa: E402
-from esmicp.bench.datasets import load_dataset  # noqa: E402
+from esmicp_lab.bench.datasets import load_dataset  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 
@@ -67,7 +67,7 @@ def objects(name: str, folder, rng):
 
 
 def real_pairs():
-    from esmicp.bench.real_pairs import load_pair, read_pairs
+    from esmicp_lab.bench.real_pairs import load_pair, read_pairs
 
     for pair in read_pairs(DATA / "real_pairs"):
         source, target, truth = load_pair(pair, bin_columns=3)
@@ -89,8 +89,8 @@ KITCHEN_CROPS = ("frame-000000", "frame-000300", "frame-000600", "frame-000900")
 
 def kitchen_crops():
     """Real surfaces seen alone: kitchen-walk frames and the next kept frame, both cut down to the
-    target's dominant plane (points within 1.5 cm; ``esmicp.bench.sequences.plane_crop_pair``)."""
-    from esmicp.bench.sequences import plane_crop_pair, read_frame, read_poses
+    target's dominant plane (points within 1.5 cm; ``esmicp_lab.bench.sequences.plane_crop_pair``)."""
+    from esmicp_lab.bench.sequences import plane_crop_pair, read_frame, read_poses
 
     folder = DATA / "sequences" / "redkitchen_seq01_every10"
     poses = read_poses(folder)

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 import esmicp
-from esmicp.bench.protocols import make_trials
-from esmicp.bench.real_pairs import partial_trial
+from esmicp_lab.bench.protocols import make_trials
+from esmicp_lab.bench.real_pairs import partial_trial
 from esmicp.core.procrustes import bounding_box_diagonal
 from esmicp.globalreg.config import DEFAULT
 from esmicp.metrics import up_to_symmetry_success

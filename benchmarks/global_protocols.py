@@ -1,6 +1,6 @@
 """Global registration on the library's trial protocols: ESM and third-party baselines, same trials.
 
-Protocols (see :mod:`esmicp.bench.protocols`): ``copy``, ``shuffled``, ``resampled``, ``outliers-30`` and
+Protocols (see :mod:`esmicp_lab.bench.protocols`): ``copy``, ``shuffled``, ``resampled``, ``outliers-30`` and
 ``outliers-60`` on the 12 ModelNet40 objects and the Stanford bunny (``--points`` points, 2,000 by
 default, per cloud or per half), ``--trials`` trials each, round-robin over the clouds; and
 ``scan-pairs``: every ordered pair of the Stanford bunny's range scans that overlaps by at least
@@ -50,7 +50,7 @@ from esmicp.metrics import (
     translation_error,
     up_to_symmetry_success,
 )
-from esmicp.bench.protocols import PROTOCOLS, SCAN_PAIRS, make_trials, scan_pairs
+from esmicp_lab.bench.protocols import PROTOCOLS, SCAN_PAIRS, make_trials, scan_pairs
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -4,15 +4,15 @@ compared with the code before it, row by row.
 Sets (``--sets``, comma-separated):
 
 ``objects``
-    the five object protocols (:data:`esmicp.bench.protocols.PROTOCOLS`) on the 12 ModelNet40
+    the five object protocols (:data:`esmicp_lab.bench.protocols.PROTOCOLS`) on the 12 ModelNet40
     shapes of ``modelnet40/``, ``--trials`` trials each (round-robin over the shapes).
 ``halves``
-    ModelNet40 halves cut to 70% and 50% (:func:`esmicp.bench.real_pairs.partial_trial`),
+    ModelNet40 halves cut to 70% and 50% (:func:`esmicp_lab.bench.real_pairs.partial_trial`),
     ``--trials`` each; success up to symmetry on the whole half.
 ``real``
     every pair of ``real_pairs/pairs.csv`` as recorded, and the 3DMatch pairs turned.
 ``crops``
-    the 3DMatch pairs cropped to 25% and 15% overlap (:func:`esmicp.bench.real_pairs.crop_to_overlap`),
+    the 3DMatch pairs cropped to 25% and 15% overlap (:func:`esmicp_lab.bench.real_pairs.crop_to_overlap`),
     turned.
 ``extra-halves``, ``extra-objects``
     as ``halves`` / the ``outliers-60`` protocol, on the shapes of ``modelnet40_extra/`` (a
@@ -52,12 +52,12 @@ from pathlib import Path
 import numpy as np
 
 import esmicp
-from esmicp.bench.protocols import PROTOCOLS, make_trials
-from esmicp.bench.real_pairs import (
+from esmicp_lab.bench.protocols import PROTOCOLS, make_trials
+from esmicp_lab.bench.real_pairs import (
     criteria_for, crop_to_overlap, estimate_in_pair_frame, load_pair, pair_errors, partial_trial, read_pairs,
     turn_source,
 )
-from esmicp.bench.sequences import read_frame, read_poses
+from esmicp_lab.bench.sequences import read_frame, read_poses
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import bounding_box_diagonal, rotation_angle
 from esmicp.core.keypoints import Keypoints

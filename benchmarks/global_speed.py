@@ -4,7 +4,7 @@ Issue 14's target: the median time of ``esmicp.register(source, target)`` (no in
 the suite's 2,000-point trials no slower than the 54 ms ``docs/measured-global.md`` measured on
 the ``shuffled`` protocol, and no slower than KISS-Matcher's median on the same trials, same run.
 
-Trials: :func:`esmicp.bench.protocols.make_trials` on the 12 ModelNet40 objects and the bunny
+Trials: :func:`esmicp_lab.bench.protocols.make_trials` on the 12 ModelNet40 objects and the bunny
 (``--protocols``, default ``copy`` and ``shuffled``, where every method succeeds and the time is
 the search's, not a failure's), ``--trials`` each, as ``benchmarks/global_protocols.py`` makes
 them (same seeds, same per-trial method seed). Methods take turns trial by trial (the order

@@ -1,6 +1,6 @@
 """3DLoMatch-like check: the 3DMatch pairs of a real-pairs folder cropped to 10-30% overlap.
 
-Each 3DMatch pair is cropped by seeded planes (:func:`esmicp.bench.real_pairs.crop_to_overlap`)
+Each 3DMatch pair is cropped by seeded planes (:func:`esmicp_lab.bench.real_pairs.crop_to_overlap`)
 so that a chosen fraction of the kept source lies on the kept target; the measured overlap of
 every crop, each way, is printed with the results. Every method of the scan benchmark then runs
 on it, as recorded and turned (a random rotation of the source about its centroid), the peers
@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from esmicp.bench.real_pairs import (
+from esmicp_lab.bench.real_pairs import (
     crop_to_overlap, criteria_for, estimate_in_pair_frame, load_pair, pair_errors, read_pairs, turn_source,
 )
-from esmicp.bench.scans import METHOD_LABELS, SCAN_METHODS, _timed
+from esmicp_lab.bench.scans import METHOD_LABELS, SCAN_METHODS, _timed
 from esmicp.trust.confidence import TRUSTED
 
 

@@ -112,7 +112,7 @@ def bunny(seed: int, max_points: int | None = None) -> Dataset:
 
 
 def kitchen(frames: int, step: int = 1) -> Dataset:
-    from esmicp.bench.sequences import read_poses
+    from esmicp_lab.bench.sequences import read_poses
 
     folder = shared_data() / "sequences" / "redkitchen_seq01_every10"
     truth_of = read_poses(folder)

@@ -7,7 +7,7 @@ without re-running the bench:
     esmicp bench --paper-1000 --out bench-paper-1000           #   1,000-transform tables)
     python benchmarks/paper_side_by_side.py run --out bench-paper-tables
         # or only --paper's printed transforms, with the methods that stand for the paper's
-        # (esmicp.bench.side_by_side.PAPER_PEERS), PointNetLK and RPM-Net included: a few minutes
+        # (esmicp_lab.bench.side_by_side.PAPER_PEERS), PointNetLK and RPM-Net included: a few minutes
     python benchmarks/paper_side_by_side.py summarize bench-paper-tables bench-paper-1000
         # -> docs/bench-paper-side-by-side.csv: per paper table, cloud, method and size, our means
     python benchmarks/paper_side_by_side.py write
@@ -26,8 +26,8 @@ import os
 import sys
 from pathlib import Path
 
-from esmicp.bench import read_rows
-from esmicp.bench.side_by_side import read_summary_csv, replace_sections, sections, summary_csv, summary_records
+from esmicp_lab.bench import read_rows
+from esmicp_lab.bench.side_by_side import read_summary_csv, replace_sections, sections, summary_csv, summary_records
 from esmicp.errors import EsmicpError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -73,9 +73,9 @@ def _summarize(args) -> int:
 
 
 def _run(args) -> int:
-    from esmicp.bench import BenchConfig, RunOptions, run_bench
-    from esmicp.bench.paper import PAPER_ITERATIONS
-    from esmicp.bench.side_by_side import PAPER_PEERS
+    from esmicp_lab.bench import BenchConfig, RunOptions, run_bench
+    from esmicp_lab.bench.paper import PAPER_ITERATIONS
+    from esmicp_lab.bench.side_by_side import PAPER_PEERS
 
     methods = tuple(dict.fromkeys(m for peers in PAPER_PEERS.values() for m in peers))
     config = BenchConfig(protocols=(), paper_tables=True, datasets=("modelnet40",), methods=methods,

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 import esmicp
-from esmicp.bench.real_pairs import partial_trial
-from esmicp.bench.scans import PARTIAL_KEEPS, _modelnet_clouds, _seed_of
+from esmicp_lab.bench.real_pairs import partial_trial
+from esmicp_lab.bench.scans import PARTIAL_KEEPS, _modelnet_clouds, _seed_of
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import bounding_box_diagonal, to_matrix
 from esmicp.globalreg import search

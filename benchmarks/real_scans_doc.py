@@ -20,7 +20,7 @@ import platform
 import statistics
 from pathlib import Path
 
-from esmicp.bench.scans import METHOD_LABELS, partial_markdown, real_pairs_markdown
+from esmicp_lab.bench.scans import METHOD_LABELS, partial_markdown, real_pairs_markdown
 
 OURS = "esm-global"
 

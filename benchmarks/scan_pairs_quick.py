@@ -3,14 +3,14 @@
 and turned.
 
 The folder is laid out like ``shared/data/real_pairs`` (read by
-:func:`esmicp.bench.real_pairs.read_pairs`; ``.bin`` scans have ``--bin-columns`` float32 columns,
+:func:`esmicp_lab.bench.real_pairs.read_pairs`; ``.bin`` scans have ``--bin-columns`` float32 columns,
 3 in the shared data).
 
 Variants: ``as-recorded``, and ``turned``: the source turned by a random rotation (uniform on
-SO(3), seeded per pair) about its centroid (:func:`~esmicp.bench.real_pairs.turn_source`), the
+SO(3), seeded per pair) about its centroid (:func:`~esmicp_lab.bench.real_pairs.turn_source`), the
 estimate mapped back before it is judged.
 
-Success: each kind's criteria (:func:`~esmicp.bench.real_pairs.criteria_for`: 3DMatch rotation
+Success: each kind's criteria (:func:`~esmicp_lab.bench.real_pairs.criteria_for`: 3DMatch rotation
 error < 15 deg and translation error < 0.30 m; LiDAR < 5 deg and < 0.6 m). Methods (``--methods``): ``esm`` (``esmicp.register(source, target)`` with every
 default, or ``--init``), and any name of :data:`esmicp_lab.baselines.BASELINES`, which get the voxel
 their documentation recommends (0.05 m indoor, 0.3 m LiDAR). Methods take turns pair by pair;
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 import esmicp
-from esmicp.bench.real_pairs import (
+from esmicp_lab.bench.real_pairs import (
     criteria_for, estimate_in_pair_frame, load_pair, pair_errors, read_pairs, turn_source,
 )
 

@@ -19,7 +19,7 @@ kind (0.05 m indoor, 0.3 m LiDAR; normals / covariances and small_gicp's downsam
 ``esmicp.register(source, target, method=m, rng=seed)``, the global search and then ``m`` as
 ``register`` runs it (``esm`` in its fine phase): the two candidates for the default; their time
 includes the search.
-Errors in the pair's frame, success by the kind's criteria (:mod:`esmicp.bench.real_pairs`).
+Errors in the pair's frame, success by the kind's criteria (:mod:`esmicp_lab.bench.real_pairs`).
 Only the registration call is timed (esmicp: ``result.runtime_s``; peers: their
 ``runtime_s``, normals and covariances included); one untimed warm-up per method first.
 
@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 import esmicp
-from esmicp.bench.real_pairs import load_pair, pair_errors, read_pairs
+from esmicp_lab.bench.real_pairs import load_pair, pair_errors, read_pairs
 from esmicp.core.procrustes import apply, to_matrix
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_pairs"

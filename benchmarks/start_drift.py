@@ -5,7 +5,7 @@
 - the ground truth, and the truth perturbed by a seeded rotation about a random axis through the
   placed source's centroid plus a translation in a random direction: 5 deg / 0.1 m on 3DMatch,
   5 deg / 0.5 m on LiDAR, 5 deg / 5% of the target's diagonal on the ModelNet40 partial-overlap
-  trials (``partial-70`` / ``partial-50`` of :mod:`esmicp.bench.scans`, the same seeds);
+  trials (``partial-70`` / ``partial-50`` of :mod:`esmicp_lab.bench.scans`, the same seeds);
 - poor starts on whole objects (what the coarse phase of the automatic sigma is for): the
   ``resampled`` and ``outliers-30`` ModelNet40 protocols from their truth perturbed by 30 deg / 10%
   and 60 deg / 25% of the diagonal.
@@ -34,9 +34,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import esmicp
-from esmicp.bench.protocols import make_trial
-from esmicp.bench.real_pairs import load_pair, pair_errors, partial_trial, read_pairs
-from esmicp.bench.scans import _modelnet_clouds, _seed_of
+from esmicp_lab.bench.protocols import make_trial
+from esmicp_lab.bench.real_pairs import load_pair, pair_errors, partial_trial, read_pairs
+from esmicp_lab.bench.scans import _modelnet_clouds, _seed_of
 from esmicp.core.procrustes import apply, bounding_box_diagonal, to_matrix
 from esmicp.methods import esm
 from esmicp.methods.esm import START_QUANTILE

@@ -1,4 +1,4 @@
-"""The benchmark suite (esmicp.bench, esmicp bench): row schema, resume, Ctrl-C safety, Dask equal
+"""The benchmark suite (esmicp_lab.bench, esmicp bench): row schema, resume, Ctrl-C safety, Dask equal
 to serial, datasets, the paper's protocol and printed transforms, unavailable / failed methods.
 
 Runs are kept small (built-in synthetic clouds of a few hundred points) so that the file takes
@@ -21,9 +21,9 @@ from conftest import interruptible_child, require_shared
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from esmicp.bench import BenchConfig, RunOptions, read_rows, run_bench
-from esmicp.bench.paper import PAPER_CASES, euler_zyx, paper_motion
-from esmicp.bench.trials import TrialSpec, build_trial
+from esmicp_lab.bench import BenchConfig, RunOptions, read_rows, run_bench
+from esmicp_lab.bench.paper import PAPER_CASES, euler_zyx, paper_motion
+from esmicp_lab.bench.trials import TrialSpec, build_trial
 from esmicp.core.procrustes import apply
 from esmicp.errors import EsmicpError, InvalidInputError, PointCloudFileError
 
@@ -225,7 +225,7 @@ def test_every_worker_of_the_bench_cluster_runs_on_one_thread():
     _require_dask()
     from dask.distributed import Client
 
-    from esmicp.bench.runner import local_cluster
+    from esmicp_lab.bench.runner import local_cluster
 
     with local_cluster(2) as cluster, Client(cluster) as client:
         nthreads = client.nthreads()
@@ -409,7 +409,7 @@ def test_scan_datasets_give_scan_pairs(tmp_path):
 def test_slow_methods_run_on_their_trial_budget_only(tmp_path, monkeypatch):
     """A slow method runs on the first ``slow_trials`` trials of each group; 0 lifts the budget.
     (``icp`` stands in for Go-ICP here, so that the test itself is fast.)"""
-    from esmicp.bench import runner
+    from esmicp_lab.bench import runner
 
     monkeypatch.setattr(runner, "SLOW_METHODS", ("icp",))
     common = dict(protocols=("copy", "shuffled"), datasets=("synthetic",), methods=("esm", "icp"), trials=3,
@@ -427,7 +427,7 @@ def test_slow_methods_run_on_their_trial_budget_only(tmp_path, monkeypatch):
 def test_a_printed_only_slow_method_runs_on_the_clean_printed_cases_alone(tmp_path, monkeypatch):
     """Go-ICP (``icp`` stands in) runs on no randomised trial and on no printed case with
     outliers within the budget, on every printed case without; with ``slow_trials=0`` everywhere."""
-    from esmicp.bench import runner
+    from esmicp_lab.bench import runner
 
     monkeypatch.setattr(runner, "SLOW_METHODS", ("icp",))
     monkeypatch.setattr(runner, "SLOW_ON_PRINTED_ONLY", ("icp",))

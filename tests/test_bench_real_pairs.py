@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import REPO_ROOT, require_shared
 
-from esmicp.bench.real_pairs import (
+from esmicp_lab.bench.real_pairs import (
     KIND_CRITERIA,
     crop_to_overlap,
     estimate_in_pair_frame,
@@ -21,7 +21,7 @@ from esmicp.bench.real_pairs import (
     read_pairs,
     turn_source,
 )
-from esmicp.bench.scans import ScanBenchConfig, partial_markdown, real_pairs_markdown, run_scan_bench
+from esmicp_lab.bench.scans import ScanBenchConfig, partial_markdown, real_pairs_markdown, run_scan_bench
 from esmicp.cli import main
 from esmicp.core.procrustes import apply, rigid_inverse, to_matrix
 from esmicp.errors import InvalidInputError, PointCloudFileError
@@ -159,7 +159,7 @@ def test_shared_real_pairs_parse_and_overlap():
     pairs = read_pairs(folder)
     assert len(pairs) >= 11
     assert {pair.kind for pair in pairs} <= set(KIND_CRITERIA)
-    from esmicp.bench.protocols import scan_overlap
+    from esmicp_lab.bench.protocols import scan_overlap
 
     lidar = next(pair for pair in pairs if pair.kind == "LiDAR")
     source, target, truth = load_pair(lidar, bin_columns=3)
@@ -271,7 +271,7 @@ def test_scan_bench_on_a_tiny_folder(tmp_path):
 
 
 def test_scan_bench_cropped_variant_reports_the_cropped_overlap(tmp_path):
-    from esmicp.bench.scans import CROPPED_OVERLAP
+    from esmicp_lab.bench.scans import CROPPED_OVERLAP
 
     make_folder(tmp_path)
     config = ScanBenchConfig(real_pairs_dir=str(tmp_path), methods=("esm-global",), partial_trials=0,
@@ -285,7 +285,7 @@ def test_scan_bench_cropped_variant_reports_the_cropped_overlap(tmp_path):
 
 
 def test_scan_bench_judges_a_wrong_pose_as_failure(tmp_path, monkeypatch):
-    import esmicp.bench.scans as scans
+    import esmicp_lab.bench.scans as scans
 
     make_folder(tmp_path)
     monkeypatch.setattr(scans, "run_global", lambda *args: (np.eye(4), "identity", None, None))
@@ -294,7 +294,7 @@ def test_scan_bench_judges_a_wrong_pose_as_failure(tmp_path, monkeypatch):
 
 
 def test_partial_rows_and_table(tmp_path, monkeypatch):
-    import esmicp.bench.scans as scans
+    import esmicp_lab.bench.scans as scans
 
     clouds = {"shape": asymmetric_shape(3000, np.random.default_rng(0))}
     monkeypatch.setattr(scans, "_modelnet_clouds", lambda data_dir: clouds)
@@ -311,7 +311,7 @@ def test_partial_rows_judge_success_up_to_the_objects_symmetry(monkeypatch):
     places the source's half on the cylinder as well as the truth does, so it succeeds up to the
     object's symmetry; judged on the kept points alone it fails, as their cut does not share the
     symmetry. Fails if the rows judge the kept points only, or if any pose passes."""
-    import esmicp.bench.scans as scans
+    import esmicp_lab.bench.scans as scans
 
     rng = np.random.default_rng(3)
     angles, heights = rng.uniform(0.0, 2.0 * np.pi, 40_000), rng.uniform(-1.0, 1.0, 40_000)

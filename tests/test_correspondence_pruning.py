@@ -292,7 +292,7 @@ def _lomatch_crop(pair_name: str, seed: int, spawn_key: tuple[int, int, int]):
     """``(cropped, truth)``: the 3DMatch pair ``pair_name`` cropped to 15% overlap as
     ``benchmarks/lomatch_crop.py --seed seed`` crops it (``spawn_key``: the pair's index among the
     3DMatch pairs, the overlap's index, the crop's), as recorded."""
-    from esmicp.bench.real_pairs import crop_to_overlap, load_pair, read_pairs
+    from esmicp_lab.bench.real_pairs import crop_to_overlap, load_pair, read_pairs
 
     require_shared("real_pairs/3dmatch_redkitchen/cloud_bin_0.ply")
     pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.pair == pair_name)

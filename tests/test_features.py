@@ -28,7 +28,7 @@ from esmicp.core.features import (
     voxel_grid,
 )
 from esmicp.metrics import rotation_error_deg
-from esmicp.bench.protocols import make_trial, scan_pairs
+from esmicp_lab.bench.protocols import make_trial, scan_pairs
 
 CHAIR = "modelnet40/chair/chair_0848.txt"
 

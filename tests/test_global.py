@@ -16,7 +16,7 @@ from conftest import require_shared
 from esmicp.globalreg.config import DEFAULT
 from esmicp.globalreg.rotation_search import so3_grid
 from esmicp.metrics import rotation_error_deg, strict_success, up_to_symmetry_success
-from esmicp.bench.protocols import make_trial
+from esmicp_lab.bench.protocols import make_trial
 
 ASYMMETRIC = ("airplane_0126", "chair_0848", "guitar_0165", "person_0025", "piano_0226")
 
@@ -113,7 +113,7 @@ def test_a_lidar_pose_just_short_of_confident_is_settled(monkeypatch):
     2.6 degrees and 1.2 m short of the truth, scoring 0.597 against ``confident_score`` 0.6, and
     the scan strategy used to run too (0.29 s against 0.08 s). Settled by a few more iterations
     (``SearchConfig.settle_from``), the pose is final and right. Fails if the settling is dropped."""
-    from esmicp.bench.real_pairs import load_pair, pair_errors, read_pairs
+    from esmicp_lab.bench.real_pairs import load_pair, pair_errors, read_pairs
     from esmicp.globalreg import search
 
     require_shared("real_pairs/newer_college_01")
@@ -165,8 +165,8 @@ def _partial_overlap_trial(name: str, *, keep_index: int, index: int, bench_seed
     fraction ``(0.7, 0.5)[keep_index]`` on ModelNet40 object ``name``: a callable running the
     default ``register`` on it with the bench's seed, and one judging a result up to symmetry (on
     the kept points, stricter than the bench's whole half)."""
-    from esmicp.bench.real_pairs import partial_trial
-    from esmicp.bench.scans import _seed_of
+    from esmicp_lab.bench.real_pairs import partial_trial
+    from esmicp_lab.bench.scans import _seed_of
 
     rng = np.random.default_rng(np.random.SeedSequence(bench_seed, spawn_key=(1, keep_index, index)))
     trial = partial_trial(_cloud(name), (0.7, 0.5)[keep_index], rng, 2000)

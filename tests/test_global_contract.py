@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import esmicp
-from esmicp.bench.protocols import PROTOCOLS, make_trial, random_rigid_transform
-from esmicp.bench.real_pairs import partial_trial
+from esmicp_lab.bench.protocols import PROTOCOLS, make_trial, random_rigid_transform
+from esmicp_lab.bench.real_pairs import partial_trial
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import apply, bounding_box_diagonal
 from esmicp.globalreg import search

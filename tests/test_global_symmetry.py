@@ -11,7 +11,7 @@ from conftest import require_shared
 from esmicp.core.procrustes import apply, rotation_angle, to_matrix
 from esmicp.globalreg.search import TWIN_ANGLES_DEG, _twins
 from esmicp.metrics import rotation_error_deg, strict_success
-from esmicp.bench.protocols import make_trial
+from esmicp_lab.bench.protocols import make_trial
 
 
 def _cloud(name: str) -> np.ndarray:

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import esmicp
-from esmicp.bench import BenchConfig, RunOptions, read_rows, run_bench
+from esmicp_lab.bench import BenchConfig, RunOptions, read_rows, run_bench
 from esmicp.cli import EXIT_BAD_INPUT, EXIT_OK, main
 from esmicp.errors import InvalidInputError
 from esmicp.io import write_points
@@ -155,7 +155,7 @@ def serial(out: Path, **changes) -> RunOptions:
 def test_a_second_run_on_a_locked_folder_is_refused(tmp_path):
     import fcntl
 
-    from esmicp.bench.results import LOCK
+    from esmicp_lab.bench.results import LOCK
 
     run_bench(small(), serial(tmp_path))
     rows_path = tmp_path / "rows.jsonl"
@@ -176,7 +176,7 @@ def test_rows_appended_twice_count_once(tmp_path):
     rows_path.write_bytes(rows_path.read_bytes() * 2)  # what two concurrent --resume left
     rows = read_rows(rows_path)
     assert len(rows) == 2
-    from esmicp.bench import write_tables
+    from esmicp_lab.bench import write_tables
 
     write_tables(tmp_path)
     assert "(2 trials)" in (tmp_path / "summary.md").read_text()
@@ -190,7 +190,7 @@ def test_resumed_rows_cannot_write_tables_outside_the_folder(tmp_path):
     rows = read_rows(out / "rows.jsonl")
     rows[0]["case"] = f"x/../../{escape.name}"  # a handed-over folder with a crafted row
     (out / "rows.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
-    from esmicp.bench import write_tables
+    from esmicp_lab.bench import write_tables
 
     written = write_tables(out)
     assert not list(tmp_path.glob("escaped*")) and not list(tmp_path.glob("*.md"))
@@ -199,7 +199,7 @@ def test_resumed_rows_cannot_write_tables_outside_the_folder(tmp_path):
 
 
 def test_bench_on_a_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
-    from esmicp.bench import results
+    from esmicp_lab.bench import results
 
     def full(self, row):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))

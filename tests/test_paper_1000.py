@@ -23,10 +23,10 @@ from conftest import REPO_ROOT, require_module, require_shared
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from esmicp.bench import read_rows
-from esmicp.bench.paper import PAPER_1000_GROUPS, euler_zyx
-from esmicp.bench.tables import PAPER_1000_COLUMNS, PAPER_METRICS
-from esmicp.bench.trials import build_trial, paper_1000_specs
+from esmicp_lab.bench import read_rows
+from esmicp_lab.bench.paper import PAPER_1000_GROUPS, euler_zyx
+from esmicp_lab.bench.tables import PAPER_1000_COLUMNS, PAPER_METRICS
+from esmicp_lab.bench.trials import build_trial, paper_1000_specs
 from esmicp.core.procrustes import apply, rigid_inverse
 
 CLOUDS = ["airplane_0126", "person_0025", "stool_0072"]
@@ -81,7 +81,7 @@ def test_the_1000_transform_trials_draw_the_papers_angles_and_translations_from_
 
 
 def test_the_dcp_training_range_protocol_stays_inside_45_degrees_and_half_a_radius():
-    from esmicp.bench.trials import TrialSpec
+    from esmicp_lab.bench.trials import TrialSpec
 
     cloud = _cloud(2000)
     radius = np.max(np.linalg.norm(cloud - cloud.mean(axis=0), axis=1))

@@ -1,4 +1,4 @@
-"""The paper's tables beside ours (esmicp.bench.side_by_side, benchmarks/paper_side_by_side.py):
+"""The paper's tables beside ours (esmicp_lab.bench.side_by_side, benchmarks/paper_side_by_side.py):
 the checks of the paper's cells, the records built from bench rows, the summary CSV round trip,
 the marker replacement, and that docs/bench-paper.md holds exactly what the script writes from
 the committed summary and the paper's tables in ../shared."""
@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from conftest import REPO_ROOT, require_shared
 
-from esmicp.bench import BenchConfig, RunOptions, read_rows, run_bench
-from esmicp.bench.side_by_side import (
+from esmicp_lab.bench import BenchConfig, RunOptions, read_rows, run_bench
+from esmicp_lab.bench.side_by_side import (
     BEGIN,
     END,
     implied_rotation_error_deg,

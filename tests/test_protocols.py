@@ -1,4 +1,4 @@
-"""Evaluation protocols (esmicp.bench.protocols), success metrics, and the Stanford .conf reader."""
+"""Evaluation protocols (esmicp_lab.bench.protocols), success metrics, and the Stanford .conf reader."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from esmicp.metrics import (
     up_to_symmetry_success,
 )
 from esmicp.core.procrustes import bounding_box_diagonal
-from esmicp.bench.protocols import (
+from esmicp_lab.bench.protocols import (
     PAPER_NOISE_MIXTURE,
     PROTOCOLS,
     copy_trial,

@@ -242,7 +242,7 @@ def test_a_street_scan_slid_along_the_road_by_the_global_search_is_pulled_back()
     """The shared KITTI pair (124k points, 3-column ``.bin``): with seed 1 the global search places
     the scan about a metre along the road, which ``esm`` alone kept (0.90 m, over the 0.6 m
     criterion); the ``esm-plane`` iterations that now precede it on the subsample pull it back."""
-    from esmicp.bench.real_pairs import load_pair, pair_errors, read_pairs
+    from esmicp_lab.bench.real_pairs import load_pair, pair_errors, read_pairs
 
     pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.dataset == "kitti_00")
     source, target, truth = load_pair(pair, bin_columns=3)
@@ -799,7 +799,7 @@ def test_a_small_source_after_a_global_search_stops_at_the_strided_tolerance(mon
     degrees. Fails if the small-source path ignores the strided tolerance. A given ``init`` keeps
     the caller's tolerance."""
     from esmicp import api
-    from esmicp.bench.real_pairs import load_pair, read_pairs
+    from esmicp_lab.bench.real_pairs import load_pair, read_pairs
 
     pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.pair == "t04_s06")
     source, target, _ = load_pair(pair)

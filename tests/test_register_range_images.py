@@ -10,8 +10,8 @@ import pytest
 
 import esmicp
 from esmicp import InvalidInputError
-from esmicp.bench.real_pairs import pair_errors
-from esmicp.bench.sequences import read_frame, read_poses
+from esmicp_lab.bench.real_pairs import pair_errors
+from esmicp_lab.bench.sequences import read_frame, read_poses
 from esmicp.cli import main
 from esmicp.trust import free_space
 from esmicp.result import RegistrationResult

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import esmicp
-from esmicp.bench.protocols import random_rigid_transform
+from esmicp_lab.bench.protocols import random_rigid_transform
 from esmicp.cli import main
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import apply, bounding_box_diagonal

@@ -18,7 +18,7 @@ from esmicp.globalreg.rotation_search import NeighbourGraph, batched_esm, so3_gr
 from esmicp.methods import ConvergenceCriteria, EsmEstimator, SigmaSchedule
 from esmicp.methods.local import refine
 from esmicp.metrics import random_rotation, rotation_error_deg
-from esmicp.bench.protocols import make_trial
+from esmicp_lab.bench.protocols import make_trial
 from esmicp.shapes import asymmetric_shape
 
 

@@ -10,7 +10,7 @@ import numpy as np
 from conftest import REPO_ROOT, require_shared
 
 import esmicp
-from esmicp.bench.real_pairs import load_pair, pair_errors, partial_trial, read_pairs
+from esmicp_lab.bench.real_pairs import load_pair, pair_errors, partial_trial, read_pairs
 from esmicp.core.procrustes import apply, bounding_box_diagonal, to_matrix
 from esmicp.io import read_points
 from esmicp.methods.esm import SIGMA_MEDIAN_FACTOR, SigmaSchedule
@@ -71,7 +71,7 @@ def test_a_half_slid_off_by_the_first_run_is_kept_by_the_tighter_second_try(monk
     quantile, keeps it (0.73). Fails without the second try, or if it stopped keeping the more
     confident run."""
     from esmicp import api
-    from esmicp.bench.scans import _modelnet_clouds, _seed_of
+    from esmicp_lab.bench.scans import _modelnet_clouds, _seed_of
     from esmicp.metrics import up_to_symmetry_success
 
     sys.path.insert(0, str(REPO_ROOT / "benchmarks"))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import esmicp
-from esmicp.bench.real_pairs import pair_errors
+from esmicp_lab.bench.real_pairs import pair_errors
 
 from test_merge_visibility import walk  # noqa: F401  (ray-cast depth frames of a room, 25 degrees apart)
 

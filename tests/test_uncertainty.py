@@ -261,7 +261,7 @@ def test_a_real_surface_that_slides_is_reported_along_its_slide():
     the covariance is several times wider along it than along the plane's normal, and the
     registration does slide along it: a start 5 cm off along it (one way: the crop's edge holds
     the other) stays more than 3 cm off. The whole frames report no degenerate direction."""
-    from esmicp.bench.sequences import plane_crop_pair, read_frame, read_poses
+    from esmicp_lab.bench.sequences import plane_crop_pair, read_frame, read_poses
 
     folder = require_shared("sequences/redkitchen_seq01_every10")
     poses = read_poses(folder)

@@ -19,7 +19,7 @@ from esmicp.viz import (
     write_bench_plots,
 )
 from esmicp.viz.bench_plots import REQUIRED_KEYS
-from esmicp.bench.trial_rows import local_trial_rows
+from esmicp_lab.bench.trial_rows import local_trial_rows
 
 #: The row schema's keys (helpers/bench_rows.md): every measured row must have them.
 SCHEMA_KEYS = (

@@ -1,5 +1,5 @@
-"""``esmicp bench``: the command line of the benchmark suite (:mod:`esmicp.bench`), a thin layer:
-parse flags into a :class:`~esmicp.bench.BenchConfig`, run, print where the results are.
+"""``esmicp bench``: the command line of the benchmark suite (:mod:`esmicp_lab.bench`), a thin layer:
+parse flags into a :class:`~esmicp_lab.bench.BenchConfig`, run, print where the results are.
 
 Hooked into ``esmicp`` by :func:`add_parser` (called from :func:`esmicp.cli.build_parser`).
 """
@@ -130,9 +130,9 @@ PAPER_1000_POINTS = 10_000
 
 
 def _defaults(paper: bool, paper_1000: bool = False) -> dict:
-    from ..bench.config import HONEST_OBJECT_PROTOCOLS, SCAN_PROTOCOL
-    from ..bench.datasets import default_data_dir
-    from ..bench.paper import (
+    from esmicp_lab.bench.config import HONEST_OBJECT_PROTOCOLS, SCAN_PROTOCOL
+    from esmicp_lab.bench.datasets import default_data_dir
+    from esmicp_lab.bench.paper import (
         PAPER_1000_ITERATIONS,
         PAPER_1000_TRANSLATION_RANGE,
         PAPER_1000_TRIALS,
@@ -156,7 +156,7 @@ def _defaults(paper: bool, paper_1000: bool = False) -> dict:
 
 
 def _expand_methods(names) -> tuple[str, ...]:
-    from ..bench.methods import OUR_METHODS, is_learned, method_names
+    from esmicp_lab.bench.methods import OUR_METHODS, is_learned, method_names
 
     expanded = []
     for name in names:
@@ -172,10 +172,10 @@ def _expand_methods(names) -> tuple[str, ...]:
 
 
 def build_config(args):
-    """The :class:`~esmicp.bench.BenchConfig` of ``args``: with ``--resume``, the saved one with the
+    """The :class:`~esmicp_lab.bench.BenchConfig` of ``args``: with ``--resume``, the saved one with the
     flags given on top; otherwise the defaults (``--paper``'s or the honest ones) with the flags."""
-    from ..bench import BenchConfig
-    from ..bench.results import CONFIG, read_json
+    from esmicp_lab.bench import BenchConfig
+    from esmicp_lab.bench.results import CONFIG, read_json
 
     values = None
     if args.resume:
@@ -199,7 +199,7 @@ def build_config(args):
     return BenchConfig.from_dict(values)
 
 
-#: ``--datasets`` names that select the scan benchmark (:mod:`esmicp.bench.scans`).
+#: ``--datasets`` names that select the scan benchmark (:mod:`esmicp_lab.bench.scans`).
 SCAN_DATASETS = ("real-pairs", "partial-overlap")
 _SCAN_PROTOCOLS = ("as-recorded", "turned", "partial-70", "partial-50")
 #: Accepted as well, run only when asked for (the real pairs cropped to a low overlap).
@@ -208,8 +208,8 @@ _SCAN_EXTRA_PROTOCOLS = ("cropped",)
 
 def run_scans(args) -> int:
     """``esmicp bench --datasets real-pairs[,partial-overlap]``: the scan benchmark."""
-    from ..bench.datasets import default_data_dir
-    from ..bench.scans import SCAN_METHODS, ScanBenchConfig, partial_markdown, real_pairs_markdown, run_scan_bench
+    from esmicp_lab.bench.datasets import default_data_dir
+    from esmicp_lab.bench.scans import SCAN_METHODS, ScanBenchConfig, partial_markdown, real_pairs_markdown, run_scan_bench
     from ..errors import InvalidInputError, OutputExistsError
     from ..io.atomic import atomic_write
 
@@ -263,8 +263,8 @@ def run_scans(args) -> int:
 
 
 def run(args) -> int:
-    from ..bench import Interrupted, RunOptions, run_bench, read_rows
-    from ..bench.results import ROWS
+    from esmicp_lab.bench import Interrupted, RunOptions, run_bench, read_rows
+    from esmicp_lab.bench.results import ROWS
 
     if args.datasets and any(name in SCAN_DATASETS for name in args.datasets):
         return run_scans(args)

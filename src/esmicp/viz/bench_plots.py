@@ -68,7 +68,7 @@ def check_rows(rows: Iterable[dict]) -> list[dict]:
 def read_bench_rows(path) -> list[dict]:
     """Read the rows file of an ``esmicp bench`` run (its reader: blank lines and a torn last line
     skipped, errors name the line), checked against the row schema."""
-    from ..bench.results import read_rows
+    from esmicp_lab.bench.results import read_rows
 
     path = Path(path)
     if not path.is_file():

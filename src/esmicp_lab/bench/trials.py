@@ -1,7 +1,7 @@
 """Trial plans: what every row of a run is about, with the seed that rebuilds it alone.
 
 A :class:`TrialSpec` is small and names everything a trial depends on; :func:`build_trial` turns
-it (with its cloud) into an :class:`esmicp.bench.protocols.Trial`. Seeds: for every (protocol,
+it (with its cloud) into an :class:`esmicp_lab.bench.protocols.Trial`. Seeds: for every (protocol,
 dataset, points, translation range) a ``SeedSequence`` built from the run's seed and those names
 is spawned (``SeedSequence.spawn``) into one child per trial; a trial's ``seed`` is a 32-bit int
 drawn from its child, and ``build_trial(spec, cloud)`` needs nothing else.
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
+from esmicp.core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
 from .protocols import PROTOCOLS, Trial, make_trial, random_rigid_transform
 from .config import PAPER_1000_PROTOCOLS, PAPER_PROTOCOLS
 from .datasets import name_seed
@@ -107,7 +107,7 @@ def find_class(case: PaperCase | str, clouds: list[str]) -> str | None:
 
 
 def paper_1000_specs(dataset: str, clouds: list[str], points: int, trials: int, seed: int) -> list[TrialSpec]:
-    """``trials`` trials of each :data:`esmicp.bench.paper.PAPER_1000_GROUPS` group whose class is
+    """``trials`` trials of each :data:`esmicp_lab.bench.paper.PAPER_1000_GROUPS` group whose class is
     in ``clouds``: ids ``<dataset>/<cloud>/n<points>/<protocol>-t1000/<index>``, seeds spawned per
     (protocol, dataset/cloud, points, range) as :func:`group_seeds` does."""
     specs = []
@@ -139,7 +139,7 @@ def _crop(points: np.ndarray, rng: np.random.Generator, keep: float) -> np.ndarr
 def partial_trial(cloud: np.ndarray, rng: np.random.Generator, *, name: str, seed, points: int) -> Trial:
     """``partial``: two disjoint random halves of ``points`` points, each cropped by its own random
     half-space to :data:`PARTIAL_KEEP` of its points (so the overlap is partial), the source half
-    moved by :func:`esmicp.bench.protocols.random_rigid_transform`; truth = the inverse move."""
+    moved by :func:`esmicp_lab.bench.protocols.random_rigid_transform`; truth = the inverse move."""
     cloud = _subsample(np.asarray(cloud, dtype=np.float64), 2 * points, rng)
     order = rng.permutation(len(cloud))
     half = len(cloud) // 2

@@ -62,7 +62,7 @@ def method_kind(name: str) -> str:
 
 #: Methods that take about a second or more per trial (Go-ICP's branch-and-bound; CPD's EM, O(N x M)
 #: per iteration; ICP-NL's Levenberg-Marquardt), run on a budget of trials
-#: (:attr:`esmicp.bench.config.BenchConfig.slow_trials`; their cost in docs/bench-paper.md, "Run time").
+#: (:attr:`esmicp_lab.bench.config.BenchConfig.slow_trials`; their cost in docs/bench-paper.md, "Run time").
 SLOW_METHODS = ("go-icp", "cpd", "icp-nl")
 #: Slow methods run on the paper's printed cases without outliers only (unless ``slow_trials`` is
 #: 0): Go-ICP, seconds to tens of seconds per trial, which never ends within its time limit on a
@@ -76,7 +76,7 @@ def is_learned(name: str) -> bool:
 
 def check_methods(names) -> None:
     """Raise :class:`~esmicp.errors.InvalidInputError` naming any unknown method."""
-    from ..errors import InvalidInputError
+    from esmicp.errors import InvalidInputError
 
     known = method_names()
     for name in names:
@@ -102,8 +102,8 @@ def run_method(
 
 
 def _run_ours(name, source, target, init, max_iterations, sigma, seed, workers) -> MethodOutcome:
-    from ..api import register
-    from ..errors import IndexAlignmentWarning
+    from esmicp.api import register
+    from esmicp.errors import IndexAlignmentWarning
 
     with warnings.catch_warnings():
         # esm-paper on clouds that are not index-aligned is part of what the bench measures.

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InvalidInputError, PointCloudFileError
+from esmicp.errors import InvalidInputError, PointCloudFileError
 from . import results, tables
 from .config import PAPER_PROTOCOLS, SCAN_PROTOCOL, BenchConfig, RunOptions
 from .datasets import POINTS_INDEPENDENT, load_dataset
@@ -85,7 +85,7 @@ PAPER_CASE_NOISE = {case.name: case.noise_fraction for case in PAPER_CASES}
 def _runs_of(spec, runs, config: BenchConfig) -> list[tuple[str, float | None]]:
     """The runs of one trial: every run, but slow methods only within their trial budget: the
     first ``slow_trials`` trials of a randomised group and every ``paper-table`` case, and for
-    :data:`~esmicp.bench.methods.SLOW_ON_PRINTED_ONLY` the printed cases without outliers only."""
+    :data:`~esmicp_lab.bench.methods.SLOW_ON_PRINTED_ONLY` the printed cases without outliers only."""
     if config.slow_trials == 0:
         return runs
     printed = spec.case is not None
@@ -273,7 +273,7 @@ def _run_dask(todo, config, options, workers, writer, bar) -> None:
     try:
         from dask.distributed import Client, as_completed
     except ImportError as exc:
-        from ..errors import MissingDependencyError
+        from esmicp.errors import MissingDependencyError
 
         raise MissingDependencyError(
             f"parallel runs need dask.distributed ({exc}); install it with {BENCH_HINT}, or run serially with --workers 1"
@@ -286,7 +286,7 @@ def _run_dask(todo, config, options, workers, writer, bar) -> None:
             cluster = local_cluster(workers)
         client = Client(cluster)
     else:
-        from ..batch import dask_client
+        from esmicp.batch import dask_client
 
         client = dask_client(options.scheduler)
     futures = []
@@ -354,7 +354,7 @@ def _inside(out_dir: Path, name: str) -> Path:
 
 def write_tables(out_dir: Path) -> tuple[Path, ...]:
     """(Re)write the tables of ``out_dir`` from its rows file: they are derived, never edited."""
-    from ..io.atomic import atomic_write
+    from esmicp.io.atomic import atomic_write
 
     rows = results.read_rows(out_dir / results.ROWS)
     if not rows:

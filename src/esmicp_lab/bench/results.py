@@ -3,7 +3,7 @@ interrupted run loses no finished row; the resolved configuration and the librar
 them.
 
 Files in a run's folder (:data:`ROWS`, :data:`CONFIG`, :data:`VERSIONS`; tables by
-:mod:`esmicp.bench.tables`). A row is written with one ``write`` of one whole line on a file
+:mod:`esmicp_lab.bench.tables`). A row is written with one ``write`` of one whole line on a file
 opened for appending; a line cut short by a crash (no final newline) is ignored when reading and
 removed before appending again.
 """
@@ -17,7 +17,7 @@ import platform
 import sys
 from pathlib import Path
 
-from ..errors import InvalidInputError, PointCloudFileError
+from esmicp.errors import InvalidInputError, PointCloudFileError
 
 ROWS = "rows.jsonl"
 CONFIG = "config.json"
@@ -166,7 +166,7 @@ def folder_lock(out_dir: Path):
 
 
 def write_json(path: Path, data, *, overwrite: bool) -> None:
-    from ..io.atomic import atomic_write
+    from esmicp.io.atomic import atomic_write
 
     with atomic_write(path, overwrite=overwrite, mode="w") as handle:
         json.dump(data, handle, indent=2, sort_keys=True)

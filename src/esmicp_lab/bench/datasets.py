@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InvalidInputError
+from esmicp.errors import InvalidInputError
 
 #: Names of the built-in / shared datasets.
 BUILTIN = ("synthetic", "modelnet40", "bunny", "bunny-scans", "lidar-pair")
@@ -85,7 +85,7 @@ def _require(path: Path, dataset: str) -> Path:
 
 
 def _read(path: Path, points: int):
-    from .. import io
+    from esmicp import io
 
     if path.suffix.lower() in MESH_EXTENSIONS:
         return io.read_points(path, sample_points=2 * points, rng=name_seed(path.name))
@@ -93,7 +93,7 @@ def _read(path: Path, points: int):
 
 
 def _folder(folder: Path, name: str, points: int, pattern: str = "**/*") -> dict:
-    from ..io import READ_EXTENSIONS
+    from esmicp.io import READ_EXTENSIONS
 
     files = sorted(p for p in folder.glob(pattern) if p.is_file() and p.suffix.lower() in READ_EXTENSIONS)
     if not files:
@@ -115,7 +115,7 @@ def load_dataset(name: str, data_dir: Path, points: int) -> Dataset:
     """
     data_dir = Path(data_dir)
     if name == "synthetic":
-        from ..shapes import asymmetric_shape
+        from esmicp.shapes import asymmetric_shape
 
         shape = asymmetric_shape(10_000, name_seed("synthetic"))
         return Dataset(name, {"asymmetric": shape, "asymmetric-x100": 100.0 * shape})
@@ -128,12 +128,12 @@ def load_dataset(name: str, data_dir: Path, points: int) -> Dataset:
         path = _require(data_dir / "bunny" / "bun_zipper.ply", name)
         return Dataset(name, {"bun_zipper": _read(path, points)})
     if name == "bunny-scans":
-        from ..io.stanford_conf import load_scans
+        from esmicp.io.stanford_conf import load_scans
 
         folder = _require(data_dir / "bunny_scans", name)
         return Dataset(name, {}, load_scans(folder))
     if name == "lidar-pair":
-        from .. import io
+        from esmicp import io
 
         folder = _require(data_dir / "lidar_pair_small_gicp", name)
         pose = io.read_transform(folder / "T_target_source.txt")

@@ -5,7 +5,7 @@ moved by ``G``: roll, pitch, yaw each uniform in ``[-pi, pi]``, composed ``R = R
 Rx(roll)`` (the paper's sampling: Euler angles drawn uniformly are NOT uniform rotations), and
 each translation component uniform in ``[-range, range]`` (cloud units: ModelNet objects are about
 2 units across, so ranges of 100 and 1000 put the source 50-500 object sizes away). Optionally
-30 % / 60 % of the source points get the paper's noise (:func:`esmicp.bench.protocols.paper_noise`,
+30 % / 60 % of the source points get the paper's noise (:func:`esmicp_lab.bench.protocols.paper_noise`,
 scaled by the object's half-diagonal) in the object's frame, before the move. The truth is
 ``T_target_source = G^-1``.
 
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
+from esmicp.core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
 from .protocols import Trial, paper_noise
 
 #: Fraction of noisy source points of each paper protocol (the 1,000-transform ones included).
@@ -35,7 +35,7 @@ PAPER_TRANSLATION_RANGES = (1.0, 100.0, 1000.0)
 #: ``(table id in paper_tables.json, ModelNet40 class, protocol)``. Each group is
 #: :data:`PAPER_1000_TRIALS` trials of the paper's motion (Euler angles uniform in [-pi, pi],
 #: translations uniform in [-1000, 1000]) on that one object, the noisy one with
-#: :func:`esmicp.bench.protocols.paper_noise` on 30 % of the source, as ``paper-noise-30`` does.
+#: :func:`esmicp_lab.bench.protocols.paper_noise` on 30 % of the source, as ``paper-noise-30`` does.
 PAPER_1000_GROUPS = (
     ("kiss-matcher-1000", "airplane", "paper-1000"),
     ("kiss-matcher-1000", "person", "paper-1000"),
@@ -130,7 +130,7 @@ class PaperCase:
         if self.euler is not None:
             roll, pitch, yaw, tx, ty, tz = self.euler
             return to_matrix(euler_zyx(roll, pitch, yaw), np.array([tx, ty, tz]))
-        from ..io import read_transform
+        from esmicp.io import read_transform
         from pathlib import Path
 
         return read_transform(Path(data_dir) / "esm_icp_paper" / self.figure_file)

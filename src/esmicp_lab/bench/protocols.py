@@ -30,8 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
-from ..metrics import random_rotation
+from esmicp.core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
+from esmicp.metrics import random_rotation
 
 #: Names of the single-object protocols :func:`make_trials` builds.
 PROTOCOLS = ("copy", "shuffled", "resampled", "outliers-30", "outliers-60")

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.procrustes import rotation_angle
-from ..metrics import (
+from esmicp.core.procrustes import rotation_angle
+from esmicp.metrics import (
     paper_errors,
     rotation_error_deg,
     strict_success,

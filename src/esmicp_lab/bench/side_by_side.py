@@ -22,7 +22,7 @@ import math
 import re
 from collections import defaultdict
 
-from ..errors import InvalidInputError
+from esmicp.errors import InvalidInputError
 from .tables import PAPER_METRICS, group_stats
 
 #: The paper's metric names, in its column order, and our row keys for them.

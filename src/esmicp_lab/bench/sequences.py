@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InvalidInputError
+from esmicp.errors import InvalidInputError
 
 
 def read_poses(folder: str | Path) -> dict[str, np.ndarray]:

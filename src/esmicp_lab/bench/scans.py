@@ -3,7 +3,7 @@ on request cropped to a low overlap) and on the partial-overlap object protocol,
 
 Methods (:data:`SCAN_METHODS`): ``esm-global`` (``esmicp.register(source, target, rng=seed)``,
 every default, no voxel), and the peers with the voxel their documentation recommends for the
-pair's kind (:class:`~esmicp.bench.real_pairs.Criteria`; 0.05 m indoor, 0.3 m LiDAR), each
+pair's kind (:class:`~esmicp_lab.bench.real_pairs.Criteria`; 0.05 m indoor, 0.3 m LiDAR), each
 refined by point-to-point ICP: ``kiss-matcher-icp``, ``open3d-ransac-fpfh-icp`` and ``fgr-icp``
 (Open3D FGR, then the same ICP as RANSAC's: 2 voxels, 64 iterations). On the partial-overlap
 objects the peers get their object default (1/40 of the target's diagonal), as in the other
@@ -11,7 +11,7 @@ object protocols. Each method is warmed up once (untimed) on a small cloud, so i
 counted; only the registration call is timed. Methods take turns pair by pair.
 
 The ``cropped`` variant (not run unless asked for) crops pair ``k`` by a plane slab
-(:func:`~esmicp.bench.real_pairs.crop_to_overlap`) so that ``CROPPED_OVERLAP`` of the kept source
+(:func:`~esmicp_lab.bench.real_pairs.crop_to_overlap`) so that ``CROPPED_OVERLAP`` of the kept source
 lies on the kept target (3DLoMatch's range); its rows report the overlap measured after the crop.
 
 Seeds: the turned variant of pair ``k`` draws its rotation from ``SeedSequence(seed,
@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InvalidInputError
-from ..metrics import rotation_error_deg, strict_success, translation_error, up_to_symmetry_success
+from esmicp.errors import InvalidInputError
+from esmicp.metrics import rotation_error_deg, strict_success, translation_error, up_to_symmetry_success
 from .real_pairs import crop_to_overlap, estimate_in_pair_frame, load_pair, pair_errors, partial_trial, read_pairs, turn_source
 
 __all__ = [
@@ -93,7 +93,7 @@ def run_global(name: str, source, target, voxel: float | None, seed: int):
     ``ambiguous`` flag and overlap ``confidence`` (0-1, :attr:`esmicp.RegistrationResult.confidence`),
     None for the peers, which report neither."""
     if name == "esm-global":
-        from ..api import register
+        from esmicp.api import register
 
         result = register(source, target, rng=seed)
         note = f"init={result.init} fitness={result.fitness:.3f} iterations={result.num_iterations}"
@@ -125,7 +125,7 @@ def _timed(name, source, target, voxel, seed) -> dict:
 
 
 def _warm_up(methods) -> None:
-    from ..shapes import asymmetric_shape
+    from esmicp.shapes import asymmetric_shape
 
     cloud = asymmetric_shape(500, np.random.default_rng(0))
     for name in methods:
@@ -181,7 +181,7 @@ def real_pair_rows(config: ScanBenchConfig, emit) -> None:
 
 
 def _modelnet_clouds(data_dir: Path) -> dict:
-    from .. import io
+    from esmicp import io
 
     files = sorted((data_dir / "modelnet40").glob("*/*.txt"))
     if not files:
@@ -338,7 +338,7 @@ COUNTED_OVERLAP = 0.3
 
 def partial_markdown(rows: list[dict]) -> str:
     """Per keep fraction: each method's success up to the object's symmetry, strict and on the kept
-    points (see :class:`~esmicp.bench.real_pairs.PartialTrial`), median errors and time, the
+    points (see :class:`~esmicp_lab.bench.real_pairs.PartialTrial`), median errors and time, the
     overlap the trials had, and the success on those overlapping by at least
     :data:`COUNTED_OVERLAP`."""
     rows = [r for r in rows if r["protocol"].startswith("partial-")]

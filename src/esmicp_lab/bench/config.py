@@ -12,10 +12,10 @@ import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import InvalidInputError
+from esmicp.errors import InvalidInputError
 
-#: Object protocols of :mod:`esmicp.bench.protocols` plus the bench's own ``partial`` and
-#: ``shuffled-45`` (DCP's training distribution: :func:`esmicp.bench.trials.small_rotation_trial`).
+#: Object protocols of :mod:`esmicp_lab.bench.protocols` plus the bench's own ``partial`` and
+#: ``shuffled-45`` (DCP's training distribution: :func:`esmicp_lab.bench.trials.small_rotation_trial`).
 HONEST_OBJECT_PROTOCOLS = ("copy", "shuffled", "resampled", "outliers-30", "outliers-60", "partial", "shuffled-45")
 #: Protocol on datasets of scans with known poses.
 SCAN_PROTOCOL = "scan-pairs"
@@ -40,9 +40,9 @@ class BenchConfig:
         Names from :data:`PROTOCOL_NAMES`.
     datasets : tuple of str
         ``synthetic``, ``modelnet40``, ``bunny``, ``bunny-scans``, ``lidar-pair`` or a folder of
-        point-cloud / mesh files (see :mod:`esmicp.bench.datasets`).
+        point-cloud / mesh files (see :mod:`esmicp_lab.bench.datasets`).
     methods : tuple of str
-        Names of :func:`esmicp.bench.methods.method_names`.
+        Names of :func:`esmicp_lab.bench.methods.method_names`.
     trials : int
         Trials per (protocol, dataset, points) for the randomised protocols, round-robin over the
         dataset's clouds. ``scan-pairs`` uses every overlapping pair instead (at most ``trials``).
@@ -65,16 +65,16 @@ class BenchConfig:
     paper_tables : bool
         Also run the paper's printed transforms (protocol ``paper-table``).
     paper_1000_trials : int
-        When > 0, also run the paper's 1,000-transform tables (:data:`esmicp.bench.paper.PAPER_1000_GROUPS`:
+        When > 0, also run the paper's 1,000-transform tables (:data:`esmicp_lab.bench.paper.PAPER_1000_GROUPS`:
         protocols ``paper-1000`` on airplane, person and stool and ``paper-1000-noise-30`` on stool,
         translations in [-1000, 1000] whatever ``translation_ranges`` says) with this many trials per
         group, on every object dataset holding those classes. The paper's setting is 1,000 trials
         and ``max_iterations=100`` (``esmicp bench --paper-1000``).
     slow_trials : int
-        Methods of :data:`esmicp.bench.methods.SLOW_METHODS` (about a second or more per trial:
+        Methods of :data:`esmicp_lab.bench.methods.SLOW_METHODS` (about a second or more per trial:
         Go-ICP, CPD, ICP-NL) run only on the first ``slow_trials`` trials of each randomised
         (protocol, dataset, points, range) group, and on every ``paper-table`` case; those of
-        :data:`esmicp.bench.methods.SLOW_ON_PRINTED_ONLY` (Go-ICP) on the printed cases without
+        :data:`esmicp_lab.bench.methods.SLOW_ON_PRINTED_ONLY` (Go-ICP) on the printed cases without
         outliers only. 0 means every method on every trial. The tables give each cell's trial
         count, so a row run on fewer trials says so.
     data_dir : str

@@ -19,12 +19,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..api import register
-from ..errors import EsmicpError, EsmicpWarning
-from ..metrics import paper_errors, rotation_error_deg, strict_success, translation_error, up_to_symmetry_success
-from ..core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
+from esmicp.api import register
+from esmicp.errors import EsmicpError, EsmicpWarning
+from esmicp.metrics import paper_errors, rotation_error_deg, strict_success, translation_error, up_to_symmetry_success
+from esmicp.core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
 from .protocols import Trial
-from ..shapes import asymmetric_shape
+from esmicp.shapes import asymmetric_shape
 
 #: Methods, protocols and sigmas (fractions of the target's diagonal) of :func:`local_trial_rows`.
 DEFAULT_METHODS = ("esm", "icp", "esm-paper")
@@ -32,7 +32,7 @@ DEFAULT_PROTOCOLS = ("copy", "resampled")
 DEFAULT_SIGMA_FRACTIONS = (0.01, 0.03, 0.1, 0.3, 1.0)
 
 
-#: Protocols :func:`angle_trial` builds (their meaning as in :mod:`esmicp.bench.protocols`).
+#: Protocols :func:`angle_trial` builds (their meaning as in :mod:`esmicp_lab.bench.protocols`).
 ANGLE_PROTOCOLS = ("copy", "shuffled", "resampled")
 
 
@@ -70,7 +70,7 @@ def _about(axis, angle_deg: float) -> np.ndarray:
 
 
 def trial_row(trial, method: str, *, dataset: str, index: int, seed: int, sigma=None, max_iterations: int = 100) -> dict:
-    """One schema row: ``method`` run from the identity on ``trial`` (a :class:`~esmicp.bench.protocols.Trial`).
+    """One schema row: ``method`` run from the identity on ``trial`` (a :class:`~esmicp_lab.bench.protocols.Trial`).
 
     The library's warnings (e.g. ``esm-paper`` on clouds that are not index-aligned) go to the
     extra key ``warnings`` (a list of messages) instead of the console."""

@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core.procrustes import apply, rigid_inverse, to_matrix
-from ..errors import InvalidInputError, PointCloudFileError
-from ..metrics import random_rotation, rotation_error_deg
+from esmicp.core.procrustes import apply, rigid_inverse, to_matrix
+from esmicp.errors import InvalidInputError, PointCloudFileError
+from esmicp.metrics import random_rotation, rotation_error_deg
 from .protocols import random_rigid_transform
 
 __all__ = [
@@ -170,7 +170,7 @@ def read_pairs(folder) -> list[RealPair]:
 def load_pair(pair: RealPair, bin_columns: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(source, target, T_target_source)`` of ``pair``; ``.bin`` scans read with the pair's own
     ``bin_columns``, else ``bin_columns``."""
-    from .. import io
+    from esmicp import io
 
     columns = pair.bin_columns if pair.bin_columns is not None else bin_columns
     source = io.read_points(pair.source, bin_columns=columns)
@@ -251,7 +251,7 @@ class PartialTrial:
 def partial_trial(cloud: np.ndarray, keep: float, rng: np.random.Generator, points: int | None = 2000) -> PartialTrial:
     """Split ``cloud`` into two disjoint random halves (``points`` each at most), cut each by its
     own random plane (:func:`plane_cut`) to ``keep`` of its points; the target is one, the
-    other, moved by a random rigid transform (:func:`~esmicp.bench.protocols.random_rigid_transform`),
+    other, moved by a random rigid transform (:func:`~esmicp_lab.bench.protocols.random_rigid_transform`),
     the source (and its whole half, moved the same way, as ``source_half``)."""
     cloud = np.asarray(cloud, dtype=np.float64)
     order = rng.permutation(len(cloud))
@@ -261,7 +261,7 @@ def partial_trial(cloud: np.ndarray, keep: float, rng: np.random.Generator, poin
     source_mask, _, _ = plane_cut(source_half, keep, rng)
     target, source_object = target_half[target_mask], source_half[source_mask]
     overlap = float(np.mean(source_object @ normal >= offset))
-    from ..core.procrustes import bounding_box_diagonal
+    from esmicp.core.procrustes import bounding_box_diagonal
 
     moved_by = random_rigid_transform(rng, bounding_box_diagonal(target))
     return PartialTrial(apply(moved_by, source_object), target, rigid_inverse(moved_by), overlap, keep,
@@ -274,7 +274,7 @@ class CroppedPair:
 
     ``source`` and ``target`` are the kept points (in their own frames; the pose between them is
     unchanged); ``source_overlap`` is the fraction of the kept source lying on the kept target
-    under the true pose (:func:`~esmicp.bench.protocols.scan_overlap`), ``target_overlap`` the same
+    under the true pose (:func:`~esmicp_lab.bench.protocols.scan_overlap`), ``target_overlap`` the same
     the other way; ``normal`` the cut direction (target frame) and ``offset`` / ``width`` the slab
     (target units) where both clouds remain.
     """
@@ -300,7 +300,7 @@ def crop_to_overlap(source: np.ndarray, target: np.ndarray, T_target_source: np.
     ``n``) of the source points that lie on the target under ``T_target_source`` define the cut:
     the source keeps its points with ``height >= c - width / 2``, the target those with
     ``height <= c + width / 2``, and ``width`` (target units) is bisected until the kept source's
-    overlap (:func:`~esmicp.bench.protocols.scan_overlap`, 3 target spacings) is as close to
+    overlap (:func:`~esmicp_lab.bench.protocols.scan_overlap`, 3 target spacings) is as close to
     ``overlap`` as the data allows. Both clouds keep at least 3 points.
 
     Raises
