@@ -2,7 +2,7 @@
 
 Runs :func:`esmicp_lab.bench.trial_rows.local_trial_rows` (esm, icp, esm-paper from the identity on
 seeded trials of the built-in shape, initial rotations spread over 0-180 degrees, plus a
-fixed-sigma sweep of esm) and draws them with :func:`esmicp.viz.write_bench_plots`.
+fixed-sigma sweep of esm) and draws them with :func:`esmicp_lab.plots.write_bench_plots`.
 
     python benchmarks/bench_plot_rows.py docs/images/bench [--rows-out rows.jsonl] [--force]
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 from esmicp_lab.bench.trial_rows import local_trial_rows
 from esmicp.errors import EsmicpError
 from esmicp.io.atomic import atomic_write
-from esmicp.viz.bench_plots import write_bench_plots
+from esmicp_lab.plots import write_bench_plots
 
 
 def main(argv=None) -> int:

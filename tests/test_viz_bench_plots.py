@@ -1,4 +1,4 @@
-"""esmicp.viz.bench_plots on rows measured by real registrations (esm, icp, esm-paper from the
+"""esmicp_lab.plots on rows measured by real registrations (esm, icp, esm-paper from the
 identity on seeded trials, plus a sigma sweep), not on made-up numbers."""
 
 from __future__ import annotations
@@ -10,7 +10,9 @@ import pytest
 from test_viz_support import check_image, require_plotting
 
 from esmicp.errors import InvalidInputError, OutputExistsError, PointCloudFileError
-from esmicp.viz import (
+from esmicp_lab.bench.trial_rows import local_trial_rows
+from esmicp_lab.plots import (
+    REQUIRED_KEYS,
     error_boxplots_figure,
     read_bench_rows,
     sigma_sweep_figure,
@@ -18,8 +20,6 @@ from esmicp.viz import (
     time_figure,
     write_bench_plots,
 )
-from esmicp.viz.bench_plots import REQUIRED_KEYS
-from esmicp_lab.bench.trial_rows import local_trial_rows
 
 #: The row schema's keys (helpers/bench_rows.md): every measured row must have them.
 SCHEMA_KEYS = (

@@ -288,7 +288,7 @@ def run(args) -> int:
     for path in outcome.files:
         print(f"table written to {path}")
     if args.plots:
-        from ..viz.bench_plots import write_bench_plots
+        from esmicp_lab.plots import write_bench_plots
 
         # The plots are derived from every row on disk, so a resumed run redraws them.
         paths = write_bench_plots(read_rows(outcome.out_dir / ROWS), outcome.out_dir,

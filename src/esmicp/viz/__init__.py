@@ -7,14 +7,6 @@ picture is drawn. Every function returns the figure object (a matplotlib ``Figur
 
 from ._deps import require
 from .animate import animate, animation_figure, write_animation
-from .bench_plots import (
-    error_boxplots_figure,
-    read_bench_rows,
-    sigma_sweep_figure,
-    success_vs_angle_figure,
-    time_figure,
-    write_bench_plots,
-)
 from .files import save_figure
 from .heatmap import heatmap, heatmap_figure
 from .scans import merged_scans_figure
@@ -33,23 +25,17 @@ __all__ = [
     "animation_figure",
     "builtin_pair",
     "downsample",
-    "error_boxplots_figure",
     "farthest_point_subset",
     "heatmap",
     "heatmap_figure",
     "merged_scans_figure",
     "moved_copy",
-    "read_bench_rows",
     "save_figure",
-    "sigma_sweep_figure",
     "similarity_matrix",
-    "success_vs_angle_figure",
-    "time_figure",
     "trace_registration",
     "view_figure",
     "view_html",
     "view_page",
     "write_animation",
-    "write_bench_plots",
     "write_view",
 ]

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InvalidInputError, OutputExistsError, PointCloudFileError
-from ._deps import new_figure
-from .files import save_figure
+from esmicp.errors import InvalidInputError, OutputExistsError, PointCloudFileError
+from esmicp.viz._deps import new_figure
+from esmicp.viz.files import save_figure
 
 #: Keys the plots read (the bench row schema has more).
 REQUIRED_KEYS = (
@@ -68,7 +68,7 @@ def check_rows(rows: Iterable[dict]) -> list[dict]:
 def read_bench_rows(path) -> list[dict]:
     """Read the rows file of an ``esmicp bench`` run (its reader: blank lines and a torn last line
     skipped, errors name the line), checked against the row schema."""
-    from esmicp_lab.bench.results import read_rows
+    from .bench.results import read_rows
 
     path = Path(path)
     if not path.is_file():
