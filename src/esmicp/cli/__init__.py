@@ -1,9 +1,10 @@
 """The ``esmicp`` command line: a thin layer that parses arguments, reads files, calls the library
 and prints. Bad input ends in one line on stderr and exit status 2; nothing is written then.
 
-One module per command family: :mod:`.register`, :mod:`.demo`, :mod:`.bench` (``esmicp bench``),
-:mod:`.viz` (``view``, ``heatmap``, ``animate``); :mod:`.args` holds the shared argument types,
-the exit codes and the parser class.
+One module per command family: :mod:`.register`, :mod:`.demo`, :mod:`.viz` (``view``,
+``heatmap``, ``animate``), :mod:`.merge`; :mod:`.args` holds the shared argument types, the exit
+codes and the parser class. ``esmicp bench`` belongs to the benchmark lab (:mod:`esmicp_lab.cli`),
+the one place the library imports the lab.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import sys
 import warnings
 
 from .._version import __version__
-from ..errors import EsmicpError, EsmicpWarning
+from ..errors import EsmicpError, EsmicpWarning, MissingDependencyError
 from .args import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, Parser
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_BROKEN_PIPE", "EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "build_parser", "main"]
@@ -23,7 +24,7 @@ __all__ = ["EXIT_BAD_INPUT", "EXIT_BROKEN_PIPE", "EXIT_FAILED", "EXIT_INTERRUPTE
 
 def build_parser() -> Parser:
     # The command modules load NumPy and the library: imported here, so `esmicp --version` does not.
-    from . import bench, demo, merge, register, viz
+    from . import demo, merge, register, viz
 
     parser = Parser(
         prog="esmicp",
@@ -35,10 +36,38 @@ def build_parser() -> Parser:
     commands.required = True
     register.add_parser(commands)
     demo.add_parser(commands)
-    bench.add_parser(commands)
+    _add_bench_parser(commands)
     viz.add_parser(commands)  # view, heatmap, animate
     merge.add_parser(commands)  # merge
     return parser
+
+
+#: What to tell a user whose esmicp has no benchmark lab (``esmicp_lab`` ships in esmicp's wheel).
+LAB_INSTALL_HINT = "pip install 'esmicp[bench]'"
+
+
+def _add_bench_parser(commands) -> None:
+    """``esmicp bench``: the benchmark lab's command (:func:`esmicp_lab.cli.add_parser`), imported
+    when the parser is built. Without the lab, ``esmicp bench ...`` (any arguments, ``--help``
+    too) ends in one line saying how to install it; every other command is unaffected."""
+    try:
+        from esmicp_lab.cli import add_parser
+    except ModuleNotFoundError as exc:
+        if not (exc.name or "").startswith("esmicp_lab"):
+            raise  # the lab is there but something it needs is not: show it
+    else:
+        add_parser(commands)
+        return
+    # No option prefix (argv never holds a NUL): every argument, --help too, reaches the handler.
+    placeholder = commands.add_parser("bench", help=f"run the benchmark suite (needs the benchmark lab: {LAB_INSTALL_HINT})",
+                                      add_help=False, prefix_chars="\0")
+    placeholder.add_argument("arguments", nargs="*")
+    placeholder.set_defaults(handler=_no_lab)
+
+
+def _no_lab(args) -> int:
+    raise MissingDependencyError("the benchmark lab (the esmicp_lab package) is not installed; install esmicp "
+                                 f"with it: {LAB_INSTALL_HINT}")
 
 
 def main(argv=None) -> int:

@@ -43,7 +43,7 @@ class MethodOutcome:
 
 
 def _baselines():
-    from esmicp_lab import baselines
+    from .. import baselines
 
     return baselines
 

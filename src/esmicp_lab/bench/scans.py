@@ -98,10 +98,10 @@ def run_global(name: str, source, target, voxel: float | None, seed: int):
         result = register(source, target, rng=seed)
         note = f"init={result.init} fitness={result.fitness:.3f} iterations={result.num_iterations}"
         return result.transformation, note, bool(result.ambiguous), result.confidence
-    from esmicp_lab import baselines
+    from .. import baselines
 
     if name == "fgr-icp":
-        from esmicp_lab.baselines._common import o3d_cloud, refine, require, voxel_for
+        from ..baselines._common import o3d_cloud, refine, require, voxel_for
 
         coarse = baselines.get_baseline("fgr")(source, target, voxel_size=voxel, rng=seed)
         o3d = require("open3d", "open3d")

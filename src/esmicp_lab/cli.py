@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .args import EXIT_INTERRUPTED, EXIT_OK, nonnegative_int, positive_int
+from esmicp.cli.args import EXIT_INTERRUPTED, EXIT_OK, nonnegative_int, positive_int
 
 #: Flags that take part in the configuration, and the BenchConfig field each one sets.
 _CONFIG_FLAGS = {
@@ -130,9 +130,9 @@ PAPER_1000_POINTS = 10_000
 
 
 def _defaults(paper: bool, paper_1000: bool = False) -> dict:
-    from esmicp_lab.bench.config import HONEST_OBJECT_PROTOCOLS, SCAN_PROTOCOL
-    from esmicp_lab.bench.datasets import default_data_dir
-    from esmicp_lab.bench.paper import (
+    from .bench.config import HONEST_OBJECT_PROTOCOLS, SCAN_PROTOCOL
+    from .bench.datasets import default_data_dir
+    from .bench.paper import (
         PAPER_1000_ITERATIONS,
         PAPER_1000_TRANSLATION_RANGE,
         PAPER_1000_TRIALS,
@@ -156,7 +156,7 @@ def _defaults(paper: bool, paper_1000: bool = False) -> dict:
 
 
 def _expand_methods(names) -> tuple[str, ...]:
-    from esmicp_lab.bench.methods import OUR_METHODS, is_learned, method_names
+    from .bench.methods import OUR_METHODS, is_learned, method_names
 
     expanded = []
     for name in names:
@@ -174,14 +174,14 @@ def _expand_methods(names) -> tuple[str, ...]:
 def build_config(args):
     """The :class:`~esmicp_lab.bench.BenchConfig` of ``args``: with ``--resume``, the saved one with the
     flags given on top; otherwise the defaults (``--paper``'s or the honest ones) with the flags."""
-    from esmicp_lab.bench import BenchConfig
-    from esmicp_lab.bench.results import CONFIG, read_json
+    from .bench import BenchConfig
+    from .bench.results import CONFIG, read_json
 
     values = None
     if args.resume:
         values = read_json(args.out / CONFIG)
         if values is None:
-            from ..errors import InvalidInputError
+            from esmicp.errors import InvalidInputError
 
             raise InvalidInputError(f"{args.out / CONFIG}: not found, nothing to resume")
         values = {key: tuple(value) if isinstance(value, list) else value for key, value in values.items()}
@@ -208,10 +208,10 @@ _SCAN_EXTRA_PROTOCOLS = ("cropped",)
 
 def run_scans(args) -> int:
     """``esmicp bench --datasets real-pairs[,partial-overlap]``: the scan benchmark."""
-    from esmicp_lab.bench.datasets import default_data_dir
-    from esmicp_lab.bench.scans import SCAN_METHODS, ScanBenchConfig, partial_markdown, real_pairs_markdown, run_scan_bench
-    from ..errors import InvalidInputError, OutputExistsError
-    from ..io.atomic import atomic_write
+    from .bench.datasets import default_data_dir
+    from .bench.scans import SCAN_METHODS, ScanBenchConfig, partial_markdown, real_pairs_markdown, run_scan_bench
+    from esmicp.errors import InvalidInputError, OutputExistsError
+    from esmicp.io.atomic import atomic_write
 
     unknown = [name for name in args.datasets if name not in SCAN_DATASETS]
     if unknown:
@@ -263,15 +263,15 @@ def run_scans(args) -> int:
 
 
 def run(args) -> int:
-    from esmicp_lab.bench import Interrupted, RunOptions, run_bench, read_rows
-    from esmicp_lab.bench.results import ROWS
+    from .bench import Interrupted, RunOptions, run_bench, read_rows
+    from .bench.results import ROWS
 
     if args.datasets and any(name in SCAN_DATASETS for name in args.datasets):
         return run_scans(args)
 
     if args.plots:
         # Before the run, not after it: a missing plotting library must not cost a whole run.
-        from ..viz import require
+        from esmicp.viz import require
 
         require("matplotlib")
     config = build_config(args)
@@ -288,7 +288,7 @@ def run(args) -> int:
     for path in outcome.files:
         print(f"table written to {path}")
     if args.plots:
-        from esmicp_lab.plots import write_bench_plots
+        from .plots import write_bench_plots
 
         # The plots are derived from every row on disk, so a resumed run redraws them.
         paths = write_bench_plots(read_rows(outcome.out_dir / ROWS), outcome.out_dir,
