@@ -100,3 +100,34 @@ def test_no_warning_at_import_or_first_call_beside(beside):
     )
     done = subprocess.run([sys.executable, "-W", "error", "-c", code], capture_output=True, text=True)
     assert done.returncode == 0 and "Warning" not in done.stderr, done.stderr[-2000:]
+
+
+def test_the_library_loads_nothing_of_the_lab_and_the_command_line_only_its_bench_parser():
+    """``import esmicp`` and a registration load no module of the benchmark lab (``esmicp_lab``);
+    the command line loads the ``esmicp bench`` parser (``esmicp_lab.cli``) and nothing else of it:
+    not the harness, the baselines or the plots."""
+    probe = ("import sys, json, numpy as np, esmicp\n"
+             "esmicp.register(np.random.default_rng(0).normal(size=(500, 3)) * [3, 2, 1], "
+             "np.random.default_rng(0).normal(size=(500, 3)) * [3, 2, 1], init='identity')\n"
+             "before = sorted(m for m in sys.modules if m.split('.')[0] == 'esmicp_lab')\n"
+             "from esmicp.cli import build_parser\n"
+             "build_parser().parse_args(['bench', '--paper'])\n"
+             "print(json.dumps([before, sorted(m for m in sys.modules if m.split('.')[0] == 'esmicp_lab')]))")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    library, command_line = json.loads(done.stdout)
+    assert library == []
+    assert command_line == ["esmicp_lab", "esmicp_lab.cli"]
+
+
+def test_without_the_lab_esmicp_bench_names_the_install_and_other_commands_run():
+    """An esmicp whose benchmark lab cannot be imported: ``esmicp bench`` (with any arguments,
+    ``--help`` too) ends in one line with the install hint and exit status 2; ``esmicp demo`` runs."""
+    no_lab = "import sys\nsys.modules['esmicp_lab'] = None\nfrom esmicp.cli import main\nsys.exit(main(sys.argv[1:]))"
+    for arguments in (["bench", "--paper", "--trials", "1"], ["bench", "--help"], ["bench"]):
+        done = subprocess.run([sys.executable, "-c", no_lab, *arguments], capture_output=True, text=True)
+        assert done.returncode == 2 and done.stdout == "", (arguments, done.stdout, done.stderr)
+        (line,) = done.stderr.strip().splitlines()
+        assert line.startswith("esmicp bench: error: ") and "esmicp_lab" in line and "pip install" in line, line
+    done = subprocess.run([sys.executable, "-c", no_lab, "demo", "--json"], capture_output=True, text=True)
+    assert done.returncode == 0 and json.loads(done.stdout)["recovered"], done.stderr

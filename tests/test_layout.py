@@ -1,7 +1,8 @@
 """The layout rules of docs/architecture.md, checked on the source tree: the library below the
 command line holds no argument parsing and prints nothing, the algorithm layers (core, methods,
-trust, globalreg) import no file, command-line, benchmark or plotting module, and the floors
-(core < methods < trust < globalreg < multiview < api) import nothing from a floor above them."""
+trust, globalreg) import no file, command-line, benchmark or plotting module, the floors
+(core < methods < trust < globalreg < multiview < api) import nothing from a floor above them, and
+the benchmark lab (``esmicp_lab``) is a floor above the whole library, which never imports it."""
 
 from __future__ import annotations
 
@@ -9,8 +10,13 @@ import ast
 from pathlib import Path
 
 import esmicp
+import esmicp_lab
 
 PACKAGE = Path(esmicp.__file__).parent
+LAB = Path(esmicp_lab.__file__).parent
+#: The library's one import of the lab: the ``esmicp bench`` parser, built inside this function of
+#: ``esmicp/cli/__init__.py``.
+BENCH_HOOK = ("cli/__init__.py", "_add_bench_parser", "esmicp_lab.cli")
 
 
 def _modules(*parts):
@@ -19,17 +25,35 @@ def _modules(*parts):
 
 
 def _imports(path: Path):
+    yield from (name for _, name in _imports_in_functions(path))
+
+
+def _imports_in_functions(path: Path):
+    """(the name of the function an import statement sits in, or None at module level; the
+    dotted module it imports) for every import of the module at ``path``, relative ones resolved;
+    ``importlib.import_module("...")`` of a literal name counts as an import."""
     tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
-    package = path.relative_to(PACKAGE.parent).with_suffix("").parts[:-1]
-    for node in ast.walk(tree):
+    root = next(folder for folder in (PACKAGE.parent, LAB.parent) if path.is_relative_to(folder))
+    package = path.relative_to(root).with_suffix("").parts[:-1]
+
+    def visit(node, function):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            function = node.name
         if isinstance(node, ast.Import):
-            yield from (alias.name for alias in node.names)
+            yield from ((function, alias.name) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
             base = list(package[: len(package) - node.level + 1]) if node.level else []
             if node.module:
-                yield ".".join(base + [node.module])
+                yield function, ".".join(base + [node.module])
             else:  # ``from . import name``: the module ``name`` of that package
-                yield from (".".join(base + [alias.name]) for alias in node.names)
+                yield from ((function, ".".join(base + [alias.name])) for alias in node.names)
+        elif (isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", None)) == "import_module"
+              and node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+            yield function, node.args[0].value
+        for child in ast.iter_child_nodes(node):
+            yield from visit(child, function)
+
+    yield from visit(tree, None)
 
 
 def _within(name: str, packages) -> bool:
@@ -64,7 +88,7 @@ def test_only_the_command_line_parses_arguments_or_prints():
 
 
 def test_the_algorithm_layers_know_nothing_of_files_printing_or_plotting():
-    forbidden = ("esmicp.io", "esmicp.cli", "esmicp.bench", "esmicp.viz", "matplotlib", "plotly")
+    forbidden = ("esmicp.io", "esmicp.cli", "esmicp_lab", "esmicp.viz", "matplotlib", "plotly")
     offenders = []
     for layer in ("core", "methods", "trust", "globalreg"):
         for path in _modules(layer):
@@ -83,8 +107,7 @@ def test_the_result_imports_nothing_of_ours_but_trust_core_types_and_errors():
 
 
 def test_trust_and_core_import_no_search_merge_registration_or_lab():
-    above = tuple(f"esmicp.{name}" for name in
-                  ("globalreg", "multiview", "api", "batch", "cli", "bench", "viz", "baselines"))
+    above = tuple(f"esmicp.{name}" for name in ("globalreg", "multiview", "api", "batch", "cli", "viz")) + ("esmicp_lab",)
     offenders = _imports_from(("trust", "core"), above)
     assert not offenders, offenders
 
@@ -92,3 +115,29 @@ def test_trust_and_core_import_no_search_merge_registration_or_lab():
 def test_the_methods_import_no_search_or_merge():
     offenders = _imports_from(("methods",), ("esmicp.globalreg", "esmicp.multiview"))
     assert not offenders, offenders
+
+
+def test_the_library_imports_nothing_of_the_lab():
+    """No module of ``esmicp`` imports ``esmicp_lab`` (the harness, the baselines, the benchmark
+    plots, the bench command), at module level or inside a function, but for the ``esmicp bench``
+    parser (:data:`BENCH_HOOK`)."""
+    offenders = []
+    for path in _modules():
+        where = path.relative_to(PACKAGE).as_posix()
+        for function, name in _imports_in_functions(path):
+            if _within(name, ("esmicp_lab",)) and (where, function, name) != BENCH_HOOK:
+                offenders.append(f"{where} ({function or 'module level'}) imports {name}")
+    assert not offenders, offenders
+    hook_file, hook_function, hook_module = BENCH_HOOK
+    assert (hook_function, hook_module) in set(_imports_in_functions(PACKAGE / hook_file)), "the bench hook moved"
+
+
+def test_the_lab_is_a_floor_above_the_library():
+    """The lab sits beside the library, not in it: none of its rooms is left inside ``esmicp``,
+    and it reaches the library through ``esmicp``'s modules (which it imports) and its own."""
+    left = [room for room in ("bench", "baselines", "viz/bench_plots.py", "cli/bench.py") if PACKAGE.joinpath(room).exists()]
+    assert not left, f"lab rooms inside the library: {left}"
+    lab_modules = sorted(LAB.rglob("*.py"))
+    ours = {name for path in lab_modules for name in _imports(path) if _within(name, ("esmicp", "esmicp_lab"))}
+    assert any(_within(name, ("esmicp",)) for name in ours)  # the lab stands on the library
+    assert {path.relative_to(LAB).parts[0] for path in lab_modules} >= {"bench", "baselines", "plots.py", "cli.py"}
