@@ -33,7 +33,7 @@ import numpy as np
 
 import esmicp
 from esmicp_lab.bench.real_pairs import (
-    criteria_for, estimate_in_pair_frame, load_pair, pair_errors, read_pairs, turn_source,
+    criteria_for, estimate_in_pair_frame, load_pair, pair_errors, quick_markdown_table, read_pairs, turn_source,
 )
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_pairs"
@@ -109,36 +109,7 @@ def main() -> None:
             print(f"{'':18s} time ratio to {peer}: median {statistics.median(ratios):.2f}, max {max(ratios):.2f}")
     if len(methods) > 1:
         print()
-        print(markdown_table(rows, methods))
-
-
-def markdown_table(rows, methods) -> str:
-    """One Markdown row per (pair, variant): each method's result and time, and the first method's
-    time over the fastest *successful* other method's ("no peer succeeds" when none does), with
-    the median and maximum of that ratio below."""
-    cells = {(row[0], row[1], row[2]): row for row in rows}
-    keys = list(dict.fromkeys((row[0], row[1]) for row in rows))
-    lines = [
-        "| pair | variant | " + " | ".join(methods) + f" | {methods[0]} / fastest successful peer |",
-        "|---|---|" + "---|" * (len(methods) + 1),
-    ]
-    ratios = []
-    for label, variant in keys:
-        found = [cells[label, variant, name] for name in methods]
-        peers = [row[6] for row in found[1:] if row[3]]
-        shown = [f"{'ok' if row[3] else 'FAIL'} {row[4]:.2f}° {row[5]:.3f}m {row[6]:.2f}s" for row in found]
-        if peers:
-            ratios.append(found[0][6] / min(peers))
-            lines.append(f"| {label} | {variant} | " + " | ".join(shown) + f" | {ratios[-1]:.2f} |")
-        else:
-            lines.append(f"| {label} | {variant} | " + " | ".join(shown) + " | no peer succeeds |")
-    successes = [sum(cells[key[0], key[1], name][3] for key in keys) for name in methods]
-    summary = f"\n{' / '.join(f'{name} {count}/{len(keys)}' for name, count in zip(methods, successes))}"
-    if ratios:
-        summary += (f"; {methods[0]} / fastest successful peer: median {statistics.median(ratios):.2f}, "
-                    f"max {max(ratios):.2f}")
-    lines.append(summary)
-    return "\n".join(lines)
+        print(quick_markdown_table(rows, methods))
 
 
 if __name__ == "__main__":

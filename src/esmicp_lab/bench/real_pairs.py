@@ -24,6 +24,7 @@ each way as measured after the crop.
 from __future__ import annotations
 
 import csv
+import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,6 +49,7 @@ __all__ = [
     "pair_errors",
     "partial_trial",
     "plane_cut",
+    "quick_markdown_table",
     "read_pairs",
     "turn_source",
 ]
@@ -350,3 +352,36 @@ def crop_to_overlap(source: np.ndarray, target: np.ndarray, T_target_source: np.
     width, (kept_source, kept_target, source_overlap) = best
     target_overlap = scan_overlap(kept_target, kept_source, rigid_inverse(truth), 3.0 * median_spacing(kept_source))
     return CroppedPair(kept_source, kept_target, source_overlap, target_overlap, normal, offset, width)
+
+
+def quick_markdown_table(rows, methods) -> str:
+    """One Markdown row per (pair, variant): each method's result and time, and the first method's
+    time over the fastest *successful* other method's ("no peer succeeds" when none does), with
+    the median and maximum of that ratio below (``benchmarks/scan_pairs_quick.py``'s table).
+
+    ``rows``: ``(pair, variant, method, success, rotation error deg, translation error m, time s)``
+    tuples, one per (pair, variant, method) of ``methods``; ``methods``: the first is the one timed
+    against the others (its peers)."""
+    cells = {(row[0], row[1], row[2]): row for row in rows}
+    keys = list(dict.fromkeys((row[0], row[1]) for row in rows))
+    lines = [
+        "| pair | variant | " + " | ".join(methods) + f" | {methods[0]} / fastest successful peer |",
+        "|---|---|" + "---|" * (len(methods) + 1),
+    ]
+    ratios = []
+    for label, variant in keys:
+        found = [cells[label, variant, name] for name in methods]
+        peers = [row[6] for row in found[1:] if row[3]]
+        shown = [f"{'ok' if row[3] else 'FAIL'} {row[4]:.2f}° {row[5]:.3f}m {row[6]:.2f}s" for row in found]
+        if peers:
+            ratios.append(found[0][6] / min(peers))
+            lines.append(f"| {label} | {variant} | " + " | ".join(shown) + f" | {ratios[-1]:.2f} |")
+        else:
+            lines.append(f"| {label} | {variant} | " + " | ".join(shown) + " | no peer succeeds |")
+    successes = [sum(cells[key[0], key[1], name][3] for key in keys) for name in methods]
+    summary = f"\n{' / '.join(f'{name} {count}/{len(keys)}' for name, count in zip(methods, successes))}"
+    if ratios:
+        summary += (f"; {methods[0]} / fastest successful peer: median {statistics.median(ratios):.2f}, "
+                    f"max {max(ratios):.2f}")
+    lines.append(summary)
+    return "\n".join(lines)
