@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 
 from esmicp_lab.bench import read_rows
-from esmicp_lab.bench.side_by_side import read_summary_csv, replace_sections, sections, summary_csv, summary_records
+from esmicp_lab.bench.side_by_side import regenerate, summary_csv, summary_records
 from esmicp.errors import EsmicpError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,11 +49,6 @@ def read_paper(data_dir: Path) -> dict:
         sys.exit(f"{path}: not found (give the shared data folder with --data)")
     except (OSError, ValueError) as exc:
         sys.exit(f"{path}: cannot read the paper's tables ({exc})")
-
-
-def generate(doc_text: str, paper: dict, summary_text: str, summary_name: str = "summary") -> str:
-    """``doc_text`` with every side-by-side section regenerated."""
-    return replace_sections(doc_text, sections(paper, read_summary_csv(summary_text, summary_name)), str(DOC))
 
 
 def _summarize(args) -> int:
@@ -93,7 +88,7 @@ def _write(args) -> int:
         doc_text = args.doc.read_text(encoding="utf-8")
     except OSError as exc:
         sys.exit(f"{exc.filename}: cannot read ({exc.strerror})")
-    new = generate(doc_text, paper, summary_text, str(args.summary))
+    new = regenerate(doc_text, paper, summary_text, str(args.summary), str(DOC))
     if args.check:
         if new != doc_text:
             print(f"{args.doc}: the side-by-side tables differ from what {args.summary} gives; "

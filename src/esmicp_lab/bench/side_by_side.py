@@ -453,6 +453,15 @@ def replace_sections(text: str, generated: dict[str, str], name: str = "document
     return text
 
 
+def regenerate(doc_text: str, paper: dict, summary_text: str, summary_name: str = "summary",
+               doc_name: str = "document") -> str:
+    """``doc_text`` with every side-by-side section regenerated (what
+    ``benchmarks/paper_side_by_side.py write`` writes): from the parsed ``paper_tables.json``
+    (``paper``) and the text of the summary CSV (``summary_text``); ``summary_name`` and
+    ``doc_name`` name the two in errors."""
+    return replace_sections(doc_text, sections(paper, read_summary_csv(summary_text, summary_name)), doc_name)
+
+
 __all__ = ["BEGIN", "END", "PAPER_PEERS", "SUMMARY_COLUMNS", "identity_metrics", "implied_rotation_error_deg", "paper_quirks",
-           "paper_table_of", "ratio_text", "read_summary_csv", "replace_sections", "sections",
+           "paper_table_of", "ratio_text", "read_summary_csv", "regenerate", "replace_sections", "sections",
            "side_by_side_markdown", "summary_csv", "summary_records"]
