@@ -31,13 +31,13 @@ import statistics
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 import esmicp
 from esmicp_lab.bench.protocols import make_trial
 from esmicp_lab.bench.real_pairs import load_pair, pair_errors, partial_trial, read_pairs
 from esmicp_lab.bench.scans import _modelnet_clouds, _seed_of
-from esmicp.core.procrustes import apply, bounding_box_diagonal, to_matrix
+from esmicp_lab.bench.trials import perturbed_start
+from esmicp.core.procrustes import bounding_box_diagonal
 from esmicp.methods import esm
 from esmicp.methods.esm import START_QUANTILE
 from esmicp.metrics import rotation_error_deg, translation_error, up_to_symmetry_success
@@ -50,17 +50,6 @@ PARTIAL_PERTURBATION = (5.0, 0.05)
 POOR_STARTS = ((30.0, 0.10), (60.0, 0.25))
 
 
-def perturbed(truth: np.ndarray, source: np.ndarray, angle_deg: float, shift: float, rng) -> np.ndarray:
-    """``truth`` followed by a rotation of ``angle_deg`` about a random axis through the placed
-    source's centroid and a translation of length ``shift`` in a random direction."""
-    axis = rng.normal(size=3)
-    matrix = Rotation.from_rotvec(np.radians(angle_deg) * axis / np.linalg.norm(axis)).as_matrix()
-    centre = apply(truth, source).mean(axis=0)
-    direction = rng.normal(size=3)
-    direction /= np.linalg.norm(direction)
-    return to_matrix(matrix, centre - matrix @ centre + shift * direction) @ truth
-
-
 def _moved(result, start, source):
     return rotation_error_deg(result, start), translation_error(result, start, source.mean(axis=0))
 
@@ -70,7 +59,7 @@ def real_rows(folder: Path, seed: int):
         source, target, truth = load_pair(pair, bin_columns=3)
         angle, shift = REAL_PERTURBATION[pair.kind]
         rng = np.random.default_rng(_seed_of(seed, 2, index))
-        for start_name, start in (("truth", truth), (f"{angle:g}° / {shift:g} m", perturbed(truth, source, angle, shift, rng))):
+        for start_name, start in (("truth", truth), (f"{angle:g}° / {shift:g} m", perturbed_start(truth, source, angle, shift, rng))):
             result = esmicp.register(source, target, init=start)
             rot, trans = pair_errors(result.transformation, truth)
             moved_rot, moved_trans = _moved(result.transformation, start, source)
@@ -91,7 +80,7 @@ def object_rows(data_dir: Path, trials: int, seed: int):
             start_rng = np.random.default_rng(_seed_of(seed, 3, number, index))
             starts = (("truth", trial.T_target_source),
                       (f"{angle:g}° / {shift:g} diag",
-                       perturbed(trial.T_target_source, trial.source, angle, shift * diagonal, start_rng)))
+                       perturbed_start(trial.T_target_source, trial.source, angle, shift * diagonal, start_rng)))
             yield from _object_rows(f"partial-{round(100 * keep)}", trial.source, trial.target,
                                     trial.T_target_source, diagonal, starts)
     for protocol in ("resampled", "outliers-30"):
@@ -100,7 +89,7 @@ def object_rows(data_dir: Path, trials: int, seed: int):
             diagonal = bounding_box_diagonal(trial.target)
             start_rng = np.random.default_rng(_seed_of(seed, 4, protocol == "resampled", index))
             starts = [(f"{angle:g}° / {shift:g} diag",
-                       perturbed(trial.T_target_source, trial.source, angle, shift * diagonal, start_rng))
+                       perturbed_start(trial.T_target_source, trial.source, angle, shift * diagonal, start_rng))
                       for angle, shift in POOR_STARTS]
             yield from _object_rows(protocol, trial.source, trial.target, trial.T_target_source, diagonal, starts)
 

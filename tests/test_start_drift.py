@@ -4,10 +4,9 @@ spread of all distances, which the non-overlapping part inflates)."""
 
 from __future__ import annotations
 
-import sys
 
 import numpy as np
-from conftest import REPO_ROOT, require_shared
+from conftest import require_shared
 
 import esmicp
 from esmicp_lab.bench.real_pairs import load_pair, pair_errors, partial_trial, read_pairs
@@ -71,18 +70,16 @@ def test_a_half_slid_off_by_the_first_run_is_kept_by_the_tighter_second_try(monk
     quantile, keeps it (0.73). Fails without the second try, or if it stopped keeping the more
     confident run."""
     from esmicp import api
-    from esmicp_lab.bench.scans import _modelnet_clouds, _seed_of
     from esmicp.metrics import up_to_symmetry_success
-
-    sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
-    import start_drift
+    from esmicp_lab.bench.scans import _modelnet_clouds, _seed_of
+    from esmicp_lab.bench.trials import perturbed_start
 
     clouds = _modelnet_clouds(require_shared("modelnet40").parent)
     names = list(clouds)
     rng = np.random.default_rng(np.random.SeedSequence(0, spawn_key=(1, 0, 6)))
     trial = partial_trial(clouds[names[6]], 0.7, rng, 2000)
     diagonal = bounding_box_diagonal(trial.target)
-    start = start_drift.perturbed(trial.T_target_source, trial.source, 5.0, 0.05 * diagonal,
+    start = perturbed_start(trial.T_target_source, trial.source, 5.0, 0.05 * diagonal,
                                   np.random.default_rng(_seed_of(0, 3, 0, 6)))
     result = esmicp.register(trial.source, trial.target, init=start)
     assert "second try" in result.message and "raised the overlap confidence" in result.message, result.message

@@ -219,6 +219,20 @@ def perturbed_init(truth: np.ndarray, target: np.ndarray, seed: int, angle_deg: 
     return delta @ truth
 
 
+def perturbed_start(truth: np.ndarray, source: np.ndarray, angle_deg: float, shift: float, rng) -> np.ndarray:
+    """``truth`` followed by a rotation of ``angle_deg`` about a random axis through the placed
+    source's centroid and a translation of length ``shift`` (cloud units) in a random direction,
+    both drawn from ``rng`` (``benchmarks/start_drift.py``'s perturbed starts)."""
+    from scipy.spatial.transform import Rotation
+
+    axis = rng.normal(size=3)
+    matrix = Rotation.from_rotvec(np.radians(angle_deg) * axis / np.linalg.norm(axis)).as_matrix()
+    centre = apply(truth, source).mean(axis=0)
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    return to_matrix(matrix, centre - matrix @ centre + shift * direction) @ truth
+
+
 __all__ = [
     "PAPER_TABLE",
     "TrialSpec",
@@ -230,4 +244,5 @@ __all__ = [
     "partial_trial",
     "small_rotation_trial",
     "perturbed_init",
+    "perturbed_start",
 ]
