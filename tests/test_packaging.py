@@ -36,7 +36,8 @@ def sdist_members(tmp_path_factory) -> list[str]:
 def test_sdist_has_what_a_build_from_source_needs(sdist_members):
     for needed in ("pyproject.toml", "CMakeLists.txt", "README.md", "src/esmicp/_ext/kernels.cpp",
                    "src/esmicp/__init__.py", "src/esmicp/cli/__init__.py", "tests/conftest.py",
-                   "src/esmicp/py.typed", "src/esmicp/_kernels.pyi"):
+                   "src/esmicp/py.typed", "src/esmicp/_kernels.pyi", "src/esmicp_lab/__init__.py",
+                   "src/esmicp_lab/cli.py"):
         assert needed in sdist_members, needed
 
 
