@@ -101,7 +101,7 @@ def add_parser(commands) -> argparse.ArgumentParser:
                        "taken from its config.json")
     bench.add_argument("--force", action="store_true", help="replace the results in --out")
     bench.add_argument("--no-progress", action="store_true", help="no progress bar")
-    bench.add_argument("--plots", action="store_true", help="also draw the figures (needs esmicp.viz: the viz extra)")
+    bench.add_argument("--plots", action="store_true", help="also draw the figures (needs matplotlib: the viz or bench extra)")
     scans = bench.add_argument_group(
         "scan benchmark (--datasets real-pairs and/or partial-overlap; see docs/real-scans.md)",
         "Every global method on the real pairs of a folder (variants as-recorded and turned) and on "
