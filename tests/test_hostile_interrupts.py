@@ -124,11 +124,19 @@ def test_sigint_during_registration_writes_nothing(clouds, tmp_path):
     assert entries(tmp_path) == []
 
 
+#: Exit status of an interrupted command, by signal: SIGINT 130, SIGTERM 143 (both handled: the
+#: unfinished outputs removed), SIGKILL death by the signal.
+STATUS = {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGKILL: -signal.SIGKILL}
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL], ids=["SIGINT", "SIGTERM", "SIGKILL"])
 def test_interrupted_while_writing_the_output_leaves_nothing(clouds, tmp_path, sig):
     out = tmp_path / "aligned.xyz"
     code, _, stderr = interrupt(clouds, out, "writing-points", sig)
-    assert code == (130 if sig == signal.SIGINT else -sig), stderr
+    assert code == STATUS[sig], stderr
+    if sig != signal.SIGKILL:
+        word = "interrupted" if sig == signal.SIGINT else "terminated (SIGTERM)"
+        assert stderr.splitlines()[-1] == f"esmicp register: {word}; no partial output was written", stderr
     assert entries(tmp_path) == [], "a half-written or temporary file was left behind"
 
 
@@ -137,18 +145,19 @@ def test_interrupted_while_replacing_an_output_keeps_the_old_one(clouds, tmp_pat
     out = tmp_path / "aligned.xyz"
     out.write_text("old content\n")
     code, _, stderr = interrupt(clouds, out, "writing-points", sig, force=True)
-    assert code == (130 if sig == signal.SIGINT else -sig), stderr
+    assert code == STATUS[sig], stderr
     assert entries(tmp_path) == ["aligned.xyz"]
     assert out.read_text() == "old content\n"
 
 
-def test_killed_while_writing_the_transform_keeps_only_complete_files(clouds, tmp_path):
-    """The aligned cloud is written first, completely; the transform being written is not there."""
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL], ids=["SIGINT", "SIGKILL"])
+def test_interrupted_while_writing_the_transform_leaves_neither_output(clouds, tmp_path, sig):
+    """The aligned cloud is complete when the transform is interrupted, but the two are published
+    together: neither is there."""
     out, transform = tmp_path / "aligned.xyz", tmp_path / "T.txt"
-    code, _, stderr = interrupt(clouds, out, "writing-transform", signal.SIGKILL, "--transform-out", str(transform))
-    assert code == -signal.SIGKILL, stderr
-    assert entries(tmp_path) == ["aligned.xyz"]
-    assert read_points(out).shape == (3000, 3)
+    code, _, stderr = interrupt(clouds, out, "writing-transform", sig, "--transform-out", str(transform))
+    assert code == STATUS[sig], stderr
+    assert entries(tmp_path) == []
 
 
 def test_an_uninterrupted_run_writes_both(clouds, tmp_path):

@@ -19,14 +19,15 @@ cores, and a pool each starting a thread per core would oversubscribe them.
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Callable, Iterable, Sequence
 
 from .errors import InvalidInputError
-from .interrupts import ignore_interrupts, stops_pool_on_interrupt
+from .interrupts import stops_pool_on_interrupt
+from .pools import pool_error, process_pool
 from .result import RegistrationResult
 
 logger = logging.getLogger(__name__)
@@ -149,7 +150,8 @@ def register_many(
         kwargs = per_process_kwargs(register_kwargs)
         if pool_kind == "processes":
             # "spawn": the caller may hold threads of other libraries (BLAS, torch) that fork() would not survive.
-            pool = ProcessPoolExecutor(size, mp_context=multiprocessing.get_context("spawn"), initializer=ignore_interrupts)
+            # Its workers ignore Ctrl-C and end with this process (esmicp.pools).
+            pool = process_pool(size, f"processes={size}")
         else:
             pool = ThreadPoolExecutor(size, thread_name_prefix="esmicp-register")
         # Ctrl-C: the queued jobs cancelled and worker processes ended at once, not after their jobs.
@@ -159,9 +161,12 @@ def register_many(
                 for i, ((source, target), init) in enumerate(zip(items, inits))
             }
             results = [None] * len(items)
-            for done, future in enumerate(as_completed(futures), 1):
-                results[futures[future]] = future.result()
-                report(done, len(items))
+            try:
+                for done, future in enumerate(as_completed(futures), 1):
+                    results[futures[future]] = future.result()
+                    report(done, len(items))
+            except BrokenProcessPool as error:
+                raise pool_error(f"processes={size}", error) from None
     _log_failures(results)
     return results
 
@@ -201,9 +206,13 @@ def _on_dask(client, items, inits, register_kwargs, report):
         for i, ((source, target), init) in enumerate(zip(items, inits))
     }
     results = [None] * len(items)
-    for done, future in enumerate(dask_completed(futures), 1):
-        results[futures[future]] = future.result()
-        report(done, len(items))
+    try:
+        for done, future in enumerate(dask_completed(futures), 1):
+            results[futures[future]] = future.result()
+            report(done, len(items))
+    except BaseException:  # Ctrl-C, SIGTERM (esmicp.interrupts) or an error: the cluster drops the jobs
+        client.cancel(list(futures))
+        raise
     _log_failures(results)
     return results
 

@@ -40,6 +40,12 @@ class MissingDependencyError(EsmicpError):
     import; the message says how to install it."""
 
 
+class PoolError(EsmicpError):
+    """The worker processes of a pool (``processes=``) could not run the jobs: they could not
+    start (a script read from standard input, an unguarded script that they re-run), or one ended
+    abruptly."""
+
+
 class EsmicpWarning(UserWarning):
     """Base class of the warnings esmicp emits."""
 

@@ -10,6 +10,11 @@ it. (The compiled kernels of :mod:`esmicp._kernels` raise the ``KeyboardInterrup
 
 A process pool is stopped by its parent: :func:`ignore_interrupts` starts each worker, and
 :func:`stops_pool_on_interrupt` terminates them when Ctrl-C (or any error) leaves the pool.
+
+SIGTERM (what ``kill``, ``timeout``, systemd and container runtimes send) is Ctrl-C's twin where
+:func:`terminate_as_interrupt` is active (the command line, for the whole command): it raises
+:class:`Terminated`, a ``KeyboardInterrupt``, so that everything that cleans up after Ctrl-C (the
+pools, the temporary files of unfinished outputs) does so after SIGTERM too.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import signal
+import threading
 from collections.abc import Callable
 from typing import ParamSpec, TypeVar
 
@@ -24,15 +30,46 @@ _P = ParamSpec("_P")
 _R = TypeVar("_R")
 
 
-def caused_by_interrupt(error: BaseException) -> bool:
-    """True when ``error`` is a ``KeyboardInterrupt`` or has one in its cause / context chain."""
+class Terminated(KeyboardInterrupt):
+    """SIGTERM arrived while :func:`terminate_as_interrupt` was active: handled as Ctrl-C is."""
+
+
+def _interrupt_in(error: BaseException) -> KeyboardInterrupt | None:
+    """The ``KeyboardInterrupt`` that ``error`` is or has in its cause / context chain, or None."""
     seen = set()
     while error is not None and id(error) not in seen:
         if isinstance(error, KeyboardInterrupt):
-            return True
+            return error
         seen.add(id(error))
         error = error.__cause__ or error.__context__
-    return False
+    return None
+
+
+def caused_by_interrupt(error: BaseException) -> bool:
+    """True when ``error`` is a ``KeyboardInterrupt`` or has one in its cause / context chain."""
+    return _interrupt_in(error) is not None
+
+
+def _raise_terminated(number, frame):
+    raise Terminated(f"signal {number}")
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt():
+    """While the block runs, SIGTERM raises :class:`Terminated` (a ``KeyboardInterrupt``) in the
+    main thread, as Ctrl-C raises ``KeyboardInterrupt``; the previous handler is restored after.
+    Outside the main thread (where Python cannot set handlers), or where SIGTERM is ignored or
+    handled by non-Python code, nothing is changed."""
+    number = getattr(signal, "SIGTERM", None)
+    previous = signal.getsignal(number) if number is not None else None
+    if threading.current_thread() is not threading.main_thread() or previous in (None, signal.SIG_IGN):
+        yield
+        return
+    signal.signal(number, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(number, previous)
 
 
 def keeps_keyboard_interrupt(function: Callable[_P, _R]) -> Callable[_P, _R]:
@@ -44,8 +81,9 @@ def keeps_keyboard_interrupt(function: Callable[_P, _R]) -> Callable[_P, _R]:
         try:
             return function(*args, **kwargs)
         except SystemError as error:
-            if caused_by_interrupt(error):
-                raise KeyboardInterrupt from None
+            interrupt = _interrupt_in(error)
+            if interrupt is not None:
+                raise type(interrupt)(*interrupt.args) from None
             raise
 
     return wrapper

@@ -17,9 +17,10 @@ import warnings
 
 from .._version import __version__
 from ..errors import EsmicpError, EsmicpWarning, MissingDependencyError
-from .args import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, Parser
+from .args import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, Parser
 
-__all__ = ["EXIT_BAD_INPUT", "EXIT_BROKEN_PIPE", "EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "build_parser", "main"]
+__all__ = ["EXIT_BAD_INPUT", "EXIT_BROKEN_PIPE", "EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_TERMINATED",
+           "build_parser", "main"]
 
 
 def build_parser() -> Parser:
@@ -77,7 +78,13 @@ def main(argv=None) -> int:
         print(f"esmicp {__version__}")
         return EXIT_OK
     args = build_parser().parse_args(argv)
-    with warnings.catch_warnings(), _library_log_on_stderr(args.command):
+    from ..interrupts import Terminated, terminate_as_interrupt
+    from ..io.atomic import recording_outputs
+    from ..pools import fit_address_space_limit
+
+    fit_address_space_limit()  # under `ulimit -v`, threads must not each reserve a malloc arena
+    with warnings.catch_warnings(), _library_log_on_stderr(args.command), terminate_as_interrupt(), \
+            recording_outputs() as written:
         warnings.simplefilter("always", EsmicpWarning)
         warnings.showwarning = _show_warning
         try:
@@ -89,17 +96,38 @@ def main(argv=None) -> int:
         except EsmicpError as exc:
             print(f"esmicp {args.command}: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
-        except KeyboardInterrupt:
-            print(f"esmicp {args.command}: interrupted; no partial output was written", file=sys.stderr)
-            return EXIT_INTERRUPTED
+        except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (Terminated)
+            what = "terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted"
+            done = f"written before that: {', '.join(written)}" if written else "no partial output was written"
+            print(f"esmicp {args.command}: {what}; {done}", file=sys.stderr)
+            return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
         except MemoryError:
             print(f"esmicp {args.command}: error: out of memory (the clouds are too large for this "
                   "machine; downsample them or use a smaller --sample-points)", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        except RuntimeError as exc:
+            if "can't start new thread" not in str(exc):
+                raise
+            print(f"esmicp {args.command}: error: cannot start another thread{_address_space_note()}", file=sys.stderr)
             return EXIT_BAD_INPUT
         except OSError as exc:  # a full disk, a folder that vanished: no traceback, one line
             where = f"{exc.filename}: " if exc.filename else ""
             print(f"esmicp {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
+
+
+def _address_space_note() -> str:
+    """Why a thread could not start, and what to do, for the one-line error."""
+    try:
+        import resource
+
+        limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+    except (ImportError, OSError, ValueError):  # pragma: no cover - not POSIX
+        limit = None
+    if limit is None or limit == getattr(resource, "RLIM_INFINITY", -1):
+        return " (the system's thread limit): run fewer at once (--threads / --processes)"
+    return (f" within the address-space limit of {limit / 2**20:.0f} MB (ulimit -v): run fewer at once (--threads "
+            "1, --processes 1) or raise the limit")
 
 
 def _stdout_closed() -> int:

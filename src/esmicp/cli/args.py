@@ -42,6 +42,15 @@ def positive_float(text: str) -> float:
     return value
 
 
+#: What ``-`` means as an output path: standard output, written through (esmicp.io.atomic).
+STANDARD_OUTPUT = "/dev/stdout"
+
+
+def output_path(text: str) -> Path:
+    """An output file argument: ``-`` is standard output (:data:`STANDARD_OUTPUT`), written through."""
+    return Path(STANDARD_OUTPUT if text == "-" else text)
+
+
 def add_workers(parser, default: str = "every core") -> None:
     """Add ``--workers N`` to a subcommand's parser: the threads of every compiled kernel of its
     registrations (``workers=`` of :func:`esmicp.register`; None when absent: the library's
@@ -66,7 +75,8 @@ def same_file(path: Path, other: Path) -> bool:
 def check_distinct_files(outputs: Mapping[str, Path | None], inputs: Iterable[Path] = ()) -> None:
     """Refuse, before any work, two outputs that are one file (the second would replace the
     first) and an output that is one of the ``inputs`` (it would replace that input, ``--force`` or
-    not). ``outputs`` maps each output flag (``"--output"``) to its path, None when not given.
+    not). ``outputs`` maps each output flag (``"--output"``) to its path, None when not given
+    (``/dev/null`` is never refused).
 
     Raises
     ------
@@ -75,7 +85,8 @@ def check_distinct_files(outputs: Mapping[str, Path | None], inputs: Iterable[Pa
     """
     from ..errors import InvalidInputError
 
-    given = [(flag, path) for flag, path in outputs.items() if path is not None]
+    # /dev/null takes any number of outputs
+    given = [(flag, path) for flag, path in outputs.items() if path is not None and os.path.normpath(path) != os.devnull]
     for index, (flag, path) in enumerate(given):
         for source in inputs:
             if same_file(path, source):
@@ -93,6 +104,7 @@ EXIT_FAILED = 1  # ``esmicp demo``: the transform was not recovered
 EXIT_BAD_INPUT = 2
 EXIT_UNTRUSTED = 3  # ``esmicp register --min-confidence``: the pose is below the bar, or ambiguous
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143  # SIGTERM (128 + 15), handled as Ctrl-C is: the unfinished outputs removed
 EXIT_BROKEN_PIPE = 141  # the reader of the output closed it (128 + SIGPIPE, what a shell reports for Unix tools)
 
 

@@ -11,15 +11,18 @@ scan (file as given, status, edges kept, confidence, residual), or everything as
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import inspect
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 
-from .args import add_workers, check_distinct_files, positive_float, positive_int
+from .args import add_workers, check_distinct_files, output_path, positive_float, positive_int, whole_number
 from ..batch import dask_client
-from ..errors import EsmicpError, InvalidInputError, OutputExistsError
+from ..errors import EsmicpError, InvalidInputError
+from ..types import MIN_POINTS
 
 #: Exit status when some scan is doubtful or unplaced (the placed scans are written); 0 with
 #: ``--allow-partial``.
@@ -67,17 +70,18 @@ def add_parser(commands) -> None:
         "(see --allow-partial). Every default is register_scans's own.",
     )
     merge.add_argument("scans", nargs="+", type=Path, metavar="SCAN", help="point-cloud files (2 or more)")
-    merge.add_argument("-o", "--output", type=Path, default=Path("merged.ply"),
+    merge.add_argument("-o", "--output", type=output_path, default=Path("merged.ply"),
                        help="merged cloud (default merged.ply); .ply and .pcd hold each point's scan_index and its "
                        "scan's colour, the other formats x y z only")
-    merge.add_argument("--poses-out", type=Path,
-                       help="write T_world_scan per scan, as text in the --poses-format (esmicp.read_poses reads it back)")
+    merge.add_argument("--poses-out", type=output_path,
+                       help="write T_world_scan per scan, as text in the --poses-format (esmicp.read_poses reads it "
+                       "back; - for standard output)")
     merge.add_argument("--poses-format", choices=POSE_FORMATS, default=None,
                        help="matrix (default): 16 numbers a line (row-major 4x4, nan: no pose), then '# index status "
                        "file', np.loadtxt reads it; tum: 'timestamp tx ty tz qx qy qz qw', timestamp = scan index, no "
                        "line for a scan with no pose; kitti: 12 numbers a line (top 3x4), nan: no pose")
     merge.add_argument("--voxel", type=positive_float, help="voxel size of the merged cloud (cloud units)")
-    merge.add_argument("--view", type=Path, help="write an HTML view of the merged model coloured by scan (more "
+    merge.add_argument("--view", type=output_path, help="write an HTML view of the merged model coloured by scan (more "
                        "than 12 scans: a colour scale by scan index, the scan's name on hover)")
     merge.add_argument("--bin-columns", type=int, choices=(3, 4), metavar="{3,4}",
                        help=".bin scans: float32 values per point (4: KITTI x y z intensity, 3: x y z); "
@@ -92,9 +96,9 @@ def add_parser(commands) -> None:
     merge.add_argument("--allow-partial", action="store_true",
                        help="exit 0 even when some scans are doubtful or unplaced (default: exit status 3)")
     merge.add_argument("--json", action="store_true", help="print the whole result as JSON instead of the table")
-    merge.add_argument("--pair-points", type=positive_int, default=library,
+    merge.add_argument("--pair-points", type=whole_number(MIN_POINTS), default=library,
                        help=_LibraryDefault("points per scan for the pairwise global searches", "pair_points"))
-    merge.add_argument("--refine-points", type=positive_int, default=library,
+    merge.add_argument("--refine-points", type=whole_number(MIN_POINTS), default=library,
                        help=_LibraryDefault("points per scan for checking each pair and the joint refinement",
                                             "refine_points"))
     merge.add_argument("--partners", type=positive_int, default=library,
@@ -160,9 +164,30 @@ def _write_view(path: Path, points, labels, names, force: bool) -> None:
 
 def check_paths(args) -> None:
     """Refuse, before any scan is read or anything written, outputs (``--output``,
-    ``--poses-out``, ``--view``) that are one file, and an output that is one of the scans (even
-    with ``--force``): see :func:`.args.check_distinct_files`."""
+    ``--poses-out``, ``--view``) that are one file, an output that is one of the scans (even
+    with ``--force``): see :func:`.args.check_distinct_files`; and each output that exists (without
+    ``--force``), names what is not a regular file (a FIFO, a device, a dangling link: never
+    replaced) or has a format that cannot be written (:func:`esmicp.io.check_writable`)."""
+    from .. import io
+
     check_distinct_files({"--output": args.output, "--poses-out": args.poses_out, "--view": args.view}, args.scans)
+    for path, kind in ((args.output, "points"), (args.poses_out, "transform"), (args.view, "transform")):
+        if path is not None:
+            io.check_writable(path, kind=kind, overwrite=args.force)
+    if args.poses_format is not None and args.poses_out is None:
+        raise InvalidInputError("--poses-format: give --poses-out FILE too (the file the poses are written to)")
+    if args.view is not None:
+        if not io.atomic.is_stream(args.view) and args.view.suffix.lower() not in (".html", ".htm"):
+            raise InvalidInputError(f"--view: expected an .html file, got {shown(args.view)!r}")
+        from ..viz import require
+
+        require("plotly.graph_objects")  # before the work, not after it
+
+
+def shown(path) -> str:
+    """A file name as the user typed it, printable whatever its bytes: bytes that are not UTF-8 as
+    ``\\xNN`` escapes (a terminal or a strict UTF-8 output cannot take them raw)."""
+    return os.fsencode(str(path)).decode("utf-8", "backslashreplace")
 
 
 def reference_among_readable(args, unreadable=()) -> int:
@@ -181,9 +206,57 @@ def reference_among_readable(args, unreadable=()) -> int:
     if not 0 <= given < len(args.scans):
         raise InvalidInputError(f"--reference: expected a scan index in [0, {len(args.scans)}), got {given}")
     if given in unreadable:
-        raise InvalidInputError(f"--reference {given}: the scan {args.scans[given]} could not be "
+        raise InvalidInputError(f"--reference {given}: the scan {shown(args.scans[given])} could not be "
                                 "read, so it cannot be the world frame; choose another --reference")
     return given - sum(1 for index in unreadable if index < given)
+
+
+#: Fewest points a merged cloud must keep (what every point-cloud reader of esmicp accepts).
+MIN_MERGED_POINTS = 3
+
+
+def check_voxel(voxel: float | None, clouds) -> None:
+    """Refuse, before the merge, a ``--voxel`` that would leave about one point per scan (not
+    smaller than the largest scan's extent, its bounding box's longest side) or that is too small to
+    number the voxels across the scans (over 2^62 per axis)."""
+    if voxel is None or not clouds:
+        return
+    import numpy as np
+
+    largest = max(float(np.ptp(cloud, axis=0).max()) for cloud in clouds)
+    if voxel >= largest:
+        raise InvalidInputError(f"--voxel {voxel:g}: not smaller than the largest scan ({largest:.4g} units across): "
+                                "the merged cloud would keep about one point per scan; give a size well below the "
+                                "scans' extent (a point spacing)")
+    if largest / voxel >= 2.0**62:
+        raise InvalidInputError(f"--voxel {voxel:g}: too small for the scans' extent ({largest:.4g} units across: "
+                                "over 2^62 voxels per axis)")
+
+
+def as_given(result, readable: list[int], count: int, problems: dict[int, str]):
+    """``result`` (of the readable scans, in their order) over all ``count`` scans as the user
+    listed them: every index, the reference and the edges' ends are positions in that list; a scan
+    that could not be read (``problems``: index -> why) has no pose and the status ``unreadable``."""
+    if len(readable) == count:
+        return result
+    import numpy as np
+
+    where = {k: readable[k] for k in range(len(readable))}
+    poses = np.full((count, 4, 4), np.nan)
+    poses[readable] = result.poses
+    per_scan = {name: [None] * count for name in ("status", "scan_confidence", "reasons", "edges_kept", "residual")}
+    for k, index in where.items():
+        for name, values in per_scan.items():
+            values[index] = getattr(result, name)[k]
+    for index, problem in problems.items():
+        per_scan["status"][index], per_scan["reasons"][index] = "unreadable", (f"could not be read: {problem}",)
+        per_scan["edges_kept"][index] = 0
+    placed = tuple(per_scan["status"][k] == "placed" for k in range(count))
+    return dataclasses.replace(
+        result, poses=poses, reference=where[result.reference], placed=placed,
+        unplaced=tuple(sorted([where[k] for k in result.unplaced] + list(problems))),
+        edges=tuple(dataclasses.replace(e, i=where[e.i], j=where[e.j]) for e in result.edges),
+        **{name: tuple(values) for name, values in per_scan.items()})
 
 
 def run_merge(args) -> int:
@@ -191,31 +264,22 @@ def run_merge(args) -> int:
     from ..multiview import register_scans
 
     check_paths(args)
-    outputs = [(args.output, "points"), (args.poses_out, "transform"), (args.view, "transform")]
-    for path, kind in outputs:
-        if path is None:
-            continue
-        io.check_writable(path, kind=kind)
-        if path.exists() and not args.force:
-            raise OutputExistsError(path)
-    if args.poses_format is not None and args.poses_out is None:
-        raise InvalidInputError("--poses-format: give --poses-out FILE too (the file the poses are written to)")
-    if args.view is not None and args.view.suffix.lower() not in (".html", ".htm"):
-        raise InvalidInputError(f"--view: expected an .html file, got {str(args.view)!r}")
     reference_among_readable(args)
-    clouds, names, bad = [], [], []
+    clouds, bad = [], {}
     for index, path in enumerate(args.scans):
         try:
             clouds.append(io.read_points(path, bin_columns=args.bin_columns))
-            names.append(str(path))
         except EsmicpError as exc:
             print(f"esmicp merge: error: {exc}", file=sys.stderr)
-            bad.append(index)
+            bad[index] = str(exc).removeprefix(f"{path}: ")
+            clouds.append(None)
     if bad and not args.skip_bad:
         print(f"esmicp merge: {len(bad)} scan(s) unreadable; nothing written (--skip-bad merges the rest)", file=sys.stderr)
         return 2
-    if len(clouds) < 2:
-        raise InvalidInputError(f"scans: need at least 2 readable scans, got {len(clouds)}")
+    readable = [k for k in range(len(args.scans)) if k not in bad]
+    if len(readable) < 2:
+        raise InvalidInputError(f"scans: need at least 2 readable scans, got {len(readable)}")
+    check_voxel(args.voxel, [clouds[k] for k in readable])
     options = {name: getattr(args, name) for name in LIBRARY_OPTIONS if hasattr(args, name)}
     options["reference"] = reference_among_readable(args, bad)
     client = None
@@ -230,33 +294,40 @@ def run_merge(args) -> int:
     level = scans_log.level
     scans_log.setLevel(logging.ERROR)
     try:
-        result = register_scans(clouds, client=client, progress=progress, **options, **threads)
+        result = register_scans([clouds[k] for k in readable], client=client, progress=progress, **options, **threads)
     finally:
         scans_log.setLevel(level)
         close()
         if client is not None:
             client.close()
+    result = as_given(result, readable, len(args.scans), bad)  # indices of the scans as listed
     if not any(result.placed):  # pragma: no cover - the reference is always placed
         raise InvalidInputError("scans: no scan could be placed")
     points, labels = result.merged(clouds, voxel=args.voxel)
-    # the scan index and a colour per scan, where the format holds them (a warning says when not)
-    io.write_points(args.output, points, overwrite=args.force, scan_index=labels,
-                    colors=io.scan_palette(len(clouds))[labels])
-    if args.poses_out is not None:
-        _write_poses(args.poses_out, names, result, args.poses_format or POSE_FORMATS[0], args.force)
-    if args.view is not None:
-        _write_view(args.view, points, labels, names, args.force)
+    if len(points) < MIN_MERGED_POINTS:
+        raise InvalidInputError(f"--voxel {args.voxel:g}: leaves {len(points)} point(s) of the merged cloud; give a "
+                                "smaller size")
+    names = [str(path) for path in args.scans]
+    # All outputs or none (an interrupt, a full disk or a refused path leaves no partial set); the
+    # scan index and a colour per scan, where the format holds them (a warning says when not).
+    with io.atomic.published_together():
+        io.write_points(args.output, points, overwrite=args.force, scan_index=labels,
+                        colors=io.scan_palette(len(args.scans))[labels])
+        if args.poses_out is not None:
+            _write_poses(args.poses_out, names, result, args.poses_format or POSE_FORMATS[0], args.force)
+        if args.view is not None:
+            _write_view(args.view, points, labels, [shown(name) for name in names], args.force)
     if args.json:
         print(json.dumps({**result.to_dict(), "files": names, "output": str(args.output)}, indent=1))
     else:
-        print(scan_table(result, names))
+        print(scan_table(result, [shown(name) for name in names]))
         kept = len(result.kept_edges)
-        print(f"merged {sum(result.placed)} of {len(clouds)} scans ({len(points)} points) into {args.output}; "
+        print(f"merged {sum(result.placed)} of {len(args.scans)} scans ({len(points)} points) into {shown(args.output)}; "
               f"{result.pairs_registered} pairwise registrations, {kept} edges kept; "
               f"free-space check: {result.free_space_check}; {result.runtime_s:.1f} s")
-    left_out = [k for k in range(len(clouds)) if not result.placed[k]]
+    left_out = [k for k in readable if not result.placed[k]]
     for k in left_out:
-        print(f"esmicp merge: warning: scan {names[k]} {result.status[k]}: {'; '.join(result.reasons[k])}",
+        print(f"esmicp merge: warning: scan {shown(names[k])} {result.status[k]}: {'; '.join(result.reasons[k])}",
               file=sys.stderr)
     if left_out and not args.allow_partial:
         print(f"esmicp merge: {len(left_out)} scan(s) doubtful or unplaced, not merged (exit status {EXIT_PARTIAL}; "

@@ -5,18 +5,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from ..api import INIT_NAMES
-from ..errors import EsmicpError, OutputExistsError
 from ..io import READ_EXTENSIONS, WRITE_EXTENSIONS
 from ..methods import METHODS
 from ..types import check_geometry
-from .args import EXIT_OK, EXIT_UNTRUSTED, add_workers, check_distinct_files, positive_float, positive_int
+from .args import EXIT_OK, EXIT_UNTRUSTED, add_workers, check_distinct_files, output_path, positive_float, positive_int
 
 
 def trust_bar() -> float:
@@ -88,10 +86,11 @@ def add_parser(commands) -> None:
     )
     reg.add_argument("--seed", type=int, default=0, help="seed of the global search and --sample-points (default 0)")
     reg.add_argument(
-        "--output", type=Path, metavar="ALIGNED_FILE",
+        "--output", type=output_path, metavar="ALIGNED_FILE",
         help=f"write the aligned source here ({' '.join(WRITE_EXTENSIONS)})",
     )
-    reg.add_argument("--transform-out", type=Path, metavar="FILE", help="write T_target_source here (4x4 text)")
+    reg.add_argument("--transform-out", type=output_path, metavar="FILE",
+                     help="write T_target_source here (4x4 text; - for standard output)")
     reg.add_argument("--force", action="store_true", help="overwrite existing output files")
     reg.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     reg.add_argument(
@@ -113,17 +112,14 @@ def add_parser(commands) -> None:
 
 
 def _check_output(path: Path | None, force: bool, kind: str) -> None:
-    """Refuse early (before any work) an output that exists or has an unwritable format."""
+    """Refuse early (before any work) an output that exists (without --force), has an unwritable
+    format, or names what is not a regular file (a FIFO, a device, a dangling link: see
+    :func:`esmicp.io.check_writable`)."""
     if path is None:
         return
     from ..io import check_writable
 
-    check_writable(path, kind=kind)
-    if path.is_symlink() and not path.exists():
-        raise EsmicpError(f"{path}: is a dangling symbolic link (to {os.readlink(path)!r}); remove it or "
-                          "give another output path")
-    if path.exists() and not force:
-        raise OutputExistsError(path)
+    check_writable(path, kind=kind, overwrite=force)
 
 
 def _run_register(args) -> int:
@@ -145,10 +141,11 @@ def _run_register(args) -> int:
         max_iterations=args.max_iterations, tolerance=args.tolerance, inlier_distance=args.inlier_distance,
         workers=args.workers, range_images=args.range_images,
     )
-    if args.output is not None:
-        io.write_points(args.output, apply(result.transformation, source), overwrite=args.force)
-    if args.transform_out is not None:
-        io.write_transform(args.transform_out, result.transformation, overwrite=args.force)
+    with io.atomic.published_together():  # both outputs, or neither
+        if args.output is not None:
+            io.write_points(args.output, apply(result.transformation, source), overwrite=args.force)
+        if args.transform_out is not None:
+            io.write_transform(args.transform_out, result.transformation, overwrite=args.force)
     if args.json:
         report = result.to_dict()
         report.update(source=str(args.source), target=str(args.target),

@@ -15,8 +15,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .args import nonnegative_int, positive_float, positive_int
-from ..errors import InvalidInputError, OutputExistsError
+from .args import nonnegative_int, output_path, positive_float, positive_int
+from ..errors import InvalidInputError
 from ..api import INIT_NAMES
 from ..methods import METHODS
 
@@ -42,7 +42,7 @@ def add_parser(commands) -> None:
         parser.add_argument("clouds", nargs="*", type=Path, metavar="CLOUD",
                             help="none (built-in shape), one cloud (the source is a rotated copy of it), "
                             "or SOURCE TARGET")
-        parser.add_argument("-o", "--output", type=Path, required=True, help=output_help)
+        parser.add_argument("-o", "--output", type=output_path, required=True, help=output_help)
         if init:
             parser.add_argument("--init", default="identity", metavar="identity|global|FILE",
                                 help="where the local iterations start: 'identity' (default), 'global' (or "
@@ -69,8 +69,8 @@ def add_parser(commands) -> None:
         "--transform shows a given result instead, --as-is the clouds as they are (already aligned).",
     )
     common(view, points_default=None, points_help="downsample each cloud to N well-spread points first "
-           "(default: keep all; large clouds are subsampled for display only)", output_help="the .html file",
-           init=False)
+           "(default: keep all; large clouds are subsampled for display only)",
+           output_help="the .html file (- for standard output)", init=False)
     shown = view.add_mutually_exclusive_group()
     shown.add_argument("--init", metavar="FILE|STRATEGY",
                        help=f"where the registration starts, as in 'esmicp register': {', '.join(INIT_NAMES)}, or "
@@ -118,18 +118,15 @@ def add_parser(commands) -> None:
 
 
 def _check_output(path: Path, force: bool, allowed: tuple[str, ...], what: str) -> None:
-    """Refuse, before any work, an output with the wrong extension, in a missing folder, or that
-    exists without --force."""
-    from ..errors import PointCloudFileError
+    """Refuse, before any work, an output with the wrong extension, in a missing folder, that
+    exists without --force, or that names what is not a regular file (a FIFO, a device, a dangling
+    link: :func:`esmicp.io.atomic.output_target`). An HTML page may go to a stream (``-``)."""
+    from ..io.atomic import is_stream, output_target
     from ..viz.files import check_extension
 
-    check_extension(path, allowed, what)
-    if path.is_dir():
-        raise PointCloudFileError(path, "is a directory, cannot write a file there")
-    if not path.parent.is_dir():
-        raise PointCloudFileError(path, f"cannot write: the folder {str(path.parent)!r} does not exist")
-    if path.exists() and not force:
-        raise OutputExistsError(path)
+    if not (is_stream(path) and ".html" in allowed):
+        check_extension(path, allowed, what)
+    output_target(path, force)
 
 
 def _require(*modules: str) -> None:

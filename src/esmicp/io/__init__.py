@@ -41,7 +41,7 @@ from ..types import as_generator, as_points
 from . import las, npy, off, pcd, ply, text, velodyne
 from ._messages import one_line
 from ._files import as_path, check_input_file
-from .atomic import atomic_write
+from .atomic import atomic_write, is_stream, output_target
 from .palette import scan_palette
 from .poses import POSE_FORMATS, PoseFile, read_poses, write_poses
 from .transform import read_transform, write_transform
@@ -206,27 +206,32 @@ def read_points(path, *, sample_points: int | None = None, rng=None, bin_columns
     return _finish(path, raw)
 
 
-def check_writable(path, *, kind: str = "points") -> None:
+def check_writable(path, *, kind: str = "points", overwrite: bool | None = None) -> None:
     """Check, without creating anything, that an output could be written at ``path``.
 
     For early refusal (before any work): the extension is one :func:`write_points` supports
     (``kind="points"``; transforms are text whatever their extension, ``kind="transform"``), the
-    folder exists and ``path`` is not a directory. Whether ``path`` already exists is not checked.
+    folder exists, and ``path`` names nothing that an output would replace but a regular file or a
+    link to one (:func:`esmicp.io.atomic.output_target`: a directory, a FIFO, a device, a socket or
+    a dangling link is refused); a stream (``/dev/stdout``, ...) takes text outputs only. With
+    ``overwrite`` False, an existing file is refused too; None (default) does not check that.
 
     Raises
     ------
     PointCloudFileError
         The output cannot be written there.
+    OutputExistsError
+        ``overwrite`` is False and ``path`` exists.
     """
     path = as_path(path)
     if kind not in ("points", "transform"):
         raise InvalidInputError(f"kind: expected 'points' or 'transform', got {kind!r}")
+    if kind == "points" and is_stream(path):
+        raise PointCloudFileError(path, "a point cloud's format is chosen by its file extension, and a stream has "
+                                  f"none: write a file ({', '.join(WRITE_EXTENSIONS)})")
     if kind == "points" and path.suffix.lower() not in WRITE_EXTENSIONS:
         raise _unsupported(path, WRITE_EXTENSIONS, "writing")
-    if path.is_dir():
-        raise PointCloudFileError(path, "is a directory, cannot write a file there")
-    if not path.parent.is_dir():
-        raise PointCloudFileError(path, f"cannot write: the folder {str(path.parent)!r} does not exist")
+    output_target(path, True if overwrite is None else overwrite)
 
 
 def write_points(

@@ -49,7 +49,7 @@ from ..batch import register_many
 from ..core.features import estimate_normals, voxel_grid
 from ..errors import InvalidInputError
 from ..trust import free_space
-from ..types import as_points
+from ..types import MIN_POINTS, as_points
 from . import pairs as candidates
 from . import pose_graph
 from .refine import refine
@@ -462,7 +462,7 @@ def register_scans(
     pair_points, refine_points : int
         Points per scan (a content-seeded random subset) for the pairwise global searches, and for
         the local refinement that checks each pair (and judges it: its confidence) and the joint
-        refinement.
+        refinement; at least 3 (:data:`esmicp.types.MIN_POINTS`, what a registration needs).
     partners : int
         Without ``sequence``: each scan is first registered with its ``partners`` most similar
         scans (a shape descriptor). Then, each round, a placed scan not yet confirmed (on no cycle
@@ -534,10 +534,10 @@ def register_scans(
         raise InvalidInputError("clouds: expected at least one scan")
     if isinstance(reference, bool) or not isinstance(reference, (int, np.integer)) or not 0 <= reference < n:
         raise InvalidInputError(f"reference: expected a scan index in [0, {n}), got {reference!r}")
-    for name, value in (("pair_points", pair_points), ("refine_points", refine_points), ("partners", partners),
-                        ("sequence_neighbours", sequence_neighbours)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-            raise InvalidInputError(f"{name}: expected a positive integer, got {value!r}")
+    for name, value, least in (("pair_points", pair_points, MIN_POINTS), ("refine_points", refine_points, MIN_POINTS),
+                               ("partners", partners, 1), ("sequence_neighbours", sequence_neighbours, 1)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+            raise InvalidInputError(f"{name}: expected a whole number >= {least}, got {value!r}")
     reference = int(reference)
     small = [_subsample(s, pair_points) for s in scans]
     dense = [_subsample(s, refine_points) for s in scans]
