@@ -11,7 +11,7 @@ worker is started by :func:`start_worker`, which
   daemon thread of the worker checks every :data:`PARENT_POLL_S` seconds whether its parent is
   still the process that started it, and ends the worker when not;
 - under an address-space limit (``ulimit -v``, ``RLIMIT_AS``), caps the C library's malloc arenas
-  (:func:`fit_address_space_limit`).
+  and starts with one OpenBLAS thread (:func:`fit_address_space_limit`).
 
 A spawned worker re-imports the caller's main script. Where that cannot work (Python reading the
 script from standard input) :func:`process_pool` refuses at once; where the script starts the pool
@@ -39,10 +39,11 @@ __all__ = ["PARENT_POLL_S", "PoolError", "fit_address_space_limit", "pool_error"
 PARENT_POLL_S = 0.5
 
 #: glibc malloc arenas allowed under an address-space limit. glibc gives each thread that
-#: allocates its own arena, reserving 64 MB of address space each on 64-bit systems; under
-#: ``ulimit -v 524288`` (512 MB) a 3-scan ``esmicp merge --processes 2`` failed with "can't start new
-#: thread" in the parent and "OpenBLAS error: Memory allocation still failed" in the workers; with
-#: 2 arenas it completes (``--threads 8`` and ``--processes 2``), as with ``MALLOC_ARENA_MAX=2``.
+#: allocates its own arena, reserving 64 MB of address space each on 64-bit systems, and OpenBLAS
+#: reserves a buffer of tens of MB per thread of its own (one per core by default): under a limit of
+#: 160 MB above what ``esmicp merge`` holds once its libraries are loaded (471 MB on a 2-core
+#: machine), a 3-scan merge failed with "can't start new thread" both with ``--processes 2`` and
+#: ``--threads 8``; with 2 arenas and one OpenBLAS thread both complete.
 MALLOC_ARENAS_UNDER_LIMIT = 2
 
 #: How to choose another pool, for the errors.
@@ -52,10 +53,13 @@ _PR_SET_PDEATHSIG = 1
 _M_ARENA_MAX = -8
 
 
-def fit_address_space_limit() -> bool:
-    """Cap glibc's malloc arenas at :data:`MALLOC_ARENAS_UNDER_LIMIT` when this process runs under
-    an address-space limit (``RLIMIT_AS``); True when a cap was set. Without a limit, or on
-    another C library, nothing is changed."""
+def fit_address_space_limit(*, children: bool = False) -> bool:
+    """Under an address-space limit (``RLIMIT_AS``, ``ulimit -v``), cap glibc's malloc arenas at
+    :data:`MALLOC_ARENAS_UNDER_LIMIT`; True when a cap was set. ``children``: also for the
+    processes started later, and for OpenBLAS where it is not loaded yet (``MALLOC_ARENA_MAX`` and
+    ``OPENBLAS_NUM_THREADS=1`` in the environment, unless already set: esmicp's matrices are too
+    small for BLAS threads to matter). Without a limit, or on another C library, nothing is
+    changed. Best called before NumPy is imported."""
     try:
         import resource
     except ImportError:  # pragma: no cover - not POSIX
@@ -69,6 +73,9 @@ def fit_address_space_limit() -> bool:
 
         if platform.libc_ver()[0] != "glibc":
             return False
+        if children:
+            os.environ.setdefault("MALLOC_ARENA_MAX", str(MALLOC_ARENAS_UNDER_LIMIT))
+            os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
         return ctypes.CDLL(None).mallopt(_M_ARENA_MAX, MALLOC_ARENAS_UNDER_LIMIT) == 1
     except (OSError, AttributeError, ValueError):  # pragma: no cover - no mallopt here
         return False
@@ -126,6 +133,7 @@ def process_pool(size: int, what: str) -> ProcessPoolExecutor:
         The workers could not re-import the main script (Python reads it from standard input).
     """
     refuse_in_a_starting_worker(what)
+    fit_address_space_limit(children=True)  # the workers start with it
     main = sys.modules.get("__main__")
     path = getattr(main, "__file__", None)
     if getattr(main, "__spec__", None) is None and isinstance(path, str) and not os.path.isfile(path):

@@ -77,12 +77,15 @@ def main(argv=None) -> int:
     if argv[:1] == ["--version"]:  # the fast path: no parser, no NumPy (what argparse would print)
         print(f"esmicp {__version__}")
         return EXIT_OK
-    args = build_parser().parse_args(argv)
-    from ..interrupts import Terminated, terminate_as_interrupt
-    from ..io.atomic import recording_outputs
     from ..pools import fit_address_space_limit
 
-    fit_address_space_limit()  # under `ulimit -v`, threads must not each reserve a malloc arena
+    # Under `ulimit -v`, threads must not each reserve a malloc arena: set before NumPy starts its
+    # threads, and for the worker processes.
+    fit_address_space_limit(children=True)
+    from ..interrupts import Terminated, terminate_as_interrupt
+    from ..io.atomic import recording_outputs
+
+    args = build_parser().parse_args(argv)
     with warnings.catch_warnings(), _library_log_on_stderr(args.command), terminate_as_interrupt(), \
             recording_outputs() as written:
         warnings.simplefilter("always", EsmicpWarning)
