@@ -250,10 +250,12 @@ def _ascii_pcd(points: int) -> bytes:
 def test_sparse_2gb_tails_are_read_or_refused_within_bounded_memory(tmp_path):
     rows = b"".join(b"%d %d %d\n" % (i, i % 7, i % 5) for i in range(1000))
     cases = {
-        # declared content first, then 2 GB of NUL bytes: read what is declared, never the tail
+        # declared content first, then 2 GB of NUL bytes: PCD reads what is declared, never the tail;
+        # PLY refuses data beyond what its header declares, from the tail's first block
         str(_sparse_tail(tmp_path / "tail.pcd", _ascii_pcd(1000))): "read 1000 points",
         str(_sparse_tail(tmp_path / "tail-ascii.ply", b"ply\nformat ascii 1.0\nelement vertex 1000\n"
-                         b"property float x\nproperty float y\nproperty float z\nend_header\n" + rows)): "read 1000 points",
+                         b"property float x\nproperty float y\nproperty float z\nend_header\n" + rows)):
+            "PointCloudFileError: ",
         # a text cloud whose tail is binary: refused at its first block
         str(_sparse_tail(tmp_path / "sparse.xyz", b"")): "PointCloudFileError: ",
         str(_sparse_tail(tmp_path / "tail.xyz", rows)): "PointCloudFileError: ",
@@ -265,6 +267,7 @@ def test_sparse_2gb_tails_are_read_or_refused_within_bounded_memory(tmp_path):
         assert results[path].startswith(expected), (path, results[path])
         assert "memory" not in results[path], (path, results[path])
     assert "binary data" in results[str(tmp_path / "sparse.xyz")]
+    assert "more data follows them" in results[str(tmp_path / "tail-ascii.ply")]
 
 
 def test_text_cloud_read_in_blocks_equals_the_whole(tmp_path, monkeypatch):
@@ -406,3 +409,62 @@ def test_stanford_conf_reads_scans_in_a_subfolder(tmp_path):
     (tmp_path / "scans.conf").write_text("bmesh data/a.ply 1 2 3 0 0 0 1\n")
     scans = load_scans(tmp_path)
     assert list(scans) == ["a"] and scans["a"][1][0, 3] == 1.0
+
+
+# --- A PLY whose header declares fewer rows than it holds ----------------------------------------
+
+def _ply_bytes(fmt: str, declared: int, rows: np.ndarray, after: str = "", after_data: bytes = b"") -> bytes:
+    header = (f"ply\nformat {fmt} 1.0\nelement vertex {declared}\nproperty float x\nproperty float y\n"
+              f"property float z\n{after}end_header\n").encode()
+    if fmt == "ascii":
+        body = "".join(f"{x:g} {y:g} {z:g}\n" for x, y, z in rows).encode()
+    else:
+        body = rows.astype("<f4").tobytes()
+    return header + body + after_data
+
+
+@pytest.mark.parametrize("case", ["ascii", "binary", "ascii, faces after", "binary, a fixed-size element after"])
+def test_a_ply_holding_more_vertices_than_it_declares_is_refused(tmp_path, case):
+    """A PLY declaring 5 vertices but holding 8 read the first 5 silently: it is refused, naming
+    the file and the declared count."""
+    rows = np.arange(24, dtype=np.float64).reshape(8, 3) % 7
+    path = tmp_path / "undercounted.ply"
+    if case == "ascii":
+        data = _ply_bytes("ascii", 5, rows)
+    elif case == "binary":
+        data = _ply_bytes("binary_little_endian", 5, rows)
+    elif case == "ascii, faces after":
+        data = _ply_bytes("ascii", 5, rows, "element face 1\nproperty list uchar int vertex_indices\n") + b"3 0 1 2\n"
+    else:
+        data = _ply_bytes("binary_little_endian", 5, rows, "element marker 1\nproperty int id\n",
+                          struct.pack("<i", 7))
+    path.write_bytes(data)
+    with pytest.raises(PointCloudFileError) as caught:
+        read_points(path)
+    message = str(caught.value)
+    assert message.startswith(f"{path}: its header declares 5 vertices"), message
+    assert "more data follows" in message and "\n" not in message, message
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+def test_a_ply_with_what_it_declares_and_a_final_newline_reads(tmp_path, fmt):
+    rows = np.arange(24, dtype=np.float64).reshape(8, 3) % 7
+    path = tmp_path / "exact.ply"
+    path.write_bytes(_ply_bytes(fmt, 8, rows) + b"\n\n")
+    np.testing.assert_array_equal(read_points(path), rows)
+
+
+# --- An ascii STL whose facet normal is not a number ------------------------------------------------
+
+def test_ascii_stl_with_a_non_numeric_normal_reads_without_a_traceback(tmp_path):
+    """trimesh logged "failed to extract face_normals" with two tracebacks on stderr (through
+    Python's last-resort handler), though the read succeeded: the vertices are read, quietly."""
+    path = tmp_path / "odd-normal.stl"
+    path.write_text("solid t\nfacet normal x y z\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 1 0\nendloop\n"
+                    "endfacet\nfacet normal 0 0 1\nouter loop\nvertex 0 0 1\nvertex 1 0 1\nvertex 0 1 2\nendloop\n"
+                    "endfacet\nendsolid t\n")
+    code = "import sys, esmicp.io\nprint(esmicp.io.read_points(sys.argv[1]).tolist())"
+    done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == "", done.stderr
+    assert json.loads(done.stdout) == [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 2]]

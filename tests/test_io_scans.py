@@ -412,10 +412,36 @@ def test_las_header_checks_pass_good_files(tmp_path, name):
 
 
 def test_las_offset_of_1e300_is_blamed_on_the_file_by_register(tmp_path, capsys):
-    """The header's x offset says 1e300: the points are read, and esmicp register refuses them
-    naming the file and their magnitude (not "degenerate cloud, all points are identical")."""
+    """The header's x offset says 1e300 (with a scale factor large enough to be seen next to it):
+    the points are read, and esmicp register refuses them naming the file and their magnitude (not
+    "degenerate cloud, all points are identical")."""
     good = _las_and_laz(tmp_path)["1.2.las"]
-    path = _patched(good, tmp_path / "far.las", [(155, "<d", 1e300)])  # X offset
+    path = _patched(good, tmp_path / "far.las", [(155, "<d", 1e300), (131, "<d", 1e290)])  # X offset, X scale
     assert main(["register", str(path), str(good)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith(f"esmicp register: error: {path}: coordinates up to 1e+300"), err
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2], ids=list("xyz"))
+@pytest.mark.parametrize("scale, offset, words", [
+    (0.0, None, "scale factor is 0.0"),
+    (-1e-300, None, "scale factor is -1e-300"),
+    (-0.001, None, "scale factor is -0.001"),
+    (float("nan"), None, "scale factor is nan"),
+    (1e-300, None, "too small to tell points apart at its"),  # next to the file's offsets (1000, 2000, 10)
+    (1e-9, 1e12, "too small to tell points apart at its"),
+], ids=["zero", "-1e-300", "negative", "nan", "1e-300", "1e-9-at-1e12"])
+def test_las_scale_factor_that_flattens_the_cloud_is_refused_naming_the_file(tmp_path, capsys, axis, scale, offset,
+                                                                             words):
+    """A LAS / LAZ scale factor of 0 (or -1e-300) was accepted and flattened the cloud silently."""
+    good = _las_and_laz(tmp_path)["1.2.las"]
+    edits = [(131 + 8 * axis, "<d", scale)] + ([] if offset is None else [(155 + 8 * axis, "<d", offset)])
+    path = _patched(good, tmp_path / "flat.las", edits)
+    with pytest.raises(PointCloudFileError) as caught:
+        read_points(path)
+    message = str(caught.value)
+    assert message.startswith(f"{path}: LAS header says the {'xyz'[axis]} scale factor"), message
+    assert words in message and "\n" not in message, message
+    assert main(["register", str(path), str(good)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"esmicp register: error: {path}: LAS header says"), err

@@ -199,10 +199,25 @@ class RegistrationResult:
 
     def doubts(self, bar: float | None = None) -> list[str]:
         """Why the pose is not to be trusted, one phrase per reason (empty: :attr:`trusted`).
-        ``bar``: the confidence asked for (default the trust bar,
-        :data:`esmicp.trust.confidence.TRUSTED`)."""
+        ``bar``: the confidence asked for, a number in [0, 1] (default the trust bar,
+        :data:`esmicp.trust.confidence.TRUSTED`).
+
+        Raises
+        ------
+        InvalidInputError
+            ``bar`` is not a number, is NaN, or lies outside [0, 1].
+        """
         if bar is None:
             from .trust.confidence import TRUSTED as bar
+        else:
+            from .types import as_real
+
+            value = as_real(bar, "bar")
+            if not 0.0 <= value <= 1.0:  # NaN fails too
+                from .errors import InvalidInputError
+
+                raise InvalidInputError(f"bar: expected a confidence in [0, 1], got {bar!r}")
+            bar = value
 
         reasons = []
         if self.confidence is None:

@@ -9,7 +9,8 @@ Memory and time: before laspy reads anything, :func:`check_header` checks every 
 offset of the header against the file's size (the header's own size, the offset to the point
 data, the number of variable-length records and each record's length, the point format and
 record length, the point count, the extended records of LAS 1.4 and, for LAZ, the LASzip record
-and the chunk table). A header that declares more than the file holds is refused at once, in a
+and the chunk table), and its scale factors (positive, and large enough to be seen next to the
+offsets). A header that declares more than the file holds is refused at once, in a
 message naming the field, instead of letting laspy allocate or loop over what it declares.
 Points are then read in chunks of :data:`CHUNK_POINTS`, so what is allocated follows the points
 actually present.
@@ -36,6 +37,8 @@ LAS_INSTALL_HINT = "pip install 'esmicp[las]' (laspy with the lazrs LAZ backend)
 HEADER_BYTES = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375, 5: 393}
 #: Bytes of each standard point format's record (extra bytes may follow in a file's records).
 POINT_FORMAT_BYTES = {0: 20, 1: 28, 2: 26, 3: 34, 4: 57, 5: 63, 6: 30, 7: 36, 8: 38, 9: 59, 10: 67}
+#: Byte of the header where the x, y, z scale factors (three float64) start; the offsets follow.
+SCALE_BYTE = 131
 #: Bytes of the header of a variable-length record (VLR) and of an extended one (EVLR, LAS 1.4).
 VLR_HEADER_BYTES = 54
 EVLR_HEADER_BYTES = 60
@@ -123,6 +126,16 @@ def check_header(path, handle, size: int) -> LasLayout:
         raise refuse(f"LAS header says the point data start at byte {point_data:,}, past the end of the file's {size:,} bytes")
     if point_data < header_bytes:
         raise refuse(f"LAS header says the point data start at byte {point_data:,}, inside its own {header_bytes} bytes")
+    # Coordinates are integer * scale + offset: a scale that is not a positive number flattens or
+    # mirrors the cloud, one below what the offset resolves makes every coordinate the offset.
+    scales, offsets = struct.unpack_from("<3d", head, SCALE_BYTE), struct.unpack_from("<3d", head, SCALE_BYTE + 24)
+    for axis, scale, offset in zip("xyz", scales, offsets):
+        if not scale > 0 or scale == float("inf"):
+            raise refuse(f"LAS header says the {axis} scale factor is {scale!r} (bytes {SCALE_BYTE}-{SCALE_BYTE + 23} "
+                         "hold x, y, z); a scale factor must be a positive number")
+        if offset + scale == offset:
+            raise refuse(f"LAS header says the {axis} scale factor is {scale:g}, too small to tell points apart at its "
+                         f"{axis} offset {offset:g}: every {axis} would be the offset")
 
     # Variable-length records: between the header and the point data, 54 bytes of header each.
     if vlr_count * VLR_HEADER_BYTES > size - header_bytes:

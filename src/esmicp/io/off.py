@@ -7,10 +7,13 @@ trimesh is imported lazily: it is slow to import.
 
 from __future__ import annotations
 
+import contextlib
 import io
+import logging
 import os
 import re
 import struct
+import threading
 import warnings
 from pathlib import Path
 
@@ -27,6 +30,57 @@ __all__ = ["MESH_EXTENSIONS", "read_mesh"]
 MESH_EXTENSIONS = (".off", ".obj", ".stl", ".ply")
 
 _OFF_START = re.compile(r"^(C?OFF)\s*(.*)$")
+
+logger = logging.getLogger(__name__)
+
+
+class _ThreadsLoading(logging.Filter):
+    """Keeps trimesh's log records of the threads inside :func:`_trimesh_log_kept` off the
+    handlers (and off Python's last-resort stderr handler), as debug records of this module."""
+
+    def __init__(self):
+        super().__init__()
+        self.threads: dict[int, int] = {}  # thread id -> nesting depth
+        self.lock = threading.Lock()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.thread not in self.threads:
+            return True
+        logger.debug("trimesh: %s", record.getMessage())
+        return False
+
+
+_TRIMESH_LOG_FILTER = _ThreadsLoading()
+
+
+def _trimesh_loggers() -> list[logging.Logger]:
+    """trimesh's loggers (``trimesh.util``, ``trimesh.sample``, ...: a filter on the ``trimesh``
+    logger would not see the records of its children)."""
+    names = [name for name in list(logging.root.manager.loggerDict) if name == "trimesh" or name.startswith("trimesh.")]
+    return [logging.getLogger(name) for name in names]
+
+
+@contextlib.contextmanager
+def _trimesh_log_kept():
+    """While trimesh parses a file, what it logs (e.g. "failed to extract face_normals" with a
+    traceback, for an ascii STL whose facet normal is not a number: it then computes the normals
+    itself, and only the vertices are read here) is not printed, but logged at debug level here."""
+    me = threading.get_ident()
+    with _TRIMESH_LOG_FILTER.lock:
+        for trimesh_log in _trimesh_loggers():
+            if _TRIMESH_LOG_FILTER not in trimesh_log.filters:
+                trimesh_log.addFilter(_TRIMESH_LOG_FILTER)
+        _TRIMESH_LOG_FILTER.threads[me] = _TRIMESH_LOG_FILTER.threads.get(me, 0) + 1
+    try:
+        yield
+    finally:
+        with _TRIMESH_LOG_FILTER.lock:
+            _TRIMESH_LOG_FILTER.threads[me] -= 1
+            if not _TRIMESH_LOG_FILTER.threads[me]:
+                del _TRIMESH_LOG_FILTER.threads[me]
+            if not _TRIMESH_LOG_FILTER.threads:
+                for trimesh_log in _trimesh_loggers():
+                    trimesh_log.removeFilter(_TRIMESH_LOG_FILTER)
 
 
 def _check_off(path, text: str) -> None:
@@ -110,7 +164,7 @@ def _load(path: Path, extension: str):
     try:
         # trimesh computes normals of whatever the file holds: NaN / infinite coordinates (dropped
         # later, with a warning of our own) must not surface as NumPy's RuntimeWarnings.
-        with np.errstate(all="ignore"), warnings.catch_warnings():
+        with np.errstate(all="ignore"), warnings.catch_warnings(), _trimesh_log_kept():
             warnings.simplefilter("ignore", RuntimeWarning)
             if source is not None:
                 loaded = trimesh.load(source, file_type="off", process=False)

@@ -369,10 +369,20 @@ def _read_ascii(path, handle, header: PlyHeader, needed: list[_Element]) -> np.n
     """
     vertex = needed[-1]
     before = sum(e.count for e in needed[:-1])
-    text = io.TextIOWrapper(handle, encoding="ascii", newline=None)
+    text = io.TextIOWrapper(handle, encoding="ascii", newline=None, errors="replace")
     try:
-        skipped = sum(1 for _ in itertools.islice(text, before))
+        skipped = 0
+        for line in itertools.islice(text, before):
+            if "\ufffd" in line:  # a byte that is not ASCII
+                raise UnicodeDecodeError("ascii", b"", 0, 1, "not ASCII")
+            skipped += 1
         lines = list(itertools.islice(text, vertex.count)) if skipped == before else []
+        if any("\ufffd" in line for line in lines):
+            raise UnicodeDecodeError("ascii", b"", 0, 1, "not ASCII")
+        # The rows after the vertices: those of the elements declared after them, and no more.
+        after = header.elements[len(needed):]
+        complete = skipped + len(lines) == before + vertex.count
+        more = complete and _ascii_data_after(text, sum(element.count for element in after))
     except UnicodeDecodeError:
         raise PointCloudFileError(path, "malformed ascii PLY data: it contains non-ASCII bytes") from None
     finally:
@@ -383,10 +393,35 @@ def _read_ascii(path, handle, header: PlyHeader, needed: list[_Element]) -> np.n
             f"truncated PLY file: its header declares {vertex.count} vertices, but the data ends after "
             f"{skipped + len(lines)} lines",
         )
+    if more:
+        raise _more_than_declared(path, header, vertex, after, "more data")
     fast = _float_rows(lines, vertex)
     if fast is not None:
         return fast
     return _coordinates(_plyfile_read(path, io.StringIO(_rewritten_header(header, [vertex]) + "".join(lines))))
+
+
+#: Longest ascii PLY row looked at when checking what follows the declared rows (longer: not a row).
+_MAX_ASCII_ROW = 1 << 16
+
+
+def _ascii_data_after(text, rows: int) -> bool:
+    """True when anything but blank space follows the next ``rows`` non-blank lines of ``text``.
+    Reads at most one row, or one block, at a time (a tail of binary data costs one block)."""
+    while rows:
+        line = text.readline(_MAX_ASCII_ROW)
+        if not line:
+            return False  # fewer rows than declared after the vertices: not read, not judged here
+        if len(line) == _MAX_ASCII_ROW and not line.endswith("\n"):
+            return True  # no row is that long: other data
+        if line.strip():
+            rows -= 1
+    while True:
+        block = text.read(_MAX_ASCII_ROW)
+        if not block:
+            return False
+        if block.strip():
+            return True
 
 
 def _float_rows(lines: list[str], vertex: _Element) -> np.ndarray | None:
@@ -571,7 +606,33 @@ def _read_binary(path, handle, header: PlyHeader, needed: list[_Element]) -> np.
             for column, axis in enumerate("xyz"):
                 points[first:first + rows, column] = table[axis]
             position += rows * row_type.itemsize
+    # The data after the vertices: that of the elements declared after them, and no more (less
+    # than one row more is tolerated: a writer's trailing newline).
+    after = header.elements[len(needed):]
+    for element in after:
+        if element.has_lists:
+            position = _skip_rows(path, blocks, position, element, byte_order)
+        else:
+            position += element.count * element.min_binary_row_bytes()
+            if position > header.data_bytes:
+                raise _changed(path)
+    left = header.data_bytes - position
+    row = (after[-1] if after else vertex).min_binary_row_bytes()
+    if left >= max(row, 1):
+        raise _more_than_declared(path, header, vertex, after, f"{left:,} bytes of more data")
     return points
+
+
+def _more_than_declared(path, header: PlyHeader, vertex: _Element, after: list[_Element], more: str) -> PointCloudFileError:
+    """The file holds more data than its header declares: most likely more vertices than it says
+    (only the declared ones would be read)."""
+    if not after:
+        return PointCloudFileError(
+            path, f"its header declares {vertex.count} vertices, but {more} follows them: the file holds more "
+            f"than it declares (a wrong vertex count?), and only {vertex.count} would be read")
+    declared = _shortened([_describe_count(e) for e in header.elements])
+    return PointCloudFileError(
+        path, f"its header declares {declared}, but {more} follows that data (a wrong count in the header?)")
 
 
 def _coordinates(data: plyfile.PlyData) -> np.ndarray:
