@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import sys
 import warnings
 from pathlib import Path
 
@@ -372,3 +373,99 @@ def test_closed_standard_output_ends_quietly(files):
     status = process.wait(timeout=300)
     assert status in (0, 141), (status, err)
     assert "Broken pipe" not in err and "Traceback" not in err and "Exception ignored" not in err, err
+
+
+# --- Arguments a merge cannot work with, refused before the work ------------------------------------
+
+@pytest.mark.parametrize("name", ["pair_points", "refine_points"])
+@pytest.mark.parametrize("value", [1, 2])
+def test_register_scans_needs_at_least_three_points_per_subset(name, value):
+    """``register_scans(pair_points=1)`` ended in a LinAlgError traceback (2: every pair failed);
+    a registration needs 3 points."""
+    from esmicp.shapes import asymmetric_shape
+
+    clouds = [asymmetric_shape(200, rng=k) for k in range(2)]
+    with pytest.raises(InvalidInputError, match=rf"^{name}: expected a whole number >= 3, got {value}$"):
+        esmicp.register_scans(clouds, threads=1, **{name: value})
+
+
+@pytest.mark.parametrize("flag", ["--pair-points", "--refine-points"])
+def test_merge_pair_points_below_three_is_one_line(tmp_path, capsys, flag):
+    scans = _merge_scans(tmp_path)
+    with pytest.raises(SystemExit) as usage:  # argparse's usage error
+        main(["merge", str(scans[0]), str(scans[2]), "-o", str(tmp_path / "m.ply"), flag, "1"])
+    assert usage.value.code == EXIT_BAD_INPUT
+    err = _one_line(capsys, "esmicp merge: error: argument ")
+    assert flag in err and ">= 3" in err, err
+
+
+@pytest.mark.parametrize("voxel", ["1e300", "50"])
+def test_merge_voxel_larger_than_the_scans_is_refused_before_the_merge(tmp_path, capsys, monkeypatch, voxel):
+    """``--voxel 1e300`` ran the whole merge, then blamed "need at least 3 finite points"."""
+    scans = _merge_scans(tmp_path)
+    called = []
+    monkeypatch.setattr("esmicp.multiview.register_scans", lambda *a, **k: called.append(1))
+    out = tmp_path / "m.ply"
+    assert main(["merge", str(scans[0]), str(scans[2]), "-o", str(out), "--voxel", voxel, *MERGE_QUICK]) == EXIT_BAD_INPUT
+    err = _one_line(capsys, f"esmicp merge: error: --voxel {float(voxel):g}: ")
+    assert "largest scan" in err, err
+    assert not called and not out.exists()
+
+
+@pytest.mark.parametrize("bar", [float("nan"), -0.1, 1.5, "0.5", True, [0.5]],
+                         ids=["nan", "negative", "above-1", "string", "bool", "list"])
+def test_doubts_refuses_a_bar_that_is_not_a_confidence(bar):
+    """``doubts(nan)`` / ``doubts(-1)`` trusted the pose at any confidence; a string raised a bare
+    TypeError."""
+    source, target = _pair()
+    result = esmicp.register(source, target, init="identity")
+    with pytest.raises(InvalidInputError, match=r"^bar: expected a"):
+        result.doubts(bar)
+    for accepted in (0.0, 1.0, np.float32(0.3), 1):  # the bounds and NumPy numbers are bars
+        assert isinstance(result.doubts(accepted), list)
+
+
+# --- Scan names that are not UTF-8 ----------------------------------------------------------------------
+
+@pytest.mark.skipif(sys.platform == "win32" or sys.platform == "darwin", reason="byte file names (Linux)")
+def test_merge_of_a_scan_whose_name_is_not_utf8_prints_and_writes(tmp_path):
+    """A scan called ``b'bad\\xff.xyz'`` crashed after the cloud was written (UnicodeEncodeError on a
+    strict UTF-8 output): the table shows the name with an escape, and the poses file keeps it so
+    that it names the same file when read back."""
+    import subprocess
+
+    scans = _merge_scans(tmp_path)
+    odd = os.fsdecode(bytes(tmp_path) + b"/bad\xff.xyz")
+    os.rename(scans[2], odd)
+    argv = [sys.executable, "-m", "esmicp", "merge", str(scans[0]), odd, "-o", str(tmp_path / "m.ply"),
+            "--poses-out", str(tmp_path / "p.txt"), *MERGE_QUICK]
+    done = subprocess.run(argv, capture_output=True, timeout=300, env={**os.environ, "PYTHONIOENCODING": "utf-8:strict"})
+    assert done.returncode == EXIT_OK, done.stderr.decode(errors="replace")
+    assert b"bad\\xff.xyz" in done.stdout and b"Traceback" not in done.stderr
+    names = esmicp.read_poses(tmp_path / "p.txt").names
+    assert os.fsencode(names[1]) == os.fsencode(odd)
+
+
+# --- --skip-bad: everything refers to the scans as listed ---------------------------------------------
+
+def test_merge_skip_bad_reports_the_scans_as_listed(tmp_path, capsys):
+    """With --skip-bad the poses file, its "world = scan k" header, --reference and --json counted
+    only the readable scans (``--reference 2`` was reported back as 1)."""
+    import plyfile
+
+    scans = _merge_scans(tmp_path)
+    out, poses = tmp_path / "m.ply", tmp_path / "p.txt"
+    argv = ["merge", *map(str, scans[:3]), "-o", str(out), "--poses-out", str(poses), "--skip-bad", "--reference",
+            "2", "--json", *MERGE_QUICK]
+    assert main(argv) == EXIT_OK
+    report = json.loads(capsys.readouterr().out)
+    assert report["reference"] == 2 and report["files"] == list(map(str, scans[:3]))
+    assert [scan["status"] for scan in report["scans"]] == ["placed", "unreadable", "placed"]
+    assert report["unplaced"] == [1] and report["placed"] == [True, False, True]
+    assert all({edge["i"], edge["j"]} <= {0, 2} for edge in report["edges"]) and report["edges"]
+    assert report["poses"][1] is None and np.array_equal(report["poses"][2], np.eye(4))
+    written = esmicp.read_poses(poses)
+    assert written.reference == 2 and written.names == tuple(map(str, scans[:3]))
+    assert written.status == ("placed", "unreadable", "placed") and np.isnan(written.poses[1]).all()
+    labels = np.asarray(plyfile.PlyData.read(str(out))["vertex"]["scan_index"])
+    assert set(labels.tolist()) == {0, 2}
