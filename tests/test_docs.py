@@ -99,3 +99,16 @@ def test_the_readmes_links_lead_to_files_of_the_repository():
     assert relative, "the README links to no page"
     missing = [link for link in relative if link and not (REPO / link).exists()]
     assert not missing, f"README links to missing files: {missing}"
+
+
+def test_every_test_the_reliability_page_names_exists():
+    """docs/reliability.md lists each promise with the tests behind it (``file.py::test_name``):
+    each must be a test function of that file."""
+    page = REPO / "docs" / "reliability.md"
+    if not page.is_file():
+        pytest.skip("not run from a source tree")
+    named = set(re.findall(r"`(?:tests/)?(test_\w+\.py)::(test_\w+)`", page.read_text(encoding="utf-8")))
+    assert len(named) >= 20, "the page names fewer tests than it has promises"
+    missing = [f"{file}::{test}" for file, test in sorted(named)
+               if not re.search(rf"^def {test}\(", (REPO / "tests" / file).read_text(encoding="utf-8"), re.MULTILINE)]
+    assert not missing, f"docs/reliability.md names tests that do not exist: {missing}"
