@@ -315,3 +315,35 @@ def esmicp_register_many(*args, **kwargs):
     import esmicp
 
     return esmicp.register_many(*args, **kwargs)
+
+
+def test_sigterm_ends_a_bench_on_a_dask_cluster_keeping_its_rows(tmp_path):
+    """``esmicp bench --workers 2`` runs on a local Dask cluster of worker processes: SIGTERM to the
+    command alone is handled as Ctrl-C (exit status 143, the finished rows kept whole, the way to
+    resume printed), and the cluster's processes end with it."""
+    pytest.importorskip("distributed")
+    out = tmp_path / "run"
+    argv = [sys.executable, "-m", "esmicp", "bench", "--datasets", "synthetic", "--protocols", "copy", "--methods",
+            "esm", "--trials", "200", "--points", "400", "--workers", "2", "--no-progress", "--out", str(out)]
+    process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
+    rows = out / "rows.jsonl"
+    deadline = time.monotonic() + 120
+    while not (rows.exists() and rows.read_bytes().count(b"\n") >= 2):
+        if process.poll() is not None or time.monotonic() > deadline:
+            wait_until_gone(descendants(process.pid), 0)
+            process.kill()
+            pytest.fail(f"the bench wrote no rows: {process.communicate()}")
+        time.sleep(0.05)
+    children = descendants(process.pid)
+    process.send_signal(signal.SIGTERM)
+    try:
+        _, err = process.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        wait_until_gone(children | {process.pid}, 0)
+        pytest.fail("the bench did not end after SIGTERM, or its workers hold its stderr")
+    left = wait_until_gone(children)
+    assert process.returncode == 143, err[-3000:]
+    assert "esmicp bench: terminated (SIGTERM); " in err and "--resume" in err, err[-3000:]
+    assert rows.read_bytes().endswith(b"\n")
+    assert not left, f"{len(left)} of its processes outlived the bench"

@@ -120,6 +120,9 @@ def register_many(
     InvalidInputError
         When ``pairs`` is not a sequence of pairs, ``inits`` not one per pair, or ``threads`` /
         ``processes`` not a positive integer.
+    PoolError
+        ``processes``: the worker processes could not run (the caller's script read from standard
+        input, or not guarded by ``if __name__ == "__main__":``), or one ended abruptly.
     """
     items = _as_pairs(pairs)
     if inits is None:

@@ -8,7 +8,8 @@ with the earlier JIT-compiled kernels: ``esmicp bench`` ignored 4 of 8 interrupt
 the library's entry points (:func:`esmicp.register`, :func:`esmicp.methods.local.refine`) carry
 it. (The compiled kernels of :mod:`esmicp._kernels` raise the ``KeyboardInterrupt`` itself.)
 
-A process pool is stopped by its parent: :func:`ignore_interrupts` starts each worker, and
+A process pool is stopped by its parent: its workers ignore Ctrl-C (:func:`ignore_interrupts`, part
+of :func:`esmicp.pools.start_worker`, which also ends them with their parent), and
 :func:`stops_pool_on_interrupt` terminates them when Ctrl-C (or any error) leaves the pool.
 
 SIGTERM (what ``kill``, ``timeout``, systemd and container runtimes send) is Ctrl-C's twin where

@@ -31,6 +31,7 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
 from .errors import PoolError
+from .interrupts import ignore_interrupts
 
 __all__ = ["PARENT_POLL_S", "PoolError", "fit_address_space_limit", "pool_error", "process_pool", "start_worker"]
 
@@ -108,7 +109,7 @@ def _end_with_parent(parent: int) -> None:
 
 def start_worker(parent: int) -> None:
     """Initializer of each worker process of :func:`process_pool` (see the module docstring)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ignore_interrupts()
     _end_with_parent(parent)
     fit_address_space_limit()
 

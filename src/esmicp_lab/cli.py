@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from esmicp.cli.args import EXIT_INTERRUPTED, EXIT_OK, nonnegative_int, positive_int
+from esmicp.cli.args import EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, nonnegative_int, positive_int
 
 #: Flags that take part in the configuration, and the BenchConfig field each one sets.
 _CONFIG_FLAGS = {
@@ -280,9 +280,10 @@ def run(args) -> int:
     try:
         outcome = run_bench(config, options)
     except Interrupted as stop:
-        print(f"esmicp bench: interrupted; {stop.rows_written} finished rows of this session are in {stop.rows_path}; "
+        what = "terminated (SIGTERM)" if stop.terminated else "interrupted"
+        print(f"esmicp bench: {what}; {stop.rows_written} finished rows of this session are in {stop.rows_path}; "
               f"continue with: esmicp bench --out {args.out} --resume", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return EXIT_TERMINATED if stop.terminated else EXIT_INTERRUPTED
     print(f"{outcome.rows_written} rows run, {outcome.rows_skipped} already done, {outcome.rows_total} in "
           f"{outcome.out_dir / ROWS}")
     for path in outcome.files:

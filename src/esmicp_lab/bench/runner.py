@@ -43,12 +43,14 @@ BENCH_HINT = "pip install 'esmicp[bench]'"
 
 
 class Interrupted(KeyboardInterrupt):
-    """Ctrl-C during a run; ``rows_written`` rows of this session are on disk in ``rows_path``."""
+    """Ctrl-C (or, ``terminated``, SIGTERM: :class:`esmicp.interrupts.Terminated`) during a run;
+    ``rows_written`` rows of this session are on disk in ``rows_path``."""
 
-    def __init__(self, rows_written: int, rows_path: Path):
+    def __init__(self, rows_written: int, rows_path: Path, terminated: bool = False):
         super().__init__(f"{rows_written} rows written to {rows_path}")
         self.rows_written = rows_written
         self.rows_path = rows_path
+        self.terminated = terminated
 
 
 @dataclass(frozen=True)
@@ -254,8 +256,10 @@ def _run_locked(config: BenchConfig, options: RunOptions, out_dir: Path, planned
                     _write(writer, bar, run_item(_work_item(item, remaining, config)))
             else:
                 _run_dask(todo, config, options, workers, writer, bar)
-        except KeyboardInterrupt:
-            raise Interrupted(writer.written, rows_path) from None
+        except KeyboardInterrupt as stop:
+            from esmicp.interrupts import Terminated
+
+            raise Interrupted(writer.written, rows_path, isinstance(stop, Terminated)) from None
         finally:
             bar.close()
         written = writer.written
