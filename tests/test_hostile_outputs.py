@@ -299,3 +299,24 @@ def test_an_interrupt_after_the_outputs_names_them(scans, capsys, monkeypatch):
     last = capsys.readouterr().err.splitlines()[-1]
     assert last == f"esmicp merge: interrupted; written before that: {folder / 'm.ply'}, {folder / 'p.txt'}", last
     assert read_points(folder / "m.ply").shape[0] >= 3 and esmicp.read_poses(folder / "p.txt").poses.shape == (3, 4, 4)
+
+
+def test_a_set_whose_last_file_cannot_be_named_takes_back_the_others(tmp_path):
+    """``published_together``: the files are named at the end; when one cannot be (here another
+    program created it meanwhile, and overwriting was not asked), those already named are taken
+    back: a new one removed, a replaced one restored; no hidden file is left."""
+    from esmicp.errors import OutputExistsError
+    from esmicp.io.atomic import atomic_write, published_together
+
+    (tmp_path / "replaced.txt").write_text("old\n")
+    with pytest.raises(OutputExistsError), published_together():
+        with atomic_write(tmp_path / "replaced.txt", overwrite=True, mode="w") as handle:
+            handle.write("new\n")
+        with atomic_write(tmp_path / "new.txt", mode="w") as handle:
+            handle.write("new\n")
+        with atomic_write(tmp_path / "raced.txt", mode="w") as handle:
+            handle.write("ours\n")
+        (tmp_path / "raced.txt").write_text("theirs\n")  # appears before the set is named
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["raced.txt", "replaced.txt"]
+    assert (tmp_path / "replaced.txt").read_text() == "old\n"
+    assert (tmp_path / "raced.txt").read_text() == "theirs\n"

@@ -27,7 +27,9 @@ What an output path may name (:func:`output_target` decides, before anything is 
 of the same thread finishes its temporary file but does not name it; when the block ends, every
 file is named in one step (Ctrl-C and SIGTERM deferred for those few system calls, the files
 already named removed, or the replaced ones restored, if one fails), then the streams are
-written. If the block raises, no file is named.
+written. If the block raises, no file is named. Restoring uses a hidden hard link to each file
+being replaced (``.<name>.<random>.old``), removed once the set is named: only a kill during those
+system calls could leave one.
 """
 
 from __future__ import annotations
@@ -370,7 +372,7 @@ class _Staged:
         return self.descriptor
 
     def finish(self) -> None:
-        """Flush the finished data to disk; give up the unnamed file where it cannot be named."""
+        """Flush the finished data to disk (before it is named)."""
         if self.stream is not None:
             return
         os.fsync(self.descriptor)
@@ -389,6 +391,14 @@ class _Staged:
                 self.backup = backup
             except OSError:  # no hard links here: this file cannot be restored if a later one fails
                 self.backup = None
+        try:
+            self._name(target)
+        except BaseException:
+            self.commit()  # the old file was not replaced: its extra link goes
+            raise
+        self.created = not existed
+
+    def _name(self, target: Path) -> None:
         if self.temporary is None:
             try:
                 _publish_unnamed(self.descriptor, target, self.overwrite)
@@ -403,7 +413,6 @@ class _Staged:
         if self.temporary is not None:
             _publish(self.temporary, target, self.overwrite)
             self.temporary = None
-        self.created = not existed
 
     def undo(self) -> None:
         """Take back a publication (the set it belongs to failed)."""
