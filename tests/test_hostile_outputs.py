@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import interruptible_child
+from conftest import interruptible_child, require_module
 
 import esmicp
 from esmicp.cli import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, main
@@ -110,9 +110,9 @@ def test_an_output_that_is_not_a_regular_file_is_refused_before_any_work(scans, 
     """``--force`` renamed a regular file over a FIFO, a device node or a link: now each is refused,
     before any registration, in one line naming it, and stays what it was."""
     if command in ("heatmap", "animate"):
-        pytest.importorskip("matplotlib")
+        require_module("matplotlib", "viz")
     if command in ("view",) or flag == "--view":
-        pytest.importorskip("plotly")
+        require_module("plotly", "viz")
     folder = scans[0].parent
     node = _node(folder, kind, name)
     before = _fingerprint(node)
@@ -216,7 +216,7 @@ def _limited_file_size(limit: int):
 def test_merge_whose_last_output_cannot_be_written_writes_none(scans):
     """Under a file-size limit (1 MB) the cloud and the poses fit, the view (plotly.js inlined,
     about 4 MB) does not: the merge wrote the cloud and the poses, then failed; now it writes none."""
-    pytest.importorskip("plotly")
+    require_module("plotly", "viz")
     folder = scans[0].parent
     argv = [sys.executable, "-m", "esmicp", "merge", *map(str, scans), *MERGE_QUICK, "-o", str(folder / "m.ply"),
             "--poses-out", str(folder / "p.txt"), "--view", str(folder / "v.html")]
@@ -229,7 +229,7 @@ def test_merge_whose_last_output_cannot_be_written_writes_none(scans):
 
 def test_merge_replacing_outputs_restores_them_all_when_one_fails(scans):
     """With --force over older outputs: a failure on the last leaves every older file as it was."""
-    pytest.importorskip("plotly")
+    require_module("plotly", "viz")
     folder = scans[0].parent
     old = {name: f"old {name}\n" for name in ("m.xyz", "p.txt", "v.html")}
     for name, text in old.items():

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import require_module
 
 from esmicp.io import write_points
 from esmicp.shapes import asymmetric_shape
@@ -290,7 +291,7 @@ def test_an_interrupt_cancels_the_jobs_left_on_a_dask_cluster():
     while it waits; SIGTERM's ``Terminated`` is a ``KeyboardInterrupt``) during
     ``register_many(client=...)``: the jobs not finished are cancelled on the cluster, not left
     running for nobody."""
-    distributed = pytest.importorskip("distributed")
+    distributed = require_module("distributed", "dask")
 
     heavy = asymmetric_shape(8000, rng=2)
     pairs = [(heavy + 0.01 * k, heavy) for k in range(1, 7)]
@@ -321,7 +322,7 @@ def test_sigterm_ends_a_bench_on_a_dask_cluster_keeping_its_rows(tmp_path):
     """``esmicp bench --workers 2`` runs on a local Dask cluster of worker processes: SIGTERM to the
     command alone is handled as Ctrl-C (exit status 143, the finished rows kept whole, the way to
     resume printed), and the cluster's processes end with it."""
-    pytest.importorskip("distributed")
+    require_module("distributed", "dask")
     out = tmp_path / "run"
     argv = [sys.executable, "-m", "esmicp", "bench", "--datasets", "synthetic", "--protocols", "copy", "--methods",
             "esm", "--trials", "200", "--points", "400", "--workers", "2", "--no-progress", "--out", str(out)]

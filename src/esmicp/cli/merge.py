@@ -82,7 +82,7 @@ def add_parser(commands) -> None:
                        "line for a scan with no pose; kitti: 12 numbers a line (top 3x4), nan: no pose")
     merge.add_argument("--voxel", type=positive_float, help="voxel size of the merged cloud (cloud units)")
     merge.add_argument("--view", type=output_path, help="write an HTML view of the merged model coloured by scan (more "
-                       "than 12 scans: a colour scale by scan index, the scan's name on hover)")
+                       "than 12 scans: a colour scale by scan index, the scan's name on hover; - for standard output)")
     merge.add_argument("--bin-columns", type=int, choices=(3, 4), metavar="{3,4}",
                        help=".bin scans: float32 values per point (4: KITTI x y z intensity, 3: x y z); "
                        "needed when a file's size fits both")
