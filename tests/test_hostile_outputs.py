@@ -320,3 +320,22 @@ def test_a_set_whose_last_file_cannot_be_named_takes_back_the_others(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["raced.txt", "replaced.txt"]
     assert (tmp_path / "replaced.txt").read_text() == "old\n"
     assert (tmp_path / "raced.txt").read_text() == "theirs\n"
+
+
+@pytest.mark.parametrize("flag", ["--force", "--resume"])
+def test_bench_refuses_a_results_folder_whose_rows_file_is_a_fifo(tmp_path, flag):
+    """``esmicp bench --out DIR --force`` (or ``--resume``) with ``DIR/rows.jsonl`` a FIFO blocked
+    for good reading it: refused in one line, the FIFO left as it was."""
+    out = tmp_path / "run"
+    out.mkdir()
+    rows = _node(out, "fifo", "rows.jsonl")
+    (out / "config.json").write_text("{}\n")
+    argv = [sys.executable, "-m", "esmicp", "bench", "--datasets", "synthetic", "--protocols", "copy", "--methods",
+            "esm", "--trials", "2", "--points", "100", "--workers", "1", "--no-progress", "--out", str(out), flag]
+    try:
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        pytest.fail("esmicp bench blocked on the FIFO")
+    assert done.returncode == EXIT_BAD_INPUT, done.stderr
+    assert done.stderr.splitlines()[-1].startswith(f"esmicp bench: error: {rows}: is a FIFO"), done.stderr
+    assert stat.S_ISFIFO(os.lstat(rows).st_mode)

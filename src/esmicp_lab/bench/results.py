@@ -189,6 +189,11 @@ def check_folder(out_dir: Path, *, resume: bool, force: bool) -> None:
     if out_dir.exists() and not out_dir.is_dir():
         raise InvalidInputError(f"{out_dir}: exists and is not a folder")
     rows = out_dir / ROWS
+    if out_dir.is_dir():
+        from esmicp.io.atomic import output_target
+
+        for name in (ROWS, CONFIG, VERSIONS):  # never opened if a FIFO, a device or a dangling link
+            output_target(out_dir / name, overwrite=True)
     if resume and not rows.exists():
         raise InvalidInputError(f"{rows}: nothing to resume (no rows file); run without --resume")
     existing = [p for p in (rows, out_dir / CONFIG) if p.exists()]
