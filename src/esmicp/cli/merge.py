@@ -58,7 +58,7 @@ class _LibraryDefault(str):
 #: The options that are :func:`esmicp.register_scans` keywords: absent from the parsed arguments
 #: unless given (``argparse.SUPPRESS``), so that the library's own defaults apply.
 LIBRARY_OPTIONS = ("reference", "sequence", "pair_points", "refine_points", "partners", "sequence_neighbours",
-                   "threads", "processes")
+                   "range_images", "threads", "processes")
 
 
 def add_parser(commands) -> None:
@@ -92,6 +92,10 @@ def add_parser(commands) -> None:
     merge.add_argument("--sequence", action="store_true", default=library,
                        help="the scans are given in capture order, consecutive scans close in pose (a walk): "
                        "register neighbours in the order plus loop closures")
+    merge.add_argument("--range-images", action=argparse.BooleanOptionalAction, default=library,
+                       help="every scan is (or, with --no-range-images, is not) a range image seen from its own "
+                       "origin (a depth frame or a LiDAR scan in its sensor frame): the premise of the free-space "
+                       "check. Default: judged per scan from its points")
     merge.add_argument("--skip-bad", action="store_true", help="merge the readable scans when some cannot be read")
     merge.add_argument("--allow-partial", action="store_true",
                        help="exit 0 even when some scans are doubtful or unplaced (default: exit status 3)")

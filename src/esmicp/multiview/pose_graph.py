@@ -37,7 +37,12 @@ def vector_from_pose(T: np.ndarray) -> np.ndarray:
 
 def edge_errors(T_world_i, T_world_j, T_i_j) -> tuple[np.ndarray, np.ndarray]:
     """(rotation errors in degrees, translation errors) of measured ``T_i_j`` against two poses:
-    ``E = T_i_j^-1 T_world_i^-1 T_world_j``; arrays of rigid transforms (..., 4, 4), broadcast."""
+    ``E = T_i_j^-1 T_world_i^-1 T_world_j``; arrays of rigid transforms (..., 4, 4), broadcast.
+
+    The translation error is how far ``E`` moves the origin of frame j: a rotation error moves it
+    by the angle times the origin's distance from the data, so it measures the data's own
+    displacement only when each frame's origin is at its data. :func:`esmicp.register_scans`
+    passes every scan in its centroid frame for that reason."""
     E = rigid_inverse(T_i_j) @ rigid_inverse(T_world_i) @ np.asarray(T_world_j)
     return np.degrees(batched_rotation_angle(E[..., :3, :3])), np.linalg.norm(E[..., :3, 3], axis=-1)
 
@@ -217,6 +222,9 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
     root of its weight in units of ``rotation_scale_deg`` and ``translation_scale``. The cost is
     ``sum log(1 + r^2)`` over the whitened residuals' components (``loss="cauchy"``, scale 1: it
     flattens the pull of edges that disagree) or ``sum r^2`` (``loss="linear"``).
+
+    Translations, and the information matrices' translation parts, are taken at the frames'
+    origins (see :func:`edge_errors`): the merge's frames are its scans' centroid frames.
 
     Levenberg-Marquardt over left increments of the free poses (``R <- exp(phi) R``,
     ``t <- t + rho``), the Jacobian in closed form, the Cauchy loss as weights ``1 / (1 + r^2)``

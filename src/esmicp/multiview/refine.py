@@ -20,6 +20,8 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
            rounds_per_distance: int = 2):
     """``(poses, rmse, residual per scan)`` after refining ``poses`` (``T_world_scan``, modified in
     place) over the pairs ``edges``; ``clouds`` and ``clouds_normals`` in each scan's frame.
+    Each step turns a scan about the world's origin: the merge passes its scans in their centroid
+    frames (the world the reference's), so the steps are well scaled wherever the data lie.
 
     ``distances`` are the correspondence cutoffs (cloud units), each used for
     ``rounds_per_distance`` Gauss-Newton steps. ``rmse`` is the point-to-plane RMS over all

@@ -1,5 +1,11 @@
 """``register_scans()``: many scans into one model, with no initial poses.
 
+0. An exact duplicate of a scan (the same points, in any order) is not registered: it takes its
+   twin's pose and verdict, and confirms nothing. Each scan is registered in its centroid frame
+   (its points minus their centroid), and its poses mapped back to the frame it came in: every
+   translation the merge measures is a displacement at the scan's own points, so a rigid motion
+   of every scan (data in map coordinates 1e6 m away, a turn) changes no verdict, and the poses
+   only by that motion (but the free-space premise, step 5, which is about the frames' origins).
 1. Pairwise, O(N) pairs: with the capture order (``sequence=True``), each scan with its next
    ``sequence_neighbours`` scans, refined locally from the identity (the pairs it leaves
    untrusted searched globally); without, each scan with its
@@ -22,9 +28,11 @@
    a refinement from its own wrong pose).
 4. Joint refinement: all placed scans against each other (multi-view point-to-plane over the
    kept edges, a few rounds with a shrinking correspondence distance).
-5. A free-space check (:mod:`esmicp.trust.free_space`), when the scans are range images
-   from their origins (depth frames, LiDAR scans in their sensor frames): placed scans whose
-   extents overlap must not put surfaces where the other saw empty space. A conflict disproves
+5. A free-space check (:mod:`esmicp.trust.free_space`) between scans that are range images
+   from their origins (depth frames, LiDAR scans in their sensor frames), as declared
+   (``range_images``) or as each scan's own points show
+   (:func:`esmicp.trust.free_space.range_image_test`; never from the poses being judged): placed
+   scans whose extents overlap must not put surfaces where the other saw empty space. A conflict disproves
    an edge between them, and the scans the likeliest wrong edges join to the reference are
    doubtful. This catches wrong edges that agree with each other around every cycle (repeated
    structure). The first time a conflict cuts edges, they are vetoed and steps 2-5 run again:
@@ -37,7 +45,6 @@ from __future__ import annotations
 
 import logging
 import time
-import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Callable
@@ -47,6 +54,7 @@ from scipy.spatial import cKDTree
 
 from ..batch import register_many
 from ..core.features import estimate_normals, voxel_grid
+from ..core.procrustes import skew
 from ..errors import InvalidInputError
 from ..trust import free_space
 from ..types import MIN_POINTS, as_points
@@ -138,9 +146,12 @@ class MultiRegistrationResult:
     ``edges_kept[k]`` kept edges touching it; ``residual[k]`` its RMS point-to-plane residual
     (cloud units) in the last step of the joint refinement (None without one). ``placed[k]`` is
     ``status[k] == "placed"``; ``unplaced`` and ``doubtful`` list those scans' indices.
-    ``pairs_registered``: pairwise registrations run (global and local). ``free_space_check``:
-    ``"applied"``, ``"not range images"`` (the kept edges fail it: the scans are not seen from
-    their origins, so it says nothing) or ``"too few edges"``.
+    ``pairs_registered``: pairwise registrations run (global and local). ``free_space_check``,
+    what the free-space check did: ``"applied"`` (to every placed scan); ``"applied to K of N
+    placed scans; the others are not range images, e.g. scan k: <why>"`` (only pairs of two range
+    images are judged); ``"not range images: ..."`` (fewer than two placed scans are range images
+    seen from their origins, as their points show: not applied); ``"declared off"``
+    (``range_images=False``); ``"too few edges"`` (nothing placed to judge).
     """
 
     poses: np.ndarray
@@ -213,11 +224,90 @@ class MultiRegistrationResult:
 
 
 def _subsample(points: np.ndarray, count: int) -> np.ndarray:
+    """``count`` points of ``points`` (all of them when it has no more), in their input order.
+
+    The subset depends on the scan's shape alone: a rigid motion of the scan, or another place in
+    the input, gives the same subset (the points are ranked by their distance from the centroid,
+    and the ranks drawn by a generator seeded by the point count), so that the merge's verdicts do
+    not depend on where the scans lie or in which order they come."""
     if len(points) <= count:
         return points
-    # Seeded by the content, so a scan gets the same subset wherever it stands in the input.
-    generator = np.random.default_rng(zlib.crc32(np.ascontiguousarray(points).tobytes()))
-    return points[np.sort(generator.choice(len(points), count, replace=False))]
+    centred = points - points.mean(axis=0)
+    rank = np.argsort(np.einsum("ij,ij->i", centred, centred), kind="stable")
+    chosen = np.random.default_rng(len(points)).choice(len(points), count, replace=False)
+    return points[np.sort(rank[chosen])]
+
+
+def _shape_key(points: np.ndarray) -> tuple[int, float]:
+    """A key of a scan's shape that a rigid motion leaves unchanged: its point count and RMS
+    distance from its centroid (the larger scan of a pair is the target, whatever the input order
+    and wherever the scans lie)."""
+    centred = points - points.mean(axis=0)
+    return len(points), float(np.sqrt(np.mean(np.einsum("ij,ij->i", centred, centred))))
+
+
+def _shift(offset: np.ndarray) -> np.ndarray:
+    """The 4x4 translation by ``offset``."""
+    T = np.eye(4)
+    T[:3, 3] = offset
+    return T
+
+
+def _information_moved(information: np.ndarray | None, offset: np.ndarray) -> np.ndarray | None:
+    """An edge's 6x6 information matrix (left perturbation of ``T_i_j`` in frame i, rotation then
+    translation) for frame i moved by ``offset`` (the new frame's coordinates are the old ones plus
+    ``offset``): a perturbation ``(w, v)`` becomes ``(w, v + offset x w)``."""
+    if information is None:
+        return None
+    A_inv = np.eye(6)
+    A_inv[3:, :3] = -skew(np.asarray(offset, dtype=float))
+    return A_inv.T @ np.asarray(information, dtype=float) @ A_inv
+
+
+def _exact_twins(scans: list[np.ndarray], reference: int) -> list[int]:
+    """For every scan, the scan it is an exact duplicate of (the same points, in any order): the
+    reference or else the first of its twins; itself when it has none.
+
+    Scans are grouped by an order-free hash of their points' bits (a sum over the points, so the
+    same points in another order give the same hash), then compared point by point."""
+    groups: dict[tuple, list[int]] = {}
+    for k in [reference] + [k for k in range(len(scans)) if k != reference]:
+        bits = np.ascontiguousarray(scans[k], dtype=np.float64).view(np.uint64)
+        with np.errstate(over="ignore"):
+            mixed = bits * np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9], dtype=np.uint64)
+            row = (mixed[:, 0] ^ (mixed[:, 1] >> np.uint64(17)) ^ (mixed[:, 2] << np.uint64(11))) if len(bits) else mixed[:, 0]
+            digest = int(row.sum(dtype=np.uint64))
+        groups.setdefault((scans[k].shape, digest), []).append(k)
+    twin = list(range(len(scans)))
+    for members in groups.values():
+        if len(members) < 2:
+            continue
+        rows = {k: scans[k][np.lexsort(scans[k].T[::-1])] for k in members}
+        for position, k in enumerate(members):
+            for first in members[:position]:
+                if twin[first] == first and np.array_equal(rows[first], rows[k]):
+                    twin[k] = first
+                    break
+    return twin
+
+
+def _with_twins(result: "MultiRegistrationResult", unique: list[int], twin: list[int]) -> "MultiRegistrationResult":
+    """``result``, a merge of the scans ``unique`` (one of each group of exact duplicates), for
+    every scan: a duplicate gets its twin's pose and verdict, and says so; edges name scans by
+    their input index."""
+    slot = {k: m for m, k in enumerate(unique)}
+    of = [slot[twin[k]] for k in range(len(twin))]
+    status = tuple(result.status[m] for m in of)
+    reasons = tuple(result.reasons[m] if twin[k] == k else
+                    (f"an exact duplicate of scan {twin[k]} (the same points): given its pose and verdict, and not "
+                     f"counted as confirming it",) + tuple(result.reasons[m]) for k, m in enumerate(of))
+    notes = tuple(f"scan {k}: {status[k]}: {'; '.join(reasons[k])}" for k in range(len(twin)) if status[k] != "placed")
+    return replace(
+        result, poses=result.poses[of], reference=unique[result.reference], placed=tuple(result.placed[m] for m in of),
+        unplaced=tuple(k for k in range(len(twin)) if status[k] == "unplaced"),
+        edges=tuple(replace(e, i=unique[e.i], j=unique[e.j]) for e in result.edges), notes=notes, status=status,
+        scan_confidence=tuple(result.scan_confidence[m] for m in of), reasons=reasons,
+        edges_kept=tuple(result.edges_kept[m] for m in of), residual=tuple(result.residual[m] for m in of))
 
 
 class _Stages:
@@ -265,11 +355,12 @@ class _Pairwise:
         self.tried: set[tuple[int, int]] = set()
 
     def orient(self, a: int, b: int) -> tuple[int, int]:
-        """(target, source): in a sequence the earlier scan is the target; otherwise the scan with
-        the smaller content key, so the same two scans give the same edge wherever they stand."""
+        """(target, source): in a sequence the earlier scan is the target; otherwise the larger
+        scan (:func:`_shape_key`: more points, then the larger extent), so that the same two scans
+        give the same edge wherever they stand and however they lie."""
         if self.sequence:
             return (min(a, b), max(a, b))
-        return (a, b) if (self.keys[a], a) <= (self.keys[b], b) else (b, a)
+        return (a, b) if (self.keys[a], -a) >= (self.keys[b], -b) else (b, a)
 
     def _register(self, clouds, oriented, inits, offset, **extra):
         def report(done, _):
@@ -385,36 +476,55 @@ def _solve(edges: list[Edge], reference: int, max_edge_error_deg: float, vetoed:
     return poses, edges
 
 
-def _free_space_conflicts(n, reference, poses, dense, small, edges) -> tuple[dict, dict, str]:
+def _free_space_conflicts(n, reference, poses, dense, small, edges, centres, range_images, premise) -> tuple[dict, dict, str]:
     """(scans a free-space conflict cuts off from the reference, and the edges it cuts, as
-    :func:`cut_off` gives them; what the check did: ``"applied"``, ``"not range images"`` or
-    ``"too few edges"``)."""
+    :func:`cut_off` gives them; what the check did, :attr:`MultiRegistrationResult.free_space_check`).
+
+    ``poses``, ``dense`` and ``small`` are in the scans' centroid frames; ``centres[k]`` is scan
+    k's centroid in its own frame, where its sensor is when it is a range image. ``range_images``:
+    True or False as declared, None to test each posed scan (:func:`free_space.range_image_test`,
+    on the subset the check uses, in the scan's own frame; the tests are kept in ``premise``, scan
+    -> test, across calls). Only pairs of two range images are judged."""
+    if range_images is False:
+        return {}, {}, "declared off"
     kept = [e for e in edges if e.kept and e.i in poses and e.j in poses]
-    if len(kept) < 3:
+    if not kept:
         return {}, {}, "too few edges"
     tolerance = free_space.TOLERANCE_INLIERS * float(np.median([e.inlier_distance for e in kept]))
     posed = sorted(poses)
     # on threads: the KD-tree builds and queries release the GIL
     with ThreadPoolExecutor() as pool:
-        points = dict(zip(posed, pool.map(lambda k: _subsample(dense[k], free_space.CHECK_POINTS), posed)))
-        views = dict(zip(posed, pool.map(lambda k: free_space.RangeView(points[k]), posed)))
+        # each scan in its own frame (the sensor at the origin), and its pose from there
+        points = dict(zip(posed, pool.map(lambda k: _subsample(dense[k], free_space.CHECK_POINTS) + centres[k], posed)))
+        if range_images is None:
+            todo = [k for k in posed if k not in premise]
+            premise.update(zip(todo, pool.map(lambda k: free_space.range_image_test(points[k]), todo)))
+            seen = [k for k in posed if premise[k].range_image]
+        else:
+            seen = posed
+        if len(seen) < 2:
+            first = next(k for k in posed if not premise[k].range_image)
+            others = len(posed) - len(seen)
+            return {}, {}, (f"not range images: {others} of {len(posed)} placed scans are not, e.g. scan {first}: "
+                            f"{premise[first].reason}")
+        world = {k: poses[k] @ _shift(-centres[k]) for k in seen}
+        views = dict(zip(seen, pool.map(lambda k: free_space.RangeView(points[k]), seen)))
 
         def fractions(pairs):
             return dict(zip(pairs, pool.map(
-                lambda pair: free_space.pair_free_space(views, points, poses, *pair, tolerance), pairs)))
+                lambda pair: free_space.pair_free_space(views, points, world, *pair, tolerance), pairs)))
 
-        on_kept = fractions(sorted({(min(e.i, e.j), max(e.i, e.j)) for e in kept}))
-        judged = [f for f in on_kept.values() if f is not None]
-        if len(judged) < 3:
-            return {}, {}, "too few edges"
-        if not free_space.applies(judged):
-            return {}, {}, "not range images"
-        near = candidates.near_pairs(posed, candidates.world_extents(poses, small), set(on_kept),
+        on_kept = fractions(sorted({(min(e.i, e.j), max(e.i, e.j)) for e in kept if e.i in world and e.j in world}))
+        near = candidates.near_pairs(seen, candidates.world_extents({k: poses[k] for k in seen}, small), set(on_kept),
                                      VISIBILITY_PARTNERS)
         measured = {**on_kept, **fractions(near)}
     conflicts = [(a, b, f) for (a, b), f in sorted(measured.items()) if f is not None and f > free_space.MAX_FREE_SPACE]
     cut, removed = cut_off(n, reference, [(e.i, e.j, e.confidence) for e in kept], conflicts)
-    return cut, removed, "applied"
+    if len(seen) == len(posed):
+        return cut, removed, "applied"
+    first = next(k for k in posed if k not in seen)
+    return cut, removed, (f"applied to {len(seen)} of {len(posed)} placed scans; the others are not range images, "
+                          f"e.g. scan {first}: {premise[first].reason}")
 
 
 def _veto_reasons(removed: dict) -> dict:
@@ -440,6 +550,7 @@ def register_scans(
     sequence_neighbours: int = 2,
     max_edge_error_deg: float = 2.0,
     refine_rounds: int = 6,
+    range_images: bool | None = None,
     threads: int | None = None,
     processes: int | None = None,
     client=None,
@@ -478,6 +589,12 @@ def register_scans(
         inconsistent.
     refine_rounds : int
         Correspondence distances of the joint refinement (each used for two Gauss-Newton steps).
+    range_images : bool or None
+        Whether every scan is a range image seen from its own origin (a depth-camera frame or a
+        LiDAR scan in its sensor frame), the premise of the free-space check: True or False as
+        you know it; None (default) to judge each scan from its own points
+        (:func:`esmicp.trust.free_space.range_image_test`). Only pairs of two range images are
+        checked; :attr:`MultiRegistrationResult.free_space_check` says what was done.
     threads, processes, client
         Where the pairwise registrations run, as in :func:`esmicp.register_many`: by default a
         thread pool on every core (works from any script, no ``__main__`` guard needed); or a
@@ -538,19 +655,48 @@ def register_scans(
                                ("partners", partners, 1), ("sequence_neighbours", sequence_neighbours, 1)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
             raise InvalidInputError(f"{name}: expected a whole number >= {least}, got {value!r}")
+    if range_images is not None and not isinstance(range_images, (bool, np.bool_)):
+        raise InvalidInputError(f"range_images: expected True, False or None, got {range_images!r}")
+    range_images = None if range_images is None else bool(range_images)
     reference = int(reference)
-    small = [_subsample(s, pair_points) for s in scans]
-    dense = [_subsample(s, refine_points) for s in scans]
-    keys = [zlib.crc32(np.ascontiguousarray(s).tobytes()) for s in scans]
-    run_options = {"threads": threads, "processes": processes, "client": client, **register_kwargs}
     if progress is not None and not callable(progress):
         raise InvalidInputError(f"progress: expected a callable(stage, done, total), got {type(progress).__name__}")
+    twin = _exact_twins(scans, reference)
+    # an exact duplicate confirms nothing: the merge runs on one scan of each group of twins
+    unique = [k for k in range(n) if twin[k] == k]
+    result = _merge([scans[k] for k in unique], unique.index(reference), sequence=bool(sequence),
+                    pair_points=pair_points, refine_points=refine_points, partners=partners,
+                    sequence_neighbours=sequence_neighbours, max_edge_error_deg=max_edge_error_deg,
+                    refine_rounds=refine_rounds, range_images=range_images, progress=progress,
+                    run_options={"threads": threads, "processes": processes, "client": client, **register_kwargs})
+    if len(unique) < n:
+        result = _with_twins(result, unique, twin)
+    for note in result.notes:
+        logger.warning("register_scans: %s", note)
+    return replace(result, runtime_s=time.perf_counter() - start)
+
+
+def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, pair_points: int, refine_points: int,
+           partners: int, sequence_neighbours: int, max_edge_error_deg: float, refine_rounds: int,
+           range_images: bool | None, progress, run_options: dict) -> MultiRegistrationResult:
+    """:func:`register_scans` on checked arguments, of scans no two of which are exact duplicates."""
+    n = len(scans)
+    # Each scan is registered in its centroid frame (its points minus their centroid): every
+    # translation the merge measures (an edge's disagreement with the poses, the pose graph's
+    # residuals, the joint refinement's steps) is then a displacement at the scan's own points,
+    # whatever the origin of the frame it was given in; the poses are mapped back at the end.
+    centres = [s.mean(axis=0) if len(s) else np.zeros(3) for s in scans]
+    centred = [s - c for s, c in zip(scans, centres)]
+    small = [_subsample(s, pair_points) for s in centred]
+    dense = [_subsample(s, refine_points) for s in centred]
+    keys = [_shape_key(s) for s in centred]
     stages = _Stages(progress)
-    pairwise = _Pairwise(small, dense, keys, bool(sequence), run_options, stages)
+    pairwise = _Pairwise(small, dense, keys, sequence, run_options, stages)
 
     unlike = None  # the scans' descriptor distances (candidates.descriptor_distances), when asked for
     if sequence:
-        pairwise.run([(i, j, np.eye(4)) for i, j in candidates.sequence_pairs(n, sequence_neighbours)])
+        # from the identity in the frames given: a shift between the centroid frames
+        pairwise.run([(i, j, _shift(centres[j] - centres[i])) for i, j in candidates.sequence_pairs(n, sequence_neighbours)])
         retry = [(e.i, e.j, None) for e in pairwise.edges.values() if not e.trusted]
         pairwise.run(retry, "pairs (global retry)")  # a pair the identity start did not bring to trust: globally
     elif n > 1:
@@ -559,6 +705,7 @@ def register_scans(
         first = {(min(i, j), max(i, j)) for i in range(n) for j in ranked[i][:partners]}
         pairwise.run([(i, j, None) for i, j in sorted(first)])
     vetoed: dict[tuple[int, int], str] = {}  # edges cut by a free-space conflict -> why
+    premise: dict[int, free_space.RangeImageTest] = {}  # posed scans' range-image tests, made once
 
     def solve():
         stages.open("pose graph", 1)
@@ -612,7 +759,8 @@ def register_scans(
         # on the refined poses (the graph's alone drift along a walk and conflict falsely): the
         # edges a conflict disproves are cut once, and the scans they placed searched again
         stages.open("free-space check", 1)
-        conflicted, removed, checked = _free_space_conflicts(n, reference, poses, dense, small, edges)
+        conflicted, removed, checked = _free_space_conflicts(n, reference, poses, dense, small, edges, centres,
+                                                             range_images, premise)
         stages.close()
         if not removed or attempt == 1:
             break
@@ -620,18 +768,19 @@ def register_scans(
         poses, edges = solve()
 
     verdicts = scan_verdicts(n, reference, set(poses), edges, conflicted)
+    # back to the frames given: T_world_k = C_reference T'_world_k C_k^-1, T_i_j = C_i T'_i_j C_j^-1
     all_poses = np.full((n, 4, 4), np.nan)
     for k, T in poses.items():
-        all_poses[k] = T
+        all_poses[k] = _shift(centres[reference]) @ T @ _shift(-centres[k])
     all_poses[reference] = np.eye(4)
+    edges = [replace(e, T_i_j=_shift(centres[e.i]) @ e.T_i_j @ _shift(-centres[e.j]),
+                     information=_information_moved(e.information, centres[e.i])) for e in edges]
     status = tuple(v.status for v in verdicts)
     notes = tuple(f"scan {k}: {v.status}: {'; '.join(v.reasons)}" for k, v in enumerate(verdicts)
                   if v.status != "placed")
-    for note in notes:
-        logger.warning("register_scans: %s", note)
     return MultiRegistrationResult(
         all_poses, reference, tuple(s == "placed" for s in status),
-        tuple(k for k in range(n) if status[k] == "unplaced"), tuple(edges), time.perf_counter() - start,
+        tuple(k for k in range(n) if status[k] == "unplaced"), tuple(edges), 0.0,
         rmse, notes, status=status, scan_confidence=tuple(v.confidence for v in verdicts),
         reasons=tuple(v.reasons for v in verdicts), edges_kept=tuple(v.edges_kept for v in verdicts),
         residual=tuple(residual.get(k) for k in range(n)), pairs_registered=pairwise.done,
