@@ -24,6 +24,13 @@ same order:
   the pairwise chain.
 - ``newer-college``: 5 LiDAR scans of ``real_pairs/newer_college_01`` (ground truth
   ``graph.txt``), listed order. Methods: ``register_scans``, Open3D multiway, the pairwise chain.
+- ``bunny-off-sensor``: the bunny's 10 raw scans moved into their scanner's frame, then each
+  0.1-0.3 m and 5-20 degrees off it (:mod:`esmicp_lab.bench.off_sensor`, seeded by ``--seed``),
+  shuffled. ``turntable``: 15 range scans of the bunny's mesh (``bunny/bun_zipper.ply``) on a
+  turntable turning 24 degrees at a time, stored in the turntable's frame, shuffled. Scans stored
+  off their sensors' frames; the same methods as ``newer-college``. Their frames' origins are
+  0.1-1.3 m from the data, so the translation errors (at the origins) carry the rotation errors'
+  lever arm.
 
 The pairwise chain: the N-1 neighbouring pairs registered one at a time with
 ``esmicp.register`` at its defaults (the walk: consecutive frames; the bunny: the spanning tree of
@@ -70,7 +77,7 @@ from esmicp_lab.bench.merge import cell as _f
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import merge_open3d  # noqa: E402  (a sibling module of this script)
 
-DATASETS = ("bunny", "kitchen", "newer-college")
+DATASETS = ("bunny", "kitchen", "newer-college", "bunny-off-sensor", "turntable")
 
 
 def shared_data() -> Path:
@@ -90,6 +97,33 @@ def bunny(seed: int, max_points: int | None = None) -> Dataset:
                    files=[folder / f"{n}.ply" for n in names])
     data.tree = overlap_tree(clouds, truth, data.reference, radius=0.002)
     return data
+
+
+def _off_sensor(name: str, title: str, names, clouds, truth, reference_name: str, seed: int) -> Dataset:
+    order = [int(k) for k in np.random.default_rng(seed).permutation(len(names))]
+    names, clouds, truth = [names[k] for k in order], [clouds[k] for k in order], np.array([truth[k] for k in order])
+    data = Dataset(name, f"{title}, shuffled (seed {seed})", names, clouds, truth, names.index(reference_name), "mm",
+                   1000.0, (1.0, 0.002))
+    data.tree = overlap_tree(clouds, truth, data.reference, radius=0.002)
+    return data
+
+
+def bunny_off_sensor(seed: int) -> Dataset:
+    from esmicp_lab.bench.off_sensor import bunny_in_scanner_frames, moved_off
+
+    names, clouds, truth = bunny_in_scanner_frames(shared_data() / "bunny_scans")
+    clouds, truth = moved_off(clouds, truth, rng=seed)
+    return _off_sensor("bunny-off-sensor", "Stanford bunny, 10 raw scans 0.1-0.3 m and 5-20 deg off their scanner's "
+                       "frame", names, clouds, truth, "bun000", seed)
+
+
+def turntable(seed: int) -> Dataset:
+    from esmicp_lab.bench.off_sensor import turntable_scans
+
+    (clouds, truth), _ = turntable_scans(read_points(shared_data() / "bunny" / "bun_zipper.ply"), 15)
+    names = [f"turn{24 * k:03d}" for k in range(15)]
+    return _off_sensor("turntable", "15 range scans of the bunny's mesh on a turntable, 24 deg apart, in the "
+                       "turntable's frame", names, clouds, truth, "turn000", seed)
 
 
 def kitchen(frames: int, step: int = 1) -> Dataset:
@@ -236,7 +270,7 @@ def run_open3d_walk(data: Dataset, loop_gap: int, loop_stride: int) -> Run:
 
 
 #: Open3D downsampling voxel of the multiway tutorial per data set (its 2 cm is for rooms; the bunny is 15 cm).
-MULTIWAY_VOXEL = {"bunny": 0.002, "newer-college": 0.2}
+MULTIWAY_VOXEL = {"bunny": 0.002, "newer-college": 0.2, "bunny-off-sensor": 0.002, "turntable": 0.002}
 
 
 # -- running ---------------------------------------------------------------------------------
@@ -291,6 +325,10 @@ def load(name: str, args) -> Dataset:
         return bunny(args.seed, args.bunny_points)
     if name == "kitchen":
         return kitchen(args.frames, args.frame_step)
+    if name == "bunny-off-sensor":
+        return bunny_off_sensor(args.seed)
+    if name == "turntable":
+        return turntable(args.seed)
     return newer_college()
 
 
