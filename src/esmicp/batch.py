@@ -27,7 +27,7 @@ from typing import Callable, Iterable, Sequence
 
 from .errors import InvalidInputError
 from .interrupts import stops_pool_on_interrupt
-from .pools import pool_error, process_pool
+from .pools import pool_error, process_pool, quiet_pool_teardown
 from .result import RegistrationResult
 
 logger = logging.getLogger(__name__)
@@ -158,7 +158,7 @@ def register_many(
         else:
             pool = ThreadPoolExecutor(size, thread_name_prefix="esmicp-register")
         # Ctrl-C: the queued jobs cancelled and worker processes ended at once, not after their jobs.
-        with pool, stops_pool_on_interrupt(pool):
+        with quiet_pool_teardown(), pool, stops_pool_on_interrupt(pool):
             futures = {
                 pool.submit(_register_one, i, source, target, kwargs, init): i
                 for i, ((source, target), init) in enumerate(zip(items, inits))

@@ -28,12 +28,14 @@ import signal
 import sys
 import threading
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from concurrent.futures.process import BrokenProcessPool
 
 from .errors import PoolError
 from .interrupts import ignore_interrupts
 
-__all__ = ["PARENT_POLL_S", "PoolError", "fit_address_space_limit", "pool_error", "process_pool", "start_worker"]
+__all__ = ["PARENT_POLL_S", "PoolError", "fit_address_space_limit", "pool_error", "process_pool", "quiet_pool_teardown",
+           "start_worker"]
 
 #: Seconds between a worker's checks that its parent is alive, where the kernel cannot tell it
 #: (not Linux).
@@ -150,3 +152,23 @@ def pool_error(what: str, error: BrokenProcessPool) -> PoolError:
         f"{what}: a worker process ended abruptly: in a script, the workers re-run its top level, which must be "
         f"guarded by `if __name__ == \"__main__\":` (or {_USE_THREADS}); else the system may have ended it (out of "
         "memory)")
+
+
+@contextmanager
+def quiet_pool_teardown():
+    """While a pool runs: an ``OSError`` raised in the standard library's process-pool manager thread
+    as it tears down a pool whose worker ended (CPython closes a queue's pipe twice there, a race
+    seen under load) is not printed as a thread traceback; the caller reports the broken pool once,
+    as :class:`PoolError` (:func:`pool_error`). Every other thread exception is printed as before."""
+    previous = threading.excepthook
+
+    def hook(args):
+        if isinstance(args.exc_value, OSError) and type(args.thread).__module__ == "concurrent.futures.process":
+            return
+        previous(args)
+
+    threading.excepthook = hook
+    try:
+        yield
+    finally:
+        threading.excepthook = previous
