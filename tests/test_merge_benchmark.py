@@ -57,11 +57,27 @@ def test_evaluate_counts_wrong_doubtful_and_unplaced_scans():
     assert (result["placed"], result["doubtful"], result["unplaced"]) == (3, 1, 1)
     assert result["wrong"] == 2 and result["silently_wrong"] == 1
     assert result["worst_rotation_deg"] == pytest.approx(20.0, abs=1e-6)
-    # The errors are of the scans reported placed: the doubtful one's 50 cm is not among them.
-    assert result["worst_translation"] < 1e-9
+    # The errors are of the scans reported placed: the doubtful one's 50 cm is not among them; the
+    # turned scan's is where its centroid went.
+    centroid = np.asarray(data.clouds[2], dtype=np.float64).mean(axis=0)
+    assert result["worst_translation"] == pytest.approx(np.linalg.norm(turn[:3, :3] @ centroid - centroid), abs=1e-9)
     assert result["rpe_pairs"] == 2  # (0,1), (1,2): frame 3 is doubtful, frame 4 unplaced
     table = "\n".join(merge.dataset_table({"unit": "cm", "scale": 100.0, "results": {"api": {"method": "x"} | result}}))
     assert "| 3 / 1 / 1 | 2 (1) | 20.00 |" in table
+
+
+def test_a_scan_turned_about_its_centroid_far_from_its_origin_is_off_by_its_rotation_only():
+    data = _toy()
+    data.clouds[2] = data.clouds[2] + [0.0, 0.0, 50.0]  # stored 50 m from its frame's origin
+    centroid = data.clouds[2].mean(axis=0)
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec([0, np.radians(2.0), 0]).as_matrix()
+    turn[:3, 3] = centroid - turn[:3, :3] @ centroid  # about the scan's own centroid
+    poses = data.truth.copy()
+    poses[2] = poses[2] @ turn
+    result = merge.evaluate(data, merge.Run("turned", poses, 1.0, ["placed"] * 5))
+    assert result["worst_rotation_deg"] == pytest.approx(2.0, abs=1e-6)
+    assert result["worst_translation"] < 1e-9
 
 
 def test_a_walk_is_judged_after_the_best_fit_not_from_the_reference():

@@ -109,7 +109,9 @@ def read_poses_file(path: Path, count: int) -> tuple[np.ndarray, list[str] | Non
 
 
 def evaluate(data: Dataset, run: Run) -> dict:
-    """Every figure of one run against the truth (translations in cloud units; see ``data.scale``)."""
+    """Every figure of one run against the truth (translations in cloud units; see ``data.scale``): a
+    scan's translation error is the displacement of its centroid, so it does not depend on where the
+    scan's frame has its origin."""
     if run.poses is None:
         return {"supported": False, "note": run.note}
     count = len(data.clouds)
@@ -124,7 +126,11 @@ def evaluate(data: Dataset, run: Run) -> dict:
             estimate = estimated_reference @ run.poses[k]
             true = true_reference @ data.truth[k]
             rotation[k] = rotation_error_deg(estimate, true)
-            translation[k] = float(np.linalg.norm(estimate[:3, 3] - true[:3, 3]))
+            # where the scan lies, not where its frame's origin does: a scan stored far from its
+            # origin (a turntable frame, a sensor 1 m away) would turn a rotation error into a shift
+            centroid = np.asarray(data.clouds[k], dtype=np.float64).mean(axis=0)
+            translation[k] = float(np.linalg.norm((estimate[:3, :3] - true[:3, :3]) @ centroid
+                                                  + estimate[:3, 3] - true[:3, 3]))
     others = [k for k in range(count) if k != data.reference]
     posed = [k for k in others if np.isfinite(rotation[k])]
     measured = [k for k in posed if status[k] == "placed"]  # the errors: of the scans reported placed
