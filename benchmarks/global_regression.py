@@ -33,7 +33,7 @@ Sets (``--sets``, comma-separated):
 
 Each registration is ``esmicp.register(source, target, rng=seed)`` with every default (``workers=1``)
 but for ``kitchen-far``'s ``range_images=True``.
-Writes one JSON line per registration (pose, success, confidence, trusted, ambiguous,
+Writes one JSON line per registration (pose, success, converged, confidence, trusted, ambiguous,
 runner_up_ratio, where the pose came from, time) to ``--out``. ``--compare BEFORE.jsonl`` instead
 compares two such files: the rows whose pose moved, whose success changed, and the totals.
 
@@ -83,8 +83,9 @@ def _record(name: str, source, target, seed: int, judge, **options) -> dict:
     started = time.perf_counter()
     result = esmicp.register(source, target, rng=seed, workers=1, **options)
     elapsed = time.perf_counter() - started
-    row = {"row": name, "seed": seed, "time_s": elapsed, "init": result.init,
-           "confidence": result.confidence, "trusted": result.trusted, "ambiguous": result.ambiguous,
+    row = {"row": name, "seed": seed, "time_s": elapsed, "init": result.init, "converged": result.converged,
+           "iterations": result.num_iterations, "confidence": result.confidence, "trusted": result.trusted,
+           "ambiguous": result.ambiguous,
            "runner_up_ratio": result.runner_up_ratio, "candidates": result.global_candidates,
            "transformation": result.transformation.tolist(),
            "degenerate": len(result.degenerate_directions)}
@@ -238,22 +239,33 @@ def compare(before_path: Path, after_path: Path) -> str:
         a, b = np.array(old["transformation"]), np.array(new["transformation"])
         turn = float(np.degrees(rotation_angle(a[:3, :3].T @ b[:3, :3])))
         shift = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
-        if turn > 1e-6 or shift > 1e-9 * max(1.0, float(np.abs(a[:3, 3]).max())) or old["success"] != new["success"]:
+        if turn > 1e-6 or shift > 1e-9 * max(1.0, float(np.abs(a[:3, 3]).max())) or old["success"] != new["success"] \
+                or old["trusted"] != new["trusted"]:
             moved += 1
             lines.append(f"{name}: pose moved {turn:.3g} deg / {shift:.3g}; success {old['success']} -> "
-                         f"{new['success']}; confidence {old['confidence']:.3f} -> {new['confidence']:.3f}")
+                         f"{new['success']}; confidence {old['confidence']:.3f} -> {new['confidence']:.3f}; "
+                         f"trusted {old['trusted']} -> {new['trusted']}")
     groups: dict[str, list] = {}
     for name in after:
         if name in before:
             groups.setdefault("/".join(name.split("/")[:2]), []).append(name)
     lines.append("")
-    lines.append("| group | rows | success before | success after | time after / before |")
-    lines.append("|---|---|---|---|---|")
+    lines.append("| group | rows | success before | success after | trusted (wrong) before | trusted (wrong) after "
+                 "| time after / before | median time after / before |")
+    lines.append("|---|---|---|---|---|---|---|---|")
+
+    def trusted(rows, names):
+        return (f"{sum(bool(rows[n]['trusted']) for n in names)} "
+                f"({sum(bool(rows[n]['trusted']) and not rows[n]['success'] for n in names)})")
+
     for group, names in groups.items():
         ok_before = sum(before[n]["success"] for n in names)
         ok_after = sum(after[n]["success"] for n in names)
         ratio = sum(after[n]["time_s"] for n in names) / max(sum(before[n]["time_s"] for n in names), 1e-12)
-        lines.append(f"| {group} | {len(names)} | {ok_before} | {ok_after} | {ratio:.2f} |")
+        median = (float(np.median([after[n]["time_s"] for n in names]))
+                  / max(float(np.median([before[n]["time_s"] for n in names])), 1e-12))
+        lines.append(f"| {group} | {len(names)} | {ok_before} | {ok_after} | {trusted(before, names)} "
+                     f"| {trusted(after, names)} | {ratio:.2f} | {median:.2f} |")
     ratios = [after[n]["runner_up_ratio"] for n in after if after[n]["runner_up_ratio"] is not None]
     lines.append(f"\nrows moved: {moved} of {len(after)}; largest runner_up_ratio after: "
                  f"{max(ratios) if ratios else None}")

@@ -418,3 +418,18 @@ def test_merge_progress_shows_one_bar_per_stage_with_its_label_and_total(capsys,
     for stage, _, total in STAGES:
         assert f"{stage}" in err and f"{total}/{total}" in err
     assert "4/4" in err.split("pose graph")[0]  # the pairs' bar ends full before the next stage
+
+
+def test_register_min_confidence_refuses_a_run_stopped_before_it_converged(pair, capsys):
+    """A refinement cut short by ``--max-iterations`` is not trusted however sharp its overlap: the
+    summary says NOT CONVERGED and ``--min-confidence`` exits 3, whatever bar is asked for."""
+    source, target, _, _ = pair
+    argv = ("register", str(source), str(target), "--init", "identity", "--method", "icp", "--max-iterations", "12")
+    code, out, err = run(capsys, *argv, "--json")
+    assert code == 0, err
+    assert json.loads(out)["converged"] is False and json.loads(out)["trusted"] is False
+    code, out, err = run(capsys, *argv)
+    assert code == 0 and "NOT CONVERGED" in out
+    for bar in ((), ("0",)):
+        code, _, err = run(capsys, *argv, "--min-confidence", *bar)
+        assert code == 3 and "not converged" in err

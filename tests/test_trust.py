@@ -40,3 +40,45 @@ def test_the_trace_caption_says_why_a_sharp_pose_is_not_trusted():
     trace = trace_registration(source, target, init="identity", per_point=False)
     assert trace.result.confidence >= 0.55
     assert "not trusted: translation along x (target frame) is poorly constrained" in trace.label
+
+
+def test_a_run_stopped_before_its_tolerance_is_never_trusted():
+    """However sharply the clouds already coincide, a refinement cut short by ``max_iterations`` may
+    still be degrees from where it was heading: it is not trusted, and ``doubts()`` says so; the
+    same run let to converge is."""
+    from esmicp.core.procrustes import apply, to_matrix
+    from esmicp.globalreg.scan import TRUSTED
+    from esmicp.metrics import random_rotation
+    from esmicp.shapes import asymmetric_shape
+
+    rng = np.random.default_rng(7)
+    target = asymmetric_shape(1500, rng)
+    source = apply(to_matrix(random_rotation(rng, 20.0), [0.1, -0.2, 0.05]), asymmetric_shape(1500, rng))
+    sharp_but_cut_short = 0
+    for method in ("icp", "esm"):
+        for iterations in (8, 12, 20):
+            result = esmicp.register(source, target, init="identity", method=method, max_iterations=iterations,
+                                     workers=1)
+            assert not result.converged, (method, iterations)
+            assert not result.trusted
+            assert any("not converged" in reason for reason in result.doubts())
+            sharp_but_cut_short += result.confidence >= TRUSTED
+        settled = esmicp.register(source, target, init="identity", method=method, workers=1)
+        assert settled.converged and settled.trusted, (method, settled.doubts())
+    assert sharp_but_cut_short  # the rule, not the confidence, is what refuses them
+
+
+@pytest.mark.parametrize("method", ["icp", "esm"])
+def test_the_bunny_scan_cut_short_is_not_trusted(method):
+    """``bun045`` onto ``bun000`` from the identity, cut at 10 iterations: a few degrees off with the
+    confidence at its top, so only the convergence can refuse it."""
+    from conftest import require_shared
+    from esmicp.io.stanford_conf import load_scans
+
+    scans = load_scans(require_shared("bunny_scans"))
+    (source, world_source), (target, world_target) = scans["bun045"], scans["bun000"]
+    truth = np.linalg.inv(world_target) @ world_source
+    result = esmicp.register(source, target, init="identity", method=method, max_iterations=10, workers=1)
+    rotation, _ = pair_errors(result.transformation, truth)
+    assert rotation > 1.0 and not result.converged  # the case the rule exists for
+    assert not result.trusted and result.doubts()[0].startswith("not converged")

@@ -188,7 +188,9 @@ class RegistrationResult:
 
     @property
     def trusted(self) -> bool:
-        """True when nothing casts doubt on the pose (:meth:`doubts` is empty): ``confidence``
+        """True when nothing casts doubt on the pose (:meth:`doubts` is empty): the refinement
+        ``converged`` (a run stopped by ``max_iterations``, a callback or a problem may still be
+        degrees from where it was heading, however sharply the clouds already coincide), ``confidence``
         reaches the trust bar (:data:`esmicp.trust.confidence.TRUSTED`), the result is not
         ``ambiguous``, the overlap constrains the pose in every direction (no
         ``degenerate_directions``: a floor or a wall seen alone, or a corridor, lets the pose slide
@@ -220,6 +222,9 @@ class RegistrationResult:
             bar = value
 
         reasons = []
+        if not self.converged:
+            reasons.append(f"not converged: the refinement stopped after {self.num_iterations} iteration(s) "
+                           f"before reaching its tolerance, so the pose may still be moving")
         if self.confidence is None:
             reasons.append("no overlap confidence")
         elif self.confidence < bar:

@@ -95,9 +95,9 @@ def add_parser(commands) -> None:
     reg.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     reg.add_argument(
         "--min-confidence", type=_confidence_bar, nargs="?", const="trusted", metavar="X",
-        help="exit with status 3 when the overlap confidence is below X (0-1), or the pose is ambiguous "
-        "(another pose fits almost as well), degenerate (the overlap lets it slide) or fails the --range-images "
-        "test (RegistrationResult.doubts); without X, or 'trusted': the library's trust bar "
+        help="exit with status 3 when the overlap confidence is below X (0-1), or the refinement did not converge, "
+        "or the pose is ambiguous (another pose fits almost as well), degenerate (the overlap lets it slide) or "
+        "fails the --range-images test (RegistrationResult.doubts); without X, or 'trusted': the library's trust bar "
         "(RegistrationResult.trusted). For scripts: 'esmicp register A B --min-confidence && ...'",
     )
     reg.add_argument(
@@ -162,8 +162,9 @@ def _run_register(args) -> int:
 
 def _status(result, bar: float | str | None) -> int:
     """``EXIT_UNTRUSTED`` (with one line on stderr) when ``--min-confidence`` was given and the pose
-    is in doubt (:meth:`~esmicp.result.RegistrationResult.doubts` against ``bar``: the confidence
-    below it, the pose ambiguous, degenerate or failing the free-space test); else ``EXIT_OK``."""
+    is in doubt (:meth:`~esmicp.result.RegistrationResult.doubts` against ``bar``: the refinement
+    not converged, the confidence below it, the pose ambiguous, degenerate or failing the free-space
+    test); else ``EXIT_OK``."""
     if bar is None:
         return EXIT_OK
     bar = trust_bar() if bar == "trusted" else bar
@@ -189,6 +190,9 @@ def verdict(result) -> str:
                 f"{result.runner_up_ratio:.3f}; do not trust this pose: the object may be symmetric or the "
                 "overlap too small to tell)")
     doubts = result.doubts()
+    if not result.converged:
+        return (f"{text} (>= {bar:g}, but NOT CONVERGED: {'; '.join(doubts)}; do not trust this pose: the "
+                "refinement stopped before it settled, raise --max-iterations)")
     if result.degenerate_directions:
         return (f"{text} (>= {bar:g}, but DEGENERATE: {'; '.join(doubts)}; do not trust this pose: the overlap "
                 "lets it slide or turn there)")

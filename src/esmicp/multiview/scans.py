@@ -392,7 +392,12 @@ class _Pairwise:
         checked = self._register(self.dense, [oriented[n] for n in group], [found[n].transformation for n in group],
                                  2 * len(requests) - len(group), max_iterations=CHECK_ITERATIONS)
         self.stages.close()
-        outcomes.update(zip(group, checked))
+        for n, check in zip(group, checked):
+            if hasattr(check, "transformation"):
+                # the check's cap is this function's own budget, not a run cut short: the pair has
+                # converged when the run that found its pose did
+                check = replace(check, converged=found[n].converged)
+            outcomes[n] = check
         new = []
         for n, (i, j) in enumerate(oriented):
             edge = self._edge(i, j, outcomes[n], LOCAL if inits[n] is not None else GLOBAL)
