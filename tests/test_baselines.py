@@ -30,6 +30,7 @@ GLOBAL = {
     "open3d-ransac-fpfh-p2l": ("open3d",),
     "kiss-matcher-icp": ("kiss_matcher", "open3d"),
     "kiss-matcher-p2l": ("kiss_matcher", "open3d"),
+    "kiss-matcher-gicp": ("kiss_matcher", "small_gicp"),
 }
 LOCAL = {"small-gicp": ("small_gicp",)}
 MODULES = {**GLOBAL, **LOCAL}
@@ -103,11 +104,13 @@ def test_small_gicp_is_local_and_refines_a_nearby_pose():
     assert translation_error(result.transformation, truth) < 0.05 * diagonal
 
 
-def test_kiss_matcher_works_in_any_units():
-    # KISS-Matcher itself refuses voxels below 5 mm; the adapter works in voxel units.
-    _require_all("kiss-matcher-icp")
+@pytest.mark.parametrize("method", ["kiss-matcher-icp", "kiss-matcher-gicp"])
+def test_kiss_matcher_works_in_any_units(method):
+    # KISS-Matcher itself refuses voxels below 5 mm; the adapter works in voxel units, and the
+    # refinement's distances follow the voxel.
+    _require_all(method)
     source, target, truth, diagonal = _pair(None, seed=11, scale=0.01)
-    result = get_baseline("kiss-matcher-icp")(source, target)
+    result = get_baseline(method)(source, target)
     assert rotation_error_deg(result.transformation, truth) < 5.0
     assert translation_error(result.transformation, truth) < 0.05 * diagonal
 

@@ -41,6 +41,7 @@ NEEDS = {
     "kiss-matcher-icp": ("kiss_matcher", "open3d"),
     "kiss-matcher-p2l": ("kiss_matcher", "open3d"),
     "kiss-matcher": ("kiss_matcher",),
+    "kiss-matcher-gicp": ("kiss_matcher", "small_gicp"),
     "fgr": ("open3d",),
     "go-icp": ("py_goicp",),
     "dcp-v1": ("torch",),

@@ -106,8 +106,8 @@ def add_parser(commands) -> argparse.ArgumentParser:
         "scan benchmark (--datasets real-pairs and/or partial-overlap; see docs/real-scans.md)",
         "Every global method on the real pairs of a folder (variants as-recorded and turned) and on "
         "ModelNet40 objects cut to 70%% and 50%% (protocols partial-70, partial-50): writes OUT/rows.jsonl and "
-        "OUT/real-scans.md. --methods: esm-global, kiss-matcher-icp, open3d-ransac-fpfh-icp, fgr-icp (default "
-        "all); --protocols: as-recorded, turned, partial-70, partial-50 (default all), and cropped (each real pair "
+        "OUT/real-scans.md. --methods: esm-global, kiss-matcher-icp, kiss-matcher-gicp, open3d-ransac-fpfh-icp, "
+        "fgr-icp (default all); --protocols: as-recorded, turned, partial-70, partial-50 (default all), and cropped (each real pair "
         "cropped by a seeded plane so that 20%% of the source lies on the target, 3DLoMatch's range); --trials: partial trials per fraction "
         "(default 24).",
     )

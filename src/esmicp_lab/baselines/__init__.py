@@ -53,6 +53,7 @@ def _registry() -> tuple[dict[str, Baseline], dict[str, str]]:
         kiss_matcher.NAME_PLANE: (refined(kiss_matcher.register, "point-to-plane"), "global"),
         open3d_ransac.NAME_ALONE: (refined(open3d_ransac.register, "none"), "global"),
         kiss_matcher.NAME_ALONE: (refined(kiss_matcher.register, "none"), "global"),
+        kiss_matcher.NAME_GICP: (refined(kiss_matcher.register, kiss_matcher.GICP), "global"),
         open3d_fgr.NAME: (open3d_fgr.register, "global"),
         go_icp.NAME: (go_icp.register, "global"),
         dcp.NAME: (dcp.register, "global"),

@@ -16,13 +16,19 @@ voxel units, whatever the clouds' units; the pose is mapped back.
 Its pose is refined exactly as in :mod:`esmicp_lab.baselines.open3d_ransac`: point-to-point
 ``registration_icp`` on the full clouds, max correspondence distance ``1.5v``
 (``refinement="point-to-plane"``, registered as ``kiss-matcher-p2l``: point-to-plane ICP;
-``refinement="none"``, registered as ``kiss-matcher``: KISS-Matcher's pose as it is). KISS-Matcher
-draws no random numbers: ``rng`` is accepted for the common interface and unused; a global method,
-it ignores ``init``.
+``refinement="none"``, registered as ``kiss-matcher``: KISS-Matcher's pose as it is).
+
+``refinement="gicp"``, registered as ``kiss-matcher-gicp``: the fast pipeline of both projects'
+documentation, KISS-Matcher then small_gicp's GICP (``small_gicp.align`` from KISS-Matcher's pose,
+downsampling ``v``, its defaults' correspondence distance and tolerances scaled to ``v``:
+:func:`esmicp.baselines.small_gicp.refine_gicp`), on every core (as KISS-Matcher and esmicp's
+defaults run). KISS-Matcher draws no random numbers: ``rng`` is accepted for the common interface
+and unused; a global method, it ignores ``init``.
 """
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -43,6 +49,10 @@ NAME = "kiss-matcher-icp"
 NAME_PLANE = "kiss-matcher-p2l"
 #: The name of KISS-Matcher alone (no refinement).
 NAME_ALONE = "kiss-matcher"
+#: The name of KISS-Matcher refined by small_gicp's GICP.
+NAME_GICP = "kiss-matcher-gicp"
+#: The refinement that hands KISS-Matcher's pose to small_gicp (besides Open3D's).
+GICP = "gicp"
 
 
 def register(
@@ -67,19 +77,22 @@ def register(
         Validated, unused (the method is deterministic).
     max_iterations : int
         Cap on the ICP refinement's iterations.
-    refinement : {"point-to-point", "point-to-plane", "none"}
+    refinement : {"point-to-point", "point-to-plane", "gicp", "none"}
         The ICP that refines the global pose (point-to-plane: target normals from a radius of
-        2 voxels), or none. The result's ``method`` is ``"kiss-matcher-p2l"`` for point-to-plane,
+        2 voxels; gicp: small_gicp's GICP, see the module's docstring), or none. The result's
+        ``method`` is ``"kiss-matcher-p2l"`` for point-to-plane, ``"kiss-matcher-gicp"`` for gicp,
         ``"kiss-matcher"`` for none.
     init : ignored (validated): a global method.
 
     Raises
     ------
     MissingDependencyError
-        When kiss_matcher or open3d cannot be imported.
+        When kiss_matcher, or the refinement's library (open3d, small_gicp), cannot be imported.
     """
     kiss_matcher = require("kiss_matcher", "kiss-matcher")
-    refinement = check_refinement(refinement)
+    gicp = refinement == GICP
+    refinement = "none" if gicp else check_refinement(refinement)
+    small_gicp = require("small_gicp", "small-gicp") if gicp else None
     o3d = None if refinement == "none" else require("open3d", OPEN3D_PACKAGE)
     inputs = checked_inputs(source, target, voxel_size, max_iterations, rng, init)  # seed, init unused
     source_points, target_points, voxel = inputs.source, inputs.target, inputs.voxel
@@ -98,15 +111,21 @@ def register(
     coarse = np.eye(4)
     coarse[:3, :3] = rotation
     coarse[:3, 3] = translation + target_centre - rotation @ source_centre
-    transformation, refinement_note = refine(
-        o3d,
-        None if o3d is None else o3d_cloud(o3d, source_points),
-        None if o3d is None else o3d_cloud(o3d, target_points),
-        coarse,
-        voxel,
-        inputs.max_iterations,
-        refinement,
-    )
+    if gicp:
+        from .small_gicp import refine_gicp
+
+        transformation, _, refinement_note = refine_gicp(small_gicp, source_points, target_points, coarse, voxel,
+                                                         inputs.max_iterations, os.cpu_count() or 1)
+    else:
+        transformation, refinement_note = refine(
+            o3d,
+            None if o3d is None else o3d_cloud(o3d, source_points),
+            None if o3d is None else o3d_cloud(o3d, target_points),
+            coarse,
+            voxel,
+            inputs.max_iterations,
+            refinement,
+        )
     runtime = time.perf_counter() - start
 
     notes = (
@@ -117,7 +136,7 @@ def register(
     return BaselineResult(
         transformation=transformation,
         runtime_s=runtime,
-        method={"point-to-point": NAME, "point-to-plane": NAME_PLANE, "none": NAME_ALONE}[refinement],
+        method=NAME_GICP if gicp else {"point-to-point": NAME, "point-to-plane": NAME_PLANE, "none": NAME_ALONE}[refinement],
         converged=bool(solution.valid),
         notes=notes,
     )

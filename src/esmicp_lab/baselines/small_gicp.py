@@ -37,6 +37,14 @@ MAX_ITERATIONS = 50
 
 _NAMES = {"GICP": NAME, "VGICP": NAME_VGICP}
 
+#: small_gicp's own defaults, in its downsampling voxels: ``align``'s ``max_correspondence_distance``
+#: (1.0) and ``translation_epsilon`` (1e-3) are given for its default ``downsampling_resolution``
+#: (0.25, metres of a LiDAR scan), so at a voxel ``v`` they are these multiples of ``v``. Used by
+#: the refinement after a global step (:func:`refine_gicp`), whose start is already within a few
+#: voxels; the LOCAL adapter keeps its own distance rule.
+DOCS_DISTANCE_VOXELS = 1.0 / 0.25
+DOCS_TRANSLATION_EPSILON_VOXELS = 1e-3 / 0.25
+
 
 def register(
     source,
@@ -110,3 +118,27 @@ def register(
             f"inliers={result.num_inliers} error={result.error:.4g}"
         ),
     )
+
+
+def refine_gicp(small_gicp, source: np.ndarray, target: np.ndarray, coarse: np.ndarray, voxel: float,
+                max_iterations: int, num_threads: int) -> tuple[np.ndarray, bool, str]:
+    """A global step's pose ``coarse`` (``T_target_source``) refined by small_gicp's GICP as its
+    documentation runs it (``small_gicp.align(target, source, init_T_target_source=coarse,
+    downsampling_resolution=voxel)``), its distance and translation tolerance at its defaults'
+    multiples of the voxel (:data:`DOCS_DISTANCE_VOXELS`, :data:`DOCS_TRANSLATION_EPSILON_VOXELS`),
+    its rotation tolerance (0.1 degree) as it is. Returns the refined 4x4 pose, GICP's
+    ``converged`` and a note."""
+    result = small_gicp.align(
+        target,
+        source,
+        init_T_target_source=np.asarray(coarse, dtype=np.float64),
+        registration_type="GICP",
+        downsampling_resolution=float(voxel),
+        max_correspondence_distance=float(DOCS_DISTANCE_VOXELS * voxel),
+        num_threads=int(num_threads),
+        max_iterations=int(max_iterations),
+        translation_epsilon=float(DOCS_TRANSLATION_EPSILON_VOXELS * voxel),
+    )
+    note = (f"small_gicp GICP distance={DOCS_DISTANCE_VOXELS * voxel:.6g} threads={num_threads} "
+            f"iterations={result.iterations} inliers={result.num_inliers} converged={bool(result.converged)}")
+    return np.array(result.T_target_source, dtype=np.float64), bool(result.converged), note
