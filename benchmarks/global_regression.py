@@ -35,10 +35,16 @@ Each registration is ``esmicp.register(source, target, rng=seed)`` with every de
 but for ``kitchen-far``'s ``range_images=True``.
 Writes one JSON line per registration (pose, success, converged, confidence, trusted, ambiguous,
 runner_up_ratio, where the pose came from, time) to ``--out``. ``--compare BEFORE.jsonl`` instead
-compares two such files: the rows whose pose moved, whose success changed, and the totals.
+compares two such files: the rows whose pose moved, whose success changed, and the totals
+(successes, trusted and trusted-and-wrong, time). With ``--peer NAME`` each row also runs that
+baseline right after esmicp on the same clouds (the voxel its documentation gives for the data:
+0.05 m indoor, 0.3 m LiDAR, its object default on the ModelNet40 sets), and ``--compare`` reports
+the median of the per-row time ratios esmicp / peer of each file: a ratio measured in one process
+holds under a machine's changing load, which absolute times do not.
 
     python benchmarks/global_regression.py --out /tmp/runs/before.jsonl
     python benchmarks/global_regression.py --out /tmp/runs/after.jsonl --compare /tmp/runs/before.jsonl
+    python benchmarks/global_regression.py --sets real,crops --peer kiss-matcher-gicp --out /tmp/runs/peer.jsonl
 """
 
 from __future__ import annotations
@@ -79,7 +85,24 @@ def _seed(*key) -> int:
     return int(np.random.SeedSequence(list(key)).generate_state(1)[0])
 
 
-def _record(name: str, source, target, seed: int, judge, **options) -> dict:
+#: ``--peer``: a baseline of :data:`esmicp.baselines.BASELINES` run right after each registration,
+#: on the same clouds, judged the same way (None: none).
+PEER: str | None = None
+
+
+def _peer(name: str, source, target, seed: int, judge, voxel: float | None) -> dict:
+    """The peer's time and verdict on one row (``peer_*`` fields); its voxel: the one its
+    documentation gives for the data (``voxel``; None: the adapter's object default)."""
+    from esmicp.baselines import get_baseline
+
+    started = time.perf_counter()
+    result = get_baseline(name)(source, target, voxel_size=voxel, rng=seed)
+    elapsed = time.perf_counter() - started
+    verdict = judge(np.asarray(result.transformation, dtype=np.float64))
+    return {"peer": name, "peer_time_s": elapsed, "peer_success": verdict["success"]}
+
+
+def _record(name: str, source, target, seed: int, judge, peer_voxel: float | None = None, **options) -> dict:
     started = time.perf_counter()
     result = esmicp.register(source, target, rng=seed, workers=1, **options)
     elapsed = time.perf_counter() - started
@@ -94,6 +117,8 @@ def _record(name: str, source, target, seed: int, judge, **options) -> dict:
         row["trusted_without_free_space"] = dataclasses.replace(result, free_space=None).trusted
     row.update({key: value for key, value in result.to_dict().items() if key.startswith("std_")})
     row.update(judge(result.transformation))
+    if PEER is not None:
+        row.update(_peer(PEER, source, target, seed, judge, peer_voxel))
     return row
 
 
@@ -145,13 +170,14 @@ def _pair_judge(truth, moved_by, kind):
 def real_rows(data: Path, seed: int):
     for number, pair in enumerate(read_pairs(data / "real_pairs")):
         source, target, truth = load_pair(pair, bin_columns=3)
+        voxel = criteria_for(pair.kind).voxel_m
         yield _record(f"real/{pair.name}/as-recorded", source, target, _seed(seed, 2, number),
-                      _pair_judge(truth, None, pair.kind))
+                      _pair_judge(truth, None, pair.kind), voxel)
         if pair.kind == "3DMatch":
             rng = np.random.default_rng(_seed(seed, 3, number))
             turned, _, moved_by = turn_source(source, truth, rng)
             yield _record(f"real/{pair.name}/turned", turned, target, _seed(seed, 3, number),
-                          _pair_judge(truth, moved_by, pair.kind))
+                          _pair_judge(truth, moved_by, pair.kind), voxel)
 
 
 def crop_rows(data: Path, seed: int, crops: int = 1):
@@ -166,12 +192,15 @@ def crop_rows(data: Path, seed: int, crops: int = 1):
             turned, _, moved_by = turn_source(cropped.source, truth, rng)
             key = (number, overlap_number) if crop == 0 else (number, overlap_number, crop)
             row = _record(f"crop/{pair.name}/{round(100 * overlap)}" + (f"/{crop}" if crop else ""), turned,
-                          cropped.target, _seed(seed, 4, *key), _pair_judge(truth, moved_by, "3DLoMatch"))
+                          cropped.target, _seed(seed, 4, *key), _pair_judge(truth, moved_by, "3DLoMatch"),
+                          criteria_for("3DLoMatch").voxel_m)
             row["overlap"] = cropped.source_overlap
             yield row
 
 
 KITCHEN = Path("sequences") / "redkitchen_seq01_every10"
+#: The peer's voxel on the kitchen's depth frames: the indoor one of the 3DMatch criteria (metres).
+INDOOR_VOXEL = criteria_for("3DMatch").voxel_m
 
 
 def _kitchen_pairs(data: Path, gaps, pairs_per_gap: int):
@@ -203,7 +232,7 @@ def kitchen_rows(data: Path, seed: int, pairs_per_gap: int = 3):
                     "translation_error": translation}
 
         yield _record(f"kitchen/gap{gap}/{target_name}-{source_name}", source, target,
-                      _seed(seed, 5, gap_index, start), judge)
+                      _seed(seed, 5, gap_index, start), judge, INDOOR_VOXEL)
 
 
 def kitchen_far_rows(data: Path, seed: int, pairs_per_gap: int = 3):
@@ -223,7 +252,7 @@ def kitchen_far_rows(data: Path, seed: int, pairs_per_gap: int = 3):
                     "translation_error": translation, "truth_overlap": truth_overlap}
 
         yield _record(f"kitchen-far/gap{gap}/{target_name}-{source_name}", turned, target,
-                      _seed(seed, 7, gap_index, start), judge, range_images=True)
+                      _seed(seed, 7, gap_index, start), judge, INDOOR_VOXEL, range_images=True)
 
 
 def compare(before_path: Path, after_path: Path) -> str:
@@ -266,6 +295,24 @@ def compare(before_path: Path, after_path: Path) -> str:
                   / max(float(np.median([before[n]["time_s"] for n in names])), 1e-12))
         lines.append(f"| {group} | {len(names)} | {ok_before} | {ok_after} | {trusted(before, names)} "
                      f"| {trusted(after, names)} | {ratio:.2f} | {median:.2f} |")
+    peered = [n for n in after if "peer_time_s" in after[n]]
+    if peered:
+        lines.append("")
+        lines.append("| group | rows | peer | peer success | esmicp success after | median of per-row time ratios "
+                     "esmicp / peer: before | after |")
+        lines.append("|---|---|---|---|---|---|---|")
+        for group, names in groups.items():
+            names = [n for n in names if n in peered]
+            if not names:
+                continue
+
+            def ratio(rows):
+                known = [rows[n]["time_s"] / rows[n]["peer_time_s"] for n in names if "peer_time_s" in rows[n]]
+                return f"{float(np.median(known)):.2f}" if known else "-"
+
+            lines.append(f"| {group} | {len(names)} | {after[names[0]]['peer']} "
+                         f"| {sum(bool(after[n]['peer_success']) for n in names)} "
+                         f"| {sum(bool(after[n]['success']) for n in names)} | {ratio(before)} | {ratio(after)} |")
     ratios = [after[n]["runner_up_ratio"] for n in after if after[n]["runner_up_ratio"] is not None]
     lines.append(f"\nrows moved: {moved} of {len(after)}; largest runner_up_ratio after: "
                  f"{max(ratios) if ratios else None}")
@@ -284,7 +331,12 @@ def main() -> None:
     parser.add_argument("--compare", type=Path, help="a JSON-lines file of an earlier run to compare --out with "
                         "(an existing --out is compared as it is, not run again)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing --out")
+    parser.add_argument("--peer", help="a baseline (esmicp.baselines) run after each registration on the same "
+                        "clouds, at the voxel its documentation gives for the data (e.g. kiss-matcher-gicp): "
+                        "--compare then reports the median per-row time ratio to it")
     args = parser.parse_args()
+    global PEER
+    PEER = args.peer
     if args.out is not None and args.out.exists() and not args.compare and not args.force:
         parser.error(f"{args.out} exists: pass --force to overwrite it, or --compare to compare it")
     if args.out is not None and not (args.compare and args.out.exists()):

@@ -22,7 +22,7 @@ from .interrupts import keeps_keyboard_interrupt
 from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimator
 from .methods.esm import COARSE_POINTS, TIGHT_START_QUANTILE, EsmEstimator
 from .methods.guard import guarded_refine
-from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome, _budget_spent
+from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome
 from .result import Correspondences, RegistrationResult
 from .trust import uncertainty
 from .trust.confidence import TRUSTED, overlap_confidence
@@ -51,14 +51,17 @@ COINCIDENT_WARNING_FRACTION = 0.1
 DEFAULT_SEED = 0
 
 #: A source of more than twice this many points is refined on this many evenly strided points
-#: first (after a global search or from a given start); the full source then polishes that pose
-#: for at most ``POLISH_ITERATIONS`` iterations (each full-resolution iteration costs as much as
-#: ``len(source) / REFINE_POINTS`` subsample iterations). Not with ``esm-paper``, whose pairs are
-#: by index. (A callback or a history still sees every point at each iteration's pose.)
-#: (5,000 points were too few on a KITTI scan: the pose slid 0.3 m along the road from where
-#: every point takes it; ``docs/measured-global.md``.)
+#: (after a global search or from a given start), not on every point: where every point would
+#: take the pose from there lies an order of magnitude inside the pose's own standard deviation
+#: (``result.covariance``): two more iterations on every point moved it by 0.002-0.007 degrees and
+#: 0.01-0.5 mm on the 3DMatch fragment pair ``t00_s04``, the KITTI pair and four pairs of the
+#: bunny's 40k-point scans, whose standard deviations are 0.01-0.23 degrees and 0.1-4 mm, at up to
+#: 15% of the registration's time. Not with ``esm-paper``, whose pairs are by index. (A callback
+#: or a history still sees every point at each iteration's pose; the fitness, the
+#: correspondences and the covariance count every point.) (5,000 points were too few on a KITTI
+#: scan: the pose slid 0.3 m along the road from where every point takes it;
+#: ``docs/measured-global.md``.)
 REFINE_POINTS = COARSE_POINTS
-POLISH_ITERATIONS = 2
 #: On that subsample, ``esm`` is preceded by at most this many ``esm-plane`` iterations: a global
 #: pose slid along a road or a corridor leaves the pairs that would pull it back many spacings
 #: apart, where ``esm``'s Gaussian weight is nil and it keeps the slide; the plane residual pulls
@@ -76,10 +79,10 @@ PLANE_POINTS = 5_000
 #: stage's sigma grows with them and can pull a right global pose far off, where ``esm`` from the
 #: same start converges (``docs/scans-partial-overlap.md``).
 PLANE_CONFIDENCE_DROP = 0.25
-#: The strided stages stop at this tolerance when the caller's is finer (the polish keeps the
-#: caller's): the subsample's optimum is not the whole source's, and on fragment pairs the strided
-#: ``esm`` then creeps on by 1e-5 rad per iteration in no steady direction (3DMatch ``t00_s04``:
-#: 45 of 50 iterations), which the polish's first step (4e-5 rad) undoes. A steady slide toward the
+#: The strided stages stop at this tolerance when the caller's is finer: the subsample's optimum
+#: is not the whole source's (they lie a fraction of the pose's standard deviation apart, see
+#: ``REFINE_POINTS``), and on fragment pairs the strided ``esm`` then creeps on by 1e-5 rad per
+#: iteration in no steady direction (3DMatch ``t00_s04``: 45 of 50 iterations). A steady slide toward the
 #: truth still runs to its end (the bunny's ``bun180 -> bun090`` stops too early at 1e-5, not at
 #: 3e-6). Measured on the 3DMatch pairs (``docs/speed.md``, "Real scan pairs"). After a global search, a source too
 #: small for the strided stages is refined at this tolerance too: from the global pose, ``esm``
@@ -164,11 +167,10 @@ def register(
         Convergence tolerance: stop once an increment rotates less than ``tolerance`` radians and
         translates less than ``tolerance`` times the target's bounding-box diagonal, or once the
         RMS correspondence distance changes by less than ``tolerance`` relative to itself. After a
-        global search, the refinement stops at ``STRIDED_TOLERANCE`` (3e-6) when ``tolerance`` is
-        finer: on a source of more than ``2 * REFINE_POINTS`` points its stages on the strided
-        subsample (the polish on every point keeps ``tolerance``), on one of more than
-        ``LOOSER_FROM_POINTS`` (10,000) the whole refinement. A given ``init`` and smaller sources
-        keep ``tolerance``.
+        global search, the refinement of a source of more than ``LOOSER_FROM_POINTS`` (10,000)
+        points stops at ``STRIDED_TOLERANCE`` (3e-6) when ``tolerance`` is finer. A given ``init``
+        and smaller sources keep ``tolerance``. (A source of more than ``2 * REFINE_POINTS`` points
+        is refined on ``REFINE_POINTS`` evenly strided points.)
     rng : None, int or numpy.random.Generator
         Randomness of the global search (its subsamples). None uses a fixed seed, so the same input
         gives the same result; local refinement itself is deterministic.
@@ -352,14 +354,14 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
 def _refine(source, target_index, estimator, initial, request: _Request, diagonal: float, keypoints: Keypoints,
             estimate: GlobalEstimate | None, observer: Observer | None = None):
     """Stage 4: ``estimator`` from ``initial`` (working frame): on a large source the strided run
-    and the polish (:func:`_refine_then_polish`), else the whole source at once (after a global
+    (:func:`_refine_strided`), else the whole source at once (after a global
     search, from ``LOOSER_FROM_POINTS`` points on, at ``STRIDED_TOLERANCE`` when the request's
     tolerance is finer). ``observer`` (the callback and the history, working frame) watches every
     stage and changes none."""
     if len(source) > 2 * REFINE_POINTS and estimator.order_invariant:
         # (``esm-paper`` pairs source point k with target point k: a strided subset has no pairs.)
-        return _refine_then_polish(source, target_index, estimator, initial, request, diagonal, keypoints, estimate,
-                                   observer)
+        return _refine_strided(source, target_index, estimator, initial, request, diagonal, keypoints, estimate,
+                               observer)
     criteria = request.criteria
     if estimate is not None and len(source) > LOOSER_FROM_POINTS:
         criteria = _at_strided_tolerance(criteria)
@@ -400,15 +402,12 @@ def _second_try(source, target_index, initial, request: _Request, diagonal: floa
     return dataclasses.replace(outcome, message=outcome.message + note), confidence
 
 
-def _refine_then_polish(source, target_index, estimator, initial, request: _Request, diagonal: float,
-                        keypoints: Keypoints, estimate: GlobalEstimate | None = None,
-                        observer: Observer | None = None):
-    """Stage 4 on a large source: ``estimator`` on ``REFINE_POINTS`` evenly strided source points,
-    then a fresh fine-phase estimator of the same method on the full source for at most
-    ``POLISH_ITERATIONS`` iterations (fewer when ``max_iterations`` leaves fewer). The outcome is
-    the polish's, with the iterations of every stage and ``converged`` from the subsample run (the
-    polish only sharpens it; a polish the guard rejected makes it False); the polish keeps the
-    request's tolerance.
+def _refine_strided(source, target_index, estimator, initial, request: _Request, diagonal: float,
+                    keypoints: Keypoints, estimate: GlobalEstimate | None = None,
+                    observer: Observer | None = None):
+    """Stage 4 on a large source: ``estimator`` on ``REFINE_POINTS`` evenly strided source points
+    (where every point would take the pose from there lies well inside its standard deviation:
+    ``REFINE_POINTS``). The outcome's iterations count every stage.
 
     After a global search (``estimate``, whose ``confidence`` is that of ``initial`` on
     ``keypoints`` when it judged it), ``esm`` is preceded by at most ``PLANE_ITERATIONS`` of
@@ -419,7 +418,6 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
     start can lie further off and a slow slide toward the optimum must run to its end. ``observer``
     watches every stage (a stage its callback stopped is the last)."""
     strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
-    polish_criteria = request.criteria
     plane_iterations, plane_note = 0, ""
     if estimate is not None:
         request = dataclasses.replace(request, criteria=_at_strided_tolerance(request.criteria))
@@ -435,21 +433,8 @@ def _refine_then_polish(source, target_index, estimator, initial, request: _Requ
                             observer=observer)
     if coarse.num_iterations == 0:
         return coarse  # no start to refine (the guard's message says why)
-    where = f"{plane_note}{coarse.message} on {len(strided):,} strided source points"
-    budget = min(POLISH_ITERATIONS, request.criteria.max_iterations - coarse.num_iterations)
-    if budget <= 0 or (observer is not None and observer.stopped):  # the budget is spent, or the callback stopped
-        return dataclasses.replace(coarse, message=where, num_iterations=plane_iterations + coarse.num_iterations)
-    polisher = _estimator(request.method, request, target_index, diagonal, start_fine=True)
-    criteria = dataclasses.replace(polish_criteria, max_iterations=budget)
-    polish = guarded_refine(
-        source, target_index, polisher, init=coarse.transformation, criteria=criteria, scale=diagonal,
-        observer=observer,
-    )
-    return dataclasses.replace(
-        polish, converged=coarse.converged and (polish.converged or polish.message == _budget_spent(criteria)),
-        num_iterations=plane_iterations + coarse.num_iterations + polish.num_iterations,
-        message=f"{where}; then {polish.num_iterations} iteration(s) on all {len(source):,}",
-    )
+    return dataclasses.replace(coarse, message=f"{plane_note}{coarse.message} on {len(strided):,} strided source points",
+                               num_iterations=plane_iterations + coarse.num_iterations)
 
 
 def _at_strided_tolerance(criteria: ConvergenceCriteria) -> ConvergenceCriteria:
@@ -509,7 +494,7 @@ def _evaluate(source, target_index, transformation, request: _Request, warm=None
         spacing = target_index.spacing()
         inlier_distance = INLIER_DISTANCE_SPACINGS * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target_index.points)
     if warm is not None and len(warm) != len(source):
-        warm = None  # another source's (the polish was refused and the subsample's run kept)
+        warm = None  # another source's (the strided subsample's)
     distances, indices = target_index.query_near(source, warm=warm, transform=transformation)
     inliers = distances <= inlier_distance
     fitness = float(inliers.mean())
