@@ -85,7 +85,7 @@ def _seed(*key) -> int:
     return int(np.random.SeedSequence(list(key)).generate_state(1)[0])
 
 
-#: ``--peer``: a baseline of :data:`esmicp.baselines.BASELINES` run right after each registration,
+#: ``--peer``: a baseline of :data:`esmicp_lab.baselines.BASELINES` run right after each registration,
 #: on the same clouds, judged the same way (None: none).
 PEER: str | None = None
 
@@ -93,7 +93,7 @@ PEER: str | None = None
 def _peer(name: str, source, target, seed: int, judge, voxel: float | None) -> dict:
     """The peer's time and verdict on one row (``peer_*`` fields); its voxel: the one its
     documentation gives for the data (``voxel``; None: the adapter's object default)."""
-    from esmicp.baselines import get_baseline
+    from esmicp_lab.baselines import get_baseline
 
     started = time.perf_counter()
     result = get_baseline(name)(source, target, voxel_size=voxel, rng=seed)
@@ -331,7 +331,7 @@ def main() -> None:
     parser.add_argument("--compare", type=Path, help="a JSON-lines file of an earlier run to compare --out with "
                         "(an existing --out is compared as it is, not run again)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing --out")
-    parser.add_argument("--peer", help="a baseline (esmicp.baselines) run after each registration on the same "
+    parser.add_argument("--peer", help="a baseline (esmicp_lab.baselines) run after each registration on the same "
                         "clouds, at the voxel its documentation gives for the data (e.g. kiss-matcher-gicp): "
                         "--compare then reports the median per-row time ratio to it")
     args = parser.parse_args()

@@ -47,7 +47,7 @@ def test_a_run_stopped_before_its_tolerance_is_never_trusted():
     still be degrees from where it was heading: it is not trusted, and ``doubts()`` says so; the
     same run let to converge is."""
     from esmicp.core.procrustes import apply, to_matrix
-    from esmicp.globalreg.scan import TRUSTED
+    from esmicp.trust.confidence import TRUSTED
     from esmicp.metrics import random_rotation
     from esmicp.shapes import asymmetric_shape
 

@@ -21,7 +21,7 @@ Its pose is refined exactly as in :mod:`esmicp_lab.baselines.open3d_ransac`: poi
 ``refinement="gicp"``, registered as ``kiss-matcher-gicp``: the fast pipeline of both projects'
 documentation, KISS-Matcher then small_gicp's GICP (``small_gicp.align`` from KISS-Matcher's pose,
 downsampling ``v``, its defaults' correspondence distance and tolerances scaled to ``v``:
-:func:`esmicp.baselines.small_gicp.refine_gicp`), on every core (as KISS-Matcher and esmicp's
+:func:`esmicp_lab.baselines.small_gicp.refine_gicp`), on every core (as KISS-Matcher and esmicp's
 defaults run). KISS-Matcher draws no random numbers: ``rng`` is accepted for the common interface
 and unused; a global method, it ignores ``init``.
 """

@@ -260,7 +260,8 @@ def run_scan_bench(config: ScanBenchConfig, rows_path: Path | None = None, progr
 # ---- tables ---------------------------------------------------------------------------------------
 
 METHOD_LABELS = {"esm-global": "esmicp default", "kiss-matcher-icp": "KISS-Matcher + ICP",
-                 "kiss-matcher-gicp": "KISS-Matcher + small_gicp GICP", "open3d-ransac-fpfh-icp": "Open3D RANSAC+FPFH + ICP", "fgr-icp": "FGR + ICP"}
+                 "kiss-matcher-gicp": "KISS-Matcher + small_gicp GICP",
+                 "open3d-ransac-fpfh-icp": "Open3D RANSAC+FPFH + ICP", "fgr-icp": "FGR + ICP"}
 
 
 def _methods(rows) -> list[str]:
