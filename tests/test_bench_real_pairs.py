@@ -384,3 +384,24 @@ def test_quick_table_times_esmicp_against_the_fastest_peer_that_succeeds():
     assert lines[2].endswith("| 0.50 |")
     assert lines[3].endswith("| no peer succeeds |")
     assert "fastest successful peer: median 0.50, max 0.50" in table
+
+
+def test_the_scan_summary_divides_every_time_by_each_kiss_matcher_pipeline_run():
+    """The summary's time ratios are per trial, one column per KISS-Matcher pipeline present
+    (Open3D ICP, small_gicp GICP), and absent for a peer that was not run."""
+    from esmicp_lab.bench.scans import real_pairs_markdown
+
+    def row(method, time_s, pair):
+        return {"protocol": "real-pairs", "pair": pair, "variant": "turned", "kind": "3DMatch", "overlap": 0.4,
+                "method": method, "status": "ok", "success": True, "rotation_error_deg": 1.0,
+                "translation_error_m": 0.01, "time_s": time_s}
+
+    rows = [row("esm-global", 2.0, "a"), row("kiss-matcher-icp", 4.0, "a"), row("kiss-matcher-gicp", 1.0, "a"),
+            row("esm-global", 3.0, "b"), row("kiss-matcher-icp", 1.0, "b"), row("kiss-matcher-gicp", 3.0, "b")]
+    table = real_pairs_markdown(rows)
+    assert "time / KISS-Matcher + ICP" in table and "time / KISS-Matcher + small_gicp GICP" in table
+    ours = next(line for line in table.splitlines() if line.startswith("| 3DMatch / turned | esmicp default"))
+    # per-trial ratios: (2/4, 3/1) -> median 1.75; (2/1, 3/3) -> median 1.5
+    assert ours.rstrip(" |").split("|")[-2:] == [" 1.75 ", " 1.50"]
+    without = real_pairs_markdown([r for r in rows if r["method"] != "kiss-matcher-gicp"])
+    assert "small_gicp" not in without

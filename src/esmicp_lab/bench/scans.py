@@ -280,8 +280,8 @@ def _cell(row) -> str:
 
 def real_pairs_markdown(rows: list[dict]) -> str:
     """Per pair and variant: each method's success, rotation / translation error and time; then
-    per variant and kind: successes, median errors, median time and the time ratio to
-    KISS-Matcher + ICP on the same pairs."""
+    per variant and kind: successes, median errors, median time and the time ratios to each peer
+    of :data:`RATIO_REFERENCES` run on the same pairs."""
     rows = [r for r in rows if r["protocol"] == "real-pairs"]
     if not rows:
         return ""
@@ -304,16 +304,23 @@ def real_pairs_markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: The peers every method's time is divided by in the summary tables (those present in the rows):
+#: KISS-Matcher refined by Open3D's ICP and by small_gicp's GICP, the fastest pipeline measured.
+RATIO_REFERENCES = ("kiss-matcher-icp", "kiss-matcher-gicp")
+
+
 def _summary(rows, methods, group_of, group_label, translation_key, unit) -> list[str]:
     groups = []
     for row in rows:
         if group_of(row) not in groups:
             groups.append(group_of(row))
+    references = [m for m in RATIO_REFERENCES if m in methods]
+    header = "".join(f" time / {METHOD_LABELS[m]} (median of per-trial ratios) |" for m in references)
     lines = [f"| {group_label} | method | success | median rotation error | median translation error | "
-             "median time | time / KISS-Matcher + ICP (median of per-trial ratios) |", "|---|---|---|---|---|---|---|"]
+             f"median time |{header}", "|---|---|---|---|---|---|" + "---|" * len(references)]
     for group in groups:
         members = [r for r in rows if group_of(r) == group]
-        kiss = {_trial_key(r): r["time_s"] for r in members if r["method"] == "kiss-matcher-icp"}
+        times = {m: {_trial_key(r): r["time_s"] for r in members if r["method"] == m} for m in references}
         for method in methods:
             mine = [r for r in members if r["method"] == method]
             ok = [r for r in mine if r["status"] == "ok"]
@@ -321,11 +328,14 @@ def _summary(rows, methods, group_of, group_label, translation_key, unit) -> lis
             rot = statistics.median(r["rotation_error_deg"] for r in ok) if ok else float("nan")
             tra = statistics.median(r[translation_key] for r in ok) if ok else float("nan")
             time_s = statistics.median(r["time_s"] for r in mine)
-            ratios = [r["time_s"] / kiss[_trial_key(r)] for r in mine if kiss.get(_trial_key(r))]
-            ratio = f"{statistics.median(ratios):.2f}" if ratios and method != "kiss-matcher-icp" else "-"
+            cells = []
+            for reference in references:
+                ratios = [r["time_s"] / times[reference][_trial_key(r)] for r in mine
+                          if times[reference].get(_trial_key(r))]
+                cells.append(f"{statistics.median(ratios):.2f}" if ratios and method != reference else "-")
             label = " / ".join(str(g) for g in group) if isinstance(group, tuple) else str(group)
             lines.append(f"| {label} | {METHOD_LABELS[method]} | {wins}/{len(mine)} ({100 * wins / len(mine):.0f}%) | "
-                         f"{rot:.2f}° | {tra:.3g}{unit} | {time_s:.2f} s | {ratio} |")
+                         f"{rot:.2f}° | {tra:.3g}{unit} | {time_s:.2f} s |" + "".join(f" {c} |" for c in cells))
     return lines
 
 
