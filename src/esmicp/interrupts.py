@@ -111,6 +111,7 @@ def stops_pool_on_interrupt(pool):
     except BaseException:
         workers = list((getattr(pool, "_processes", None) or {}).values())  # private, but the only handle
         jobs = getattr(pool, "_call_queue", None)  # private too; shutdown drops it
+        manager = getattr(pool, "_executor_manager_thread", None)  # private too; shutdown drops it
         pool.shutdown(wait=False, cancel_futures=True)
         for worker in workers:
             worker.terminate()
@@ -120,7 +121,11 @@ def stops_pool_on_interrupt(pool):
         # workers read; with every read end closed its write fails at once, and the pool's exit
         # (which waits for that thread) does not hang.
         reader = getattr(jobs, "_reader", None)
-        if reader is not None:
+        if reader is not None and not getattr(pool, "_broken", False):  # a broken pool's manager closes it
             with contextlib.suppress(OSError):
                 reader.close()
+        # The pool's manager thread tears the pool down too (it may close that pipe a second time:
+        # esmicp.pools.quiet_pool_teardown keeps that quiet while it runs): it ends here, not after.
+        if manager is not None:
+            manager.join(WORKER_EXIT_WAIT_S)
         raise

@@ -154,6 +154,11 @@ def pool_error(what: str, error: BrokenProcessPool) -> PoolError:
         "memory)")
 
 
+#: Seconds to wait for a process pool's manager thread to end when the pool is left (it ends within
+#: milliseconds once the pool's workers have ended; the wait only bounds a stuck one).
+MANAGER_EXIT_WAIT_S = 5.0
+
+
 @contextmanager
 def quiet_pool_teardown():
     """While a pool runs: an ``OSError`` raised in the standard library's process-pool manager thread
@@ -171,4 +176,9 @@ def quiet_pool_teardown():
     try:
         yield
     finally:
+        # a pool shut down without waiting (an interrupt, a broken pool) leaves its manager thread
+        # ending on its own: it ends while the hook is in place
+        for thread in threading.enumerate():
+            if type(thread).__module__ == "concurrent.futures.process" and thread is not threading.current_thread():
+                thread.join(MANAGER_EXIT_WAIT_S)
         threading.excepthook = previous
