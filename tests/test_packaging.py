@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import subprocess
 import sys
 import tarfile
@@ -33,8 +34,16 @@ def sdist_members(tmp_path_factory) -> list[str]:
         return [name.split("/", 1)[1] for name in tar.getnames() if "/" in name]
 
 
+def kernel_sources() -> list[str]:
+    """The compiled kernels' files: the sources CMakeLists.txt builds and the headers beside them."""
+    listed = re.findall(r"src/esmicp/_ext/\w+\.cpp", (REPO / "CMakeLists.txt").read_text())
+    assert listed, "CMakeLists.txt lists no source of the kernels"
+    headers = sorted(path.relative_to(REPO).as_posix() for path in (REPO / "src/esmicp/_ext").glob("*.hpp"))
+    return listed + headers
+
+
 def test_sdist_has_what_a_build_from_source_needs(sdist_members):
-    for needed in ("pyproject.toml", "CMakeLists.txt", "README.md", "src/esmicp/_ext/kernels.cpp",
+    for needed in ("pyproject.toml", "CMakeLists.txt", "README.md", *kernel_sources(),
                    "src/esmicp/__init__.py", "src/esmicp/cli/__init__.py", "tests/conftest.py",
                    "src/esmicp/py.typed", "src/esmicp/_kernels.pyi", "src/esmicp_lab/__init__.py",
                    "src/esmicp_lab/cli.py"):

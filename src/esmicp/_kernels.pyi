@@ -1,5 +1,5 @@
 # Generated from the compiled module by nanobind's stubgen (python -m nanobind.stubgen -m esmicp._kernels);
-# regenerate it after changing the bindings in _ext/kernels.cpp (tests/test_typing.py checks the names).
+# regenerate it after changing the bindings in _ext/bindings.cpp (tests/test_typing.py checks the names).
 """
 esmicp's compiled kernels (KD-tree, voxel hash, pair moments); std::thread, GIL released.
 """

@@ -1,0 +1,51 @@
+// Correspondences of the global search: length compatibility, seeds, second-order groups, pose
+// scores, descriptor matching.
+#pragma once
+
+#include "arrays.hpp"
+
+#include <cstdint>
+
+namespace kernels {
+
+// Length compatibility of K paired points (source[k] <-> target[k], e.g. feature correspondences):
+// out[i][j] = 1 when the source length |s_i - s_j| and the target length |t_i - t_j| differ by at
+// most `tolerance` (cloud units), else 0; the diagonal is 0. Lengths as SciPy's cdist computes them
+// (the same sums, the same square roots), so the entries are those of its two distance matrices;
+// float32 for the power iterations that follow. Rows in parallel.
+void compatibility(CArr2 source, CArr2 target, double tolerance, F32Arr2 out, int threads);
+
+// Seeds of the second-order pruning, spread apart: the candidates `order` (K, best first) are
+// taken in turn, each kept unless a kept one lies within `spread` of it in both clouds (source
+// distance and target distance both below `spread`, as NumPy's norm computes them), until `seeds`
+// are kept. Writes the kept candidates to `out` (at least `seeds` long) and returns how many.
+int64_t spread_seeds(CIdx order, CArr2 source, CArr2 target, double spread, int64_t seeds, Idx out);
+
+// Groups of the second-order pruning. `compatible` (K, K) is 0/1 and symmetric (compatibility()
+// above). For each seed s, the second-order compatibility of candidate j is C[s][j] times the
+// number of candidates compatible with both; `partners` (S, size) gets the `size` candidates of
+// highest second-order compatibility, highest first, ties to the lower index, then (when fewer
+// than `size` are above 0) the candidates at 0 in index order: the first `size` of a stable
+// argsort of the negated second-order row. `valid` (S, size) is 1 where the partner's
+// second-order compatibility is above 0. Seeds in parallel.
+void second_order_partners(CF32Arr2 compatible, CIdx seeds, Idx2 partners, U8Arr2 valid, int threads);
+
+// How many of K paired points (source[k] <-> target[k]) each of S poses maps within `distance`:
+// out[c] = #{k : |R_c source[k] + t_c - target[k]| <= distance}. `rotations` (S, 9) row-major,
+// `translations` (S, 3). Poses in parallel.
+void pair_inlier_counts(CArr2 rotations, CArr2 translations, CArr2 source, CArr2 target, double distance, Idx out,
+                        int threads);
+
+// One row block of a descriptor matching both ways. gram (R, C) holds the dot products of R source
+// descriptors (rows `row_offset` on of the source) with the C target descriptors, float32 (BLAS);
+// each squared distance is formed as the NumPy version formed it, in float32 and in the same order
+// ((-2 g + |t|^2) + |s|^2, clipped at 0), so the results are its own. Per row: the nearest column
+// (the first of equal ones), its squared distance and the second smallest (out_row_*). Per column,
+// carried across blocks (callers start from INF and 0): the two smallest squared distances over
+// every row so far (column_best (2, C)) and the row of the first (column_index, the first of equal
+// ones). Column pieces in parallel; each piece's row minima are merged in column order.
+void nearest_descriptors(CF32Arr2 gram_, CF32Arr1 row_squares_, CF32Arr1 column_squares_, int64_t row_offset,
+                         Idx out_row_index_, F32Arr1 out_row_best_, F32Arr1 out_row_second_, F32Arr2 column_best_,
+                         Idx column_index_, int threads);
+
+}  // namespace kernels

@@ -1,0 +1,22 @@
+// Passes over a cloud's points: coincident points, a rigid transform.
+#pragma once
+
+#include "arrays.hpp"
+
+#include <cstdint>
+
+namespace kernels {
+
+// Coincident points: one pass with a hash table of exact coordinates (-0.0 counts as 0.0).
+// Marks first[i] = 1 for the first occurrence of each distinct point, 0 for a repeat; returns
+// (repeats, index of the most repeated point, its number of occurrences).
+struct Coincident {
+    int64_t repeats, most, most_count;
+};
+Coincident coincident(CArr2 points_, U8Arr1 first_);
+
+// points @ R^T + t into out (N, 3), on `threads` threads (NumPy would call BLAS, whose own
+// threads then compete with the kernels').
+void transform_points(CArr2 points, CArr2 rotation, CArr1 translation, Arr2 out_, int threads);
+
+}  // namespace kernels

@@ -1,0 +1,169 @@
+// KD-tree (tree.hpp): its build, the nearest and k-nearest queries, the neighbour graph.
+#include "tree.hpp"
+
+#include <stdexcept>
+#include <vector>
+
+namespace kernels {
+namespace {
+
+// Three-way quickselect of order[start:end] by coordinates (runs of equal values: linear).
+void select_nth(int64_t *order, const double *coordinates, int64_t start, int64_t end, int64_t nth) {
+    int64_t low = start, high = end - 1;
+    while (high > low) {
+        double a = coordinates[order[low]], b = coordinates[order[(low + high) / 2]], c = coordinates[order[high]];
+        double pivot = std::max(std::min(a, b), std::min(std::max(a, b), c));
+        int64_t less = low, i = low, greater = high;
+        while (i <= greater) {
+            double value = coordinates[order[i]];
+            if (value < pivot) {
+                std::swap(order[less], order[i]);
+                ++less;
+                ++i;
+            } else if (value > pivot) {
+                std::swap(order[greater], order[i]);
+                --greater;
+            } else {
+                ++i;
+            }
+        }
+        if (nth < less) high = less - 1;
+        else if (nth > greater) low = greater + 1;
+        else return;
+    }
+}
+
+}  // namespace
+
+int64_t build_tree(CArr2 points, int64_t leaf_size, Arr2 tree_points, Idx order, Idx starts, Idx ends, Idx lefts,
+                   Arr2 boxes) {
+    const int64_t count = int64_t(points.shape(0));
+    const double *p = points.data();
+    int64_t *ord = order.data();
+    int64_t *st = starts.data(), *en = ends.data(), *lf = lefts.data();
+    double *bx = boxes.data();
+    const int64_t capacity = int64_t(starts.shape(0));
+    int64_t nodes = 1;
+    {
+        GilReleased release;
+        std::vector<double> columns(3 * count);
+        for (int64_t k = 0; k < count; ++k) {
+            ord[k] = k;
+            for (int a = 0; a < 3; ++a) columns[a * count + k] = p[3 * k + a];
+        }
+        for (int64_t n = 0; n < capacity; ++n) lf[n] = -1;
+        std::vector<int64_t> stack;
+        stack.push_back(0);
+        st[0] = 0;
+        en[0] = count;
+        while (!stack.empty()) {
+            int64_t node = stack.back();
+            stack.pop_back();
+            int64_t start = st[node], end = en[node];
+            for (int a = 0; a < 3; ++a) {
+                double low = INF, high = -INF;
+                for (int64_t k = start; k < end; ++k) {
+                    double value = columns[a * count + ord[k]];
+                    low = std::min(low, value);
+                    high = std::max(high, value);
+                }
+                bx[6 * node + a] = low;
+                bx[6 * node + 3 + a] = high;
+            }
+            if (end - start <= leaf_size) continue;
+            int axis = 0;
+            for (int c = 1; c < 3; ++c)
+                if (bx[6 * node + 3 + c] - bx[6 * node + c] > bx[6 * node + 3 + axis] - bx[6 * node + axis]) axis = c;
+            int64_t middle = (start + end) / 2;
+            select_nth(ord, columns.data() + axis * count, start, end, middle);
+            int64_t left = nodes;
+            nodes += 2;
+            lf[node] = left;
+            st[left] = start;
+            en[left] = middle;
+            st[left + 1] = middle;
+            en[left + 1] = end;
+            stack.push_back(left);
+            stack.push_back(left + 1);
+        }
+        double *tp = tree_points.data();
+        for (int64_t k = 0; k < count; ++k)
+            for (int a = 0; a < 3; ++a) tp[3 * k + a] = p[3 * ord[k] + a];
+    }
+    return nodes;
+}
+
+void tree_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, CIdx rank, CArr2 tree_points,
+                CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, Arr1 out_distances, Idx out_indices,
+                int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t count = int64_t(queries.shape(0));
+    const double *q = queries.data(), *r = rotation.data(), *tr = translation.data();
+    const int64_t *w = warm.data(), *rk = rank.data();
+    double *od = out_distances.data();
+    int64_t *oi = out_indices.data();
+    if (count < PARALLEL_QUERY_MIN) threads = 1;
+    parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
+        int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
+        for (int64_t i = piece * QUERY_PIECE; i < end; ++i) {
+            double x, y, z;
+            mapped(q, i, r, tr, x, y, z);
+            tree_nearest(t, rk, x, y, z, w[i], od[i], oi[i]);
+        }
+    });
+}
+
+void nearest_k(const Tree &t, int64_t node, double x, double y, double z, int64_t k, double *best, int64_t *slots) {
+    const int64_t left = t.lefts[node];
+    if (left >= 0) {
+        const double bounds[2] = {box_distance(t.boxes + 6 * left, x, y, z),
+                                  box_distance(t.boxes + 6 * (left + 1), x, y, z)};
+        const int first = bounds[1] < bounds[0] ? 1 : 0;
+        for (int child : {first, 1 - first})
+            if (bounds[child] < best[k - 1]) nearest_k(t, left + child, x, y, z, k, best, slots);
+        return;
+    }
+    for (int64_t s = t.starts[node]; s < t.ends[node]; ++s) {
+        const double ex = t.points[3 * s] - x, ey = t.points[3 * s + 1] - y, ez = t.points[3 * s + 2] - z;
+        keep_nearer(best, slots, k, ex * ex + ey * ey + ez * ez, s);
+    }
+}
+
+void neighbour_graph(CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
+                     Idx2 out_neighbours, Arr1 out_radii, int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t k = int64_t(out_neighbours.shape(1));
+    if (k < 1 || k > GRAPH_K_MAX || k > t.count || int64_t(out_neighbours.shape(0)) != t.count ||
+        int64_t(out_radii.shape(0)) != t.count)
+        throw std::invalid_argument("neighbour_graph: out_neighbours (M, k) with 1 <= k <= min(M, 64), out_radii (M,)");
+    int64_t *neighbours = out_neighbours.data();
+    double *radii = out_radii.data();
+    each_k_nearest(t, t.points, t.count, k, threads, 0, [&](int64_t s, const double *best, const int64_t *slots) {
+        const int64_t i = t.order[s];
+        for (int64_t j = 0; j < k; ++j) neighbours[k * i + j] = t.order[slots[j]];
+        radii[i] = best[k - 1];
+    });
+}
+
+void tree_knn(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
+              Arr2 out_distances, Idx2 out_indices, int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t count = int64_t(queries.shape(0)), k = int64_t(out_indices.shape(1));
+    if (queries.shape(1) != 3 || k < 1 || k > GRAPH_K_MAX || k > t.count || int64_t(out_indices.shape(0)) != count ||
+        int64_t(out_distances.shape(0)) != count || int64_t(out_distances.shape(1)) != k)
+        throw std::invalid_argument("tree_knn: queries (Q, 3), out_distances and out_indices (Q, k), 1 <= k <= min(M, 64)");
+    double *distances = out_distances.data();
+    int64_t *indices = out_indices.data();
+    each_k_nearest(t, queries.data(), count, k, threads, PARALLEL_QUERY_MIN,
+                   [&](int64_t i, const double *best, const int64_t *slots) {
+        for (int64_t j = 0; j < k; ++j) {
+            distances[k * i + j] = std::sqrt(best[j]);
+            indices[k * i + j] = slots[j] >= 0 ? t.order[slots[j]] : t.count;
+        }
+    });
+}
+
+}  // namespace kernels
