@@ -22,6 +22,11 @@ same order:
   sequence=True)`` in order when the library has that argument (else reported "not supported"),
   Open3D's reconstruction-system pipeline in order (:func:`merge_open3d.reconstruction_walk`), and
   the pairwise chain.
+- ``kitchen-every20``: every second frame of the walk (every 20th raw frame: 50 frames, twice the
+  motion between frames), in order; ``kitchen-gap``: the walk with 30% of its frames (30 of 100)
+  dropped from the middle, in order, so that the frames either side of the gap are far apart.
+  Methods: ``register_scans(..., sequence=True)``, Open3D's reconstruction-system pipeline (its
+  loop candidates as many raw frames apart as on the whole walk), and the pairwise chain.
 - ``newer-college``: 5 LiDAR scans of ``real_pairs/newer_college_01`` (ground truth
   ``graph.txt``), listed order. Methods: ``register_scans``, Open3D multiway, the pairwise chain.
 - ``bunny-off-sensor``: the bunny's 10 raw scans moved into their scanner's frame, then each
@@ -77,7 +82,12 @@ from esmicp_lab.bench.merge import cell as _f
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import merge_open3d  # noqa: E402  (a sibling module of this script)
 
-DATASETS = ("bunny", "kitchen", "newer-college", "bunny-off-sensor", "turntable")
+DATASETS = ("bunny", "kitchen", "kitchen-every20", "kitchen-gap", "newer-college", "bunny-off-sensor", "turntable")
+
+#: Frames of the kitchen walk (of every 10th raw frame) between the frames kept by "kitchen-every20".
+EVERY20_STEP = 2
+#: Fraction of the kitchen walk's frames that "kitchen-gap" drops from its middle (30 of 100).
+GAP_FRACTION = 0.3
 
 
 def shared_data() -> Path:
@@ -126,14 +136,25 @@ def turntable(seed: int) -> Dataset:
                        "turntable's frame", names, clouds, truth, "turn000", seed)
 
 
-def kitchen(frames: int, step: int = 1) -> Dataset:
+def kitchen(frames: int, step: int = 1, *, gap: float = 0.0, name: str = "kitchen") -> Dataset:
+    """The first ``frames`` frames of the walk (of every ``step``-th frame), in the walk's order;
+    ``gap``: that fraction of them dropped from the middle (the walk jumps there)."""
     from esmicp_lab.bench.sequences import read_poses
 
     folder = shared_data() / "sequences" / "redkitchen_seq01_every10"
     truth_of = read_poses(folder)
     files = sorted((folder / "frames").glob("frame-*.npy"))[::step][:frames]
+    title = f"redkitchen walk, {len(files)} depth frames"
+    if step > 1:
+        title = f"redkitchen walk, every {10 * step}th frame, {len(files)} depth frames, in order"
+    dropped = int(round(gap * len(files)))
+    if dropped:
+        first = (len(files) - dropped) // 2
+        title = (f"redkitchen walk with a gap, {len(files) - dropped} depth frames in order "
+                 f"({files[first].stem} to {files[first + dropped - 1].stem} dropped)")
+        files = files[:first] + files[first + dropped:]
     names = [f.stem for f in files]
-    data = Dataset("kitchen", f"redkitchen walk, {len(names)} depth frames", names,
+    data = Dataset(name, title, names,
                    [np.load(f).astype(float) for f in files], np.array([truth_of[n] for n in names]), 0, "cm", 100.0,
                    (5.0, 0.20), files=files, ordered=True)
     data.tree = [(k, k + 1) for k in range(len(names) - 1)]
@@ -217,6 +238,8 @@ def run_api(data: Dataset, *, sequence=False, shuffle_seed=None) -> Run:
             status[k] = given_status[position]
     kept = getattr(result, "kept_edges", ())
     note = f"{len(kept)} of {len(result.edges)} edges kept" if hasattr(result, "edges") else ""
+    if getattr(result, "pairs_registered", None):
+        note += f", {result.pairs_registered} registrations"
     return Run(label, poses, seconds, status, note)
 
 
@@ -285,11 +308,16 @@ def methods_for(data: Dataset, args) -> list[tuple[str, callable]]:
     elif data.name == "kitchen":
         out.append(("api", lambda: run_api(data, shuffle_seed=args.seed)))
         out.append(("api-sequence", lambda: run_api(data, sequence=True)))
+    elif data.name.startswith("kitchen"):  # the walk's variants: in order only
+        out.append(("api-sequence", lambda: run_api(data, sequence=True)))
     else:
         out.append(("api", lambda: run_api(data)))
     if not args.skip_peer:
-        if data.name == "kitchen":
-            out.append(("open3d", lambda: run_open3d_walk(data, args.loop_gap, args.loop_stride)))
+        if data.name.startswith("kitchen"):
+            # loop candidates as many raw frames apart on every variant
+            step = EVERY20_STEP if data.name == "kitchen-every20" else 1
+            gap, stride = max(1, args.loop_gap // step), max(1, args.loop_stride // step)
+            out.append(("open3d", lambda: run_open3d_walk(data, gap, stride)))
         else:
             out.append(("open3d", lambda: run_open3d_multiway(data, MULTIWAY_VOXEL[data.name])))
     if not args.skip_pairwise:
@@ -329,6 +357,10 @@ def load(name: str, args) -> Dataset:
         return bunny_off_sensor(args.seed)
     if name == "turntable":
         return turntable(args.seed)
+    if name == "kitchen-every20":
+        return kitchen(args.frames, EVERY20_STEP, name=name)
+    if name == "kitchen-gap":
+        return kitchen(args.frames, gap=GAP_FRACTION, name=name)
     return newer_college()
 
 
@@ -449,8 +481,11 @@ def check_harness(args) -> int:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--datasets", nargs="+", choices=DATASETS, default=["bunny", "kitchen"])
-    parser.add_argument("--frames", type=int, default=100, help="kitchen: the first N frames (default all 100)")
+    parser.add_argument("--datasets", nargs="+", choices=DATASETS,
+                        default=["bunny", "kitchen", "kitchen-every20", "kitchen-gap"])
+    parser.add_argument("--frames", type=int, default=100,
+                        help="kitchen and its variants: the first N frames (default all 100; kitchen-every20 takes "
+                        "every second of them, kitchen-gap drops 30%% from their middle)")
     parser.add_argument("--frame-step", type=int, default=1, help="kitchen: every K-th frame (default 1)")
     parser.add_argument("--bunny-points", type=int, help="bunny: a seeded subset of this many points per scan")
     parser.add_argument("--loop-gap", type=int, default=20,

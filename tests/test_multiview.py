@@ -164,9 +164,11 @@ def _patch(monkeypatch, truth, clouds, **kwargs):
         # (each scan is subsampled twice, for the global searches and for the dense checks)
         # (the first 2 n subsamples; later ones, for the free-space check, are not registered)
         index = {id(c): k % len(truth) for k, c in enumerate(captured["small"][: 2 * len(truth)])}
-        pairs = [(index[id(t)], index[id(s)]) for s, t in jobs]
-        out = []
-        for (s, t), (i, j), result in zip(jobs, pairs, fake(jobs, pairs=pairs)):
+        pairs = [(index.get(id(t)), index.get(id(s))) for s, t in jobs]
+        known = [n for n, pair in enumerate(pairs) if None not in pair]
+        out = ["not a pair of scans"] * len(jobs)  # e.g. a piece of scans fused: no fake for it
+        for n, result in zip(known, fake([jobs[n] for n in known], pairs=[pairs[n] for n in known])):
+            (s, t), (i, j) = jobs[n], pairs[n]
             if isinstance(result, RegistrationResult):
                 for cloud, k in ((t, i), (s, j)):
                     if id(cloud) not in offsets:
@@ -174,7 +176,7 @@ def _patch(monkeypatch, truth, clouds, **kwargs):
                 to_i, from_j = np.eye(4), np.eye(4)
                 to_i[:3, 3], from_j[:3, 3] = -offsets[id(t)], offsets[id(s)]
                 result = replace(result, transformation=to_i @ result.transformation @ from_j)
-            out.append(result)
+            out[n] = result
         return out
 
     real_subsample = scans_module._subsample
@@ -249,6 +251,27 @@ def test_a_reference_left_apart_by_its_first_pairs_still_reaches_the_other_scans
         assert angle < 1e-6 and shift < 1e-6
     # the first round alone leaves scans 3-14 apart: they were placed by pairs across the groups
     assert any(group[e.i] != group[e.j] and e.kept for e in result.edges)
+
+
+@pytest.mark.parametrize("half", [8, 16])
+def test_a_sequence_whose_pieces_do_not_join_stops_and_names_the_piece_apart(monkeypatch, half):
+    """Two pieces of a walk that share no surface: the search across them is bounded whatever the
+    pieces' size (a round's pairs are counted per piece, not per scan), and the result names the
+    piece that stands apart."""
+    n = 2 * half
+    rng = np.random.default_rng(8)
+    truth = _truth(n, rng)
+    clouds = _clouds(truth, rng)
+    overlapping = {(i, j) for i in range(n) for j in range(i + 1, n) if (i < half) == (j < half)}
+    _patch(monkeypatch, truth, clouds, overlapping=overlapping)
+    result = register_scans(clouds, sequence=True, refine_rounds=0, threads=1)
+    assert result.status == ("placed",) * half + ("unplaced",) * half, result.reasons
+    across = [e for e in result.edges if (e.i < half) != (e.j < half)]
+    rounds = 2 * scans_module.EXTRA_ROUNDS  # before and after a free-space veto
+    # the walk's own pairs across the cut (two neighbours each), then per round one piece's pairs
+    assert len(across) <= 3 + rounds * 3 ** 2, len(across)
+    assert any(f"scans {half}-{n - 1} ({half} scans) are joined to each other but not to the placed" in note
+               for note in result.notes), result.notes
 
 
 def test_consensus_tree_outvotes_a_confident_wrong_edge():
@@ -436,24 +459,86 @@ def test_cli_merge_reads_three_column_bin_scans_with_bin_columns(tmp_path, bunny
     assert out.exists()
 
 
-def test_bridging_pairs_join_a_placed_and_an_unplaced_scan_most_alike_first_each_scan_capped():
+def test_bridging_pairs_join_a_piece_to_the_placed_scans_most_alike_first_each_scan_and_piece_capped():
     from esmicp.multiview.pairs import bridging_pairs
 
     rng = np.random.default_rng(6)
-    distances = rng.random((12, 12))
+    distances = rng.random((30, 30))
     distances = distances + distances.T
-    placed, unplaced, tried = [0, 4, 7], [1, 2, 3, 5, 6, 8, 9, 10, 11], {(0, 1), (4, 5)}
-    pairs = bridging_pairs(distances, placed, unplaced, tried, 2)
-    assert len(pairs) == len(set(pairs)) == 2 * len(placed)  # every placed scan used to its cap here
+    placed = [0, 4, 7, 20, 21, 22, 23, 24]
+    pieces = [[1], [2, 3], list(range(8, 20))]  # a single scan, two scans, a piece of twelve
+    tried = {(0, 1), (4, 8)}
+    pairs = bridging_pairs(distances, placed, pieces, tried, 2)
+    assert len(pairs) == len(set(pairs))
     for i, j in pairs:
         assert i < j and (i, j) not in tried
         assert (i in placed) != (j in placed)
-    counts = np.bincount(np.array(pairs).ravel(), minlength=12)
+    counts = np.bincount(np.array(pairs).ravel(), minlength=30)
     assert counts.max() <= 2
+    for piece in pieces:
+        across = [p for p in pairs if set(p) & set(piece)]
+        # a piece costs at most what 2 of its scans asking for 2 pairs each would: not one per scan
+        assert 1 <= len(across) <= 2 * min(len(piece), 2)
     gaps = [distances[i, j] for i, j in pairs]
     assert gaps == sorted(gaps)
-    assert bridging_pairs(distances, [], unplaced, set(), 2) == []
+    assert bridging_pairs(distances, [], pieces, set(), 2) == []
     assert bridging_pairs(distances, placed, [], set(), 2) == []
+
+
+def _walk_twice(count, laps=2):
+    """Extents of a walk going round one loop ``laps`` times: scan k at angle 2 pi k laps / count."""
+    angle = 2 * np.pi * laps * np.arange(count) / count
+    return {k: (np.array([np.cos(a), np.sin(a), 0.0]) * count / (2 * np.pi * laps), 1.0) for k, a in enumerate(angle)}
+
+
+def test_loop_pairs_close_the_longest_bypasses_until_none_is_left():
+    from esmicp.multiview.pairs import _hops, loop_pairs
+
+    n, min_hops = 60, 6
+    extents = _walk_twice(n)
+    walk = [(k, k + 1) for k in range(n - 1)] + [(k, k + 2) for k in range(n - 2)]
+
+    def overlap(a, b):  # scans at the same place of the loop see the same surface
+        return float(np.linalg.norm(extents[a][0] - extents[b][0]) < 1.0)
+
+    loops = loop_pairs(walk, extents, overlap, set(), min_overlap=0.5, min_hops=min_hops, budget=n)
+    assert loops and len(loops) == len(set(loops))
+    assert all(overlap(*pair) == 1.0 and pair[0] < pair[1] for pair in loops)
+    # the walk's own edges make pairs a few frames apart short paths: none of those is a loop
+    assert all(j - i >= min_hops for i, j in loops)
+    # the closures spread over the second lap: with them, every pair that overlaps is joined by a
+    # path shorter than min_hops, so none is left worth a search
+    hops = _hops(n, walk + loops)
+    assert all(hops[i, j] < min_hops for i in range(n) for j in range(i + 1, n) if overlap(i, j) == 1.0)
+    assert len(loops) < n // 4  # far fewer than one per scan
+    # a budget caps them; the first ones are the longest bypasses
+    first = loop_pairs(walk, extents, overlap, set(), min_overlap=0.5, min_hops=min_hops, budget=2)
+    assert first == loops[:2]
+    assert _hops(n, walk)[first[0]] == max(_hops(n, walk)[i, j] for i, j in loops)
+    assert loop_pairs(walk, extents, overlap, set(loops), min_overlap=0.5, min_hops=min_hops, budget=n) != loops
+
+
+def test_closing_pairs_put_each_bridge_on_a_cycle_with_one_pair():
+    from esmicp.multiview.pairs import closing_pairs, hanging_parts
+
+    # a triangle 0-1-2 with a chain 2-3-4-5 hanging from it, and a scan 6 hanging from 0
+    kept = [(0, 1), (1, 2), (0, 2), (2, 3), (3, 4), (4, 5), (0, 6)]
+    parts = hanging_parts(0, kept)
+    assert parts == [{5}, {6}, {4, 5}, {3, 4, 5}]
+    extents = {k: (np.zeros(3), 1.0) for k in range(7)}
+    likely = {(1, 5): 0.9, (1, 4): 0.8, (3, 6): 0.7, (2, 6): 0.6}
+
+    def overlap(a, b):
+        return likely.get((min(a, b), max(a, b)), 0.0)
+
+    pairs = closing_pairs(parts, extents, overlap, set(), min_overlap=0.5, per_part=1)
+    # (1, 5) crosses the three cuts of the chain; 6 gets its own: (3, 6) is the likeliest
+    assert pairs == [(1, 5), (3, 6)]
+    tried = {(1, 5), (3, 6)}
+    # 5 has no other likely partner: the pair across the next cut up puts it on a cycle too
+    assert sorted(closing_pairs(parts, extents, overlap, tried, min_overlap=0.5, per_part=1)) == [(1, 4), (2, 6)]
+    # below the predicted overlap asked for, nothing is worth a search
+    assert closing_pairs(parts, extents, overlap, set(), min_overlap=0.95, per_part=1) == []
 
 
 def _check_progress_contract(calls):

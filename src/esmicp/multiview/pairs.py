@@ -4,9 +4,15 @@
   (:func:`sequence_pairs`).
 * Without: each scan with the scans most similar to it by a cheap shape descriptor
   (:func:`descriptor_distances`, :func:`ranked_partners`).
-* Once poses exist: scans whose placed extents overlap in the world frame (:func:`near_pairs`),
-  for loop closures and to confirm scans that hang on one edge; and pairs that join a scan not
-  yet placed to the placed ones (:func:`bridging_pairs`).
+* Once poses exist, what they predict two scans share (:class:`PredictedOverlap`) chooses the
+  pairs worth a global search: loop closures where they bypass the longest stretch of the graph
+  (:func:`loop_pairs`), and pairs that put an edge on no cycle on one (:func:`closing_pairs`).
+  The prediction only chooses which pairs are searched; the search itself starts from nowhere,
+  so its result is evidence independent of the poses that proposed it.
+* Scans not joined to the reference: each piece of them (:func:`pieces`) with the placed scans
+  most like it (:func:`bridging_pairs`).
+* Scans whose placed extents overlap in the world frame (:func:`near_pairs`), for the free-space
+  check.
 
 Pairs are unordered ``(i, j)`` with ``i < j``; the caller decides which is the target.
 """
@@ -16,6 +22,15 @@ from __future__ import annotations
 from typing import Iterable, Sequence
 
 import numpy as np
+
+#: Points of a scan (evenly strided, at most) whose distances to another posed scan predict the
+#: pair's overlap (:class:`PredictedOverlap`): a rank, not a measurement, needs few.
+PREDICT_POINTS = 300
+
+#: Posed scans nearest in the world (by the centres of their extents) whose overlap with a scan is
+#: predicted when candidates are sought for it (:func:`loop_pairs`, :func:`closing_pairs`):
+#: bounds the work at O(N) predictions a round.
+PREDICT_PARTNERS = 16
 
 
 def descriptor(points: np.ndarray) -> np.ndarray:
@@ -52,30 +67,40 @@ def ranked_partners(distances: np.ndarray) -> list[list[int]]:
     return [[int(j) for j in np.argsort(row, kind="stable") if j != i] for i, row in enumerate(distances)]
 
 
-def bridging_pairs(distances: np.ndarray, placed: Iterable[int], unplaced: Iterable[int], tried: set,
+def bridging_pairs(distances: np.ndarray, placed: Iterable[int], pieces: Iterable[Sequence[int]], tried: set,
                    per_scan: int) -> list[tuple[int, int]]:
-    """Untried pairs of one scan of ``unplaced`` and one of ``placed``, most similar first
-    (``distances`` from :func:`descriptor_distances`), each scan in at most ``per_scan`` of them.
+    """Untried pairs of one scan of a piece not placed (``pieces``: each a list of scans joined
+    to each other, not to the placed ones) and one placed scan, most similar first (``distances``
+    from :func:`descriptor_distances`), each scan in at most ``per_scan`` of them and each piece
+    in at most ``per_scan * min(len(piece), per_scan)``.
 
-    Only such a pair can place a scan that is not placed: one between two unplaced scans joins
-    them to each other, not to the reference. The cap holds on both sides, so the pairs are
-    spread over the scans whichever side is the larger (a few unplaced scans among many placed,
-    or a reference whose few placed scans face all the others): at most
-    ``per_scan * min(len(placed), len(unplaced))`` pairs."""
-    placed, unplaced = sorted(placed), sorted(unplaced)
-    if not placed or not unplaced or per_scan < 1:
+    Only such a pair can place a piece: one between two unplaced scans joins them to each other,
+    not to the reference. One trusted pair places a whole piece, so a piece of many scans that
+    shares no surface with the placed ones costs as many searches a round as one of ``per_scan``
+    scans, not one per scan. The cap holds on both sides, so the pairs are spread over the scans
+    whichever side is the larger (a few unplaced scans among many placed, or a reference whose
+    few placed scans face all the others)."""
+    placed = sorted(placed)
+    pieces = [sorted(piece) for piece in pieces if len(piece)]
+    if not placed or not pieces or per_scan < 1:
         return []
+    unplaced = [k for piece in pieces for k in piece]
+    piece_of = {k: n for n, piece in enumerate(pieces) for k in piece}
     block = distances[np.ix_(unplaced, placed)]
     rows, columns = np.unravel_index(np.argsort(block, axis=None, kind="stable"), block.shape)
     used: dict[int, int] = {}
+    per_piece: dict[int, int] = {}
     out: list[tuple[int, int]] = []
     for row, column in zip(rows, columns):
         i, j = unplaced[row], placed[column]
+        piece = piece_of[i]
         pair = (min(i, j), max(i, j))
-        if pair in tried or used.get(i, 0) >= per_scan or used.get(j, 0) >= per_scan:
+        if (pair in tried or used.get(i, 0) >= per_scan or used.get(j, 0) >= per_scan
+                or per_piece.get(piece, 0) >= per_scan * min(len(pieces[piece]), per_scan)):
             continue
         out.append(pair)
         used[i], used[j] = used.get(i, 0) + 1, used.get(j, 0) + 1
+        per_piece[piece] = per_piece.get(piece, 0) + 1
     return out
 
 
@@ -124,3 +149,211 @@ def near_pairs(scans: Iterable[int], extents: dict[int, tuple[np.ndarray, float]
             if chosen >= per_scan:
                 break
     return out
+
+
+class PredictedOverlap:
+    """What the poses predict two posed scans share: the fraction of one scan's points (at most
+    :data:`PREDICT_POINTS`, evenly strided) lying within ``radius`` (cloud units) of the other's
+    where ``poses`` (``T_world_scan``) put them, the smaller of the two ways (0-1).
+
+    Only ranks candidate pairs: a wrong pose predicts the wrong pairs, which then cost a global
+    search each and are judged by it. One KD-tree per scan asked about, built once."""
+
+    def __init__(self, poses: dict[int, np.ndarray], clouds: Sequence[np.ndarray], radius: float):
+        self.poses, self.clouds, self.radius = poses, clouds, float(radius)
+        self._trees: dict = {}
+        self._queried: dict[int, np.ndarray] = {}
+        self._known: dict[tuple[int, int], float] = {}
+
+    def _world(self, k: int) -> np.ndarray:
+        T = self.poses[k]
+        return self.clouds[k] @ T[:3, :3].T + T[:3, 3]
+
+    def _tree(self, k: int):
+        if k not in self._trees:
+            from scipy.spatial import cKDTree
+
+            world = self._world(k)
+            self._trees[k] = cKDTree(world)
+            stride = max(1, len(world) // PREDICT_POINTS)
+            self._queried[k] = world[::stride]
+        return self._trees[k]
+
+    def _fraction(self, a: int, b: int) -> float:
+        self._tree(a)
+        distances, _ = self._tree(b).query(self._queried[a], distance_upper_bound=self.radius)
+        return float(np.isfinite(distances).mean())
+
+    def __call__(self, a: int, b: int) -> float:
+        key = (min(a, b), max(a, b))
+        if key not in self._known:
+            self._known[key] = min(self._fraction(a, b), self._fraction(b, a))
+        return self._known[key]
+
+
+def nearest_posed(scans: Iterable[int], extents: dict[int, tuple[np.ndarray, float]], allowed,
+                  count: int) -> dict[int, list[int]]:
+    """For each of ``scans``, up to ``count`` posed scans for which ``allowed(scan, other)`` holds
+    and whose extents overlap its own, nearest centre first."""
+    keys = sorted(extents)
+    if not keys:
+        return {}
+    centres = np.array([extents[k][0] for k in keys])
+    radii = np.array([extents[k][1] for k in keys])
+    out: dict[int, list[int]] = {}
+    for i in scans:
+        if i not in extents:
+            continue
+        centre, radius = extents[i]
+        distance = np.linalg.norm(centres - centre, axis=1)
+        chosen = out.setdefault(i, [])
+        for slot in np.argsort(distance, kind="stable"):
+            if distance[slot] >= radius + radii[slot]:
+                break
+            j = keys[slot]
+            if j != i and allowed(i, j):
+                chosen.append(j)
+                if len(chosen) >= count:
+                    break
+    return out
+
+
+def loop_pairs(edges: Iterable[tuple[int, int]], extents: dict[int, tuple[np.ndarray, float]],
+               overlap, tried: set, *, min_overlap: float, min_hops: int, budget: int) -> list[tuple[int, int]]:
+    """Loop-closure candidates among the posed scans (``extents``): untried pairs the poses
+    predict to share at least ``min_overlap`` (``overlap(a, b)``, e.g. :class:`PredictedOverlap`),
+    chosen one after the other where the graph of ``edges`` (and of the pairs chosen before) joins
+    the two scans by the longest path (in edges), as long as that is at least ``min_hops``; at
+    most ``budget``.
+
+    A loop closure corrects the drift that accumulates along the path it bypasses, so the longest
+    bypass comes first, and once a pair is chosen the pairs next to it are short bypasses: the
+    closures spread over the loops of a walk instead of piling up where frames overlap most."""
+    posed = sorted(extents)
+    if budget < 1 or len(posed) < 2:
+        return []
+    slot = {k: n for n, k in enumerate(posed)}
+    hops = _hops(len(posed), [(slot[a], slot[b]) for a, b in edges if a in slot and b in slot])
+
+    def allowed(i, j):
+        return i < j and (i, j) not in tried and hops[slot[i], slot[j]] >= min_hops
+
+    near = nearest_posed(posed, extents, lambda i, j: allowed(min(i, j), max(i, j)), PREDICT_PARTNERS)
+    candidates = sorted({(min(i, j), max(i, j)) for i, others in near.items() for j in others})
+    candidates = [(i, j) for i, j in candidates if overlap(i, j) >= min_overlap]
+    out: list[tuple[int, int]] = []
+    while candidates and len(out) < budget:
+        best = max(candidates, key=lambda p: (hops[slot[p[0]], slot[p[1]]], overlap(*p), -p[0], -p[1]))
+        a, b = slot[best[0]], slot[best[1]]
+        if hops[a, b] < min_hops:
+            break
+        out.append(best)
+        candidates.remove(best)
+        # the chosen pair is an edge now: every path may take it
+        hops = np.minimum(hops, np.minimum(hops[:, a, None] + 1 + hops[None, b, :], hops[:, b, None] + 1 + hops[None, a, :]))
+    return out
+
+
+def _hops(count: int, edges: list[tuple[int, int]]) -> np.ndarray:
+    """``(count, count)`` lengths (in edges) of the shortest paths; a large number where none."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    if not edges:
+        out = np.full((count, count), float(count + 1))
+        np.fill_diagonal(out, 0.0)
+        return out
+    rows, cols = np.array(edges).T
+    graph = csr_matrix((np.ones(len(edges)), (rows, cols)), shape=(count, count))
+    out = shortest_path(graph, directed=False, unweighted=True)
+    out[~np.isfinite(out)] = count + 1
+    return out
+
+
+def two_edge_core(reference: int, pairs: Iterable[tuple[int, int]]) -> set[int]:
+    """The scans joined to ``reference`` by two paths of ``pairs`` with no pair in common (its
+    2-edge-connected component; ``{reference}`` alone when it has none)."""
+    from .verdict import bridges
+
+    pairs = [(min(a, b), max(a, b)) for a, b in pairs]
+    cut = bridges(pairs)
+    adjacency: dict[int, list[int]] = {}
+    for a, b in pairs:
+        if (a, b) not in cut:
+            adjacency.setdefault(a, []).append(b)
+            adjacency.setdefault(b, []).append(a)
+    seen, stack = {reference}, [reference]
+    while stack:
+        for other in adjacency.get(stack.pop(), []):
+            if other not in seen:
+                seen.add(other)
+                stack.append(other)
+    return seen
+
+
+def hanging_parts(reference: int, kept: Iterable[tuple[int, int]]) -> list[set[int]]:
+    """For every edge on no cycle of the graph ``kept`` (a bridge), the scans it alone joins to
+    ``reference``: one set per bridge, smallest first (a part hanging from another comes first)."""
+    from .verdict import bridges
+
+    kept = [(min(a, b), max(a, b)) for a, b in kept]
+    adjacency: dict[int, list[int]] = {}
+    for a, b in kept:
+        adjacency.setdefault(a, []).append(b)
+        adjacency.setdefault(b, []).append(a)
+    parts = []
+    for cut in sorted(bridges(kept)):
+        seen, stack = {reference}, [reference]
+        while stack:
+            node = stack.pop()
+            for other in adjacency.get(node, []):
+                if other not in seen and (min(node, other), max(node, other)) != cut:
+                    seen.add(other)
+                    stack.append(other)
+        part = {k for k in adjacency if k not in seen}
+        if part:
+            parts.append(part)
+    return sorted(parts, key=lambda part: (len(part), min(part)))
+
+
+def closing_pairs(parts: list[set[int]], extents: dict[int, tuple[np.ndarray, float]], overlap, tried: set, *,
+                  min_overlap: float, per_part: int) -> list[tuple[int, int]]:
+    """Pairs that would put bridges on a cycle: for each set of ``parts`` (scans joined to the rest
+    of the posed scans, ``extents``, by one edge only; smallest first) not yet crossed by a pair
+    chosen before, up to ``per_part`` untried pairs of one of its scans and a posed scan outside it,
+    the largest predicted overlap first (``overlap(a, b)``, at least ``min_overlap``).
+
+    A scan hanging on one edge is confirmed by any second path to the reference, so one pair across
+    each cut is what is needed, not one per scan: a pair chosen for a part also crosses every cut
+    between its two scans, and the parts it crosses get none of their own."""
+    out: list[tuple[int, int]] = []
+    for part in parts:
+        if any((i in part) != (j in part) for i, j in out):
+            continue
+        near = nearest_posed(sorted(part), extents, lambda i, j: j not in part
+                              and (min(i, j), max(i, j)) not in tried, PREDICT_PARTNERS)
+        scored = sorted({(min(i, j), max(i, j)) for i, others in near.items() for j in others},
+                        key=lambda p: (-overlap(*p), p))
+        out.extend([p for p in scored if overlap(*p) >= min_overlap and p not in out][:per_part])
+    return out
+
+
+def pieces(scans: Iterable[int], joined: Iterable[tuple[int, int]]) -> list[list[int]]:
+    """The connected pieces of ``scans`` under the pairs ``joined`` (pairs with a scan outside
+    ``scans`` are ignored), each sorted, in order of their first scan."""
+    scans = sorted(set(scans))
+    parent = {k: k for k in scans}
+
+    def root(k):
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for a, b in joined:
+        if a in parent and b in parent:
+            parent[root(a)] = root(b)
+    out: dict[int, list[int]] = {}
+    for k in scans:
+        out.setdefault(root(k), []).append(k)
+    return sorted(out.values())

@@ -8,7 +8,8 @@
    only by that motion (but the free-space premise, step 5, which is about the frames' origins).
 1. Pairwise, O(N) pairs: with the capture order (``sequence=True``), each scan with its next
    ``sequence_neighbours`` scans, refined locally from the identity (the pairs it leaves
-   untrusted searched globally); without, each scan with its
+   untrusted searched globally where the walk needs them: where the trusted ones leave a scan on
+   no cycle through the reference); without, each scan with its
    ``partners`` most similar scans by a cheap shape descriptor (:mod:`esmicp.multiview.pairs`),
    searched globally by :func:`esmicp.register`. Every pair is then refined locally on denser
    subsets and judged there.
@@ -18,14 +19,18 @@
    robust least-squares refines them (each edge whitened by its 6x6 information matrix when the
    result carries one, else weighted by its confidence), and edges that disagree with the poses are
    rejected as cycle inconsistent.
-3. More pairs only where a scan is not yet confirmed (not on a cycle of agreeing edges): a placed
-   scan with the placed scans whose extents overlap it in the world frame, an unplaced one with
-   its next most similar scans; then the graph is solved again (at most ``EXTRA_ROUNDS``
-   times). With a sequence, placed scans close in the world but far apart in the order are
-   paired first (loop closures). These pairs are chosen from the graph's poses but searched
-   globally, never refined from those poses: a refinement started at a wrong pose can settle
-   next to it and confirm it (measured on the kitchen walk: a scan 90 degrees off "confirmed" by
-   a refinement from its own wrong pose).
+3. With a sequence, loop closures: pairs of placed scans the graph's poses predict to overlap
+   (:class:`esmicp.multiview.pairs.PredictedOverlap`), those the graph joins by the longest path
+   first (the drift a closure corrects grows with the path it bypasses), at most
+   ``LOOP_SEARCHES_PER_SCAN`` per scan. Then, with or without, more pairs only where a scan is not
+   yet confirmed (not on a cycle of agreeing edges): across each edge on no cycle, the pair the
+   poses predict to overlap most; for each piece of scans not placed, the pairs its pose as a
+   whole proposes (the piece fused and searched against the placed scans fused), else those most
+   like its scans; then the graph is solved again (at most ``EXTRA_ROUNDS`` times). These pairs
+   are chosen from poses but searched globally, never refined from those poses: a refinement
+   started at a wrong pose can settle next to it and confirm it (measured on the kitchen walk: a
+   scan 90 degrees off "confirmed" by a refinement from its own wrong pose), and a wrong proposal
+   only costs the searches it asked for.
 4. Joint refinement: all placed scans against each other (multi-view point-to-plane over the
    kept edges, a few rounds with a shrinking correspondence distance).
 5. A free-space check (:mod:`esmicp.trust.free_space`) between scans that are range images
@@ -52,6 +57,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..api import STRIDED_TOLERANCE
 from ..batch import register_many
 from ..core.features import estimate_normals, voxel_grid
 from ..core.procrustes import skew
@@ -66,10 +72,36 @@ from .verdict import cut_off, scan_verdicts
 logger = logging.getLogger(__name__)
 
 #: Rounds in which the pose graph asks for more pairs where a scan is not yet confirmed (each
-#: round: up to ``partners`` pairs per such scan, with its posed neighbours when it is placed and
-#: with the placed scans most like it when not; then the graph solved again). Bounds the work on
-#: scans that can never be confirmed (another object, a scan at the end of a chain).
-EXTRA_ROUNDS = 3
+#: round: one pair across each edge on no cycle, :data:`CLOSING_PAIRS`; for each piece of
+#: unplaced scans, up to ``partners`` pairs its pose as a whole proposes, else up to
+#: ``partners * min(len(piece), partners)`` with the placed scans most like it; then the graph
+#: solved again). Bounds the work on scans that can never be confirmed (another object, a piece
+#: that shares no surface with the others). Chosen on the bunny's 10 scans: with ``partners=2``,
+#: 8 placed and 2 doubtful after 3 rounds, all 10 placed after 4.
+EXTRA_ROUNDS = 5
+
+#: Pairs searched a round for each set of posed scans joined to the reference by one edge only
+#: (:func:`esmicp.multiview.pairs.closing_pairs`): the pair the poses predict to overlap most
+#: across that edge. One trusted pair puts the edge on a cycle.
+CLOSING_PAIRS = 1
+
+#: What the poses predict two posed scans share (:class:`esmicp.multiview.pairs.PredictedOverlap`)
+#: is measured within this many median inlier distances of the kept edges: the sparse subsets'
+#: spacing and the graph's error before the joint refinement.
+PREDICT_RADIUS_INLIERS = 3.0
+
+#: Below this predicted overlap a pair is not worth a global search to close a cycle or a loop.
+MIN_PREDICTED_OVERLAP = 0.3
+
+#: With ``sequence``: a loop closure is searched only where the graph joins the two scans by a
+#: path of at least this many edges (the drift it can correct grows with the path it bypasses) ...
+LOOP_MIN_HOPS = 6
+
+#: ... and at most this many loop closures per scan are searched, the longest bypasses first.
+#: Chosen on the kitchen walk in order (100 frames; ATE 4.56 cm with the 12 this allows, 4.58 with
+#: 25, 5.28 with one nearest-in-the-world closure per scan; 9 closures at ``LOOP_MIN_HOPS`` 10:
+#: 4.70), confirmed on every 20th frame of it.
+LOOP_SEARCHES_PER_SCAN = 0.125
 
 #: Iterations of the local check of a pair on the dense subsets (unless ``max_iterations`` is
 #: passed to :func:`register_scans`): it starts at a converged pose, and a wrong pose refined
@@ -77,6 +109,15 @@ EXTRA_ROUNDS = 3
 #: iterations with the same confidence at 30; a wrong pair ran 68 iterations and a second try
 #: (6.7 s against 1.8 s capped, confidence 0.10 either way).
 CHECK_ITERATIONS = 30
+
+#: ... and it stops once an increment rotates less than this (radians; translates less than this
+#: times the target's bounding-box diagonal): the tolerance at which the library's own refinement
+#: stops after a global search (:data:`esmicp.api.STRIDED_TOLERANCE`), where the default 1e-8
+#: runs every check to its cap. Measured on the bunny's 9 neighbouring pairs (global searches):
+#: the same trust, median / worst error 0.30 / 0.95 deg against 0.30 / 0.94 at 1e-8, in 0.76x the
+#: time (22 iterations on average instead of 29); confirmed on 30 kitchen pairs 1 and 2 frames
+#: apart (from the identity): the same trust and errors (within 0.01 deg / 0.02 cm), 0.74x the time.
+CHECK_TOLERANCE = STRIDED_TOLERANCE
 
 #: The joint refinement's last correspondence distance, in point spacings of the dense subsets
 #: (its first is 3 median inlier distances of the kept edges). Chosen on the bunny's 10 raw scans
@@ -371,6 +412,15 @@ class _Pairwise:
         self.done += len(jobs)
         return outcomes
 
+    def place_pieces(self, jobs, stage: str) -> list:
+        """Global searches of ``jobs`` (``(source cloud, target cloud)``: a piece's fused scans onto
+        the placed scans'); one progress ``stage``, counted among the registrations run."""
+        self.stages.open(stage, len(jobs))
+        outcomes = register_many(jobs, progress=lambda done, _: self.stages.advance(done), **self.run_options)
+        self.stages.close()
+        self.done += len(jobs)
+        return outcomes
+
     def run(self, requests, stage: str = "pairs") -> list[Edge]:
         """Register ``requests`` (``(a, b, T_a_b or None)``: None for a global search) and record
         their edges; returns the new edges. One progress ``stage`` of two registrations a pair
@@ -390,7 +440,8 @@ class _Pairwise:
         # the check on the dense subsets starts at a converged pose: capped
         group = [n for n in range(len(requests)) if n not in outcomes]
         checked = self._register(self.dense, [oriented[n] for n in group], [found[n].transformation for n in group],
-                                 2 * len(requests) - len(group), max_iterations=CHECK_ITERATIONS)
+                                 2 * len(requests) - len(group), max_iterations=CHECK_ITERATIONS,
+                                 tolerance=CHECK_TOLERANCE)
         self.stages.close()
         for n, check in zip(group, checked):
             if hasattr(check, "transformation"):
@@ -544,6 +595,133 @@ def _unconfirmed(n, reference, poses, edges) -> list[int]:
     return [k for k, v in enumerate(verdicts) if k != reference and not (v.status == "placed" and v.reasons[0].startswith("confirmed"))]
 
 
+def _predicted_overlap(poses, small, edges) -> candidates.PredictedOverlap:
+    """What ``poses`` predict pairs of posed scans share, on the sparse subsets, within
+    :data:`PREDICT_RADIUS_INLIERS` median inlier distances of the kept edges."""
+    distances = [e.inlier_distance for e in edges if e.kept and np.isfinite(e.inlier_distance)]
+    scale = float(np.median(distances)) if distances else float("inf")
+    return candidates.PredictedOverlap(poses, small, PREDICT_RADIUS_INLIERS * scale)
+
+
+def _closing(reference, poses, edges, small, unconfirmed, tried) -> list[tuple[int, int]]:
+    """Pairs to search for the posed scans in ``unconfirmed``: across each edge on no cycle of the
+    kept graph (:func:`candidates.hanging_parts`), and for each scan contradicted in the
+    reference's 2-edge-connected core, the pairs the poses predict to overlap most
+    (:func:`candidates.closing_pairs`)."""
+    if not unconfirmed:
+        return []
+    kept = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
+    parts = candidates.hanging_parts(reference, kept)
+    hanging = set().union(*parts)
+    parts += [{k} for k in unconfirmed if k not in hanging]  # in the core, but contradicted
+    return candidates.closing_pairs(parts, candidates.world_extents(poses, small),
+                                    _predicted_overlap(poses, small, edges), tried,
+                                    min_overlap=MIN_PREDICTED_OVERLAP, per_part=CLOSING_PAIRS)
+
+
+class _Pieces:
+    """Pairs that may join pieces of unplaced scans to the placed ones.
+
+    The poses cannot say which scans of a piece (scans joined to each other by trusted edges, or a
+    single scan) overlap which placed scans, but the piece as a whole can be placed: its scans
+    fused at their poses within the piece, searched globally against the placed scans fused at
+    theirs (one registration per piece each time the placed scans change). That pose predicts the
+    pairs across (:class:`candidates.PredictedOverlap`), and only those pairs are searched, each
+    globally: the piece's pose chooses the pairs and is never an edge or a start, so a wrong one
+    only costs the searches it proposed. A piece whose pose predicts no pair, or whose proposed
+    pairs placed nothing, gets the placed scans most like its own by the shape descriptor instead
+    (:func:`candidates.bridging_pairs`, ``partners * min(len(piece), partners)`` pairs a round)."""
+
+    def __init__(self, pairwise: "_Pairwise", small, pair_points: int, partners: int, max_edge_error_deg: float):
+        self.pairwise, self.small, self.pair_points = pairwise, small, pair_points
+        self.partners, self.max_edge_error_deg = partners, max_edge_error_deg
+        self.placed_at: dict[frozenset, frozenset] = {}  # piece -> the placed scans it was last searched against
+        self.unlike = None  # the descriptors' distances, once asked for
+
+    def _fused(self, poses: dict) -> np.ndarray:
+        points = np.concatenate([self.small[k] @ T[:3, :3].T + T[:3, 3] for k, T in sorted(poses.items())])
+        return _subsample(points, self.pair_points)
+
+    def _within(self, piece, vetoed) -> dict:
+        """The piece's own poses (its first scan's frame) from its trusted edges."""
+        if len(piece) == 1:
+            return {piece[0]: np.eye(4)}
+        inside = set(piece)
+        own = [e for e in self.pairwise.edges.values() if e.i in inside and e.j in inside]
+        return _solve(own, piece[0], self.max_edge_error_deg, vetoed)[0]
+
+    def pairs(self, pieces, poses, edges, vetoed, stage: str) -> list[tuple[int, int]]:
+        placed = frozenset(poses)
+        fresh = [piece for piece in pieces if self.placed_at.get(frozenset(piece)) != placed]
+        proposed: dict[int, np.ndarray] = {}
+        if fresh:
+            within = [self._within(piece, vetoed) for piece in fresh]
+            target = self._fused(poses)
+            found = self.pairwise.place_pieces([(self._fused(own), target) for own in within], stage)
+            for piece, own, outcome in zip(fresh, within, found):
+                self.placed_at[frozenset(piece)] = placed
+                T = getattr(outcome, "transformation", None)
+                if T is not None and np.isfinite(T).all():
+                    proposed.update({k: T @ P for k, P in own.items()})
+        everything = {**poses, **proposed}
+        overlap = _predicted_overlap(everything, self.small, edges)
+        extents = candidates.world_extents(everything, self.small)
+        tried = self.pairwise.tried
+        out, blind = [], []
+        for piece in pieces:
+            near = candidates.nearest_posed(
+                [k for k in piece if k in proposed], extents,
+                lambda i, j: j in poses and (min(i, j), max(i, j)) not in tried, candidates.PREDICT_PARTNERS)
+            scored = sorted(((overlap(i, j), i, j) for i, others in near.items() for j in others), reverse=True)
+            per_scan = -(-self.partners // len(piece))
+            used: dict[int, int] = {}
+            chosen = []
+            for value, i, j in scored:
+                if value < MIN_PREDICTED_OVERLAP or len(chosen) >= self.partners:
+                    break
+                if used.get(i, 0) < per_scan and used.get(j, 0) < 1:
+                    chosen.append((min(i, j), max(i, j)))
+                    used[i], used[j] = used.get(i, 0) + 1, 1
+            out.extend(chosen)
+            if not chosen:  # no pose for the piece, or its proposals were searched last round
+                blind.append(piece)
+        if blind:
+            if self.unlike is None:
+                self.unlike = candidates.descriptor_distances(self.small)
+            asked = set(out)
+            out.extend(p for p in candidates.bridging_pairs(self.unlike, poses, blind, tried, self.partners)
+                       if p not in asked)
+        return out
+
+
+def _apart(n, poses, edges) -> tuple[str, ...]:
+    """One note per piece of two or more unplaced scans joined to each other by trusted edges but
+    not to the reference: which scans stand apart together, and how many pairs across were tried."""
+    unplaced = [k for k in range(n) if k not in poses]
+    joined = [(e.i, e.j) for e in edges if e.trusted and not e.reason.startswith(("cycle", "free-space"))]
+    out = []
+    for piece in candidates.pieces(unplaced, joined):
+        if len(piece) < 2:
+            continue
+        inside = set(piece)
+        across = [e for e in edges if (e.i in inside) != (e.j in inside) and (e.i in poses or e.j in poses)]
+        out.append(f"scans {_ranges(piece)} ({len(piece)} scans) are joined to each other but not to the placed "
+                   f"scans: {len(across)} pair(s) across were searched, none trusted and agreeing")
+    return tuple(out)
+
+
+def _ranges(scans: list[int]) -> str:
+    """``[0, 1, 2, 5, 7, 8]`` -> ``"0-2, 5, 7-8"``."""
+    out, first = [], None
+    for n, k in enumerate(scans):
+        if first is None:
+            first = k
+        if n + 1 == len(scans) or scans[n + 1] != k + 1:
+            out.append(f"{first}-{k}" if k > first else f"{k}")
+            first = None
+    return ", ".join(out)
+
+
 def register_scans(
     clouds,
     *,
@@ -551,7 +729,7 @@ def register_scans(
     sequence: bool = False,
     pair_points: int = 1500,
     refine_points: int = 8000,
-    partners: int = 3,
+    partners: int = 2,
     sequence_neighbours: int = 2,
     max_edge_error_deg: float = 2.0,
     refine_rounds: int = 6,
@@ -581,10 +759,11 @@ def register_scans(
         refinement; at least 3 (:data:`esmicp.types.MIN_POINTS`, what a registration needs).
     partners : int
         Without ``sequence``: each scan is first registered with its ``partners`` most similar
-        scans (a shape descriptor). Then, each round, a placed scan not yet confirmed (on no cycle
-        of agreeing edges) gets up to ``partners`` more pairs with its posed neighbours, and the
-        scans not placed get pairs with the placed scans most similar to them, each scan in at
-        most ``partners`` of those.
+        scans (a shape descriptor). Then, each round, each piece of scans not placed (scans joined
+        to each other, or one scan) gets up to ``partners`` pairs with the placed scans: those its
+        pose as a whole predicts to overlap, else those most like its scans, each scan in at most
+        ``partners``. (Scans placed but not yet confirmed get one pair across each edge on no
+        cycle, whatever ``partners``.)
     sequence_neighbours : int
         With ``sequence``: each scan with the next this many scans (2 gives triangles, so every
         scan can be confirmed around a cycle).
@@ -609,7 +788,9 @@ def register_scans(
         ``progress(stage, done, total)``, called in this thread as the merge goes through its
         stages, one after the other: ``"pairs"`` (with ``sequence``, then ``"pairs (global
         retry)"`` and ``"pairs (loop closures)"``), ``"more pairs (round r)"`` each time the graph
-        asks for more, ``"pose graph"`` whenever the graph is solved, ``"joint refinement"`` and
+        asks for more (preceded by ``"piece pairs (round r)"`` when pieces of unplaced scans are
+        placed as a whole to propose their pairs, one registration per piece), ``"pose graph"``
+        whenever the graph is solved, ``"joint refinement"`` and
         ``"free-space check"``. Each stage opens with ``done == 0`` and its ``total``, which stays
         fixed; ``done`` never decreases, and the stage closes with ``done == total`` before the
         next opens. A pairs stage counts registrations, two per pair (the search and its check);
@@ -626,22 +807,29 @@ def register_scans(
 
     Notes
     -----
-    Work: without ``sequence``, about ``N * partners`` global searches, each followed by a local
-    check on the dense subsets, plus up to ``partners`` per scan not yet confirmed in each of
-    ``EXTRA_ROUNDS`` rounds; with it, about ``N * sequence_neighbours`` local refinements (a global
-    search for each they leave untrusted) plus one loop-closure candidate per scan.
+    Work: without ``sequence``, about ``N * partners * 0.7`` global searches (the union of every
+    scan's ``partners`` most similar), each followed by a local check on the dense subsets; then in
+    each of at most ``EXTRA_ROUNDS`` rounds one per edge on no cycle, and per piece of unplaced
+    scans one registration of the piece as a whole and up to ``partners`` pairs (``partners *
+    min(len(piece), partners)`` when its pose proposes none). With ``sequence``, about
+    ``N * sequence_neighbours`` local refinements (a global search for those they leave untrusted
+    where the walk needs them), at most ``N * LOOP_SEARCHES_PER_SCAN`` loop closures, then the
+    same rounds.
 
     Memory, for 1,000 scans of 20,000 points (the input clouds, 480 MB as float64, stay the
     caller's): per scan, the sparse subset (``pair_points`` x 24 bytes: 36 KB) and the dense one
     (``refine_points`` x 24 bytes: 192 KB), its normals (192 KB) and, in the joint refinement, a
     compiled KD-tree over it (about 320 KB): about 0.75 MB a scan, 0.75 GB for 1,000 at the
     defaults (linear in ``refine_points``). Per kept edge, the refinement's last neighbours
-    (2 x :data:`esmicp.multiview.refine.QUERY_POINTS` x 8 bytes: 32 KB; about 0.1 GB for 3,000
+    (2 x :data:`esmicp.multiview.refine.QUERY_POINTS` x 8 bytes: 16 KB; about 0.05 GB for 3,000
     edges); the pose graph's sparse Jacobian (72 numbers per edge and residual block, a few MB
     for 5,000 edges) and the refinement's block-sparse normal matrix (two 6x6 blocks per kept
     edge). The free-space check holds, per posed scan, a 4,000-point subset and a KD-tree of its
-    directions (about 0.25 MB; 0.25 GB for 1,000 scans). The only N x N array is the descriptors'
-    distances (8 MB for 1,000 scans). Each
+    directions (about 0.25 MB; 0.25 GB for 1,000 scans). Choosing pairs from poses holds, per posed
+    scan asked about, its sparse subset in the world frame and a KD-tree over it (about 0.1 MB;
+    0.1 GB for 1,000 scans, while the pairs are chosen). The N x N arrays are the descriptors'
+    distances (8 MB for 1,000 scans) and, with ``sequence``, the graph's path lengths while the
+    loop closures are chosen (8 MB, and as much again for each update). Each
     registration running at once holds its own pair's working set besides. Measured
     (``benchmarks/merge_scale.py``: 1,000 scans of 8,000 points, 2,997 edges): peak memory 1.15
     GB; consensus tree, pose graph and joint refinement 1.7 s, 6 s and 136 s on 2 cores.
@@ -698,15 +886,18 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, pair_poin
     stages = _Stages(progress)
     pairwise = _Pairwise(small, dense, keys, sequence, run_options, stages)
 
-    unlike = None  # the scans' descriptor distances (candidates.descriptor_distances), when asked for
+    pieces = _Pieces(pairwise, small, pair_points, partners, max_edge_error_deg)
     if sequence:
         # from the identity in the frames given: a shift between the centroid frames
         pairwise.run([(i, j, _shift(centres[j] - centres[i])) for i, j in candidates.sequence_pairs(n, sequence_neighbours)])
-        retry = [(e.i, e.j, None) for e in pairwise.edges.values() if not e.trusted]
-        pairwise.run(retry, "pairs (global retry)")  # a pair the identity start did not bring to trust: globally
+        # a pair the identity start did not bring to trust is searched globally where the walk
+        # needs it: where the trusted pairs leave one of its scans off every cycle through the reference
+        core = candidates.two_edge_core(reference, [(e.i, e.j) for e in pairwise.edges.values() if e.trusted])
+        retry = [(e.i, e.j, None) for e in pairwise.edges.values() if not e.trusted and not {e.i, e.j} <= core]
+        pairwise.run(retry, "pairs (global retry)")
     elif n > 1:
-        unlike = candidates.descriptor_distances(small)
-        ranked = candidates.ranked_partners(unlike)
+        pieces.unlike = candidates.descriptor_distances(small)
+        ranked = candidates.ranked_partners(pieces.unlike)
         first = {(min(i, j), max(i, j)) for i in range(n) for j in ranked[i][:partners]}
         pairwise.run([(i, j, None) for i, j in sorted(first)])
     vetoed: dict[tuple[int, int], str] = {}  # edges cut by a free-space conflict -> why
@@ -721,28 +912,24 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, pair_poin
     poses, edges = solve()
     if sequence and n > sequence_neighbours + 1:
         extents = candidates.world_extents(poses, small)
-        loops = candidates.near_pairs(sorted(poses), extents, pairwise.tried, 1, min_gap=sequence_neighbours + 1)
+        kept = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
+        loops = candidates.loop_pairs(kept, extents, _predicted_overlap(poses, small, edges), pairwise.tried,
+                                      min_overlap=MIN_PREDICTED_OVERLAP, min_hops=LOOP_MIN_HOPS,
+                                      budget=int(np.ceil(LOOP_SEARCHES_PER_SCAN * n)))
         pairwise.run([(i, j, None) for i, j in loops], "pairs (loop closures)")
         poses, edges = solve()
     rounds = 1  # rounds of pairs, for the progress stages' names
     for attempt in range(2):
         for _ in range(EXTRA_ROUNDS if n > 1 else 0):  # more pairs only where a scan is not yet confirmed
-            extents = candidates.world_extents(poses, small)
-            wanted: list[tuple[int, int]] = []
             unconfirmed = _unconfirmed(n, reference, poses, edges)
-            for k in unconfirmed:
-                if k in poses:
-                    # placed: its posed neighbours, each scan's choice against the pairs tried so
-                    # far only, so that the union does not depend on the input order
-                    near = candidates.near_pairs([k], extents, pairwise.tried, partners)
-                    wanted.extend(p for p in near if p not in wanted)
+            wanted = _closing(reference, poses, edges, small, [k for k in unconfirmed if k in poses],
+                              pairwise.tried)
             unplaced = [k for k in unconfirmed if k not in poses]
-            if unplaced:  # not placed at all: pairs with the placed scans most like them
-                if unlike is None:
-                    unlike = candidates.descriptor_distances(small)
-                bridges = candidates.bridging_pairs(unlike, poses, unplaced, pairwise.tried, partners)
+            if unplaced:  # not placed at all: each piece of them placed as a whole proposes its pairs
+                joined = [(e.i, e.j) for e in edges if e.trusted and not e.reason.startswith(("cycle", "free-space"))]
                 asked = set(wanted)
-                wanted.extend(p for p in bridges if p not in asked)
+                wanted.extend(p for p in pieces.pairs(candidates.pieces(unplaced, joined), poses, edges, vetoed,
+                                                      f"piece pairs (round {rounds + 1})") if p not in asked)
             if not wanted:
                 break
             rounds += 1
@@ -781,8 +968,8 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, pair_poin
     edges = [replace(e, T_i_j=_shift(centres[e.i]) @ e.T_i_j @ _shift(-centres[e.j]),
                      information=_information_moved(e.information, centres[e.i])) for e in edges]
     status = tuple(v.status for v in verdicts)
-    notes = tuple(f"scan {k}: {v.status}: {'; '.join(v.reasons)}" for k, v in enumerate(verdicts)
-                  if v.status != "placed")
+    notes = _apart(n, poses, edges) + tuple(f"scan {k}: {v.status}: {'; '.join(v.reasons)}"
+                                            for k, v in enumerate(verdicts) if v.status != "placed")
     return MultiRegistrationResult(
         all_poses, reference, tuple(s == "placed" for s in status),
         tuple(k for k in range(n) if status[k] == "unplaced"), tuple(edges), 0.0,
