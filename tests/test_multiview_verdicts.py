@@ -80,7 +80,7 @@ def test_a_scan_confirmed_around_a_cycle_says_so(monkeypatch):
     truth = _truth(4, rng)
     clouds = _clouds(truth, rng)
     _patch(monkeypatch, truth, clouds)
-    result = register_scans(clouds, refine_rounds=0, threads=1)
+    result = register_scans(clouds, refine_rounds=0, threads=1, partners=3)  # every pair
     assert result.status == ("placed",) * 4 and result.all_placed
     assert all(r[0].startswith("confirmed") for r in result.reasons[1:])
     assert result.edges_kept == (3, 3, 3, 3)
