@@ -121,9 +121,11 @@ def refuse_in_a_starting_worker(what: str) -> None:
     script starts a pool from its unguarded top level): one line on stderr, no traceback, no
     second pool. Nothing happens anywhere else."""
     if getattr(multiprocessing.current_process(), "_inheriting", False):
-        raise SystemExit(
-            f"esmicp: {what} was called again by a worker process re-running the main script: guard the "
-            f"script's top level with `if __name__ == \"__main__\":`, or {_USE_THREADS}")
+        line = (f"esmicp: {what} was called again by a worker process re-running the main script: guard the "
+                f"script's top level with `if __name__ == \"__main__\":`, or {_USE_THREADS}\n")
+        # one write: the other workers write theirs at the same time, and lines must not interleave
+        os.write(2, line.encode("utf-8", "backslashreplace"))
+        raise SystemExit(1)
 
 
 def process_pool(size: int, what: str) -> ProcessPoolExecutor:
