@@ -1,30 +1,14 @@
-// The kernels' threads (pool.hpp): threads per call, and the persistent helpers of the local loop.
+// The kernels' threads (pool.hpp): the GIL, the signal handlers, the persistent helpers.
 #include <Python.h>
 
 #include "pool.hpp"
 
-#include <algorithm>
-#include <atomic>
-#include <chrono>
 #include <condition_variable>
 #include <mutex>
 #include <pthread.h>
-#include <thread>
-#include <vector>
 
 namespace kernels {
-namespace {
 
-// The GIL taken back for its lifetime, by a thread that released it.
-struct GilHeld {
-    PyGILState_STATE state = PyGILState_Ensure();
-    ~GilHeld() { PyGILState_Release(state); }
-    GilHeld() = default;
-    GilHeld(const GilHeld &) = delete;
-    GilHeld &operator=(const GilHeld &) = delete;
-};
-
-// ---------------------------------------------------------------------------------------------
 // Persistent helper threads for the short calls of the local loop (Index::step below
 // POOLED_STEP_MAX points): starting a std::thread per call costs more than half the work of
 // 1,000 queries, so these threads are started once and wait between calls, spinning for
@@ -79,6 +63,8 @@ struct Pool {
     }
 };
 
+namespace {
+
 Pool *the_pool = nullptr;
 std::mutex pool_start;
 
@@ -97,99 +83,52 @@ Pool &pool_of(int helpers) {
     return *the_pool;
 }
 
-// Releases the GIL for its lifetime when the calling thread holds it (a kernel called from Python),
-// and does nothing when it does not (a kernel called from a helper thread or a released region).
-struct ReleaseIfHeld {
-    PyThreadState *state = nullptr;
-    ReleaseIfHeld() {
-        if (PyGILState_Check()) state = PyEval_SaveThread();
-    }
-    ~ReleaseIfHeld() {
-        if (state != nullptr) PyEval_RestoreThread(state);
-    }
-    ReleaseIfHeld(const ReleaseIfHeld &) = delete;
-    ReleaseIfHeld &operator=(const ReleaseIfHeld &) = delete;
-};
-
 }  // namespace
 
-bool signal_raised() { return PyErr_CheckSignals() != 0; }
-
-GilReleased::GilReleased() : state(PyEval_SaveThread()) {}
-
-GilReleased::~GilReleased() { PyEval_RestoreThread(static_cast<PyThreadState *>(state)); }
-
-void run_pieces(int64_t pieces, int threads, void (*work)(void *, int64_t), void *context) {
-    if (pieces <= 0) return;
-    unsigned hw = std::max(1u, std::thread::hardware_concurrency());
-    if (threads <= 0) threads = int(hw);
-    threads = int(std::min<int64_t>(threads, pieces));
-    std::atomic<int64_t> next{0};
-    std::atomic<bool> cancel{false};
-    bool interrupted = false;
-    {
-        GilReleased release;
-        auto runner = [&]() {
-            while (!cancel.load(std::memory_order_relaxed)) {
-                int64_t piece = next.fetch_add(1);
-                if (piece >= pieces) break;
-                work(context, piece);
-            }
-        };
-        std::vector<std::thread> pool;
-        pool.reserve(threads - 1);
-        for (int t = 1; t < threads; ++t) pool.emplace_back(runner);
-        auto last_check = std::chrono::steady_clock::now();
-        while (!cancel.load(std::memory_order_relaxed)) {
-            int64_t piece = next.fetch_add(1);
-            if (piece >= pieces) break;
-            work(context, piece);
-            auto now = std::chrono::steady_clock::now();
-            if (now - last_check > std::chrono::milliseconds(5)) {
-                last_check = now;
-                GilHeld acquire;
-                if (PyErr_CheckSignals() != 0) {
-                    interrupted = true;
-                    cancel.store(true);
-                }
-            }
-        }
-        for (auto &thread : pool) thread.join();
-    }
-    if (interrupted) throw PythonError();
-}
-
-void run_pooled_pieces(int64_t pieces, int threads, void (*work)(void *, int64_t), void *context) {
-    if (pieces <= 0) return;
-    unsigned hw = std::max(1u, std::thread::hardware_concurrency());
-    if (threads <= 0) threads = int(hw);
-    threads = int(std::min<int64_t>(threads, pieces));
-    // The GIL is released on every path, one thread included: several Python threads each running
-    // a registration on one thread (register_many's thread pool, workers=1) then run in parallel.
-    ReleaseIfHeld release;
-    if (threads <= 1) {
-        for (int64_t piece = 0; piece < pieces; ++piece) work(context, piece);
-        return;
-    }
-    Pool &pool = pool_of(threads - 1);
-    std::atomic<int64_t> next{0};
+Pool &open_job(int helpers, int64_t pieces, std::atomic<int64_t> *next, void (*call)(void *, int64_t),
+               void *context) {
+    Pool &pool = pool_of(helpers);
     {
         std::lock_guard<std::mutex> lock(pool.mutex);
         pool.open = true;
-        pool.seats = threads - 1;
+        pool.seats = helpers;
         pool.pieces = pieces;
-        pool.next = &next;
-        pool.call = work;
+        pool.next = next;
+        pool.call = call;
         pool.context = context;
         pool.generation.fetch_add(1, std::memory_order_acq_rel);
     }
     pool.wake.notify_all();
-    for (int64_t piece = next.fetch_add(1); piece < pieces; piece = next.fetch_add(1)) work(context, piece);
+    return pool;
+}
+
+void close_job(Pool &pool) {
     {
         std::lock_guard<std::mutex> lock(pool.mutex);
         pool.open = false;  // no helper joins from here on
     }
     while (pool.active.load(std::memory_order_acquire) != 0) std::this_thread::yield();
+}
+
+bool signal_raised() { return PyErr_CheckSignals() != 0; }
+
+bool signal_raised_taking_gil() {
+    const PyGILState_STATE state = PyGILState_Ensure();
+    const bool raised = PyErr_CheckSignals() != 0;
+    PyGILState_Release(state);
+    return raised;
+}
+
+GilReleased::GilReleased() : state(PyEval_SaveThread()) {}
+
+GilReleased::~GilReleased() { PyEval_RestoreThread(static_cast<PyThreadState *>(state)); }
+
+ReleaseIfHeld::ReleaseIfHeld() {
+    if (PyGILState_Check()) state = PyEval_SaveThread();
+}
+
+ReleaseIfHeld::~ReleaseIfHeld() {
+    if (state != nullptr) PyEval_RestoreThread(static_cast<PyThreadState *>(state));
 }
 
 }  // namespace kernels
