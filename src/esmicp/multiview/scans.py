@@ -26,7 +26,7 @@
    yet confirmed (not on a cycle of agreeing edges): across each edge on no cycle, the pair the
    poses predict to overlap most; for each piece of scans not placed, the pairs its pose as a
    whole proposes (the piece fused and searched against the placed scans fused), else those most
-   like its scans; then the graph is solved again (at most ``EXTRA_ROUNDS`` times). These pairs
+   like its scans; then the graph is solved again (until ``STALLED_ROUNDS`` rounds in a row place or confirm no scan). These pairs
    are chosen from poses but searched globally, never refined from those poses: a refinement
    started at a wrong pose can settle next to it and confirm it (measured on the kitchen walk: a
    scan 90 degrees off "confirmed" by a refinement from its own wrong pose), and a wrong proposal
@@ -71,14 +71,15 @@ from .verdict import cut_off, scan_verdicts
 
 logger = logging.getLogger(__name__)
 
-#: Rounds in which the pose graph asks for more pairs where a scan is not yet confirmed (each
-#: round: one pair across each edge on no cycle, :data:`CLOSING_PAIRS`; for each piece of
-#: unplaced scans, up to ``partners`` pairs its pose as a whole proposes, else up to
-#: ``partners * min(len(piece), partners)`` with the placed scans most like it; then the graph
-#: solved again). Bounds the work on scans that can never be confirmed (another object, a piece
-#: that shares no surface with the others). Chosen on the bunny's 10 scans: with ``partners=2``,
-#: 8 placed and 2 doubtful after 3 rounds, all 10 placed after 4.
-EXTRA_ROUNDS = 5
+#: Rounds in a row after which the pose graph stops asking for more pairs where a scan is not yet
+#: confirmed, when none of them placed or confirmed a scan (each round: one pair across each edge
+#: on no cycle, :data:`CLOSING_PAIRS`; for each piece of unplaced scans, up to ``partners`` pairs
+#: its pose as a whole proposes, else up to ``partners * min(len(piece), partners)`` with the
+#: placed scans most like it; then the graph solved again). A round that places or confirms a
+#: scan starts the count again, so a set placed a few scans a round is never cut short; the count
+#: bounds the work on scans that can never be confirmed (another object, a piece that shares no
+#: surface with the others).
+STALLED_ROUNDS = 2
 
 #: Pairs searched a round for each set of posed scans joined to the reference by one edge only
 #: (:func:`esmicp.multiview.pairs.closing_pairs`): the pair the poses predict to overlap most
@@ -264,18 +265,20 @@ class MultiRegistrationResult:
         }
 
 
-def _subsample(points: np.ndarray, count: int) -> np.ndarray:
+def _subsample(points: np.ndarray, count: int, draw: int = 0) -> np.ndarray:
     """``count`` points of ``points`` (all of them when it has no more), in their input order.
 
     The subset depends on the scan's shape alone: a rigid motion of the scan, or another place in
     the input, gives the same subset (the points are ranked by their distance from the centroid,
-    and the ranks drawn by a generator seeded by the point count), so that the merge's verdicts do
-    not depend on where the scans lie or in which order they come."""
+    and the ranks drawn by a generator seeded by the point count and ``draw``), so that the merge's
+    verdicts do not depend on where the scans lie or in which order they come. Another ``draw``
+    gives another subset of the same scan."""
     if len(points) <= count:
         return points
     centred = points - points.mean(axis=0)
     rank = np.argsort(np.einsum("ij,ij->i", centred, centred), kind="stable")
-    chosen = np.random.default_rng(len(points)).choice(len(points), count, replace=False)
+    seed = len(points) if draw == 0 else (len(points), draw)
+    chosen = np.random.default_rng(seed).choice(len(points), count, replace=False)
     return points[np.sort(rank[chosen])]
 
 
@@ -383,17 +386,27 @@ class _Pairwise:
 
     A pair is searched globally on the sparse subsets (``small``), or refined there from a given
     start, then refined locally on the dense subsets (``dense``) from the pose found, and judged
-    there: the overlap confidence of a
+    there. A pair whose global search was not trusted can be searched once more on another draw
+    of the sparse subsets (:meth:`run` with ``redraw``): a search's outcome depends on the points
+    drawn, and a second draw is a second, independent try. The overlap confidence of a
     registration is only meaningful at a density where the clouds' noise is finer than their
     spacing (on the bunny's scans, right pairs score 0.0-0.76 at 1,500 points, 0.74-1.0 at 10,000;
     wrong ones stay below 0.25)."""
 
-    def __init__(self, small, dense, keys, sequence, run_options, stages: _Stages):
-        self.small, self.dense, self.keys, self.sequence = small, dense, keys, sequence
-        self.run_options, self.stages = run_options, stages
+    def __init__(self, centred, small, dense, keys, sequence, run_options, stages: _Stages):
+        self.centred, self.small, self.dense, self.keys = centred, small, dense, keys
+        self.sequence, self.run_options, self.stages = sequence, run_options, stages
         self.edges: dict[tuple[int, int], Edge] = {}
         self.done = 0  # registrations run, for progress and the result
         self.tried: set[tuple[int, int]] = set()
+        self.redrawn: set[tuple[int, int]] = set()  # pairs searched on a second draw too
+        self.second: dict[int, np.ndarray] = {}  # scan -> its second draw of the sparse subset, once asked for
+
+    def settled(self) -> set[tuple[int, int]]:
+        """Pairs not worth searching again: trusted, or searched on both draws, or refined from a
+        start. A pair searched once globally and not trusted may be searched on a second draw."""
+        once = {key for key, edge in self.edges.items() if edge.kind == GLOBAL and not edge.trusted}
+        return (self.tried - once) | self.redrawn
 
     def orient(self, a: int, b: int) -> tuple[int, int]:
         """(target, source): in a sequence the earlier scan is the target; otherwise the larger
@@ -403,11 +416,11 @@ class _Pairwise:
             return (min(a, b), max(a, b))
         return (a, b) if (self.keys[a], -a) >= (self.keys[b], -b) else (b, a)
 
-    def _register(self, clouds, oriented, inits, offset, **extra):
+    def _register(self, jobs, inits, offset, **extra):
+        """``jobs``: ``(source, target)`` clouds, each pair's source j onto its target i (``T_i_j``)."""
         def report(done, _):
             self.stages.advance(offset + done)
 
-        jobs = [(clouds[j], clouds[i]) for i, j in oriented]  # source j onto target i: T_i_j
         outcomes = register_many(jobs, progress=report, inits=inits, **{**extra, **self.run_options})
         self.done += len(jobs)
         return outcomes
@@ -423,10 +436,20 @@ class _Pairwise:
 
     def run(self, requests, stage: str = "pairs") -> list[Edge]:
         """Register ``requests`` (``(a, b, T_a_b or None)``: None for a global search) and record
-        their edges; returns the new edges. One progress ``stage`` of two registrations a pair
-        (the search, the check; a pair whose search failed has its check counted as done)."""
+        their edges; returns the new edges. A pair searched globally before, and not trusted, is
+        searched on the second draw of the sparse subsets. One progress ``stage`` of two
+        registrations a pair (the search, the check; a pair whose search failed has its check
+        counted as done)."""
         if not requests:
             return []
+        once = self.tried - self.settled()
+        sparse = {}
+        for a, b, T_a_b in requests:
+            again = T_a_b is None and (min(a, b), max(a, b)) in once
+            for k in (a, b):
+                if again and k not in self.second:
+                    self.second[k] = _subsample(self.centred[k], len(self.small[k]), draw=1)
+            sparse[(min(a, b), max(a, b))] = again
         oriented, inits = [], []
         for a, b, T_a_b in requests:
             i, j = self.orient(a, b)
@@ -435,13 +458,14 @@ class _Pairwise:
             inits.append(T)
         self.stages.open(stage, 2 * len(requests))
         # on the sparse subsets: a global search, or a local refinement from the given start
-        found = self._register(self.small, oriented, inits, 0)
+        subsets = [self.second if sparse[(min(i, j), max(i, j))] else self.small for i, j in oriented]
+        found = self._register([(c[j], c[i]) for c, (i, j) in zip(subsets, oriented)], inits, 0)
         outcomes = {n: outcome for n, outcome in enumerate(found) if not hasattr(outcome, "transformation")}
         # the check on the dense subsets starts at a converged pose: capped
         group = [n for n in range(len(requests)) if n not in outcomes]
-        checked = self._register(self.dense, [oriented[n] for n in group], [found[n].transformation for n in group],
-                                 2 * len(requests) - len(group), max_iterations=CHECK_ITERATIONS,
-                                 tolerance=CHECK_TOLERANCE)
+        checked = self._register([(self.dense[oriented[n][1]], self.dense[oriented[n][0]]) for n in group],
+                                 [found[n].transformation for n in group], 2 * len(requests) - len(group),
+                                 max_iterations=CHECK_ITERATIONS, tolerance=CHECK_TOLERANCE)
         self.stages.close()
         for n, check in zip(group, checked):
             if hasattr(check, "transformation"):
@@ -453,6 +477,8 @@ class _Pairwise:
         for n, (i, j) in enumerate(oriented):
             edge = self._edge(i, j, outcomes[n], LOCAL if inits[n] is not None else GLOBAL)
             key = (min(i, j), max(i, j))
+            if sparse[key]:
+                self.redrawn.add(key)
             self.tried.add(key)
             old = self.edges.get(key)
             if old is None or (edge.confidence or -1.0) > (old.confidence or -1.0):
@@ -809,8 +835,7 @@ def register_scans(
     -----
     Work: without ``sequence``, about ``N * partners * 0.7`` global searches (the union of every
     scan's ``partners`` most similar), each followed by a local check on the dense subsets; then in
-    each of at most ``EXTRA_ROUNDS`` rounds one per edge on no cycle, and per piece of unplaced
-    scans one registration of the piece as a whole and up to ``partners`` pairs (``partners *
+    each round one per edge on no cycle, and per piece of unplaced scans one registration of the piece as a whole and up to ``partners`` pairs (``partners *
     min(len(piece), partners)`` when its pose proposes none). With ``sequence``, about
     ``N * sequence_neighbours`` local refinements (a global search for those they leave untrusted
     where the walk needs them), at most ``N * LOOP_SEARCHES_PER_SCAN`` loop closures, then the
@@ -884,7 +909,7 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, pair_poin
     dense = [_subsample(s, refine_points) for s in centred]
     keys = [_shape_key(s) for s in centred]
     stages = _Stages(progress)
-    pairwise = _Pairwise(small, dense, keys, sequence, run_options, stages)
+    pairwise = _Pairwise(centred, small, dense, keys, sequence, run_options, stages)
 
     pieces = _Pieces(pairwise, small, pair_points, partners, max_edge_error_deg)
     if sequence:
@@ -920,10 +945,15 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, pair_poin
         poses, edges = solve()
     rounds = 1  # rounds of pairs, for the progress stages' names
     for attempt in range(2):
-        for _ in range(EXTRA_ROUNDS if n > 1 else 0):  # more pairs only where a scan is not yet confirmed
+        stalled, best = 0, -1  # rounds in a row that placed or confirmed no scan; the most placed and confirmed
+        while n > 1 and stalled < STALLED_ROUNDS:  # more pairs only where a scan is not yet confirmed
             unconfirmed = _unconfirmed(n, reference, poses, edges)
+            settled = len(poses) + n - len(unconfirmed)
+            stalled, best = (0, settled) if settled > best else (stalled + 1, best)
+            if stalled >= STALLED_ROUNDS:
+                break
             wanted = _closing(reference, poses, edges, small, [k for k in unconfirmed if k in poses],
-                              pairwise.tried)
+                              pairwise.settled())
             unplaced = [k for k in unconfirmed if k not in poses]
             if unplaced:  # not placed at all: each piece of them placed as a whole proposes its pairs
                 joined = [(e.i, e.j) for e in edges if e.trusted and not e.reason.startswith(("cycle", "free-space"))]
