@@ -533,6 +533,39 @@ def test_missing_file(tmp_path, extension):
     assert_file_error(excinfo, path, "no such file")
 
 
+@pytest.mark.parametrize("reader", ["read_points", "read_transform", "read_poses", "read_stanford_conf"])
+@pytest.mark.parametrize("where", ["no such file", "a part of the path is a file"])
+def test_a_missing_file_is_a_file_not_found_error_and_an_esmicp_error_naming_it(tmp_path, reader, where):
+    """``except FileNotFoundError`` (and ``except OSError``) catch a missing input as they catch
+    open()'s; ``except esmicp.PointCloudFileError`` too. The message and ``filename`` name the file,
+    and the error survives a trip to a worker process and back (pickling)."""
+    if where == "no such file":
+        path = tmp_path / "nothing.txt"
+    else:
+        (tmp_path / "plain.txt").write_text("1 2 3\n")
+        path = tmp_path / "plain.txt" / "inner.txt"
+    with pytest.raises(FileNotFoundError) as excinfo:
+        getattr(esmicp, reader)(path)
+    error = excinfo.value
+    assert isinstance(error, esmicp.PointCloudFileNotFoundError) and isinstance(error, esmicp.PointCloudFileError)
+    assert isinstance(error, OSError) and isinstance(error, esmicp.EsmicpError)
+    assert str(error).startswith(str(path)) and "no such file" in str(error) and "\n" not in str(error)
+    assert error.filename == str(path) and error.errno == 2
+    again = pickle.loads(pickle.dumps(error))
+    assert type(again) is type(error) and str(again) == str(error) and again.path == error.path
+
+
+def test_file_errors_survive_pickling(tmp_path):
+    """A malformed file's error crosses process boundaries (register_many's worker processes) whole."""
+    path = tmp_path / "bad.xyz"
+    path.write_text("1 2\n")
+    with pytest.raises(PointCloudFileError) as excinfo:
+        read_points(path)
+    again = pickle.loads(pickle.dumps(excinfo.value))
+    assert type(again) is PointCloudFileError and str(again) == str(excinfo.value)
+    assert (again.path, again.problem) == (excinfo.value.path, excinfo.value.problem)
+
+
 def test_missing_parent_and_directory(tmp_path):
     write_points(tmp_path / "file.xyz", random_cloud(0, 5))
     path = tmp_path / "file.xyz" / "inner.ply"

@@ -18,6 +18,7 @@ from .errors import (
     NonFinitePointsWarning,
     OutputExistsError,
     PointCloudFileError,
+    PointCloudFileNotFoundError,
 )
 
 from typing import TYPE_CHECKING
@@ -82,6 +83,7 @@ __all__ = [
     "NonFinitePointsWarning",
     "OutputExistsError",
     "PointCloudFileError",
+    "PointCloudFileNotFoundError",
     "PoseFile",
     "RegistrationFailure",
     "RegistrationResult",

@@ -6,6 +6,9 @@ argument and the problem, so that the command line can print one line and exit w
 
 from __future__ import annotations
 
+import errno
+import os
+
 
 class EsmicpError(ValueError):
     """Base class of every error esmicp raises on bad input."""
@@ -25,6 +28,28 @@ class PointCloudFileError(EsmicpError):
         self.path = str(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
+
+    def __reduce__(self):  # rebuilt from (path, problem), e.g. when a worker process sends it back
+        return type(self), (self.path, self.problem)
+
+
+class PointCloudFileNotFoundError(PointCloudFileError, FileNotFoundError):
+    """An input file does not exist (or a part of its path is not a folder).
+
+    Both a :class:`PointCloudFileError` (an esmicp error: the command line prints it in one line)
+    and a :class:`FileNotFoundError` (``except FileNotFoundError``, ``except OSError`` catch it, as
+    they catch :func:`open`'s); ``filename`` and ``errno`` (``ENOENT``) are set as
+    :func:`open` sets them. The message starts with the file's path.
+    """
+
+    def __init__(self, path, problem: str = "no such file"):
+        super().__init__(path, problem)
+        self.errno = errno.ENOENT
+        self.strerror = os.strerror(errno.ENOENT)
+        self.filename = self.path
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.problem}"
 
 
 class OutputExistsError(EsmicpError):

@@ -35,7 +35,7 @@ from types import MappingProxyType
 
 import numpy as np
 
-from ..errors import EsmicpError, EsmicpWarning, InvalidInputError, PointCloudFileError
+from ..errors import EsmicpError, EsmicpWarning, InvalidInputError, PointCloudFileError, PointCloudFileNotFoundError
 from ..types import _coordinate_array as coordinate_array
 from ..types import as_generator, as_points
 from . import las, npy, off, pcd, ply, text, velodyne
@@ -116,6 +116,8 @@ def _read_raw(path: Path, reader) -> np.ndarray:
         raise PointCloudFileError(path, "too large to load into memory") from None
     except PermissionError:
         raise PointCloudFileError(path, "permission denied") from None
+    except FileNotFoundError:  # removed while being read
+        raise PointCloudFileNotFoundError(path) from None
     except OSError as exc:
         raise PointCloudFileError(path, f"cannot read: {exc.strerror or exc}") from None
     except Exception as exc:  # a library failed in a way not anticipated: still one plain error

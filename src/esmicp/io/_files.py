@@ -6,7 +6,7 @@ from __future__ import annotations
 import stat
 from pathlib import Path
 
-from ..errors import InvalidInputError, PointCloudFileError
+from ..errors import InvalidInputError, PointCloudFileError, PointCloudFileNotFoundError
 
 
 def as_path(path) -> Path:
@@ -18,13 +18,14 @@ def as_path(path) -> Path:
 
 
 def check_input_file(path: Path) -> None:
-    """Refuse a missing, non-regular, empty or unreadable input file, in plain words."""
+    """Refuse a missing, non-regular, empty or unreadable input file, in plain words (a missing one
+    with :class:`~esmicp.errors.PointCloudFileNotFoundError`, also a :class:`FileNotFoundError`)."""
     try:
         info = path.stat()
     except FileNotFoundError:
-        raise PointCloudFileError(path, "no such file") from None
+        raise PointCloudFileNotFoundError(path) from None
     except NotADirectoryError:
-        raise PointCloudFileError(path, "no such file (a part of the path is not a folder)") from None
+        raise PointCloudFileNotFoundError(path, "no such file (a part of the path is not a folder)") from None
     except PermissionError:
         raise PointCloudFileError(path, "permission denied") from None
     except OSError as exc:

@@ -15,7 +15,7 @@ from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..errors import PointCloudFileError
+from ..errors import PointCloudFileError, PointCloudFileNotFoundError
 from ..types import as_generator
 from ._files import check_input_file
 from ._messages import excerpt
@@ -112,7 +112,7 @@ def _conf_path(folder: Path) -> Path:
     if folder.is_file():
         return folder
     if not folder.is_dir():
-        raise PointCloudFileError(folder, "no such file or folder")
+        raise PointCloudFileNotFoundError(folder, "no such file or folder")
     confs = sorted(folder.glob("*.conf"))
     if len(confs) != 1:
         raise PointCloudFileError(folder, f"expected exactly one .conf file in the folder, found {len(confs)}")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InvalidInputError, PointCloudFileError
+from ..errors import InvalidInputError, PointCloudFileError, PointCloudFileNotFoundError
 from ..types import as_transform
 from ._files import as_path
 from ._messages import excerpt
@@ -39,7 +39,9 @@ def _check_readable(path: Path) -> None:
     try:
         info = path.stat()
     except FileNotFoundError:
-        raise PointCloudFileError(path, "no such file") from None
+        raise PointCloudFileNotFoundError(path) from None
+    except NotADirectoryError:
+        raise PointCloudFileNotFoundError(path, "no such file (a part of the path is not a folder)") from None
     except OSError as exc:
         raise PointCloudFileError(path, f"cannot access: {exc.strerror or exc}") from None
     if stat.S_ISDIR(info.st_mode):
