@@ -113,8 +113,25 @@ def test_as_points_hints_what_to_pass_for_near_misses():
         as_points(rows, "source")
     with pytest.raises(InvalidInputError, match=r"points\.T"):
         as_points(rows[:, :3].T.copy())
-    with pytest.raises(InvalidInputError, match=r"target: .*object.*numpy\.asarray\(pcd\.points\)"):
+    with pytest.raises(InvalidInputError, match=r"target: .*object.*open3d\.geometry\.PointCloud.*open3d\.t\.geometry"):
         as_points(object(), "target")
+
+
+def test_method_and_init_are_typed_with_the_values_register_accepts():
+    """``MethodName`` and ``InitName`` (``Literal`` types of ``register``'s ``method`` and ``init``)
+    list exactly the names the library accepts, so a type checker and the library agree."""
+    import typing
+
+    import esmicp
+    from esmicp.api import INIT_NAMES
+    from esmicp.methods import METHODS
+    from esmicp.types import InitName, MethodName
+
+    assert typing.get_args(MethodName) == tuple(METHODS)
+    assert set(typing.get_args(InitName)) == set(INIT_NAMES) and len(typing.get_args(InitName)) == len(INIT_NAMES)
+    hints = typing.get_type_hints(esmicp.register)
+    assert hints["method"] == MethodName
+    assert InitName in typing.get_args(hints["init"])
 
 
 def test_as_points_reads_any_object_holding_its_points():

@@ -9,7 +9,6 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
 from .core.correspondence import NearestNeighbors
 from .core.procrustes import bounding_box_diagonal
@@ -27,13 +26,14 @@ from .result import Correspondences, RegistrationResult
 from .trust import uncertainty
 from .trust.confidence import TRUSTED, overlap_confidence
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
-from .types import PointsLike, check_geometry
+from .types import InitName, MethodName, PointsLike, TransformLike, check_geometry
 from .working_frame import WorkingFrame
 
 #: ``init`` strings meaning "no global search: start from the identity".
 IDENTITY_NAMES = ("identity", "none")
 
-#: Every ``init`` string :func:`register` accepts (anything else must be a 4x4 matrix).
+#: Every ``init`` string :func:`register` accepts (anything else must be a 4x4 matrix); the values
+#: of :data:`esmicp.types.InitName`.
 INIT_NAMES = ("global", *STRATEGIES, *IDENTITY_NAMES)
 
 #: Default inlier distance for ``fitness`` / ``inlier_rmse``, in target point spacings.
@@ -117,8 +117,8 @@ def register(
     source: PointsLike,
     target: PointsLike,
     *,
-    method: str = "esm",
-    init: str | npt.ArrayLike | None = None,
+    method: MethodName = "esm",
+    init: InitName | TransformLike | None = None,
     sigma: float | None = None,
     max_iterations: int = 100,
     tolerance: float = 1e-8,
@@ -135,7 +135,7 @@ def register(
 
     Parameters
     ----------
-    source : (N, 3) array-like, or a cloud object with ``points`` (an ``open3d.geometry.PointCloud``)
+    source : (N, 3) array-like, or a cloud object (``open3d.geometry.PointCloud``, ``open3d.t.geometry.PointCloud``)
         Points to move (source frame). Never modified.
     target : (M, 3) array-like, or a cloud object with ``points``
         Points to align to (target frame). N and M may differ. Never modified.

@@ -241,10 +241,30 @@ class RegistrationResult:
                 reasons.append(words)
         return reasons
 
+    def __repr__(self) -> str:
+        """One line: the method, the verdict, the overlap and how far the pose moves the source,
+        e.g. ``RegistrationResult(method='esm', trusted=True, confidence=0.97, fitness=0.81,
+        rotation=12.3 deg, translation=0.041, 0.42 s)`` (the arrays stay in the fields)."""
+        confidence = "None" if self.confidence is None else f"{self.confidence:.2f}"
+        return (f"{type(self).__name__}(method={self.method!r}, trusted={self.trusted}, confidence={confidence}, "
+                f"fitness={self.fitness:.2f}, rotation={self.rotation_deg:.3g} deg, "
+                f"translation={self.translation_norm:.3g}, {self.runtime_s:.2f} s)")
+
     @property
     def rotation(self) -> np.ndarray:
         """The 3x3 rotation of ``transformation``."""
         return self.transformation[:3, :3].copy()
+
+    @property
+    def rotation_deg(self) -> float:
+        """The angle of ``rotation`` (degrees, 0-180): how far the pose turns the source."""
+        cosine = (np.trace(self.transformation[:3, :3]) - 1.0) / 2.0
+        return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+
+    @property
+    def translation_norm(self) -> float:
+        """The length of ``translation`` (cloud units): how far the pose moves the source's origin."""
+        return float(np.linalg.norm(self.transformation[:3, 3]))
 
     @property
     def translation(self) -> np.ndarray:
@@ -252,7 +272,9 @@ class RegistrationResult:
         return self.transformation[:3, 3].copy()
 
     def to_dict(self, *, include_history: bool = False) -> dict:
-        """A JSON-ready dict (nested lists, plain floats)."""
+        """A JSON-ready dict (nested lists, plain floats): the fields, ``trusted`` and ``doubts``
+        (:meth:`doubts`: why the pose is not to be trusted, empty when it is)."""
+        doubts = self.doubts()
         data = {
             "method": self.method,
             "transformation": self.transformation.tolist(),
@@ -270,7 +292,8 @@ class RegistrationResult:
             "global_candidates": self.global_candidates,
             "runner_up": None if self.runner_up is None else self.runner_up.tolist(),
             "confidence": self.confidence,
-            "trusted": self.trusted,
+            "trusted": not doubts,
+            "doubts": doubts,
             "covariance": None if self.covariance is None else self.covariance.tolist(),
             "std_rotation_deg": None if self.covariance is None else _deviations(self.covariance)[0],
             "std_translation": None if self.covariance is None else _deviations(self.covariance)[1],

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numbers
 import warnings
-from typing import Any, Protocol, Union
+from typing import Any, Literal, Protocol, Sequence, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -25,8 +25,32 @@ class HasPoints(Protocol):
     def points(self) -> Any: ...
 
 
+class HasPointAttributes(Protocol):
+    """A cloud object holding its attributes by name in ``point``, the coordinates under
+    ``"positions"`` (Open3D's tensor cloud, ``open3d.t.geometry.PointCloud``)."""
+
+    @property
+    def point(self) -> Any: ...
+
+
 #: What a cloud argument accepts (:func:`as_points`): an ``(N, 3)`` array-like or a cloud object.
-PointsLike = Union[npt.ArrayLike, HasPoints]
+PointsLike = Union[npt.ArrayLike, HasPoints, HasPointAttributes]
+
+#: The names of :data:`esmicp.methods.METHODS`, for ``method=`` of :func:`esmicp.register`.
+MethodName = Literal["esm", "esm-paper", "icp", "esm-plane"]
+
+#: The strategies ``init=`` of :func:`esmicp.register` accepts by name (:data:`esmicp.api.INIT_NAMES`):
+#: ``"global"`` (also ``"auto"``), ``"rotation-search"``, ``"features"``, ``"scan"``, ``"identity"``
+#: (also ``"none"``).
+InitName = Literal["global", "auto", "rotation-search", "features", "scan", "identity", "none"]
+
+#: A 4x4 matrix argument (``init=``): a NumPy array or nested sequences of numbers (not any
+#: array-like: NumPy counts a string as one, and ``init`` takes strings by name).
+TransformLike = Union[npt.NDArray[Any], Sequence[Sequence[float]]]
+
+#: What an unsupported cloud argument should be instead (the end of :func:`as_points`'s message).
+_CLOUD_HINT = ("pass an (N, 3) array, or a point-cloud object: open3d.geometry.PointCloud, "
+               "open3d.t.geometry.PointCloud")
 
 #: Minimum number of points a cloud must have for a rigid fit.
 MIN_POINTS = 3
@@ -38,8 +62,9 @@ RIGID_TOLERANCE = 1e-5
 def as_points(points: PointsLike, name: str = "points", *, min_points: int = MIN_POINTS) -> np.ndarray:
     """Return ``points`` as a new C-contiguous ``(N, 3)`` float64 array.
 
-    ``points`` is an ``(N, 3)`` array-like (NumPy array, nested lists, a CPU tensor...) or an
-    object holding one in its ``points`` attribute (an ``open3d.geometry.PointCloud``, ...): the
+    ``points`` is an ``(N, 3)`` array-like (NumPy array, nested lists, a CPU tensor...), an
+    object holding one in its ``points`` attribute (an ``open3d.geometry.PointCloud``, ...) or an
+    ``open3d.t.geometry.PointCloud`` (its ``positions``, on any device): the
     one adapter every entry point (:func:`esmicp.register`, :func:`esmicp.register_scans`, the
     writers) reads clouds through. Rows with NaN or infinite coordinates are dropped with a
     :class:`NonFinitePointsWarning`.
@@ -49,8 +74,8 @@ def as_points(points: PointsLike, name: str = "points", *, min_points: int = MIN
     InvalidInputError
         If the input is not numeric, not of shape ``(N, 3)``, or fewer than ``min_points`` finite
         points remain. The message starts with ``name`` and, where it can, says what to pass
-        instead (``points[:, :3]`` for ``(N, 4)`` x y z intensity rows, ``numpy.asarray(pcd.points)``
-        for a cloud object).
+        instead (``points[:, :3]`` for ``(N, 4)`` x y z intensity rows, an array or a point-cloud object
+        for anything else).
     """
     array = _coordinate_array(points, name)
     finite = np.isfinite(array).all(axis=1)
@@ -71,11 +96,14 @@ def as_points(points: PointsLike, name: str = "points", *, min_points: int = MIN
 
 
 def _coordinate_array(points, name: str) -> np.ndarray:
-    """A new ``(N, 3)`` float64 array of ``points`` (or of their ``.points``), or a one-line
-    :class:`InvalidInputError` saying what to pass instead."""
+    """A new ``(N, 3)`` float64 array of ``points`` (or of their ``.points``, or of an Open3D
+    tensor cloud's positions), or a one-line :class:`InvalidInputError` saying what to pass instead."""
     source = points
-    if not isinstance(points, np.ndarray) and hasattr(points, "points"):
-        source = points.points  # an Open3D PointCloud (a Vector3dVector), or any cloud object holding its array
+    if not isinstance(points, np.ndarray):
+        if hasattr(points, "points"):
+            source = points.points  # an Open3D PointCloud (a Vector3dVector), or any cloud object holding its array
+        elif _is_open3d_tensor_cloud(points):
+            source = _tensor_cloud_positions(points, name)
     try:
         array = np.array(_real_numbers(source, name), dtype=np.float64, copy=True)
     except InvalidInputError:
@@ -83,7 +111,7 @@ def _coordinate_array(points, name: str) -> np.ndarray:
     except (TypeError, ValueError) as exc:
         raise InvalidInputError(
             f"{name}: expected (N, 3) numeric points, could not convert a {type(points).__name__} ({exc}); "
-            f"pass an (N, 3) array, e.g. numpy.asarray(pcd.points) for a point cloud object"
+            f"{_CLOUD_HINT}"
         ) from None
     if array.ndim == 2 and array.shape[1] == 3:
         return array
@@ -95,10 +123,28 @@ def _coordinate_array(points, name: str) -> np.ndarray:
     elif array.ndim == 2 and array.shape[1] > 4:
         hint = f"; if its first 3 columns are x y z (then {array.shape[1] - 3} more values a point): pass points[:, :3]"
     elif array.ndim == 0:
-        hint = f" (a {type(points).__name__}); pass an (N, 3) array, e.g. numpy.asarray(pcd.points) for a point cloud object"
+        hint = f" (a {type(points).__name__}); {_CLOUD_HINT}"
     else:
         hint = ""
     raise InvalidInputError(f"{name}: expected (N, 3) points, {shape}{hint}")
+
+
+def _is_open3d_tensor_cloud(points) -> bool:
+    """True for an ``open3d.t.geometry.PointCloud`` (told by its type's module and its ``point``
+    attribute map, so that Open3D is never imported here)."""
+    return type(points).__module__.startswith("open3d") and hasattr(points, "point")
+
+
+def _tensor_cloud_positions(cloud, name: str):
+    """The positions of an ``open3d.t.geometry.PointCloud`` as a NumPy array (copied to the host
+    from a GPU device), or one clear error for a cloud without positions."""
+    attributes = cloud.point
+    if "positions" not in attributes:
+        raise InvalidInputError(f"{name}: the open3d.t.geometry.PointCloud has no positions (an empty cloud)")
+    positions = attributes["positions"]
+    if hasattr(positions, "cpu"):
+        positions = positions.cpu()
+    return positions.numpy() if hasattr(positions, "numpy") else positions
 
 
 def _real_numbers(points, name: str):

@@ -12,3 +12,5 @@ result = esmicp.register(points, points, method=3)  # error
 esmicp.register(points, points, tolerence=1e-6)  # error
 size: str = result.num_iterations  # error
 esmicp.write_points("out.ply", points, overwrite="yes")  # error
+esmicp.register(points, points, method="esm-fast")  # error
+esmicp.register(points, points, init="globl")  # error
