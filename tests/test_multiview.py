@@ -466,25 +466,28 @@ def test_cli_merge_bad_scan_writes_nothing_unless_skip_bad(tmp_path, bunny_files
     assert out.exists()
 
 
-def test_cli_merge_reads_three_column_bin_scans_with_bin_columns(tmp_path, bunny, capsys):
-    """A headerless x y z float32 .bin whose size also fits 4 columns is refused (named) unless
-    --bin-columns says the layout; with it the scans merge."""
+def test_cli_merge_reads_three_column_bin_scans_by_their_values(tmp_path, bunny, capsys):
+    """Headerless x y z float32 .bin scans whose size also fits 4 columns are read in the layout
+    their values fit, with no --bin-columns; a file whose values read as points either way (an
+    isotropic blob) is refused, named, before any work, and nothing is written."""
     from esmicp.cli import main
 
     clouds, _ = bunny
     paths = []
     for name, cloud in zip(BUNNY[:3], clouds[:3]):
         points = cloud[::2][:6000].astype(np.float32)
-        assert (points.size * 4) % 48 == 0  # ambiguous: fits 3 and 4 columns
+        assert (points.size * 4) % 48 == 0  # ambiguous by size: fits 3 and 4 columns
         path = tmp_path / f"{name}.bin"
         points.tofile(path)
         paths.append(path)
+    blob = tmp_path / "blob.bin"
+    np.random.default_rng(0).normal(size=(6000, 3)).astype(np.float32).tofile(blob)
     out = tmp_path / "merged.ply"
-    argv = ["merge", *map(str, paths), "-o", str(out), "--processes", "1", "--pair-points", "800", "--no-progress"]
-    assert main(argv) == 2
+    options = ["-o", str(out), "--processes", "1", "--pair-points", "800", "--no-progress"]
+    assert main(["merge", *map(str, paths), str(blob), *options]) == 2
     assert not out.exists()
-    assert "bun000.bin" in capsys.readouterr().err
-    assert main([*argv, "--bin-columns", "3"]) == 0
+    assert "blob.bin" in capsys.readouterr().err
+    assert main(["merge", *map(str, paths), *options]) == 0
     assert out.exists()
 
 

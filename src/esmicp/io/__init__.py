@@ -152,8 +152,9 @@ def read_points(path, *, sample_points: int | None = None, rng=None, bin_columns
         Ignored without ``sample_points``.
     bin_columns : {3, 4}, optional
         For ``.bin`` scans: float32 values per point, 4 for KITTI velodyne (``x y z intensity``),
-        3 for ``x y z``. None (default) takes the layout from the file size when only one fits and
-        refuses a size that fits both (a multiple of 48 bytes): see :mod:`esmicp.io.velodyne`.
+        3 for ``x y z``. None (default) takes the layout from the file size when only one fits and,
+        for a size that fits both (a multiple of 48 bytes), from the values when only one layout
+        reads as points; a file whose values cannot tell is refused: see :mod:`esmicp.io.velodyne`.
         Ignored for other formats (so one value can serve a ``.bin`` and a ``.ply`` of a pair).
 
     Returns
@@ -164,10 +165,12 @@ def read_points(path, *, sample_points: int | None = None, rng=None, bin_columns
 
     Raises
     ------
+    PointCloudFileNotFoundError
+        The file does not exist (also a :class:`FileNotFoundError`).
     PointCloudFileError
-        The file is missing, a directory, empty, unreadable, of an unsupported extension,
+        The file is a directory, empty, unreadable, of an unsupported extension,
         malformed or truncated, has no x/y/z, or fewer than 3 finite points; a ``.bin`` whose
-        size fits neither layout, or both without ``bin_columns``.
+        size fits neither layout, or both without ``bin_columns`` and values that cannot tell.
     InvalidInputError
         ``sample_points``, ``rng`` or ``bin_columns`` is invalid.
     MissingDependencyError
