@@ -55,8 +55,10 @@ def test_register_json_is_parsed_back_and_recovers_the_transform(pair, capsys):
     code, out, err = run(capsys, "register", str(source), str(target), "--json")
     assert code == 0, err
     report = json.loads(out)
-    for key in ("transformation", "converged", "num_iterations", "fitness", "inlier_rmse", "runtime_s", "method"):
+    for key in ("transformation", "converged", "num_iterations", "fitness", "inlier_rmse", "runtime_s", "method",
+                "trusted", "doubts"):
         assert key in report
+    assert report["trusted"] is True and report["doubts"] == []  # trusted: nothing casts doubt
     estimate = np.array(report["transformation"])
     assert estimate.shape == (4, 4)
     assert rotation_error_deg(estimate, truth) < 2.0
@@ -72,10 +74,14 @@ def test_register_summary_and_outputs(pair, tmp_path, capsys):
         "--output", str(aligned), "--transform-out", str(transform),
     )
     assert code == 0, err
-    assert "T_target_source" in out and "fitness" in out
-    assert "(trusted: >= " in out and "LOW" not in out  # a whole shape on itself
-    # The verdict comes first; fitness is labelled as the overlap it measures, after it.
-    assert out.index("confidence") < out.index("overlap (not a verdict): fitness")
+    lines = out.splitlines()
+    # Three lines a user reads: the verdict, the pose (its deviations: it is trusted), the run with the
+    # overlap's fitness labelled as what it measures; then the matrix. No stage detail.
+    assert "(trusted: >= " in lines[0] and "LOW" not in out  # a whole shape on itself
+    assert lines[1].startswith("pose: rotation ") and "standard deviation" in lines[1]
+    assert lines[2].startswith("icp ") and "overlap (not a verdict): fitness" in lines[2]
+    assert lines[3] == "T_target_source ="
+    assert "candidate poses verified" not in out and "iterations (" not in out and "std rotation" not in out
     from esmicp import read_points, read_transform
 
     estimate = read_transform(transform)
@@ -106,11 +112,18 @@ def test_register_summary_says_when_the_pose_is_not_to_be_trusted(tmp_path, caps
     source, target = tmp_path / "shape.xyz", tmp_path / "noise.xyz"
     np.savetxt(source, asymmetric_shape(1500, rng))
     np.savetxt(target, rng.uniform(-5.0, 5.0, size=(1500, 3)))
-    code, out, err = run(capsys, "register", str(source), str(target))
+    code, out, err = run(capsys, "register", str(source), str(target), "-v")
     assert code == 0, err
     assert "LOW: below" in out and "do not trust this pose" in out
+    verdict = out.splitlines()[1]  # after the line naming the files
+    # No standard deviations beside a pose in doubt, even with -v: they would claim a precision it has not.
+    assert "standard deviation" not in out and "std rotation" not in out and "std translation" not in out
     code, out, err = run(capsys, "register", str(source), str(target), "--json")
-    assert json.loads(out)["confidence"] < 0.5
+    report = json.loads(out)
+    assert report["confidence"] < 0.5
+    assert report["trusted"] is False and any("below" in doubt for doubt in report["doubts"])
+    # The verdict line names every reason not to trust the pose, not only the first.
+    assert all(doubt in verdict for doubt in report["doubts"] if not doubt.startswith("confidence "))
     # For scripts: --min-confidence turns the verdict into exit status 3 (the outputs still written).
     transform = tmp_path / "T.txt"
     code, out, err = run(capsys, "register", str(source), str(target), "--min-confidence", "--transform-out",
@@ -125,6 +138,30 @@ def test_register_min_confidence_passes_a_trusted_pose_and_refuses_a_bad_bar(pai
     assert json.loads(out)["trusted"] is True
     code, _, err = run(capsys, "register", str(source), str(target), "--min-confidence", "1.5")
     assert code == 2 and "--min-confidence" in err
+
+
+def test_register_quiet_prints_nothing_but_writes_and_verbose_adds_the_detail(pair, tmp_path, capsys):
+    """``-q``: no summary line on stdout, the outputs asked for written, the exit status kept; ``-v``:
+    the three lines of the summary and, before the matrix, the run's detail (the files, why it
+    stopped, each axis's deviation)."""
+    source, target, truth, _ = pair
+    init = tmp_path / "init.txt"
+    np.savetxt(init, truth)
+    argv = ["register", str(source), str(target), "--init", str(init), "--method", "icp"]
+    code, normal, err = run(capsys, *argv)
+    assert code == 0, err
+    transform = tmp_path / "T.txt"
+    code, out, err = run(capsys, *argv, "-q", "--transform-out", str(transform), "--min-confidence")
+    assert code == 0, err
+    assert out == "" and err == ""
+    assert transform.is_file()
+    code, verbose, err = run(capsys, *argv, "--verbose")
+    assert code == 0, err
+    assert verbose.splitlines()[0].startswith(f"{source} (1500 points) -> {target}")
+    assert "std rotation" in verbose and "std translation" in verbose and "converged after" in verbose
+    assert len(verbose.splitlines()) > len(normal.splitlines())
+    code, _, err = run(capsys, *argv, "-q", "-v")
+    assert code == 2 and "not allowed with" in err
 
 
 def test_init_file_is_used(pair, tmp_path, capsys):
@@ -275,6 +312,33 @@ def test_console_script_version_and_help():
             [sys.executable, "-m", "esmicp.cli", *command, "--help"], capture_output=True, text=True, env=env
         )
         assert shown.returncode == 0 and "usage: esmicp" in shown.stdout
+        assert "exit status:" in shown.stdout
+
+
+def test_every_exit_status_of_every_command_is_in_its_help():
+    """Each status a command returns is listed in its ``--help`` (and the top-level one lists all of
+    them, merge's 3 included): the statuses the code uses, from their constants."""
+    from esmicp.cli import args, build_parser
+
+    parser = build_parser()
+    commands = next(action for action in parser._actions if action.__class__.__name__ == "_SubParsersAction").choices
+    common = {args.EXIT_OK, args.EXIT_BAD_INPUT, args.EXIT_INTERRUPTED, args.EXIT_BROKEN_PIPE, args.EXIT_TERMINATED}
+    own = {"register": {args.EXIT_UNTRUSTED}, "merge": {args.EXIT_PARTIAL}, "demo": {args.EXIT_FAILED}}
+
+    def listed(text: str) -> set[int]:
+        return {int(line.split()[0]) for line in text.split("exit status:")[1].splitlines()[1:]
+                if line[:7].strip().isdigit()}
+
+    everything = set()
+    for name, command in commands.items():
+        if not command.add_help:  # the bench placeholder without the lab
+            continue
+        statuses = listed(command.format_help())
+        assert statuses >= common | own.get(name, set()), name
+        everything |= statuses
+    assert listed(parser.format_help()) == everything >= common | {3, args.EXIT_FAILED}
+    merge_help = commands["merge"].format_help().split("exit status:")[1]
+    assert "doubtful or unplaced" in merge_help
 
 
 def _spy(monkeypatch, target):
@@ -316,10 +380,13 @@ def test_workers_reaches_the_demo_and_merge_registrations(pair, tmp_path, capsys
     source, target, _, _ = pair
     merged = _spy(monkeypatch, "esmicp.multiview.register_scans")
     common = [str(source), str(target), "--processes", "1", "--pair-points", "300", "--no-progress", "--force"]
-    for extra, expected in (([], {}), (["--workers", "2"], {"workers": 2})):
-        code, _, err = run(capsys, "merge", *common, "-o", str(tmp_path / "merged.ply"), *extra)
+    for extra, expected in (([], {}), (["--workers", "2", "-v"], {"workers": 2})):
+        code, out, err = run(capsys, "merge", *common, "-o", str(tmp_path / "merged.ply"), *extra)
         assert code == 0, err
         assert {key: merged[-1][key] for key in merged[-1] if key == "workers"} == expected
+        # -v adds one line per pairwise registration (scan 0 registered with scan 1 at least).
+        assert ("pairwise registrations (" in out) == ("-v" in extra)
+        assert ("  0-1 " in out or "  1-0 " in out) == ("-v" in extra)
 
 
 @pytest.mark.parametrize("command", ["register", "demo", "merge"])
@@ -379,10 +446,12 @@ def test_merge_to_a_plain_format_says_what_it_leaves_out_and_kitti_poses_read_ba
     from esmicp import read_points, read_poses
 
     merged, poses = tmp_path / "merged.xyz", tmp_path / "poses.txt"
-    code, _, err = run(capsys, "merge", *map(str, three_scans), "-o", str(merged), "--poses-out", str(poses),
-                       "--poses-format", "kitti", "--threads", "1", "--pair-points", "300", "--no-progress")
+    code, out, err = run(capsys, "merge", *map(str, three_scans), "-o", str(merged), "--poses-out", str(poses),
+                         "--poses-format", "kitti", "--threads", "1", "--pair-points", "300", "-q")
     assert code == 0, err
-    assert "scan_index" in err and "warning" in err  # the scan index is not silently lost
+    assert out == ""  # -q: no table, no summary (and no progress bar on stderr)
+    assert "scan_index" in err and "warning" in err  # the scan index is not silently lost, even with -q
+    assert "pairs" not in err
     assert read_points(merged).shape[1] == 3 and np.loadtxt(merged).shape[1] == 3
     written = read_poses(poses)
     assert written.format == "kitti" and len(written) == 3

@@ -195,16 +195,18 @@ def test_left_error_is_the_left_perturbation():
         assert np.allclose(uncertainty.left_error(estimate @ exact, estimate), delta, atol=1e-6)
 
 
-def test_cli_register_prints_deviations_and_the_degenerate_direction(tmp_path, rng, capsys):
+def test_cli_register_names_the_degenerate_direction_and_prints_no_deviations_beside_it(tmp_path, rng, capsys):
+    """A degenerate pose is not trusted: the verdict names the free direction, and no standard
+    deviation is printed beside it (-v neither); --json keeps the covariance for programs."""
     from esmicp import io
     from esmicp.cli import main
 
     io.write_points(tmp_path / "target.ply", corridor(6000, rng))
     io.write_points(tmp_path / "source.ply", corridor(6000, rng) + [0.03, 0.01, 0.0])
     arguments = ["register", str(tmp_path / "source.ply"), str(tmp_path / "target.ply"), "--init", "identity"]
-    assert main(arguments) == 0
+    assert main([*arguments, "-v"]) == 0
     out = capsys.readouterr().out
-    assert "std rotation (deg" in out and "std translation (cloud units" in out
+    assert "std rotation" not in out and "std translation" not in out and "standard deviation" not in out
     assert "translation along x (target frame) is poorly constrained" in out
     assert "DEGENERATE" in out.splitlines()[1]  # the verdict, after the line naming the files
     # for scripts: not trusted, exit status 3, the reason on stderr
@@ -215,6 +217,7 @@ def test_cli_register_prints_deviations_and_the_degenerate_direction(tmp_path, r
     assert len(report["std_rotation_deg"]) == 3 and len(report["std_translation"]) == 3
     assert report["std_translation"][0] > 10 * report["std_translation"][1]
     assert "translation along x" in report["degenerate_directions"][0]["description"]
+    assert report["trusted"] is False and any("translation along x" in doubt for doubt in report["doubts"])
 
 
 def test_too_few_pairs_give_no_covariance():

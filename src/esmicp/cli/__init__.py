@@ -17,7 +17,8 @@ import warnings
 
 from .._version import __version__
 from ..errors import EsmicpError, EsmicpWarning, MissingDependencyError
-from .args import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, Parser
+from .args import (EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, NORMAL,
+                   VERBOSE, Parser, exit_status_epilog)
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_BROKEN_PIPE", "EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_TERMINATED",
            "build_parser", "main"]
@@ -31,6 +32,7 @@ def build_parser() -> Parser:
         prog="esmicp",
         description="Rigid registration of 3D point clouds with ESM-ICP. Transforms are "
         "T_target_source: 4x4 matrices that map source coordinates into the target frame.",
+        epilog=exit_status_epilog(),
     )
     parser.add_argument("--version", action="version", version=f"esmicp {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
@@ -40,6 +42,9 @@ def build_parser() -> Parser:
     _add_bench_parser(commands)
     viz.add_parser(commands)  # view, heatmap, animate
     merge.add_parser(commands)  # merge
+    for name, command in commands.choices.items():  # each command's exit statuses, from the one table
+        if command.add_help and command.epilog is None:
+            command.epilog = exit_status_epilog(name)
     return parser
 
 
@@ -86,7 +91,8 @@ def main(argv=None) -> int:
     from ..io.atomic import recording_outputs
 
     args = build_parser().parse_args(argv)
-    with warnings.catch_warnings(), _library_log_on_stderr(args.command), terminate_as_interrupt(), \
+    verbose = getattr(args, "verbosity", NORMAL) >= VERBOSE
+    with warnings.catch_warnings(), _library_log_on_stderr(args.command, verbose), terminate_as_interrupt(), \
             recording_outputs() as written:
         warnings.simplefilter("always", EsmicpWarning)
         warnings.showwarning = _show_warning
@@ -144,11 +150,12 @@ def _stdout_closed() -> int:
 
 
 class _CommandLogHandler(logging.Handler):
-    """Prints the library's log records (warnings and above) as the command's own lines:
-    ``esmicp merge: warning: ...``, not the bare text of Python's last-resort handler."""
+    """Prints the library's log records (warnings and above; with ``-v``, what it reports too) as
+    the command's own lines: ``esmicp merge: warning: ...``, not the bare text of Python's
+    last-resort handler."""
 
-    def __init__(self, command: str):
-        super().__init__(logging.WARNING)
+    def __init__(self, command: str, level: int = logging.WARNING):
+        super().__init__(level)
         self.command = command
 
     def emit(self, record: logging.LogRecord) -> None:
@@ -156,14 +163,20 @@ class _CommandLogHandler(logging.Handler):
 
 
 @contextlib.contextmanager
-def _library_log_on_stderr(command: str):
-    """:class:`_CommandLogHandler` on the ``esmicp`` logger while a command runs."""
-    handler = _CommandLogHandler(command)
-    logging.getLogger("esmicp").addHandler(handler)
+def _library_log_on_stderr(command: str, verbose: bool = False):
+    """:class:`_CommandLogHandler` on the ``esmicp`` logger while a command runs (``verbose``: its
+    informational records too, such as the layout a ``.bin`` scan was read in)."""
+    library = logging.getLogger("esmicp")
+    handler = _CommandLogHandler(command, logging.INFO if verbose else logging.WARNING)
+    level = library.level
+    library.addHandler(handler)
+    if verbose and library.getEffectiveLevel() > logging.INFO:
+        library.setLevel(logging.INFO)
     try:
         yield handler
     finally:
-        logging.getLogger("esmicp").removeHandler(handler)
+        library.removeHandler(handler)
+        library.setLevel(level)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):

@@ -103,13 +103,97 @@ EXIT_OK = 0
 EXIT_FAILED = 1  # ``esmicp demo``: the transform was not recovered
 EXIT_BAD_INPUT = 2
 EXIT_UNTRUSTED = 3  # ``esmicp register --min-confidence``: the pose is below the bar, or ambiguous
+EXIT_PARTIAL = 3  # ``esmicp merge``: a scan is doubtful or unplaced (the placed scans are written)
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # SIGTERM (128 + 15), handled as Ctrl-C is: the unfinished outputs removed
 EXIT_BROKEN_PIPE = 141  # the reader of the output closed it (128 + SIGPIPE, what a shell reports for Unix tools)
 
+#: Every exit status, the one place they are described: ``(status, commands, meaning)``, with
+#: ``commands`` None for every command not named in another row of that status. The ``--help``
+#: epilogs (:func:`exit_status_epilog`) and the command-line reference page are generated from it.
+EXIT_STATUSES: tuple[tuple[int, tuple[str, ...] | None, str], ...] = (
+    (EXIT_OK, ("register",), "done, whatever the verdict it prints first (with --min-confidence, a pose in doubt "
+     "exits 3)"),
+    (EXIT_OK, ("merge",), "done, every scan placed (or --allow-partial given)"),
+    (EXIT_OK, None, "done"),
+    (EXIT_FAILED, ("demo",), "the transform was not recovered"),
+    (EXIT_BAD_INPUT, None, "bad input: one line on stderr naming the file or argument; nothing written"),
+    (EXIT_UNTRUSTED, ("register",), "with --min-confidence [X]: the pose is in doubt (the confidence below X, "
+     "default the trust bar; not converged; ambiguous; degenerate; or, with --range-images, failing the free-space "
+     "test: RegistrationResult.doubts()); one line on stderr, the outputs asked for written all the same"),
+    (EXIT_PARTIAL, ("merge",), "a scan is doubtful or unplaced: named on stderr, the placed scans written "
+     "(--allow-partial exits 0 instead)"),
+    (EXIT_INTERRUPTED, ("bench",), "interrupted (Ctrl-C): the rows finished so far are kept"),
+    (EXIT_INTERRUPTED, None, "interrupted (Ctrl-C): nothing written, or the last line names the outputs already "
+     "written"),
+    (EXIT_BROKEN_PIPE, None, "the reader of standard output went away (esmicp ... | head): nothing on stderr"),
+    (EXIT_TERMINATED, None, "terminated (SIGTERM: kill, timeout, a container stopping): handled as Ctrl-C, worker "
+     "processes ended, the same message"),
+)
+
+
+def exit_statuses(command: str | None = None) -> list[tuple[int, str, str]]:
+    """``(status, commands, meaning)`` of each exit status ``command`` can end with (every row of
+    :data:`EXIT_STATUSES` for None), ``commands`` in words: "all", "other commands", or the
+    commands' names."""
+    rows = []
+    for status, commands, meaning in EXIT_STATUSES:
+        named = [c for s, cs, _ in EXIT_STATUSES if s == status and cs is not None for c in cs]
+        if command is None:
+            who = ", ".join(commands) if commands else ("other commands" if named else "all")
+            rows.append((status, who, meaning))
+        elif (commands is None and command not in named) or (commands is not None and command in commands):
+            rows.append((status, command, meaning))
+    return rows
+
+
+def exit_status_epilog(command: str | None = None) -> str:
+    """The ``exit status:`` section of a ``--help`` (``command`` None: every command's, each
+    status with the commands it applies to)."""
+    import textwrap
+
+    lines = ["exit status:"]
+    previous = None
+    for status, commands, meaning in exit_statuses(command):
+        text = meaning if command is not None or commands == "all" else f"{commands}: {meaning}"
+        wrapped = textwrap.wrap(text, 90, break_on_hyphens=False)
+        lines.append(f"  {status if status != previous else '':<5}{wrapped[0]}")
+        lines.extend(f"       {line}" for line in wrapped[1:])
+        previous = status
+    return "\n".join(lines)
+
+
+#: ``-q`` / ``-v`` (:func:`add_verbosity`): how much a command prints.
+QUIET, NORMAL, VERBOSE = -1, 0, 1
+
+
+def add_verbosity(parser, verbose: str) -> None:
+    """Add ``-q`` / ``--quiet`` and ``-v`` / ``--verbose`` (exclusive) to a subcommand's parser:
+    ``args.verbosity`` is :data:`QUIET` (warnings, errors and the outputs asked for only),
+    :data:`NORMAL` (the summary) or :data:`VERBOSE` (``verbose``: what the summary leaves out)."""
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("-q", "--quiet", dest="verbosity", action="store_const", const=QUIET, default=NORMAL,
+                       help="print nothing but warnings and errors (the outputs asked for are written)")
+    group.add_argument("-v", "--verbose", dest="verbosity", action="store_const", const=VERBOSE,
+                       help=f"print more: {verbose}")
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """argparse's formatter, except that a text holding line breaks (the exit-status epilog) is
+    kept as written; one-line texts are wrapped as usual."""
+
+    def _fill_text(self, text, width, indent):
+        if "\n" in text:
+            return "\n".join(indent + line for line in text.splitlines())
+        return super()._fill_text(text, width, indent)
+
 
 class Parser(argparse.ArgumentParser):
     """argparse that reports a usage error in one line (and exit status 2)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message):
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")

@@ -19,14 +19,11 @@ import os
 import sys
 from pathlib import Path
 
-from .args import add_workers, check_distinct_files, output_path, positive_float, positive_int, whole_number
+from .args import (EXIT_BAD_INPUT, EXIT_OK, EXIT_PARTIAL, QUIET, VERBOSE, add_verbosity, add_workers,
+                   check_distinct_files, output_path, positive_float, positive_int, whole_number)
 from ..batch import dask_client
 from ..errors import EsmicpError, InvalidInputError
 from ..types import MIN_POINTS
-
-#: Exit status when some scan is doubtful or unplaced (the placed scans are written); 0 with
-#: ``--allow-partial``.
-EXIT_PARTIAL = 3
 
 #: ``--poses-format`` choices, the default first: :data:`esmicp.io.POSE_FORMATS` (spelled out here so
 #: that building the parser loads no file reader).
@@ -85,7 +82,7 @@ def add_parser(commands) -> None:
                        "than 12 scans: a colour scale by scan index, the scan's name on hover; - for standard output)")
     merge.add_argument("--bin-columns", type=int, choices=(3, 4), metavar="{3,4}",
                        help=".bin scans: float32 values per point (4: KITTI x y z intensity, 3: x y z); "
-                       "needed when a file's size fits both")
+                       "needed when a file's size fits both and its values cannot tell")
     library = argparse.SUPPRESS
     merge.add_argument("--reference", type=int, default=library,
                        help=_LibraryDefault("index of the scan whose frame is the world", "reference"))
@@ -116,8 +113,9 @@ def add_parser(commands) -> None:
                        help="run the pairwise registrations on this many worker processes instead of threads")
     add_workers(merge, "1 per registration when several run at once, else every core")
     merge.add_argument("--scheduler", help="address of an existing Dask scheduler to run the pairwise jobs on")
-    merge.add_argument("--no-progress", action="store_true", help="no progress bar")
+    merge.add_argument("--no-progress", action="store_true", help="no progress bar (-q: none either)")
     merge.add_argument("--force", action="store_true", help="overwrite existing output files")
+    add_verbosity(merge, "each pairwise registration (kept, or why not) and the notes of the merge")
     merge.set_defaults(handler=run_merge)
 
 
@@ -279,7 +277,7 @@ def run_merge(args) -> int:
             clouds.append(None)
     if bad and not args.skip_bad:
         print(f"esmicp merge: {len(bad)} scan(s) unreadable; nothing written (--skip-bad merges the rest)", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     readable = [k for k in range(len(args.scans)) if k not in bad]
     if len(readable) < 2:
         raise InvalidInputError(f"scans: need at least 2 readable scans, got {len(readable)}")
@@ -289,7 +287,7 @@ def run_merge(args) -> int:
     client = None
     if args.scheduler:
         client = dask_client(args.scheduler)
-    progress, close = _progress(not args.no_progress)
+    progress, close = _progress(not args.no_progress and args.verbosity > QUIET)
     # Without --workers the library picks the threads (one per registration run in parallel).
     threads = {} if args.workers is None else {"workers": args.workers}
     # The library logs each doubtful or unplaced scan by its index; the command names it by its file
@@ -323,8 +321,11 @@ def run_merge(args) -> int:
             _write_view(args.view, points, labels, [shown(name) for name in names], args.force)
     if args.json:
         print(json.dumps({**result.to_dict(), "files": names, "output": str(args.output)}, indent=1))
-    else:
+    elif args.verbosity > QUIET:
         print(scan_table(result, [shown(name) for name in names]))
+        if args.verbosity >= VERBOSE:
+            for line in detail_lines(result):
+                print(line)
         kept = len(result.kept_edges)
         print(f"merged {sum(result.placed)} of {len(args.scans)} scans ({len(points)} points) into {shown(args.output)}; "
               f"{result.pairs_registered} pairwise registrations, {kept} edges kept; "
@@ -337,7 +338,19 @@ def run_merge(args) -> int:
         print(f"esmicp merge: {len(left_out)} scan(s) doubtful or unplaced, not merged (exit status {EXIT_PARTIAL}; "
               "--allow-partial exits 0)", file=sys.stderr)
         return EXIT_PARTIAL
-    return 0
+    return EXIT_OK
+
+
+def detail_lines(result) -> list[str]:
+    """``-v``: one line per pairwise registration (its scans, how it started, the confidence and
+    overlap, kept or why not), then the merge's notes."""
+    lines = [f"pairwise registrations ({len(result.edges)}; T_i_j maps scan j into scan i):"]
+    for edge in result.edges:
+        confidence = "-" if edge.confidence is None else f"{edge.confidence:.2f}"
+        lines.append(f"  {edge.i}-{edge.j} {edge.kind}: confidence {confidence}, overlap {edge.overlap:.2f}; "
+                     f"{edge.reason}")
+    lines.extend(f"note: {note}" for note in result.notes)
+    return lines
 
 
 def scan_table(result, names) -> str:

@@ -4,6 +4,7 @@ the outputs asked for."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -14,7 +15,8 @@ from ..api import INIT_NAMES
 from ..io import READ_EXTENSIONS, WRITE_EXTENSIONS
 from ..methods import METHODS
 from ..types import check_geometry
-from .args import EXIT_OK, EXIT_UNTRUSTED, add_workers, check_distinct_files, output_path, positive_float, positive_int
+from .args import (EXIT_OK, EXIT_UNTRUSTED, NORMAL, QUIET, VERBOSE, add_verbosity, add_workers, check_distinct_files,
+                   output_path, positive_float, positive_int)
 
 
 def trust_bar() -> float:
@@ -48,10 +50,9 @@ def add_parser(commands) -> None:
         help="register SOURCE onto TARGET and report the transform",
         description=f"Register SOURCE onto TARGET (files: {' '.join(READ_EXTENSIONS)}) and print "
         "the verdict first (the overlap confidence against the trust bar, 0-1: below it, or ambiguous, "
-        "do not trust the pose), then the run's and the overlap's figures and T_target_source. Exit status: 0 done (read "
-        "the verdict, or use --min-confidence), 2 bad input (nothing written), 3 below "
-        "--min-confidence or ambiguous (the outputs asked for are written all the same), 130 "
-        "interrupted (nothing written).",
+        "do not trust the pose), then the pose (its standard deviations when it is trusted), the run and "
+        "the overlap in one line, and T_target_source; -v adds the run's detail, -q prints nothing but "
+        "warnings and errors.",
     )
     reg.add_argument("source", type=Path, help="point cloud to move")
     reg.add_argument("target", type=Path, help="point cloud to align to")
@@ -82,7 +83,8 @@ def add_parser(commands) -> None:
     reg.add_argument(
         "--bin-columns", type=int, choices=(3, 4), metavar="{3,4}",
         help="for headerless float32 .bin scans: floats per point, 4 for KITTI velodyne (x y z "
-        "intensity), 3 for x y z (default: from the file size; a size that fits both is refused)",
+        "intensity), 3 for x y z (default: from the file size, or from the values when the size fits both; "
+        "a file whose values cannot tell is refused)",
     )
     reg.add_argument("--seed", type=int, default=0, help="seed of the global search and --sample-points (default 0)")
     reg.add_argument(
@@ -92,7 +94,9 @@ def add_parser(commands) -> None:
     reg.add_argument("--transform-out", type=output_path, metavar="FILE",
                      help="write T_target_source here (4x4 text; - for standard output)")
     reg.add_argument("--force", action="store_true", help="overwrite existing output files")
-    reg.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
+    reg.add_argument("--json", action="store_true",
+                     help="print one JSON object instead of a summary (RegistrationResult.to_dict(): the fields, "
+                     "trusted and doubts, the reasons not to trust the pose; and the files and their point counts)")
     reg.add_argument(
         "--min-confidence", type=_confidence_bar, nargs="?", const="trusted", metavar="X",
         help="exit with status 3 when the overlap confidence is below X (0-1), or the refinement did not converge, "
@@ -107,6 +111,8 @@ def add_parser(commands) -> None:
         "pose that contradicts it (not for meshes, fused fragments or maps)",
     )
     add_workers(reg)
+    add_verbosity(reg, "the files, where the run started, why it stopped, the inlier RMSE and sigma, and the "
+                  "standard deviation about and along each axis")
     reg.set_defaults(handler=_run_register)
 
 
@@ -151,9 +157,10 @@ def _run_register(args) -> int:
         report.update(source=str(args.source), target=str(args.target),
                       source_points=len(source), target_points=len(target))
         print(json.dumps(report))
-    else:
-        print(f"{args.source} ({len(source)} points) -> {args.target} ({len(target)} points)")
-        print_summary(result)
+    elif args.verbosity > QUIET:
+        if args.verbosity >= VERBOSE:
+            print(f"{args.source} ({len(source)} points) -> {args.target} ({len(target)} points)")
+        print_summary(result, args.verbosity)
         for label, path in (("aligned source", args.output), ("transform", args.transform_out)):
             if path is not None:
                 print(f"{label} written to {path}")
@@ -177,18 +184,20 @@ def _status(result, bar: float | str | None) -> int:
 
 
 def verdict(result) -> str:
-    """One line: the overlap confidence against the trust bar, and whether to trust the pose."""
+    """One line: the overlap confidence against the trust bar, whether to trust the pose, and every
+    reason not to (:meth:`~esmicp.result.RegistrationResult.doubts`)."""
     if result.confidence is None:
         return "confidence unknown: judge the pose yourself"
     bar = trust_bar()
     text = f"confidence {result.confidence:.2f}"
     if result.confidence < bar:
         return (f"{text} (LOW: below {bar:g}, do not trust this pose; the clouds may not coincide where it puts "
-                "them, or their overlap may not hold it)")
+                f"them, or their overlap may not hold it{_also(result.doubts(0.0))})")
     if result.ambiguous:
+        others = dataclasses.replace(result, ambiguous=False).doubts(0.0)
         return (f"{text} (>= {bar:g}, but AMBIGUOUS: a clearly different pose fits almost as well, score ratio "
                 f"{result.runner_up_ratio:.3f}; do not trust this pose: the object may be symmetric or the "
-                "overlap too small to tell)")
+                f"overlap too small to tell{_also(others)})")
     doubts = result.doubts()
     if not result.converged:
         return (f"{text} (>= {bar:g}, but NOT CONVERGED: {'; '.join(doubts)}; do not trust this pose: the "
@@ -202,22 +211,21 @@ def verdict(result) -> str:
     return f"{text} (trusted: >= {bar:g})"
 
 
-def print_summary(result) -> None:
-    """The verdict first, then how the run went, the overlap figures and the pose."""
-    print(verdict(result))
-    state = "converged" if result.converged else "NOT converged"
-    print(f"method {result.method}: {state}, {result.num_iterations} iterations, {result.runtime_s * 1000:.1f} ms")
-    print(f"  start: {result.init}" + (f", {result.global_candidates} candidate poses verified" if result.global_candidates else ""))
-    print(f"  {result.message}")
-    sigma = "n/a" if result.sigma is None else f"{result.sigma:.6g}"
-    print(
-        f"  overlap (not a verdict): fitness {result.fitness:.4f} of the source within {result.inlier_distance:.6g} "
-        f"of the target, inlier RMSE {result.inlier_rmse:.6g}; sigma {sigma}"
-    )
-    if result.covariance is not None:
-        from ..trust.uncertainty import describe
+def _also(doubts: list[str]) -> str:
+    """The doubts besides the one a verdict is named after, for the end of its line."""
+    return f"; also {'; '.join(doubts)}" if doubts else ""
 
-        for line in describe(result.covariance, result.degenerate_directions):
+
+def print_summary(result, verbosity: int = NORMAL) -> None:
+    """Three lines: the verdict, the pose, the run; then ``T_target_source`` (and the runner-up of
+    a pose not trusted). ``verbosity`` :data:`~.args.VERBOSE` adds, before the matrix, where the run
+    started, why it stopped, the overlap's inlier RMSE and sigma, and the standard deviation about
+    and along each axis (of a trusted pose) and each degenerate direction."""
+    print(verdict(result))
+    print(pose_line(result))
+    print(run_line(result))
+    if verbosity >= VERBOSE:
+        for line in detail_lines(result):
             print(f"  {line}")
     print("T_target_source =")
     print(format_matrix(result.transformation))
@@ -225,6 +233,47 @@ def print_summary(result) -> None:
         # The other place the source may belong (a symmetric twin, a slide along a road).
         print(f"runner-up T_target_source (score ratio {result.runner_up_ratio:.3f}, as verified, not polished) =")
         print(format_matrix(result.runner_up))
+
+
+def pose_line(result) -> str:
+    """How far the pose turns and moves the source, with the largest standard deviation about and
+    along an axis when the pose is trusted (beside a pose in doubt they would claim a precision its
+    verdict denies)."""
+    line = f"pose: rotation {result.rotation_deg:.4g} deg, translation {result.translation_norm:.4g}"
+    if result.covariance is not None and result.trusted:
+        from ..trust.uncertainty import standard_deviations
+
+        rotation, translation = standard_deviations(result.covariance)
+        line += f" (standard deviation per axis at most {rotation.max():.2g} deg, {translation.max():.2g})"
+    return line
+
+
+def run_line(result) -> str:
+    """The method, where it started, how it ended and took, and the overlap's fitness."""
+    if result.init.startswith("global:"):
+        start = f"after a global search ({result.init.removeprefix('global:')})"
+    else:
+        start = "from the given pose" if result.init == "given" else f"from the {result.init}"
+    state = f"converged in {result.num_iterations}" if result.converged else f"NOT converged after {result.num_iterations}"
+    return (f"{result.method} {start}: {state} iterations, {result.runtime_s:.2f} s; overlap (not a verdict): "
+            f"fitness {result.fitness:.3f} within {result.inlier_distance:.3g}")
+
+
+def detail_lines(result) -> list[str]:
+    """The run's detail (``-v``): the global search, why the refinement stopped (its stages), the
+    overlap's inlier RMSE and sigma; of a trusted pose the standard deviation about and along each
+    axis; each degenerate direction."""
+    lines = []
+    if result.global_candidates:
+        lines.append(f"global search: {result.global_candidates} candidate poses verified")
+    lines.append(result.message)
+    sigma = "n/a" if result.sigma is None else f"{result.sigma:.6g}"
+    lines.append(f"overlap: fitness {result.fitness:.4f} of the source within {result.inlier_distance:.6g} of the "
+                 f"target, inlier RMSE {result.inlier_rmse:.6g}; sigma {sigma}")
+    from ..trust.uncertainty import describe
+
+    lines.extend(describe(result.covariance if result.trusted else None, result.degenerate_directions))
+    return lines
 
 
 def format_matrix(matrix: np.ndarray) -> str:
