@@ -30,7 +30,7 @@ from esmicp.viz import (
     view_page,
     write_view,
 )
-from esmicp.viz.view import DATA_ID, display_subset
+from esmicp.viz.view import DATA_ID, display_indices
 
 
 def run(capsys, *argv):
@@ -163,7 +163,7 @@ def test_view_page_is_self_contained_and_carries_the_poses(tmp_path):
     require_plotting()
     pair = builtin_pair(points=600, angle_deg=30)
     figure = view_html(pair.source, pair.target, method="esm", compare="icp", max_display_points=250,
-                       truth=pair.T_target_source, init="identity")
+                       truth=pair.T_target_source, init="identity", show_run=True)
     path = tmp_path / "view.html"
     write_view(figure, path)
     html = path.read_text(encoding="utf-8")
@@ -175,11 +175,11 @@ def test_view_page_is_self_contained_and_carries_the_poses(tmp_path):
         trace = trace_registration(pair.source, pair.target, method=method)
         assert len(poses) == trace.iterations + 1
         np.testing.assert_allclose(np.array(poses), np.array(trace.poses), atol=1e-12)
-    assert data["shown_source"] == 250 and data["points_source"] == 600
-    assert "subsampled for display" in html
+    shown = display_indices(pair.source, 250)
+    assert data["shown_source"] == len(shown) <= 250 and data["points_source"] == 600
+    assert "thinned evenly for display" in html
     assert len(figure.frames) == max(data["iterations"]) + 1
     # Frame k carries the aligned sources at iteration k (display subset, float32).
-    shown = display_subset(600, 250, seed=1)
     k = 3
     expected = apply(np.array(data["poses"][0][k]), pair.source)[shown]
     np.testing.assert_allclose(np.asarray(figure.frames[k].data[0].x), expected[:, 0], atol=1e-5)
@@ -193,11 +193,11 @@ def test_view_opens_at_the_iteration_asked_for():
     pair = builtin_pair(points=300, angle_deg=30)
     trace = trace_registration(pair.source, pair.target)
     for asked, shown in ((4, 4), (10_000, trace.iterations)):
-        figure = view_html(pair.source, pair.target, shown_iteration=asked, init="identity")
+        figure = view_html(pair.source, pair.target, shown_iteration=asked, init="identity", show_run=True)
         assert figure.layout.sliders[0].active == shown
         np.testing.assert_allclose(np.asarray(figure.data[2].x), trace.aligned(shown)[:, 0], atol=1e-5)
     with pytest.raises(InvalidInputError, match="shown_iteration"):
-        view_html(pair.source, pair.target, shown_iteration=-1)
+        view_html(pair.source, pair.target, shown_iteration=-1, show_run=True)
 
 
 # --- the commands -----------------------------------------------------------------------------
@@ -264,8 +264,9 @@ def view_meta(path):
 
 
 def test_view_shows_what_register_gives_a_given_transform_or_the_files_as_they_are(tmp_path, capsys):
-    """``esmicp view`` registers as ``esmicp register`` does (global by default) and its last
-    slider step is that pose; ``--transform`` shows a given pose, ``--as-is`` the clouds unmoved."""
+    """``esmicp view`` registers as ``esmicp register`` does (global by default) and shows that
+    pose (with ``--show-run``, the last slider step); ``--transform`` shows a given pose, ``--as-is``
+    the clouds unmoved."""
     require_plotting()
     from esmicp.io import read_transform
 
@@ -280,7 +281,11 @@ def test_view_shows_what_register_gives_a_given_transform_or_the_files_as_they_a
     assert code == 0, stderr
     assert "from global search" in stdout and "confidence" in stdout
     meta = view_meta(out)
-    np.testing.assert_allclose(meta["poses"][0][-1], registered, atol=1e-8)  # the text file's 17 digits
+    np.testing.assert_allclose(meta["poses"][0], [registered], atol=1e-8)  # the text file's 17 digits
+    code, stdout, stderr = run(capsys, "view", str(source), str(target), "-o", str(out), "--force", "--show-run")
+    assert code == 0, stderr
+    meta = view_meta(out)
+    np.testing.assert_allclose(meta["poses"][0][-1], registered, atol=1e-8)
     assert meta["iterations"][0] >= 1 and rotation_error_deg(np.array(meta["poses"][0][0]), pair.T_target_source) < 5
     for flags, expected in (([ "--transform", str(tmp_path / "T.txt")], registered), (["--as-is"], np.eye(4))):
         code, stdout, stderr = run(capsys, "view", str(source), str(target), "-o", str(out), "--force", *flags)
@@ -306,6 +311,9 @@ def test_view_shows_what_register_gives_a_given_transform_or_the_files_as_they_a
         (["view", "--init", "{tmp}/nowhere.txt", "-o", "{tmp}/v.html"], "nowhere.txt"),
         (["animate", "--angle", "200", "-o", "{tmp}/run.gif"], "[0, 180]"),
         (["view", "--compare", "bogus", "-o", "{tmp}/v.html"], "invalid choice"),
+        (["view", "--show-iteration", "3", "-o", "{tmp}/v.html"], "add --show-run"),
+        (["view", "--as-is", "--show-run", "-o", "{tmp}/v.html"], "--show-run"),
+        (["view", "--up", "w", "--as-is", "-o", "{tmp}/v.html"], "up: expected an axis"),
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, argv, message):

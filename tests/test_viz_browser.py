@@ -22,7 +22,7 @@ from test_viz_support import check_image, require_plotting
 from esmicp.cli import main
 from esmicp.core.procrustes import apply
 from esmicp.viz import builtin_pair
-from esmicp.viz.view import DATA_ID, PLOT_ID, display_subset
+from esmicp.viz.view import DATA_ID, PLOT_ID, display_indices
 
 #: Flags for chromium in a container with no network and no GPU.
 CHROMIUM_FLAGS = [
@@ -65,12 +65,12 @@ def test_viewer_loads_draws_and_steps_with_the_slider(browser, tmp_path):
     # (From the identity: many iterations for the slider to step through; by default the global
     # search leaves the refinement one or two.)
     argv = ["view", "--points", "400", "--angle", "40", "--compare", "icp", "--max-display-points", "300",
-            "--init", "identity", "-o", str(page_path)]
+            "--init", "identity", "--show-run", "-o", str(page_path)]
     assert main(argv) == 0
     html = page_path.read_text(encoding="utf-8")
     data = json.loads(re.search(rf'<script type="application/json" id="{DATA_ID}">(.*?)</script>', html, re.S).group(1))
     source = builtin_pair(points=400, angle_deg=40).source
-    shown = display_subset(len(source), 300, seed=1)
+    shown = display_indices(source, 300)
 
     page = browser.new_page(viewport={"width": 1280, "height": 800})
     problems = []

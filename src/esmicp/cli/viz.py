@@ -1,7 +1,8 @@
 """``esmicp view``, ``esmicp heatmap`` and ``esmicp animate``: pictures of a registration's local
-iterations (a thin layer over :mod:`esmicp.viz`). ``view`` registers as ``esmicp register`` does
-(the global search by default) and shows that pose, or shows a given pose (``--transform``) or the
-clouds as they are (``--as-is``); ``heatmap`` and ``animate`` start from the identity by default.
+iterations (a thin layer over :mod:`esmicp.viz`). ``view`` shows a given pose (``--transform``) or
+the clouds as they are (``--as-is``) without registering, or registers as ``esmicp register`` does
+(the global search by default) and shows that pose, its iterations too with ``--show-run``;
+``heatmap`` and ``animate`` start from the identity by default.
 Outputs are written atomically and never over an existing file without ``--force``; bad input
 ends in one line on stderr (exit status 2).
 
@@ -61,12 +62,13 @@ def add_parser(commands) -> None:
 
     view = commands.add_parser(
         "view", help="interactive 3D viewer of a registration (one self-contained HTML file)",
-        description="Register as 'esmicp register' does (the global search, then the local refinement, "
-        "the same defaults), then write one self-contained HTML page (plotly.js inlined, opens offline "
-        "in any browser) showing target, source and aligned source in 3D, with a slider over the local "
-        "refinement's iterations (0: where it started, the global search's pose by default) and the "
-        "confidence verdict; --compare adds a second method side by side on the same input. "
-        "--transform shows a given result instead, --as-is the clouds as they are (already aligned).",
+        description="Write one self-contained HTML page (plotly.js inlined, opens offline in any browser) "
+        "showing the target and the source placed by a pose, in 3D. --transform T.txt shows a given pose "
+        "and --as-is the clouds as they are, without registering; otherwise the clouds are registered as "
+        "'esmicp register' does (the global search, then the local refinement, the same defaults) and the "
+        "page shows that pose with the confidence verdict; --show-run adds a slider over the local "
+        "refinement's iterations, --compare a second method side by side on the same input. Large clouds "
+        "are thinned evenly for display; a scene much wider than tall (a LiDAR scan) opens in a top view.",
     )
     common(view, points_default=None, points_help="downsample each cloud to N well-spread points first "
            "(default: keep all; large clouds are subsampled for display only)",
@@ -83,10 +85,20 @@ def add_parser(commands) -> None:
     view.add_argument("--method", choices=list(METHODS), default="esm", help="default esm")
     view.add_argument("--compare", choices=list(METHODS), metavar="OTHER_METHOD",
                       help=f"a second method shown side by side ({', '.join(METHODS)})")
-    view.add_argument("--max-display-points", type=positive_int, default=2000, metavar="N",
-                      help="points drawn per cloud (default 2000; the page says when it subsamples)")
-    view.add_argument("--show-iteration", type=nonnegative_int, default=0, metavar="K",
-                      help="iteration the page opens at (default 0, the start; a large K: the last)")
+    view.add_argument("--show-run", action="store_true",
+                      help="when registering: draw the local refinement's iterations too, with a slider")
+    view.add_argument("--show-iteration", type=nonnegative_int, metavar="K",
+                      help="with --show-run: the iteration the page opens at (default 0, the start; a large "
+                      "K: the last)")
+    view.add_argument("--max-display-points", type=positive_int, metavar="N",
+                      help="most points drawn per cloud (default: more for a scene larger against its point "
+                      "spacing, up to a cap; the page says when it thins a cloud)")
+    view.add_argument("--camera", choices=["auto", "top", "oblique"], default="auto",
+                      help="first view: 'top' looks down --up (orthographic), 'oblique' from above one side; "
+                      "'auto' (default) takes the top view for a scene much wider than tall (a LiDAR scan)")
+    view.add_argument("--up", default="z", metavar="AXIS",
+                      help="the target frame's upward axis: x, y, z, -x, -y or -z (default z, as LiDAR; -y for "
+                      "a depth camera's frame)")
     view.set_defaults(handler=_run_view)
 
     heat = commands.add_parser(
@@ -166,11 +178,16 @@ def _run_view(args) -> int:
     _check_output(args.output, args.force, (".html", ".htm"), "viewer")
     _require("plotly.graph_objects", "plotly.subplots")
     fixed = args.transform is not None or args.as_is
+    flag = "--as-is" if args.as_is else "--transform"
     if fixed and args.compare is not None:
-        flag = "--as-is" if args.as_is else "--transform"
         raise InvalidInputError(f"--compare: compares registrations; {flag} shows a pose without registering")
+    if fixed and args.show_run:
+        raise InvalidInputError(f"--show-run: draws a registration's iterations; {flag} shows a pose without registering")
+    if args.show_iteration is not None and not args.show_run:
+        raise InvalidInputError("--show-iteration: a step of the registration run; add --show-run to draw the run")
     pose = io.read_transform(args.transform) if args.transform is not None else None
     source, target, description, truth, init = _inputs(args)
+    display = {"max_display_points": args.max_display_points, "camera": args.camera, "up": args.up}
     if fixed:
         import numpy as np
 
@@ -178,15 +195,15 @@ def _run_view(args) -> int:
 
         label = f"source placed by {args.transform.name}" if pose is not None else "as given (not registered)"
         trace = fixed_trace(source, target, np.eye(4) if pose is None else pose, label)
-        figure = view_figure([trace], max_display_points=args.max_display_points, title=args.title or description,
-                             truth=truth)
+        figure = view_figure([trace], title=args.title or description, truth=truth, **display,
+                             subtitle=f"{label}, without registering")
         write_view(figure, args.output, overwrite=args.force)
         print(f"viewer written to {args.output} ({label})")
         return 0
     figure = view_html(
-        source, target, method=args.method, compare=args.compare, init=init, sigma=args.sigma,
-        max_iterations=args.max_iterations, max_display_points=args.max_display_points,
-        title=args.title or description, truth=truth, shown_iteration=args.show_iteration,
+        source, target, show_run=args.show_run, method=args.method, compare=args.compare, init=init,
+        sigma=args.sigma, max_iterations=args.max_iterations, title=args.title or description, truth=truth,
+        shown_iteration=args.show_iteration, **display,
     )
     write_view(figure, args.output, overwrite=args.force)
     print(f"viewer written to {args.output} ({'; '.join(figure.layout.meta['verdicts'])})")

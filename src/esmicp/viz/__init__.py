@@ -13,10 +13,21 @@ from .scans import merged_scans_figure
 from .inputs import builtin_pair, downsample, farthest_point_subset, moved_copy
 from .similarity import similarity_matrix
 from .trace import RegistrationTrace, fixed_trace, trace_registration
-from .view import display_subset, scatter_trace, view_figure, view_html, view_page, write_view
+from .view import (
+    display_indices,
+    display_subset,
+    scatter_trace,
+    scene_camera,
+    view,
+    view_figure,
+    view_html,
+    view_page,
+    write_view,
+)
 
 __all__ = [
     "RegistrationTrace",
+    "display_indices",
     "display_subset",
     "fixed_trace",
     "require",
@@ -31,8 +42,10 @@ __all__ = [
     "merged_scans_figure",
     "moved_copy",
     "save_figure",
+    "scene_camera",
     "similarity_matrix",
     "trace_registration",
+    "view",
     "view_figure",
     "view_html",
     "view_page",

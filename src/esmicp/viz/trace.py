@@ -40,12 +40,13 @@ class Step:
 
 @dataclass(frozen=True, eq=False)
 class RegistrationTrace:
-    """A registration's local refinement, iteration by iteration.
+    """A registration's local refinement, iteration by iteration, or one pose to show.
 
     ``poses[k]`` is ``T_target_source`` after ``k`` iterations (``poses[0]`` the start: the
     identity, a given pose, or the global search's pose), so there are ``iterations + 1`` poses;
-    ``steps[k - 1]`` is what iteration ``k`` did. ``result`` is None for a pose shown as given
-    (:func:`fixed_trace`: one pose, no iteration).
+    ``steps[k - 1]`` is what iteration ``k`` did. A trace of no step holds one pose, shown as it is
+    (:func:`fixed_trace`). ``result`` is the :class:`~esmicp.result.RegistrationResult` whose pose
+    ``poses[-1]`` is (its verdict goes in the captions), or None for a bare pose.
     """
 
     method: str
@@ -69,7 +70,7 @@ class RegistrationTrace:
         if self.result is None:
             return self.start
         state = "converged" if self.result.converged else "not converged"
-        text = f"{self.method} from {self.start}: {self.iterations} iterations, {state}"
+        text = f"{self.method} from {self.start}: {self.result.num_iterations} iterations, {state}"
         if self.result.confidence is not None:
             doubts = self.result.doubts()
             verdict = "trusted" if not doubts else "LOW" if self.result.confidence < TRUSTED else (
@@ -78,14 +79,18 @@ class RegistrationTrace:
         return text
 
 
-def fixed_trace(source, target, pose, label: str) -> RegistrationTrace:
+def fixed_trace(source, target, pose, label: str, result: RegistrationResult | None = None) -> RegistrationTrace:
     """A trace of no iteration that shows ``source`` placed by ``pose`` (4x4 ``T_target_source``;
-    the identity for clouds already aligned), captioned ``label``."""
-    return RegistrationTrace("", label, as_points(source, "source"), as_points(target, "target"),
-                             (as_transform(pose, "pose"),), (), None)
+    the identity for clouds already aligned), captioned ``label`` (with ``result``, the
+    registration the pose comes from, its method and verdict instead)."""
+    pose = as_transform(pose, "pose")
+    source, target = as_points(source, "source"), as_points(target, "target")
+    if result is None:
+        return RegistrationTrace("", label, source, target, (pose,), (), None)
+    return RegistrationTrace(result.method, start_name(result), source, target, (pose,), (), result)
 
 
-def _start_name(result: RegistrationResult) -> str:
+def start_name(result: RegistrationResult) -> str:
     """How the run started, for captions."""
     if result.init.startswith("global:"):
         return f"global search ({result.init.split(':', 1)[1]})"
@@ -136,4 +141,4 @@ def trace_registration(
     start = kept[0][0] if kept else result.transformation
     steps = tuple(step for _, step in kept)
     poses = (start, *(step.transformation for step in steps))
-    return RegistrationTrace(method, _start_name(result), source_points, target_points, poses, steps, result)
+    return RegistrationTrace(method, start_name(result), source_points, target_points, poses, steps, result)
