@@ -95,7 +95,8 @@ def test_other_libraries_results_are_drawn_at_their_pose():
         figure = view_html(pair.source, pair.target, given, truth=pair.T_target_source)
         np.testing.assert_allclose(drawn(figure, 2), apply(pose, pair.source)[display_indices(pair.source)], atol=1e-5)
         assert "rotation error 10 deg" in layout_text(figure)
-    assert "fitness 0.75" in view_html(pair.source, pair.target, Open3DLikeResult(pose, 0.75, 0.01)).layout.annotations[0].text
+    labelled = view_html(pair.source, pair.target, Open3DLikeResult(pose, 0.75, 0.01))
+    assert "fitness 0.75" in labelled.layout.annotations[0].text
     with pytest.raises(InvalidInputError, match="transformation"):
         view_html(pair.source, pair.target, np.diag([2.0, 1.0, 1.0, 1.0]))  # not rigid
 

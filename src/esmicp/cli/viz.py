@@ -182,7 +182,8 @@ def _run_view(args) -> int:
     if fixed and args.compare is not None:
         raise InvalidInputError(f"--compare: compares registrations; {flag} shows a pose without registering")
     if fixed and args.show_run:
-        raise InvalidInputError(f"--show-run: draws a registration's iterations; {flag} shows a pose without registering")
+        raise InvalidInputError(f"--show-run: draws a registration's iterations; {flag} shows a pose "
+                                "without registering")
     if args.show_iteration is not None and not args.show_run:
         raise InvalidInputError("--show-iteration: a step of the registration run; add --show-run to draw the run")
     pose = io.read_transform(args.transform) if args.transform is not None else None

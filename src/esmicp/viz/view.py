@@ -47,10 +47,12 @@ DISPLAY_POINTS_CAP = 50_000
 RUN_POINTS_BUDGET = 400_000
 
 #: ``camera="auto"`` looks from above (an orthographic top view) when the target's extent along
-#: ``up`` is at most this fraction of its widest horizontal extent: a LiDAR scan (0.09-0.16 on
-#: KITTI, Newer College and small_gicp's pair) but not an object or a room (0.28 or more on the
-#: bunny, ModelNet40 shapes and 3DMatch fragments).
-TOP_VIEW_RATIO = 0.2
+#: ``up`` is at most this fraction of its widest horizontal extent. Chosen between the LiDAR scans
+#: of KITTI 00 and Newer College (0.09-0.14, z up) and the 3DMatch fragments and the bunny
+#: (0.66-0.99, y down / up); confirmed on small_gicp's LiDAR pair (0.16, 0.21: top) and the 100
+#: 7-Scenes depth frames (0.47-0.95: oblique). Flat objects get the top view too (6 of 81
+#: ModelNet40 shapes with y up, a keyboard at 0.03).
+TOP_VIEW_RATIO = 0.25
 
 #: The top view's box (plotly's ``aspectratio``; its orthographic zoom) fits the scene's area when
 #: its side along the screen's height is this size: the box's faces span ``aspectratio / 2`` of
@@ -265,7 +267,9 @@ def view_figure(
 
     figure = subplots.make_subplots(
         rows=1, cols=len(traces), specs=[[{"type": "scene"}] * len(traces)],
-        subplot_titles=[trace.label for trace in traces], horizontal_spacing=0.02,
+        # Side by side, each verdict on a line of its own under its method (one line would overlap).
+        subplot_titles=[trace.label if len(traces) == 1 else trace.label.replace("; ", "<br>", 1) for trace in traces],
+        horizontal_spacing=0.02,
     )
     placed = [[apply(pose, source) for pose in trace.poses] for trace in traces]
     every = [target, source] + [points for poses in placed for points in poses]
@@ -325,7 +329,8 @@ def view_figure(
         for k in range(steps + 1):
             data = [go.Scatter3d(**dict(zip("xyz", poses[min(k, trace.iterations)].astype(np.float32).T)))
                     for trace, poses in zip(traces, placed)]
-            frames.append(go.Frame(name=str(k), data=data, traces=aligned_index, layout={"annotations": annotations(k)}))
+            frames.append(go.Frame(name=str(k), data=data, traces=aligned_index,
+                                   layout={"annotations": annotations(k)}))
         figure.frames = frames
         slider_steps = [
             {
@@ -352,9 +357,9 @@ def view_figure(
     }
     heading = title or "esmicp registration"
     figure.update_layout(
-        title={"text": heading + (f"<br><sup>{subtitle}</sup>" if subtitle else "")},
+        title={"text": heading + (f"<br><sup>{subtitle}</sup>" if subtitle else ""), "y": 0.975, "yanchor": "top"},
         annotations=annotations(opened),
-        margin={"l": 10, "r": 10, "t": 80, "b": 190 if steps > 0 else 90},
+        margin={"l": 10, "r": 10, "t": 80 if len(traces) == 1 else 105, "b": 190 if steps > 0 else 90},
         height=720, meta=meta, legend={"itemsizing": "constant"}, **layout,
     )
     return figure
@@ -452,7 +457,7 @@ def view_html(
         trace = fixed_trace(source_points, target_points, pose, label, result)
         figure = view_figure(
             [trace], max_display_points=max_display_points, title=title, truth=truth, camera=camera, up=up,
-            subtitle="the source placed by the given pose (not registered here)",
+            subtitle=f"the source placed by the {'pose' if result is None else 'result'} given (not registered here)",
         )
         figure.layout.meta = {**figure.layout.meta, "registered": False}
         return figure
