@@ -97,8 +97,8 @@ def add_parser(commands) -> None:
                       help="first view: 'top' looks down --up (orthographic), 'oblique' from above one side; "
                       "'auto' (default) takes the top view for a scene much wider than tall (a LiDAR scan)")
     view.add_argument("--up", default="z", metavar="AXIS",
-                      help="the target frame's upward axis: x, y, z, -x, -y or -z (default z, as LiDAR; -y for "
-                      "a depth camera's frame)")
+                      help="the target frame's upward axis: x, y, z, -x, -y or -z (default z, as LiDAR; for "
+                      "a depth camera's frame --up=-y, with '=')")
     view.set_defaults(handler=_run_view)
 
     heat = commands.add_parser(
