@@ -1,0 +1,119 @@
+"""The configuration tree: every tuned value of a merge in one frozen, documented object.
+
+:class:`MergeConfig` holds the values of :func:`esmicp.register_scans` (how many points, which
+pairs, how long a check runs, how far the joint refinement goes). It is frozen, checked when made
+(an invalid value raises :class:`~esmicp.errors.InvalidInputError` naming the field) and
+round-trips through a JSON-ready dict (:meth:`~esmicp.core.config.Config.to_dict`,
+:meth:`~esmicp.core.config.Config.from_dict`, which refuses unknown keys).
+``register_scans(clouds, config=MergeConfig(...))`` runs with it; the defaults are the measured
+values. The global search's values are :class:`esmicp.globalreg.config.SearchConfig`'s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .core.config import Config, count, fraction, number
+from .types import MIN_POINTS
+
+
+@dataclass(frozen=True)
+class MergeConfig(Config):
+    """Tuned values of :func:`esmicp.register_scans`.
+
+    Lengths are gains times a length the data give: the median inlier distance of the kept
+    edges (the registrations' :attr:`~esmicp.RegistrationResult.inlier_distance`, the scans'
+    noise and spacing at the subsets' resolution), or the median point spacing of the dense
+    subsets.
+
+    Attributes
+    ----------
+    pair_points : int
+        Points per scan (a content-seeded random subset) for the pairwise global searches (count).
+    refine_points : int
+        Points per scan for the local check of each pair and the joint refinement (count).
+    partners : int
+        Without ``sequence``: the most similar scans each scan is first registered with, and the
+        pairs a round asks for per piece of unplaced scans (count).
+    sequence_neighbours : int
+        With ``sequence``: the next scans each scan is registered with (count; 2 gives triangles).
+    max_edge_error_deg : float
+        A trusted edge disagreeing with the solved poses by more than this rotation (degrees; or
+        by more than 3 of its inlier distances in translation) is rejected as cycle inconsistent.
+    refine_rounds : int
+        Correspondence distances of the joint refinement, each used for two Gauss-Newton steps
+        (count; 0: no joint refinement).
+    stalled_rounds : int
+        Rounds in a row that place or confirm no scan after which the merge stops asking for
+        more pairs (count).
+    closing_pairs : int
+        Pairs searched a round across each edge on no cycle of the kept graph (count).
+    predict_radius_inliers : float
+        What the poses predict two posed scans share is measured within this many median inlier
+        distances of the kept edges (gain).
+    min_predicted_overlap : float
+        Below this predicted overlap (fraction of points, 0-1) a pair is not searched to close a
+        cycle or a loop.
+    predict_points : int
+        Points of a scan (evenly strided, at most) whose distances to another posed scan predict
+        the pair's overlap (count).
+    predict_partners : int
+        Posed scans nearest in the world whose overlap with a scan is predicted when pairs are
+        sought for it (count).
+    loop_min_hops : int
+        With ``sequence``: a loop closure is searched only where the graph joins the two scans by
+        a path of at least this many edges (count).
+    loop_searches_per_scan : float
+        With ``sequence``: loop closures searched, at most, per scan (ratio; rounded up over all
+        scans).
+    check_iterations : int
+        Iterations of the local check of a pair on the dense subsets, unless ``max_iterations``
+        is passed to :func:`esmicp.register_scans` (count).
+    check_tolerance : float
+        The local check stops once an increment rotates less than this (radians; translates less
+        than this times the target's bounding-box diagonal): the tolerance at which
+        :func:`esmicp.register`'s own refinement stops after a global search
+        (:data:`esmicp.api.STRIDED_TOLERANCE`).
+    refine_floor_spacings : float
+        The joint refinement's last correspondence distance, in median point spacings of the
+        dense subsets (its first is 3 median inlier distances of the kept edges).
+    query_points : int
+        Points of a scan each direction of an edge queries in a step of the joint refinement
+        (count; evenly strided).
+    direct_solve_max_poses : int
+        Up to this many free poses, each step of the pose graph's optimiser is a sparse direct
+        solve; beyond, preconditioned conjugate gradients (count).
+    visibility_partners : int
+        Placed scans each scan is checked against for free-space conflicts, its nearest in the
+        world whose extents overlap its own, besides the scans it shares a kept edge with (count).
+
+    References
+    ----------
+    Chosen on the Stanford bunny's 10 raw scans shuffled, each scan the reference in turn, and
+    confirmed on the kitchen walk shuffled: ``stalled_rounds``. Chosen on the bunny's 10 raw scans
+    and confirmed on the kitchen walk in order (100 depth frames): ``refine_floor_spacings``, ``query_points``, ``check_iterations`` and
+    ``check_tolerance`` (confirmed on pairs of the walk 1 and 2 frames apart). Chosen on the
+    kitchen walk in order and confirmed on every 20th frame of it: ``loop_searches_per_scan``.
+    The measurements: ``docs/merge.md``, "Tuned values".
+    """
+
+    pair_points: int = count(1500, least=MIN_POINTS)
+    refine_points: int = count(8000, least=MIN_POINTS)
+    partners: int = count(2)
+    sequence_neighbours: int = count(2)
+    max_edge_error_deg: float = number(2.0, above=0.0, most=180.0)
+    refine_rounds: int = count(6, least=0)
+    stalled_rounds: int = count(3)
+    closing_pairs: int = count(1)
+    predict_radius_inliers: float = number(3.0, above=0.0)
+    min_predicted_overlap: float = fraction(0.3)
+    predict_points: int = count(300)
+    predict_partners: int = count(16)
+    loop_min_hops: int = count(6)
+    loop_searches_per_scan: float = number(0.125, least=0.0)
+    check_iterations: int = count(30)
+    check_tolerance: float = number(3e-6, least=0.0)
+    refine_floor_spacings: float = number(2.0, above=0.0)
+    query_points: int = count(1000)
+    direct_solve_max_poses: int = count(200, least=0)
+    visibility_partners: int = count(8, least=0)
