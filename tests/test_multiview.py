@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from esmicp.config import MergeConfig
+from esmicp.config import MergeConfig, RegistrationConfig
 from esmicp.errors import InvalidInputError
 from esmicp.multiview import register_scans, scans as scans_module
 from esmicp.multiview import pose_graph
@@ -175,6 +175,8 @@ def _patch(monkeypatch, truth, clouds, first_draw_fails=(), sparse_points=None, 
         for n, result in zip(known, fake([jobs[n] for n in known], pairs=[pairs[n] for n in known])):
             (s, t), (i, j) = jobs[n], pairs[n]
             if isinstance(result, RegistrationResult):
+                # judged by the policy the merge asks for, as register does
+                result = replace(result, policy=RegistrationConfig.of(register_kwargs.get("config")).trust)
                 for cloud, k in ((t, i), (s, j)):
                     if id(cloud) not in offsets:
                         offsets[id(cloud)] = _offset(np.asarray(clouds[k], dtype=float), cloud)

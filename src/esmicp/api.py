@@ -14,8 +14,9 @@ from .core.correspondence import NearestNeighbors
 from .core.procrustes import bounding_box_diagonal
 from .core.correspondence import coincident_points
 from .core.keypoints import Keypoints
+from .config import RegistrationConfig
 from .errors import CoincidentPointsWarning, IndexAlignmentWarning, InvalidInputError
-from .globalreg.config import SearchConfig, as_config
+from .globalreg.config import SearchConfig
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
 from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimator
@@ -24,7 +25,8 @@ from .methods.guard import guarded_refine
 from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome
 from .result import Correspondences, RegistrationResult
 from .trust import uncertainty
-from .trust.confidence import TRUSTED, overlap_confidence
+from .trust.confidence import overlap_confidence
+from .trust.policy import TrustPolicy
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
 from .types import InitName, MethodName, PointsLike, TransformLike, check_geometry
 from .working_frame import WorkingFrame
@@ -110,6 +112,7 @@ class _Request:
     inlier_distance: float | None
     workers: int | None  # threads of every compiled kernel (None: every core)
     config: SearchConfig  # the global search's tuned values
+    trust: TrustPolicy  # the bars the result is judged by
 
 
 @keeps_keyboard_interrupt
@@ -128,7 +131,7 @@ def register(
     inlier_distance: float | None = None,
     workers: int | None = None,
     return_correspondences: bool = False,
-    config: SearchConfig | None = None,
+    config: RegistrationConfig | SearchConfig | dict | None = None,
     range_images: bool = False,
 ) -> RegistrationResult:
     """Rigidly register ``source`` onto ``target``.
@@ -197,16 +200,19 @@ def register(
         (:class:`~esmicp.result.Correspondences`: source and target indices, weights, distances
         of the pairs within ``inlier_distance``, Open3D's ``correspondence_set``); they cost
         nothing more to find, but hold four arrays per pair.
-    config : esmicp.globalreg.config.SearchConfig or dict, optional
-        The global search's tuned values (and the overlap confidence's); None: the measured
-        defaults (:data:`esmicp.globalreg.config.DEFAULT`).
+    config : esmicp.config.RegistrationConfig, esmicp.globalreg.config.SearchConfig or dict, optional
+        The tuned values: the global search's (and the overlap confidence's ranges) and the trust
+        policy the result is judged by (:class:`esmicp.trust.policy.TrustPolicy`, kept in
+        ``result.policy``). A SearchConfig (or a dict of its fields) sets the search's values with
+        the default policy; a dict with the keys ``search`` and / or ``trust`` is a
+        RegistrationConfig's. None: the measured defaults.
     range_images : bool
         Both clouds are range images in their sensor frames: every point as its sensor saw it,
         the sensor at the origin (depth-camera frames, LiDAR scans as recorded). The final pose
         is then also checked against the space each sensor saw empty
         (:func:`esmicp.trust.free_space.free_space_fraction`, in ``result.free_space``): a pose
-        that puts more than :data:`esmicp.trust.free_space.MAX_FREE_SPACE_PAIR` of either
-        cloud there is not trusted, however sharply the clouds coincide (a repeated structure
+        that puts more than the policy's ``max_free_space_pair`` (8%) of either cloud there is not
+        trusted, however sharply the clouds coincide (a repeated structure
         matched in the wrong place, a pair that shares no surface). The pose itself is the same.
         False (the default): no such check (clouds in another frame, such as meshes, fused
         fragments or maps, would fail it).
@@ -251,7 +257,7 @@ def register(
     outcome = _refine(source_points, target_index, estimator, initial, request, diagonal, keypoints, estimate,
                       observer)
     confidence = overlap_confidence(outcome.transformation, keypoints, request.workers, config=request.config)
-    if start_distances is not None and request.sigma is None and confidence < TRUSTED \
+    if start_distances is not None and request.sigma is None and confidence < request.trust.trusted \
             and not (observer is not None and observer.stopped):
         outcome, confidence = _second_try(source_points, target_index, initial, request, diagonal, keypoints,
                                           start_distances, outcome, confidence, observer=observer)
@@ -264,14 +270,15 @@ def register(
         correspondences = _correspondences(pairs, _estimator(method, request, target_index, diagonal), outcome.sigma)
     weights_sigma = None if method == "icp" else outcome.sigma  # ICP: unit weights
     pose = uncertainty.from_registration(source_points, target_index, outcome.transformation, weights_sigma,
-                                         origin=frame.origin, workers=request.workers, pairs=pairs[:2])
+                                         origin=frame.origin, workers=request.workers, pairs=pairs[:2],
+                                         policy=request.trust)
     outcome = frame.outcome(outcome)
     free_space = None
     if range_images:
         from .trust.free_space import pair_verdict
 
         free_space = _free_space(request, outcome.transformation, inlier_distance)
-        outcome = dataclasses.replace(outcome, message=f"{outcome.message}; {pair_verdict(free_space)[1]}")
+        outcome = dataclasses.replace(outcome, message=f"{outcome.message}; {pair_verdict(free_space, request.trust)[1]}")
     return RegistrationResult(
         transformation=outcome.transformation,
         converged=outcome.converged,
@@ -296,16 +303,18 @@ def register(
         information=pose.information,
         degenerate_directions=pose.degenerate_directions,
         free_space=free_space,
+        policy=request.trust,
     )
 
 
 def _free_space(request: _Request, transformation: np.ndarray, inlier_distance: float) -> float | None:
     """The free-space test of the pair at ``transformation`` (``T_target_source``, the clouds' own
-    frames), at :data:`~esmicp.trust.free_space.TOLERANCE_INLIERS` inlier distances."""
+    frames), at the policy's ``free_space_tolerance_inliers`` inlier distances."""
     from .trust import free_space  # here: it loads SciPy
 
+    policy = request.trust
     return free_space.free_space_fraction(request.target, request.source, transformation,
-                                          free_space.TOLERANCE_INLIERS * inlier_distance)
+                                          policy.free_space_tolerance_inliers * inlier_distance, policy)
 
 
 def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
@@ -321,6 +330,7 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
     init_name, initial = _resolve_init(init)
     if initial is not None:
         _check_start_representable(initial, source_points)
+    registration = RegistrationConfig.of(config)
     request = _Request(
         source_points, target_points, method, init_name, initial,
         sigma=None if sigma is None else as_positive(sigma, "sigma"),
@@ -328,7 +338,8 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
         rng=as_generator(rng, default_seed=DEFAULT_SEED),
         inlier_distance=None if inlier_distance is None else as_positive(inlier_distance, "inlier_distance"),
         workers=as_workers(workers),
-        config=as_config(config),
+        config=registration.search,
+        trust=registration.trust,
     )
     if method == "esm-paper" and len(source_points) != len(target_points):
         warnings.warn(
@@ -374,7 +385,7 @@ def _refine(source, target_index, estimator, initial, request: _Request, diagona
 def _second_try(source, target_index, initial, request: _Request, diagonal: float, keypoints: Keypoints,
                 start_distances: np.ndarray, outcome, confidence: float, observer: Observer | None = None):
     """``(outcome, confidence)``: of ``outcome`` (an ``esm`` run from a given start, overlap
-    confidence ``confidence`` below ``TRUSTED``) and a second run from the same start whose coarse
+    confidence ``confidence`` below the trust bar) and a second run from the same start whose coarse
     sigma comes from the start's ``TIGHT_START_QUANTILE`` distance quantile, the more confident
     (the first on a tie); the message says what the second try gave.
 

@@ -1,20 +1,66 @@
-"""The configuration tree: every tuned value of a merge in one frozen, documented object.
+"""The configuration tree: every tuned value of a registration and of a merge, in frozen,
+documented objects.
 
-:class:`MergeConfig` holds the values of :func:`esmicp.register_scans` (how many points, which
-pairs, how long a check runs, how far the joint refinement goes). It is frozen, checked when made
-(an invalid value raises :class:`~esmicp.errors.InvalidInputError` naming the field) and
-round-trips through a JSON-ready dict (:meth:`~esmicp.core.config.Config.to_dict`,
-:meth:`~esmicp.core.config.Config.from_dict`, which refuses unknown keys).
-``register_scans(clouds, config=MergeConfig(...))`` runs with it; the defaults are the measured
-values. The global search's values are :class:`esmicp.globalreg.config.SearchConfig`'s.
+* :class:`RegistrationConfig` (``register(..., config=...)``): the global search's values
+  (:class:`~esmicp.globalreg.config.SearchConfig`) and the trust policy
+  (:class:`~esmicp.trust.policy.TrustPolicy`: the bars a result must pass to be trusted).
+* :class:`MergeConfig` (``register_scans(..., config=...)``): the merge's values (how many points,
+  which pairs, how long a check runs, how far the joint refinement goes) and the
+  :class:`RegistrationConfig` of its pairwise registrations, whose trust policy also judges the
+  merge's scans.
+
+Each is frozen, checked when made (an invalid value raises :class:`~esmicp.errors.InvalidInputError`
+naming the field) and round-trips through a JSON-ready dict
+(:meth:`~esmicp.core.config.Config.to_dict`, :meth:`~esmicp.core.config.Config.from_dict`, which
+refuses unknown keys). The defaults are the measured values.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .core.config import Config, count, fraction, number
+from .core.config import Config, count, fraction, number, part
+from .errors import InvalidInputError
+from .globalreg.config import SearchConfig, as_config
+from .trust.policy import TrustPolicy
 from .types import MIN_POINTS
+
+
+@dataclass(frozen=True)
+class RegistrationConfig(Config):
+    """Tuned values of one registration (:func:`esmicp.register`).
+
+    Attributes
+    ----------
+    search : SearchConfig
+        The global search's values, and the ranges the overlap confidence maps its measures from
+        (:class:`esmicp.globalreg.config.SearchConfig`).
+    trust : TrustPolicy
+        The bars a result must pass to be trusted, and the values of the measures behind them
+        (:class:`esmicp.trust.policy.TrustPolicy`).
+    """
+
+    search: SearchConfig = part(SearchConfig)
+    trust: TrustPolicy = part(TrustPolicy)
+
+    @classmethod
+    def of(cls, value, name: str = "config") -> "RegistrationConfig":
+        """``value`` as a :class:`RegistrationConfig`: None gives the defaults; an instance is kept;
+        a :class:`SearchConfig` gives its search values and the default trust policy; a dict with
+        the keys ``search`` and / or ``trust`` is read by :meth:`from_dict`, any other dict as a
+        :class:`SearchConfig`'s fields. Anything else raises :class:`InvalidInputError`."""
+        if value is None:
+            return cls()
+        if isinstance(value, cls):
+            return value
+        if isinstance(value, SearchConfig):
+            return cls(search=value)
+        if isinstance(value, dict):
+            if value and set(value) <= {"search", "trust"}:
+                return cls.from_dict(value)
+            return cls(search=as_config(value))
+        raise InvalidInputError(f"{name}: expected a RegistrationConfig, a SearchConfig or a dict, "
+                                f"got {type(value).__name__}")
 
 
 @dataclass(frozen=True)
@@ -86,6 +132,9 @@ class MergeConfig(Config):
     visibility_partners : int
         Placed scans each scan is checked against for free-space conflicts, its nearest in the
         world whose extents overlap its own, besides the scans it shares a kept edge with (count).
+    registration : RegistrationConfig
+        The pairwise registrations' values; its trust policy also judges the merge (the free-space
+        check between placed scans, the trust of its edges).
 
     References
     ----------
@@ -117,3 +166,14 @@ class MergeConfig(Config):
     query_points: int = count(1000)
     direct_solve_max_poses: int = count(200, least=0)
     visibility_partners: int = count(8, least=0)
+    registration: RegistrationConfig = part(RegistrationConfig)
+
+    @classmethod
+    def of(cls, value, name: str = "config") -> "MergeConfig":
+        """``value`` as a :class:`MergeConfig` (None: the defaults; a dict: :meth:`from_dict`);
+        anything else raises :class:`InvalidInputError`, which points a registration's config to
+        the field ``registration``."""
+        if isinstance(value, (RegistrationConfig, SearchConfig)):
+            raise InvalidInputError(f"{name}: expected a MergeConfig or a dict, got {type(value).__name__}; the "
+                                    f"pairwise registrations' values go in MergeConfig(registration=...)")
+        return super().of(value, name)

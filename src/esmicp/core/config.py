@@ -92,7 +92,7 @@ class Config:
             return float(value)
         kind = check[1]
         if isinstance(value, dict):
-            return kind.from_dict(value, where=where)
+            return kind.from_dict(value, where=where) if issubclass(kind, Config) else kind.from_dict(value)
         if not isinstance(value, kind):
             raise InvalidInputError(f"{where}: expected a {kind.__name__} or a dict, got {type(value).__name__}")
         return value
@@ -102,7 +102,7 @@ class Config:
         out: dict[str, Any] = {}
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
-            if isinstance(value, Config):
+            if hasattr(value, "to_dict"):  # a nested configuration
                 value = value.to_dict()
             elif isinstance(value, tuple):
                 value = list(value)

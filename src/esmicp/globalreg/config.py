@@ -82,7 +82,7 @@ class SearchConfig:
     confident : float
         The search's own bar on the overlap confidence (0-1): a scan search reaching it ends the
         scan searches, and a pose reaching it may win over the other strategies'. Below
-        :data:`~esmicp.trust.confidence.TRUSTED`, the bar a result must reach to be trusted.
+        :attr:`~esmicp.trust.policy.TrustPolicy.trusted`, the bar a result must reach to be trusted.
     keypoints : int
         Occupied voxels of the target the scan strategy's keypoint voxel aims at (count): the
         one length scale of the scan strategy and of the confidence.

@@ -329,7 +329,7 @@ def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimat
     (:func:`~esmicp.trust.confidence.overlap_confidence`). ``"auto"`` takes the rotation search's
     pose, confident on its score, at once only when this is at least
     ``config.confident`` (the search's own bar; ``register``'s result is
-    trusted from :data:`~esmicp.trust.confidence.TRUSTED`) or the pose covers the whole target
+    trusted from :attr:`~esmicp.trust.policy.TrustPolicy.trusted`) or the pose covers the whole target
     (:func:`_covers_the_target`); otherwise the scan strategy's first search checks it
     (:func:`global_estimate`).
 

@@ -518,15 +518,17 @@ def _free_space_conflicts(n, reference, poses, dense, small, edges, centres, ran
     kept = [e for e in edges if e.kept and e.i in poses and e.j in poses]
     if not kept:
         return {}, {}, "too few edges"
-    tolerance = free_space.TOLERANCE_INLIERS * float(np.median([e.inlier_distance for e in kept]))
+    policy = config.registration.trust
+    tolerance = policy.free_space_tolerance_inliers * float(np.median([e.inlier_distance for e in kept]))
     posed = sorted(poses)
     # on threads: the KD-tree builds and queries release the GIL
     with ThreadPoolExecutor() as pool:
         # each scan in its own frame (the sensor at the origin), and its pose from there
-        points = dict(zip(posed, pool.map(lambda k: _subsample(dense[k], free_space.CHECK_POINTS) + centres[k], posed)))
+        points = dict(zip(posed, pool.map(lambda k: _subsample(dense[k], policy.free_space_points) + centres[k],
+                                          posed)))
         if range_images is None:
             todo = [k for k in posed if k not in premise]
-            premise.update(zip(todo, pool.map(lambda k: free_space.range_image_test(points[k]), todo)))
+            premise.update(zip(todo, pool.map(lambda k: free_space.range_image_test(points[k], policy), todo)))
             seen = [k for k in posed if premise[k].range_image]
         else:
             seen = posed
@@ -540,14 +542,14 @@ def _free_space_conflicts(n, reference, poses, dense, small, edges, centres, ran
 
         def fractions(pairs):
             return dict(zip(pairs, pool.map(
-                lambda pair: free_space.pair_free_space(views, points, world, *pair, tolerance), pairs)))
+                lambda pair: free_space.pair_free_space(views, points, world, *pair, tolerance, policy), pairs)))
 
         on_kept = fractions(sorted({(min(e.i, e.j), max(e.i, e.j)) for e in kept if e.i in world and e.j in world}))
         near = candidates.near_pairs(seen, candidates.world_extents({k: poses[k] for k in seen}, small), set(on_kept),
                                      config.visibility_partners)
         measured = {**on_kept, **fractions(near)}
-    conflicts = [(a, b, f) for (a, b), f in sorted(measured.items()) if f is not None and f > free_space.MAX_FREE_SPACE]
-    cut, removed = cut_off(n, reference, [(e.i, e.j, e.confidence) for e in kept], conflicts)
+    conflicts = [(a, b, f) for (a, b), f in sorted(measured.items()) if f is not None and f > policy.max_free_space]
+    cut, removed = cut_off(n, reference, [(e.i, e.j, e.confidence) for e in kept], conflicts, trusted=policy.trusted)
     if len(seen) == len(posed):
         return cut, removed, "applied"
     first = next(k for k in posed if k not in seen)
@@ -782,7 +784,8 @@ def register_scans(
         ``register_scans(clouds, partners=3)`` and ``register_scans(clouds,
         config=MergeConfig(partners=3))`` are the same merge.
     **register_kwargs
-        Passed to every pairwise :func:`esmicp.register` call.
+        Passed to every pairwise :func:`esmicp.register` call (its ``config`` is
+        ``config.registration``).
 
     Returns
     -------
@@ -846,7 +849,8 @@ def register_scans(
     unique = [k for k in range(n) if twin[k] == k]
     result = _merge([scans[k] for k in unique], unique.index(reference), sequence=bool(sequence), config=config,
                     range_images=range_images, progress=progress,
-                    run_options={"threads": threads, "processes": processes, "client": client, **register_kwargs})
+                    run_options={"threads": threads, "processes": processes, "client": client,
+                                 "config": config.registration, **register_kwargs})
     if len(unique) < n:
         result = _with_twins(result, unique, twin)
     for note in result.notes:

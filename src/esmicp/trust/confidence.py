@@ -1,5 +1,5 @@
-"""The overlap confidence: how sharply two clouds coincide where they overlap under a pose, and
-the bar a result must reach to be trusted.
+"""The overlap confidence: how sharply two clouds coincide where they overlap under a pose (the
+bar a result must reach to be trusted is :attr:`esmicp.trust.policy.TrustPolicy.trusted`).
 
 It judges a pose on the pair's keypoints (:class:`~esmicp.core.keypoints.Keypoints`, voxel
 centroids at one scale the data chooses), so every length here is a multiple of that voxel and
@@ -57,13 +57,6 @@ MIN_COINCIDENT = 60
 #: pose that lays most of each cloud on the other is held by the clouds' whole shape (and objects
 #: registered whole skip the normals' cost).
 SPREAD_BELOW = 0.5
-
-#: The bar a result must reach to be trusted (``register``'s ``confidence``, ``esmicp register``'s
-#: LOW): higher than the search's own, because the search stops at, and chooses among its poses
-#: for, the first that reaches ``SearchConfig.confident``, so a wrong pose just over that bar is the
-#: one it keeps (measured on the 3DMatch crops, ``docs/scans-partial-overlap.md``).
-TRUSTED = 0.55
-
 
 def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers: int | None = None, *,
                        config: ConfidenceRanges) -> float:
