@@ -256,7 +256,8 @@ def register(
         observer = Observer(source_points, target_index, frame.callback(callback), record_history)
     outcome = _refine(source_points, target_index, estimator, initial, request, diagonal, keypoints, estimate,
                       observer)
-    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers, config=request.config)
+    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers, config=request.config,
+                                    policy=request.trust)
     if start_distances is not None and request.sigma is None and confidence < request.trust.trusted \
             and not (observer is not None and observer.stopped):
         outcome, confidence = _second_try(source_points, target_index, initial, request, diagonal, keypoints,
@@ -358,6 +359,7 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
     estimate = global_estimate(
         source, target, strategy=request.init_name, rng=request.rng, target_index=target_index,
         target_spacing=target_index.spacing(), workers=request.workers, config=request.config,
+        policy=request.trust,
     )
     return estimate.transformation, f"global:{estimate.strategies[0]}", estimate
 
@@ -399,7 +401,8 @@ def _second_try(source, target_index, initial, request: _Request, diagonal: floa
     tight.start_from(start_distances, TIGHT_START_QUANTILE)
     first_history = None if observer is None else observer.new_run()
     second = _refine(source, target_index, tight, initial, request, diagonal, keypoints, None, observer)
-    second_confidence = overlap_confidence(second.transformation, keypoints, request.workers, config=request.config)
+    second_confidence = overlap_confidence(second.transformation, keypoints, request.workers, config=request.config,
+                                           policy=request.trust)
     if observer is not None and observer.stopped:
         return second, second_confidence
     if second_confidence > confidence:
@@ -484,8 +487,10 @@ def _plane_start(points, target_index, initial, request: _Request, diagonal: flo
         return plane.transformation, plane.num_iterations, ""
     before = initial_confidence
     if before is None:
-        before = overlap_confidence(initial, keypoints, request.workers, config=request.config)
-    after = overlap_confidence(plane.transformation, keypoints, request.workers, config=request.config)
+        before = overlap_confidence(initial, keypoints, request.workers, config=request.config,
+                                        policy=request.trust)
+    after = overlap_confidence(plane.transformation, keypoints, request.workers, config=request.config,
+                               policy=request.trust)
     if after < before - PLANE_CONFIDENCE_DROP:
         return initial, plane.num_iterations, (
             f"{plane.num_iterations} esm-plane iteration(s) on {len(points):,} points undone (overlap confidence "

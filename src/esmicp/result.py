@@ -136,7 +136,7 @@ class RegistrationResult:
         lower when less than half of either cloud coincides and the coincident part's normals
         span fewer than three directions (one plane laid on another holds only 3 of the 6 degrees
         of freedom, a floor and one wall 5: :func:`esmicp.trust.confidence.coincident_spread`); 0 when
-        fewer than 60 keypoints of either cloud coincide (:data:`esmicp.trust.confidence.MIN_COINCIDENT`:
+        fewer than 60 keypoints of either cloud coincide (``policy.min_coincident``:
         clouds of a few dozen points cannot resolve the pose, so are never trusted). Below the
         trust bar (``policy.trusted``, 0.55 by default): do not trust the pose. At or above it the pose
         is usually right, not always: a repeated structure matched in the wrong place coincides

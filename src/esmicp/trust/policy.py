@@ -2,7 +2,9 @@
 object.
 
 :class:`TrustPolicy` holds the bar a registration's overlap confidence must reach, the free-space
-test's bars (:mod:`.free_space`) and the pose covariance's values (:mod:`.uncertainty`).
+test's bars (:mod:`.free_space`), the overlap confidence's (:mod:`.confidence`; its ranges are
+the search's, :class:`esmicp.globalreg.config.SearchConfig`) and the pose covariance's values
+(:mod:`.uncertainty`).
 ``register(..., config=RegistrationConfig(trust=TrustPolicy(...)))`` judges with other values, and
 the result keeps the policy it was judged by (:attr:`esmicp.RegistrationResult.policy`); a merge
 judges its pairs and its scans with ``MergeConfig.registration.trust``
@@ -26,6 +28,17 @@ class TrustPolicy(Config):
 
     Attributes
     ----------
+    min_coincident : int
+        The overlap confidence is 0 when fewer than this many keypoints of either cloud coincide
+        with the other: too little evidence to certify a pose (count).
+    overlap_voxels : float
+        The overlap confidence's overlap: the keypoints within this many keypoint voxels of the
+        other cloud (gain; of them, those within one voxel coincide).
+    spread_below : float
+        The coincident part's normals are asked to hold the pose only when less than this share
+        (0-1) of either cloud's keypoints coincides; more is held by the clouds' whole shape.
+    spread_points : int
+        Coincident keypoints (at most, evenly strided) whose normals measure that spread (count).
     trusted : float
         The overlap confidence a result must reach to be trusted (0-1; above 1: nothing is); above
         the global search's own bar (:attr:`esmicp.globalreg.config.SearchConfig.confident`),
@@ -88,7 +101,9 @@ class TrustPolicy(Config):
 
     References
     ----------
-    ``trusted``: chosen on the 3DMatch crops of ``real_pairs`` (``docs/scans-partial-overlap.md``,
+    ``min_coincident``: chosen on the 12 ModelNet40 shapes resampled to 21-1,000 points
+    (``benchmarks/sparse_trust.py``), confirmed on the 69 of ``modelnet40_extra``
+    (``docs/measured-global.md``, "Sparse clouds"). ``trusted``: chosen on the 3DMatch crops of ``real_pairs`` (``docs/scans-partial-overlap.md``,
     ``docs/measured-global.md``). ``max_free_space_pair``: chosen on kitchen depth frames 60-150
     frames apart, confirmed on the kitchen pairs 10-50 frames apart and the pairs of
     ``real_pairs`` (``docs/measured-global.md``). ``max_free_space``: chosen on a merge of the
@@ -100,6 +115,10 @@ class TrustPolicy(Config):
     the 12 ModelNet40 shapes, confirmed on ``modelnet40_extra`` (``docs/uncertainty.md``).
     """
 
+    min_coincident: int = count(60)
+    overlap_voxels: float = number(3.0, above=0.0)
+    spread_below: float = fraction(0.5)
+    spread_points: int = count(500)
     trusted: float = number(0.55, least=0.0)
     max_free_space_pair: float = fraction(0.08)
     max_free_space: float = fraction(0.12)
