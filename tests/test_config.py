@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import esmicp
-from esmicp.config import MergeConfig, RegistrationConfig
+from esmicp.config import MergeConfig, RefineConfig, RegistrationConfig
 from esmicp.errors import InvalidInputError
 from esmicp.globalreg.config import SearchConfig
 from esmicp.multiview import register_scans
@@ -20,7 +20,7 @@ from esmicp.trust.policy import DEFAULT_POLICY, TrustPolicy
 
 from test_multiview import _clouds, _patch, _truth
 
-CONFIGS = (MergeConfig, TrustPolicy, RegistrationConfig)
+CONFIGS = (MergeConfig, RefineConfig, TrustPolicy, RegistrationConfig)
 
 
 @pytest.mark.parametrize("kind", CONFIGS)
@@ -35,7 +35,8 @@ def test_a_config_round_trips_through_a_dict_and_json(kind):
             continue
         changed[field.name] = value + 1 if isinstance(value, int) else value / 2
     if kind is RegistrationConfig:
-        changed = {"search": SearchConfig(keypoints=3000, spread_range=(0.04, 0.2)), "trust": TrustPolicy(inflation=2.0)}
+        changed = {"search": SearchConfig(keypoints=3000, spread_range=(0.04, 0.2)), "trust": TrustPolicy(inflation=2.0),
+                   "refine": RefineConfig(plane_iterations=0)}
     other = kind(**changed)
     assert other != default
     assert kind.from_dict(json.loads(json.dumps(other.to_dict()))) == other
@@ -83,6 +84,17 @@ def test_an_invalid_trust_value_is_refused_naming_its_field(changes, field):
         TrustPolicy(**changes)
 
 
+@pytest.mark.parametrize("changes, field", [
+    ({"strided_points": 0}, "strided_points"),
+    ({"strided_tolerance": -1e-6}, "strided_tolerance"),
+    ({"plane_iterations": 2.0}, "plane_iterations"),
+    ({"inlier_distance_spacings": 0.0}, "inlier_distance_spacings"),
+])
+def test_an_invalid_refinement_value_is_refused_naming_its_field(changes, field):
+    with pytest.raises(InvalidInputError, match=rf"^RefineConfig\.{field}: expected a "):
+        RefineConfig(**changes)
+
+
 def test_nested_configs_are_read_from_dicts_and_checked():
     tree = MergeConfig.from_dict({"partners": 3, "registration": {"trust": {"trusted": 0.6},
                                                                   "search": {"keypoints": 3000}}})
@@ -99,6 +111,7 @@ def test_nested_configs_are_read_from_dicts_and_checked():
     assert RegistrationConfig.of(search) == RegistrationConfig(search=search)
     assert RegistrationConfig.of({"keypoints": 3000}) == RegistrationConfig(search=search)
     assert RegistrationConfig.of({"search": {"keypoints": 3000}}) == RegistrationConfig(search=search)
+    assert RegistrationConfig.of({"refine": {"plane_iterations": 0}}).refine.plane_iterations == 0
     assert RegistrationConfig.of(None) == RegistrationConfig() == RegistrationConfig.of({})
     with pytest.raises(InvalidInputError, match=r"config\.keypoints"):
         RegistrationConfig.of({"keypoints": 0})

@@ -2,8 +2,9 @@
 documented objects.
 
 * :class:`RegistrationConfig` (``register(..., config=...)``): the global search's values
-  (:class:`~esmicp.globalreg.config.SearchConfig`) and the trust policy
-  (:class:`~esmicp.trust.policy.TrustPolicy`: the bars a result must pass to be trusted).
+  (:class:`~esmicp.globalreg.config.SearchConfig`), the local refinement's
+  (:class:`RefineConfig`) and the trust policy (:class:`~esmicp.trust.policy.TrustPolicy`: the
+  bars a result must pass to be trusted).
 * :class:`MergeConfig` (``register_scans(..., config=...)``): the merge's values (how many points,
   which pairs, how long a check runs, how far the joint refinement goes) and the
   :class:`RegistrationConfig` of its pairwise registrations, whose trust policy also judges the
@@ -27,6 +28,55 @@ from .types import MIN_POINTS
 
 
 @dataclass(frozen=True)
+class RefineConfig(Config):
+    """Tuned values of a registration's local refinement and evaluation (:func:`esmicp.register`).
+
+    Attributes
+    ----------
+    strided_points : int
+        A source of more than twice this many points is refined on this many evenly strided
+        points (count; not with ``esm-paper``, whose pairs are by index): where every point would
+        take the pose from there lies well inside the pose's own standard deviation.
+    strided_tolerance : float
+        After a global search, the strided stages stop at this tolerance when the caller's is
+        finer (radians; times the target's bounding-box diagonal for a translation): the
+        subsample's optimum is not the whole source's, and the strided ``esm`` creeps on in no
+        steady direction.
+    looser_from_points : int
+        After a global search, a source too small for the strided stages is refined at
+        ``strided_tolerance`` too, from this many points on (count); smaller sources (objects
+        under heavy outliers, which may still be sliding there) keep the caller's tolerance.
+    plane_iterations : int
+        After a global search, ``esm`` on the strided points is preceded by at most this many
+        ``esm-plane`` iterations (count; 0: none): the plane residual pulls back a pose slid along
+        a road or a corridor, where ``esm``'s Gaussian weight is nil.
+    plane_points : int
+        ... on this many of the strided points, evenly strided again (count).
+    plane_confidence_drop : float
+        The ``esm-plane`` stage is undone when it lowers the overlap confidence by more than this
+        (confidence units, 0-1).
+    inlier_distance_spacings : float
+        The default inlier distance of ``fitness`` and ``inlier_rmse``, in target point spacings
+        (gain).
+
+    References
+    ----------
+    ``strided_points``, ``strided_tolerance``, ``plane_iterations`` and ``plane_points``: measured
+    on the 3DMatch, KITTI and bunny scan pairs (``docs/speed.md``, "Real scan pairs";
+    ``docs/scans-refinement.md``); ``looser_from_points`` on the ModelNet40 objects under 60%
+    outliers; ``plane_confidence_drop`` on the 3DMatch crops (``docs/scans-partial-overlap.md``).
+    """
+
+    strided_points: int = count(20_000)
+    strided_tolerance: float = number(3e-6, least=0.0)
+    looser_from_points: int = count(10_000, least=0)
+    plane_iterations: int = count(30, least=0)
+    plane_points: int = count(5_000)
+    plane_confidence_drop: float = number(0.25, least=0.0)
+    inlier_distance_spacings: float = number(3.0, above=0.0)
+
+
+@dataclass(frozen=True)
 class RegistrationConfig(Config):
     """Tuned values of one registration (:func:`esmicp.register`).
 
@@ -35,20 +85,23 @@ class RegistrationConfig(Config):
     search : SearchConfig
         The global search's values, and the ranges the overlap confidence maps its measures from
         (:class:`esmicp.globalreg.config.SearchConfig`).
+    refine : RefineConfig
+        The local refinement's and the evaluation's values (:class:`RefineConfig`).
     trust : TrustPolicy
         The bars a result must pass to be trusted, and the values of the measures behind them
         (:class:`esmicp.trust.policy.TrustPolicy`).
     """
 
     search: SearchConfig = part(SearchConfig)
+    refine: RefineConfig = part(RefineConfig)
     trust: TrustPolicy = part(TrustPolicy)
 
     @classmethod
     def of(cls, value, name: str = "config") -> "RegistrationConfig":
         """``value`` as a :class:`RegistrationConfig`: None gives the defaults; an instance is kept;
-        a :class:`SearchConfig` gives its search values and the default trust policy; a dict with
-        the keys ``search`` and / or ``trust`` is read by :meth:`from_dict`, any other dict as a
-        :class:`SearchConfig`'s fields. Anything else raises :class:`InvalidInputError`."""
+        a :class:`SearchConfig` gives its search values and the defaults of the rest; a dict whose
+        keys are among ``search``, ``refine`` and ``trust`` is read by :meth:`from_dict`, any other
+        dict as a :class:`SearchConfig`'s fields. Anything else raises :class:`InvalidInputError`."""
         if value is None:
             return cls()
         if isinstance(value, cls):
@@ -56,7 +109,7 @@ class RegistrationConfig(Config):
         if isinstance(value, SearchConfig):
             return cls(search=value)
         if isinstance(value, dict):
-            if value and set(value) <= {"search", "trust"}:
+            if value and set(value) <= {"search", "refine", "trust"}:
                 return cls.from_dict(value)
             return cls(search=as_config(value))
         raise InvalidInputError(f"{name}: expected a RegistrationConfig, a SearchConfig or a dict, "
@@ -119,7 +172,7 @@ class MergeConfig(Config):
         The local check stops once an increment rotates less than this (radians; translates less
         than this times the target's bounding-box diagonal): the tolerance at which
         :func:`esmicp.register`'s own refinement stops after a global search
-        (:data:`esmicp.api.STRIDED_TOLERANCE`).
+        (:attr:`RefineConfig.strided_tolerance`).
     refine_floor_spacings : float
         The joint refinement's last correspondence distance, in median point spacings of the
         dense subsets (its first is 3 median inlier distances of the kept edges).
