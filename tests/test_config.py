@@ -180,3 +180,8 @@ def test_register_scans_takes_a_config_as_the_keywords_it_mirrors(monkeypatch):
     strict = dataclasses.replace(config, registration=RegistrationConfig(trust=TrustPolicy(trusted=0.99)))
     alone = merge(config=strict)
     assert alone.status == ("placed",) + ("unplaced",) * 6 and not any(e.trusted for e in alone.edges)
+
+
+def test_the_merge_checks_its_pairs_at_the_tolerance_register_stops_at_after_a_search():
+    """``MergeConfig.check_tolerance`` is documented as the refinement's own after a global search."""
+    assert MergeConfig().check_tolerance == RefineConfig().strided_tolerance

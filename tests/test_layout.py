@@ -143,6 +143,18 @@ def test_the_lab_is_a_floor_above_the_library():
     assert {path.relative_to(LAB).parts[0] for path in lab_modules} >= {"bench", "baselines", "plots.py", "cli.py"}
 
 
+def test_the_configuration_tree_is_data_only():
+    """The configuration objects import nothing of ours but each other, the errors and the input
+    checks: any floor takes its values without loading an algorithm."""
+    tree = ("esmicp.config", "esmicp.core.config", "esmicp.trust.policy", "esmicp.globalreg.config")
+    offenders = []
+    for module in tree:
+        path = PACKAGE.joinpath(*module.split(".")[1:]).with_suffix(".py")
+        offenders.extend(f"{module} imports {name}" for name in _imports(path)
+                         if _within(name, ("esmicp",)) and not _within(name, tree + ("esmicp.errors", "esmicp.types")))
+    assert not offenders, offenders
+
+
 #: The algorithm layers whose numeric module constants are counted.
 ALGORITHM_LAYERS = ("core", "methods", "globalreg", "multiview", "trust", "api.py")
 #: At most this many numeric module constants in :data:`ALGORITHM_LAYERS`: a tuned value belongs
