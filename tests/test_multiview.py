@@ -239,6 +239,8 @@ def test_an_unplaceable_scan_is_reported_not_forced_in(monkeypatch):
     assert any("scan 2" in note for note in result.notes)
     points, labels = result.merged(clouds)
     assert set(labels.tolist()) == {0, 1, 3}
+    shown = repr(result)  # one line of counts, no arrays
+    assert "\n" not in shown and "scans=4, placed=3, doubtful=0, unplaced=1, reference=0" in shown
 
 
 def test_a_reference_left_apart_by_its_first_pairs_still_reaches_the_other_scans(monkeypatch):

@@ -153,6 +153,16 @@ class MultiRegistrationResult:
     pairs_registered: int = 0
     free_space_check: str = "too few edges"
 
+    def __repr__(self) -> str:
+        """One line: how many scans are placed, doubtful and unplaced, the reference, the edges
+        kept and the work, e.g. ``MultiRegistrationResult(scans=10, placed=9, doubtful=1,
+        unplaced=0, reference=0, edges kept=14 of 27, pairs_registered=62, 32.5 s)`` (the arrays
+        and per-scan reasons stay in the fields)."""
+        placed = sum(1 for s in self.status if s == "placed")
+        return (f"{type(self).__name__}(scans={len(self.status)}, placed={placed}, doubtful={len(self.doubtful)}, "
+                f"unplaced={len(self.unplaced)}, reference={self.reference}, edges kept={len(self.kept_edges)} of "
+                f"{len(self.edges)}, pairs_registered={self.pairs_registered}, {self.runtime_s:.1f} s)")
+
     @property
     def doubtful(self) -> tuple[int, ...]:
         """Indices of the doubtful scans (posed, but contradicted)."""
