@@ -631,3 +631,39 @@ def test_progress_contract_check_catches_a_growing_total():
         _check_progress_contract([("pairs", 0, 4), ("pairs", 2, 4), ("pose graph", 0, 1), ("pose graph", 1, 1)])
     assert _check_progress_contract([("pairs", 0, 4), ("pairs", 4, 4), ("pose graph", 0, 1), ("pose graph", 1, 1)]) \
         == [("pairs", 4), ("pose graph", 1)]
+
+
+@pytest.mark.parametrize("search", [None, {"keypoints": 3000}])
+def test_the_merge_bounds_the_scan_searches_of_its_global_pair_searches_only(monkeypatch, search):
+    """Every batch of pairs holding a global search (a pair without a start) runs with at most
+    ``MergeConfig.pair_scan_searches`` scan-strategy searches, on the merge's registration config
+    otherwise; the local checks keep that config as given, and ``register``'s default search
+    stays unbounded."""
+    from esmicp.config import MergeConfig, RegistrationConfig
+    from esmicp.globalreg.config import DEFAULT
+
+    n = 5
+    rng = np.random.default_rng(4)
+    truth = _truth(n, rng)
+    clouds = _clouds(truth, rng)
+    _patch(monkeypatch, truth, clouds, low={4})
+    fake, seen = scans_module.register_many, []
+
+    def recorder(jobs, *, inits=None, **options):
+        seen.append((inits, options.get("config")))
+        return fake(jobs, inits=inits, **options)
+
+    monkeypatch.setattr(scans_module, "register_many", recorder)
+    merge = MergeConfig() if search is None else MergeConfig.from_dict({"registration": {"search": search}})
+    register_scans(clouds, refine_rounds=0, threads=1, pair_points=100, refine_points=300, config=merge)
+    # a batch of pairs passes one start or None per pair (a piece's placement passes none)
+    searches = [config for inits, config in seen if inits is not None and any(init is None for init in inits)]
+    checks = [config for inits, config in seen if inits is not None and all(init is not None for init in inits)]
+    assert searches and checks
+    given = merge.registration
+    for config in searches:
+        assert isinstance(config, RegistrationConfig)
+        assert config.search == replace(given.search, scan_searches=merge.pair_scan_searches)
+        assert config.trust == given.trust and config.refine == given.refine
+    assert all(config == given for config in checks)
+    assert DEFAULT.scan_searches is None

@@ -145,6 +145,11 @@ class MergeConfig(Config):
     stalled_rounds : int
         Rounds in a row that place or confirm no scan after which the merge stops asking for
         more pairs (count).
+    pair_scan_searches : int
+        Scan-strategy searches at most in each global search of a pair on the sparse subsets
+        (count; :attr:`~esmicp.globalreg.config.SearchConfig.scan_searches`, unless
+        ``registration.search`` sets its own): an untrusted pair gets its second search on another
+        draw of the subsets when the graph needs it.
     closing_pairs : int
         Pairs searched a round across each edge on no cycle of the kept graph (count).
     predict_radius_inliers : float
@@ -192,7 +197,10 @@ class MergeConfig(Config):
     References
     ----------
     Chosen on the Stanford bunny's 10 raw scans shuffled, each scan the reference in turn, and
-    confirmed on the kitchen walk shuffled: ``stalled_rounds``. Chosen on the bunny's 10 raw scans
+    confirmed on the kitchen walk shuffled: ``stalled_rounds``. Chosen on the bunny's 10 raw
+    scans in three shuffled orders, 15 turntable scans and the bunny off its sensor's frames, and
+    confirmed on 5 Newer College LiDAR scans and the kitchen walk (every 20th frame in order, 30
+    frames shuffled): ``pair_scan_searches``. Chosen on the bunny's 10 raw scans
     and confirmed on the kitchen walk in order (100 depth frames): ``refine_floor_spacings``, ``query_points``, ``check_iterations`` and
     ``check_tolerance`` (confirmed on pairs of the walk 1 and 2 frames apart). Chosen on the
     kitchen walk in order and confirmed on every 20th frame of it: ``loop_searches_per_scan``.
@@ -206,6 +214,7 @@ class MergeConfig(Config):
     max_edge_error_deg: float = number(2.0, above=0.0, most=180.0)
     refine_rounds: int = count(6, least=0)
     stalled_rounds: int = count(3)
+    pair_scan_searches: int = count(1)
     closing_pairs: int = count(1)
     predict_radius_inliers: float = number(3.0, above=0.0)
     min_predicted_overlap: float = fraction(0.3)

@@ -285,8 +285,9 @@ def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
             return final
     # 2. Partial overlaps: correspondences pruned by consistency (the scan strategy); a pose
     # confident on its score alone is only checked by its first search.
-    scanned = _scan(work.source, work.target, work.full_index, target_spacing,
-                    searches=None if scored is None else 1, config=config, policy=policy)
+    searches = config.scan_searches if scored is None else 1
+    scanned = _scan(work.source, work.target, work.full_index, target_spacing, searches=searches, config=config,
+                    policy=policy)
     if _scan_leads(scanned, rotation.transformation, margin=config.scan_margin, workers=workers, config=config,
                    policy=policy):
         return _on_the_verifier_scale(work, replace(scanned, candidates=searched + scanned.candidates))

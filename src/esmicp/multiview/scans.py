@@ -59,7 +59,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..batch import register_many
-from ..config import MergeConfig
+from ..config import MergeConfig, RegistrationConfig
 from ..core.features import estimate_normals, voxel_grid
 from ..core.procrustes import skew
 from ..errors import InvalidInputError
@@ -359,6 +359,16 @@ class _Pairwise:
         once = {key for key, edge in self.edges.items() if edge.kind == GLOBAL and not edge.trusted}
         return (self.tried - once) | self.redrawn
 
+    def search_config(self) -> RegistrationConfig:
+        """The registrations' config for the global pair searches on the sparse subsets: the
+        merge's :attr:`~esmicp.config.MergeConfig.registration`, with at most
+        :attr:`~esmicp.config.MergeConfig.pair_scan_searches` scan-strategy searches when its
+        search config sets no bound itself."""
+        registration = self.config.registration
+        if registration.search.scan_searches is not None:
+            return registration
+        return replace(registration, search=replace(registration.search, scan_searches=self.config.pair_scan_searches))
+
     def orient(self, a: int, b: int) -> tuple[int, int]:
         """(target, source): in a sequence the earlier scan is the target; otherwise the larger
         scan (:func:`_shape_key`: more points, then the larger extent), so that the same two scans
@@ -367,12 +377,17 @@ class _Pairwise:
             return (min(a, b), max(a, b))
         return (a, b) if (self.keys[a], -a) >= (self.keys[b], -b) else (b, a)
 
-    def _register(self, jobs, inits, offset, **extra):
-        """``jobs``: ``(source, target)`` clouds, each pair's source j onto its target i (``T_i_j``)."""
+    def _register(self, jobs, inits, offset, config=None, **extra):
+        """``jobs``: ``(source, target)`` clouds, each pair's source j onto its target i (``T_i_j``);
+        ``extra`` register options unless the caller gave them; ``config``, when given, replaces the
+        caller's (it is made from it: :meth:`search_config`)."""
         def report(done, _):
             self.stages.advance(offset + done)
 
-        outcomes = register_many(jobs, progress=report, inits=inits, **{**extra, **self.run_options})
+        options = {**extra, **self.run_options}
+        if config is not None:
+            options["config"] = config
+        outcomes = register_many(jobs, progress=report, inits=inits, **options)
         self.done += len(jobs)
         return outcomes
 
@@ -410,7 +425,8 @@ class _Pairwise:
         self.stages.open(stage, 2 * len(requests))
         # on the sparse subsets: a global search, or a local refinement from the given start
         subsets = [self.second if sparse[(min(i, j), max(i, j))] else self.small for i, j in oriented]
-        found = self._register([(c[j], c[i]) for c, (i, j) in zip(subsets, oriented)], inits, 0)
+        found = self._register([(c[j], c[i]) for c, (i, j) in zip(subsets, oriented)], inits, 0,
+                               config=self.search_config())
         outcomes = {n: outcome for n, outcome in enumerate(found) if not hasattr(outcome, "transformation")}
         # the check on the dense subsets starts at a converged pose: capped
         group = [n for n in range(len(requests)) if n not in outcomes]
