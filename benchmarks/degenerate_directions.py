@@ -1,6 +1,6 @@
 """Degenerate directions on shapes, real scan pairs and synthetic corridors: the smallest eigenvalue
 ratio of the scaled point-to-plane Hessian and the directions reported below
-``esmicp.trust.uncertainty.DEGENERATE_RATIO``.
+``esmicp.trust.policy.TrustPolicy.degenerate_ratio``.
 
 Each cloud is registered from its ground truth (objects: a resample of the shape with a little
 noise onto the shape; real pairs: their recorded pose; kitchen-walk frames 10 apart: the walk's
@@ -26,6 +26,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 import esmicp  # noqa: E402
 from esmicp.trust import uncertainty  # noqa: E402
 from esmicp_lab.bench.datasets import load_dataset  # noqa: E402
+from esmicp.trust.policy import DEFAULT_POLICY  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 
@@ -140,7 +141,7 @@ def main(argv=None) -> int:
         "kitchen walk, pairs 5 kept frames (50 raw frames) apart": kitchen_pairs(),
         "kitchen walk frames cut to their dominant plane (real surfaces)": kitchen_crops(),
     }
-    print(f"Threshold: eigenvalue ratio < {uncertainty.DEGENERATE_RATIO:g} "
+    print(f"Threshold: eigenvalue ratio < {DEFAULT_POLICY.degenerate_ratio:g} "
           "(scaled point-to-plane Hessian, rotation x overlap radius).\n")
     print("| set | clouds | smallest ratio (min / median) | clouds with a degenerate direction | directions reported |")
     print("|---|---:|---:|---:|---|")

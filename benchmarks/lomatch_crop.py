@@ -23,7 +23,7 @@ from esmicp_lab.bench.real_pairs import (
     crop_to_overlap, criteria_for, estimate_in_pair_frame, load_pair, pair_errors, read_pairs, turn_source,
 )
 from esmicp_lab.bench.scans import METHOD_LABELS, SCAN_METHODS, _timed
-from esmicp.trust.confidence import TRUSTED
+from esmicp.trust.policy import DEFAULT_POLICY
 
 
 def main() -> None:
@@ -97,9 +97,9 @@ def markdown(rows, methods) -> str:
         judged = [r for r in mine if r["confidence"] is not None]
         if judged:  # esmicp's own verdict on its pose (the peers give none)
             wrong = [r for r in judged if not r["success"]]
-            lines.append(f"  - its confidence >= {TRUSTED}: {sum(r['confidence'] >= TRUSTED for r in wrong)} of its "
+            lines.append(f"  - its confidence >= {DEFAULT_POLICY.trusted}: {sum(r['confidence'] >= DEFAULT_POLICY.trusted for r in wrong)} of its "
                          f"{len(wrong)} failures (a wrong pose reported as trustworthy), "
-                         f"{sum(r['confidence'] >= TRUSTED for r in judged if r['success'])} of its "
+                         f"{sum(r['confidence'] >= DEFAULT_POLICY.trusted for r in judged if r['success'])} of its "
                          f"{len(judged) - len(wrong)} successes")
     return "\n".join(lines)
 

@@ -26,6 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
+from esmicp.config import MergeConfig  # noqa: E402
 from esmicp.core.features import estimate_normals  # noqa: E402
 from esmicp.multiview import pose_graph  # noqa: E402
 from esmicp.multiview.refine import refine  # noqa: E402
@@ -75,7 +76,8 @@ def main(argv=None) -> int:
     tree = pose_graph.consensus_tree([e[:4] for e in edges], 0, max_angle_deg=4.0, max_shift=lambda m: 0.1)
     print(f"consensus tree: {time.perf_counter() - start:.1f} s")
     start = time.perf_counter()
-    poses = pose_graph.optimise(tree, edges, 0, translation_scale=0.01)
+    poses = pose_graph.optimise(tree, edges, 0, translation_scale=0.01,
+                                direct_solve_max_poses=MergeConfig().direct_solve_max_poses)
     angle, shift = worst_error(poses, truth)
     print(f"pose graph: {time.perf_counter() - start:.1f} s; worst {angle:.2f} deg / {shift:.3f} off the truth; "
           f"peak memory {peak_mb():.0f} MB")
@@ -89,7 +91,8 @@ def main(argv=None) -> int:
     nudged = {k: (pose_graph.pose_from_vector(rng.normal(scale=0.002, size=6)) @ T if k else np.eye(4))
               for k, T in enumerate(truth)}
     start = time.perf_counter()
-    refined, rmse, _ = refine(nudged, clouds, normals, pairs, 0, np.geomspace(0.05, 0.02, 6))
+    refined, rmse, _ = refine(nudged, clouds, normals, pairs, 0, np.geomspace(0.05, 0.02, 6),
+                              query_points=MergeConfig().query_points)
     angle, shift = worst_error(refined, truth)
     print(f"joint refinement: {time.perf_counter() - start:.1f} s; worst {angle:.3f} deg / {shift:.4f} off the truth; "
           f"peak memory {peak_mb():.0f} MB")

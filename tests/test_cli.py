@@ -89,20 +89,23 @@ def test_register_summary_and_outputs(pair, tmp_path, capsys):
     np.testing.assert_allclose(read_points(aligned), apply(estimate, source_points), atol=1e-5)
 
 
-def test_register_summary_calls_low_what_is_below_the_trust_bar(pair, monkeypatch, capsys):
-    """LOW follows ``confidence.TRUSTED`` (the bar a result must reach), not the search's own
-    ``CONFIDENT``: the same right pose is LOW once the bar is set above its confidence."""
-    from esmicp.trust import confidence as trust
+def test_register_summary_calls_low_what_is_below_the_trust_bar(pair, capsys):
+    """LOW follows the trust bar the result was judged by (``result.policy.trusted``), not the
+    search's own ``confident``: the same right pose is LOW once the bar is set above its confidence."""
+    from esmicp import read_points, register
+    from esmicp.cli.register import verdict
+    from esmicp.config import RegistrationConfig
+    from esmicp.trust.policy import TrustPolicy
 
     source, target, _, _ = pair
     code, out, err = run(capsys, "register", str(source), str(target), "--method", "icp", "--json")
     assert code == 0, err
     confidence = json.loads(out)["confidence"]
-    assert confidence >= trust.TRUSTED
-    monkeypatch.setattr(trust, "TRUSTED", confidence + 1e-6)
-    code, out, err = run(capsys, "register", str(source), str(target), "--method", "icp")
-    assert code == 0, err
-    assert f"LOW: below {confidence + 1e-6:g}, do not trust this pose" in out
+    assert confidence >= TrustPolicy().trusted and confidence + 1e-6 <= 1.0
+    strict = register(read_points(source), read_points(target), method="icp",
+                      config=RegistrationConfig(trust=TrustPolicy(trusted=confidence + 1e-6)))
+    assert strict.confidence == confidence and not strict.trusted
+    assert f"LOW: below {confidence + 1e-6:g}, do not trust this pose" in verdict(strict)
 
 
 def test_register_summary_says_when_the_pose_is_not_to_be_trusted(tmp_path, capsys):

@@ -18,7 +18,8 @@ from esmicp.core.compiled_tree import CompiledTree
 from esmicp.globalreg.config import DEFAULT
 from esmicp.core.keypoints import Keypoints, keypoint_voxel
 from esmicp.globalreg.scan import _icp, prune, rank_poses
-from esmicp.trust.confidence import MIN_COINCIDENT, overlap_confidence
+from esmicp.trust.confidence import overlap_confidence
+from esmicp.trust.policy import DEFAULT_POLICY
 from esmicp.metrics import rotation_error_deg
 
 from conftest import require_shared
@@ -448,5 +449,5 @@ def test_the_confidence_of_keypoints_too_few_to_compare_is_zero():
     points = np.random.default_rng(0).normal(size=(200, 3))
     assert overlap_confidence(np.eye(4), Keypoints(points, points[:0], 0.1), config=DEFAULT) == 0.0
     assert overlap_confidence(np.eye(4), Keypoints(points[:2], points, 0.1), config=DEFAULT) == 0.0
-    assert overlap_confidence(np.eye(4), Keypoints(points[:MIN_COINCIDENT - 1], points, 0.5), config=DEFAULT) == 0.0
+    assert overlap_confidence(np.eye(4), Keypoints(points[:DEFAULT_POLICY.min_coincident - 1], points, 0.5), config=DEFAULT) == 0.0
     assert overlap_confidence(np.eye(4), Keypoints(points, points, 0.5), config=DEFAULT) > 0.0

@@ -64,3 +64,25 @@ def test_register_takes_a_config_and_its_values_reach_the_search():
     assert np.array_equal(implied.transformation, as_dict.transformation)
     anything = esmicp.register(source, target, rng=1, config=dataclasses.replace(DEFAULT, ambiguity_ratio=0.0))
     assert anything.ambiguous == (anything.runner_up_ratio is not None)
+
+
+def test_scan_searches_bounds_the_scan_strategy_and_the_default_leaves_it_unbounded(monkeypatch):
+    """Two clouds that share no surface: no scan search is confident, so the default runs more
+    than one of them (each setting, then other voxels), and ``scan_searches=1`` exactly one."""
+    from esmicp.globalreg import scan
+
+    calls = []
+    real = scan.scan_estimate
+
+    def counted(*args, **kwargs):
+        calls.append(kwargs.get("voxel"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(scan, "scan_estimate", counted)
+    rng = np.random.default_rng(3)
+    source, target = rng.uniform(-1, 1, (250, 3)), asymmetric_shape(250, rng)
+    esmicp.register(source, target, rng=2, workers=1)
+    assert DEFAULT.scan_searches is None and len(calls) >= 2
+    calls.clear()
+    esmicp.register(source, target, rng=2, workers=1, config=dataclasses.replace(DEFAULT, scan_searches=1))
+    assert len(calls) == 1

@@ -131,10 +131,10 @@ def test_the_confidence_is_scale_free_over_the_range_register_accepts(scale):
 def test_too_few_points_to_resolve_the_pose_are_never_trusted(count, init):
     """Two independent samples of a few dozen points of one shape, turned 30 degrees: at the
     keypoint voxel such clouds "coincide" under poses tens of degrees off, so whatever pose comes
-    back, the result is not trusted (too few coinciding keypoints: ``MIN_COINCIDENT``)."""
-    from esmicp.trust.confidence import MIN_COINCIDENT
+    back, the result is not trusted (too few coinciding keypoints: ``TrustPolicy.min_coincident``)."""
+    from esmicp.trust.policy import DEFAULT_POLICY
 
-    assert count < MIN_COINCIDENT
+    assert count < DEFAULT_POLICY.min_coincident
     rng = np.random.default_rng(count)
     shape = asymmetric_shape(3000, rng)
     turn = np.eye(4)

@@ -141,3 +141,76 @@ def test_the_lab_is_a_floor_above_the_library():
     ours = {name for path in lab_modules for name in _imports(path) if _within(name, ("esmicp", "esmicp_lab"))}
     assert any(_within(name, ("esmicp",)) for name in ours)  # the lab stands on the library
     assert {path.relative_to(LAB).parts[0] for path in lab_modules} >= {"bench", "baselines", "plots.py", "cli.py"}
+
+
+def test_the_configuration_tree_is_data_only():
+    """The configuration objects import nothing of ours but each other, the errors and the input
+    checks: any floor takes its values without loading an algorithm."""
+    tree = ("esmicp.config", "esmicp.core.config", "esmicp.trust.policy", "esmicp.globalreg.config")
+    offenders = []
+    for module in tree:
+        path = PACKAGE.joinpath(*module.split(".")[1:]).with_suffix(".py")
+        offenders.extend(f"{module} imports {name}" for name in _imports(path)
+                         if _within(name, ("esmicp",)) and not _within(name, tree + ("esmicp.errors", "esmicp.types")))
+    assert not offenders, offenders
+
+
+#: The algorithm layers whose numeric module constants are counted.
+ALGORITHM_LAYERS = ("core", "methods", "globalreg", "multiview", "trust", "api.py")
+#: At most this many numeric module constants in :data:`ALGORITHM_LAYERS`: a tuned value belongs
+#: in the configuration tree (``esmicp.config``), so the count may fall, never grow.
+MAX_MODULE_CONSTANTS = 82
+#: Layers with no numeric module constant left.
+WITHOUT_CONSTANTS = ("multiview", "trust")
+
+
+def _numeric(node) -> bool:
+    """True for a number, or arithmetic of numbers and names (``REFINE_POINTS // 2``)."""
+    if isinstance(node, ast.Constant):
+        return isinstance(node.value, (int, float)) and not isinstance(node.value, bool)
+    if isinstance(node, ast.UnaryOp):
+        return _numeric(node.operand)
+    if isinstance(node, ast.BinOp):
+        return all(_numeric(side) or isinstance(side, (ast.Name, ast.Attribute)) for side in (node.left, node.right))
+    if isinstance(node, ast.Tuple):
+        return bool(node.elts) and all(_numeric(element) for element in node.elts)
+    return False
+
+
+def _constants(tree: ast.Module) -> list[str]:
+    """Every upper-case name a module (``tree``) binds at module level to a number, to arithmetic of
+    numbers, or to another upper-case name (an alias)."""
+    found = []
+    for node in tree.body:
+        if isinstance(node, ast.Assign):
+            targets, value = node.targets, node.value
+        elif isinstance(node, ast.AnnAssign) and node.value is not None:
+            targets, value = [node.target], node.value
+        else:
+            continue
+        alias = isinstance(value, ast.Name) and value.id.isupper()
+        found.extend(target.id for target in targets
+                     if isinstance(target, ast.Name) and target.id.isupper() and (_numeric(value) or alias))
+    return found
+
+
+def module_constants(*layers) -> list[str]:
+    """``path: NAME`` of every numeric module constant (:func:`_constants`) of ``layers``."""
+    return [f"{path.relative_to(PACKAGE)}: {name}" for layer in layers for path in _modules(layer)
+            for name in _constants(ast.parse(path.read_text(encoding="utf-8")))]
+
+
+def test_the_module_constants_cannot_grow():
+    """Tuned values live in the configuration tree: the algorithm layers' numeric module constants
+    are counted, so a new one cannot slip in unseen (lower :data:`MAX_MODULE_CONSTANTS` as they
+    move into a config)."""
+    found = module_constants(*ALGORITHM_LAYERS)
+    assert len(found) <= MAX_MODULE_CONSTANTS, "\n".join(found)
+    left = module_constants(*WITHOUT_CONSTANTS)
+    assert not left, left
+
+
+def test_the_constant_count_sees_what_it_should():
+    source = ("import numpy as np\nA = 3\nB: float = 0.5\nC = A // 2\nD = -1e-6\nE = A\nF = (0.5, 0.8)\n"
+              "names = 2\nG = 'text'\nH = np.eye(3)\nI = True\nJ = K = 4\n")
+    assert _constants(ast.parse(source)) == ["A", "B", "C", "D", "E", "F", "J", "K"]

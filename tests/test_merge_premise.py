@@ -15,6 +15,7 @@ from esmicp.io.stanford_conf import load_scans
 from esmicp.multiview import register_scans
 from esmicp.multiview.scans import _subsample
 from esmicp.trust import free_space
+from esmicp.trust.policy import DEFAULT_POLICY
 
 from conftest import require_shared
 from test_multiview import _patch
@@ -26,7 +27,7 @@ NAMES = ("bun000", "bun045", "bun315", "top3", "chin")
 def _as_checked(points):
     """The subset of a scan the merge's free-space check judges (and tests the premise on)."""
     points = np.asarray(points, dtype=np.float64)
-    return _subsample(_subsample(points, 8000), free_space.CHECK_POINTS)
+    return _subsample(_subsample(points, 8000), DEFAULT_POLICY.free_space_points)
 
 
 @pytest.fixture(scope="module")
@@ -68,14 +69,14 @@ def test_depth_frames_and_scans_in_their_scanners_frame_are_range_images(depth_f
     for cloud in [*depth_frames, *in_scanner_frames[0], *turntable[1][0][:3]]:
         test = free_space.range_image_test(_as_checked(cloud))
         assert test.range_image, test
-        assert abs(test.sampling_slope) < free_space.MAX_SAMPLING_SLOPE / 2 and test.hidden <= free_space.MAX_HIDDEN
+        assert abs(test.sampling_slope) < DEFAULT_POLICY.max_sampling_slope / 2 and test.hidden <= DEFAULT_POLICY.max_hidden
 
 
 def test_scans_not_seen_from_their_origin_are_not_range_images(stored, turntable, crops, depth_frames):
     # as stored (a frame near the object, a turntable's): points spread evenly over the surface, seen from there
     for cloud in [*stored[0], *turntable[0][0][:3]]:
         test = free_space.range_image_test(_as_checked(cloud))
-        assert not test.range_image and test.sampling_slope > free_space.MAX_SAMPLING_SLOPE, test
+        assert not test.range_image and test.sampling_slope > DEFAULT_POLICY.max_sampling_slope, test
     # crops of a fused map, each moved by a random rigid transform
     assert not any(free_space.range_image_test(_as_checked(c)).range_image for c in crops[0])
     # a depth frame in map coordinates: far from its origin for its size

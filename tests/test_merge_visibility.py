@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from esmicp.multiview import register_scans
 from esmicp.trust import free_space
 from esmicp.multiview.verdict import cut_off, scan_verdicts
+from esmicp.trust.policy import DEFAULT_POLICY
 
 from test_multiview import _clouds, _patch, _truth
 
@@ -78,20 +79,20 @@ def _turned(poses, scans, room_to_scan0, degrees=90.0):
 def test_right_poses_leave_free_space_empty_and_a_turned_scan_does_not(walk):
     clouds, truth, room_frame = walk
     right = _fractions(clouds, truth)
-    assert len(right) >= 9 and max(right.values()) <= free_space.MAX_FREE_SPACE / 4
+    assert len(right) >= 9 and max(right.values()) <= DEFAULT_POLICY.max_free_space / 4
     turned = _fractions(clouds, _turned(truth, {9}, room_frame))
-    assert max(f for (a, b), f in turned.items() if 9 in (a, b)) > free_space.MAX_FREE_SPACE
-    assert all(f <= free_space.MAX_FREE_SPACE for (a, b), f in turned.items() if 9 not in (a, b))
+    assert max(f for (a, b), f in turned.items() if 9 in (a, b)) > DEFAULT_POLICY.max_free_space
+    assert all(f <= DEFAULT_POLICY.max_free_space for (a, b), f in turned.items() if 9 not in (a, b))
 
 
 def test_a_conflict_cuts_off_the_side_without_the_reference():
     ring = [(k, (k + 1) % 6, 0.95) for k in range(6)] + [(0, 3, 0.95)]
     cluster = [(6, 7, 0.95), (4, 6, 0.6), (5, 7, 0.6)]  # joined to the ring by two weak edges
-    cut, removed = cut_off(8, 0, ring + cluster, [(2, 7, 0.4)])
+    cut, removed = cut_off(8, 0, ring + cluster, [(2, 7, 0.4)], trusted=DEFAULT_POLICY.trusted)
     assert set(cut) == {6, 7} and cut[7] == (2, 0.4) and removed == {(4, 6): (2, 7, 0.4), (5, 7): (2, 7, 0.4)}
     # seen from a reference inside the cluster, the ring is what the conflict cuts off
-    assert set(cut_off(8, 6, ring + cluster, [(2, 7, 0.4)])[0]) == set(range(6))
-    assert cut_off(8, 0, ring + cluster, []) == ({}, {})
+    assert set(cut_off(8, 6, ring + cluster, [(2, 7, 0.4)], trusted=DEFAULT_POLICY.trusted)[0]) == set(range(6))
+    assert cut_off(8, 0, ring + cluster, [], trusted=DEFAULT_POLICY.trusted) == ({}, {})
 
 
 def test_wrong_edges_that_agree_around_every_cycle_are_cut_and_their_scan_doubted(walk, monkeypatch):
@@ -151,7 +152,7 @@ def test_one_pair_free_space_passes_the_right_pose_and_not_one_slid_a_metre(walk
     slid[:3, 3] = [0.0, 0.0, -1.0]  # 1 m towards the target camera: its walls now stand in the empty room
     wrong = free_space.free_space_fraction(clouds[0], clouds[1], slid @ T_0_1, tolerance=0.03)
     assert right is not None and wrong is not None
-    assert right <= free_space.MAX_FREE_SPACE < wrong
+    assert right <= DEFAULT_POLICY.max_free_space < wrong
     # the same pair as the merge judges it (both ways, from each origin)
     views = {k: free_space.RangeView(clouds[k]) for k in (0, 1)}
     assert right == pytest.approx(free_space.pair_free_space(views, {0: clouds[0], 1: clouds[1]},

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from esmicp.config import MergeConfig, RegistrationConfig
 from esmicp.errors import InvalidInputError
 from esmicp.multiview import register_scans, scans as scans_module
 from esmicp.multiview import pose_graph
@@ -174,6 +175,8 @@ def _patch(monkeypatch, truth, clouds, first_draw_fails=(), sparse_points=None, 
         for n, result in zip(known, fake([jobs[n] for n in known], pairs=[pairs[n] for n in known])):
             (s, t), (i, j) = jobs[n], pairs[n]
             if isinstance(result, RegistrationResult):
+                # judged by the policy the merge asks for, as register does
+                result = replace(result, policy=RegistrationConfig.of(register_kwargs.get("config")).trust)
                 for cloud, k in ((t, i), (s, j)):
                     if id(cloud) not in offsets:
                         offsets[id(cloud)] = _offset(np.asarray(clouds[k], dtype=float), cloud)
@@ -236,6 +239,8 @@ def test_an_unplaceable_scan_is_reported_not_forced_in(monkeypatch):
     assert any("scan 2" in note for note in result.notes)
     points, labels = result.merged(clouds)
     assert set(labels.tolist()) == {0, 1, 3}
+    shown = repr(result)  # one line of counts, no arrays
+    assert "\n" not in shown and "scans=4, placed=3, doubtful=0, unplaced=1, reference=0" in shown
 
 
 def test_a_reference_left_apart_by_its_first_pairs_still_reaches_the_other_scans(monkeypatch):
@@ -296,7 +301,7 @@ def test_a_sequence_whose_pieces_do_not_join_stops_and_names_the_piece_apart(mon
     result = register_scans(clouds, sequence=True, refine_rounds=0, threads=1)
     assert result.status == ("placed",) * half + ("unplaced",) * half, result.reasons
     across = [e for e in result.edges if (e.i < half) != (e.j < half)]
-    rounds = 2 * scans_module.STALLED_ROUNDS  # none places a scan; before and after a free-space veto
+    rounds = 2 * MergeConfig().stalled_rounds  # none places a scan; before and after a free-space veto
     # the walk's own pairs across the cut (two neighbours each), then per round one piece's pairs
     assert len(across) <= 3 + rounds * 3 ** 2, len(across)
     assert any(f"scans {half}-{n - 1} ({half} scans) are joined to each other but not to the placed" in note
@@ -329,7 +334,8 @@ def test_pose_graph_optimisation_pulls_perturbed_poses_onto_consistent_edges():
     for k, T in enumerate(truth):
         nudge = pose_graph.pose_from_vector(np.concatenate([rng.normal(scale=0.05, size=3), rng.normal(scale=0.05, size=3)]))
         start[k] = T if k == reference else nudge @ T
-    poses = pose_graph.optimise(start, edges, reference, translation_scale=0.01)
+    poses = pose_graph.optimise(start, edges, reference, translation_scale=0.01,
+                                direct_solve_max_poses=200)
     np.testing.assert_array_equal(poses[reference], np.eye(4))
     for k in range(5):
         rotation, translation = _errors(poses[k], truth[k])
@@ -350,7 +356,7 @@ def _robust_cost(poses, edges, translation_scale):
 
 
 def test_conjugate_gradients_solve_the_pose_graph_normal_equations():
-    """The solver of large pose graphs (beyond ``DIRECT_SOLVE_MAX_POSES``): on a sparse symmetric
+    """The solver of large pose graphs (beyond ``MergeConfig.direct_solve_max_poses``): on a sparse symmetric
     positive definite matrix of 6x6 blocks coupled like a pose graph's, it returns the solution a
     direct solve gives."""
     from scipy.sparse import bsr_matrix
@@ -393,7 +399,8 @@ def test_pose_graph_optimisation_ends_at_a_minimum_of_its_documented_cost():
     edges[4] = (edges[4][0], edges[4][1], edges[4][2] @ np.diag([1.0, -1.0, -1.0, 1.0]), 1.0, None)
     start = {k: (T if k == 0 else pose_graph.pose_from_vector(rng.normal(scale=0.03, size=6)) @ T)
              for k, T in enumerate(truth)}
-    poses = pose_graph.optimise(start, edges, 0, translation_scale=0.02)
+    poses = pose_graph.optimise(start, edges, 0, translation_scale=0.02,
+                                direct_solve_max_poses=200)
     best = _robust_cost(poses, edges, 0.02)
     assert best < _robust_cost(start, edges, 0.02)
     for k in range(1, 12):
@@ -533,7 +540,7 @@ def test_loop_pairs_close_the_longest_bypasses_until_none_is_left():
     def overlap(a, b):  # scans at the same place of the loop see the same surface
         return float(np.linalg.norm(extents[a][0] - extents[b][0]) < 1.0)
 
-    loops = loop_pairs(walk, extents, overlap, set(), min_overlap=0.5, min_hops=min_hops, budget=n)
+    loops = loop_pairs(walk, extents, overlap, set(), min_overlap=0.5, min_hops=min_hops, budget=n, partners=16)
     assert loops and len(loops) == len(set(loops))
     assert all(overlap(*pair) == 1.0 and pair[0] < pair[1] for pair in loops)
     # the walk's own edges make pairs a few frames apart short paths: none of those is a loop
@@ -544,10 +551,11 @@ def test_loop_pairs_close_the_longest_bypasses_until_none_is_left():
     assert all(hops[i, j] < min_hops for i in range(n) for j in range(i + 1, n) if overlap(i, j) == 1.0)
     assert len(loops) < n // 4  # far fewer than one per scan
     # a budget caps them; the first ones are the longest bypasses
-    first = loop_pairs(walk, extents, overlap, set(), min_overlap=0.5, min_hops=min_hops, budget=2)
+    first = loop_pairs(walk, extents, overlap, set(), min_overlap=0.5, min_hops=min_hops, budget=2, partners=16)
     assert first == loops[:2]
     assert _hops(n, walk)[first[0]] == max(_hops(n, walk)[i, j] for i, j in loops)
-    assert loop_pairs(walk, extents, overlap, set(loops), min_overlap=0.5, min_hops=min_hops, budget=n) != loops
+    assert loop_pairs(walk, extents, overlap, set(loops), min_overlap=0.5, min_hops=min_hops, budget=n,
+                      partners=16) != loops
 
 
 def test_closing_pairs_put_each_bridge_on_a_cycle_with_one_pair():
@@ -563,14 +571,15 @@ def test_closing_pairs_put_each_bridge_on_a_cycle_with_one_pair():
     def overlap(a, b):
         return likely.get((min(a, b), max(a, b)), 0.0)
 
-    pairs = closing_pairs(parts, extents, overlap, set(), min_overlap=0.5, per_part=1)
+    pairs = closing_pairs(parts, extents, overlap, set(), min_overlap=0.5, per_part=1, partners=16)
     # (1, 5) crosses the three cuts of the chain; 6 gets its own: (3, 6) is the likeliest
     assert pairs == [(1, 5), (3, 6)]
     tried = {(1, 5), (3, 6)}
     # 5 has no other likely partner: the pair across the next cut up puts it on a cycle too
-    assert sorted(closing_pairs(parts, extents, overlap, tried, min_overlap=0.5, per_part=1)) == [(1, 4), (2, 6)]
+    assert sorted(closing_pairs(parts, extents, overlap, tried, min_overlap=0.5, per_part=1,
+                                partners=16)) == [(1, 4), (2, 6)]
     # below the predicted overlap asked for, nothing is worth a search
-    assert closing_pairs(parts, extents, overlap, set(), min_overlap=0.95, per_part=1) == []
+    assert closing_pairs(parts, extents, overlap, set(), min_overlap=0.95, per_part=1, partners=16) == []
 
 
 def _check_progress_contract(calls):
@@ -622,3 +631,39 @@ def test_progress_contract_check_catches_a_growing_total():
         _check_progress_contract([("pairs", 0, 4), ("pairs", 2, 4), ("pose graph", 0, 1), ("pose graph", 1, 1)])
     assert _check_progress_contract([("pairs", 0, 4), ("pairs", 4, 4), ("pose graph", 0, 1), ("pose graph", 1, 1)]) \
         == [("pairs", 4), ("pose graph", 1)]
+
+
+@pytest.mark.parametrize("search", [None, {"keypoints": 3000}])
+def test_the_merge_bounds_the_scan_searches_of_its_global_pair_searches_only(monkeypatch, search):
+    """Every batch of pairs holding a global search (a pair without a start) runs with at most
+    ``MergeConfig.pair_scan_searches`` scan-strategy searches, on the merge's registration config
+    otherwise; the local checks keep that config as given, and ``register``'s default search
+    stays unbounded."""
+    from esmicp.config import MergeConfig, RegistrationConfig
+    from esmicp.globalreg.config import DEFAULT
+
+    n = 5
+    rng = np.random.default_rng(4)
+    truth = _truth(n, rng)
+    clouds = _clouds(truth, rng)
+    _patch(monkeypatch, truth, clouds, low={4})
+    fake, seen = scans_module.register_many, []
+
+    def recorder(jobs, *, inits=None, **options):
+        seen.append((inits, options.get("config")))
+        return fake(jobs, inits=inits, **options)
+
+    monkeypatch.setattr(scans_module, "register_many", recorder)
+    merge = MergeConfig() if search is None else MergeConfig.from_dict({"registration": {"search": search}})
+    register_scans(clouds, refine_rounds=0, threads=1, pair_points=100, refine_points=300, config=merge)
+    # a batch of pairs passes one start or None per pair (a piece's placement passes none)
+    searches = [config for inits, config in seen if inits is not None and any(init is None for init in inits)]
+    checks = [config for inits, config in seen if inits is not None and all(init is not None for init in inits)]
+    assert searches and checks
+    given = merge.registration
+    for config in searches:
+        assert isinstance(config, RegistrationConfig)
+        assert config.search == replace(given.search, scan_searches=merge.pair_scan_searches)
+        assert config.trust == given.trust and config.refine == given.refine
+    assert all(config == given for config in checks)
+    assert DEFAULT.scan_searches is None

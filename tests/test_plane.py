@@ -180,7 +180,7 @@ def test_normals_come_from_the_offered_tree_only_when_it_holds_the_target(scene,
 @pytest.mark.parametrize("plane_moves_by_deg, kept", [(0.5, True), (40.0, False)])
 def test_the_plane_stage_is_undone_when_it_loses_the_overlap(monkeypatch, plane_moves_by_deg, kept):
     """After a global search on a large source, ``register`` runs ``esm-plane`` first; a stage that
-    lowers the overlap confidence by more than ``PLANE_CONFIDENCE_DROP`` (as on a 15%-overlap
+    lowers the overlap confidence by more than ``RefineConfig.plane_confidence_drop`` (as on a 15%-overlap
     scan pair, where its sigma grew with the pairs off the overlap) is undone, and the message says
     so. Here the stage is replaced by one that turns the pose by a set angle."""
     import esmicp.api as api
@@ -206,8 +206,8 @@ def test_the_plane_stage_is_undone_when_it_loses_the_overlap(monkeypatch, plane_
     assert iterations == 7
     dropped = overlap_confidence(truth, keypoints, config=DEFAULT) - overlap_confidence(turned, keypoints, config=DEFAULT)
     if kept:
-        assert dropped <= api.PLANE_CONFIDENCE_DROP
+        assert dropped <= request.refine.plane_confidence_drop
         assert pose is turned and "undone" not in note
     else:
-        assert dropped > api.PLANE_CONFIDENCE_DROP
+        assert dropped > request.refine.plane_confidence_drop
         assert pose is truth and "undone" in note

@@ -15,8 +15,18 @@ from scipy.spatial.transform import Rotation
 
 import esmicp
 from esmicp import IndexAlignmentWarning, InvalidInputError, NonFinitePointsWarning, RegistrationResult
+from esmicp.config import RefineConfig, RegistrationConfig
 from esmicp.core.procrustes import apply, rotation_angle, to_matrix, weighted_procrustes
 from esmicp.methods.local import IterationState
+
+#: The refinement's defaults (:class:`esmicp.config.RefineConfig`).
+REFINE = RefineConfig()
+
+
+def refined_on(points: int, **changes) -> RegistrationConfig:
+    """A registration config whose strided stages run on ``points`` strided source points."""
+    return RegistrationConfig(refine=RefineConfig(strided_points=points, **changes))
+
 
 MODELNET = {
     "airplane": "modelnet40/airplane/airplane_0126.txt",
@@ -185,53 +195,47 @@ def test_esm_is_robust_to_outliers_where_icp_is_not(shape, seed):
     assert esm_error < icp_error, f"esm {esm_error:.3f} deg, icp {icp_error:.3f} deg"
 
 
-def test_a_large_source_is_refined_on_a_subsample_where_every_point_takes_it(monkeypatch):
-    """After a global search, a source above twice ``REFINE_POINTS`` is refined on a strided
-    subsample: the pose is where a refinement of every point started from it stays, and
+def test_a_large_source_is_refined_on_a_subsample_where_every_point_takes_it():
+    """After a global search, a source above twice ``RefineConfig.strided_points`` is refined on a
+    strided subsample: the pose is where a refinement of every point started from it stays, and
     ``max_iterations`` bounds every stage together. (A smaller subsample than the default, so that
     the bunny's 8k points take that path.)"""
-    from esmicp import api
-
-    monkeypatch.setattr(api, "REFINE_POINTS", 2000)
+    strided = refined_on(2000)
     target = load("bunny")
     assert len(target) > 2 * 2000
     rotation, translation = small_motion(5, diagonal(target), 30.0, 60.0)
     source = move_to_source(target, rotation, translation)[np.random.default_rng(5).permutation(len(target))]
-    result = esmicp.register(source, target)
+    result = esmicp.register(source, target, config=strided)
     assert result.message.endswith("on 2,000 strided source points"), result.message
     assert rotation_error_deg(result.transformation, rotation) < 0.05
     spacing = float(np.median(cKDTree(target).query(target, k=2)[0][:, 1]))
     # Every point from the start: a subsample as large as the source.
-    monkeypatch.setattr(esmicp.api, "REFINE_POINTS", len(source))
-    full = esmicp.register(source, target, init=result.transformation)
-    monkeypatch.setattr(esmicp.api, "REFINE_POINTS", 2000)
+    full = esmicp.register(source, target, init=result.transformation, config=refined_on(len(source)))
     assert "strided" not in full.message
     assert rotation_error_deg(full.transformation, result.transformation[:3, :3]) < 0.05
     assert np.linalg.norm(full.transformation[:3, 3] - result.transformation[:3, 3]) < 0.1 * spacing
-    capped = esmicp.register(source, target, max_iterations=3)
+    capped = esmicp.register(source, target, max_iterations=3, config=strided)
     assert capped.num_iterations <= 3
 
 
-def test_a_large_source_from_a_given_start_is_refined_on_a_subsample(monkeypatch):
-    """From a given start, a source above twice ``REFINE_POINTS`` takes the same strided run as
+def test_a_large_source_from_a_given_start_is_refined_on_a_subsample():
+    """From a given start, a source above twice ``strided_points`` takes the same strided run as
     after a global search (no ``esm-plane`` stage, the caller's tolerance kept on the
     subsample): it ends where a refinement of every point from that start ends, and each
     ``method`` but ``esm-paper`` (whose pairs are by index) takes that path. (A smaller
     subsample than the default, so that the bunny's 8k points take it; on a 313k-point 3DMatch
     fragment the strided run made a given start 4-5x faster, ``docs/speed.md``.)"""
-    monkeypatch.setattr(esmicp.api, "REFINE_POINTS", 2000)
     target = load("bunny")
     rotation, translation = small_motion(5, diagonal(target), 30.0, 60.0)
     source = move_to_source(target, rotation, translation)[np.random.default_rng(5).permutation(len(target))]
     start = to_matrix(Rotation.from_rotvec([0.0, 0.0, np.radians(4.0)]).as_matrix() @ rotation, translation)
     spacing = float(np.median(cKDTree(target).query(target, k=2)[0][:, 1]))
     for method in ("esm", "icp", "esm-plane"):
-        monkeypatch.setattr(esmicp.api, "REFINE_POINTS", 2000)
-        given = esmicp.register(source, target, init=start, method=method)
+        given = esmicp.register(source, target, init=start, method=method, config=refined_on(2000))
         assert given.message.endswith("on 2,000 strided source points"), (method, given.message)
         assert "esm-plane iteration" not in given.message
-        monkeypatch.setattr(esmicp.api, "REFINE_POINTS", len(source))  # every point from the start
-        full = esmicp.register(source, target, init=start, method=method)
+        # every point from the start
+        full = esmicp.register(source, target, init=start, method=method, config=refined_on(len(source)))
         assert rotation_error_deg(given.transformation, full.transformation[:3, :3]) < 0.05, method
         assert np.linalg.norm(given.transformation[:3, 3] - full.transformation[:3, 3]) < 0.1 * spacing, method
         assert rotation_error_deg(given.transformation, rotation) < 0.1, method
@@ -247,7 +251,7 @@ def test_a_street_scan_slid_along_the_road_by_the_global_search_is_pulled_back()
     source, target, truth = load_pair(pair, bin_columns=3)
     result = esmicp.register(source, target, rng=1)
     rotation_deg, translation_m = pair_errors(result.transformation, truth)
-    assert f"esm-plane iteration(s) on {esmicp.api.PLANE_POINTS:,} points, then" in result.message, result.message
+    assert f"esm-plane iteration(s) on {REFINE.plane_points:,} points, then" in result.message, result.message
     assert rotation_deg < 5.0 and translation_m < 0.6, (rotation_deg, translation_m, result.message)
 
 
@@ -475,7 +479,7 @@ def test_callback_sees_every_iteration(easy_pair):
 def test_a_callback_or_a_history_never_changes_the_pose(method, size):
     """Callbacks and histories observe the run: the same pose, bitwise, and the same iterations,
     with or without them, after the global search and from a given start, and on a bunny scan of
-    more than twice ``REFINE_POINTS`` (the ``esm-plane`` and strided stages)."""
+    more than twice ``RefineConfig.strided_points`` (the ``esm-plane`` and strided stages)."""
     from esmicp import io
 
     if size == "small":
@@ -484,7 +488,7 @@ def test_a_callback_or_a_history_never_changes_the_pose(method, size):
     else:
         source = io.read_points(require_shared("bunny_scans/bun000.ply"))
         target = io.read_points(require_shared("bunny_scans/bun045.ply"))
-        assert len(source) > 2 * esmicp.api.REFINE_POINTS
+        assert len(source) > 2 * REFINE.strided_points
     for init in (None, "identity") if size == "small" else (None,):
         plain = esmicp.register(source, target, method=method, init=init)
         states: list[IterationState] = []
@@ -773,58 +777,54 @@ def test_duplicated_target_points_do_not_break_the_default_inlier_distance():
     assert single.fitness > 0.5
 
 
-def test_the_strided_stages_stop_at_their_own_tolerance_without_moving_the_pose(monkeypatch):
+def test_the_strided_stages_stop_at_their_own_tolerance_without_moving_the_pose():
     """After a global search on a source of more than 40k points, the strided stages stop at
-    ``STRIDED_TOLERANCE``: the pose is the one that
+    ``RefineConfig.strided_tolerance``: the pose is the one that
     following the caller's 1e-8 on the subsample too gives, in fewer iterations."""
-    from esmicp import api
-
     source = esmicp.read_points(require_shared("bunny_scans/bun180.ply"))
     target = esmicp.read_points(require_shared("bunny_scans/bun090.ply"))
-    assert len(source) > 2 * api.REFINE_POINTS
+    assert len(source) > 2 * REFINE.strided_points
     default = esmicp.register(source, target)
-    monkeypatch.setattr(api, "STRIDED_TOLERANCE", 0.0)
-    followed = esmicp.register(source, target)
+    followed = esmicp.register(source, target, config=refined_on(REFINE.strided_points, strided_tolerance=0.0))
     assert default.num_iterations < followed.num_iterations
     assert rotation_error_deg(default.transformation, followed.transformation[:3, :3]) < 0.05
     diagonal = np.linalg.norm(np.ptp(target, axis=0))
     assert np.linalg.norm(default.transformation[:3, 3] - followed.transformation[:3, 3]) < 1e-3 * diagonal
 
 
-def test_a_small_source_after_a_global_search_stops_at_the_strided_tolerance(monkeypatch):
+def test_a_small_source_after_a_global_search_stops_at_the_strided_tolerance():
     """After a global search, a source too small for the strided stages (the 3DMatch pair
-    ``t04_s06``: 16k source points) is refined whole at ``STRIDED_TOLERANCE`` too: following the
+    ``t04_s06``: 16k source points) is refined whole at ``strided_tolerance`` too: following the
     caller's 1e-8 there crept on for 94 iterations and moved the pose by 0.004
     degrees. Fails if the small-source path ignores the strided tolerance. A given ``init`` keeps
     the caller's tolerance."""
-    from esmicp import api
     from esmicp_lab.bench.real_pairs import load_pair, read_pairs
 
     pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.pair == "t04_s06")
     source, target, _ = load_pair(pair)
-    assert len(source) <= 2 * api.REFINE_POINTS
+    assert len(source) <= 2 * REFINE.strided_points
     default = esmicp.register(source, target)
-    monkeypatch.setattr(api, "STRIDED_TOLERANCE", 0.0)
-    followed = esmicp.register(source, target)
+    followed = esmicp.register(source, target, config=refined_on(REFINE.strided_points, strided_tolerance=0.0))
     assert default.num_iterations < followed.num_iterations
     assert rotation_error_deg(default.transformation, followed.transformation[:3, :3]) < 0.05
     assert np.linalg.norm(default.transformation[:3, 3] - followed.transformation[:3, 3]) < 0.01  # metres
-    monkeypatch.setattr(api, "STRIDED_TOLERANCE", 1.0)  # would stop a tolerance-driven run at once
-    given = esmicp.register(source, target, init=default.transformation, max_iterations=5)
+    # a strided tolerance of 1 would stop a tolerance-driven run at once
+    given = esmicp.register(source, target, init=default.transformation, max_iterations=5,
+                            config=refined_on(REFINE.strided_points, strided_tolerance=1.0))
     assert given.num_iterations > 1  # one iteration would mean it stopped at the strided tolerance
 
 
-def test_a_small_object_after_a_global_search_keeps_the_callers_tolerance(monkeypatch):
-    """Below ``LOOSER_FROM_POINTS`` source points the refinement after a global search keeps the
-    caller's tolerance: on 2,000-point objects with 60% outliers it can still be sliding steadily
-    at ``STRIDED_TOLERANCE`` (measured: a cup 0.8 -> 5.1 degrees). Fails if the floor is dropped."""
-    from esmicp import api
+def test_a_small_object_after_a_global_search_keeps_the_callers_tolerance():
+    """Below ``RefineConfig.looser_from_points`` source points the refinement after a global search
+    keeps the caller's tolerance: on 2,000-point objects with 60% outliers it can still be sliding
+    steadily at ``strided_tolerance`` (measured: a cup 0.8 -> 5.1 degrees). Fails if the floor is
+    dropped."""
     from esmicp.shapes import asymmetric_shape
 
     rng = np.random.default_rng(3)
     target = asymmetric_shape(2000, rng)
     source = apply(to_matrix(Rotation.random(random_state=4).as_matrix(), [0.3, -0.2, 0.1]), asymmetric_shape(2000, rng))
-    assert len(source) <= api.LOOSER_FROM_POINTS
-    monkeypatch.setattr(api, "STRIDED_TOLERANCE", 1.0)  # would stop a tolerance-driven run at once
-    result = esmicp.register(source, target)
+    assert len(source) <= REFINE.looser_from_points
+    # a strided tolerance of 1 would stop a tolerance-driven run at once
+    result = esmicp.register(source, target, config=refined_on(REFINE.strided_points, strided_tolerance=1.0))
     assert result.init.startswith("global") and result.num_iterations > 1

@@ -15,6 +15,7 @@ from esmicp_lab.bench.sequences import read_frame, read_poses
 from esmicp.cli import main
 from esmicp.trust import free_space
 from esmicp.result import RegistrationResult
+from esmicp.trust.policy import DEFAULT_POLICY, TrustPolicy
 
 from conftest import require_shared
 from test_merge_visibility import _turned, walk  # noqa: F401  (walk: ray-cast depth frames of a room)
@@ -29,9 +30,12 @@ def _result(**fields) -> RegistrationResult:
 def test_trusted_requires_the_free_space_test_when_it_was_measured():
     assert _result(confidence=0.9).trusted  # not measured: confidence alone
     assert _result(confidence=0.9, free_space=0.0).trusted
-    assert _result(confidence=0.9, free_space=free_space.MAX_FREE_SPACE_PAIR).trusted
-    assert not _result(confidence=0.9, free_space=free_space.MAX_FREE_SPACE_PAIR + 0.01).trusted
+    assert _result(confidence=0.9, free_space=DEFAULT_POLICY.max_free_space_pair).trusted
+    assert not _result(confidence=0.9, free_space=DEFAULT_POLICY.max_free_space_pair + 0.01).trusted
     assert not _result(confidence=0.1, free_space=0.0).trusted
+    # the bars are the result's policy's
+    assert _result(confidence=0.9, free_space=0.1, policy=TrustPolicy(max_free_space_pair=0.2)).trusted
+    assert not _result(confidence=0.9, policy=TrustPolicy(trusted=0.95)).trusted
     assert _result(confidence=0.9, free_space=0.3).to_dict()["free_space"] == 0.3
 
 
@@ -48,10 +52,10 @@ def test_a_right_pose_passes_and_a_turned_one_fails(walk):  # noqa: F811
     result's pose; the pose itself is the one ``register`` gives without it."""
     clouds, poses, _ = walk
     right = esmicp.register(clouds[1], clouds[0], init=poses[1], range_images=True, workers=1)
-    assert right.free_space is not None and right.free_space <= free_space.MAX_FREE_SPACE_PAIR
+    assert right.free_space is not None and right.free_space <= DEFAULT_POLICY.max_free_space_pair
     assert "free-space test passed" in right.message
     assert right.free_space == free_space.free_space_fraction(
-        clouds[0], clouds[1], right.transformation, free_space.TOLERANCE_INLIERS * right.inlier_distance)
+        clouds[0], clouds[1], right.transformation, DEFAULT_POLICY.free_space_tolerance_inliers * right.inlier_distance)
     plain = esmicp.register(clouds[1], clouds[0], init=poses[1], workers=1)
     np.testing.assert_array_equal(plain.transformation, right.transformation)
     assert plain.free_space is None and "free-space" not in plain.message
@@ -59,7 +63,7 @@ def test_a_right_pose_passes_and_a_turned_one_fails(walk):  # noqa: F811
     wrong = esmicp.register(clouds[1], clouds[0], init=_turned_90(walk), max_iterations=1,
                             range_images=True, workers=1)
     assert pair_errors(wrong.transformation, poses[1])[1] > 0.5
-    assert wrong.free_space > free_space.MAX_FREE_SPACE_PAIR and not wrong.trusted
+    assert wrong.free_space > DEFAULT_POLICY.max_free_space_pair and not wrong.trusted
     assert "free-space test failed" in wrong.message
 
 
@@ -86,7 +90,7 @@ def test_far_kitchen_pairs_wrong_poses_are_never_trusted(target_name, source_nam
     result = esmicp.register(source, target, range_images=True, rng=0, workers=1)
     rotation, translation = pair_errors(result.transformation, truth)
     if rotation < 5.0 and translation < 0.1:
-        assert result.free_space is not None and result.free_space <= free_space.MAX_FREE_SPACE_PAIR
+        assert result.free_space is not None and result.free_space <= DEFAULT_POLICY.max_free_space_pair
     elif translation >= 0.8:
         assert not result.trusted, (rotation, translation, result.confidence, result.free_space)
 
@@ -100,7 +104,7 @@ def test_cli_range_images(walk, tmp_path, capsys):  # noqa: F811
     np.savetxt(turned, _turned_90(walk))
     common = ["register", str(source), str(target), "--init"]
     assert main(common + [str(init), "--range-images", "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["free_space"] <= free_space.MAX_FREE_SPACE_PAIR
+    assert json.loads(capsys.readouterr().out)["free_space"] <= DEFAULT_POLICY.max_free_space_pair
     assert main(common + [str(init), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["free_space"] is None
     # a pose the sensors contradict: the summary says so, and --min-confidence refuses it even at 0

@@ -99,7 +99,7 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
     """The confidence (compiled tree) against the same counts from SciPy's KD-tree, at the truth,
     near it and far from it."""
     from esmicp.core import keypoints as scale
-    from esmicp.trust import confidence as trust
+    from esmicp.trust.policy import DEFAULT_POLICY as trust
     from esmicp.core.features import estimate_normals
     from esmicp.core.keypoints import Keypoints
     from esmicp.trust.confidence import overlap_confidence
@@ -110,15 +110,15 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
         for moved, fixed in ((keypoints.source @ rotation.T + translation, keypoints.target),
                              ((keypoints.target - translation) @ rotation, keypoints.source)):
             distances, nearest = cKDTree(fixed).query(moved)
-            overlap = np.count_nonzero(distances <= trust.OVERLAP_VOXELS * keypoints.voxel)
+            overlap = np.count_nonzero(distances <= trust.overlap_voxels * keypoints.voxel)
             coincide = distances <= scale.VERIFY_VOXELS * keypoints.voxel
             if overlap < 3 or np.count_nonzero(coincide) < 3:
                 return 0.0
             sharpness.append(np.count_nonzero(coincide) / overlap)
             shares.append(np.count_nonzero(coincide) / len(moved))
             touched = nearest[coincide]
-            if len(touched) > trust.SPREAD_POINTS:
-                touched = touched[np.linspace(0, len(touched) - 1, trust.SPREAD_POINTS).astype(int)]
+            if len(touched) > trust.spread_points:
+                touched = touched[np.linspace(0, len(touched) - 1, trust.spread_points).astype(int)]
             normals = estimate_normals(fixed, k=30, radius=scale.NORMAL_RADIUS_VOXELS * keypoints.voxel)[touched]
             spread.append(np.sort(np.linalg.eigvalsh(np.cov(normals.T, bias=True) + np.outer(*[normals.mean(axis=0)] * 2))))
 
@@ -126,7 +126,7 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
             return float(np.clip((value - bounds[0]) / (bounds[1] - bounds[0]), 0.0, 1.0))
 
         sharp = ramp(min(sharpness), DEFAULT.sharpness_range)
-        if min(shares) >= trust.SPREAD_BELOW:
+        if min(shares) >= trust.spread_below:
             return sharp
         return min(sharp, *(ramp(values[1], DEFAULT.spread_range) for values in spread),
                    *(ramp(values[0], DEFAULT.third_range) for values in spread))

@@ -91,26 +91,28 @@ def test_a_half_slid_off_by_the_first_run_is_kept_by_the_tighter_second_try(monk
     assert not up_to_symmetry_success(trial.source, first.transformation, trial.T_target_source, diagonal)
 
 
-def test_the_second_try_runs_only_below_the_trust_bar_and_keeps_the_more_confident(monkeypatch):
-    """The second try runs when the first run from a given start ends below ``TRUSTED``, never
-    with a fixed ``sigma`` (the quantile does not set it), also with a callback (which sees both
-    runs), and its result is the more confident of the two."""
-    from esmicp import api
+def test_the_second_try_runs_only_below_the_trust_bar_and_keeps_the_more_confident():
+    """The second try runs when the first run from a given start ends below the trust bar
+    (``config.trust.trusted``), never with a fixed ``sigma`` (the quantile does not set it), also
+    with a callback (which sees both runs), and its result is the more confident of the two."""
+    from esmicp.config import RegistrationConfig
+    from esmicp.trust.policy import TrustPolicy
 
     cloud = asymmetric_shape(600)
     truth = to_matrix(random_rotation(np.random.default_rng(3), 3.0), np.full(3, 0.01))
     target = apply(truth, cloud)
     confident = esmicp.register(cloud, target, init=np.eye(4))
-    assert confident.confidence >= api.TRUSTED and "second try" not in confident.message
-    monkeypatch.setattr(api, "TRUSTED", 1.01)  # every run is below the bar now
-    tried = esmicp.register(cloud, target, init=np.eye(4))
+    assert confident.confidence >= confident.policy.trusted and "second try" not in confident.message
+    never = RegistrationConfig(trust=TrustPolicy(trusted=1.01))  # every run is below the bar
+    tried = esmicp.register(cloud, target, init=np.eye(4), config=never)
     assert "second try" in tried.message
     assert tried.confidence >= confident.confidence
     if "this run kept" in tried.message:
         np.testing.assert_array_equal(tried.transformation, confident.transformation)
-    assert "second try" not in esmicp.register(cloud, target, init=np.eye(4), sigma=0.05).message
+    assert "second try" not in esmicp.register(cloud, target, init=np.eye(4), sigma=0.05, config=never).message
     # A callback sees both runs and changes neither: the same pose, the same message.
     states = []
-    watched = esmicp.register(cloud, target, init=np.eye(4), callback=states.append, record_history=True)
+    watched = esmicp.register(cloud, target, init=np.eye(4), callback=states.append, record_history=True,
+                              config=never)
     np.testing.assert_array_equal(watched.transformation, tried.transformation)
     assert watched.message == tried.message and len(states) >= watched.num_iterations == len(watched.history)

@@ -47,7 +47,6 @@ def test_a_run_stopped_before_its_tolerance_is_never_trusted():
     still be degrees from where it was heading: it is not trusted, and ``doubts()`` says so; the
     same run let to converge is."""
     from esmicp.core.procrustes import apply, to_matrix
-    from esmicp.trust.confidence import TRUSTED
     from esmicp.metrics import random_rotation
     from esmicp.shapes import asymmetric_shape
 
@@ -62,7 +61,7 @@ def test_a_run_stopped_before_its_tolerance_is_never_trusted():
             assert not result.converged, (method, iterations)
             assert not result.trusted
             assert any("not converged" in reason for reason in result.doubts())
-            sharp_but_cut_short += result.confidence >= TRUSTED
+            sharp_but_cut_short += result.confidence >= result.policy.trusted
         settled = esmicp.register(source, target, init="identity", method=method, workers=1)
         assert settled.converged and settled.trusted, (method, settled.doubts())
     assert sharp_but_cut_short  # the rule, not the confidence, is what refuses them

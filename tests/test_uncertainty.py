@@ -13,6 +13,7 @@ from esmicp.trust import uncertainty
 from esmicp.core.procrustes import apply, skew
 from esmicp.metrics import random_rotation
 from esmicp.shapes import asymmetric_shape
+from esmicp.trust.policy import DEFAULT_POLICY, TrustPolicy
 
 from conftest import require_shared
 
@@ -46,7 +47,7 @@ def test_corridor_is_degenerate_along_its_axis(rng):
     (direction,) = directions
     assert direction.kind == "translation"
     assert abs(direction.axis[0]) > 0.95
-    assert direction.ratio < uncertainty.DEGENERATE_RATIO
+    assert direction.ratio < DEFAULT_POLICY.degenerate_ratio
     assert "translation along x (target frame) is poorly constrained" in direction.describe()
     # However sharply the walls coincide, a pose that may slide is not trusted, and says why.
     assert result.confidence >= 0.55 and not result.ambiguous
@@ -252,7 +253,8 @@ def test_a_few_pairs_in_one_cube_still_carry_their_noise(rng):
     rotation, translation = weighted_procrustes(source, matched, np.ones(len(source)))
     placed = source @ rotation.T + translation  # the optimum: the point-to-point gradient is zero
     one_cube = uncertainty.pose_uncertainty(placed, matched, spacing=1.0).covariance  # 16 spacings: one cube
-    per_pair = uncertainty.pose_uncertainty(placed, matched, spacing=1e-3, cluster_spacings=1.0).covariance
+    per_pair = uncertainty.pose_uncertainty(placed, matched, spacing=1e-3,
+                                            policy=TrustPolicy(cluster_spacings=1.0)).covariance
     rotation_std, _ = uncertainty.standard_deviations(one_cube)
     assert rotation_std.min() > 0.5  # degrees: 25 points, 5% noise cannot fix the pose to better
     assert 0.5 < np.trace(one_cube) / np.trace(per_pair) < 2.0

@@ -14,8 +14,9 @@ from .core.correspondence import NearestNeighbors
 from .core.procrustes import bounding_box_diagonal
 from .core.correspondence import coincident_points
 from .core.keypoints import Keypoints
+from .config import RefineConfig, RegistrationConfig
 from .errors import CoincidentPointsWarning, IndexAlignmentWarning, InvalidInputError
-from .globalreg.config import SearchConfig, as_config
+from .globalreg.config import SearchConfig
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
 from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimator
@@ -24,7 +25,8 @@ from .methods.guard import guarded_refine
 from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome
 from .result import Correspondences, RegistrationResult
 from .trust import uncertainty
-from .trust.confidence import TRUSTED, overlap_confidence
+from .trust.confidence import overlap_confidence
+from .trust.policy import TrustPolicy
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
 from .types import InitName, MethodName, PointsLike, TransformLike, check_geometry
 from .working_frame import WorkingFrame
@@ -36,9 +38,6 @@ IDENTITY_NAMES = ("identity", "none")
 #: of :data:`esmicp.types.InitName`.
 INIT_NAMES = ("global", *STRATEGIES, *IDENTITY_NAMES)
 
-#: Default inlier distance for ``fitness`` / ``inlier_rmse``, in target point spacings.
-INLIER_DISTANCE_SPACINGS = 3.0
-
 #: Below this fraction of source points matched to the target point of the same index, an
 #: ``esm-paper`` run is reported as not index-aligned.
 INDEX_ALIGNED_FRACTION = 0.5
@@ -49,51 +48,6 @@ COINCIDENT_WARNING_FRACTION = 0.1
 
 #: Seed of the global search when ``rng`` is None (results are reproducible by default).
 DEFAULT_SEED = 0
-
-#: A source of more than twice this many points is refined on this many evenly strided points
-#: (after a global search or from a given start), not on every point: where every point would
-#: take the pose from there lies an order of magnitude inside the pose's own standard deviation
-#: (``result.covariance``): two more iterations on every point moved it by 0.002-0.007 degrees and
-#: 0.01-0.5 mm on the 3DMatch fragment pair ``t00_s04``, the KITTI pair and four pairs of the
-#: bunny's 40k-point scans, whose standard deviations are 0.01-0.23 degrees and 0.1-4 mm, at up to
-#: 15% of the registration's time. Not with ``esm-paper``, whose pairs are by index. (A callback
-#: or a history still sees every point at each iteration's pose; the fitness, the
-#: correspondences and the covariance count every point.) (5,000 points were too few on a KITTI
-#: scan: the pose slid 0.3 m along the road from where every point takes it;
-#: ``docs/measured-global.md``.)
-REFINE_POINTS = COARSE_POINTS
-#: On that subsample, ``esm`` is preceded by at most this many ``esm-plane`` iterations: a global
-#: pose slid along a road or a corridor leaves the pairs that would pull it back many spacings
-#: apart, where ``esm``'s Gaussian weight is nil and it keeps the slide; the plane residual pulls
-#: it back (a KITTI street pair: ``docs/scans-refinement.md``). Capped, because on some fragment
-#: pairs ``esm-plane`` creeps on for its whole budget where ``esm`` converges.
-PLANE_ITERATIONS = 30
-#: ... on this many of the strided points (evenly strided again): the stage only has to pull a
-#: slid pose back within ``esm``'s reach, and ``esm`` on all ``REFINE_POINTS`` settles it from
-#: there, so fewer points end where 20,000 do, to the refinement's own noise, at less cost
-#: (``docs/speed.md``, "Real scan pairs").
-PLANE_POINTS = 5_000
-#: The ``esm-plane`` stage is undone when it lowers the overlap confidence
-#: (:func:`~esmicp.trust.confidence.overlap_confidence`, 0-1, on the pair's keypoints) by more than
-#: this: where scans overlap by 15% or so, most pairs join points the other scan never saw, the
-#: stage's sigma grows with them and can pull a right global pose far off, where ``esm`` from the
-#: same start converges (``docs/scans-partial-overlap.md``).
-PLANE_CONFIDENCE_DROP = 0.25
-#: The strided stages stop at this tolerance when the caller's is finer: the subsample's optimum
-#: is not the whole source's (they lie a fraction of the pose's standard deviation apart, see
-#: ``REFINE_POINTS``), and on fragment pairs the strided ``esm`` then creeps on by 1e-5 rad per
-#: iteration in no steady direction (3DMatch ``t00_s04``: 45 of 50 iterations). A steady slide toward the
-#: truth still runs to its end (the bunny's ``bun180 -> bun090`` stops too early at 1e-5, not at
-#: 3e-6). Measured on the 3DMatch pairs (``docs/speed.md``, "Real scan pairs"). After a global search, a source too
-#: small for the strided stages is refined at this tolerance too: from the global pose, ``esm``
-#: on all of ``t04_s06``'s 16k source points crept for 94 iterations (0.4 s) and moved the pose by
-#: 0.004 degrees (``docs/speed.md``, "Real scan pairs").
-STRIDED_TOLERANCE = 3e-6
-#: ... but only from this many source points on. On 2,000-point objects with 60% outliers the
-#: refinement can still be sliding steadily at 3e-6 (a cup 0.8 -> 5.1 degrees, a chair 1.8 -> 2.2),
-#: and there a long tail costs little.
-LOOSER_FROM_POINTS = REFINE_POINTS // 2
-
 
 @dataclass(frozen=True, eq=False)
 class _Request:
@@ -110,6 +64,8 @@ class _Request:
     inlier_distance: float | None
     workers: int | None  # threads of every compiled kernel (None: every core)
     config: SearchConfig  # the global search's tuned values
+    refine: RefineConfig  # the refinement's and the evaluation's
+    trust: TrustPolicy  # the bars the result is judged by
 
 
 @keeps_keyboard_interrupt
@@ -128,7 +84,7 @@ def register(
     inlier_distance: float | None = None,
     workers: int | None = None,
     return_correspondences: bool = False,
-    config: SearchConfig | None = None,
+    config: RegistrationConfig | SearchConfig | dict | None = None,
     range_images: bool = False,
 ) -> RegistrationResult:
     """Rigidly register ``source`` onto ``target``.
@@ -167,10 +123,11 @@ def register(
         Convergence tolerance: stop once an increment rotates less than ``tolerance`` radians and
         translates less than ``tolerance`` times the target's bounding-box diagonal, or once the
         RMS correspondence distance changes by less than ``tolerance`` relative to itself. After a
-        global search, the refinement of a source of more than ``LOOSER_FROM_POINTS`` (10,000)
-        points stops at ``STRIDED_TOLERANCE`` (3e-6) when ``tolerance`` is finer. A given ``init``
-        and smaller sources keep ``tolerance``. (A source of more than ``2 * REFINE_POINTS`` points
-        is refined on ``REFINE_POINTS`` evenly strided points.)
+        global search, the refinement of a source of more than ``config.refine.looser_from_points``
+        (10,000) points stops at ``config.refine.strided_tolerance`` (3e-6) when ``tolerance`` is
+        finer. A given ``init`` and smaller sources keep ``tolerance``. (A source of more than twice
+        ``config.refine.strided_points`` (20,000) points is refined on that many evenly strided
+        points.)
     rng : None, int or numpy.random.Generator
         Randomness of the global search (its subsamples). None uses a fixed seed, so the same input
         gives the same result; local refinement itself is deterministic.
@@ -197,16 +154,20 @@ def register(
         (:class:`~esmicp.result.Correspondences`: source and target indices, weights, distances
         of the pairs within ``inlier_distance``, Open3D's ``correspondence_set``); they cost
         nothing more to find, but hold four arrays per pair.
-    config : esmicp.globalreg.config.SearchConfig or dict, optional
-        The global search's tuned values (and the overlap confidence's); None: the measured
-        defaults (:data:`esmicp.globalreg.config.DEFAULT`).
+    config : esmicp.config.RegistrationConfig, esmicp.globalreg.config.SearchConfig or dict, optional
+        The tuned values: the global search's (and the overlap confidence's ranges), the local
+        refinement's (:class:`esmicp.config.RefineConfig`) and the trust policy the result is
+        judged by (:class:`esmicp.trust.policy.TrustPolicy`, kept in
+        ``result.policy``). A SearchConfig (or a dict of its fields) sets the search's values with
+        the default policy; a dict with the keys ``search`` and / or ``trust`` is a
+        RegistrationConfig's. None: the measured defaults.
     range_images : bool
         Both clouds are range images in their sensor frames: every point as its sensor saw it,
         the sensor at the origin (depth-camera frames, LiDAR scans as recorded). The final pose
         is then also checked against the space each sensor saw empty
         (:func:`esmicp.trust.free_space.free_space_fraction`, in ``result.free_space``): a pose
-        that puts more than :data:`esmicp.trust.free_space.MAX_FREE_SPACE_PAIR` of either
-        cloud there is not trusted, however sharply the clouds coincide (a repeated structure
+        that puts more than the policy's ``max_free_space_pair`` (8%) of either cloud there is not
+        trusted, however sharply the clouds coincide (a repeated structure
         matched in the wrong place, a pair that shares no surface). The pose itself is the same.
         False (the default): no such check (clouds in another frame, such as meshes, fused
         fragments or maps, would fail it).
@@ -250,8 +211,9 @@ def register(
         observer = Observer(source_points, target_index, frame.callback(callback), record_history)
     outcome = _refine(source_points, target_index, estimator, initial, request, diagonal, keypoints, estimate,
                       observer)
-    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers, config=request.config)
-    if start_distances is not None and request.sigma is None and confidence < TRUSTED \
+    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers, config=request.config,
+                                    policy=request.trust)
+    if start_distances is not None and request.sigma is None and confidence < request.trust.trusted \
             and not (observer is not None and observer.stopped):
         outcome, confidence = _second_try(source_points, target_index, initial, request, diagonal, keypoints,
                                           start_distances, outcome, confidence, observer=observer)
@@ -264,14 +226,15 @@ def register(
         correspondences = _correspondences(pairs, _estimator(method, request, target_index, diagonal), outcome.sigma)
     weights_sigma = None if method == "icp" else outcome.sigma  # ICP: unit weights
     pose = uncertainty.from_registration(source_points, target_index, outcome.transformation, weights_sigma,
-                                         origin=frame.origin, workers=request.workers, pairs=pairs[:2])
+                                         origin=frame.origin, workers=request.workers, pairs=pairs[:2],
+                                         policy=request.trust)
     outcome = frame.outcome(outcome)
     free_space = None
     if range_images:
         from .trust.free_space import pair_verdict
 
         free_space = _free_space(request, outcome.transformation, inlier_distance)
-        outcome = dataclasses.replace(outcome, message=f"{outcome.message}; {pair_verdict(free_space)[1]}")
+        outcome = dataclasses.replace(outcome, message=f"{outcome.message}; {pair_verdict(free_space, request.trust)[1]}")
     return RegistrationResult(
         transformation=outcome.transformation,
         converged=outcome.converged,
@@ -296,16 +259,18 @@ def register(
         information=pose.information,
         degenerate_directions=pose.degenerate_directions,
         free_space=free_space,
+        policy=request.trust,
     )
 
 
 def _free_space(request: _Request, transformation: np.ndarray, inlier_distance: float) -> float | None:
     """The free-space test of the pair at ``transformation`` (``T_target_source``, the clouds' own
-    frames), at :data:`~esmicp.trust.free_space.TOLERANCE_INLIERS` inlier distances."""
+    frames), at the policy's ``free_space_tolerance_inliers`` inlier distances."""
     from .trust import free_space  # here: it loads SciPy
 
+    policy = request.trust
     return free_space.free_space_fraction(request.target, request.source, transformation,
-                                          free_space.TOLERANCE_INLIERS * inlier_distance)
+                                          policy.free_space_tolerance_inliers * inlier_distance, policy)
 
 
 def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
@@ -321,6 +286,7 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
     init_name, initial = _resolve_init(init)
     if initial is not None:
         _check_start_representable(initial, source_points)
+    registration = RegistrationConfig.of(config)
     request = _Request(
         source_points, target_points, method, init_name, initial,
         sigma=None if sigma is None else as_positive(sigma, "sigma"),
@@ -328,7 +294,9 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
         rng=as_generator(rng, default_seed=DEFAULT_SEED),
         inlier_distance=None if inlier_distance is None else as_positive(inlier_distance, "inlier_distance"),
         workers=as_workers(workers),
-        config=as_config(config),
+        config=registration.search,
+        refine=registration.refine,
+        trust=registration.trust,
     )
     if method == "esm-paper" and len(source_points) != len(target_points):
         warnings.warn(
@@ -347,6 +315,7 @@ def _start(request: _Request, source, target, target_index, frame) -> tuple[np.n
     estimate = global_estimate(
         source, target, strategy=request.init_name, rng=request.rng, target_index=target_index,
         target_spacing=target_index.spacing(), workers=request.workers, config=request.config,
+        policy=request.trust,
     )
     return estimate.transformation, f"global:{estimate.strategies[0]}", estimate
 
@@ -355,16 +324,16 @@ def _refine(source, target_index, estimator, initial, request: _Request, diagona
             estimate: GlobalEstimate | None, observer: Observer | None = None):
     """Stage 4: ``estimator`` from ``initial`` (working frame): on a large source the strided run
     (:func:`_refine_strided`), else the whole source at once (after a global
-    search, from ``LOOSER_FROM_POINTS`` points on, at ``STRIDED_TOLERANCE`` when the request's
+    search, from ``refine.looser_from_points`` points on, at ``refine.strided_tolerance`` when the request's
     tolerance is finer). ``observer`` (the callback and the history, working frame) watches every
     stage and changes none."""
-    if len(source) > 2 * REFINE_POINTS and estimator.order_invariant:
+    if len(source) > 2 * request.refine.strided_points and estimator.order_invariant:
         # (``esm-paper`` pairs source point k with target point k: a strided subset has no pairs.)
         return _refine_strided(source, target_index, estimator, initial, request, diagonal, keypoints, estimate,
                                observer)
     criteria = request.criteria
-    if estimate is not None and len(source) > LOOSER_FROM_POINTS:
-        criteria = _at_strided_tolerance(criteria)
+    if estimate is not None and len(source) > request.refine.looser_from_points:
+        criteria = _at_strided_tolerance(criteria, request.refine)
     return guarded_refine(
         source, target_index, estimator, init=initial, criteria=criteria, scale=diagonal,
         coarse_points=COARSE_POINTS, observer=observer,
@@ -374,7 +343,7 @@ def _refine(source, target_index, estimator, initial, request: _Request, diagona
 def _second_try(source, target_index, initial, request: _Request, diagonal: float, keypoints: Keypoints,
                 start_distances: np.ndarray, outcome, confidence: float, observer: Observer | None = None):
     """``(outcome, confidence)``: of ``outcome`` (an ``esm`` run from a given start, overlap
-    confidence ``confidence`` below ``TRUSTED``) and a second run from the same start whose coarse
+    confidence ``confidence`` below the trust bar) and a second run from the same start whose coarse
     sigma comes from the start's ``TIGHT_START_QUANTILE`` distance quantile, the more confident
     (the first on a tie); the message says what the second try gave.
 
@@ -388,7 +357,8 @@ def _second_try(source, target_index, initial, request: _Request, diagonal: floa
     tight.start_from(start_distances, TIGHT_START_QUANTILE)
     first_history = None if observer is None else observer.new_run()
     second = _refine(source, target_index, tight, initial, request, diagonal, keypoints, None, observer)
-    second_confidence = overlap_confidence(second.transformation, keypoints, request.workers, config=request.config)
+    second_confidence = overlap_confidence(second.transformation, keypoints, request.workers, config=request.config,
+                                           policy=request.trust)
     if observer is not None and observer.stopped:
         return second, second_confidence
     if second_confidence > confidence:
@@ -405,24 +375,26 @@ def _second_try(source, target_index, initial, request: _Request, diagonal: floa
 def _refine_strided(source, target_index, estimator, initial, request: _Request, diagonal: float,
                     keypoints: Keypoints, estimate: GlobalEstimate | None = None,
                     observer: Observer | None = None):
-    """Stage 4 on a large source: ``estimator`` on ``REFINE_POINTS`` evenly strided source points
-    (where every point would take the pose from there lies well inside its standard deviation:
-    ``REFINE_POINTS``). The outcome's iterations count every stage.
+    """Stage 4 on a large source: ``estimator`` on ``refine.strided_points`` evenly strided source
+    points (where every point would take the pose from there lies well inside its standard
+    deviation). The outcome's iterations count every stage; ``refine`` is ``request.refine``.
 
     After a global search (``estimate``, whose ``confidence`` is that of ``initial`` on
-    ``keypoints`` when it judged it), ``esm`` is preceded by at most ``PLANE_ITERATIONS`` of
-    ``esm-plane`` on ``PLANE_POINTS`` of the strided points, undone when they lower the overlap
-    confidence on ``keypoints`` by more than ``PLANE_CONFIDENCE_DROP``, and the strided stages stop
-    at ``STRIDED_TOLERANCE`` when the request's tolerance is finer: a global pose is already close.
+    ``keypoints`` when it judged it), ``esm`` is preceded by at most ``refine.plane_iterations`` of
+    ``esm-plane`` on ``refine.plane_points`` of the strided points, undone when they lower the
+    overlap confidence on ``keypoints`` by more than ``refine.plane_confidence_drop``, and the
+    strided stages stop at ``refine.strided_tolerance`` when the request's tolerance is finer: a
+    global pose is already close.
     From a given start (``estimate`` None) the strided run keeps the request's tolerance, since a
     start can lie further off and a slow slide toward the optimum must run to its end. ``observer``
     watches every stage (a stage its callback stopped is the last)."""
-    strided = source[np.linspace(0, len(source) - 1, REFINE_POINTS).astype(np.intp)]
+    strided = source[np.linspace(0, len(source) - 1, request.refine.strided_points).astype(np.intp)]
     plane_iterations, plane_note = 0, ""
     if estimate is not None:
-        request = dataclasses.replace(request, criteria=_at_strided_tolerance(request.criteria))
+        request = dataclasses.replace(request, criteria=_at_strided_tolerance(request.criteria, request.refine))
     if estimate is not None and request.method == "esm":
-        planed = strided[np.linspace(0, len(strided) - 1, min(PLANE_POINTS, len(strided))).astype(np.intp)]
+        count = min(request.refine.plane_points, len(strided))
+        planed = strided[np.linspace(0, len(strided) - 1, count).astype(np.intp)]
         initial, plane_iterations, plane_note = _plane_start(planed, target_index, initial, request, diagonal,
                                                              keypoints, estimate.confidence, observer)
         if observer is not None and observer.stopped:
@@ -437,10 +409,10 @@ def _refine_strided(source, target_index, estimator, initial, request: _Request,
                                num_iterations=plane_iterations + coarse.num_iterations)
 
 
-def _at_strided_tolerance(criteria: ConvergenceCriteria) -> ConvergenceCriteria:
-    """``criteria`` stopping at :data:`STRIDED_TOLERANCE` when its own tolerance is finer: a
+def _at_strided_tolerance(criteria: ConvergenceCriteria, refine: RefineConfig) -> ConvergenceCriteria:
+    """``criteria`` stopping at ``refine.strided_tolerance`` when its own tolerance is finer: a
     refinement from a global pose, whose last iterations creep in no steady direction."""
-    return dataclasses.replace(criteria, tolerance=max(criteria.tolerance, STRIDED_TOLERANCE))
+    return dataclasses.replace(criteria, tolerance=max(criteria.tolerance, refine.strided_tolerance))
 
 
 def _estimator(method: str, request: _Request, target_index, diagonal: float, start_fine: bool = False):
@@ -455,12 +427,13 @@ def _estimator(method: str, request: _Request, target_index, diagonal: float, st
 def _plane_start(points, target_index, initial, request: _Request, diagonal: float,
                  keypoints: Keypoints, initial_confidence: float | None = None,
                  observer: Observer | None = None) -> tuple[np.ndarray, int, str]:
-    """``(pose, iterations, note)`` of at most ``PLANE_ITERATIONS`` ``esm-plane`` iterations on
-    ``points`` (``PLANE_POINTS`` strided source points) from ``initial``, leaving ``esm`` at least
+    """``(pose, iterations, note)`` of at most ``refine.plane_iterations`` ``esm-plane`` iterations
+    on ``points`` (``refine.plane_points`` strided source points) from ``initial``, leaving ``esm`` at least
     one iteration of ``max_iterations``; the note begins the result's message. ``initial`` when the budget leaves none, the guard
     refused the start, or the iterations lowered the overlap confidence on ``keypoints`` by more
-    than ``PLANE_CONFIDENCE_DROP`` (they still count against the budget and the note says so)."""
-    budget = min(PLANE_ITERATIONS, request.criteria.max_iterations - 1)
+    than ``refine.plane_confidence_drop`` (they still count against the budget and the note says
+    so); ``refine`` is ``request.refine``."""
+    budget = min(request.refine.plane_iterations, request.criteria.max_iterations - 1)
     if budget <= 0:
         return initial, 0, ""
     planar = _estimator("esm-plane", request, target_index, diagonal)
@@ -473,9 +446,11 @@ def _plane_start(points, target_index, initial, request: _Request, diagonal: flo
         return plane.transformation, plane.num_iterations, ""
     before = initial_confidence
     if before is None:
-        before = overlap_confidence(initial, keypoints, request.workers, config=request.config)
-    after = overlap_confidence(plane.transformation, keypoints, request.workers, config=request.config)
-    if after < before - PLANE_CONFIDENCE_DROP:
+        before = overlap_confidence(initial, keypoints, request.workers, config=request.config,
+                                        policy=request.trust)
+    after = overlap_confidence(plane.transformation, keypoints, request.workers, config=request.config,
+                               policy=request.trust)
+    if after < before - request.refine.plane_confidence_drop:
         return initial, plane.num_iterations, (
             f"{plane.num_iterations} esm-plane iteration(s) on {len(points):,} points undone (overlap confidence "
             f"{before:.2f} -> {after:.2f}), then ")
@@ -492,7 +467,8 @@ def _evaluate(source, target_index, transformation, request: _Request, warm=None
     inlier_distance = request.inlier_distance
     if inlier_distance is None:
         spacing = target_index.spacing()
-        inlier_distance = INLIER_DISTANCE_SPACINGS * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target_index.points)
+        inlier_distance = (request.refine.inlier_distance_spacings * spacing if spacing > 0
+                           else 1e-6 * bounding_box_diagonal(target_index.points))
     if warm is not None and len(warm) != len(source):
         warm = None  # another source's (the strided subsample's)
     distances, indices = target_index.query_near(source, warm=warm, transform=transformation)

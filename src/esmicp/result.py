@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .trust.policy import DEFAULT_POLICY, TrustPolicy
+
 
 @dataclass(frozen=True)
 class IterationRecord:
@@ -134,9 +136,9 @@ class RegistrationResult:
         lower when less than half of either cloud coincides and the coincident part's normals
         span fewer than three directions (one plane laid on another holds only 3 of the 6 degrees
         of freedom, a floor and one wall 5: :func:`esmicp.trust.confidence.coincident_spread`); 0 when
-        fewer than 60 keypoints of either cloud coincide (:data:`esmicp.trust.confidence.MIN_COINCIDENT`:
-        clouds of a few dozen points cannot resolve the pose, so are never trusted). Below 0.55
-        (:data:`esmicp.trust.confidence.TRUSTED`): do not trust the pose. At or above it the pose
+        fewer than 60 keypoints of either cloud coincide (``policy.min_coincident``:
+        clouds of a few dozen points cannot resolve the pose, so are never trusted). Below the
+        trust bar (``policy.trusted``, 0.55 by default): do not trust the pose. At or above it the pose
         is usually right, not always: a repeated structure matched in the wrong place coincides
         sharply too (kitchen depth frames that share no surface: 4 of 5 trusted, metres off).
         Measured figures: ``docs/measured-global.md``, "How far the confidence can be trusted".
@@ -158,9 +160,12 @@ class RegistrationResult:
     free_space : float or None
         With ``register(..., range_images=True)``: the larger fraction (0-1) of either cloud that
         the pose puts in the space the other's sensor saw empty
-        (:func:`esmicp.trust.free_space.free_space_fraction`); above
-        :data:`esmicp.trust.free_space.MAX_FREE_SPACE_PAIR` the result is not trusted. None
-        without that option, or when neither sensor sees enough of the other cloud to judge.
+        (:func:`esmicp.trust.free_space.free_space_fraction`); above ``policy.max_free_space_pair``
+        the result is not trusted. None without that option, or when neither sensor sees enough
+        of the other cloud to judge.
+    policy : TrustPolicy
+        The trust policy the result is judged by (:class:`esmicp.trust.policy.TrustPolicy`: the
+        bars of :attr:`trusted` and :meth:`doubts`), as ``register``'s ``config`` gave it.
     """
 
     transformation: np.ndarray
@@ -185,24 +190,25 @@ class RegistrationResult:
     information: np.ndarray | None = field(default=None, repr=False)
     degenerate_directions: tuple = ()
     free_space: float | None = None
+    policy: TrustPolicy = field(default=DEFAULT_POLICY, repr=False)
 
     @property
     def trusted(self) -> bool:
         """True when nothing casts doubt on the pose (:meth:`doubts` is empty): the refinement
         ``converged`` (a run stopped by ``max_iterations``, a callback or a problem may still be
         degrees from where it was heading, however sharply the clouds already coincide), ``confidence``
-        reaches the trust bar (:data:`esmicp.trust.confidence.TRUSTED`), the result is not
+        reaches the trust bar (``policy.trusted``), the result is not
         ``ambiguous``, the overlap constrains the pose in every direction (no
         ``degenerate_directions``: a floor or a wall seen alone, or a corridor, lets the pose slide
         however sharply the clouds coincide), and ``free_space`` (when measured) is within
-        :data:`esmicp.trust.free_space.MAX_FREE_SPACE_PAIR`. The one test callers
+        ``policy.max_free_space_pair``. The one test callers
         (``register_scans``, the CLI) apply."""
         return not self.doubts()
 
     def doubts(self, bar: float | None = None) -> list[str]:
         """Why the pose is not to be trusted, one phrase per reason (empty: :attr:`trusted`).
         ``bar``: the confidence asked for, a number in [0, 1] (default the trust bar,
-        :data:`esmicp.trust.confidence.TRUSTED`).
+        ``policy.trusted``).
 
         Raises
         ------
@@ -210,7 +216,7 @@ class RegistrationResult:
             ``bar`` is not a number, is NaN, or lies outside [0, 1].
         """
         if bar is None:
-            from .trust.confidence import TRUSTED as bar
+            bar = self.policy.trusted
         else:
             from .types import as_real
 
@@ -236,7 +242,7 @@ class RegistrationResult:
         if self.free_space is not None:
             from .trust.free_space import pair_verdict  # here: it loads SciPy
 
-            failed, words = pair_verdict(self.free_space)
+            failed, words = pair_verdict(self.free_space, self.policy)
             if failed:
                 reasons.append(words)
         return reasons

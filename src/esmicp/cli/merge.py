@@ -31,10 +31,15 @@ POSE_FORMATS = ("matrix", "tum", "kitti")
 
 
 def library_defaults() -> dict:
-    """:func:`esmicp.register_scans`'s keyword defaults, the one source of the command's defaults."""
+    """:func:`esmicp.register_scans`'s keyword defaults, the one source of the command's defaults:
+    a keyword that defaults to None and is a field of :class:`esmicp.config.MergeConfig` takes
+    the configuration's default."""
+    from ..config import MergeConfig
     from ..multiview.scans import register_scans  # the definition itself, whatever wraps the export
 
-    return {name: p.default for name, p in inspect.signature(register_scans).parameters.items()
+    merge = MergeConfig().to_dict()
+    return {name: merge[name] if p.default is None and name in merge else p.default
+            for name, p in inspect.signature(register_scans).parameters.items()
             if p.default is not inspect.Parameter.empty}
 
 

@@ -19,14 +19,6 @@ from .args import (EXIT_OK, EXIT_UNTRUSTED, NORMAL, QUIET, VERBOSE, add_verbosit
                    output_path, positive_float, positive_int)
 
 
-def trust_bar() -> float:
-    """The confidence a pose must reach to be trusted (:attr:`esmicp.RegistrationResult.trusted`):
-    the command line's one reading of it (imported late: ``esmicp --version`` stays light)."""
-    from ..trust.confidence import TRUSTED
-
-    return TRUSTED
-
-
 def _confidence_bar(text: str) -> float | str:
     """``--min-confidence``'s value: a number in [0, 1] (``trusted`` is the library's bar)."""
     if text == "trusted":
@@ -174,7 +166,7 @@ def _status(result, bar: float | str | None) -> int:
     test); else ``EXIT_OK``."""
     if bar is None:
         return EXIT_OK
-    bar = trust_bar() if bar == "trusted" else bar
+    bar = result.policy.trusted if bar == "trusted" else bar
     doubts = result.doubts(bar)
     if not doubts:
         return EXIT_OK
@@ -184,11 +176,12 @@ def _status(result, bar: float | str | None) -> int:
 
 
 def verdict(result) -> str:
-    """One line: the overlap confidence against the trust bar, whether to trust the pose, and every
-    reason not to (:meth:`~esmicp.result.RegistrationResult.doubts`)."""
+    """One line: the overlap confidence against the trust bar the result was judged by
+    (``result.policy.trusted``), whether to trust the pose, and every reason not to
+    (:meth:`~esmicp.result.RegistrationResult.doubts`)."""
     if result.confidence is None:
         return "confidence unknown: judge the pose yourself"
-    bar = trust_bar()
+    bar = result.policy.trusted
     text = f"confidence {result.confidence:.2f}"
     if result.confidence < bar:
         return (f"{text} (LOW: below {bar:g}, do not trust this pose; the clouds may not coincide where it puts "

@@ -82,7 +82,13 @@ class SearchConfig:
     confident : float
         The search's own bar on the overlap confidence (0-1): a scan search reaching it ends the
         scan searches, and a pose reaching it may win over the other strategies'. Below
-        :data:`~esmicp.trust.confidence.TRUSTED`, the bar a result must reach to be trusted.
+        :attr:`~esmicp.trust.policy.TrustPolicy.trusted`, the bar a result must reach to be trusted.
+    scan_searches : int or None
+        At most this many searches of the scan strategy in one ``"auto"`` search (count; None:
+        each setting and voxel of :func:`~esmicp.globalreg.scan.scan_estimate_until_confident`
+        in turn until one is confident, which a pair that cannot be registered runs to the end).
+        A caller with a second chance at a pair (the merge searches an untrusted pair again on
+        other points) can stop sooner: :attr:`esmicp.config.MergeConfig.pair_scan_searches`.
     keypoints : int
         Occupied voxels of the target the scan strategy's keypoint voxel aims at (count): the
         one length scale of the scan strategy and of the confidence.
@@ -116,6 +122,7 @@ class SearchConfig:
     sharper_than_chosen: float = 0.1
     scan_candidates: int = 3
     confident: float = 0.5
+    scan_searches: int | None = None
     keypoints: int = 5000
     sharpness_range: tuple[float, float] = (0.5, 0.8)
     spread_range: tuple[float, float] = (0.05, 0.15)
@@ -129,6 +136,9 @@ class SearchConfig:
         if isinstance(self.scan_candidates, bool) or not isinstance(self.scan_candidates, numbers.Integral) \
                 or self.scan_candidates < 0:
             raise InvalidInputError(f"config.scan_candidates: expected an integer >= 0, got {self.scan_candidates!r}")
+        if self.scan_searches is not None and (isinstance(self.scan_searches, bool) or not isinstance(
+                self.scan_searches, numbers.Integral) or self.scan_searches < 1):
+            raise InvalidInputError(f"config.scan_searches: expected None or an integer >= 1, got {self.scan_searches!r}")
         for name in ("ambiguity_ratio", "decide_ratio", "full_cover", "sharper_score_ratio", "confident"):
             value = getattr(self, name)
             if not _is_number(value) or not 0.0 <= value <= 1.0:

@@ -50,6 +50,7 @@ from ..core.features import estimate_normals, voxel_grid
 from ..core.keypoints import NORMAL_RADIUS_VOXELS, VERIFY_VOXELS, Keypoints, keypoint_voxel
 from ..core.procrustes import batched_weighted_procrustes, rigid_inverse, rotation_angle, to_matrix
 from ..trust.confidence import overlap_confidence
+from ..trust.policy import DEFAULT_POLICY, TrustPolicy
 from . import DISTINCT_ROTATION_DEG
 from .feature_matching import _keypoints, _inlier_counts, _inlier_mask, _distinct_order
 from .config import DEFAULT, SearchConfig
@@ -387,7 +388,7 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
 
 def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spacing: float,
                                   workers: int | None = None, searches: int | None = None,
-                                  config: SearchConfig = DEFAULT) -> ScanEstimate:
+                                  config: SearchConfig = DEFAULT, policy: TrustPolicy = DEFAULT_POLICY) -> ScanEstimate:
     """:func:`scan_estimate` with each setting of ``NORMALS_FROM_KEYPOINTS`` in turn until one's
     best pose is confident (:func:`~esmicp.trust.confidence.overlap_confidence` at least
     ``config.confident``), then, while none is, at the voxel of each count of
@@ -396,7 +397,7 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
     on their own keypoints; the last ones on those of the
     most confident before them, which they then carry: the confidence keeps the data's one scale,
     and :attr:`ScanEstimate.voxel` stays the standard keypoint voxel. ``searches``: stop after
-    that many searches (None: no limit).
+    that many searches (None: no limit). ``policy``: the overlap confidence's values.
 
     Why: at 10-25% overlap only a few hundred of the 5,000 keypoints lie in the overlap and often
     no true correspondence survives the pruning; normals at the keypoints' scale and at the dense
@@ -410,7 +411,7 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
         or ``searches`` have run."""
         nonlocal best, done
         found = replace(found, confidence=overlap_confidence(found.transformations[0], found.keypoints, workers,
-                                                             config=config))
+                                                             config=config, policy=policy))
         if best is None or found.confidence > best.confidence:
             best = found
         done += 1

@@ -58,6 +58,7 @@ from ..core.nearest_grid import NearestGrid
 from ..core.procrustes import apply, batched_rotation_angle, bounding_box_diagonal, rigid_inverse, to_matrix
 from . import DISTINCT_ROTATION_DEG
 from .config import DEFAULT, SearchConfig
+from ..trust.policy import DEFAULT_POLICY, TrustPolicy
 from .rotation_search import NeighbourGraph, batched_esm, gaussian_overlap_score, rotation_search
 
 if TYPE_CHECKING:  # for the annotations only: the functions below import scan where they use it
@@ -192,6 +193,7 @@ class _Workspace:
     spacing: float
     width: float
     config: SearchConfig = DEFAULT
+    policy: TrustPolicy = DEFAULT_POLICY  # the overlap confidence's values
     graphs: dict[int, NeighbourGraph] = field(default_factory=dict)  # by id() of ``index`` / ``full_index``
     grid: NearestGrid | None = None  # the rotation search's lookup grid over ``index``, once built
     _keypoints: "Keypoints | None" = field(default=None, repr=False)  # once built (:meth:`keypoints`)
@@ -234,6 +236,7 @@ def global_estimate(
     target_spacing: float | None = None,
     workers: int | None = None,
     config: SearchConfig = DEFAULT,
+    policy: TrustPolicy = DEFAULT_POLICY,
 ) -> GlobalEstimate:
     """Find ``T_target_source`` from any initial pose (the stages: the module docstring).
 
@@ -242,12 +245,13 @@ def global_estimate(
     (a :class:`NearestNeighbors` over ``target``) is reused when given, and so is
     ``target_spacing`` (its :meth:`~NearestNeighbors.spacing`, cloud units). ``workers``: threads
     of the compiled kernels (None: every core; a given ``target_index`` keeps its own).
-    ``strategy``: one of :data:`STRATEGIES`; ``config``: the tuned values.
+    ``strategy``: one of :data:`STRATEGIES`; ``config``: the tuned values; ``policy``: the overlap
+    confidence's values (:class:`~esmicp.trust.policy.TrustPolicy`).
     """
     full_index = target_index if target_index is not None else NearestNeighbors(target, workers=workers)
     if strategy == "scan":
-        return _scan(source, target, full_index, target_spacing, config=config)
-    work = _workspace(source, target, rng, full_index, target_spacing, config)
+        return _scan(source, target, full_index, target_spacing, config=config, policy=policy)
+    work = _workspace(source, target, rng, full_index, target_spacing, config, policy)
     if strategy == "rotation-search":
         return _decide(work, _verify(work, _rotation_candidates(work), "rotation-search"))
     if strategy == "features":
@@ -256,13 +260,14 @@ def global_estimate(
             return _decide(work, _verify(work, found, "features"))
         # Too few feature matches to propose anything: the rotation search rather than a failure.
         return global_estimate(source, target, strategy="rotation-search", rng=rng, target_index=full_index,
-                               target_spacing=target_spacing, workers=full_index.workers, config=config)
+                               target_spacing=target_spacing, workers=full_index.workers, config=config,
+                               policy=policy)
     return _auto(work, target_spacing)
 
 
 def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
     """The default search: generators, one verification, one decision (module docstring)."""
-    config, workers = work.config, work.full_index.workers
+    config, policy, workers = work.config, work.policy, work.full_index.workers
     # 1. Whole objects: the rotation search's poses, verified.
     rotation = _verify(work, _rotation_candidates(work), "rotation-search")
     searched = rotation.candidates
@@ -280,9 +285,11 @@ def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
             return final
     # 2. Partial overlaps: correspondences pruned by consistency (the scan strategy); a pose
     # confident on its score alone is only checked by its first search.
-    scanned = _scan(work.source, work.target, work.full_index, target_spacing,
-                    searches=None if scored is None else 1, config=config)
-    if _scan_leads(scanned, rotation.transformation, margin=config.scan_margin, workers=workers, config=config):
+    searches = config.scan_searches if scored is None else 1
+    scanned = _scan(work.source, work.target, work.full_index, target_spacing, searches=searches, config=config,
+                    policy=policy)
+    if _scan_leads(scanned, rotation.transformation, margin=config.scan_margin, workers=workers, config=config,
+                   policy=policy):
         return _on_the_verifier_scale(work, replace(scanned, candidates=searched + scanned.candidates))
     if scored is not None:
         return _sharper_or_chosen(work, replace(scored, candidates=searched + scanned.candidates), scanned)
@@ -298,7 +305,7 @@ def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
     chosen = replace(chosen, candidates=searched + len(twins) + len(found) + scanned.candidates)
     # 4. The decision: the best verified pose, unless the scan strategy's is confident and
     # overlaps more, or this one is not confident on the overlap and a scan pose is clearly more.
-    if _scan_leads(scanned, chosen.transformation, workers=workers, config=config):
+    if _scan_leads(scanned, chosen.transformation, workers=workers, config=config, policy=policy):
         return _on_the_verifier_scale(work, replace(scanned, candidates=chosen.candidates))
     return _sharper_or_chosen(work, replace(chosen, keypoints=scanned.keypoints), scanned)
 
@@ -306,13 +313,13 @@ def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
 def _sharper_or_chosen(work: _Workspace, chosen: GlobalEstimate, scanned: GlobalEstimate) -> GlobalEstimate:
     """:func:`_sharper_on_the_overlap`, its result on the verifier's scale: a scan pose that
     replaced ``chosen`` comes with overlap scores on keypoints (:func:`_on_the_verifier_scale`)."""
-    result = _sharper_on_the_overlap(chosen, scanned, work.full_index.workers, work.config)
+    result = _sharper_on_the_overlap(chosen, scanned, work.full_index.workers, work.config, work.policy)
     replaced = not np.array_equal(result.transformation, chosen.transformation)
     return _on_the_verifier_scale(work, result) if replaced else result
 
 
 def _workspace(source, target, rng, full_index: NearestNeighbors, target_spacing: float | None,
-               config: SearchConfig) -> _Workspace:
+               config: SearchConfig, policy: TrustPolicy = DEFAULT_POLICY) -> _Workspace:
     """The :class:`_Workspace` of one search: the target indexed (a subsample of
     :data:`TARGET_POINTS` drawn from ``rng`` when larger), its spacing and the score width."""
     if len(target) <= TARGET_POINTS:
@@ -321,7 +328,7 @@ def _workspace(source, target, rng, full_index: NearestNeighbors, target_spacing
         index = NearestNeighbors(_subsample(target, TARGET_POINTS, rng), workers=full_index.workers)
     spacing = target_spacing if target_spacing is not None and index is full_index else index.spacing()
     width = config.score_width_spacings * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target)
-    return _Workspace(source, target, rng, full_index, index, spacing, width, config)
+    return _Workspace(source, target, rng, full_index, index, spacing, width, config, policy)
 
 
 def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
@@ -329,7 +336,7 @@ def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimat
     (:func:`~esmicp.trust.confidence.overlap_confidence`). ``"auto"`` takes the rotation search's
     pose, confident on its score, at once only when this is at least
     ``config.confident`` (the search's own bar; ``register``'s result is
-    trusted from :data:`~esmicp.trust.confidence.TRUSTED`) or the pose covers the whole target
+    trusted from :attr:`~esmicp.trust.policy.TrustPolicy.trusted`) or the pose covers the whole target
     (:func:`_covers_the_target`); otherwise the scan strategy's first search checks it
     (:func:`global_estimate`).
 
@@ -343,7 +350,8 @@ def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimat
     from ..trust.confidence import overlap_confidence
 
     keypoints = work.keypoints()
-    confidence = overlap_confidence(estimate.transformation, keypoints, work.full_index.workers, config=work.config)
+    confidence = overlap_confidence(estimate.transformation, keypoints, work.full_index.workers, config=work.config,
+                                    policy=work.policy)
     return replace(estimate, keypoints=keypoints, confidence=confidence)
 
 
@@ -369,20 +377,22 @@ def _settle(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate | None
     if scores[0] < work.config.confident_score:
         return None
     keypoints = work.keypoints()
-    confidence = overlap_confidence(settled[0], keypoints, work.full_index.workers, config=work.config)
+    confidence = overlap_confidence(settled[0], keypoints, work.full_index.workers, config=work.config,
+                                    policy=work.policy)
     return replace(estimate, transformations=np.concatenate([settled, estimate.transformations[1:]]),
                    scores=np.concatenate([scores, estimate.scores[1:]]), keypoints=keypoints, confidence=confidence)
 
 
 def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | None,
-          searches: int | None = None, config: SearchConfig = DEFAULT) -> GlobalEstimate:
+          searches: int | None = None, config: SearchConfig = DEFAULT,
+          policy: TrustPolicy = DEFAULT_POLICY) -> GlobalEstimate:
     """The ``"scan"`` strategy (:mod:`esmicp.globalreg.scan`): its poses and overlap scores, from at
     most ``searches`` of its searches (None: until one is confident)."""
     from .scan import scan_estimate_until_confident
 
     spacing = full_index.spacing() if target_spacing is None else target_spacing
     found = scan_estimate_until_confident(source, target, spacing=spacing, workers=full_index.workers,
-                                          searches=searches, config=config)
+                                          searches=searches, config=config, policy=policy)
     return GlobalEstimate(
         found.transformations, found.scores, ("scan",) * len(found.scores), candidates=len(found.scores),
         keypoints=found.keypoints, confidence=found.confidence, ambiguity_ratio=config.ambiguity_ratio,
@@ -390,7 +400,8 @@ def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | 
 
 
 def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1.0,
-                workers: int | None = None, config: SearchConfig = DEFAULT) -> bool:
+                workers: int | None = None, config: SearchConfig = DEFAULT,
+                policy: TrustPolicy = DEFAULT_POLICY) -> bool:
     """True when the scan strategy's best pose is confident on the overlap
     (:func:`~esmicp.trust.confidence.overlap_confidence`) and either its overlap score (keypoints of
     both clouds on the other cloud) is above ``margin`` times that of ``other``, or it overlaps at
@@ -407,11 +418,12 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
     if mine > margin * theirs:
         return True
     return mine >= config.sharper_score_ratio * theirs and \
-        confidence >= overlap_confidence(other, keypoints, workers, config=config) + config.sharper_by
+        confidence >= overlap_confidence(other, keypoints, workers, config=config, policy=policy) + config.sharper_by
 
 
 def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
-                            workers: int | None = None, config: SearchConfig = DEFAULT) -> GlobalEstimate:
+                            workers: int | None = None, config: SearchConfig = DEFAULT,
+                            policy: TrustPolicy = DEFAULT_POLICY) -> GlobalEstimate:
     """``chosen`` (its keypoints set) with the overlap confidence of its best pose on its keypoints,
     unless that is below ``config.confident`` and one of the scan strategy's
     poses is more confident by ``config.sharper_than_chosen``: then the most confident of those, with
@@ -432,7 +444,7 @@ def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
     keypoints = chosen.keypoints
     confidence = chosen.confidence
     if confidence is None:
-        confidence = overlap_confidence(chosen.transformation, keypoints, workers, config=config)
+        confidence = overlap_confidence(chosen.transformation, keypoints, workers, config=config, policy=policy)
     chosen = replace(chosen, confidence=confidence)
     poses = scanned.transformations[scanned.scores > 0]  # a search that found nothing sends nothing
     if confidence >= config.confident or not len(poses):
@@ -440,7 +452,7 @@ def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
     # The scan strategy judged its best pose already, on these keypoints when they are its own.
     known = scanned.confidence if keypoints is scanned.keypoints and scanned.scores[0] > 0 else None
     confidences = [known if k == 0 and known is not None
-                   else overlap_confidence(pose, keypoints, workers, config=config)
+                   else overlap_confidence(pose, keypoints, workers, config=config, policy=policy)
                    for k, pose in enumerate(poses)]
     best = int(np.argmax(confidences))
     if confidences[best] < confidence + config.sharper_than_chosen:

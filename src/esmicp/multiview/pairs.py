@@ -23,16 +23,6 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-#: Points of a scan (evenly strided, at most) whose distances to another posed scan predict the
-#: pair's overlap (:class:`PredictedOverlap`): a rank, not a measurement, needs few.
-PREDICT_POINTS = 300
-
-#: Posed scans nearest in the world (by the centres of their extents) whose overlap with a scan is
-#: predicted when candidates are sought for it (:func:`loop_pairs`, :func:`closing_pairs`):
-#: bounds the work at O(N) predictions a round.
-PREDICT_PARTNERS = 16
-
-
 def descriptor(points: np.ndarray) -> np.ndarray:
     """A pose-invariant shape summary of one scan (27 numbers): the square roots of its covariance
     eigenvalues, normalised to sum 1; the histogram (8 bins) of its points' distances from the
@@ -153,14 +143,15 @@ def near_pairs(scans: Iterable[int], extents: dict[int, tuple[np.ndarray, float]
 
 class PredictedOverlap:
     """What the poses predict two posed scans share: the fraction of one scan's points (at most
-    :data:`PREDICT_POINTS`, evenly strided) lying within ``radius`` (cloud units) of the other's
-    where ``poses`` (``T_world_scan``) put them, the smaller of the two ways (0-1).
+    ``points``, evenly strided) lying within ``radius`` (cloud units) of the other's where
+    ``poses`` (``T_world_scan``) put them, the smaller of the two ways (0-1).
 
-    Only ranks candidate pairs: a wrong pose predicts the wrong pairs, which then cost a global
-    search each and are judged by it. One KD-tree per scan asked about, built once."""
+    Only ranks candidate pairs (a rank, not a measurement, needs few points): a wrong pose
+    predicts the wrong pairs, which then cost a global search each and are judged by it. One
+    KD-tree per scan asked about, built once."""
 
-    def __init__(self, poses: dict[int, np.ndarray], clouds: Sequence[np.ndarray], radius: float):
-        self.poses, self.clouds, self.radius = poses, clouds, float(radius)
+    def __init__(self, poses: dict[int, np.ndarray], clouds: Sequence[np.ndarray], radius: float, *, points: int):
+        self.poses, self.clouds, self.radius, self.points = poses, clouds, float(radius), points
         self._trees: dict = {}
         self._queried: dict[int, np.ndarray] = {}
         self._known: dict[tuple[int, int], float] = {}
@@ -175,7 +166,7 @@ class PredictedOverlap:
 
             world = self._world(k)
             self._trees[k] = cKDTree(world)
-            stride = max(1, len(world) // PREDICT_POINTS)
+            stride = max(1, len(world) // self.points)
             self._queried[k] = world[::stride]
         return self._trees[k]
 
@@ -219,12 +210,14 @@ def nearest_posed(scans: Iterable[int], extents: dict[int, tuple[np.ndarray, flo
 
 
 def loop_pairs(edges: Iterable[tuple[int, int]], extents: dict[int, tuple[np.ndarray, float]],
-               overlap, tried: set, *, min_overlap: float, min_hops: int, budget: int) -> list[tuple[int, int]]:
+               overlap, tried: set, *, min_overlap: float, min_hops: int, budget: int,
+               partners: int) -> list[tuple[int, int]]:
     """Loop-closure candidates among the posed scans (``extents``): untried pairs the poses
     predict to share at least ``min_overlap`` (``overlap(a, b)``, e.g. :class:`PredictedOverlap`),
     chosen one after the other where the graph of ``edges`` (and of the pairs chosen before) joins
     the two scans by the longest path (in edges), as long as that is at least ``min_hops``; at
-    most ``budget``.
+    most ``budget``. Each scan's overlap is predicted with its ``partners`` nearest posed scans
+    (:func:`nearest_posed`): O(N) predictions.
 
     A loop closure corrects the drift that accumulates along the path it bypasses, so the longest
     bypass comes first, and once a pair is chosen the pairs next to it are short bypasses: the
@@ -238,7 +231,7 @@ def loop_pairs(edges: Iterable[tuple[int, int]], extents: dict[int, tuple[np.nda
     def allowed(i, j):
         return i < j and (i, j) not in tried and hops[slot[i], slot[j]] >= min_hops
 
-    near = nearest_posed(posed, extents, lambda i, j: allowed(min(i, j), max(i, j)), PREDICT_PARTNERS)
+    near = nearest_posed(posed, extents, lambda i, j: allowed(min(i, j), max(i, j)), partners)
     candidates = sorted({(min(i, j), max(i, j)) for i, others in near.items() for j in others})
     candidates = [(i, j) for i, j in candidates if overlap(i, j) >= min_overlap]
     out: list[tuple[int, int]] = []
@@ -317,11 +310,12 @@ def hanging_parts(reference: int, kept: Iterable[tuple[int, int]]) -> list[set[i
 
 
 def closing_pairs(parts: list[set[int]], extents: dict[int, tuple[np.ndarray, float]], overlap, tried: set, *,
-                  min_overlap: float, per_part: int) -> list[tuple[int, int]]:
+                  min_overlap: float, per_part: int, partners: int) -> list[tuple[int, int]]:
     """Pairs that would put bridges on a cycle: for each set of ``parts`` (scans joined to the rest
     of the posed scans, ``extents``, by one edge only; smallest first) not yet crossed by a pair
     chosen before, up to ``per_part`` untried pairs of one of its scans and a posed scan outside it,
-    the largest predicted overlap first (``overlap(a, b)``, at least ``min_overlap``).
+    the largest predicted overlap first (``overlap(a, b)``, at least ``min_overlap``), among each
+    scan's ``partners`` nearest posed scans (:func:`nearest_posed`).
 
     A scan hanging on one edge is confirmed by any second path to the reference, so one pair across
     each cut is what is needed, not one per scan: a pair chosen for a part also crosses every cut
@@ -331,7 +325,7 @@ def closing_pairs(parts: list[set[int]], extents: dict[int, tuple[np.ndarray, fl
         if any((i in part) != (j in part) for i, j in out):
             continue
         near = nearest_posed(sorted(part), extents, lambda i, j: j not in part
-                              and (min(i, j), max(i, j)) not in tried, PREDICT_PARTNERS)
+                              and (min(i, j), max(i, j)) not in tried, partners)
         scored = sorted({(min(i, j), max(i, j)) for i, others in near.items() for j in others},
                         key=lambda p: (-overlap(*p), p))
         out.extend([p for p in scored if overlap(*p) >= min_overlap and p not in out][:per_part])

@@ -4,8 +4,8 @@ over every edge at once.
 The optimiser is a Levenberg-Marquardt on left increments of the poses with the Jacobian in
 closed form and iteratively reweighted Cauchy residuals (the loss of SciPy's ``least_squares``
 with ``loss="cauchy"``), each step's sparse normal equations solved directly up to
-:data:`DIRECT_SOLVE_MAX_POSES` poses and by conjugate gradients beyond: its memory grows with the
-edges. Measured (one solve, 2 cores): a 100-scan walk in 0.2 s; 1,000 scans
+``direct_solve_max_poses`` poses (:class:`esmicp.config.MergeConfig`) and by conjugate gradients
+beyond: its memory grows with the edges. Measured (one solve, 2 cores): a 100-scan walk in 0.2 s; 1,000 scans
 with 3,000 edges (1,000 of them random loop closures) in 6 s; a 1,000-scan walk with only local
 loop closures (2,327 edges) in 14 s, where conjugate gradients need the most steps (a sparse
 direct solve is faster on a walk, but fills in on random loop closures: 400 s). No pose-graph
@@ -190,14 +190,6 @@ def _right_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
     return np.eye(3) + 0.5 * K + coefficient * (K @ K)
 
 
-#: Up to this many free poses, each Levenberg-Marquardt step is a sparse direct solve (minimum
-#: degree ordering); beyond, conjugate gradients (:func:`_conjugate_gradients`). A direct solve is
-#: exact and fastest on walks (the kitchen walk's 100 frames: 0.3 s per optimisation, against 0.9 s
-#: by conjugate gradients), but fills in when loop closures join far-apart scans: with random loop
-#: closures it took 2.6 s at 300 scans (conjugate gradients 1.2 s) and 54 s at 1,000 (3.5 s).
-DIRECT_SOLVE_MAX_POSES = 200
-
-
 def _conjugate_gradients(matrix, right, blocks: np.ndarray) -> np.ndarray:
     """``matrix^-1 right`` for a sparse symmetric positive definite ``matrix`` (a damped normal
     matrix), by conjugate gradients preconditioned by the inverses of its 6x6 diagonal ``blocks``
@@ -212,7 +204,8 @@ def _conjugate_gradients(matrix, right, blocks: np.ndarray) -> np.ndarray:
 
 
 def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation_scale: float,
-             loss: str = "cauchy", rotation_scale_deg: float = 1.0, max_iterations: int = 100) -> dict[int, np.ndarray]:
+             direct_solve_max_poses: int, loss: str = "cauchy", rotation_scale_deg: float = 1.0,
+             max_iterations: int = 100) -> dict[int, np.ndarray]:
     """Minimise the robust edge errors over all placed poses (``reference`` held fixed).
 
     ``edges`` are ``(i, j, T_i_j, weight)`` or ``(i, j, T_i_j, weight, information)`` (information
@@ -229,7 +222,10 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
     Levenberg-Marquardt over left increments of the free poses (``R <- exp(phi) R``,
     ``t <- t + rho``), the Jacobian in closed form, the Cauchy loss as weights ``1 / (1 + r^2)``
     recomputed every step; at most ``max_iterations`` steps, until the cost changes by less than
-    one part in 10^8.
+    one part in 10^8. Each step's normal equations are solved by a sparse direct solve (minimum
+    degree ordering) up to ``direct_solve_max_poses`` free poses, exact and fastest on walks, and
+    beyond by conjugate gradients (:func:`_conjugate_gradients`), as a direct solve fills in when
+    loop closures join far-apart scans.
     """
     from scipy.sparse import coo_matrix, diags
     from scipy.sparse.linalg import spsolve
@@ -298,7 +294,7 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
         while True:
             lift = damping * np.maximum(diagonal, 1e-12)
             damped = normal + diags(lift, format="csr")
-            if len(free) <= DIRECT_SOLVE_MAX_POSES:
+            if len(free) <= direct_solve_max_poses:
                 step = -spsolve(damped.tocsc(), gradient, permc_spec="MMD_AT_PLUS_A")
             else:
                 step = -_conjugate_gradients(damped, gradient, own + lift.reshape(-1, 6)[:, :, None] * np.eye(6))

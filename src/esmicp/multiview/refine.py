@@ -11,23 +11,17 @@ import numpy as np
 from . import pose_graph
 
 
-#: Points of a scan that each direction of an edge queries in the joint refinement (evenly
-#: strided): a 6-degree-of-freedom step needs no more, and the queries are its cost. Chosen on the
-#: bunny's 10 raw scans (worst 0.35 deg / 0.66 mm from ``bun.conf`` at 1,000, 0.35 / 0.68 at 2,000,
-#: 0.37 / 0.64 at 500; 0.45x the time of 2,000), confirmed on the kitchen walk in order (ATE 4.52 cm
-#: at 1,000, 4.57 at 2,000; 0.62x the time).
-QUERY_POINTS = 1000
-
-
-def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: int, distances,
-           rounds_per_distance: int = 2):
+def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: int, distances, *,
+           query_points: int, rounds_per_distance: int = 2):
     """``(poses, rmse, residual per scan)`` after refining ``poses`` (``T_world_scan``, modified in
     place) over the pairs ``edges``; ``clouds`` and ``clouds_normals`` in each scan's frame.
     Each step turns a scan about the world's origin: the merge passes its scans in their centroid
     frames (the world the reference's), so the steps are well scaled wherever the data lie.
 
     ``distances`` are the correspondence cutoffs (cloud units), each used for
-    ``rounds_per_distance`` Gauss-Newton steps. ``rmse`` is the point-to-plane RMS over all
+    ``rounds_per_distance`` Gauss-Newton steps. Each direction of an edge queries at most
+    ``query_points`` points of its scan (evenly strided): a 6-degree-of-freedom step needs no more,
+    and the queries are its cost. ``rmse`` is the point-to-plane RMS over all
     correspondences of the last step; the residual of scan k is the same over the correspondences
     it takes part in (None for a scan with none, and everything None without a step)."""
     from ..core.compiled_tree import CompiledTree
@@ -35,8 +29,8 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
     free = [k for k in sorted(poses) if k != reference]
     slot = {k: n for n, k in enumerate(free)}
     trees = {k: CompiledTree(clouds[k]) for k in poses}  # each in its scan's frame, built once
-    # each direction of an edge queries an evenly strided subset of at most QUERY_POINTS points
-    queried = {k: np.arange(0, len(clouds[k]), max(1, len(clouds[k]) // QUERY_POINTS)) for k in poses}
+    # each direction of an edge queries an evenly strided subset of at most query_points points
+    queried = {k: np.arange(0, len(clouds[k]), max(1, len(clouds[k]) // query_points)) for k in poses}
     warm: dict[tuple[int, int], np.ndarray] = {}  # last nearest neighbours: seeds (speed only)
     directions = [(a, b) for i, j in edges for a, b in ((i, j), (j, i))]
 

@@ -22,11 +22,12 @@
 3. With a sequence, loop closures: pairs of placed scans the graph's poses predict to overlap
    (:class:`esmicp.multiview.pairs.PredictedOverlap`), those the graph joins by the longest path
    first (the drift a closure corrects grows with the path it bypasses), at most
-   ``LOOP_SEARCHES_PER_SCAN`` per scan. Then, with or without, more pairs only where a scan is not
-   yet confirmed (not on a cycle of agreeing edges): across each edge on no cycle, the pair the
+   ``loop_searches_per_scan`` per scan (the fields named here are
+   :class:`esmicp.config.MergeConfig`'s). Then, with or without, more pairs only where a scan is
+   not yet confirmed (not on a cycle of agreeing edges): across each edge on no cycle, the pair the
    poses predict to overlap most; for each piece of scans not placed, the pairs its pose as a
    whole proposes (the piece fused and searched against the placed scans fused), else those most
-   like its scans; then the graph is solved again, until ``STALLED_ROUNDS`` rounds in a row place
+   like its scans; then the graph is solved again, until ``stalled_rounds`` rounds in a row place
    or confirm no scan. These pairs are chosen from poses but searched globally, never refined
    from those poses: a refinement started at a wrong pose can settle next to it and confirm it
    (measured on the kitchen walk: a scan 90 degrees off "confirmed" by a refinement from its own
@@ -57,81 +58,19 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..api import STRIDED_TOLERANCE
 from ..batch import register_many
+from ..config import MergeConfig, RegistrationConfig
 from ..core.features import estimate_normals, voxel_grid
 from ..core.procrustes import skew
 from ..errors import InvalidInputError
 from ..trust import free_space
-from ..types import MIN_POINTS, as_points
+from ..types import as_points
 from . import pairs as candidates
 from . import pose_graph
 from .refine import refine
 from .verdict import cut_off, scan_verdicts
 
 logger = logging.getLogger(__name__)
-
-#: Rounds in a row after which the pose graph stops asking for more pairs where a scan is not yet
-#: confirmed, when none of them placed or confirmed a scan (each round: one pair across each edge
-#: on no cycle, :data:`CLOSING_PAIRS`; for each piece of unplaced scans, up to ``partners`` pairs
-#: its pose as a whole proposes, else up to ``partners * min(len(piece), partners)`` with the
-#: placed scans most like it; then the graph solved again). A round that places or confirms a
-#: scan starts the count again, so a set placed a few scans a round is never cut short; the count
-#: bounds the work on scans that can never be confirmed (another object, a piece that shares no
-#: surface with the others). Chosen on the bunny's 10 scans shuffled, with each scan as the
-#: reference in turn (with 2, two of the ten references left a piece of 5 scans unplaced whose
-#: pairs across were found in the third round); confirmed on the kitchen walk shuffled.
-STALLED_ROUNDS = 3
-
-#: Pairs searched a round for each set of posed scans joined to the reference by one edge only
-#: (:func:`esmicp.multiview.pairs.closing_pairs`): the pair the poses predict to overlap most
-#: across that edge. One trusted pair puts the edge on a cycle.
-CLOSING_PAIRS = 1
-
-#: What the poses predict two posed scans share (:class:`esmicp.multiview.pairs.PredictedOverlap`)
-#: is measured within this many median inlier distances of the kept edges: the sparse subsets'
-#: spacing and the graph's error before the joint refinement.
-PREDICT_RADIUS_INLIERS = 3.0
-
-#: Below this predicted overlap a pair is not worth a global search to close a cycle or a loop.
-MIN_PREDICTED_OVERLAP = 0.3
-
-#: With ``sequence``: a loop closure is searched only where the graph joins the two scans by a
-#: path of at least this many edges (the drift it can correct grows with the path it bypasses) ...
-LOOP_MIN_HOPS = 6
-
-#: ... and at most this many loop closures per scan are searched, the longest bypasses first.
-#: Chosen on the kitchen walk in order (100 frames; ATE 4.56 cm with the 12 this allows, 4.58 with
-#: 25, 5.28 with one nearest-in-the-world closure per scan; 9 closures at ``LOOP_MIN_HOPS`` 10:
-#: 4.70), confirmed on every 20th frame of it.
-LOOP_SEARCHES_PER_SCAN = 0.125
-
-#: Iterations of the local check of a pair on the dense subsets (unless ``max_iterations`` is
-#: passed to :func:`register_scans`): it starts at a converged pose, and a wrong pose refined
-#: for longer only costs time. On the bunny's scans (8,000 points) right pairs settle in 28-36
-#: iterations with the same confidence at 30; a wrong pair ran 68 iterations and a second try
-#: (6.7 s against 1.8 s capped, confidence 0.10 either way).
-CHECK_ITERATIONS = 30
-
-#: ... and it stops once an increment rotates less than this (radians; translates less than this
-#: times the target's bounding-box diagonal): the tolerance at which the library's own refinement
-#: stops after a global search (:data:`esmicp.api.STRIDED_TOLERANCE`), where the default 1e-8
-#: runs every check to its cap. Measured on the bunny's 9 neighbouring pairs (global searches):
-#: the same trust, median / worst error 0.30 / 0.95 deg against 0.30 / 0.94 at 1e-8, in 0.76x the
-#: time (22 iterations on average instead of 29); confirmed on 30 kitchen pairs 1 and 2 frames
-#: apart (from the identity): the same trust and errors (within 0.01 deg / 0.02 cm), 0.74x the time.
-CHECK_TOLERANCE = STRIDED_TOLERANCE
-
-#: The joint refinement's last correspondence distance, in point spacings of the dense subsets
-#: (its first is 3 median inlier distances of the kept edges). Chosen on the bunny's 10 raw scans
-#: (worst translation from ``bun.conf``: 0.69 mm at 3 spacings, 0.55 at 2, 0.52 at 1.5, 0.55 at 1;
-#: worst rotation 0.30-0.31 deg throughout), confirmed on the kitchen walk in order (ATE 5.8 cm at
-#: 3 spacings, 5.3 at 2).
-REFINE_FLOOR_SPACINGS = 2.0
-
-#: Placed scans each scan is checked against for free-space conflicts (its nearest in the world
-#: whose extents overlap its own), besides the scans it shares a kept edge with.
-VISIBILITY_PARTNERS = 8
 
 #: Kinds of :attr:`Edge.kind`: how the pairwise registration started.
 GLOBAL, LOCAL = "global", "local"
@@ -213,6 +152,16 @@ class MultiRegistrationResult:
     residual: tuple[float | None, ...] = ()
     pairs_registered: int = 0
     free_space_check: str = "too few edges"
+
+    def __repr__(self) -> str:
+        """One line: how many scans are placed, doubtful and unplaced, the reference, the edges
+        kept and the work, e.g. ``MultiRegistrationResult(scans=10, placed=9, doubtful=1,
+        unplaced=0, reference=0, edges kept=14 of 27, pairs_registered=62, 32.5 s)`` (the arrays
+        and per-scan reasons stay in the fields)."""
+        placed = sum(1 for s in self.status if s == "placed")
+        return (f"{type(self).__name__}(scans={len(self.status)}, placed={placed}, doubtful={len(self.doubtful)}, "
+                f"unplaced={len(self.unplaced)}, reference={self.reference}, edges kept={len(self.kept_edges)} of "
+                f"{len(self.edges)}, pairs_registered={self.pairs_registered}, {self.runtime_s:.1f} s)")
 
     @property
     def doubtful(self) -> tuple[int, ...]:
@@ -395,9 +344,9 @@ class _Pairwise:
     spacing (on the bunny's scans, right pairs score 0.0-0.76 at 1,500 points, 0.74-1.0 at 10,000;
     wrong ones stay below 0.25)."""
 
-    def __init__(self, centred, small, dense, keys, sequence, run_options, stages: _Stages):
+    def __init__(self, centred, small, dense, keys, sequence, run_options, stages: _Stages, config: MergeConfig):
         self.centred, self.small, self.dense, self.keys = centred, small, dense, keys
-        self.sequence, self.run_options, self.stages = sequence, run_options, stages
+        self.sequence, self.run_options, self.stages, self.config = sequence, run_options, stages, config
         self.edges: dict[tuple[int, int], Edge] = {}
         self.done = 0  # registrations run, for progress and the result
         self.tried: set[tuple[int, int]] = set()
@@ -410,6 +359,16 @@ class _Pairwise:
         once = {key for key, edge in self.edges.items() if edge.kind == GLOBAL and not edge.trusted}
         return (self.tried - once) | self.redrawn
 
+    def search_config(self) -> RegistrationConfig:
+        """The registrations' config for the global pair searches on the sparse subsets: the
+        merge's :attr:`~esmicp.config.MergeConfig.registration`, with at most
+        :attr:`~esmicp.config.MergeConfig.pair_scan_searches` scan-strategy searches when its
+        search config sets no bound itself."""
+        registration = self.config.registration
+        if registration.search.scan_searches is not None:
+            return registration
+        return replace(registration, search=replace(registration.search, scan_searches=self.config.pair_scan_searches))
+
     def orient(self, a: int, b: int) -> tuple[int, int]:
         """(target, source): in a sequence the earlier scan is the target; otherwise the larger
         scan (:func:`_shape_key`: more points, then the larger extent), so that the same two scans
@@ -418,12 +377,17 @@ class _Pairwise:
             return (min(a, b), max(a, b))
         return (a, b) if (self.keys[a], -a) >= (self.keys[b], -b) else (b, a)
 
-    def _register(self, jobs, inits, offset, **extra):
-        """``jobs``: ``(source, target)`` clouds, each pair's source j onto its target i (``T_i_j``)."""
+    def _register(self, jobs, inits, offset, config=None, **extra):
+        """``jobs``: ``(source, target)`` clouds, each pair's source j onto its target i (``T_i_j``);
+        ``extra`` register options unless the caller gave them; ``config``, when given, replaces the
+        caller's (it is made from it: :meth:`search_config`)."""
         def report(done, _):
             self.stages.advance(offset + done)
 
-        outcomes = register_many(jobs, progress=report, inits=inits, **{**extra, **self.run_options})
+        options = {**extra, **self.run_options}
+        if config is not None:
+            options["config"] = config
+        outcomes = register_many(jobs, progress=report, inits=inits, **options)
         self.done += len(jobs)
         return outcomes
 
@@ -461,13 +425,15 @@ class _Pairwise:
         self.stages.open(stage, 2 * len(requests))
         # on the sparse subsets: a global search, or a local refinement from the given start
         subsets = [self.second if sparse[(min(i, j), max(i, j))] else self.small for i, j in oriented]
-        found = self._register([(c[j], c[i]) for c, (i, j) in zip(subsets, oriented)], inits, 0)
+        found = self._register([(c[j], c[i]) for c, (i, j) in zip(subsets, oriented)], inits, 0,
+                               config=self.search_config())
         outcomes = {n: outcome for n, outcome in enumerate(found) if not hasattr(outcome, "transformation")}
         # the check on the dense subsets starts at a converged pose: capped
         group = [n for n in range(len(requests)) if n not in outcomes]
         checked = self._register([(self.dense[oriented[n][1]], self.dense[oriented[n][0]]) for n in group],
                                  [found[n].transformation for n in group], 2 * len(requests) - len(group),
-                                 max_iterations=CHECK_ITERATIONS, tolerance=CHECK_TOLERANCE)
+                                 max_iterations=self.config.check_iterations,
+                                 tolerance=self.config.check_tolerance)
         self.stages.close()
         for n, check in zip(group, checked):
             if hasattr(check, "transformation"):
@@ -506,11 +472,12 @@ class _Pairwise:
                     information=getattr(outcome, "information", None))
 
 
-def _solve(edges: list[Edge], reference: int, max_edge_error_deg: float, vetoed: dict | None = None):
+def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict | None = None):
     """(poses of the scans joined to ``reference``, every edge with ``kept``/``reason`` set): the
     pose graph over the trusted edges (consensus tree, robust optimisation, cycle check, again),
     except the ``vetoed`` pairs (``(min, max) -> reason``: cut by a free-space conflict)."""
     vetoed = vetoed or {}
+    max_edge_error_deg, direct = config.max_edge_error_deg, config.direct_solve_max_poses
 
     def start(e):
         pair = (min(e.i, e.j), max(e.i, e.j))
@@ -549,18 +516,21 @@ def _solve(edges: list[Edge], reference: int, max_edge_error_deg: float, vetoed:
     # Edges the consensus tree contradicts are rejected; the rest are optimised robustly and
     # checked again at the final tolerance.
     edges = check(edges, poses, 2 * max_edge_error_deg, 6)
-    poses = pose_graph.optimise(poses, graph(placed(edges, poses)), reference, translation_scale=scale)
+    poses = pose_graph.optimise(poses, graph(placed(edges, poses)), reference, translation_scale=scale,
+                                direct_solve_max_poses=direct)
     edges = check(edges, poses, max_edge_error_deg, 3)
     kept = placed(edges, poses)
     poses = {k: T for k, T in pose_graph.consensus_tree(tree_edges(kept), reference, max_angle_deg=max_edge_error_deg,
                                                         max_shift=lambda m: float("inf")).items() if k in poses}
-    poses = pose_graph.optimise(poses, graph(placed(edges, poses)), reference, translation_scale=scale)
+    poses = pose_graph.optimise(poses, graph(placed(edges, poses)), reference, translation_scale=scale,
+                                direct_solve_max_poses=direct)
     edges = [e if not e.kept or (e.i in poses and e.j in poses) else replace(e, kept=False, reason="not connected to the reference")
              for e in edges]
     return poses, edges
 
 
-def _free_space_conflicts(n, reference, poses, dense, small, edges, centres, range_images, premise) -> tuple[dict, dict, str]:
+def _free_space_conflicts(n, reference, poses, dense, small, edges, centres, range_images, premise,
+                          config: MergeConfig) -> tuple[dict, dict, str]:
     """(scans a free-space conflict cuts off from the reference, and the edges it cuts, as
     :func:`cut_off` gives them; what the check did, :attr:`MultiRegistrationResult.free_space_check`).
 
@@ -574,15 +544,17 @@ def _free_space_conflicts(n, reference, poses, dense, small, edges, centres, ran
     kept = [e for e in edges if e.kept and e.i in poses and e.j in poses]
     if not kept:
         return {}, {}, "too few edges"
-    tolerance = free_space.TOLERANCE_INLIERS * float(np.median([e.inlier_distance for e in kept]))
+    policy = config.registration.trust
+    tolerance = policy.free_space_tolerance_inliers * float(np.median([e.inlier_distance for e in kept]))
     posed = sorted(poses)
     # on threads: the KD-tree builds and queries release the GIL
     with ThreadPoolExecutor() as pool:
         # each scan in its own frame (the sensor at the origin), and its pose from there
-        points = dict(zip(posed, pool.map(lambda k: _subsample(dense[k], free_space.CHECK_POINTS) + centres[k], posed)))
+        points = dict(zip(posed, pool.map(lambda k: _subsample(dense[k], policy.free_space_points) + centres[k],
+                                          posed)))
         if range_images is None:
             todo = [k for k in posed if k not in premise]
-            premise.update(zip(todo, pool.map(lambda k: free_space.range_image_test(points[k]), todo)))
+            premise.update(zip(todo, pool.map(lambda k: free_space.range_image_test(points[k], policy), todo)))
             seen = [k for k in posed if premise[k].range_image]
         else:
             seen = posed
@@ -596,14 +568,14 @@ def _free_space_conflicts(n, reference, poses, dense, small, edges, centres, ran
 
         def fractions(pairs):
             return dict(zip(pairs, pool.map(
-                lambda pair: free_space.pair_free_space(views, points, world, *pair, tolerance), pairs)))
+                lambda pair: free_space.pair_free_space(views, points, world, *pair, tolerance, policy), pairs)))
 
         on_kept = fractions(sorted({(min(e.i, e.j), max(e.i, e.j)) for e in kept if e.i in world and e.j in world}))
         near = candidates.near_pairs(seen, candidates.world_extents({k: poses[k] for k in seen}, small), set(on_kept),
-                                     VISIBILITY_PARTNERS)
+                                     config.visibility_partners)
         measured = {**on_kept, **fractions(near)}
-    conflicts = [(a, b, f) for (a, b), f in sorted(measured.items()) if f is not None and f > free_space.MAX_FREE_SPACE]
-    cut, removed = cut_off(n, reference, [(e.i, e.j, e.confidence) for e in kept], conflicts)
+    conflicts = [(a, b, f) for (a, b), f in sorted(measured.items()) if f is not None and f > policy.max_free_space]
+    cut, removed = cut_off(n, reference, [(e.i, e.j, e.confidence) for e in kept], conflicts, trusted=policy.trusted)
     if len(seen) == len(posed):
         return cut, removed, "applied"
     first = next(k for k in posed if k not in seen)
@@ -623,15 +595,16 @@ def _unconfirmed(n, reference, poses, edges) -> list[int]:
     return [k for k, v in enumerate(verdicts) if k != reference and not (v.status == "placed" and v.reasons[0].startswith("confirmed"))]
 
 
-def _predicted_overlap(poses, small, edges) -> candidates.PredictedOverlap:
+def _predicted_overlap(poses, small, edges, config: MergeConfig) -> candidates.PredictedOverlap:
     """What ``poses`` predict pairs of posed scans share, on the sparse subsets, within
-    :data:`PREDICT_RADIUS_INLIERS` median inlier distances of the kept edges."""
+    ``config.predict_radius_inliers`` median inlier distances of the kept edges."""
     distances = [e.inlier_distance for e in edges if e.kept and np.isfinite(e.inlier_distance)]
     scale = float(np.median(distances)) if distances else float("inf")
-    return candidates.PredictedOverlap(poses, small, PREDICT_RADIUS_INLIERS * scale)
+    return candidates.PredictedOverlap(poses, small, config.predict_radius_inliers * scale,
+                                      points=config.predict_points)
 
 
-def _closing(reference, poses, edges, small, unconfirmed, tried) -> list[tuple[int, int]]:
+def _closing(reference, poses, edges, small, unconfirmed, tried, config: MergeConfig) -> list[tuple[int, int]]:
     """Pairs to search for the posed scans in ``unconfirmed``: across each edge on no cycle of the
     kept graph (:func:`candidates.hanging_parts`), and for each scan contradicted in the
     reference's 2-edge-connected core, the pairs the poses predict to overlap most
@@ -643,8 +616,9 @@ def _closing(reference, poses, edges, small, unconfirmed, tried) -> list[tuple[i
     hanging = set().union(*parts)
     parts += [{k} for k in unconfirmed if k not in hanging]  # in the core, but contradicted
     return candidates.closing_pairs(parts, candidates.world_extents(poses, small),
-                                    _predicted_overlap(poses, small, edges), tried,
-                                    min_overlap=MIN_PREDICTED_OVERLAP, per_part=CLOSING_PAIRS)
+                                    _predicted_overlap(poses, small, edges, config), tried,
+                                    min_overlap=config.min_predicted_overlap, per_part=config.closing_pairs,
+                                    partners=config.predict_partners)
 
 
 class _Pieces:
@@ -660,9 +634,9 @@ class _Pieces:
     pairs placed nothing, gets the placed scans most like its own by the shape descriptor instead
     (:func:`candidates.bridging_pairs`, ``partners * min(len(piece), partners)`` pairs a round)."""
 
-    def __init__(self, pairwise: "_Pairwise", small, pair_points: int, partners: int, max_edge_error_deg: float):
-        self.pairwise, self.small, self.pair_points = pairwise, small, pair_points
-        self.partners, self.max_edge_error_deg = partners, max_edge_error_deg
+    def __init__(self, pairwise: "_Pairwise", small, config: MergeConfig):
+        self.pairwise, self.small, self.config = pairwise, small, config
+        self.pair_points, self.partners = config.pair_points, config.partners
         self.placed_at: dict[frozenset, frozenset] = {}  # piece -> the placed scans it was last searched against
         self.unlike = None  # the descriptors' distances, once asked for
 
@@ -676,7 +650,7 @@ class _Pieces:
             return {piece[0]: np.eye(4)}
         inside = set(piece)
         own = [e for e in self.pairwise.edges.values() if e.i in inside and e.j in inside]
-        return _solve(own, piece[0], self.max_edge_error_deg, vetoed)[0]
+        return _solve(own, piece[0], self.config, vetoed)[0]
 
     def pairs(self, pieces, poses, edges, vetoed, stage: str) -> list[tuple[int, int]]:
         placed = frozenset(poses)
@@ -692,20 +666,20 @@ class _Pieces:
                 if T is not None and np.isfinite(T).all():
                     proposed.update({k: T @ P for k, P in own.items()})
         everything = {**poses, **proposed}
-        overlap = _predicted_overlap(everything, self.small, edges)
+        overlap = _predicted_overlap(everything, self.small, edges, self.config)
         extents = candidates.world_extents(everything, self.small)
         tried = self.pairwise.tried
         out, blind = [], []
         for piece in pieces:
             near = candidates.nearest_posed(
                 [k for k in piece if k in proposed], extents,
-                lambda i, j: j in poses and (min(i, j), max(i, j)) not in tried, candidates.PREDICT_PARTNERS)
+                lambda i, j: j in poses and (min(i, j), max(i, j)) not in tried, self.config.predict_partners)
             scored = sorted(((overlap(i, j), i, j) for i, others in near.items() for j in others), reverse=True)
             per_scan = -(-self.partners // len(piece))
             used: dict[int, int] = {}
             chosen = []
             for value, i, j in scored:
-                if value < MIN_PREDICTED_OVERLAP or len(chosen) >= self.partners:
+                if value < self.config.min_predicted_overlap or len(chosen) >= self.partners:
                     break
                 if used.get(i, 0) < per_scan and used.get(j, 0) < 1:
                     chosen.append((min(i, j), max(i, j)))
@@ -755,17 +729,18 @@ def register_scans(
     *,
     reference: int = 0,
     sequence: bool = False,
-    pair_points: int = 1500,
-    refine_points: int = 8000,
-    partners: int = 2,
-    sequence_neighbours: int = 2,
-    max_edge_error_deg: float = 2.0,
-    refine_rounds: int = 6,
+    pair_points: int | None = None,
+    refine_points: int | None = None,
+    partners: int | None = None,
+    sequence_neighbours: int | None = None,
+    max_edge_error_deg: float | None = None,
+    refine_rounds: int | None = None,
     range_images: bool | None = None,
     threads: int | None = None,
     processes: int | None = None,
     client=None,
     progress: Callable[[str, int, int], None] | None = None,
+    config: MergeConfig | dict | None = None,
     **register_kwargs,
 ) -> MultiRegistrationResult:
     """Register N scans into one frame, with no initial poses; say plainly which scans are placed.
@@ -781,26 +756,31 @@ def register_scans(
         with small steps): each scan is registered with its next ``sequence_neighbours`` scans
         (locally from the identity, globally when that is not trusted), then loop closures are
         sought among placed scans that overlap in the world. Without it the order means nothing.
-    pair_points, refine_points : int
+    pair_points, refine_points : int, optional
         Points per scan (a content-seeded random subset) for the pairwise global searches, and for
         the local refinement that checks each pair (and judges it: its confidence) and the joint
         refinement; at least 3 (:data:`esmicp.types.MIN_POINTS`, what a registration needs).
-    partners : int
+        These keywords and the five below are fields of ``config`` too: each one given (not None)
+        wins over ``config``'s field; None (the default) takes ``config``'s (by default
+        :class:`~esmicp.config.MergeConfig`'s: 1500 and 8000 points, ``partners=2``,
+        ``sequence_neighbours=2``, ``max_edge_error_deg=2.0``, ``refine_rounds=6``).
+    partners : int, optional
         Without ``sequence``: each scan is first registered with its ``partners`` most similar
         scans (a shape descriptor). Then, each round, each piece of scans not placed (scans joined
         to each other, or one scan) gets up to ``partners`` pairs with the placed scans: those its
         pose as a whole predicts to overlap, else those most like its scans, each scan in at most
         ``partners``. (Scans placed but not yet confirmed get one pair across each edge on no
         cycle, whatever ``partners``.)
-    sequence_neighbours : int
+    sequence_neighbours : int, optional
         With ``sequence``: each scan with the next this many scans (2 gives triangles, so every
         scan can be confirmed around a cycle).
-    max_edge_error_deg : float
+    max_edge_error_deg : float, optional
         After the robust pose graph, a trusted edge disagreeing with the poses by more than this
         rotation (or by more than 3x its inlier distance in translation) is rejected as cycle
         inconsistent.
-    refine_rounds : int
-        Correspondence distances of the joint refinement (each used for two Gauss-Newton steps).
+    refine_rounds : int, optional
+        Correspondence distances of the joint refinement (each used for two Gauss-Newton steps;
+        0: none).
     range_images : bool or None
         Whether every scan is a range image seen from its own origin (a depth-camera frame or a
         LiDAR scan in its sensor frame), the premise of the free-space check: True or False as
@@ -824,8 +804,14 @@ def register_scans(
         next opens. A pairs stage counts registrations, two per pair (the search and its check);
         the other stages count 1 when done. The pose graph, refinement and check stages recur
         (after every round of pairs; once more when a free-space conflict vetoes edges).
+    config : esmicp.config.MergeConfig or dict, optional
+        The merge's tuned values (a dict is read by :meth:`~esmicp.core.config.Config.from_dict`);
+        None: the measured defaults. The keywords above that are also its fields win over it, so
+        ``register_scans(clouds, partners=3)`` and ``register_scans(clouds,
+        config=MergeConfig(partners=3))`` are the same merge.
     **register_kwargs
-        Passed to every pairwise :func:`esmicp.register` call.
+        Passed to every pairwise :func:`esmicp.register` call (its ``config`` is
+        ``config.registration``).
 
     Returns
     -------
@@ -839,9 +825,10 @@ def register_scans(
     scan's ``partners`` most similar), each followed by a local check on the dense subsets; then in
     each round one per edge on no cycle, and per piece of unplaced scans one registration of the
     piece as a whole and up to ``partners`` pairs (``partners * min(len(piece), partners)`` when
-    its pose proposes none), until ``STALLED_ROUNDS`` rounds in a row place or confirm no scan. With ``sequence``, about
+    its pose proposes none), until ``stalled_rounds`` rounds in a row place or confirm no scan.
+    With ``sequence``, about
     ``N * sequence_neighbours`` local refinements (a global search for those they leave untrusted
-    where the walk needs them), at most ``N * LOOP_SEARCHES_PER_SCAN`` loop closures, then the
+    where the walk needs them), at most ``N * loop_searches_per_scan`` loop closures, then the
     same rounds.
 
     Memory, for 1,000 scans of 20,000 points (the input clouds, 480 MB as float64, stay the
@@ -849,7 +836,7 @@ def register_scans(
     (``refine_points`` x 24 bytes: 192 KB), its normals (192 KB) and, in the joint refinement, a
     compiled KD-tree over it (about 320 KB): about 0.75 MB a scan, 0.75 GB for 1,000 at the
     defaults (linear in ``refine_points``). Per kept edge, the refinement's last neighbours
-    (2 x :data:`esmicp.multiview.refine.QUERY_POINTS` x 8 bytes: 16 KB; about 0.05 GB for 3,000
+    (2 x ``query_points`` x 8 bytes: 16 KB; about 0.05 GB for 3,000
     edges); the pose graph's sparse Jacobian (72 numbers per edge and residual block, a few MB
     for 5,000 edges) and the refinement's block-sparse normal matrix (two 6x6 blocks per kept
     edge). The free-space check holds, per posed scan, a 4,000-point subset and a KD-tree of its
@@ -872,10 +859,11 @@ def register_scans(
         raise InvalidInputError("clouds: expected at least one scan")
     if isinstance(reference, bool) or not isinstance(reference, (int, np.integer)) or not 0 <= reference < n:
         raise InvalidInputError(f"reference: expected a scan index in [0, {n}), got {reference!r}")
-    for name, value, least in (("pair_points", pair_points, MIN_POINTS), ("refine_points", refine_points, MIN_POINTS),
-                               ("partners", partners, 1), ("sequence_neighbours", sequence_neighbours, 1)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
-            raise InvalidInputError(f"{name}: expected a whole number >= {least}, got {value!r}")
+    given = {"pair_points": pair_points, "refine_points": refine_points, "partners": partners,
+             "sequence_neighbours": sequence_neighbours, "max_edge_error_deg": max_edge_error_deg,
+             "refine_rounds": refine_rounds}
+    config = replace(MergeConfig.of(config), **{name: MergeConfig.checked(name, value, name)
+                                                 for name, value in given.items() if value is not None})
     if range_images is not None and not isinstance(range_images, (bool, np.bool_)):
         raise InvalidInputError(f"range_images: expected True, False or None, got {range_images!r}")
     range_images = None if range_images is None else bool(range_images)
@@ -885,11 +873,10 @@ def register_scans(
     twin = _exact_twins(scans, reference)
     # an exact duplicate confirms nothing: the merge runs on one scan of each group of twins
     unique = [k for k in range(n) if twin[k] == k]
-    result = _merge([scans[k] for k in unique], unique.index(reference), sequence=bool(sequence),
-                    pair_points=pair_points, refine_points=refine_points, partners=partners,
-                    sequence_neighbours=sequence_neighbours, max_edge_error_deg=max_edge_error_deg,
-                    refine_rounds=refine_rounds, range_images=range_images, progress=progress,
-                    run_options={"threads": threads, "processes": processes, "client": client, **register_kwargs})
+    result = _merge([scans[k] for k in unique], unique.index(reference), sequence=bool(sequence), config=config,
+                    range_images=range_images, progress=progress,
+                    run_options={"threads": threads, "processes": processes, "client": client,
+                                 "config": config.registration, **register_kwargs})
     if len(unique) < n:
         result = _with_twins(result, unique, twin)
     for note in result.notes:
@@ -897,11 +884,11 @@ def register_scans(
     return replace(result, runtime_s=time.perf_counter() - start)
 
 
-def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, pair_points: int, refine_points: int,
-           partners: int, sequence_neighbours: int, max_edge_error_deg: float, refine_rounds: int,
+def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, config: MergeConfig,
            range_images: bool | None, progress, run_options: dict) -> MultiRegistrationResult:
     """:func:`register_scans` on checked arguments, of scans no two of which are exact duplicates."""
     n = len(scans)
+    pair_points, refine_points, partners = config.pair_points, config.refine_points, config.partners
     # Each scan is registered in its centroid frame (its points minus their centroid): every
     # translation the merge measures (an edge's disagreement with the poses, the pose graph's
     # residuals, the joint refinement's steps) is then a displacement at the scan's own points,
@@ -912,12 +899,13 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, pair_poin
     dense = [_subsample(s, refine_points) for s in centred]
     keys = [_shape_key(s) for s in centred]
     stages = _Stages(progress)
-    pairwise = _Pairwise(centred, small, dense, keys, sequence, run_options, stages)
+    pairwise = _Pairwise(centred, small, dense, keys, sequence, run_options, stages, config)
 
-    pieces = _Pieces(pairwise, small, pair_points, partners, max_edge_error_deg)
+    pieces = _Pieces(pairwise, small, config)
     if sequence:
         # from the identity in the frames given: a shift between the centroid frames
-        pairwise.run([(i, j, _shift(centres[j] - centres[i])) for i, j in candidates.sequence_pairs(n, sequence_neighbours)])
+        pairwise.run([(i, j, _shift(centres[j] - centres[i]))
+                      for i, j in candidates.sequence_pairs(n, config.sequence_neighbours)])
         # a pair the identity start did not bring to trust is searched globally where the walk
         # needs it: where the trusted pairs leave one of its scans off every cycle through the reference
         core = candidates.two_edge_core(reference, [(e.i, e.j) for e in pairwise.edges.values() if e.trusted])
@@ -933,30 +921,31 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, pair_poin
 
     def solve():
         stages.open("pose graph", 1)
-        solved = _solve(list(pairwise.edges.values()), reference, max_edge_error_deg, vetoed)
+        solved = _solve(list(pairwise.edges.values()), reference, config, vetoed)
         stages.close()
         return solved
 
     poses, edges = solve()
-    if sequence and n > sequence_neighbours + 1:
+    if sequence and n > config.sequence_neighbours + 1:
         extents = candidates.world_extents(poses, small)
         kept = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
-        loops = candidates.loop_pairs(kept, extents, _predicted_overlap(poses, small, edges), pairwise.tried,
-                                      min_overlap=MIN_PREDICTED_OVERLAP, min_hops=LOOP_MIN_HOPS,
-                                      budget=int(np.ceil(LOOP_SEARCHES_PER_SCAN * n)))
+        loops = candidates.loop_pairs(kept, extents, _predicted_overlap(poses, small, edges, config), pairwise.tried,
+                                      min_overlap=config.min_predicted_overlap, min_hops=config.loop_min_hops,
+                                      budget=int(np.ceil(config.loop_searches_per_scan * n)),
+                                      partners=config.predict_partners)
         pairwise.run([(i, j, None) for i, j in loops], "pairs (loop closures)")
         poses, edges = solve()
     rounds = 1  # rounds of pairs, for the progress stages' names
     for attempt in range(2):
         stalled, best = 0, -1  # rounds in a row that placed or confirmed no scan; the most placed and confirmed
-        while n > 1 and stalled < STALLED_ROUNDS:  # more pairs only where a scan is not yet confirmed
+        while n > 1 and stalled < config.stalled_rounds:  # more pairs only where a scan is not yet confirmed
             unconfirmed = _unconfirmed(n, reference, poses, edges)
             settled = len(poses) + n - len(unconfirmed)
             stalled, best = (0, settled) if settled > best else (stalled + 1, best)
-            if stalled >= STALLED_ROUNDS:
+            if stalled >= config.stalled_rounds:
                 break
             wanted = _closing(reference, poses, edges, small, [k for k in unconfirmed if k in poses],
-                              pairwise.settled())
+                              pairwise.settled(), config)
             unplaced = [k for k in unconfirmed if k not in poses]
             if unplaced:  # not placed at all: each piece of them placed as a whole proposes its pairs
                 joined = [(e.i, e.j) for e in edges if e.trusted and not e.reason.startswith(("cycle", "free-space"))]
@@ -971,21 +960,23 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, pair_poin
 
         rmse, residual = None, {}
         kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
-        if kept_pairs and refine_rounds > 0:
+        if kept_pairs and config.refine_rounds > 0:
             stages.open("joint refinement", 1)
             fine = {k: dense[k] for k in poses}
             fine_normals = {k: estimate_normals(fine[k], k=12, workers=None) for k in fine}
             scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
             fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
-            reach = np.geomspace(3.0 * scale, max(REFINE_FLOOR_SPACINGS * fine_spacing, 1e-12), refine_rounds)
-            poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, reference, reach)
+            reach = np.geomspace(3.0 * scale, max(config.refine_floor_spacings * fine_spacing, 1e-12),
+                                config.refine_rounds)
+            poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, reference, reach,
+                                           query_points=config.query_points)
             stages.close()
 
         # on the refined poses (the graph's alone drift along a walk and conflict falsely): the
         # edges a conflict disproves are cut once, and the scans they placed searched again
         stages.open("free-space check", 1)
         conflicted, removed, checked = _free_space_conflicts(n, reference, poses, dense, small, edges, centres,
-                                                             range_images, premise)
+                                                             range_images, premise, config)
         stages.close()
         if not removed or attempt == 1:
             break

@@ -112,7 +112,8 @@ def _core(reference: int, kept_pairs, on_no_cycle) -> set[int]:
     return seen
 
 
-def cut_off(n: int, reference: int, kept, conflicts) -> tuple[dict[int, tuple[int, float]], dict[tuple[int, int], tuple[int, int, float]]]:
+def cut_off(n: int, reference: int, kept, conflicts, *,
+            trusted: float) -> tuple[dict[int, tuple[int, float]], dict[tuple[int, int], tuple[int, int, float]]]:
     """The scans whose placement a free-space conflict disproves, each with its evidence.
 
     ``kept``: the kept edges as ``(i, j, confidence)``; ``conflicts``: pairs of placed scans that
@@ -121,14 +122,14 @@ def cut_off(n: int, reference: int, kept, conflicts) -> tuple[dict[int, tuple[in
     the minimum cut between them (edges weighted by the log-odds of their confidence: the likeliest
     set of wrong edges) is removed; the scans the cuts separate from the reference are returned, as
     ``scan -> (the scan it conflicts with, fraction)`` of the conflict that cut it off.
+    ``trusted``: the trust bar (:attr:`esmicp.trust.policy.TrustPolicy.trusted`), the least
+    confidence a kept edge is weighted by.
     """
-    from ..trust.confidence import TRUSTED
-
     capacity: dict[tuple[int, int], int] = {}  # sparse: a few entries per scan, never n x n
     for i, j, confidence in kept:
         # the log-odds of the edge being right: the minimum cut is then the likeliest set of wrong
         # edges, if each is right with probability its confidence, independently
-        p = min(max(confidence or 0.0, TRUSTED), 0.999)
+        p = min(max(confidence or 0.0, trusted), 0.999)
         weight = 1 + int(round(1000 * np.log(p / (1 - p))))
         for key in ((i, j), (j, i)):
             capacity[key] = capacity.get(key, 0) + weight

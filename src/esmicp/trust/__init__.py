@@ -1,8 +1,8 @@
 """Judging a pose: is it to be trusted?
 
-:mod:`.confidence` measures how sharply two clouds coincide where they overlap under a pose, and
-holds the bar a result must reach to be trusted; :mod:`.uncertainty` gives a pose's covariance
-and the directions the data barely constrain; :mod:`.free_space` tests a pose against the space
-each sensor saw empty. This package sits one floor below the global search and the merge, which
+:mod:`.confidence` measures how sharply two clouds coincide where they overlap under a pose;
+:mod:`.uncertainty` gives a pose's covariance and the directions the data barely constrain;
+:mod:`.free_space` tests a pose against the space each sensor saw empty; :mod:`.policy` holds the
+bars a result must pass to be trusted and the values of these measures. This package sits one floor below the global search and the merge, which
 both use it; it imports neither of them.
 """

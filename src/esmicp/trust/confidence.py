@@ -1,5 +1,5 @@
-"""The overlap confidence: how sharply two clouds coincide where they overlap under a pose, and
-the bar a result must reach to be trusted.
+"""The overlap confidence: how sharply two clouds coincide where they overlap under a pose (the
+bar a result must reach to be trusted is :attr:`esmicp.trust.policy.TrustPolicy.trusted`).
 
 It judges a pose on the pair's keypoints (:class:`~esmicp.core.keypoints.Keypoints`, voxel
 centroids at one scale the data chooses), so every length here is a multiple of that voxel and
@@ -18,6 +18,7 @@ import numpy as np
 from ..core.compiled_tree import CompiledTree
 from ..core.features import estimate_normals
 from ..core.keypoints import NORMAL_RADIUS_VOXELS, VERIFY_VOXELS, Keypoints
+from .policy import DEFAULT_POLICY, TrustPolicy
 
 
 class ConfidenceRanges(Protocol):
@@ -34,48 +35,21 @@ class ConfidenceRanges(Protocol):
     def third_range(self) -> tuple[float, float]: ...
 
 
-#: :func:`overlap_confidence`: the overlap is what lies within ``OVERLAP_VOXELS`` of the other
-#: cloud; of it, the part within ``VERIFY_VOXELS`` coincides. That fraction (the smaller of the two
-#: directions) maps linearly from ``config.sharpness_range`` onto confidence 0-1.
-OVERLAP_VOXELS = 3.0
-#: The spread is measured on at most this many coincident keypoints (evenly strided), each one's
-#: normal from its 30 nearest keypoints within ``NORMAL_RADIUS_VOXELS``: normals at every keypoint
-#: of both clouds took 8 ms of a 24 ms registration of 2,000 points.
-SPREAD_POINTS = 500
-#: :func:`overlap_confidence` is 0 when fewer than this many keypoints of either cloud coincide with
-#: the other: too little evidence to certify a pose. Clouds that sparse cannot resolve it at the
-#: keypoint voxel (never finer than ``MIN_VOXEL_SPACINGS`` spacings), where a pose tens of degrees
-#: off still makes every point "coincide". Chosen on the 12 ModelNet40 shapes resampled
-#: independently to 21-1,000 points and turned 30 degrees (``benchmarks/sparse_trust.py``):
-#: trusted-and-wrong went from 21 of 110 to 0 of 59 (3: 21, 30: 4, 60: 0); confirmed on the 69 of
-#: ``modelnet40_extra``: 115 of 712 to 2 of 403, global successes 351 -> 365 of 483, nothing
-#: changed at 300 points or more; the development and confirmation sets of
-#: ``docs/measured-global.md`` (1,024-point objects, 3DMatch crops, kitchen pairs) are unchanged.
-MIN_COINCIDENT = 60
-
-#: The spread is asked only when less than this share of either cloud's keypoints coincides: a
-#: pose that lays most of each cloud on the other is held by the clouds' whole shape (and objects
-#: registered whole skip the normals' cost).
-SPREAD_BELOW = 0.5
-
-#: The bar a result must reach to be trusted (``register``'s ``confidence``, ``esmicp register``'s
-#: LOW): higher than the search's own, because the search stops at, and chooses among its poses
-#: for, the first that reaches ``SearchConfig.confident``, so a wrong pose just over that bar is the
-#: one it keeps (measured on the 3DMatch crops, ``docs/scans-partial-overlap.md``).
-TRUSTED = 0.55
-
-
 def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers: int | None = None, *,
-                       config: ConfidenceRanges) -> float:
+                       config: ConfidenceRanges, policy: TrustPolicy = DEFAULT_POLICY) -> float:
     """How sharply the clouds coincide where they overlap under ``transformation``
-    (``T_target_source``), 0-1: of the keypoints within ``OVERLAP_VOXELS`` of the other cloud,
-    the fraction within ``VERIFY_VOXELS``, the smaller of the two directions, mapped from
-    ``config.sharpness_range``; or, when smaller and when less than :data:`SPREAD_BELOW` of either
-    cloud coincides, how well the coincident part's normals hold the pose (:func:`coincident_spread`:
-    its middle eigenvalue mapped from ``config.spread_range``, its smallest from ``config.third_range``),
-    the smallest of these in either direction. 0 when fewer than :data:`MIN_COINCIDENT` keypoints of
-    either cloud coincide (too little evidence). ``workers``: threads of the compiled tree's queries
-    (None: every core); ``config``: the ranges (a :class:`~esmicp.globalreg.config.SearchConfig`)."""
+    (``T_target_source``), 0-1: of the keypoints within ``policy.overlap_voxels`` of the other
+    cloud, the fraction within ``VERIFY_VOXELS``, the smaller of the two directions, mapped from
+    ``config.sharpness_range``; or, when smaller and when less than ``policy.spread_below`` of
+    either cloud coincides, how well the coincident part's normals hold the pose
+    (:func:`coincident_spread`: its middle eigenvalue mapped from ``config.spread_range``, its
+    smallest from ``config.third_range``), the smallest of these in either direction. 0 when fewer
+    than ``policy.min_coincident`` keypoints of either cloud coincide (too little evidence: clouds
+    that sparse cannot resolve the pose at the keypoint voxel, never finer than
+    ``MIN_VOXEL_SPACINGS`` spacings, where a pose tens of degrees off still makes every point
+    "coincide"). ``workers``: threads of the compiled tree's queries (None: every core);
+    ``config``: the ranges (a :class:`~esmicp.globalreg.config.SearchConfig`); ``policy``: the
+    measure's other values (:class:`~esmicp.trust.policy.TrustPolicy`)."""
     if not np.isfinite(transformation).all() or min(len(keypoints.source), len(keypoints.target)) < 3:
         return 0.0
     rotation, translation = transformation[:3, :3], transformation[:3, 3]
@@ -86,16 +60,16 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
         ((keypoints.target - translation) @ rotation, keypoints.source_tree, keypoints.source),
     ):
         distances, nearest = fixed.query(moved, workers=workers)  # the counts SciPy's tree gives, cheaper
-        overlap = np.count_nonzero(distances <= OVERLAP_VOXELS * voxel)
+        overlap = np.count_nonzero(distances <= policy.overlap_voxels * voxel)
         coincide = distances <= VERIFY_VOXELS * voxel
-        if np.count_nonzero(coincide) < MIN_COINCIDENT:
+        if np.count_nonzero(coincide) < policy.min_coincident:
             return 0.0
         sharpness.append(np.count_nonzero(coincide) / overlap)
         coincident.append((fixed_points, fixed, nearest[coincide], np.count_nonzero(coincide) / len(moved)))
     held = 1.0
-    if min(share for *_, share in coincident) < SPREAD_BELOW:
+    if min(share for *_, share in coincident) < policy.spread_below:
         for points, tree, touched, _ in coincident:
-            third, second = coincident_spread(points, tree, touched, voxel, workers)
+            third, second = coincident_spread(points, tree, touched, voxel, workers, policy=policy)
             held = min(held, _ramp(second, config.spread_range), _ramp(third, config.third_range))
     return float(min(_ramp(min(sharpness), config.sharpness_range), held))
 
@@ -107,15 +81,15 @@ def _ramp(value: float, bounds: tuple[float, float]) -> float:
 
 
 def coincident_spread(points: np.ndarray, tree: CompiledTree, touched: np.ndarray, voxel: float,
-                      workers: int | None = None) -> tuple[float, float]:
+                      workers: int | None = None, *, policy: TrustPolicy = DEFAULT_POLICY) -> tuple[float, float]:
     """How many directions the normals of ``points[touched]`` span: the smallest and the middle
     eigenvalue of their second moment (the middle one 0 when they are all parallel, as on one
     plane; the smallest 0 when they lie in one plane's worth of directions, as on two planes; both
-    1/3 when they point every way). At most :data:`SPREAD_POINTS` of ``touched`` (evenly strided),
+    1/3 when they point every way). At most ``policy.spread_points`` of ``touched`` (evenly strided),
     each normal from its 30 nearest of ``points`` (``tree`` is over them) within
     ``NORMAL_RADIUS_VOXELS * voxel``."""
-    if len(touched) > SPREAD_POINTS:
-        touched = touched[np.linspace(0, len(touched) - 1, SPREAD_POINTS).astype(np.intp)]
+    if len(touched) > policy.spread_points:
+        touched = touched[np.linspace(0, len(touched) - 1, policy.spread_points).astype(np.intp)]
     normals = estimate_normals(points, k=30, radius=NORMAL_RADIUS_VOXELS * voxel, at=points[touched], tree=tree,
                                workers=workers)
     values = np.linalg.eigvalsh(normals.T @ normals / len(normals))

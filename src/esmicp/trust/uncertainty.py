@@ -31,19 +31,20 @@ a_i^T``), is known to be over-confident, for two reasons this estimate corrects:
 - the residuals of neighbouring pairs are correlated (the same target points and surface patch
   serve many source points; a cut or a depth camera's smooth errors pull whole regions one way),
   so there are far fewer independent pairs than pairs. ``B`` is the cluster-robust estimate
-  (Liang and Zeger's sandwich): the pairs are grouped into cubes of :data:`CLUSTER_SPACINGS`
+  (Liang and Zeger's sandwich): the pairs are grouped into cubes of ``cluster_spacings``
   target point spacings and ``B = sum_c g_c g_c^T`` with ``g_c`` the sum of the cube's ``s_i``.
   Within a cube the residuals may be correlated in any way; cubes are taken as independent.
 
-The result is multiplied by :data:`INFLATION`, fitted on one set of trials and confirmed on
-another (``docs/uncertainty.md``).
+The result is multiplied by ``inflation``, fitted on one set of trials and confirmed on
+another (``docs/uncertainty.md``). The values named here are fields of
+:class:`~esmicp.trust.policy.TrustPolicy`.
 
 Degenerate directions
 ---------------------
 The eigenvectors of the point-to-plane Hessian ``H`` about the overlap's weighted centroid, with
 rotations scaled by the overlap's RMS radius ``L`` (so that a rotation and a translation compare
 in the same units: the motion of a point at distance ``L``), whose eigenvalue is below
-:data:`DEGENERATE_RATIO` times the largest: the overlap barely constrains the pose along them
+``degenerate_ratio`` times the largest: the overlap barely constrains the pose along them
 (Zhang and Singh's degeneracy factor, 2016; X-ICP's localizability, Tuna et al. 2023). A corridor
 leaves translation along its axis, a plane on a plane the two in-plane translations and the
 rotation about its normal.
@@ -57,53 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.procrustes import skew
-
-#: Side of the cubes (in target point spacings) whose pairs' residuals are allowed to be correlated
-#: in the cluster-robust covariance (see the module docstring). On resamples of a 3DMatch fragment
-#: the mean NEES (before :data:`INFLATION`) fell from 40 at 8 spacings to 33 at 16 and 28 at 32,
-#: and rose again at 64 (too few cubes); on kitchen-walk frames 58, 42, 38, 269.
-CLUSTER_SPACINGS = 16.0
-
-#: Fewest cubes the cluster-robust estimate is computed over: with fewer, the cube is halved until
-#: there are this many (or it is smaller than one spacing: each pair its own cluster). The sums of
-#: the pairs' gradient terms over all cubes add to the gradient, zero at the optimum, so with one
-#: cube the noise term vanishes and the covariance claims a pose known exactly (measured: clouds of
-#: 21-60 points of the 12 ModelNet40 shapes, one cube of 16 spacings, every deviation 0.0 while
-#: 10-170 degrees off); 30 is the usual floor below which cluster-robust variances are unreliable.
-#: Dense scans (3DMatch fragments, kitchen frames: hundreds of cubes) are unaffected.
-MIN_CLUSTERS = 30
-
-#: The covariance is the cluster-robust sandwich times this factor (dimensionless). Fitted so that
-#: the mean NEES is 6 on the tuning trials of ``benchmarks/covariance_nees.py`` (20 resamples of
-#: the 3DMatch fragment ``cloud_bin_0``: mean 32.5 without it). On 60 trials: mean NEES 4.95 there,
-#: 7.63 on resamples of the kitchen walk's depth frames (the confirmation set), 5.62 on those
-#: resampled at half the density; over-confident (up to 17) only when the two clouds are the two
-#: halves of one scan, sharing its sampling pattern (``docs/uncertainty.md``).
-INFLATION = 5.4
-
-#: A direction whose eigenvalue in the scaled point-to-plane Hessian is below this fraction of the
-#: largest one is reported in ``degenerate_directions`` (dimensionless: the square of the ratio of
-#: the pose's sensitivities). Chosen on the 12 ModelNet40 shapes (only the bottle and the lamp,
-#: bodies of revolution, fall below it, about their axes), confirmed on the 69 of
-#: ``modelnet40_extra`` (only three vases); no pair of ``real_pairs`` or of the kitchen walk falls
-#: below it (smallest 0.04), the synthetic corridor and plane-on-plane far below; of 4 kitchen frame
-#: pairs cut down to one plane, 2 (ratios 0.0077-0.016; one of them really slides)
-#: (``benchmarks/degenerate_directions.py``, ``docs/uncertainty.md``).
-DEGENERATE_RATIO = 0.01
-
-#: Eigenvalues of the scaled Hessian below this fraction of the largest are treated as zero: the
-#: data give no information at all along them (``information`` is zero there, and the covariance
-#: holds a variance of one overlap radius, or one radian, along them).
-SINGULAR_RATIO = 1e-9
-
-#: Pairs whose weight is below this fraction of the largest are left out (they carry nothing).
-NEGLIGIBLE_WEIGHT = 1e-6
-
-#: Target normals are estimated at the matches of at most this many pairs (evenly strided): the
-#: Hessian comes from them, scaled to the whole weight of the pairs, while every pair enters the
-#: cluster-robust gradient sums (which need no normals). Keeps the cost a small fraction of a
-#: registration.
-MAX_NORMALS = 600
+from .policy import DEFAULT_POLICY, TrustPolicy
 
 AXES = ("x", "y", "z")
 
@@ -116,7 +71,7 @@ class DegenerateDirection:
     scaled by ``radius`` (a rotation of ``omega`` radians counts as ``omega * radius`` cloud units:
     the motion it gives a point at the overlap's RMS radius); the rotation is about ``centre``
     (the overlap's weighted centroid, target frame, cloud units). ``ratio`` is its eigenvalue
-    divided by the best-constrained direction's (0-1; below :data:`DEGENERATE_RATIO`).
+    divided by the best-constrained direction's (0-1; below ``TrustPolicy.degenerate_ratio``).
     """
 
     rotation: np.ndarray
@@ -167,7 +122,7 @@ class PoseUncertainty:
 
     ``covariance`` (6, 6): of ``(omega [rad], v [cloud units])``, left perturbation, target frame.
     ``information`` (6, 6): its inverse; where the data constrain some direction not at all
-    (eigenvalue below :data:`SINGULAR_RATIO`), the pseudo-inverse, zero along it.
+    (eigenvalue below ``TrustPolicy.singular_ratio``), the pseudo-inverse, zero along it.
     ``degenerate_directions``: the poorly constrained directions (empty when none).
     ``pairs``: the number of pairs the estimate used. ``covariance`` and ``information`` are None
     when fewer than 3 pairs carry weight, or they all lie at one point.
@@ -181,7 +136,7 @@ class PoseUncertainty:
 
 def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarray | None = None,
                      normals: np.ndarray | None = None, *, spacing: float, origin: np.ndarray | None = None,
-                     cluster_spacings: float = CLUSTER_SPACINGS, inflation: float = INFLATION) -> PoseUncertainty:
+                     policy: TrustPolicy = DEFAULT_POLICY) -> PoseUncertainty:
     """The covariance, information and degenerate directions of a pose from its final pairs.
 
     Parameters
@@ -201,8 +156,9 @@ def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarra
     origin : (3,) array, optional
         Where the frame of ``placed`` and ``matched`` has its origin in the frame the result is
         wanted in (a registration's working frame is shifted by it); default 0.
-    cluster_spacings, inflation : float
-        See :data:`CLUSTER_SPACINGS` and :data:`INFLATION`.
+    policy : TrustPolicy
+        The estimate's values: ``cluster_spacings``, ``min_clusters``, ``inflation``,
+        ``degenerate_ratio``, ``singular_ratio`` and ``negligible_weight``.
 
     Returns
     -------
@@ -211,7 +167,7 @@ def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarra
     placed = np.asarray(placed, dtype=np.float64)
     matched = np.asarray(matched, dtype=np.float64)
     weights = np.ones(len(placed)) if weights is None else np.asarray(weights, dtype=np.float64)
-    keep = weights > NEGLIGIBLE_WEIGHT * (float(weights.max()) if len(weights) else 0.0)
+    keep = weights > policy.negligible_weight * (float(weights.max()) if len(weights) else 0.0)
     placed, matched, weights = placed[keep], matched[keep], weights[keep]
     if normals is not None:
         normals = np.asarray(normals, dtype=np.float64)[keep]
@@ -235,7 +191,8 @@ def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarra
         hessian = _hessian(unit_offsets, weights, normals)
     # Each pair's share of the gradient of the point-to-point cost the methods minimise, J_i^T w_i d_i.
     scores = np.hstack([np.cross(unit_offsets, differences), differences]) * weights[:, None]
-    inverse, groups = _clusters(placed, max(cluster_spacings * spacing, 1e-300), max(spacing, 1e-300))
+    inverse, groups = _clusters(placed, max(policy.cluster_spacings * spacing, 1e-300), max(spacing, 1e-300),
+                               policy.min_clusters)
     sums = np.column_stack([np.bincount(inverse, weights=column, minlength=groups) for column in scores.T])
     count = len(placed)
     # Small-sample corrections of the sandwich (the usual ones of cluster-robust estimates).
@@ -245,10 +202,10 @@ def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarra
     values, vectors = np.linalg.eigh(hessian)
     largest = max(float(values[-1]), 0.0)
     ratios = np.clip(values / largest, 0.0, None) if largest > 0 else np.zeros(6)
-    constrained = ratios > SINGULAR_RATIO
+    constrained = ratios > policy.singular_ratio
     inverse_values = np.where(constrained, 1.0 / np.where(constrained, values, 1.0), 0.0)
     pseudo = (vectors * inverse_values) @ vectors.T
-    scaled = inflation * pseudo @ meat @ pseudo
+    scaled = policy.inflation * pseudo @ meat @ pseudo
     # No information at all along a direction: one radian, or one overlap radius (scaled units:
     # one radius either way).
     null = vectors[:, ~constrained]
@@ -256,10 +213,10 @@ def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarra
     scaled = 0.5 * (scaled + scaled.T)
     mapping, inverse_mapping = _to_frame(centre + origin, radius)
     covariance = mapping @ scaled @ mapping.T
-    information = _information(scaled, null, inverse_mapping)
+    information = _information(scaled, null, inverse_mapping, policy.singular_ratio)
     degenerate = tuple(
         DegenerateDirection(vectors[:3, k].copy(), vectors[3:, k].copy(), float(ratios[k]), centre + origin, radius)
-        for k in range(6) if ratios[k] < DEGENERATE_RATIO
+        for k in range(6) if ratios[k] < policy.degenerate_ratio
     )
     return PoseUncertainty(0.5 * (covariance + covariance.T), information, degenerate, count)
 
@@ -278,15 +235,15 @@ def _hessian(unit_offsets: np.ndarray, weights: np.ndarray, normals: np.ndarray 
     return hessian
 
 
-def _clusters(points: np.ndarray, size: float, smallest: float) -> tuple[np.ndarray, int]:
+def _clusters(points: np.ndarray, size: float, smallest: float, fewest: int) -> tuple[np.ndarray, int]:
     """(cluster index per point, number of clusters): cubes of side ``size``, halved while they
-    make fewer than :data:`MIN_CLUSTERS` clusters; below ``smallest`` (or with fewer points than
-    that), each point its own cluster."""
+    make fewer than ``fewest`` clusters; below ``smallest`` (or with fewer points than that), each
+    point its own cluster."""
     count = len(points)
-    while count >= MIN_CLUSTERS and size >= smallest:
+    while count >= fewest and size >= smallest:
         _, inverse = np.unique(_cluster_ids(points, size), return_inverse=True)
         groups = int(inverse.max()) + 1
-        if groups >= MIN_CLUSTERS:
+        if groups >= fewest:
             return inverse, groups
         size /= 2.0
     return np.arange(count), count
@@ -314,11 +271,13 @@ def _to_frame(centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray
     return mapping, inverse
 
 
-def _information(scaled: np.ndarray, null: np.ndarray, inverse_mapping: np.ndarray) -> np.ndarray:
+def _information(scaled: np.ndarray, null: np.ndarray, inverse_mapping: np.ndarray,
+                 singular_ratio: float) -> np.ndarray:
     """The inverse of ``mapping @ scaled @ mapping.T`` (``inverse_mapping``: the inverse of
-    ``mapping``), zero along the ``null`` directions."""
+    ``mapping``), zero along the ``null`` directions and along eigenvalues below ``singular_ratio``
+    of the largest."""
     values, vectors = np.linalg.eigh(scaled)
-    positive = values > SINGULAR_RATIO * max(float(values[-1]), 1e-300)
+    positive = values > singular_ratio * max(float(values[-1]), 1e-300)
     scaled_information = (vectors[:, positive] / values[positive]) @ vectors[:, positive].T
     if null.shape[1]:
         keep = np.eye(6) - null @ null.T
@@ -335,7 +294,8 @@ def _unconstrained(count: int) -> PoseUncertainty:
 def from_registration(source: np.ndarray, target_index, transformation: np.ndarray, sigma: float | None, *,
                       origin: np.ndarray | None = None, workers: int | None = None,
                       warm: np.ndarray | None = None,
-                      pairs: tuple[np.ndarray, np.ndarray] | None = None) -> PoseUncertainty:
+                      pairs: tuple[np.ndarray, np.ndarray] | None = None,
+                      policy: TrustPolicy = DEFAULT_POLICY) -> PoseUncertainty:
     """:func:`pose_uncertainty` of a registration's final pose.
 
     ``source`` (N, 3) and ``transformation`` (4x4 ``T_target_source``) in the frame of
@@ -345,8 +305,8 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
     this pose if already known; ``warm``: optional nearest target indices of the source points
     near the final pose, where the queries start) and weighted by
     ``exp(-d^2 / (2 sigma^2))`` (all 1 when ``sigma`` is None: ICP); the target normals at the
-    matches of :data:`MAX_NORMALS` of them come from the ``NORMAL_NEIGHBOURS`` nearest target
-    points (as ``esm-plane``).
+    matches of ``policy.covariance_normals`` of them come from the ``NORMAL_NEIGHBOURS`` nearest
+    target points (as ``esm-plane``); ``policy``: the estimate's values.
     """
     from ..core.procrustes import apply
     from ..core.weights import relative_gaussian_weights
@@ -365,12 +325,13 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
     normals = None
     if len(target) >= 3:
         normals = np.full((len(placed), 3), np.nan)
-        chosen = np.unique(np.linspace(0, len(placed) - 1, min(MAX_NORMALS, len(placed))).astype(np.intp))
+        chosen = np.unique(np.linspace(0, len(placed) - 1, min(policy.covariance_normals, len(placed))).astype(np.intp))
         unique, inverse = np.unique(indices[chosen], return_inverse=True)
         estimator = NormalEstimator(target, min(NORMAL_NEIGHBOURS, len(target)), tree=target_index.exact_tree(),
                                     workers=workers)
         normals[chosen] = estimator.at(target[unique])[inverse]
-    return pose_uncertainty(placed, target[indices], weights, normals, spacing=target_index.spacing(), origin=origin)
+    return pose_uncertainty(placed, target[indices], weights, normals, spacing=target_index.spacing(), origin=origin,
+                            policy=policy)
 
 
 def rotation_log(rotation: np.ndarray) -> np.ndarray:

@@ -13,7 +13,6 @@ import numpy as np
 
 from ..api import register
 from ..core.procrustes import apply
-from ..trust.confidence import TRUSTED
 from ..result import RegistrationResult
 from ..types import as_points, as_transform
 
@@ -73,7 +72,7 @@ class RegistrationTrace:
         text = f"{self.method} from {self.start}: {self.result.num_iterations} iterations, {state}"
         if self.result.confidence is not None:
             doubts = self.result.doubts()
-            verdict = "trusted" if not doubts else "LOW" if self.result.confidence < TRUSTED else (
+            verdict = "trusted" if not doubts else "LOW" if self.result.confidence < self.result.policy.trusted else (
                 "ambiguous" if self.result.ambiguous else "not trusted: " + "; ".join(doubts))
             text += f"; confidence {self.result.confidence:.2f} ({verdict})"
         return text

@@ -1,0 +1,241 @@
+"""The configuration tree: every tuned value of a registration and of a merge, in frozen,
+documented objects.
+
+* :class:`RegistrationConfig` (``register(..., config=...)``): the global search's values
+  (:class:`~esmicp.globalreg.config.SearchConfig`), the local refinement's
+  (:class:`RefineConfig`) and the trust policy (:class:`~esmicp.trust.policy.TrustPolicy`: the
+  bars a result must pass to be trusted).
+* :class:`MergeConfig` (``register_scans(..., config=...)``): the merge's values (how many points,
+  which pairs, how long a check runs, how far the joint refinement goes) and the
+  :class:`RegistrationConfig` of its pairwise registrations, whose trust policy also judges the
+  merge's scans.
+
+Each is frozen, checked when made (an invalid value raises :class:`~esmicp.errors.InvalidInputError`
+naming the field) and round-trips through a JSON-ready dict
+(:meth:`~esmicp.core.config.Config.to_dict`, :meth:`~esmicp.core.config.Config.from_dict`, which
+refuses unknown keys). The defaults are the measured values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .core.config import Config, count, fraction, number, part
+from .errors import InvalidInputError
+from .globalreg.config import SearchConfig, as_config
+from .trust.policy import TrustPolicy
+from .types import MIN_POINTS
+
+
+@dataclass(frozen=True)
+class RefineConfig(Config):
+    """Tuned values of a registration's local refinement and evaluation (:func:`esmicp.register`).
+
+    Attributes
+    ----------
+    strided_points : int
+        A source of more than twice this many points is refined on this many evenly strided
+        points (count; not with ``esm-paper``, whose pairs are by index): where every point would
+        take the pose from there lies well inside the pose's own standard deviation.
+    strided_tolerance : float
+        After a global search, the strided stages stop at this tolerance when the caller's is
+        finer (radians; times the target's bounding-box diagonal for a translation): the
+        subsample's optimum is not the whole source's, and the strided ``esm`` creeps on in no
+        steady direction.
+    looser_from_points : int
+        After a global search, a source too small for the strided stages is refined at
+        ``strided_tolerance`` too, from this many points on (count); smaller sources (objects
+        under heavy outliers, which may still be sliding there) keep the caller's tolerance.
+    plane_iterations : int
+        After a global search, ``esm`` on the strided points is preceded by at most this many
+        ``esm-plane`` iterations (count; 0: none): the plane residual pulls back a pose slid along
+        a road or a corridor, where ``esm``'s Gaussian weight is nil.
+    plane_points : int
+        ... on this many of the strided points, evenly strided again (count).
+    plane_confidence_drop : float
+        The ``esm-plane`` stage is undone when it lowers the overlap confidence by more than this
+        (confidence units, 0-1).
+    inlier_distance_spacings : float
+        The default inlier distance of ``fitness`` and ``inlier_rmse``, in target point spacings
+        (gain).
+
+    References
+    ----------
+    ``strided_points``, ``strided_tolerance``, ``plane_iterations`` and ``plane_points``: measured
+    on the 3DMatch, KITTI and bunny scan pairs (``docs/speed.md``, "Real scan pairs";
+    ``docs/scans-refinement.md``); ``looser_from_points`` on the ModelNet40 objects under 60%
+    outliers; ``plane_confidence_drop`` on the 3DMatch crops (``docs/scans-partial-overlap.md``).
+    """
+
+    strided_points: int = count(20_000)
+    strided_tolerance: float = number(3e-6, least=0.0)
+    looser_from_points: int = count(10_000, least=0)
+    plane_iterations: int = count(30, least=0)
+    plane_points: int = count(5_000)
+    plane_confidence_drop: float = number(0.25, least=0.0)
+    inlier_distance_spacings: float = number(3.0, above=0.0)
+
+
+@dataclass(frozen=True)
+class RegistrationConfig(Config):
+    """Tuned values of one registration (:func:`esmicp.register`).
+
+    Attributes
+    ----------
+    search : SearchConfig
+        The global search's values, and the ranges the overlap confidence maps its measures from
+        (:class:`esmicp.globalreg.config.SearchConfig`).
+    refine : RefineConfig
+        The local refinement's and the evaluation's values (:class:`RefineConfig`).
+    trust : TrustPolicy
+        The bars a result must pass to be trusted, and the values of the measures behind them
+        (:class:`esmicp.trust.policy.TrustPolicy`).
+    """
+
+    search: SearchConfig = part(SearchConfig)
+    refine: RefineConfig = part(RefineConfig)
+    trust: TrustPolicy = part(TrustPolicy)
+
+    @classmethod
+    def of(cls, value, name: str = "config") -> "RegistrationConfig":
+        """``value`` as a :class:`RegistrationConfig`: None gives the defaults; an instance is kept;
+        a :class:`SearchConfig` gives its search values and the defaults of the rest; a dict whose
+        keys are among ``search``, ``refine`` and ``trust`` is read by :meth:`from_dict`, any other
+        dict as a :class:`SearchConfig`'s fields. Anything else raises :class:`InvalidInputError`."""
+        if value is None:
+            return cls()
+        if isinstance(value, cls):
+            return value
+        if isinstance(value, SearchConfig):
+            return cls(search=value)
+        if isinstance(value, dict):
+            if value and set(value) <= {"search", "refine", "trust"}:
+                return cls.from_dict(value)
+            return cls(search=as_config(value))
+        raise InvalidInputError(f"{name}: expected a RegistrationConfig, a SearchConfig or a dict, "
+                                f"got {type(value).__name__}")
+
+
+@dataclass(frozen=True)
+class MergeConfig(Config):
+    """Tuned values of :func:`esmicp.register_scans`.
+
+    Lengths are gains times a length the data give: the median inlier distance of the kept
+    edges (the registrations' :attr:`~esmicp.RegistrationResult.inlier_distance`, the scans'
+    noise and spacing at the subsets' resolution), or the median point spacing of the dense
+    subsets.
+
+    Attributes
+    ----------
+    pair_points : int
+        Points per scan (a content-seeded random subset) for the pairwise global searches (count).
+    refine_points : int
+        Points per scan for the local check of each pair and the joint refinement (count).
+    partners : int
+        Without ``sequence``: the most similar scans each scan is first registered with, and the
+        pairs a round asks for per piece of unplaced scans (count).
+    sequence_neighbours : int
+        With ``sequence``: the next scans each scan is registered with (count; 2 gives triangles).
+    max_edge_error_deg : float
+        A trusted edge disagreeing with the solved poses by more than this rotation (degrees; or
+        by more than 3 of its inlier distances in translation) is rejected as cycle inconsistent.
+    refine_rounds : int
+        Correspondence distances of the joint refinement, each used for two Gauss-Newton steps
+        (count; 0: no joint refinement).
+    stalled_rounds : int
+        Rounds in a row that place or confirm no scan after which the merge stops asking for
+        more pairs (count).
+    pair_scan_searches : int
+        Scan-strategy searches at most in each global search of a pair on the sparse subsets
+        (count; :attr:`~esmicp.globalreg.config.SearchConfig.scan_searches`, unless
+        ``registration.search`` sets its own): an untrusted pair gets its second search on another
+        draw of the subsets when the graph needs it.
+    closing_pairs : int
+        Pairs searched a round across each edge on no cycle of the kept graph (count).
+    predict_radius_inliers : float
+        What the poses predict two posed scans share is measured within this many median inlier
+        distances of the kept edges (gain).
+    min_predicted_overlap : float
+        Below this predicted overlap (fraction of points, 0-1) a pair is not searched to close a
+        cycle or a loop.
+    predict_points : int
+        Points of a scan (evenly strided, at most) whose distances to another posed scan predict
+        the pair's overlap (count).
+    predict_partners : int
+        Posed scans nearest in the world whose overlap with a scan is predicted when pairs are
+        sought for it (count).
+    loop_min_hops : int
+        With ``sequence``: a loop closure is searched only where the graph joins the two scans by
+        a path of at least this many edges (count).
+    loop_searches_per_scan : float
+        With ``sequence``: loop closures searched, at most, per scan (ratio; rounded up over all
+        scans).
+    check_iterations : int
+        Iterations of the local check of a pair on the dense subsets, unless ``max_iterations``
+        is passed to :func:`esmicp.register_scans` (count).
+    check_tolerance : float
+        The local check stops once an increment rotates less than this (radians; translates less
+        than this times the target's bounding-box diagonal): the tolerance at which
+        :func:`esmicp.register`'s own refinement stops after a global search
+        (:attr:`RefineConfig.strided_tolerance`).
+    refine_floor_spacings : float
+        The joint refinement's last correspondence distance, in median point spacings of the
+        dense subsets (its first is 3 median inlier distances of the kept edges).
+    query_points : int
+        Points of a scan each direction of an edge queries in a step of the joint refinement
+        (count; evenly strided).
+    direct_solve_max_poses : int
+        Up to this many free poses, each step of the pose graph's optimiser is a sparse direct
+        solve; beyond, preconditioned conjugate gradients (count).
+    visibility_partners : int
+        Placed scans each scan is checked against for free-space conflicts, its nearest in the
+        world whose extents overlap its own, besides the scans it shares a kept edge with (count).
+    registration : RegistrationConfig
+        The pairwise registrations' values; its trust policy also judges the merge (the free-space
+        check between placed scans, the trust of its edges).
+
+    References
+    ----------
+    Chosen on the Stanford bunny's 10 raw scans shuffled, each scan the reference in turn, and
+    confirmed on the kitchen walk shuffled: ``stalled_rounds``. Chosen on the bunny's 10 raw
+    scans in three shuffled orders, 15 turntable scans and the bunny off its sensor's frames, and
+    confirmed on 5 Newer College LiDAR scans and the kitchen walk (every 20th frame in order, 30
+    frames shuffled): ``pair_scan_searches``. Chosen on the bunny's 10 raw scans
+    and confirmed on the kitchen walk in order (100 depth frames): ``refine_floor_spacings``, ``query_points``, ``check_iterations`` and
+    ``check_tolerance`` (confirmed on pairs of the walk 1 and 2 frames apart). Chosen on the
+    kitchen walk in order and confirmed on every 20th frame of it: ``loop_searches_per_scan``.
+    The measurements: ``docs/merge.md``, "Tuned values".
+    """
+
+    pair_points: int = count(1500, least=MIN_POINTS)
+    refine_points: int = count(8000, least=MIN_POINTS)
+    partners: int = count(2)
+    sequence_neighbours: int = count(2)
+    max_edge_error_deg: float = number(2.0, above=0.0, most=180.0)
+    refine_rounds: int = count(6, least=0)
+    stalled_rounds: int = count(3)
+    pair_scan_searches: int = count(1)
+    closing_pairs: int = count(1)
+    predict_radius_inliers: float = number(3.0, above=0.0)
+    min_predicted_overlap: float = fraction(0.3)
+    predict_points: int = count(300)
+    predict_partners: int = count(16)
+    loop_min_hops: int = count(6)
+    loop_searches_per_scan: float = number(0.125, least=0.0)
+    check_iterations: int = count(30)
+    check_tolerance: float = number(3e-6, least=0.0)
+    refine_floor_spacings: float = number(2.0, above=0.0)
+    query_points: int = count(1000)
+    direct_solve_max_poses: int = count(200, least=0)
+    visibility_partners: int = count(8, least=0)
+    registration: RegistrationConfig = part(RegistrationConfig)
+
+    @classmethod
+    def of(cls, value, name: str = "config") -> "MergeConfig":
+        """``value`` as a :class:`MergeConfig` (None: the defaults; a dict: :meth:`from_dict`);
+        anything else raises :class:`InvalidInputError`, which points a registration's config to
+        the field ``registration``."""
+        if isinstance(value, (RegistrationConfig, SearchConfig)):
+            raise InvalidInputError(f"{name}: expected a MergeConfig or a dict, got {type(value).__name__}; the "
+                                    f"pairwise registrations' values go in MergeConfig(registration=...)")
+        return super().of(value, name)

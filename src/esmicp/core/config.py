@@ -1,0 +1,142 @@
+"""The base of the configuration tree: frozen dataclasses whose fields are checked when made and
+round-trip through a JSON-ready dict.
+
+A configuration class derives from :class:`Config` and declares each field with one of
+:func:`count`, :func:`number`, :func:`fraction` or :func:`part` (a nested configuration), which
+record what the field accepts. Making an instance (directly, by :func:`dataclasses.replace` or by
+:meth:`Config.from_dict`) checks every field and raises :class:`~esmicp.errors.InvalidInputError`
+naming the class and the field; :meth:`Config.from_dict` refuses unknown keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from ..errors import InvalidInputError
+
+C = TypeVar("C", bound="Config")
+
+
+def count(default: int, *, least: int = 1):
+    """A whole-number field (a count), at least ``least``."""
+    return dataclasses.field(default=default, metadata={"check": ("count", least)})
+
+
+def number(default: float, *, above: float | None = None, least: float | None = None,
+           below: float | None = None, most: float | None = None):
+    """A finite real field: greater than ``above`` / at least ``least``, less than ``below`` / at
+    most ``most`` (each bound optional); stored as a float."""
+    return dataclasses.field(default=default, metadata={"check": ("number", above, least, below, most)})
+
+
+def fraction(default: float):
+    """A real field in [0, 1] (a fraction, a ratio, a confidence)."""
+    return number(default, least=0.0, most=1.0)
+
+
+def part(kind: type):
+    """A nested configuration of class ``kind`` (its defaults unless given); a dict is read by
+    ``kind.from_dict``."""
+    return dataclasses.field(default_factory=kind, metadata={"check": ("part", kind)})
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _bounds(above, least, below, most) -> str:
+    words = [f"> {above:g}" if above is not None else None, f">= {least:g}" if least is not None else None,
+             f"< {below:g}" if below is not None else None, f"<= {most:g}" if most is not None else None]
+    return " and ".join(word for word in words if word)
+
+
+@dataclass(frozen=True)
+class Config:
+    """A frozen, validated configuration (see the module docstring)."""
+
+    def __post_init__(self) -> None:
+        owner = type(self).__name__
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            checked = type(self).checked(field.name, value, f"{owner}.{field.name}")
+            if checked is not value:
+                object.__setattr__(self, field.name, checked)
+
+    @classmethod
+    def checked(cls, name: str, value, where: str | None = None):
+        """``value`` checked as field ``name`` (a count as an int, a number as a float, a nested
+        configuration read from a dict); :class:`InvalidInputError` naming ``where`` (default
+        ``Class.name``) otherwise."""
+        field = {field.name: field for field in dataclasses.fields(cls)}[name]
+        where = where or f"{cls.__name__}.{name}"
+        check = field.metadata.get("check")
+        if check is None:
+            return value
+        if check[0] == "count":
+            least = check[1]
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+                raise InvalidInputError(f"{where}: expected a whole number >= {least}, got {value!r}")
+            return int(value)
+        if check[0] == "number":
+            above, least, below, most = check[1:]
+            if not _is_real(value) or (above is not None and not value > above) \
+                    or (least is not None and not value >= least) or (below is not None and not value < below) \
+                    or (most is not None and not value <= most):
+                bounds = _bounds(above, least, below, most)
+                raise InvalidInputError(f"{where}: expected a finite number{' ' + bounds if bounds else ''}, "
+                                        f"got {value!r}")
+            return float(value)
+        kind = check[1]
+        if isinstance(value, dict):
+            return kind.from_dict(value, where=where) if issubclass(kind, Config) else kind.from_dict(value)
+        if not isinstance(value, kind):
+            raise InvalidInputError(f"{where}: expected a {kind.__name__} or a dict, got {type(value).__name__}")
+        return value
+
+    def to_dict(self) -> dict:
+        """A JSON-ready dict of every field (nested configurations as dicts, pairs as lists)."""
+        out: dict[str, Any] = {}
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if hasattr(value, "to_dict"):  # a nested configuration
+                value = value.to_dict()
+            elif isinstance(value, tuple):
+                value = list(value)
+            out[field.name] = value
+        return out
+
+    @classmethod
+    def from_dict(cls: type[C], data: dict, *, where: str | None = None) -> C:
+        """The configuration ``data`` describes (as :meth:`to_dict` writes it; a missing field keeps
+        its default, a nested configuration may be a dict).
+
+        Raises
+        ------
+        InvalidInputError
+            ``data`` is not a dict, names a field the class does not have, or holds an invalid value.
+        """
+        where = where or cls.__name__
+        if not isinstance(data, dict):
+            raise InvalidInputError(f"{where}: expected a dict of fields, got {type(data).__name__}")
+        known = {field.name for field in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known, key=str)
+        if unknown:
+            raise InvalidInputError(f"{where}: unknown field(s) {', '.join(map(repr, unknown))}; "
+                                    f"known: {', '.join(sorted(known))}")
+        return cls(**data)
+
+    @classmethod
+    def of(cls: type[C], value, name: str = "config") -> C:
+        """``value`` as a ``cls``: None gives the defaults, an instance is kept, a dict is read by
+        :meth:`from_dict`; anything else raises :class:`InvalidInputError` naming ``name``."""
+        if value is None:
+            return cls()
+        if isinstance(value, cls):
+            return value
+        if isinstance(value, dict):
+            return cls.from_dict(value)
+        raise InvalidInputError(f"{name}: expected a {cls.__name__} or a dict, got {type(value).__name__}")

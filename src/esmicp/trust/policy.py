@@ -1,0 +1,144 @@
+"""How a pose is judged: the trust bars and the values of the measures behind them, in one frozen
+object.
+
+:class:`TrustPolicy` holds the bar a registration's overlap confidence must reach, the free-space
+test's bars (:mod:`.free_space`), the overlap confidence's (:mod:`.confidence`; its ranges are
+the search's, :class:`esmicp.globalreg.config.SearchConfig`) and the pose covariance's values
+(:mod:`.uncertainty`).
+``register(..., config=RegistrationConfig(trust=TrustPolicy(...)))`` judges with other values, and
+the result keeps the policy it was judged by (:attr:`esmicp.RegistrationResult.policy`); a merge
+judges its pairs and its scans with ``MergeConfig.registration.trust``
+(:class:`esmicp.config.MergeConfig`). The default is :data:`DEFAULT_POLICY`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..core.config import Config, count, fraction, number
+
+
+@dataclass(frozen=True)
+class TrustPolicy(Config):
+    """The bars a pose must pass to be trusted, and the values of the measures behind them.
+
+    Lengths are gains times a length the data give: a registration's inlier distance
+    (:attr:`esmicp.RegistrationResult.inlier_distance`: 3 target point spacings by default) or
+    the target's point spacing.
+
+    Attributes
+    ----------
+    min_coincident : int
+        The overlap confidence is 0 when fewer than this many keypoints of either cloud coincide
+        with the other: too little evidence to certify a pose (count).
+    overlap_voxels : float
+        The overlap confidence's overlap: the keypoints within this many keypoint voxels of the
+        other cloud (gain; of them, those within one voxel coincide).
+    spread_below : float
+        The coincident part's normals are asked to hold the pose only when less than this share
+        (0-1) of either cloud's keypoints coincides; more is held by the clouds' whole shape.
+    spread_points : int
+        Coincident keypoints (at most, evenly strided) whose normals measure that spread (count).
+    trusted : float
+        The overlap confidence a result must reach to be trusted (0-1; above 1: nothing is); above
+        the global search's own bar (:attr:`esmicp.globalreg.config.SearchConfig.confident`),
+        where the search stops.
+    max_free_space_pair : float
+        One registered pair of range images (``register(..., range_images=True)``) is not trusted
+        when its pose puts more than this fraction (0-1) of either cloud in the space the other's
+        sensor saw empty.
+    max_free_space : float
+        The same bar for two scans a merge placed (fraction, 0-1), at poses a whole set of scans
+        agreed on: above it, the two scans' poses conflict.
+    free_space_tolerance_inliers : float
+        A point counts as in free space when it lies more than this many inlier distances in front
+        of the surface the other sensor saw in its direction (gain).
+    free_space_points : int
+        Points of each cloud the free-space test uses (count).
+    free_space_min_seen : int
+        A pair is judged only when at least this many points of one cloud lie in the other's field
+        of view (count).
+    max_sampling_slope : float
+        A scan is a range image seen from its origin only when the upper 95% bound of the log-log
+        slope of its points' angular spacing against ``sqrt(cos(incidence)) / range`` is below this
+        (an exponent: 0 for a sensor's grid, 1 for points spread evenly over the surface).
+    max_hidden : float
+        ... and at most this fraction (0-1) of its points lie hidden behind another of its points
+        seen from the origin.
+    hidden_pixel : float
+        A point is hidden behind another when its direction lies within this fraction of the
+        other's angular spacing (the mean angle to its 4 nearest directions) of the other's
+        direction (ratio) ...
+    hidden_depth_spacings : float
+        ... and it lies farther from the origin by more than this many local point spacings (the
+        mean distance to the 4 nearest points, the larger of the two's; gain).
+    premise_min_points : int
+        Fewer points than this are too few to judge a scan a range image (count; at least 17, the
+        16 nearest directions the test reads and the point itself).
+    min_angular_radius_deg : float
+        A scan whose points lie within this angle of their mean direction (the median angle,
+        degrees) is far from its origin for its size, as no sensor sees a scan: not a range image.
+    cluster_spacings : float
+        Side of the cubes whose pairs' residuals may be correlated in the cluster-robust pose
+        covariance, in target point spacings (gain).
+    min_clusters : int
+        Fewest cubes the cluster-robust covariance is computed over: the cube is halved until
+        there are this many (count).
+    inflation : float
+        The pose covariance is the cluster-robust sandwich times this factor (dimensionless).
+    degenerate_ratio : float
+        A direction whose eigenvalue in the scaled point-to-plane Hessian is below this fraction
+        of the largest is a degenerate direction, and the result is not trusted (ratio, 0-1).
+    singular_ratio : float
+        Eigenvalues of the scaled Hessian below this fraction of the largest are taken as zero:
+        no information at all along them (ratio, 0-1).
+    negligible_weight : float
+        Pairs whose weight is below this fraction of the largest are left out of the covariance
+        (ratio, 0-1).
+    covariance_normals : int
+        The covariance's Hessian comes from target normals at the matches of at most this many
+        pairs, evenly strided (count).
+
+    References
+    ----------
+    ``min_coincident``: chosen on the 12 ModelNet40 shapes resampled to 21-1,000 points
+    (``benchmarks/sparse_trust.py``), confirmed on the 69 of ``modelnet40_extra``
+    (``docs/measured-global.md``, "Sparse clouds"). ``trusted``: chosen on the 3DMatch crops of ``real_pairs`` (``docs/scans-partial-overlap.md``,
+    ``docs/measured-global.md``). ``max_free_space_pair``: chosen on kitchen depth frames 60-150
+    frames apart, confirmed on the kitchen pairs 10-50 frames apart and the pairs of
+    ``real_pairs`` (``docs/measured-global.md``). ``max_free_space``: chosen on a merge of the
+    kitchen walk, confirmed on the Newer College LiDAR scans. The range-image test's bars: chosen
+    on kitchen depth frames and the bunny's scans in their scanner's frame, confirmed on LiDAR
+    scans as recorded, ModelNet objects and 3DMatch crops (``docs/merge.md``, step 5).
+    ``cluster_spacings``, ``min_clusters`` and ``inflation``: fitted on resamples of a 3DMatch
+    fragment, confirmed on resamples of the kitchen walk's frames; ``degenerate_ratio``: chosen on
+    the 12 ModelNet40 shapes, confirmed on ``modelnet40_extra`` (``docs/uncertainty.md``).
+    """
+
+    min_coincident: int = count(60)
+    overlap_voxels: float = number(3.0, above=0.0)
+    spread_below: float = fraction(0.5)
+    spread_points: int = count(500)
+    trusted: float = number(0.55, least=0.0)
+    max_free_space_pair: float = fraction(0.08)
+    max_free_space: float = fraction(0.12)
+    free_space_tolerance_inliers: float = number(3.0, least=0.0)
+    free_space_points: int = count(4000)
+    free_space_min_seen: int = count(200)
+    max_sampling_slope: float = number(0.5)
+    max_hidden: float = fraction(0.005)
+    hidden_pixel: float = number(0.25, above=0.0)
+    hidden_depth_spacings: float = number(2.0, least=0.0)
+    premise_min_points: int = count(1000, least=17)
+    min_angular_radius_deg: float = number(0.5, least=0.0, below=180.0)
+    cluster_spacings: float = number(16.0, above=0.0)
+    min_clusters: int = count(30)
+    inflation: float = number(5.4, above=0.0)
+    degenerate_ratio: float = fraction(0.01)
+    singular_ratio: float = fraction(1e-9)
+    negligible_weight: float = number(1e-6, least=0.0, below=1.0)
+    covariance_normals: int = count(600)
+
+
+#: The policy every judgement uses unless given another.
+DEFAULT_POLICY = TrustPolicy()
