@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import require_shared
+from conftest import require_module, require_shared
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -246,7 +246,7 @@ def test_fpfh_is_the_same_on_any_number_of_threads_and_survives_coincident_point
 
 
 def test_fpfh_matches_open3d():
-    o3d = pytest.importorskip("open3d")
+    o3d = require_module("open3d", "baselines")
     points, normals = random_oriented_points(600, 5)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     cloud.normals = o3d.utility.Vector3dVector(normals)
