@@ -27,7 +27,7 @@ from esmicp_lab.bench.trials import TrialSpec, build_trial
 from esmicp.core.procrustes import apply
 from esmicp.errors import EsmicpError, InvalidInputError, PointCloudFileError
 
-#: The keys every row must carry (docs/bench.md; /work/helpers/bench_rows.md).
+#: The keys every row must carry (docs/bench.md).
 SCHEMA = {
     "trial_id": str, "seed": int, "protocol": str, "dataset": str, "cloud": str, "method": str,
     "method_kind": str, "sigma": (float, type(None)), "max_iterations": (int, type(None)), "init": str,

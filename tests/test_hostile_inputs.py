@@ -1,8 +1,8 @@
-"""Hostile and careless inputs of issue 16: files that change while they are read, sources that are
-not files, sparse multi-gigabyte tails, decimal commas, list elements before the vertices, and
-scan lists that point outside their folder.
+"""Hostile and careless inputs: files that change while they are read, sources that are not files,
+sparse multi-gigabyte tails, decimal commas, list elements before the vertices, and scan lists that
+point outside their folder.
 
-Each test here failed on the code before the fix (see docs/reliability.md, "Issue 16").
+docs/reliability.md ("Careless and hostile use") lists each case and what it returns.
 """
 
 from __future__ import annotations

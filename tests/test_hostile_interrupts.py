@@ -248,9 +248,9 @@ def coincident_interrupt_latency(count: int, fraction: float, init: str) -> tupl
     """``(latency, delay)``: seconds from a SIGINT to the ``KeyboardInterrupt`` of a registration
     of three points repeated to ``count`` (source + 0.01), the SIGINT sent ``delay`` s into it:
     ``fraction`` of the quickest time the same registration took uninterrupted just before, in the
-    same process (issue 16 item 1). Fractions, not fixed delays: on a faster host a fixed 2 s fell
-    after the end of the registration; and up to three tries, as one CI run was quicker than the
-    run before it (2.44 s, ending before the SIGINT at 85% of the first)."""
+    same process. Fractions, not fixed delays: on a faster host a fixed delay can fall after the end
+    of the registration; and up to three tries, as a run can be quicker than the one before it (and
+    end before the SIGINT at 85% of the first)."""
     done = subprocess.run(
         [sys.executable, "-c", COINCIDENT_CHILD, str(count), str(fraction), init],
         capture_output=True, text=True, timeout=300, preexec_fn=interruptible_child,
@@ -264,9 +264,9 @@ def coincident_interrupt_latency(count: int, fraction: float, init: str) -> tupl
 
 @pytest.mark.parametrize("fraction, init", [(0.15, "global"), (0.5, "global"), (0.85, "global"), (0.5, "identity")])
 def test_ctrl_c_stops_a_registration_of_a_million_coincident_points(fraction, init):
-    """Issue 16 item 1: Ctrl-C took 73 s on three points repeated to 1M (the compiled loop never
-    checked for signals). Now the kernels check every 5 ms; the bound here is generous for a
-    shared CI machine (the measured latency: ``benchmarks/duplicates.py``, docs/reliability.md)."""
+    """Ctrl-C on three points repeated to 1M: the kernels check for signals every 5 ms, so the
+    interrupt arrives within the second wherever it falls; the bound here is generous for a shared
+    CI machine (the measured latency: ``benchmarks/duplicates.py``, docs/reliability.md)."""
     latency, delay = coincident_interrupt_latency(1_000_000, fraction, init)
     print(f"SIGINT at {delay:.3f} s ({fraction:.0%}, {init}): KeyboardInterrupt {latency:.3f} s later")
     assert latency < 1.0

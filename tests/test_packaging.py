@@ -1,6 +1,8 @@
-"""The source distribution (issue 14): ``python -m build --sdist`` packs what a build from source
-needs (the C++ kernels, CMakeLists.txt, pyproject.toml, the package, tests, docs) and nothing of a
-working copy's own: no build tree, virtual environment, results, caches or kernel built in place."""
+"""The source distribution: ``python -m build --sdist`` packs what a build from source needs (the
+C++ kernels, CMakeLists.txt, pyproject.toml, the package, tests, docs) and nothing of a working
+copy's own: no build tree, virtual environment, results, caches or kernel built in place. And the
+install hints: every extra they name exists, and the ``dev`` extra brings every extra that installs
+in one step, with a persistent build folder."""
 
 from __future__ import annotations
 
