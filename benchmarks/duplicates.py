@@ -1,5 +1,5 @@
-"""Coincident points (issue 16 item 1): registration time against the number of copies, and how
-fast Ctrl-C stops it (docs/reliability.md, issue-16 section).
+"""Coincident points: registration time against the number of copies, and how fast Ctrl-C stops it
+(docs/reliability.md, "Coincident points and Ctrl-C in the compiled kernels").
 
 Cases, each registration in a fresh child process (so that one case's caches never help the
 next, and a hang is cut at ``--timeout`` seconds):

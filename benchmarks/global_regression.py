@@ -1,5 +1,6 @@
-"""A fixed sample of global registrations, recorded so that a change to the global search can be
-compared with the code before it, row by row.
+"""A fixed sample of global registrations, recorded row by row, so that two versions or settings of
+the global search can be compared on the same trials (``--compare``); ``benchmarks/global_doc.py``
+makes the results pages' tables of one run.
 
 Sets (``--sets``, comma-separated):
 
@@ -42,8 +43,8 @@ baseline right after esmicp on the same clouds (the voxel its documentation give
 the median of the per-row time ratios esmicp / peer of each file: a ratio measured in one process
 holds under a machine's changing load, which absolute times do not.
 
-    python benchmarks/global_regression.py --out /tmp/runs/before.jsonl
-    python benchmarks/global_regression.py --out /tmp/runs/after.jsonl --compare /tmp/runs/before.jsonl
+    python benchmarks/global_regression.py --out /tmp/runs/a.jsonl
+    python benchmarks/global_regression.py --out /tmp/runs/b.jsonl --compare /tmp/runs/a.jsonl
     python benchmarks/global_regression.py --sets real,crops --peer kiss-matcher-gicp --out /tmp/runs/peer.jsonl
 """
 

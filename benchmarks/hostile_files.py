@@ -13,12 +13,12 @@ invisible to tracemalloc; the cap makes an attempt to allocate the claimed size 
 
 Prints one Markdown table; figures are measured in this run, never stored.
 
-``--memory`` measures what big files cost (issue 16, items 10 and 11): sparse 2 GB tails behind
+``--memory`` measures what big files cost: sparse 2 GB tails behind
 declared content (ascii PCD, ascii PLY, ``.xyz``) and 10 MB PLY files whose list element comes
 before the vertices. Each read runs in a fresh child, capped at 3 GB of address space above its
 imports; the table gives its read time and the growth of its peak resident memory (VmHWM) over
-the read. ``--peer-src`` runs the same reads against another checkout's ``src`` in the same run
-(e.g. the code before the fix), as the peer.
+the read. ``--peer-src`` runs the same reads against another checkout's ``src`` in the same run,
+as the peer.
 
 ``--las`` reads each lying LAS / LAZ header of ``tests/test_io_scans.py`` (laspy's own files with
 corrupted header bytes) in a fresh child capped at 1 GB above its imports, 60 s at most: outcome,
@@ -213,7 +213,7 @@ def las_main(peer_src: str | None) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--no-open3d", action="store_true", help="skip the Open3D peer")
-    parser.add_argument("--memory", action="store_true", help="big files: time and peak memory (issue 16)")
+    parser.add_argument("--memory", action="store_true", help="big files: time and peak memory")
     parser.add_argument("--las", action="store_true", help="lying LAS / LAZ headers: outcome, time and peak memory")
     parser.add_argument("--peer-src", help="with --memory or --las: also run another checkout's src as the peer")
     args = parser.parse_args()

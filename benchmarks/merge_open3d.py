@@ -14,7 +14,7 @@ Two pipelines, both written against the current Open3D API (``open3d.pipelines.r
   ``global_optimization`` (Levenberg-Marquardt) over the pose graph with the loops uncertain.
 
 Frames: an Open3D node pose is ``T_world_scan`` (world = scan 0); an edge (source, target) holds
-``T_target_source``. Open3D is imported lazily (``pip install open3d``).
+``T_target_source``. Open3D is imported lazily (``pip install 'esmicp[baselines]'``).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def _registration():
     try:
         import open3d as o3d
     except ImportError as error:  # pragma: no cover - depends on the environment
-        raise SystemExit("Open3D is needed for the peer runs: pip install open3d (or pass --skip-peer)") from error
+        raise SystemExit("Open3D is needed for the peer runs: pip install 'esmicp[baselines]' (or pass --skip-peer)") from error
     return o3d, o3d.pipelines.registration
 
 

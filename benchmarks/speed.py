@@ -5,7 +5,7 @@ Usage::
     python benchmarks/speed.py                           # bunny + LiDAR at 1k, 10k, 100k, 1M, 3 repeats
     python benchmarks/speed.py --sizes 1000 10000 --clouds bunny --repeats 5
     python benchmarks/speed.py --plot docs/images/speed.png   # also draw time against N (log-log)
-    python benchmarks/speed.py --clouds bunny --iterations-only --peers open3d   # issue 14's ratios
+    python benchmarks/speed.py --clouds bunny --iterations-only --peers open3d   # per-iteration ratios against Open3D
 
 Clouds (``../shared/data`` or ``$ESMICP_SHARED_DATA``), resampled to each size N:
 
@@ -295,7 +295,7 @@ def paper_speed(size: int, repeats: int) -> tuple[float, float]:
 def peak_rss_mb() -> float:
     """This process's peak resident memory (MB): ``VmHWM`` of ``/proc/self/status``, which starts
     afresh with the process image. (``getrusage``'s ``ru_maxrss`` does not: on Linux a child
-    started by a large parent reports the parent's peak, which hid the child's own in earlier runs.)"""
+    started by a large parent reports the parent's peak, which hides the child's own.)"""
     try:
         with open("/proc/self/status") as status:
             for line in status:

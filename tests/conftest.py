@@ -1,8 +1,9 @@
 """Shared fixtures: where the real data lives, and seeded generators.
 
 The real point clouds live in ``../shared/data`` beside the repository (override with the
-``ESMICP_SHARED_DATA`` environment variable). Tests that need them skip when they are missing on a
-developer's machine, but FAIL in CI (``CI=true``), where their absence is a broken setup.
+``ESMICP_SHARED_DATA`` environment variable; docs/guide/data.md says what it holds and where each set
+comes from). Tests that need them skip when they are missing on a developer's machine, but FAIL in
+CI (``CI=true``), where their absence is a broken setup.
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ def require_shared(relative: str) -> Path:
     """Return the path of ``relative`` inside the shared data folder, or skip / fail if missing."""
     path = _shared_data_dir() / relative
     if not path.exists():
-        message = f"shared data not found: {path} (set ESMICP_SHARED_DATA or put shared/ beside the repo)"
+        message = (f"shared data not found: {path} (set ESMICP_SHARED_DATA or put shared/ beside the repo; "
+                   "docs/guide/data.md says where each set comes from)")
         if in_ci():
             pytest.fail(message)
         pytest.skip(message)
@@ -41,13 +43,15 @@ def in_ci() -> bool:
     return os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
 
-def require_module(name: str, extra: str):
+def require_module(name: str, extra: str, hint: str | None = None):
     """Import the optional module ``name``; skip the test when it is missing locally, fail it in CI.
-    ``extra``: the ``esmicp[...]`` extra that installs it."""
+    ``extra``: the ``esmicp[...]`` extra of pyproject.toml that installs it; ``hint``: the whole
+    install command instead, for a library that needs more than the extra (probreg, py-goicp)."""
     try:
         return importlib.import_module(name)
     except (ImportError, OSError) as exc:  # OSError: open3d-cpu without libusb
-        message = f"{name} cannot be imported ({exc}): pip install 'esmicp[{extra}]'"
+        install = hint or f"pip install 'esmicp[{extra}]'"
+        message = f"{name} cannot be imported ({exc}): {install}"
         if in_ci():
             pytest.fail(message)
         pytest.skip(message)

@@ -21,6 +21,7 @@ from conftest import REPO_ROOT, require_shared
 from scipy.spatial.transform import Rotation
 from conftest import in_ci, require_module
 
+from esmicp_lab.baselines._common import GOICP_HINT, PROBREG_HINT, TORCH_HINT
 from esmicp_lab.baselines import (
     BASELINE_KINDS,
     BASELINES,
@@ -66,6 +67,8 @@ HINTS = {
     "kiss_matcher": "esmicp[baselines]",
     "small_gicp": "esmicp[baselines]",
 }
+#: How to install each module that the ``baselines`` extra does not bring (for the skip message).
+INSTALL = {"py_goicp": GOICP_HINT, "probreg": PROBREG_HINT, "torch": TORCH_HINT}
 LOCAL = sorted(name for name, kind in BASELINE_KINDS.items() if kind == "local")
 LEARNED_UNAVAILABLE = ("rpm-net", "deepgmr")
 #: Global methods without a refinement: their pose is coarser.
@@ -73,9 +76,13 @@ COARSE = ("open3d-ransac-fpfh", "kiss-matcher", "fgr", "go-icp")
 WEIGHTS = "pointnetlk/best_model.t7"
 
 
+def _require_library(module: str) -> None:
+    require_module(module, "baselines", hint=INSTALL.get(module))
+
+
 def _require(method: str) -> None:
     for module in NEEDS[method]:
-        require_module(module, "baselines")
+        _require_library(module)
     if method == "pointnetlk":
         require_weights(WEIGHTS)
 
@@ -377,5 +384,5 @@ def test_ci_flag_is_what_makes_missing_libraries_fail():
         pytest.skip("only meaningful with CI=true")
     for modules in NEEDS.values():
         for module in modules:
-            require_module(module, "baselines")
+            _require_library(module)
     assert os.environ.get("CI")

@@ -27,7 +27,7 @@ from esmicp_lab.bench.trials import TrialSpec, build_trial
 from esmicp.core.procrustes import apply
 from esmicp.errors import EsmicpError, InvalidInputError, PointCloudFileError
 
-#: The keys every row must carry (docs/bench.md; /work/helpers/bench_rows.md).
+#: The keys every row must carry (docs/bench.md).
 SCHEMA = {
     "trial_id": str, "seed": int, "protocol": str, "dataset": str, "cloud": str, "method": str,
     "method_kind": str, "sigma": (float, type(None)), "max_iterations": (int, type(None)), "init": str,
@@ -146,14 +146,18 @@ def test_resume_refuses_a_different_configuration(tmp_path):
 
 
 #: Trials of the interrupted bench: enough that it cannot finish between its 4th row and the signal
-#: (12 could, once the iterations got faster).
+#: (400 rows of about 10 ms each: seconds after the 4th, where 48 rows can finish before the signal
+#: lands on a loaded machine).
 _INTERRUPTED_TRIALS = 100
+#: Points per cloud: the interruption and the resume's bookkeeping do not depend on the size, and
+#: the resume runs every remaining row.
+_INTERRUPTED_POINTS = 100
 
 
 def _bench_command(out: Path, workers: str) -> list[str]:
     return [sys.executable, "-m", "esmicp.cli", "bench", "--datasets", "synthetic", "--protocols", "copy,shuffled",
-            "--methods", "esm,icp", "--trials", str(_INTERRUPTED_TRIALS), "--points", "400", "--workers", workers,
-            "--no-progress", "--out", str(out)]
+            "--methods", "esm,icp", "--trials", str(_INTERRUPTED_TRIALS), "--points", str(_INTERRUPTED_POINTS),
+            "--workers", workers, "--no-progress", "--out", str(out)]
 
 
 @pytest.mark.parametrize("workers", ["1", "2"])

@@ -232,6 +232,20 @@ def test_crop_to_overlap_reaches_the_overlap_it_reports(overlap):
     assert np.all(cropped.target @ cropped.normal <= cropped.offset + 0.5 * cropped.width + 1e-9)
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_crop_to_overlap_reports_exactly_the_overlap_scan_overlap_measures(seed):
+    """The bisection judges each width without measuring every kept point again; what it reports
+    is still exactly the kept source's fraction within 3 spacings (of the whole target) of the kept
+    target, as :func:`scan_overlap` measures it."""
+    from esmicp_lab.bench.protocols import median_spacing, scan_overlap
+
+    source, target, truth = _plane_pair(np.random.default_rng(0))
+    for overlap in (0.1, 0.25, 0.4):
+        cropped = crop_to_overlap(source, target, truth, overlap, np.random.default_rng(seed))
+        assert cropped.source_overlap == scan_overlap(cropped.source, cropped.target, truth,
+                                                      3.0 * median_spacing(target))
+
+
 def test_crop_to_overlap_is_seeded_and_rejects_bad_input():
     source, target, truth = _plane_pair(np.random.default_rng(0))
     first = crop_to_overlap(source, target, truth, 0.2, np.random.default_rng(5))

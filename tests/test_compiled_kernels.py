@@ -1,5 +1,5 @@
 """The compiled kernels (esmicp._kernels): exact against SciPy / NumPy references, fork-safe, and
-near-linear on coincident points (issue 14; issue 16 items 1 and 2)."""
+near-linear on coincident points."""
 
 from __future__ import annotations
 
@@ -53,8 +53,8 @@ def test_moments_match_numpy_kabsch():
 
 
 def test_coincident_points_stay_near_linear():
-    """Issue 16 item 1: three points repeated 100,000 times each (a cell of 100k coincident points).
-    Before, every query scanned its whole cell (quadratic: minutes). The bound here is generous
+    """Three points repeated 100,000 times each (a cell of 100k coincident points): a query that
+    scanned its whole cell would be quadratic (minutes). The bound here is generous
     (no timing): the answer must be exact, and the run must finish at all within the suite."""
     base = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
     target = np.repeat(base, 100000, axis=0)
@@ -75,7 +75,7 @@ def _register_small(seed, count=3000):
 @pytest.mark.parametrize("count", [3000, 800])
 @pytest.mark.parametrize("executor", ["pool", "process_pool_executor"])
 def test_fork_after_register_works(executor, count):
-    """Issue 16 item 2: a forked pool after a registration in the parent (no OpenMP runtime).
+    """A forked pool after a registration in the parent (no OpenMP runtime).
     Below 32,768 points the step runs on the kernels' persistent helper threads, which the child
     does not inherit: it starts its own."""
     _register_small(0, count)
@@ -266,7 +266,7 @@ def test_coincident_points_are_counted_exactly():
 
 
 def test_a_cloud_full_of_zero_points_warns_and_says_what_to_do():
-    """Issue 16 item 1: a depth sensor's invalid pixels stored as (0, 0, 0); the registration
+    """A depth sensor's invalid pixels stored as (0, 0, 0); the registration
     runs (near-linear) and warns, naming the share, the place and the fix."""
     cloud = _bunny_like(4000, 9)
     zeros = np.zeros((1000, 3))

@@ -5,6 +5,7 @@ turned."""
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import lru_cache
 
 import numpy as np
 import pytest
@@ -214,6 +215,8 @@ def test_descriptor_matching_both_ways_equals_a_full_distance_matrix():
     in pieces, on 1 and 2 threads) finds what a whole distance matrix gives: the nearest column of
     each row and row of each column (the first of equal ones), and Lowe's ratios. Integer
     descriptors make every distance exact, so ties are real ties."""
+    from scipy.spatial.distance import cdist
+
     from esmicp.globalreg import scan
 
     generator = np.random.default_rng(9)
@@ -221,7 +224,7 @@ def test_descriptor_matching_both_ways_equals_a_full_distance_matrix():
         source = generator.integers(0, 4, (rows, 33)).astype(np.float64)
         target = generator.integers(0, 4, (columns, 33)).astype(np.float64)
         target[-1] = source[0]  # an exact match
-        squared = ((source[:, None, :] - target[None, :, :]) ** 2).sum(axis=2)
+        squared = cdist(source, target, "sqeuclidean")  # exact: sums of squared small integers
         row_sorted, column_sorted = np.sort(squared, axis=1), np.sort(squared, axis=0)
 
         def ratio(best, second):
@@ -292,14 +295,22 @@ def test_the_pruning_kernels_equal_plain_numpy(seed):
 def _lomatch_crop(pair_name: str, seed: int, spawn_key: tuple[int, int, int]):
     """``(cropped, truth)``: the 3DMatch pair ``pair_name`` cropped to 15% overlap as
     ``benchmarks/lomatch_crop.py --seed seed`` crops it (``spawn_key``: the pair's index among the
-    3DMatch pairs, the overlap's index, the crop's), as recorded."""
+    3DMatch pairs, the overlap's index, the crop's), as recorded. Read-only arrays, made once per
+    crop for the tests that share it."""
+    require_shared("real_pairs/3dmatch_redkitchen/cloud_bin_0.ply")
+    return _cropped(pair_name, seed, spawn_key)
+
+
+@lru_cache(maxsize=None)
+def _cropped(pair_name: str, seed: int, spawn_key: tuple[int, int, int]):
     from esmicp_lab.bench.real_pairs import crop_to_overlap, load_pair, read_pairs
 
-    require_shared("real_pairs/3dmatch_redkitchen/cloud_bin_0.ply")
     pair = next(p for p in read_pairs(require_shared("real_pairs")) if p.pair == pair_name)
     source, target, truth = load_pair(pair)
     cropped = crop_to_overlap(source, target, truth, 0.15,
                               np.random.default_rng(np.random.SeedSequence(seed, spawn_key=spawn_key)))
+    for array in (cropped.source, cropped.target, truth):
+        array.flags.writeable = False
     return cropped, truth
 
 

@@ -19,9 +19,14 @@ REPO = Path(__file__).resolve().parents[1]
 #: A label that recounts a round of work ("session 12", "Session 3:", "Issue 14, fourth pass"), not
 #: something a user reads.
 WORK_LOG_LABEL = re.compile(r"\bsessions?\s+\d+|\bissue\s+\d+,?\s+(?:pass\s+\d+|\w+\s+pass)\b", re.IGNORECASE)
+#: A citation of the project's history: an issue by number, a red-team pass, the code before a fix or a
+#: commit it was compared with. What is, is stated; the history lives in git.
+WORK_LOG_CITATION = re.compile(r"\bissues?[ -]#?\d+|\bred[ -]team pass|\bbefore (?:this|the) fix\b|\bparent commit\b"
+                               r"|\(commit [0-9a-f]{7,40}\b", re.IGNORECASE)
 
-#: Where a user reads: the package's sources, the documentation, the README.
-CHECKED = ("src", "docs", "README.md")
+#: Where a user or a contributor reads: the package's sources, the documentation, the README, the
+#: benchmark scripts that write the results pages, the tests, and the build and CI files.
+CHECKED = ("src", "docs", "README.md", "benchmarks", "tests", "fuzz", "CMakeLists.txt", "pyproject.toml", ".ci")
 #: Text files among them (images, CSV results and the compiled module are not read).
 TEXT_SUFFIXES = {".py", ".pyi", ".md", ".rst", ".txt", ".cpp", ".h", ".toml", ".cfg"}
 
@@ -32,8 +37,11 @@ def _texts():
         if root.is_file():
             yield root
             continue
+        if not root.exists():
+            continue
         for path in sorted(root.rglob("*")):
-            if path.is_file() and path.suffix in TEXT_SUFFIXES and "_build" not in path.parts:
+            if (path.is_file() and (path.suffix in TEXT_SUFFIXES or path.parent.name == ".ci")
+                    and "_build" not in path.parts and "corpus" not in path.parts and path.resolve() != Path(__file__).resolve()):
                 yield path
 
 
@@ -43,7 +51,7 @@ def test_no_work_log_labels_in_sources_docs_or_readme():
     found = []
     for path in _texts():
         for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
-            if WORK_LOG_LABEL.search(line):
+            if WORK_LOG_LABEL.search(line) or WORK_LOG_CITATION.search(line):
                 found.append(f"{path.relative_to(REPO)}:{number}: {line.strip()[:100]}")
     assert not found, "work-log labels (the history lives in git):\n" + "\n".join(found)
 
@@ -55,6 +63,12 @@ def test_the_label_pattern_catches_what_it_should():
     assert WORK_LOG_LABEL.search("issue 13 pass 2")
     assert not WORK_LOG_LABEL.search("a sessionless run of 3 trials")
     assert not WORK_LOG_LABEL.search("a second pass over the points (issue 13 asks for it)")
+    assert WORK_LOG_CITATION.search("a second pass over the points (issue 13 asks for it)")
+    assert WORK_LOG_CITATION.search("## Issue 16: a red-team pass")
+    assert WORK_LOG_CITATION.search("the code before this fix (commit 41af51c), measured in the same run")
+    assert WORK_LOG_CITATION.search("`before`: the same script on the parent commit")
+    assert WORK_LOG_CITATION.search("(docs/reliability.md, issue-16 section)")
+    assert not WORK_LOG_CITATION.search("esmicp 0.1.0 at commit 444368b; see the tissue 3 scan")
 
 
 def _init_names():

@@ -1,8 +1,8 @@
-"""Hostile and careless inputs of issue 16: files that change while they are read, sources that are
-not files, sparse multi-gigabyte tails, decimal commas, list elements before the vertices, and
-scan lists that point outside their folder.
+"""Hostile and careless inputs: files that change while they are read, sources that are not files,
+sparse multi-gigabyte tails, decimal commas, list elements before the vertices, and scan lists that
+point outside their folder.
 
-Each test here failed on the code before the fix (see docs/reliability.md, "Issue 16").
+docs/reliability.md ("Careless and hostile use") lists each case and what it returns.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import plyfile
 import pytest
+from conftest import require_module
 
 from esmicp.errors import PointCloudFileError
 from esmicp.io import read_points, read_transform, write_points
@@ -170,7 +171,7 @@ def _cloud(tmp_path: Path, name: str) -> Path:
 @pytest.mark.parametrize("kind", ["fifo", "dev-zero-link"])
 def test_command_line_init_that_is_not_a_regular_file_is_one_line_exit_2(tmp_path, command, kind):
     if command == "view":
-        pytest.importorskip("plotly")
+        require_module("plotly", "viz")
     init = _fifo(tmp_path) if kind == "fifo" else _dev_zero_link(tmp_path)
     source, target = _cloud(tmp_path, "s.xyz"), _cloud(tmp_path, "t.xyz")
     output = tmp_path / ("aligned.xyz" if command == "register" else "view.html")

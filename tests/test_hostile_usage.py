@@ -1,8 +1,8 @@
-"""Careless and hostile use of issue 16: tiny sigmas, far starts, outputs that collide or dangle,
-permissions lost by --force, out of memory, full disks, two runs on one results folder, and
-results folders whose rows would make table names escape the folder.
+"""Careless and hostile use: tiny sigmas, far starts, outputs that collide or dangle, permissions
+lost by --force, out of memory, full disks, two runs on one results folder, and results folders
+whose rows would make table names escape the folder.
 
-Each test here failed on the code before the fix (see docs/reliability.md, "Issue 16").
+docs/reliability.md ("Careless and hostile use") lists each case and what it returns.
 """
 
 from __future__ import annotations

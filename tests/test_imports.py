@@ -1,4 +1,4 @@
-"""Import stays light (issue 14): ``import esmicp`` and ``esmicp --version`` load neither NumPy nor
+"""Import stays light: ``import esmicp`` and ``esmicp --version`` load neither NumPy nor
 any optional library; the registration path loads no plotting, Dask, torch, Open3D or file readers.
 
 Each check runs in a fresh interpreter and reads its ``sys.modules``."""

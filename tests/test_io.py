@@ -1226,3 +1226,40 @@ def test_ascii_ply_fast_path_is_taken_on_float_rows():
     points = ply._float_rows(["0.1 0.2 0.3\n", "1e72 -1 2\n"], vertex)
     np.testing.assert_array_equal(points, np.array([[0.1, 0.2, 0.3], [np.inf, -1, 2]], np.float32))
     assert ply._float_rows(["0.1 0.2\n", "1 2 3\n"], vertex) is None
+
+
+def _data_after_line_by_line(text, rows: int, longest: int) -> bool:
+    """What follows the next ``rows`` non-blank lines, judged one line at a time: the reference of
+    the ascii PLY reader's block-wise check (a line of ``longest`` characters or more is not a row)."""
+    while rows:
+        line = text.readline(longest)
+        if not line:
+            return False
+        if len(line) == longest and not line.endswith("\n"):
+            return True
+        if line.strip():
+            rows -= 1
+    return bool(text.read().strip())
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.tuples(st.sampled_from(["1 2 3", "", "  ", "\t", "\x0c", "\x1f", "x", "\ufffd", "a" * 20, " " * 20]),
+                          st.sampled_from(["\n", "\r\n", "\r", "\n\n"])), max_size=30),
+       st.integers(0, 12), st.sampled_from([8, 16, 64]), st.booleans())
+def test_what_follows_the_declared_ascii_rows_is_judged_as_line_by_line(parts, rows, longest, cut):
+    """The rows after the vertices (a scanner's range grid: 200k of them) are counted a block at a
+    time; the verdict, data after them or not, is the one a line-by-line reading gives, blank lines,
+    line endings, lines too long to be rows and blocks that end inside a line included."""
+    from esmicp.io import ply
+
+    text = "".join(part + end for part, end in parts)
+    if cut:
+        text = text[: len(text) // 2]
+    data = text.encode("utf-8")
+
+    def wrapped():
+        return io.TextIOWrapper(io.BytesIO(data), encoding="ascii", newline=None, errors="replace")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(ply, "_MAX_ASCII_ROW", longest)
+        assert ply._ascii_data_after(wrapped(), rows) == _data_after_line_by_line(wrapped(), rows, longest)

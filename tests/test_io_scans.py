@@ -200,7 +200,7 @@ def test_shared_scans_read_with_three_columns():
 if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
     import laspy  # CI installs the `las` extra: its absence there is a broken setup, not a skip
 else:
-    laspy = pytest.importorskip("laspy")
+    laspy = pytest.importorskip("laspy", reason="laspy cannot be imported: pip install 'esmicp[las]'")
 
 
 def write_las(path, points: np.ndarray, scale: float = 0.001, offset=(1000.0, 2000.0, 10.0)) -> np.ndarray:

@@ -160,7 +160,7 @@ def _run_script(name: str, *arguments: str, data) -> str:
 
 
 def test_every_method_on_four_kitchen_frames(four_kitchen_frames, tmp_path):
-    require_module("open3d", "open3d")
+    require_module("open3d", "baselines")
     start, end = merge.markers("kitchen")
     doc = tmp_path / "merge.md"
     doc.write_text(f"# Merge\n{start}\nold\n{end}\nafter\n")

@@ -122,6 +122,17 @@ def test_records_from_real_bench_rows_and_the_csv_round_trip(tmp_path):
     assert "ours: `esm-paper`" in text and "ours: `icp`" in text and "ours: `open3d-icp`" not in text
 
 
+def test_a_reason_in_a_results_table_keeps_no_folder_of_the_machine(tmp_path):
+    from esmicp_lab.bench.tables import without_folders
+
+    weights = tmp_path / "weights" / "rpm-net" / "model-best.pth"
+    reason = f"rpm-net: weights not available: no rpm-net/model-best.pth in {weights}; put it there"
+    assert without_folders(reason) == ("rpm-net: weights not available: no rpm-net/model-best.pth in "
+                                       ".../rpm-net/model-best.pth; put it there")
+    kept = "a ratio 1/2, a relative path rpm-net/model-best.pth, /dev/zero"
+    assert without_folders(kept) == kept
+
+
 def test_the_summary_reader_names_the_file_and_the_problem():
     with pytest.raises(InvalidInputError, match="s.csv: not a side-by-side summary"):
         read_summary_csv("a,b\n1,2\n", "s.csv")

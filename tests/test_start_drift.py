@@ -1,4 +1,4 @@
-"""Refining with ``esm`` from a given start on partial overlap (issue 13): a start that is
+"""Refining with ``esm`` from a given start on partial overlap: a start that is
 already right must stay right (the coarse sigma comes from the overlap's residuals, not from the
 spread of all distances, which the non-overlapping part inflates)."""
 

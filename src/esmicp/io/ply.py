@@ -406,16 +406,38 @@ _MAX_ASCII_ROW = 1 << 16
 
 
 def _ascii_data_after(text, rows: int) -> bool:
-    """True when anything but blank space follows the next ``rows`` non-blank lines of ``text``.
-    Reads at most one row, or one block, at a time (a tail of binary data costs one block)."""
+    """True when anything but blank space follows the next ``rows`` non-blank lines of ``text``
+    (a line of ``_MAX_ASCII_ROW`` characters or more among them is other data, not a row). Reads
+    one block at a time (a tail of binary data costs one block); the lines of a block that ends
+    before the last of those rows are counted in one pass, not one by one."""
+    pending = ""  # the line the last block ended inside
     while rows:
-        line = text.readline(_MAX_ASCII_ROW)
-        if not line:
+        block = text.read(_MAX_ASCII_ROW)
+        if not block:
             return False  # fewer rows than declared after the vertices: not read, not judged here
-        if len(line) == _MAX_ASCII_ROW and not line.endswith("\n"):
-            return True  # no row is that long: other data
-        if line.strip():
-            rows -= 1
+        lines = (pending + block).split("\n")
+        pending = lines.pop()
+        filled = len(lines) - lines.count("") - sum(map(str.isspace, lines))
+        if filled < rows:
+            if (lines and max(map(len, lines)) >= _MAX_ASCII_ROW) or len(pending) >= _MAX_ASCII_ROW:
+                return True  # no row is that long: other data
+            rows -= filled
+            continue
+        if filled == len(lines):  # no blank line: the last row is line rows - 1
+            if max(map(len, lines[:rows])) >= _MAX_ASCII_ROW:
+                return True
+            if pending.strip() or any(map(str.strip, lines[rows:])):
+                return True
+            break
+        for index, line in enumerate(lines):
+            if len(line) >= _MAX_ASCII_ROW:
+                return True
+            if line.strip():
+                rows -= 1
+                if not rows:
+                    if pending.strip() or any(map(str.strip, lines[index + 1:])):
+                        return True
+                    break
     while True:
         block = text.read(_MAX_ASCII_ROW)
         if not block:

@@ -327,14 +327,33 @@ def crop_to_overlap(source: np.ndarray, target: np.ndarray, T_target_source: np.
     normal /= np.linalg.norm(normal)
     source_heights, target_heights = moved @ normal, target @ normal
     offset = float(np.median(source_heights[on_target]))
+    # A target point within `distance` of a source point lies within `distance` of its height, so
+    # the cut decides alone for the source points farther than that from the target's face: all of
+    # their target neighbours kept, or none. Only those near the face are queried, against the kept
+    # target points near it. (`reach`: `distance` with room for the heights' rounding.)
+    reach = distance * (1.0 + 1e-6)
+    by_height = np.argsort(target_heights, kind="stable")
+    sorted_heights = target_heights[by_height]
 
     def crop(width):
+        """``(keep_source, keep_target, overlap)``: the overlap is the kept source's fraction within
+        ``distance`` of the kept target, as :func:`scan_overlap` measures it; None if a cloud keeps
+        fewer than 3 points."""
+        face = offset + 0.5 * width
         keep_source = source_heights >= offset - 0.5 * width
-        keep_target = target_heights <= offset + 0.5 * width
+        keep_target = target_heights <= face
         if keep_source.sum() < 3 or keep_target.sum() < 3:
             return None
-        kept_source, kept_target = source[keep_source], target[keep_target]
-        return kept_source, kept_target, scan_overlap(kept_source, kept_target, truth, distance)
+        candidates = keep_source & on_target
+        near_face = candidates & (np.abs(source_heights - face) < reach)
+        on_kept = int(np.count_nonzero(candidates & (source_heights + reach <= face)))
+        if near_face.any():
+            slab = by_height[np.searchsorted(sorted_heights, face - 2.0 * reach, side="left"):
+                             np.searchsorted(sorted_heights, face, side="right")]
+            if len(slab):
+                gaps, _ = cKDTree(target[slab]).query(moved[near_face], distance_upper_bound=distance)
+                on_kept += int(np.count_nonzero(gaps <= distance))
+        return keep_source, keep_target, on_kept / float(np.count_nonzero(keep_source))
 
     low, high = 0.0, float(np.ptp(np.concatenate([source_heights, target_heights])))
     best = None
@@ -349,7 +368,8 @@ def crop_to_overlap(source: np.ndarray, target: np.ndarray, T_target_source: np.
             best = (width, found)
     if best is None:
         raise InvalidInputError("crop_to_overlap: no cut keeps 3 points of each cloud")
-    width, (kept_source, kept_target, source_overlap) = best
+    width, (keep_source, keep_target, source_overlap) = best
+    kept_source, kept_target = source[keep_source], target[keep_target]
     target_overlap = scan_overlap(kept_target, kept_source, rigid_inverse(truth), 3.0 * median_spacing(kept_source))
     return CroppedPair(kept_source, kept_target, source_overlap, target_overlap, normal, offset, width)
 

@@ -344,7 +344,8 @@ def _trial_key(row):
 
 
 #: :func:`partial_markdown` also counts the successes on the trials overlapping by at least this
-#: fraction: the partial-overlap targets are set on those.
+#: fraction, where a registration is expected to succeed (below it a cut can leave two parts that
+#: barely overlap).
 COUNTED_OVERLAP = 0.3
 
 
@@ -378,8 +379,8 @@ def partial_markdown(rows: list[dict]) -> str:
         for label, key in (("strict", "success_strict"), ("kept points", "success_kept_points")):
             lines.append(f"| {protocol} | {label} | " + " | ".join(_success_counts(members, methods, key)) + " |")
     lines.append("")
-    lines.append(f"Success up to symmetry on the trials whose overlap is at least {COUNTED_OVERLAP:.0%} (issue 13 "
-                 "sets its partial-overlap targets on those; a cut can leave two parts that barely overlap):")
+    lines.append(f"Success up to symmetry on the trials whose overlap is at least {COUNTED_OVERLAP:.0%} (a cut "
+                 "can leave two parts that barely overlap):")
     lines.append("")
     lines.append("| protocol | trials | " + " | ".join(METHOD_LABELS[m] for m in methods) + " |")
     lines.append("|---|---|" + "---|" * len(methods))

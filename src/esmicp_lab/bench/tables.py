@@ -81,7 +81,7 @@ def group_stats(rows: list[dict]) -> dict:
         "median_rotation_error_deg": _median(r["rotation_error_deg"] for r in ok),
         "median_translation_error": _median(r["translation_error"] for r in ok),
         "median_time_s": _median(r["time_s"] for r in ok),
-        "reason": next((r["reason"] for r in rows if r["status"] != "ok"), ""),
+        "reason": without_folders(next((r["reason"] for r in rows if r["status"] != "ok"), "")),
     }
     for key, _ in PAPER_METRICS:
         stats[key] = _mean(r[key] for r in ok)
@@ -154,6 +154,17 @@ def metrics_table(rows: list[dict]) -> str:
             f"{_fmt(time_ms)} |"
         )
     return "\n".join(lines) + "\n"
+
+
+#: An absolute path in a row's reason (``/home/me/shared/weights/x/y.pth``): the folders of the
+#: machine that ran the benchmark, which a results table does not show.
+_ABSOLUTE_PATH = re.compile(r"(?<![\w.~])(?:/[^\s/;,'\"()]+){3,}")
+
+
+def without_folders(reason: str) -> str:
+    """``reason`` with every absolute path of three or more components cut to its last two
+    (``.../x/y.pth``)."""
+    return _ABSOLUTE_PATH.sub(lambda m: ".../" + "/".join(m.group(0).split("/")[-2:]), reason)
 
 
 def _short(text: str, limit: int = 90) -> str:
