@@ -31,6 +31,8 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components, maximum_flow
 
+from .pairs import two_edge_core
+
 
 @dataclass(frozen=True)
 class ScanVerdict:
@@ -93,23 +95,6 @@ def bridges(edges: list[tuple[int, int]]) -> set[tuple[int, int]]:
                     if low[node] > order[parent]:
                         out.add((min(parent, node), max(parent, node)))
     return out
-
-
-def _core(reference: int, kept_pairs, on_no_cycle) -> set[int]:
-    """The reference's 2-edge-connected component: scans joined to it by kept edges after removing
-    the bridges (each is joined to the reference by two paths with no edge in common)."""
-    adjacency: dict[int, list[int]] = {}
-    for a, b in kept_pairs:
-        if (min(a, b), max(a, b)) not in on_no_cycle:
-            adjacency.setdefault(a, []).append(b)
-            adjacency.setdefault(b, []).append(a)
-    seen, stack = {reference}, [reference]
-    while stack:
-        for other in adjacency.get(stack.pop(), []):
-            if other not in seen:
-                seen.add(other)
-                stack.append(other)
-    return seen
 
 
 def cut_off(n: int, reference: int, kept, conflicts, *,
@@ -176,7 +161,7 @@ def scan_verdicts(n: int, reference: int, posed: set, edges, conflicted: dict | 
         touching[e.i].append(e)
         touching[e.j].append(e)
     kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in posed and e.j in posed]
-    core = _core(reference, kept_pairs, bridges(kept_pairs))
+    core = two_edge_core(reference, kept_pairs)
     out = []
     for k in range(n):
         mine = touching[k]
