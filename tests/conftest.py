@@ -76,3 +76,18 @@ def interruptible_child() -> None:
     ``KeyboardInterrupt`` handler, and an interrupt test would see its SIGINT ignored.
     """
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def assert_file_error(excinfo, path, *words):
+    """The error names the file first, on one line, and says the problem in the given words."""
+    message = str(excinfo.value)
+    assert message.startswith(str(path)), message
+    assert "\n" not in message and "Traceback" not in message, message
+    assert excinfo.value.path == str(path)
+    for word in words:
+        assert word in message, f"{word!r} not in {message!r}"
+
+
+def random_cloud(seed: int, count: int) -> np.ndarray:
+    """``count`` points drawn around the origin (standard deviation 20, cloud units), seeded."""
+    return np.random.default_rng(seed).normal(scale=20.0, size=(count, 3))

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import plyfile
 import pytest
-from conftest import require_shared
+from conftest import assert_file_error, require_shared
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
@@ -77,17 +77,6 @@ def random_cloud(seed: int = 0, n: int = 200) -> np.ndarray:
     """A cloud whose values need all 17 significant digits (and spans many magnitudes)."""
     generator = np.random.default_rng(seed)
     return generator.normal(size=(n, 3)) * 10.0 ** generator.integers(-8, 8, size=(n, 1))
-
-
-def assert_file_error(excinfo, path, *words):
-    """The error names the file and says the problem in the given words."""
-    message = str(excinfo.value)
-    assert str(path) in message, message
-    assert message.startswith(str(path)), message
-    assert excinfo.value.path == str(path)
-    for word in words:
-        assert word.lower() in message.lower(), f"{word!r} not in {message!r}"
-    assert "Traceback" not in message
 
 
 def pcd_header(

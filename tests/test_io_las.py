@@ -11,22 +11,11 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import assert_file_error, random_cloud
 
 from esmicp.cli import main
 from esmicp.errors import MissingDependencyError, PointCloudFileError
 from esmicp.io import read_points
-
-
-def cloud(seed: int, count: int) -> np.ndarray:
-    return np.random.default_rng(seed).normal(scale=20.0, size=(count, 3))
-
-
-def assert_file_error(excinfo, path, *words):
-    message = str(excinfo.value)
-    assert message.startswith(str(path)), message
-    assert "\n" not in message
-    for word in words:
-        assert word in message, (word, message)
 
 
 # ---- LAS / LAZ ---------------------------------------------------------------------------------------
@@ -50,12 +39,12 @@ def write_las(path, points: np.ndarray, scale: float = 0.001, offset=(1000.0, 20
 @pytest.mark.parametrize("name", ["survey.las", "survey.laz", "SURVEY.LAZ"])
 def test_las_round_trip(tmp_path, name):
     path = tmp_path / name
-    expected = write_las(path, cloud(6, 500))
+    expected = write_las(path, random_cloud(6, 500))
     points = read_points(path)
     assert points.dtype == np.float64 and points.shape == (500, 3)
     np.testing.assert_array_equal(points, expected)
     # scaled coordinates, not the raw integers: within the scale of what was written
-    np.testing.assert_allclose(points - [1000.0, 2000.0, 10.0], cloud(6, 500), atol=0.001)
+    np.testing.assert_allclose(points - [1000.0, 2000.0, 10.0], random_cloud(6, 500), atol=0.001)
 
 
 def test_las_read_in_chunks(tmp_path, monkeypatch):
@@ -63,13 +52,13 @@ def test_las_read_in_chunks(tmp_path, monkeypatch):
 
     monkeypatch.setattr(las_module, "CHUNK_POINTS", 64)
     path = tmp_path / "survey.laz"
-    expected = write_las(path, cloud(7, 300))
+    expected = write_las(path, random_cloud(7, 300))
     np.testing.assert_array_equal(read_points(path), expected)
 
 
 def test_las_missing_laspy_names_the_extra(tmp_path, monkeypatch):
     path = tmp_path / "survey.las"
-    write_las(path, cloud(8, 10))
+    write_las(path, random_cloud(8, 10))
     monkeypatch.setitem(sys.modules, "laspy", None)  # import laspy now raises ImportError
     with pytest.raises(MissingDependencyError) as excinfo:
         read_points(path)
@@ -80,7 +69,7 @@ def test_las_missing_laspy_names_the_extra(tmp_path, monkeypatch):
 
 def test_laz_without_backend_names_the_extra(tmp_path, monkeypatch):
     path = tmp_path / "survey.laz"
-    write_las(path, cloud(9, 10))
+    write_las(path, random_cloud(9, 10))
     monkeypatch.setattr(laspy.LazBackend, "detect_available", staticmethod(lambda: ()))
     with pytest.raises(MissingDependencyError, match=r"LAZ backend.*esmicp\[las\]"):
         read_points(path)
@@ -97,7 +86,7 @@ def test_laz_without_backend_names_the_extra(tmp_path, monkeypatch):
 )
 def test_corrupt_las_is_one_clear_error(tmp_path, damage, words):
     path = tmp_path / "bad.las"
-    write_las(path, cloud(10, 500))
+    write_las(path, random_cloud(10, 500))
     path.write_bytes(damage(path.read_bytes()))
     with pytest.raises(PointCloudFileError) as excinfo:
         read_points(path)
@@ -106,7 +95,7 @@ def test_corrupt_las_is_one_clear_error(tmp_path, damage, words):
 
 def test_las_header_declaring_too_many_points_is_refused_before_reading(tmp_path):
     path = tmp_path / "liar.las"
-    write_las(path, cloud(11, 50))
+    write_las(path, random_cloud(11, 50))
     data = bytearray(path.read_bytes())
     data[107:111] = (10**9).to_bytes(4, "little")  # LAS 1.2 legacy point count
     path.write_bytes(bytes(data))
@@ -117,7 +106,7 @@ def test_las_header_declaring_too_many_points_is_refused_before_reading(tmp_path
 
 def test_truncated_laz_is_one_clear_error(tmp_path):
     path = tmp_path / "bad.laz"
-    write_las(path, cloud(12, 2000))
+    write_las(path, random_cloud(12, 2000))
     data = bytearray(path.read_bytes())
     cut = len(data) // 2
     path.write_bytes(bytes(data[:cut]))
@@ -128,7 +117,7 @@ def test_truncated_laz_is_one_clear_error(tmp_path):
 
 def test_corrupt_laz_data_is_one_clear_error(tmp_path):
     path = tmp_path / "bad.laz"
-    write_las(path, cloud(12, 2000))
+    write_las(path, random_cloud(12, 2000))
     data = bytearray(path.read_bytes())
     start = struct.unpack_from("<I", data, 96)[0] + 8
     data[start:start + 2000] = np.random.default_rng(0).integers(0, 256, 2000, dtype=np.uint8).tobytes()
@@ -180,7 +169,7 @@ def _las_and_laz(directory) -> dict:
             header.scales = np.full(3, 0.001)
             header.offsets = np.array([1000.0, 2000.0, 10.0])
             data = laspy.LasData(header)
-            points = cloud(13, 6000)
+            points = random_cloud(13, 6000)
             data.x, data.y, data.z = points[:, 0] + 1000.0, points[:, 1] + 2000.0, points[:, 2] + 10.0
             path = directory / f"good{version}{extension}"
             data.write(path)
@@ -298,7 +287,7 @@ def test_las_library_errors_say_what_was_being_read(tmp_path):
 def test_las_header_checks_pass_good_files(tmp_path, name):
     path = _las_and_laz(tmp_path)[name]
     points = read_points(path)
-    np.testing.assert_allclose(points - [1000.0, 2000.0, 10.0], cloud(13, 6000), atol=0.001)
+    np.testing.assert_allclose(points - [1000.0, 2000.0, 10.0], random_cloud(13, 6000), atol=0.001)
 
 
 def test_las_offset_of_1e300_is_blamed_on_the_file_by_register(tmp_path, capsys):

@@ -5,15 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import require_shared
+from conftest import assert_file_error, random_cloud, require_shared
 
 from esmicp.cli import main
 from esmicp.errors import InvalidInputError, PointCloudFileError
 from esmicp.io import READ_EXTENSIONS, read_points
-
-
-def cloud(seed: int, count: int) -> np.ndarray:
-    return np.random.default_rng(seed).normal(scale=20.0, size=(count, 3))
 
 
 def write_bin(path, points: np.ndarray, columns: int) -> np.ndarray:
@@ -26,14 +22,6 @@ def write_bin(path, points: np.ndarray, columns: int) -> np.ndarray:
     return records[:, :3].astype(np.float64)
 
 
-def assert_file_error(excinfo, path, *words):
-    message = str(excinfo.value)
-    assert message.startswith(str(path)), message
-    assert "\n" not in message
-    for word in words:
-        assert word in message, (word, message)
-
-
 def test_new_extensions_are_listed():
     assert {".bin", ".las", ".laz"} <= set(READ_EXTENSIONS)
 
@@ -44,7 +32,7 @@ def test_new_extensions_are_listed():
 @pytest.mark.parametrize("columns", [3, 4])
 def test_bin_round_trip_with_columns_given(tmp_path, columns):
     path = tmp_path / "scan.bin"
-    expected = write_bin(path, cloud(columns, 1001), columns)
+    expected = write_bin(path, random_cloud(columns, 1001), columns)
     points = read_points(path, bin_columns=columns)
     assert points.dtype == np.float64 and points.shape == (1001, 3)
     np.testing.assert_array_equal(points, expected)
@@ -54,7 +42,7 @@ def test_bin_round_trip_with_columns_given(tmp_path, columns):
 def test_bin_layout_from_an_unambiguous_size(tmp_path, columns, count):
     # 1001 points: 12012 bytes (3 columns, not a multiple of 16) or 16016 bytes (not of 12).
     path = tmp_path / "scan.bin"
-    expected = write_bin(path, cloud(count, count), columns)
+    expected = write_bin(path, random_cloud(count, count), columns)
     np.testing.assert_array_equal(read_points(path), expected)
 
 
@@ -84,7 +72,7 @@ def test_bin_whose_values_read_as_points_either_way_needs_the_option(tmp_path):
     """An isotropic blob (x, y, z drawn alike) reads as points in both layouts: refused, the
     message naming the file and the option; with the option it is read."""
     path = tmp_path / "blob.bin"
-    expected = write_bin(path, cloud(0, 4000), 3)  # 48,000 bytes
+    expected = write_bin(path, random_cloud(0, 4000), 3)  # 48,000 bytes
     with pytest.raises(PointCloudFileError) as excinfo:
         read_points(path)
     assert_file_error(excinfo, path, "48000 bytes", "both", "either way", "bin_columns", "--bin-columns")
@@ -123,7 +111,7 @@ def test_bin_size_fitting_neither_layout(tmp_path, size):
 
 def test_bin_size_not_fitting_the_columns_given_says_which_fits(tmp_path):
     path = tmp_path / "scan.bin"
-    write_bin(path, cloud(1, 1001), 3)  # 12012 bytes: 3 columns only
+    write_bin(path, random_cloud(1, 1001), 3)  # 12012 bytes: 3 columns only
     with pytest.raises(PointCloudFileError) as excinfo:
         read_points(path, bin_columns=4)
     assert_file_error(excinfo, path, "12012 bytes", "4-column", "bin_columns=3")
@@ -132,20 +120,20 @@ def test_bin_size_not_fitting_the_columns_given_says_which_fits(tmp_path):
 @pytest.mark.parametrize("bad", [2, 5, 0, "3", True, 3.0])
 def test_bin_columns_validated(tmp_path, bad):
     path = tmp_path / "scan.bin"
-    write_bin(path, cloud(2, 10), 3)
+    write_bin(path, random_cloud(2, 10), 3)
     with pytest.raises(InvalidInputError, match="bin_columns"):
         read_points(path, bin_columns=bad)
 
 
 def test_bin_columns_ignored_for_other_formats(tmp_path):
     path = tmp_path / "cloud.npy"
-    np.save(path, cloud(3, 20))
+    np.save(path, random_cloud(3, 20))
     assert read_points(path, bin_columns=4).shape == (20, 3)
 
 
 def test_bin_non_finite_rows_dropped(tmp_path):
     path = tmp_path / "scan.bin"
-    points = cloud(4, 11)
+    points = random_cloud(4, 11)
     points[3] = np.nan
     write_bin(path, points, 4)
     with pytest.warns(UserWarning):
@@ -153,7 +141,7 @@ def test_bin_non_finite_rows_dropped(tmp_path):
 
 
 def test_bin_cli_register(tmp_path, capsys):
-    target = cloud(5, 401)
+    target = random_cloud(5, 401)
     angle = np.radians(20.0)
     rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
     source = (target - [1.0, 2.0, 0.5]) @ rotation  # target = R source + t
