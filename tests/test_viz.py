@@ -415,3 +415,23 @@ def test_a_merged_view_of_100_scans_is_one_cloud_on_a_colour_scale_with_names_on
     assert path.stat().st_size < 20_000_000
     with pytest.raises(InvalidInputError):
         merged_scans_figure(points, labels, names[:50])  # a scan index with no name
+
+
+def test_a_merged_view_thins_each_scan_evenly_over_its_extent():
+    """A scan whose points crowd near its sensor and thin out far away (a LiDAR sweep) keeps its
+    far part drawn: the thinning is even over space, not a random pick that follows the density."""
+    require_plotting()
+    from scipy.spatial import cKDTree
+
+    from esmicp.viz import merged_scans_figure
+    from esmicp.viz.scans import VIEW_POINTS_PER_SCAN
+
+    rng = np.random.default_rng(4)
+    near = rng.uniform(-1.0, 1.0, size=(60_000, 3)) * [1.0, 1.0, 0.01]
+    far = rng.uniform(-1.0, 1.0, size=(300, 3)) * [1.0, 1.0, 0.01] + [40.0, 0.0, 0.0]
+    points = np.concatenate([near, far])
+    figure = merged_scans_figure(points, np.zeros(len(points), dtype=int), ["sweep"])
+    drawn = np.stack([figure.data[0].x, figure.data[0].y, figure.data[0].z], axis=1)
+    assert len(drawn) <= VIEW_POINTS_PER_SCAN
+    gap, _ = cKDTree(drawn).query(far)
+    assert gap.max() < 0.2  # a random pick of 3,000 of 60,300 draws about 15 of the far 300 points

@@ -13,7 +13,7 @@ from ..errors import InvalidInputError
 from ..io.palette import scan_palette
 from ..types import as_count
 from ._deps import require
-from .view import display_subset
+from .view import display_indices
 
 #: Up to this many scans, one legend entry (and one palette colour, as in the merged cloud's file)
 #: per scan; beyond, one cloud on a colour scale by scan index.
@@ -68,7 +68,10 @@ def merged_scans_figure(points, scan_index, names, *, title: str | None = None,
         raise InvalidInputError(f"scan_index: expected indices into names (0..{len(names) - 1}), got "
                                 f"{scans[0]}..{scans[-1]}")
     per_scan = max(VIEW_POINTS_MIN_PER_SCAN, min(VIEW_POINTS_PER_SCAN, VIEW_POINTS_TOTAL // max(len(scans), 1)))
-    shown = {k: np.flatnonzero(labels == k)[display_subset(int((labels == k).sum()), per_scan, seed=k)] for k in scans}
+    shown = {}
+    for k in scans:
+        mine = np.flatnonzero(labels == k)
+        shown[k] = mine[display_indices(points[mine], per_scan)]
     figure = go.Figure()
     legend = len(scans) <= legend_scans
     if legend:
