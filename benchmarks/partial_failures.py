@@ -45,7 +45,7 @@ def both_ways_overlap(source, target, transformation, spacing) -> float:
     )
     refined = to_matrix(rotations[0], translations[0])
     backward, _ = NearestNeighbors(source).query((target - refined[:3, 3]) @ refined[:3, :3])
-    width = DEFAULT.score_width_spacings * spacing
+    width = DEFAULT.verification.score_width_spacings * spacing
     return float(0.5 * (gaussian_overlap_score(forward, width)[0] + gaussian_overlap_score(backward, width)))
 
 
@@ -54,7 +54,7 @@ def candidates(source, target, seed) -> dict[str, list[np.ndarray]]:
     index = NearestNeighbors(target)
     spacing = index.spacing()
     work = search._Workspace(source, target, np.random.default_rng(seed), index, index, spacing,
-                             DEFAULT.score_width_spacings * spacing)
+                             DEFAULT.verification.score_width_spacings * spacing)
     proposed = search._rotation_candidates(work)
     verified = search._verify(work, proposed, ["rotation-search"] * len(proposed))
     return {

@@ -113,7 +113,7 @@ def test_nested_configs_are_read_from_dicts_and_checked():
     assert RegistrationConfig.of({"search": {"keypoints": 3000}}) == RegistrationConfig(search=search)
     assert RegistrationConfig.of({"refine": {"plane_iterations": 0}}).refine.plane_iterations == 0
     assert RegistrationConfig.of(None) == RegistrationConfig() == RegistrationConfig.of({})
-    with pytest.raises(InvalidInputError, match=r"config\.keypoints"):
+    with pytest.raises(InvalidInputError, match=r"^SearchConfig\.keypoints"):
         RegistrationConfig.of({"keypoints": 0})
     with pytest.raises(InvalidInputError, match=r"MergeConfig\(registration=\.\.\.\)"):
         MergeConfig.of(search)

@@ -406,7 +406,7 @@ def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, co
     """The 3DMatch pair ``t04_s06`` cropped to 15% overlap (``benchmarks/lomatch_crop.py --crops 4
     --seed 0``'s crops 0 and 1 of that pair, as recorded): no search at the standard voxel is
     confident (30-180 degrees off), and only the search at the voxel of ``count`` target keypoints
-    (of ``scan.LAST_KEYPOINTS``) finds the pose, confidently. The estimate
+    (of ``DEFAULT.scan.last_keypoints``) finds the pose, confidently. The estimate
     carries the standard keypoints, so that its confidence is on the data's one scale. Fails if
     that search is dropped."""
     from esmicp.globalreg import scan
@@ -418,16 +418,17 @@ def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, co
     assert _right_3dmatch(chosen.transformations[0], truth)
     assert overlap_confidence(chosen.transformations[0], chosen.keypoints, config=DEFAULT) >= DEFAULT.confident
     assert chosen.voxel == standard
-    assert count in scan.LAST_KEYPOINTS
-    monkeypatch.setattr(scan, "LAST_KEYPOINTS", tuple(c for c in scan.LAST_KEYPOINTS if c != count))
-    chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
+    assert count in DEFAULT.scan.last_keypoints
+    without = replace(DEFAULT, scan=replace(DEFAULT.scan, last_keypoints=tuple(
+        c for c in DEFAULT.scan.last_keypoints if c != count)))
+    chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing, config=without)
     assert not _right_3dmatch(chosen.transformations[0], truth)
     assert overlap_confidence(chosen.transformations[0], chosen.keypoints, config=DEFAULT) < DEFAULT.confident
 
 
 def test_a_small_cloud_skips_the_last_searches(monkeypatch):
     """Two unrelated 1,000-point clouds: no search is confident, and the voxels of every count of
-    ``scan.LAST_KEYPOINTS`` are the standard one (all at ``MIN_VOXEL_SPACINGS``), so those searches
+    ``DEFAULT.scan.last_keypoints`` are the standard one (all at ``MIN_VOXEL_SPACINGS``), so those searches
     would repeat the first: they must not run (objects reach the scan strategy often, and every
     search costs time)."""
     from esmicp.globalreg import scan
@@ -448,9 +449,9 @@ def test_a_small_cloud_skips_the_last_searches(monkeypatch):
     assert len(calls) == 2 and calls[0] == calls[1]  # both standard searches, at one voxel
     # With a standard voxel above the floor, the searches at other voxels run, each voxel once:
     # 10,000 and 2,500 keypoints are both at the floor here, 50 above the standard voxel.
-    monkeypatch.setattr(scan, "LAST_KEYPOINTS", (10000, 2500, 50))
     calls.clear()
-    scan.scan_estimate_until_confident(source, target, spacing=spacing, config=replace(DEFAULT, keypoints=200))
+    finer = replace(DEFAULT, keypoints=200, scan=replace(DEFAULT.scan, last_keypoints=(10000, 2500, 50)))
+    scan.scan_estimate_until_confident(source, target, spacing=spacing, config=finer)
     assert len(calls) == 4 and calls[2] < calls[0] < calls[3]
 
 

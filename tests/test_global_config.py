@@ -15,7 +15,9 @@ from esmicp.shapes import asymmetric_shape
 
 
 def test_the_config_round_trips_through_a_dict_and_json():
-    changed = dataclasses.replace(DEFAULT, ambiguity_ratio=0.9, keypoints=3000, spread_range=(0.04, 0.2))
+    changed = dataclasses.replace(DEFAULT, ambiguity_ratio=0.9, keypoints=3000, spread_range=(0.04, 0.2),
+                                  verification=dataclasses.replace(DEFAULT.verification, rounds=((100, 4, 5),)),
+                                  scan=dataclasses.replace(DEFAULT.scan, last_keypoints=(8000,)))
     for config in (DEFAULT, changed):
         data = json.loads(json.dumps(config.to_dict()))
         assert SearchConfig.from_dict(data) == config
@@ -23,22 +25,32 @@ def test_the_config_round_trips_through_a_dict_and_json():
 
 
 def test_the_config_is_frozen_and_small():
+    """Every record of the search's configuration is frozen and holds at most 20 fields."""
     with pytest.raises(dataclasses.FrozenInstanceError):
         DEFAULT.confident = 0.1  # type: ignore[misc]
-    assert len(dataclasses.fields(SearchConfig)) <= 20
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        DEFAULT.scan.seeds = 1  # type: ignore[misc]
+    records = [SearchConfig] + [type(getattr(DEFAULT, field.name)) for field in dataclasses.fields(SearchConfig)
+                                if dataclasses.is_dataclass(getattr(DEFAULT, field.name))]
+    assert len(records) == 5
+    for record in records:
+        assert len(dataclasses.fields(record)) <= 20, record.__name__
 
 
 @pytest.mark.parametrize("changes, field", [
-    ({"ambiguity_ratio": 1.5}, "ambiguity_ratio"),
-    ({"confident": -0.1}, "confident"),
-    ({"search_rotations": 0}, "search_rotations"),
-    ({"keypoints": 2.5}, "keypoints"),
-    ({"sharpness_range": (0.8, 0.5)}, "sharpness_range"),
-    ({"score_width_spacings": float("nan")}, "score_width_spacings"),
-    ({"scan_candidates": True}, "scan_candidates"),
+    ({"ambiguity_ratio": 1.5}, "SearchConfig.ambiguity_ratio"),
+    ({"confident": -0.1}, "SearchConfig.confident"),
+    ({"rotation": {"rotations": 0}}, "RotationSearchConfig.rotations"),
+    ({"keypoints": 2.5}, "SearchConfig.keypoints"),
+    ({"sharpness_range": (0.8, 0.5)}, "SearchConfig.sharpness_range"),
+    ({"verification": {"score_width_spacings": float("nan")}}, "VerificationConfig.score_width_spacings"),
+    ({"scan_candidates": True}, "SearchConfig.scan_candidates"),
+    ({"scan_searches": 0}, "SearchConfig.scan_searches"),
+    ({"scan": {"last_keypoints": (100, "many")}}, "ScanStrategyConfig.last_keypoints"),
+    ({"features": {"fpfh_radius_voxels": 0.0}}, "FeatureMatchingConfig.fpfh_radius_voxels"),
 ])
 def test_an_invalid_value_is_refused_naming_its_field(changes, field):
-    with pytest.raises(InvalidInputError, match=f"config.{field}"):
+    with pytest.raises(InvalidInputError, match=field):
         SearchConfig(**changes)
 
 
@@ -47,7 +59,7 @@ def test_unknown_fields_and_wrong_types_are_refused():
         SearchConfig.from_dict({"confidance": 0.5})
     with pytest.raises(InvalidInputError, match="config: expected"):
         as_config(0.5)
-    with pytest.raises(InvalidInputError, match="config.decide_ratio"):
+    with pytest.raises(InvalidInputError, match="SearchConfig.decide_ratio"):
         esmicp.register(np.eye(3) + 1, np.eye(3), config={"decide_ratio": 2.0})
 
 

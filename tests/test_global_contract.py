@@ -38,7 +38,7 @@ def _workspace(source, target, seed=0):
     index = NearestNeighbors(target)
     spacing = index.spacing()
     return search._Workspace(source, target, np.random.default_rng(seed), index, index, spacing,
-                             DEFAULT.score_width_spacings * spacing)
+                             DEFAULT.verification.score_width_spacings * spacing)
 
 
 def _near(pose, truth, source, diagonal, fraction=0.02) -> bool:

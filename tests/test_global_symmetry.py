@@ -9,7 +9,10 @@ import pytest
 import esmicp
 from conftest import require_shared
 from esmicp.core.procrustes import apply, rotation_angle, to_matrix
-from esmicp.globalreg.search import TWIN_ANGLES_DEG, _twins
+from esmicp.globalreg.config import DEFAULT
+from esmicp.globalreg.search import _twins
+
+TWIN_ANGLES_DEG = DEFAULT.verification.twin_angles_deg
 from esmicp.metrics import rotation_error_deg, strict_success
 from esmicp_lab.bench.protocols import make_trial
 

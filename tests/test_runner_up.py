@@ -14,9 +14,11 @@ from esmicp_lab.bench.protocols import random_rigid_transform
 from esmicp.cli import main
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import apply, bounding_box_diagonal
-from esmicp.globalreg import DISTINCT_ROTATION_DEG
+from esmicp.globalreg.config import DEFAULT as SEARCH_DEFAULT
 from esmicp.metrics import rotation_error_deg
 from esmicp.shapes import asymmetric_shape
+
+DISTINCT_DEG = SEARCH_DEFAULT.verification.distinct_rotation_deg
 
 
 def _box_surface(count: int, rng: np.random.Generator, size=(3.0, 2.0, 1.0)) -> np.ndarray:
@@ -47,7 +49,7 @@ def test_a_symmetric_box_returns_its_twin_as_the_runner_up_in_the_clouds_own_fra
     assert result.ambiguous and not result.trusted
     runner_up = result.runner_up
     assert runner_up is not None and _rigid(runner_up)
-    assert rotation_error_deg(runner_up, result.transformation) > DISTINCT_ROTATION_DEG
+    assert rotation_error_deg(runner_up, result.transformation) > DISTINCT_DEG
     spacing = NearestNeighbors(target).spacing()
     for pose in (result.transformation, runner_up):
         distances = NearestNeighbors(target).query(apply(pose, source))[0]
@@ -67,7 +69,7 @@ def test_no_runner_up_without_a_global_search_or_a_clearly_different_pose():
     # When the search kept a runner-up, it is clearly different and scores no better.
     assert (searched.runner_up is None) == (searched.runner_up_ratio is None)
     if searched.runner_up is not None:
-        assert rotation_error_deg(searched.runner_up, searched.transformation) > DISTINCT_ROTATION_DEG or \
+        assert rotation_error_deg(searched.runner_up, searched.transformation) > DISTINCT_DEG or \
             np.linalg.norm(searched.runner_up[:3, 3] - searched.transformation[:3, 3]) > 0
 
 

@@ -209,13 +209,15 @@ def test_distinct_selects_what_a_loop_over_rotation_angles_selects():
     :func:`~esmicp.core.procrustes.rotation_angle`, on clustered poses (many pairs near the
     threshold)."""
     from esmicp.core.procrustes import rotation_angle, to_matrix
-    from esmicp.globalreg import DISTINCT_ROTATION_DEG
+    from esmicp.globalreg.config import DEFAULT
+
+    distinct_deg = DEFAULT.verification.distinct_rotation_deg
 
     def loop(transformations, order, limit):
         kept = []
         for index in order:
             if all(np.degrees(rotation_angle(transformations[k, :3, :3].T @ transformations[index, :3, :3]))
-                   > DISTINCT_ROTATION_DEG for k in kept):
+                   > distinct_deg for k in kept):
                 kept.append(int(index))
                 if len(kept) == limit:
                     break
@@ -231,7 +233,8 @@ def test_distinct_selects_what_a_loop_over_rotation_angles_selects():
             for _ in range(count)
         ])
         order, limit = rng.permutation(count), int(rng.integers(1, 20))
-        assert global_search._distinct(transformations, order, limit) == loop(transformations, order, limit)
+        found = global_search._distinct(transformations, order, limit, distinct_deg)
+        assert found == loop(transformations, order, limit)
 
 
 def test_batched_kabsch_matches_one_at_a_time():

@@ -38,14 +38,6 @@ IDENTITY_NAMES = ("identity", "none")
 #: of :data:`esmicp.types.InitName`.
 INIT_NAMES = ("global", *STRATEGIES, *IDENTITY_NAMES)
 
-#: Below this fraction of source points matched to the target point of the same index, an
-#: ``esm-paper`` run is reported as not index-aligned.
-INDEX_ALIGNED_FRACTION = 0.5
-
-#: From this fraction of a cloud's points being exact copies of other points on, :func:`register`
-#: warns (:class:`~esmicp.errors.CoincidentPointsWarning`).
-COINCIDENT_WARNING_FRACTION = 0.1
-
 #: Seed of the global search when ``rng`` is None (results are reproducible by default).
 DEFAULT_SEED = 0
 
@@ -66,6 +58,7 @@ class _Request:
     config: SearchConfig  # the global search's tuned values
     refine: RefineConfig  # the refinement's and the evaluation's
     trust: TrustPolicy  # the bars the result is judged by
+    coincident_warning: float  # RegistrationConfig.coincident_warning_fraction
 
 
 @keeps_keyboard_interrupt
@@ -191,8 +184,8 @@ def register(
     frame = WorkingFrame.for_target(request.target)
     source_points, target_points = frame.points(request.source), frame.points(request.target)
     target_index = NearestNeighbors(target_points, workers=request.workers)
-    _warn_if_coincident(request.source, "source", coincident_points(request.source))
-    _warn_if_coincident(request.target, "target", target_index.coincident())
+    _warn_if_coincident(request.source, "source", coincident_points(request.source), request.coincident_warning)
+    _warn_if_coincident(request.target, "target", target_index.coincident(), request.coincident_warning)
     diagonal = bounding_box_diagonal(target_points)
     initial, init_name, estimate = _start(request, source_points, target_points, target_index, frame)
     keypoints = getattr(estimate, "keypoints", None)
@@ -297,6 +290,7 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
         config=registration.search,
         refine=registration.refine,
         trust=registration.trust,
+        coincident_warning=registration.coincident_warning_fraction,
     )
     if method == "esm-paper" and len(source_points) != len(target_points):
         warnings.warn(
@@ -476,7 +470,7 @@ def _evaluate(source, target_index, transformation, request: _Request, warm=None
     fitness = float(inliers.mean())
     inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
     if request.method == "esm-paper" and len(source) == len(target_index.points):
-        _warn_if_not_index_aligned(indices)
+        _warn_if_not_index_aligned(indices, request.refine.index_aligned_fraction)
     return fitness, inlier_rmse, float(inlier_distance), (distances, indices, inliers)
 
 
@@ -491,11 +485,11 @@ def _correspondences(pairs, estimator, sigma: float | None) -> Correspondences:
                            weights[chosen].astype(np.float64), distances[chosen].astype(np.float64))
 
 
-def _warn_if_coincident(points: np.ndarray, name: str, coincident) -> None:
-    """Warn when at least :data:`COINCIDENT_WARNING_FRACTION` of ``points`` are exact copies of
+def _warn_if_coincident(points: np.ndarray, name: str, coincident, fraction: float) -> None:
+    """Warn when at least ``fraction`` of ``points`` are exact copies of
     other points (``coincident``: :func:`~esmicp.core.correspondence.coincident_points` of them)."""
     repeats, most, most_count, _ = coincident
-    if repeats < COINCIDENT_WARNING_FRACTION * len(points):
+    if repeats < fraction * len(points):
         return
     location = points[most]
     where = ", ".join(f"{value:.6g}" for value in location)
@@ -527,9 +521,11 @@ def _check_start_representable(initial: np.ndarray, source_points: np.ndarray) -
         )
 
 
-def _warn_if_not_index_aligned(indices: np.ndarray) -> None:
+def _warn_if_not_index_aligned(indices: np.ndarray, fraction: float) -> None:
+    """Warn when fewer than ``fraction`` of the source points lie nearest to the target point of
+    their own index (:attr:`esmicp.config.RefineConfig.index_aligned_fraction`)."""
     own = float(np.mean(indices == np.arange(len(indices))))
-    if own < INDEX_ALIGNED_FRACTION:
+    if own < fraction:
         warnings.warn(
             f"esm-paper assumes index-aligned clouds (source point k = target point k), but after "
             f"registration only {100 * own:.1f}% of source points lie nearest to the target point of "

@@ -18,7 +18,7 @@ refuses unknown keys). The defaults are the measured values.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from .core.config import Config, count, fraction, number, part
 from .errors import InvalidInputError
@@ -58,6 +58,10 @@ class RefineConfig(Config):
     inlier_distance_spacings : float
         The default inlier distance of ``fitness`` and ``inlier_rmse``, in target point spacings
         (gain).
+    index_aligned_fraction : float
+        An ``esm-paper`` result whose source points lie nearest to the target point of their own
+        index for less than this fraction of them (0-1) warns that the clouds are not
+        index-aligned (:class:`~esmicp.errors.IndexAlignmentWarning`).
 
     References
     ----------
@@ -74,6 +78,7 @@ class RefineConfig(Config):
     plane_points: int = count(5_000)
     plane_confidence_drop: float = number(0.25, least=0.0)
     inlier_distance_spacings: float = number(3.0, above=0.0)
+    index_aligned_fraction: float = fraction(0.5)
 
 
 @dataclass(frozen=True)
@@ -90,18 +95,23 @@ class RegistrationConfig(Config):
     trust : TrustPolicy
         The bars a result must pass to be trusted, and the values of the measures behind them
         (:class:`esmicp.trust.policy.TrustPolicy`).
+    coincident_warning_fraction : float
+        From this fraction (0-1) of a cloud's points being exact copies of other points on,
+        :func:`esmicp.register` warns (:class:`~esmicp.errors.CoincidentPointsWarning`).
     """
 
     search: SearchConfig = part(SearchConfig)
     refine: RefineConfig = part(RefineConfig)
     trust: TrustPolicy = part(TrustPolicy)
+    coincident_warning_fraction: float = fraction(0.1)
 
     @classmethod
     def of(cls, value, name: str = "config") -> "RegistrationConfig":
         """``value`` as a :class:`RegistrationConfig`: None gives the defaults; an instance is kept;
         a :class:`SearchConfig` gives its search values and the defaults of the rest; a dict whose
-        keys are among ``search``, ``refine`` and ``trust`` is read by :meth:`from_dict`, any other
-        dict as a :class:`SearchConfig`'s fields. Anything else raises :class:`InvalidInputError`."""
+        keys are among the fields of this class (``search``, ``refine``, ``trust``, ...) is read by
+        :meth:`from_dict`, any other dict as a :class:`SearchConfig`'s fields. Anything else
+        raises :class:`InvalidInputError`."""
         if value is None:
             return cls()
         if isinstance(value, cls):
@@ -109,7 +119,7 @@ class RegistrationConfig(Config):
         if isinstance(value, SearchConfig):
             return cls(search=value)
         if isinstance(value, dict):
-            if value and set(value) <= {"search", "refine", "trust"}:
+            if value and set(value) <= {field.name for field in fields(cls)}:
                 return cls.from_dict(value)
             return cls(search=as_config(value))
         raise InvalidInputError(f"{name}: expected a RegistrationConfig, a SearchConfig or a dict, "

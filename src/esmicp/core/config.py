@@ -2,7 +2,8 @@
 round-trip through a JSON-ready dict.
 
 A configuration class derives from :class:`Config` and declares each field with one of
-:func:`count`, :func:`number`, :func:`fraction` or :func:`part` (a nested configuration), which
+:func:`count`, :func:`number`, :func:`fraction`, :func:`span` (a range), :func:`numbers_tuple` or
+:func:`part` (a nested configuration), which
 record what the field accepts. Making an instance (directly, by :func:`dataclasses.replace` or by
 :meth:`Config.from_dict`) checks every field and raises :class:`~esmicp.errors.InvalidInputError`
 naming the class and the field; :meth:`Config.from_dict` refuses unknown keys.
@@ -38,6 +39,17 @@ def fraction(default: float):
     return number(default, least=0.0, most=1.0)
 
 
+def span(default: tuple[float, float]):
+    """A range ``(low, high)`` of two finite reals with ``low < high``; stored as a tuple of floats."""
+    return dataclasses.field(default=default, metadata={"check": ("span",)})
+
+
+def numbers_tuple(default: tuple):
+    """A tuple of finite reals, or of such tuples (a schedule); lists are read as tuples, whole
+    numbers stay whole."""
+    return dataclasses.field(default=default, metadata={"check": ("tuple",)})
+
+
 def part(kind: type):
     """A nested configuration of class ``kind`` (its defaults unless given); a dict is read by
     ``kind.from_dict``."""
@@ -48,10 +60,30 @@ def _is_real(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
 
 
+def _numbers(value):
+    """``value`` as a tuple of finite reals or of such tuples (lists read as tuples), else None."""
+    if not isinstance(value, (tuple, list)):
+        return None
+    out = []
+    for item in value:
+        if isinstance(item, (tuple, list)):
+            item = _numbers(item)
+            if item is None:
+                return None
+        elif not _is_real(item):
+            return None
+        out.append(item)
+    return tuple(out)
+
+
 def _bounds(above, least, below, most) -> str:
     words = [f"> {above:g}" if above is not None else None, f">= {least:g}" if least is not None else None,
              f"< {below:g}" if below is not None else None, f"<= {most:g}" if most is not None else None]
     return " and ".join(word for word in words if word)
+
+
+def _lists(value):
+    return [_lists(item) for item in value] if isinstance(value, tuple) else value
 
 
 @dataclass(frozen=True)
@@ -90,6 +122,17 @@ class Config:
                 raise InvalidInputError(f"{where}: expected a finite number{' ' + bounds if bounds else ''}, "
                                         f"got {value!r}")
             return float(value)
+        if check[0] == "span":
+            if not (isinstance(value, (tuple, list)) and len(value) == 2 and all(map(_is_real, value))
+                    and value[0] < value[1]):
+                raise InvalidInputError(f"{where}: expected (low, high) with low < high, got {value!r}")
+            return value if isinstance(value, tuple) and all(type(v) is float for v in value) \
+                else (float(value[0]), float(value[1]))
+        if check[0] == "tuple":
+            read = _numbers(value)
+            if read is None:
+                raise InvalidInputError(f"{where}: expected a tuple of finite numbers, got {value!r}")
+            return value if read == value and type(value) is tuple else read
         kind = check[1]
         if isinstance(value, dict):
             return kind.from_dict(value, where=where) if issubclass(kind, Config) else kind.from_dict(value)
@@ -105,7 +148,7 @@ class Config:
             if hasattr(value, "to_dict"):  # a nested configuration
                 value = value.to_dict()
             elif isinstance(value, tuple):
-                value = list(value)
+                value = _lists(value)
             out[field.name] = value
         return out
 

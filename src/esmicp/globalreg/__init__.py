@@ -2,9 +2,6 @@
 
 :mod:`.search` runs the strategies and verifies every candidate the same way;
 :mod:`.rotation_search` (a rotation grid, batched ESM) and :mod:`.feature_matching` (FPFH
-features from :mod:`esmicp.core.features`, RANSAC / clique matching) propose the candidates.
+features from :mod:`esmicp.core.features`, RANSAC / clique matching) propose the candidates. Every
+tuned value is in :class:`.config.SearchConfig`.
 """
-
-#: Two poses are distinct when their rotations differ by more than this (degrees): the runner-up
-#: of an ambiguous search, and two feature hypotheses.
-DISTINCT_ROTATION_DEG = 10.0

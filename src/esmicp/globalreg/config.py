@@ -14,34 +14,250 @@ and frame pairs of the kitchen walk (``docs/measured-global.md``).
 
 from __future__ import annotations
 
-import dataclasses
 import numbers
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
 
+from ..core.config import Config, count, fraction, number, numbers_tuple, part, span
 from ..errors import InvalidInputError
 
 
 @dataclass(frozen=True)
-class SearchConfig:
+class RotationSearchConfig(Config):
+    """Values of the rotation search (:func:`esmicp.globalreg.rotation_search.rotation_search`:
+    batched ESM from many starting rotations).
+
+    Attributes
+    ----------
+    rotations : int
+        Starting rotations, spread over SO(3) (count). More reach more starts within ESM's basin
+        (64: at most 58 degrees from any rotation) at a linear cost.
+    points : int
+        Source points (a random subsample) refined from every starting rotation (count).
+    iterations : int
+        ESM iterations from each starting rotation (count).
+    target_points : int
+        Target points (a random subsample) indexed for the rotation search and the verification
+        (count).
+    grid_cell_diagonals : float
+        Cell edge of the rotation search's nearest-neighbour grid
+        (:class:`~esmicp.core.nearest_grid.NearestGrid`), in target bounding-box diagonals (gain).
+    grid_margin_diagonals : float
+        Margin of that grid around the target, in target bounding-box diagonals (gain).
+
+    References
+    ----------
+    ``rotations``, ``points``, ``iterations``: the object protocols of ``docs/measured-global.md``.
+    """
+
+    rotations: int = count(64)
+    points: int = count(200)
+    iterations: int = count(10)
+    target_points: int = count(3000)
+    grid_cell_diagonals: float = number(1.0 / 40.0, above=0.0)
+    grid_margin_diagonals: float = number(0.25, least=0.0)
+
+
+@dataclass(frozen=True)
+class VerificationConfig(Config):
+    """Values of the verification that scores every candidate pose the same way and decides
+    between them (:mod:`esmicp.globalreg.search`).
+
+    Attributes
+    ----------
+    candidates : int
+        Distinct rotation-search poses passed on to the verification (count).
+    score_width_spacings : float
+        Width of the verifier's Gaussian overlap score, and floor of its annealed sigma, in target
+        point spacings (gain).
+    rounds : tuple of (int, int, int)
+        Rounds of successive halving: ``(source points, ESM iterations at the finest sigma,
+        distinct poses kept)`` (counts). Every candidate runs the first round; the survivors the next.
+    distinct_rotation_deg : float
+        Two poses are distinct when their rotations differ by more than this (degrees): the
+        runner-up of an ambiguous search, two feature hypotheses, two scan-strategy poses.
+    max_contenders : int
+        Poses (at most) returned as contenders for the full-resolution decision (count).
+    decide_points : int
+        Points (at most, of each cloud) of the full-resolution decision between contenders that
+        scored alike on the subsample (count).
+    decide_iterations : int
+        ESM iterations of that decision (count).
+    decide_sigma_spacings : float
+        Fixed sigma of that decision, in target point spacings (gain; finer than the
+        verification's, so that near-truth poses converge).
+    settle_points : int
+        Source points (evenly strided) refined when a rotation-search pose is settled (count).
+    settle_iterations : int
+        ESM iterations of that settling (count).
+    cover_points : int
+        Target points (evenly strided, at most) checked for the full cover of
+        :attr:`SearchConfig.full_cover` (count).
+    twin_angles_deg : tuple of float
+        Twins of the rotation search's best pose join the candidates when ``"auto"`` is not
+        confident: the pose turned by each of these angles (degrees) about each principal axis of
+        the target, through the target's centroid. A near-symmetric object under heavy noise
+        otherwise ends on a symmetric twin of the truth that neither strategy proposes.
+
+    References
+    ----------
+    ``rounds``, ``decide_*``, ``settle_*`` and ``twin_angles_deg``: the object protocols of
+    ``docs/measured-global.md``; ``distinct_rotation_deg``: its symmetric shapes.
+    """
+
+    candidates: int = count(16)
+    score_width_spacings: float = number(2.0, above=0.0)
+    rounds: tuple = numbers_tuple(((200, 6, 6), (400, 12, 4)))
+    distinct_rotation_deg: float = number(10.0, least=0.0, most=180.0)
+    max_contenders: int = count(3)
+    decide_points: int = count(2000)
+    decide_iterations: int = count(10)
+    decide_sigma_spacings: float = number(1.0, above=0.0)
+    settle_points: int = count(400)
+    settle_iterations: int = count(12)
+    cover_points: int = count(1000)
+    twin_angles_deg: tuple = numbers_tuple((180.0,))
+
+
+@dataclass(frozen=True)
+class ScanStrategyConfig(Config):
+    """Values of the scan strategy (:mod:`esmicp.globalreg.scan`: FPFH correspondences of voxel
+    keypoints pruned by second-order spatial compatibility, verified on the overlap). Lengths are
+    gains times the keypoint voxel (:attr:`SearchConfig.keypoints`).
+
+    Attributes
+    ----------
+    last_keypoints : tuple of int
+        When no standard search is confident, searches at other voxels, in turn while none is:
+        where the target has about each of these many occupied voxels (counts). A finer voxel puts
+        more keypoints in a small overlap, a coarser one gives descriptors of a larger part of the
+        scene.
+    fpfh_radius_keypoint_voxels : float
+        FPFH radius of the keypoints, in keypoint voxels (gain).
+    filter_radius_voxels : float
+        Radius of the isolated-keypoint filter, in keypoint voxels (gain).
+    normal_neighbours : int
+        Neighbours (at most) of a keypoint normal's PCA (count).
+    min_keypoints : int
+        Below this many occupied voxels in either cloud the strategy proposes nothing (count).
+    max_correspondences : int
+        Correspondences kept for pruning, best Lowe ratio first (count).
+    compatibility_voxels : float
+        Two correspondences are compatible when their lengths agree to within this many keypoint
+        voxels (gain).
+    seeds : int
+        Seed correspondences of the pruning (count): many, spread in both clouds, since at a small
+        overlap the few true correspondences rank far down the leading eigenvector.
+    seed_spread_voxels : float
+        A seed is skipped when both its keypoints lie within this many keypoint voxels of a better
+        seed's (gain).
+    group_size : int
+        Size of the group each seed grows (count).
+    leading_tolerance : float
+        The power iteration of the compatibility matrix's leading eigenvector stops once a step
+        moves no entry by more than this (unit-norm vector entries).
+    hypotheses : int
+        Distinct hypotheses verified on the overlap (count).
+    distinct_voxels : float
+        Two hypotheses are distinct when their translations differ by more than this many
+        keypoint voxels (gain; or their rotations by
+        :attr:`VerificationConfig.distinct_rotation_deg`).
+    contender_voxels : float
+        Two verified poses are different ones (contenders, which make a result ambiguous) from
+        this many keypoint voxels apart on (gain; closer ones end in the same place after
+        refinement).
+    icp_steps : int
+        ICP steps on the keypoints before verification, at most (count).
+    icp_voxels : float
+        ICP pairs lie within this many keypoint voxels (gain).
+    icp_settled_voxels : float
+        A pose's ICP stops once a step moves its keypoints by less than this many keypoint voxels
+        (gain).
+    icp_points : int
+        The ICP runs on at most this many source keypoints, evenly strided (count).
+    tie_ratio : float
+        A pose of about the leader's rotation scoring at least this fraction of its overlap score
+        challenges it on the slide-constraining inliers (0-1).
+
+    References
+    ----------
+    ``last_keypoints``, ``seeds``, ``seed_spread_voxels`` and ``icp_steps``: the 3DMatch crops at
+    15-25% overlap of ``docs/scans-partial-overlap.md``.
+    """
+
+    last_keypoints: tuple = numbers_tuple((10000, 2500))
+    fpfh_radius_keypoint_voxels: float = number(6.0, above=0.0)
+    filter_radius_voxels: float = number(2.0, above=0.0)
+    normal_neighbours: int = count(60, least=3)
+    min_keypoints: int = count(10)
+    max_correspondences: int = count(2500)
+    compatibility_voxels: float = number(1.5, above=0.0)
+    seeds: int = count(512)
+    seed_spread_voxels: float = number(3.0, least=0.0)
+    group_size: int = count(30)
+    leading_tolerance: float = number(1e-6, above=0.0)
+    hypotheses: int = count(6)
+    distinct_voxels: float = number(3.0, least=0.0)
+    contender_voxels: float = number(6.0, least=0.0)
+    icp_steps: int = count(30, least=0)
+    icp_voxels: float = number(2.0, above=0.0)
+    icp_settled_voxels: float = number(0.05, least=0.0)
+    icp_points: int = count(1500)
+    tie_ratio: float = fraction(0.5)
+
+
+@dataclass(frozen=True)
+class FeatureMatchingConfig(Config):
+    """Values of the feature strategy (:func:`esmicp.globalreg.feature_matching.feature_hypotheses`:
+    FPFH correspondences, RANSAC or cliques). Lengths are gains times the feature voxel.
+
+    Attributes
+    ----------
+    voxel_diagonals : float
+        The feature voxel, in target bounding-box diagonals (gain).
+    normal_radius_voxels : float
+        Radius of the PCA normals, in feature voxels (gain).
+    fpfh_radius_voxels : float
+        FPFH radius, in feature voxels (gain).
+    filter_radius_voxels : float
+        Radius of the isolated-point filter, in feature voxels (gain).
+    normal_neighbours : int
+        Neighbours (at most) of a normal's PCA (count).
+    min_mutual_matches : int
+        Below this many mutual matches, the matching falls back to one-way matches (count).
+    edge_tolerance : float
+        Relative tolerance of the edge-length consistency check on RANSAC samples (ratio).
+    first_batch : int
+        Samples of the first RANSAC batch (count; later ones double, up to ``feature_hypotheses``'s
+        ``batch``): an easy problem stops after it.
+    distinct_translation_voxels : float
+        Two hypotheses are distinct when their translations differ by more than this many feature
+        voxels (gain; or their rotations by :attr:`VerificationConfig.distinct_rotation_deg`).
+
+    References
+    ----------
+    The object protocols of ``docs/measured-global.md``.
+    """
+
+    voxel_diagonals: float = number(1.0 / 40.0, above=0.0)
+    normal_radius_voxels: float = number(4.0, above=0.0)
+    fpfh_radius_voxels: float = number(7.0, above=0.0)
+    filter_radius_voxels: float = number(2.0, above=0.0)
+    normal_neighbours: int = count(60, least=3)
+    min_mutual_matches: int = count(30)
+    edge_tolerance: float = number(0.1, least=0.0)
+    first_batch: int = count(256)
+    distinct_translation_voxels: float = number(2.0, least=0.0)
+
+
+@dataclass(frozen=True)
+class SearchConfig(Config):
     """Tuned values of the global search (:func:`esmicp.globalreg.search.global_estimate`).
 
     Attributes
     ----------
-    search_rotations : int
-        Starting rotations of the rotation search, spread over SO(3) (count). More reach more
-        starts within ESM's basin (64: at most 58 degrees from any rotation) at a linear cost.
-        Measured on the development object protocols.
-    search_points : int
-        Source points (a random subsample) refined from every starting rotation (count).
-    verify_candidates : int
-        Distinct rotation-search poses passed on to the verification (count).
-    score_width_spacings : float
-        Width of the verifier's Gaussian overlap score, and floor of its annealed sigma, in target
-        point spacings.
     ambiguity_ratio : float
         A clearly different pose (rotation more than
-        :data:`~esmicp.globalreg.DISTINCT_ROTATION_DEG` away) scoring at least this fraction of
+        :attr:`VerificationConfig.distinct_rotation_deg` away) scoring at least this fraction of
         the best makes the result ambiguous (0-1). Measured on the symmetric development shapes
         (bottle, cup, vase, lamp, flower pot), whose twins score within 3%.
     decide_ratio : float
@@ -107,83 +323,33 @@ class SearchConfig:
         every ground truth 0.010-0.19.
     """
 
-    search_rotations: int = 64
-    search_points: int = 200
-    verify_candidates: int = 16
-    score_width_spacings: float = 2.0
-    ambiguity_ratio: float = 0.97
-    decide_ratio: float = 0.9
-    confident_score: float = 0.6
-    full_cover: float = 0.99
-    settle_from: float = 0.9
-    scan_margin: float = 1.1
-    sharper_score_ratio: float = 0.8
-    sharper_by: float = 0.2
-    sharper_than_chosen: float = 0.1
-    scan_candidates: int = 3
-    confident: float = 0.5
+    ambiguity_ratio: float = fraction(0.97)
+    decide_ratio: float = fraction(0.9)
+    confident_score: float = number(0.6, least=0.0)  # above 1: never
+    full_cover: float = fraction(0.99)
+    settle_from: float = number(0.9, least=0.0)
+    scan_margin: float = number(1.1, above=0.0)
+    sharper_score_ratio: float = fraction(0.8)
+    sharper_by: float = number(0.2, least=0.0)
+    sharper_than_chosen: float = number(0.1, least=0.0)
+    scan_candidates: int = count(3, least=0)
+    confident: float = fraction(0.5)
     scan_searches: int | None = None
-    keypoints: int = 5000
-    sharpness_range: tuple[float, float] = (0.5, 0.8)
-    spread_range: tuple[float, float] = (0.05, 0.15)
-    third_range: tuple[float, float] = (0.003, 0.009)
+    keypoints: int = count(5000)
+    sharpness_range: tuple[float, float] = span((0.5, 0.8))
+    spread_range: tuple[float, float] = span((0.05, 0.15))
+    third_range: tuple[float, float] = span((0.003, 0.009))
+    rotation: RotationSearchConfig = part(RotationSearchConfig)
+    verification: VerificationConfig = part(VerificationConfig)
+    scan: ScanStrategyConfig = part(ScanStrategyConfig)
+    features: FeatureMatchingConfig = part(FeatureMatchingConfig)
 
     def __post_init__(self) -> None:
-        for name in ("search_rotations", "search_points", "verify_candidates", "keypoints"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-                raise InvalidInputError(f"config.{name}: expected an integer >= 1, got {value!r}")
-        if isinstance(self.scan_candidates, bool) or not isinstance(self.scan_candidates, numbers.Integral) \
-                or self.scan_candidates < 0:
-            raise InvalidInputError(f"config.scan_candidates: expected an integer >= 0, got {self.scan_candidates!r}")
+        super().__post_init__()
         if self.scan_searches is not None and (isinstance(self.scan_searches, bool) or not isinstance(
                 self.scan_searches, numbers.Integral) or self.scan_searches < 1):
-            raise InvalidInputError(f"config.scan_searches: expected None or an integer >= 1, got {self.scan_searches!r}")
-        for name in ("ambiguity_ratio", "decide_ratio", "full_cover", "sharper_score_ratio", "confident"):
-            value = getattr(self, name)
-            if not _is_number(value) or not 0.0 <= value <= 1.0:
-                raise InvalidInputError(f"config.{name}: expected a number in [0, 1], got {value!r}")
-        for name in ("confident_score", "settle_from", "sharper_by", "sharper_than_chosen"):  # above 1: never
-            value = getattr(self, name)
-            if not _is_number(value) or not 0.0 <= value < float("inf"):
-                raise InvalidInputError(f"config.{name}: expected a finite number >= 0, got {value!r}")
-        for name in ("score_width_spacings", "scan_margin"):
-            value = getattr(self, name)
-            if not _is_number(value) or not 0.0 < value < float("inf"):
-                raise InvalidInputError(f"config.{name}: expected a finite number > 0, got {value!r}")
-        for name in ("sharpness_range", "spread_range", "third_range"):
-            value = getattr(self, name)
-            if not (isinstance(value, (tuple, list)) and len(value) == 2 and all(map(_is_number, value))
-                    and value[0] < value[1]):
-                raise InvalidInputError(f"config.{name}: expected (low, high) with low < high, got {value!r}")
-            object.__setattr__(self, name, (float(value[0]), float(value[1])))
-
-    def to_dict(self) -> dict:
-        """A JSON-ready dict of every field (ranges as two-element lists)."""
-        return {field.name: list(value) if isinstance(value := getattr(self, field.name), tuple) else value
-                for field in dataclasses.fields(self)}
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "SearchConfig":
-        """The config of ``data`` (as :meth:`to_dict` writes it; missing fields keep their default).
-
-        Raises
-        ------
-        InvalidInputError
-            On an unknown field or an invalid value.
-        """
-        known = {field.name for field in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise InvalidInputError(f"config: unknown field(s) {', '.join(map(repr, unknown))}; "
-                                    f"known: {', '.join(sorted(known))}")
-        values: dict[str, Any] = {name: tuple(value) if isinstance(value, list) else value
-                                  for name, value in data.items()}
-        return cls(**values)
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool) and value == value
+            raise InvalidInputError(f"SearchConfig.scan_searches: expected None or a whole number >= 1, "
+                                    f"got {self.scan_searches!r}")
 
 
 #: The configuration :func:`esmicp.register` uses unless given another.
@@ -195,9 +361,4 @@ def as_config(config) -> SearchConfig:
     read by :meth:`SearchConfig.from_dict`; anything else raises :class:`InvalidInputError`."""
     if config is None:
         return DEFAULT
-    if isinstance(config, SearchConfig):
-        return config
-    if isinstance(config, dict):
-        return SearchConfig.from_dict(config)
-    raise InvalidInputError(f"config: expected an esmicp.globalreg.config.SearchConfig or a dict, "
-                            f"got {type(config).__name__}")
+    return SearchConfig.of(config)

@@ -32,7 +32,8 @@ Pipeline of :func:`feature_hypotheses` (all lengths scale with the ``voxel`` arg
    they produce (fraction of source keypoints within ``inlier_distance`` of a target keypoint),
    which tells the true pose from a wrong one better than the count of correspondences does.
 
-The default radii (normals 4, FPFH 7, filter 2 voxels) are wider than Open3D's usual 2 and 5
+The default radii (normals 4, FPFH 7, filter 2 voxels:
+:class:`~esmicp.globalreg.config.FeatureMatchingConfig`) are wider than Open3D's usual 2 and 5
 voxels because they measured better on the outlier protocols (``docs/measured-global.md``, "Why
 these choices").
 
@@ -55,20 +56,10 @@ from ..core.features import dense_point_mask, estimate_normals, fpfh, voxel_grid
 from ..core.procrustes import batched_weighted_procrustes, to_matrix
 from ..errors import InvalidInputError
 from ..types import as_count, as_generator, as_points, as_positive, as_real
-from . import DISTINCT_ROTATION_DEG
+from .config import DEFAULT, SearchConfig
 
 if TYPE_CHECKING:  # SciPy is imported where it is used: `register` on a clean pair never needs it
     from scipy.spatial import cKDTree
-
-#: Below this many mutual matches, :func:`match_features` falls back to one-way matches.
-MIN_MUTUAL_MATCHES = 30
-
-#: Relative tolerance of the edge-length consistency check on RANSAC samples.
-EDGE_TOLERANCE = 0.1
-
-#: Two hypotheses are distinct when their rotations differ by more than
-#: :data:`esmicp.globalreg.DISTINCT_ROTATION_DEG`, or their translations by more than this many voxels.
-DISTINCT_TRANSLATION_VOXELS = 2.0
 
 #: Feature-space problems up to this many (source x target) pairs use brute force, not a KD-tree.
 _BRUTE_FORCE_PAIRS = 4_000_000
@@ -76,20 +67,8 @@ _BRUTE_FORCE_PAIRS = 4_000_000
 #: Largest number of (candidate x correspondence) residuals evaluated at once.
 _SCORE_CHUNK = 2_000_000
 
-#: Size of the first RANSAC batch (later ones double, up to the ``batch`` argument).
-_FIRST_BATCH = 256
-
 #: Ways of turning matched features into hypotheses (``method`` of :func:`feature_hypotheses`).
 MATCHING_METHODS = ("ransac", "clique")
-
-#: Neighbours (at most) of a normal's PCA.
-_NORMAL_NEIGHBOURS = 60
-
-#: Default radii, in voxels: normals (PCA), FPFH, and the isolated-point filter.
-FEATURE_NORMAL_RADIUS_VOXELS = 4.0
-FEATURE_RADIUS_VOXELS = 7.0
-FILTER_RADIUS_VOXELS = 2.0
-
 
 @dataclass(frozen=True, eq=False)
 class Hypothesis:
@@ -165,7 +144,7 @@ def match_features(
     *,
     mutual: bool = True,
     ratio: float | None = None,
-    min_matches: int = MIN_MUTUAL_MATCHES,
+    min_matches: int | None = None,
 ) -> np.ndarray:
     """Nearest-neighbour correspondences in feature space.
 
@@ -182,8 +161,9 @@ def match_features(
     ratio : float, optional
         Lowe's ratio test: keep a match only if its distance is below ``ratio`` times the distance
         to the second-nearest target feature.
-    min_matches : int
-        See ``mutual``.
+    min_matches : int, optional
+        See ``mutual``; default
+        :attr:`~esmicp.globalreg.config.FeatureMatchingConfig.min_mutual_matches`.
 
     Returns
     -------
@@ -205,6 +185,7 @@ def match_features(
     selected = np.ones(len(source_features), dtype=bool)
     if use_ratio:
         selected &= distance < float(ratio) * second_distance
+    min_matches = DEFAULT.features.min_mutual_matches if min_matches is None else min_matches
     if mutual and (selected & is_mutual).sum() >= min_matches:
         selected &= is_mutual
     rows = np.flatnonzero(selected)
@@ -257,15 +238,17 @@ def _rotation_gaps_deg(rotations: np.ndarray, reference: np.ndarray) -> np.ndarr
     return np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
 
 
-def _distinct_order(rotations, translations, scores, max_count, min_translation) -> np.ndarray:
-    """Indices of at most ``max_count`` mutually distinct candidates, best score first."""
+def _distinct_order(rotations, translations, scores, max_count, min_translation, min_rotation_deg) -> np.ndarray:
+    """Indices of at most ``max_count`` mutually distinct candidates (rotations more than
+    ``min_rotation_deg`` degrees apart or translations more than ``min_translation`` apart), best
+    score first."""
     remaining = np.argsort(-scores, kind="stable")
     chosen = []
     while len(remaining) and len(chosen) < max_count:
         best = remaining[0]
         chosen.append(best)
         rest = remaining[1:]
-        far = (_rotation_gaps_deg(rotations[rest], rotations[best]) > DISTINCT_ROTATION_DEG) | (
+        far = (_rotation_gaps_deg(rotations[rest], rotations[best]) > min_rotation_deg) | (
             np.linalg.norm(translations[rest] - translations[best], axis=1) > min_translation
         )
         remaining = rest[far]
@@ -302,20 +285,23 @@ def _edge_lengths(points: np.ndarray) -> np.ndarray:
 
 def _ransac(
     source, target, threshold, rng, *, max_trials, min_trials, batch, confidence, min_edge, keep, min_translation,
-    workers=None,
+    workers=None, config: SearchConfig = DEFAULT,
 ):
     """Batched RANSAC on paired points.
 
     Returns ``(rotations, translations, counts)`` of at most ``keep`` mutually distinct candidates
     (see :func:`_distinct_order`), each the best-scoring of its neighbourhood of poses.
-    ``workers``: threads of the compiled inlier count.
+    ``workers``: threads of the compiled inlier count; ``config``: the edge tolerance of a sample
+    (``config.features.edge_tolerance``), the first batch's size (``config.features.first_batch``)
+    and the distinct rotation
+    (``config.verification.distinct_rotation_deg``).
     """
     count = len(source)
     pool_r = np.zeros((0, 3, 3))
     pool_t = np.zeros((0, 3))
     pool_c = np.zeros(0, dtype=np.intp)
     trials, needed, best = 0, max(max_trials, 1), 0
-    size = min(batch, _FIRST_BATCH)
+    size = min(batch, config.features.first_batch)
     while trials < min(needed, max_trials):
         # Batches grow from small to ``batch``: an easy problem stops after the first one.
         size = min(size, max_trials - trials)
@@ -323,7 +309,8 @@ def _ransac(
         sample = rng.integers(0, count, size=(size, 3))
         src, tgt = source[sample], target[sample]
         src_edges, tgt_edges = _edge_lengths(src), _edge_lengths(tgt)
-        ok = (np.abs(src_edges - tgt_edges) <= EDGE_TOLERANCE * np.maximum(src_edges, tgt_edges)).all(axis=1)
+        tolerance = config.features.edge_tolerance
+        ok = (np.abs(src_edges - tgt_edges) <= tolerance * np.maximum(src_edges, tgt_edges)).all(axis=1)
         ok &= src_edges.min(axis=1) >= min_edge
         if not ok.any():
             size = min(2 * size, batch)
@@ -334,7 +321,7 @@ def _ransac(
         pool_t = np.concatenate([pool_t, translations])
         pool_c = np.concatenate([pool_c, counts])
         # Keep the best candidate of each of the ``keep`` best distinct poses seen so far.
-        top = _distinct_order(pool_r, pool_t, pool_c, keep, min_translation)
+        top = _distinct_order(pool_r, pool_t, pool_c, keep, min_translation, config.verification.distinct_rotation_deg)
         pool_r, pool_t, pool_c = pool_r[top], pool_t[top], pool_c[top]
         best = max(best, int(counts.max()))
         fraction = best / count
@@ -410,7 +397,7 @@ def _overlap(rotations, translations, source, target_tree, threshold) -> np.ndar
 
 def _keypoints(
     points: np.ndarray, voxel: float, normal_radius: float, feature_radius: float, filter_radius: float | None,
-    *, normals_from_keypoints: bool = False, grid: tuple[np.ndarray, np.ndarray] | None = None,
+    *, normals_from_keypoints: bool = False, grid: tuple[np.ndarray, np.ndarray] | None = None, neighbours: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Downsampled points and their FPFH. ``grid``: :func:`~esmicp.core.features.voxel_grid`
     of ``points`` at ``voxel``, when the caller has it already.
@@ -418,7 +405,7 @@ def _keypoints(
     Isolated voxels (few occupied voxels within ``filter_radius``: scattered outliers) are dropped
     with their points before normals are estimated; so are keypoints without FPFH neighbours.
     Normals are PCA normals of the (dense) remaining points around each keypoint, or with
-    ``normals_from_keypoints`` of the keypoints themselves (the ``_NORMAL_NEIGHBOURS`` nearest
+    ``normals_from_keypoints`` of the keypoints themselves (the ``neighbours`` nearest
     within ``normal_radius``): the voxel's scale rather than the sensor's, less noisy on depth
     scans, and no tree over the dense cloud.
     """
@@ -429,9 +416,9 @@ def _keypoints(
         if not normals_from_keypoints:  # the dense points serve only the dense normals
             points = points[keep[owner]]
     if normals_from_keypoints:
-        normals = estimate_normals(down, k=_NORMAL_NEIGHBOURS, radius=normal_radius)
+        normals = estimate_normals(down, k=neighbours, radius=normal_radius)
     else:
-        normals = estimate_normals(points, k=_NORMAL_NEIGHBOURS, radius=normal_radius, at=down)
+        normals = estimate_normals(points, k=neighbours, radius=normal_radius, at=down)
     features = fpfh(down, normals, feature_radius)
     described = features.any(axis=1)
     return down[described], features[described]
@@ -455,6 +442,7 @@ def feature_hypotheses(
     filter_radius: float | None = None,
     workers: int | None = None,
     normals_from_keypoints: bool = False,
+    config: SearchConfig = DEFAULT,
 ) -> list[Hypothesis]:
     """Candidate poses ``T_target_source`` from FPFH feature correspondences, best first.
 
@@ -465,8 +453,9 @@ def feature_hypotheses(
     source, target : (N, 3), (M, 3) arrays
         The clouds, in the same units, in any relative pose.
     voxel : float
-        Downsampling voxel edge (cloud units); sets the scale of everything else. About 1/40 of
-        the object's bounding-box diagonal works best on ModelNet-like objects.
+        Downsampling voxel edge (cloud units); sets the scale of everything else
+        (:attr:`~esmicp.globalreg.config.FeatureMatchingConfig.voxel_diagonals` of the target's
+        bounding-box diagonal in the global search).
     rng : numpy.random.Generator or int
         The only source of randomness (an int is a seed for ``numpy.random.default_rng``).
     max_hypotheses : int
@@ -492,6 +481,9 @@ def feature_hypotheses(
     workers : int, optional
         Threads: 1 computes the two clouds' features one after the other; otherwise (None: every
         core) on two threads.
+    config : SearchConfig
+        The default radii, the normals' neighbours, the matching's and the distinct poses' values
+        (``config.features``, :class:`~esmicp.globalreg.config.FeatureMatchingConfig`).
 
     Returns
     -------
@@ -517,14 +509,15 @@ def feature_hypotheses(
     min_trials = as_count(min_trials, "min_trials", 0)
     batch = as_count(batch, "batch", 1)
 
+    settings = config.features
     if normal_radius is None:
-        normal_radius = FEATURE_NORMAL_RADIUS_VOXELS * voxel
+        normal_radius = settings.normal_radius_voxels * voxel
     normal_radius = as_positive(normal_radius, "normal_radius")
     if feature_radius is None:
-        feature_radius = FEATURE_RADIUS_VOXELS * voxel
+        feature_radius = settings.fpfh_radius_voxels * voxel
     feature_radius = as_positive(feature_radius, "feature_radius")
     if filter_radius is None:
-        filter_radius = FILTER_RADIUS_VOXELS * voxel
+        filter_radius = settings.filter_radius_voxels * voxel
     elif as_real(filter_radius, "filter_radius") == 0:
         filter_radius = None
     else:
@@ -534,9 +527,9 @@ def feature_hypotheses(
     pool = ThreadPoolExecutor(max_workers=1 if workers == 1 else 2)
     try:
         source_job = pool.submit(_keypoints, source, voxel, normal_radius, feature_radius, filter_radius,
-                                 normals_from_keypoints=normals_from_keypoints)
+                                 normals_from_keypoints=normals_from_keypoints, neighbours=settings.normal_neighbours)
         target_job = pool.submit(_keypoints, target, voxel, normal_radius, feature_radius, filter_radius,
-                                 normals_from_keypoints=normals_from_keypoints)
+                                 normals_from_keypoints=normals_from_keypoints, neighbours=settings.normal_neighbours)
         (source_points, source_features), (target_points, target_features) = source_job.result(), target_job.result()
     except BaseException:
         # Ctrl-C (or an error) while waiting: do not wait for the other cloud's features to be
@@ -544,13 +537,14 @@ def feature_hypotheses(
         pool.shutdown(wait=False, cancel_futures=True)
         raise
     pool.shutdown()
-    matches = match_features(source_features, target_features)
+    matches = match_features(source_features, target_features, min_matches=settings.min_mutual_matches)
     if len(matches) < 3:
         return []
     paired_source = source_points[matches[:, 0]]
     paired_target = target_points[matches[:, 1]]
     min_edge = 2.0 * voxel
-    min_translation = DISTINCT_TRANSLATION_VOXELS * voxel
+    min_translation = settings.distinct_translation_voxels * voxel
+    distinct_deg = config.verification.distinct_rotation_deg
     if method == "ransac":
         rotations, translations, counts = _ransac(
             paired_source,
@@ -565,6 +559,7 @@ def feature_hypotheses(
             keep=4 * max_hypotheses,
             min_translation=min_translation,
             workers=workers,
+            config=config,
         )
     else:
         rotations, translations, counts = _cliques(
@@ -573,11 +568,11 @@ def feature_hypotheses(
         )
     if len(counts) == 0:
         return []
-    pool = _distinct_order(rotations, translations, counts, 4 * max_hypotheses, min_translation)
+    pool = _distinct_order(rotations, translations, counts, 4 * max_hypotheses, min_translation, distinct_deg)
     rotations, translations, counts = _refit(
         rotations[pool], translations[pool], paired_source, paired_target, threshold, workers=workers
     )
-    final = _distinct_order(rotations, translations, counts, max_hypotheses, min_translation)
+    final = _distinct_order(rotations, translations, counts, max_hypotheses, min_translation, distinct_deg)
     rotations, translations, counts = rotations[final], translations[final], counts[final]
     # Rank by geometric overlap of the keypoint clouds: it tells the true pose from a wrong one
     # with many consistent (but wrong) correspondences better than the count does.

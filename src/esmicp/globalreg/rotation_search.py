@@ -62,10 +62,10 @@ class Hypotheses:
     scores: np.ndarray
 
 
-#: Neighbours per target point in a :class:`NeighbourGraph`. On the verification calls of 4
-#: ModelNet40 trials (2,000 points), 67 % of the warm-started queries were certified with 8
-#: neighbours, 79 % with 16, 83 % with 24 (the rest go to the tree); counting the graph's build,
-#: 8 to 16 cost about the same, 4 and 24 more (``docs/speed.md``).
+#: Neighbours per target point in a :class:`NeighbourGraph` (count). A design value for speed
+#: only: every answer is the exact nearest neighbour whatever its value (uncertified queries go
+#: to the tree); the share of queries it certifies against the cost of its build is measured in
+#: ``docs/speed.md``.
 GRAPH_NEIGHBOURS = 12
 
 

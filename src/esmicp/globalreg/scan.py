@@ -8,18 +8,18 @@ so a pair scaled by 1000 gives the same pose):
    ``SearchConfig.keypoints`` occupied voxels (found from the voxel counts, which scale as the inverse square of
    the edge on a surface), never below ``MIN_VOXEL_SPACINGS`` target point spacings.
 2. **Keypoints and descriptors.** Voxel centroids of each cloud, isolated ones dropped; PCA
-   normals from the keypoints (or from the dense points), FPFH within ``FEATURE_RADIUS_VOXELS``
+   normals from the keypoints (or from the dense points), FPFH within ``ScanStrategyConfig.fpfh_radius_keypoint_voxels``
    (:mod:`esmicp.globalreg.feature_matching`'s keypoints).
 3. **Correspondences.** Each source keypoint's nearest target descriptor and each target
    keypoint's nearest source descriptor (the union: a partial overlap leaves too few mutual
-   matches), ranked by Lowe's ratio, at most ``MAX_CORRESPONDENCES``.
+   matches), ranked by Lowe's ratio, at most ``max_correspondences``.
 4. **Pruning** (the idea of SC2-PCR, re-derived here). Two correspondences are compatible when
    a rigid motion could map both: their source and target lengths agree to within
-   ``COMPATIBILITY_VOXELS``. The second-order compatibility of a compatible pair counts the
+   ``compatibility_voxels``. The second-order compatibility of a compatible pair counts the
    correspondences compatible with both; it separates inliers from the outliers that happen to be
-   compatible with one, and survives 95-99% outliers. Seeds (the ``SEEDS`` correspondences of
+   compatible with one, and survives 95-99% outliers. Seeds (the ``seeds`` correspondences of
    highest leading-eigenvector score of the compatibility matrix, spread apart in both clouds)
-   each grow a group of their ``GROUP_SIZE`` most second-order-compatible partners; each group is
+   each grow a group of their ``group_size`` most second-order-compatible partners; each group is
    solved by a Kabsch fit weighted by the leading eigenvector of its own second-order matrix.
 5. **Hypotheses.** Each fit is scored by the correspondences it maps within the compatibility
    distance; the best distinct ones are refit on their inliers.
@@ -32,9 +32,10 @@ so a pair scaled by 1000 gives the same pose):
 
 :func:`scan_estimate_until_confident` runs the pipeline with each setting of
 ``NORMALS_FROM_KEYPOINTS`` in turn until the best pose is confident on the overlap, then at other
-voxels (``LAST_KEYPOINTS``).
+voxels (``ScanStrategyConfig.last_keypoints``).
 
-Transforms are ``T_target_source`` (``target ~= source @ R.T + t``).
+The tuned values are :class:`~esmicp.globalreg.config.ScanStrategyConfig` (``SearchConfig.scan``),
+named in ``code`` above. Transforms are ``T_target_source`` (``target ~= source @ R.T + t``).
 """
 
 from __future__ import annotations
@@ -51,7 +52,6 @@ from ..core.keypoints import NORMAL_RADIUS_VOXELS, VERIFY_VOXELS, Keypoints, key
 from ..core.procrustes import batched_weighted_procrustes, rigid_inverse, rotation_angle, to_matrix
 from ..trust.confidence import overlap_confidence
 from ..trust.policy import DEFAULT_POLICY, TrustPolicy
-from . import DISTINCT_ROTATION_DEG
 from .feature_matching import _keypoints, _inlier_counts, _inlier_mask, _distinct_order
 from .config import DEFAULT, SearchConfig
 
@@ -59,67 +59,9 @@ from .config import DEFAULT, SearchConfig
 
 #: The searches of :func:`scan_estimate_until_confident`, tried in order until one's best pose is
 #: confident (``SearchConfig.confident``): ``normals_from_keypoints`` of :func:`scan_estimate` (normals from
-#: the keypoints, then from the dense points). Each finds 3DMatch crops at 15-25% overlap that the
-#: other misses.
+#: the keypoints, then from the dense points). Each finds partial scan pairs that the other misses
+#: (``docs/scans-partial-overlap.md``).
 NORMALS_FROM_KEYPOINTS = (True, False)
-
-#: When neither of those is confident, searches at other voxels, in turn while none is: where the
-#: target has about each of these many occupied voxels (normals from the keypoints). At 10-25%
-#: overlap only a few hundred keypoints lie in the overlap, and often no true correspondence
-#: survives the pruning: a finer voxel puts more keypoints there, a coarser one gives descriptors
-#: of a larger part of the scene, and each scale finds crops that the others miss (measured on
-#: the 3DMatch crops, with the confidence's spread terms: crops gained, none lost;
-#: ``docs/scans-partial-overlap.md``). A search whose voxel was searched already is skipped (a
-#: small cloud is at ``MIN_VOXEL_SPACINGS`` for every count).
-LAST_KEYPOINTS = (10000, 2500)
-
-#: Radii, in keypoint voxels: FPFH, the isolated-keypoint filter (normals:
-#: :data:`~esmicp.core.keypoints.NORMAL_RADIUS_VOXELS`).
-FEATURE_RADIUS_VOXELS = 6.0
-FILTER_RADIUS_VOXELS = 2.0
-
-#: Below this many occupied voxels in either cloud the scan strategy proposes nothing.
-MIN_KEYPOINTS = 10
-
-#: Correspondences kept for pruning (best Lowe ratio first).
-MAX_CORRESPONDENCES = 2500
-
-#: Two correspondences are compatible when their lengths agree to within this many voxels.
-COMPATIBILITY_VOXELS = 1.5
-
-#: Seeds, their spread (a seed is skipped when both its keypoints lie within this many voxels of
-#: a better seed's), and the size of the group each grows. Many seeds, spread in both clouds: at
-#: 15-25% overlap the few true correspondences rank far down the leading eigenvector, and a spread
-#: in the source alone skipped most of them, each near a better-ranked wrong one
-#: (``docs/scans-partial-overlap.md``).
-SEEDS = 512
-SEED_SPREAD_VOXELS = 3.0
-GROUP_SIZE = 30
-
-#: Distinct hypotheses verified on the overlap; two hypotheses are distinct when their rotations
-#: differ by more than :data:`DISTINCT_ROTATION_DEG` or their translations by ``DISTINCT_VOXELS``;
-#: two verified poses are reported as different ones (contenders, which make a result ambiguous)
-#: from ``CONTENDER_VOXELS`` on (closer ones end in the same place after refinement).
-HYPOTHESES = 6
-DISTINCT_VOXELS = 3.0
-CONTENDER_VOXELS = 6.0
-
-#: ICP steps (on the keypoints, pairs within ``ICP_VOXELS``) before verification, at most; a pose
-#: stops early once a step moves its keypoints by less than ``ICP_SETTLED_VOXELS``. A hypothesis
-#: from 10-25% overlap is often 5-10 degrees off: 6 steps left it there (its keypoints then do not
-#: coincide, and the verification and the confidence judge it as wrong), 30 bring it in
-#: (``docs/scans-partial-overlap.md``).
-ICP_STEPS = 30
-ICP_VOXELS = 2.0
-ICP_SETTLED_VOXELS = 0.05
-#: The ICP runs on at most this many source keypoints (evenly strided): a pose needs no more, and
-#: each step queries every keypoint of every hypothesis.
-ICP_POINTS = 1500
-
-#: A pose of about the leader's rotation scoring at least this fraction of its overlap score
-#: challenges it on the slide-constraining inliers (:func:`rank_poses`).
-TIE_RATIO = 0.5
-
 
 @dataclass(frozen=True)
 class ScanEstimate:
@@ -199,33 +141,26 @@ def _nearest_both_ways(source: np.ndarray, target: np.ndarray, workers: int | No
     return forward_i, forward_r, column_index, backward_r
 
 
-#: Power iteration (:func:`_leading_vector`) stops once no entry of any unit vector moves by more
-#: than this in a step: the ranking it serves is settled. The compatibility matrix's leading
-#: eigenvalue stands far above the next, so the steps shrink about fivefold each (a kitchen frame
-#: pair's 2,500 correspondences: 8e-3, 2e-3, 4e-4, ..., 1e-6 at step 8, float32 resolution at
-#: 11; the 512 best-ranked were the same from step 5 on).
-LEADING_TOLERANCE = 1e-6
-
-
-def _leading_vector(matrices: np.ndarray, iterations: int = 20) -> np.ndarray:
+def _leading_vector(matrices: np.ndarray, tolerance: float, iterations: int = 20) -> np.ndarray:
     """Leading eigenvectors (non-negative) of symmetric non-negative ``(..., n, n)`` matrices, by
     power iteration (matrix-vector products by BLAS, which ``einsum`` does not call: the cheaper
     of the two on the compatibility matrix, ``docs/speed.md``): at most ``iterations`` steps, fewer
-    once a step moves no entry by more than :data:`LEADING_TOLERANCE`."""
+    once a step moves no entry by more than ``tolerance``
+    (:attr:`~esmicp.globalreg.config.ScanStrategyConfig.leading_tolerance`)."""
     vector = np.full(matrices.shape[:-1], 1.0 / max(matrices.shape[-1], 1) ** 0.5, dtype=matrices.dtype)
     for _ in range(iterations):
         previous = vector
         vector = np.matmul(matrices, vector[..., None])[..., 0]
         norm = np.linalg.norm(vector, axis=-1, keepdims=True)
         vector = vector / np.where(norm > 0, norm, 1.0)
-        if float(np.abs(vector - previous).max(initial=0.0)) <= LEADING_TOLERANCE:
+        if float(np.abs(vector - previous).max(initial=0.0)) <= tolerance:
             break
     return vector
 
 
-def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: int = SEEDS,
-          group_size: int = GROUP_SIZE, spread: float | None = None,
-          workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: int | None = None,
+          group_size: int | None = None, spread: float | None = None, workers: int | None = None,
+          config: SearchConfig = DEFAULT) -> tuple[np.ndarray, np.ndarray]:
     """Pose fits of paired points ``source[k] <-> target[k]`` (most of them possibly wrong) by
     second-order spatial compatibility (see the module docstring, step 4).
 
@@ -234,8 +169,11 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
     both clouds (its source point near that seed's source point and its target point near that
     seed's target point) is skipped. ``workers``: threads of the compiled kernels (None: every
     core). Returns rotations ``(S, 3, 3)`` and translations ``(S, 3)``, one per seed group of at
-    least 3 members.
+    least 3 members. ``seeds``, ``group_size``: default ``config.scan.seeds`` and
+    ``config.scan.group_size``.
     """
+    seeds = config.scan.seeds if seeds is None else seeds
+    group_size = config.scan.group_size if group_size is None else group_size
     count = len(source)
     if count < 3:
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
@@ -243,7 +181,7 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
     _kernels.compatibility(np.ascontiguousarray(source, dtype=np.float64),
                            np.ascontiguousarray(target, dtype=np.float64), float(tolerance), compatible,
                            threads(workers))
-    score = _leading_vector(compatible[None])[0]
+    score = _leading_vector(compatible[None], config.scan.leading_tolerance)[0]
     spread = 2.0 * tolerance if spread is None else spread
     order = np.argsort(-score, kind="stable")
     order = order[score[order] > 0].astype(np.int64)
@@ -264,7 +202,7 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
     valid = np.concatenate([np.ones((len(chosen), 1), bool), counted.astype(bool)], axis=1)
     local = compatible[groups[:, :, None], groups[:, None, :]] * (valid[:, :, None] & valid[:, None, :])
     local_second = local * np.matmul(local, local)
-    weights = _leading_vector(local_second.astype(np.float64)) * valid
+    weights = _leading_vector(local_second.astype(np.float64), config.scan.leading_tolerance) * valid
     enough = (weights > 1e-9).sum(axis=1) >= 3
     if not enough.any():
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
@@ -341,31 +279,34 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     ``normals_from_keypoints``: the keypoints' normals from the keypoints themselves, else from the
     dense points (:func:`~esmicp.globalreg.feature_matching._keypoints`); ``voxel``: the keypoint
     voxel (cloud units; default :func:`~esmicp.core.keypoints.keypoint_voxel` of the target). Deterministic."""
+    settings = config.scan
     voxel = keypoint_voxel(target, spacing, config.keypoints) if voxel is None else voxel
-    normal_radius, feature_radius = NORMAL_RADIUS_VOXELS * voxel, FEATURE_RADIUS_VOXELS * voxel
-    filter_radius = FILTER_RADIUS_VOXELS * voxel
+    normal_radius, feature_radius = NORMAL_RADIUS_VOXELS * voxel, settings.fpfh_radius_keypoint_voxels * voxel
+    filter_radius = settings.filter_radius_voxels * voxel
     with ThreadPoolExecutor(max_workers=1 if workers == 1 else 2) as pool:
         grids = list(pool.map(lambda cloud: voxel_grid(cloud, voxel), (source, target)))
-        if min(len(centroids) for centroids, _ in grids) < MIN_KEYPOINTS:
+        if min(len(centroids) for centroids, _ in grids) < settings.min_keypoints:
             # Too few distinct places to describe (e.g. a few points repeated): no hypothesis.
             return ScanEstimate.nothing(Keypoints(grids[0][0], grids[1][0], voxel))
         jobs = [pool.submit(_keypoints, cloud, voxel, normal_radius, feature_radius, filter_radius,
-                            normals_from_keypoints=normals_from_keypoints, grid=grid)
+                            normals_from_keypoints=normals_from_keypoints, grid=grid,
+                            neighbours=settings.normal_neighbours)
                 for cloud, grid in zip((source, target), grids)]
         (source_keys, source_features), (target_keys, target_features) = (job.result() for job in jobs)
     keypoints = Keypoints(source_keys, target_keys, voxel)  # its trees serve every score below and after
     empty = ScanEstimate.nothing(keypoints)
     if len(source_keys) < 3 or len(target_keys) < 3:
         return empty
-    pairs = _correspondences(source_features, target_features, MAX_CORRESPONDENCES, workers)
+    pairs = _correspondences(source_features, target_features, settings.max_correspondences, workers)
     paired_source, paired_target = source_keys[pairs[:, 0]], target_keys[pairs[:, 1]]
-    tolerance = COMPATIBILITY_VOXELS * voxel
-    rotations, translations = prune(paired_source, paired_target, tolerance, spread=SEED_SPREAD_VOXELS * voxel,
-                                    workers=workers)
+    tolerance = settings.compatibility_voxels * voxel
+    rotations, translations = prune(paired_source, paired_target, tolerance,
+                                    spread=settings.seed_spread_voxels * voxel, workers=workers, config=config)
     if len(rotations) == 0:
         return empty
     counts = _inlier_counts(rotations, translations, paired_source, paired_target, tolerance, workers)
-    keep = _distinct_order(rotations, translations, counts, HYPOTHESES, DISTINCT_VOXELS * voxel)
+    keep = _distinct_order(rotations, translations, counts, settings.hypotheses,
+                           settings.distinct_voxels * voxel, config.verification.distinct_rotation_deg)
     rotations, translations = rotations[keep], translations[keep]
     # Refit each on its own inliers (twice).
     for _ in range(2):
@@ -377,12 +318,12 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
                 paired_source, paired_target, mask[enough].astype(float))
     counts = _inlier_counts(rotations, translations, paired_source, paired_target, tolerance, workers)
 
-    stride = -(-len(source_keys) // ICP_POINTS)
+    stride = -(-len(source_keys) // settings.icp_points)
     poses = _icp(np.stack([to_matrix(r, t) for r, t in zip(rotations, translations)]), source_keys[::stride],
-                 keypoints.target_tree, target_keys, ICP_VOXELS * voxel, ICP_STEPS, ICP_SETTLED_VOXELS * voxel,
-                 workers)
+                 keypoints.target_tree, target_keys, settings.icp_voxels * voxel, settings.icp_steps,
+                 settings.icp_settled_voxels * voxel, workers)
     order, scores = rank_poses(poses, source_keys, target_keys, voxel, target_tree=keypoints.target_tree,
-                               source_tree=keypoints.source_tree, workers=workers)
+                               source_tree=keypoints.source_tree, workers=workers, config=config)
     return ScanEstimate(poses[order], scores[order], keypoints, len(pairs), counts[order])
 
 
@@ -392,7 +333,7 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
     """:func:`scan_estimate` with each setting of ``NORMALS_FROM_KEYPOINTS`` in turn until one's
     best pose is confident (:func:`~esmicp.trust.confidence.overlap_confidence` at least
     ``config.confident``), then, while none is, at the voxel of each count of
-    :data:`LAST_KEYPOINTS` in turn (skipped when its voxel was searched already): the estimate
+    ``config.scan.last_keypoints`` in turn (skipped when its voxel was searched already): the estimate
     whose best pose is the most confident (the first on a tie). The first searches are each judged
     on their own keypoints; the last ones on those of the
     most confident before them, which they then carry: the confidence keeps the data's one scale,
@@ -424,7 +365,7 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
                                         config=config)):
             return best
     searched = {voxel}
-    for count in LAST_KEYPOINTS:
+    for count in config.scan.last_keypoints:
         other = keypoint_voxel(target, spacing, count)
         if other in searched:
             continue  # a repeat (a small cloud is at the floor, MIN_VOXEL_SPACINGS, for every count)
@@ -437,13 +378,14 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
 
 def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel: float, *,
                target_tree: CompiledTree | None = None, source_tree: CompiledTree | None = None,
-               workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+               workers: int | None = None, config: SearchConfig = DEFAULT) -> tuple[np.ndarray, np.ndarray]:
     """Verification on the overlap (module docstring, step 6): the indices of the mutually
     distinct ``poses`` ``(C, 4, 4)``, best first, and every pose's overlap score (the fraction of
     ``source`` and ``target`` keypoints within ``VERIFY_VOXELS`` of the other cloud).
 
-    A pose of about the same rotation as the leader (within :data:`DISTINCT_ROTATION_DEG`) and a
-    score of at least ``TIE_RATIO`` of its score challenges it on the slide: both count their
+    A pose of about the same rotation as the leader (within
+    ``config.verification.distinct_rotation_deg``) and a score of at least
+    ``config.scan.tie_ratio`` of its score challenges it on the slide: both count their
     inliers weighted by ``|n . u|``, with ``n`` the target normal and ``u`` the direction between
     the two poses, and the higher count leads. On a corridor the slid pose can overlap *more*
     (it slides the source further along), while only the true one aligns the geometry across it.
@@ -455,15 +397,17 @@ def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel:
     distance = VERIFY_VOXELS * voxel
     forward, backward = overlap_counts(poses, source, target, source_tree, target_tree, distance, workers)
     scores = (forward + backward) / float(len(source) + len(target))
-    order = _distinct_poses(poses, list(np.argsort(-scores, kind="stable")), CONTENDER_VOXELS * voxel)
+    distinct_deg = config.verification.distinct_rotation_deg
+    order = _distinct_poses(poses, list(np.argsort(-scores, kind="stable")), config.scan.contender_voxels * voxel,
+                            distinct_deg)
     normals = None
     leader = 0
     for position in range(1, len(order)):
         challenger, best = order[position], order[leader]
-        if scores[challenger] < TIE_RATIO * scores[best]:
+        if scores[challenger] < config.scan.tie_ratio * scores[best]:
             break
         turn = np.degrees(rotation_angle(poses[challenger, :3, :3].T @ poses[best, :3, :3]))
-        if turn > DISTINCT_ROTATION_DEG:
+        if turn > distinct_deg:
             continue
         if normals is None:
             normals = estimate_normals(target, k=20, radius=NORMAL_RADIUS_VOXELS * voxel, tree=target_tree)
@@ -475,11 +419,11 @@ def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel:
     return np.asarray(order, dtype=np.intp), scores
 
 
-def _distinct_poses(poses: np.ndarray, order: list[int], min_translation: float) -> list[int]:
+def _distinct_poses(poses: np.ndarray, order: list[int], min_translation: float, min_rotation_deg: float) -> list[int]:
     kept: list[int] = []
     for index in order:
         if all(
-            np.degrees(rotation_angle(poses[index, :3, :3].T @ poses[other, :3, :3])) > DISTINCT_ROTATION_DEG
+            np.degrees(rotation_angle(poses[index, :3, :3].T @ poses[other, :3, :3])) > min_rotation_deg
             or np.linalg.norm(poses[index, :3, 3] - poses[other, :3, 3]) > min_translation
             for other in kept
         ):

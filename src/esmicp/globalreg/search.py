@@ -6,8 +6,8 @@ names are fields of :class:`~esmicp.globalreg.config.SearchConfig` (``config.<fi
 **Generators** (each returns rigid ``(4, 4)`` poses ``T_target_source``):
 
 - the *rotation search* (:func:`_rotation_candidates`), for whole objects:
-  ``config.search_rotations`` starting rotations spread over SO(3), centroids aligned, refined
-  together by a short batched ESM on ``config.search_points`` source points
+  ``config.rotation.rotations`` starting rotations spread over SO(3), centroids aligned, refined
+  together by a short batched ESM on ``config.rotation.points`` source points
   (:func:`~esmicp.globalreg.rotation_search.rotation_search`);
 - *correspondences pruned by consistency* (:func:`_scan`, :mod:`esmicp.globalreg.scan`), for
   partially overlapping scans: FPFH matches kept by second-order spatial compatibility, each
@@ -18,7 +18,7 @@ names are fields of :class:`~esmicp.globalreg.config.SearchConfig` (``config.<fi
 
 **Verifier** (:func:`_verify`, then :func:`_decide`): every candidate is refined by batched ESM at
 the data's resolution and scored by the soft fraction (0-1) of source points lying on the target
-(Gaussian of width ``config.score_width_spacings`` target spacings), in successive-halving rounds.
+(Gaussian of width ``config.verification.score_width_spacings`` target spacings), in successive-halving rounds.
 When the runner-up scores at least ``config.decide_ratio`` of the best, the contenders are
 re-scored on up to the full clouds, both ways (source on target and target on source).
 
@@ -28,7 +28,8 @@ overlaps more (:func:`_scan_leads`), or the chosen pose is not confident there a
 clearly more (:func:`_sharper_on_the_overlap`, ``config.sharper_than_chosen``): the verifier
 counts how much of the source lies on the target, which a cut object's flip can satisfy better
 than the truth. The result is *ambiguous* when a clearly different pose (rotation more than
-:data:`~esmicp.globalreg.DISTINCT_ROTATION_DEG` away) scores at least ``config.ambiguity_ratio``
+:attr:`~esmicp.globalreg.config.VerificationConfig.distinct_rotation_deg` away) scores at least
+``config.ambiguity_ratio``
 of the returned one, or more (the returned pose then won on sharpness);
 :attr:`GlobalEstimate.runner_up_ratio` is the lower of the two scores over the higher. A scan
 pose that wins keeps its place, but it and its runner-ups are scored by the verifier too
@@ -56,7 +57,6 @@ import numpy as np
 from ..core.correspondence import NearestNeighbors
 from ..core.nearest_grid import NearestGrid
 from ..core.procrustes import apply, batched_rotation_angle, bounding_box_diagonal, rigid_inverse, to_matrix
-from . import DISTINCT_ROTATION_DEG
 from .config import DEFAULT, SearchConfig
 from ..trust.policy import DEFAULT_POLICY, TrustPolicy
 from .rotation_search import NeighbourGraph, batched_esm, gaussian_overlap_score, rotation_search
@@ -66,41 +66,6 @@ if TYPE_CHECKING:  # for the annotations only: the functions below import scan w
 
 #: Names accepted as ``init=`` strategies for global registration.
 STRATEGIES = ("auto", "rotation-search", "features", "scan")
-
-# Fixed design values (the tuned ones are :class:`~esmicp.globalreg.config.SearchConfig`'s).
-
-#: Target points (a random subsample) indexed for the rotation search and the verification.
-TARGET_POINTS = 3000
-
-#: Cell size and margin of the rotation search's nearest-neighbour grid, as fractions of the
-#: target's bounding-box diagonal (see :class:`~esmicp.core.nearest_grid.NearestGrid`).
-SEARCH_GRID_CELL = 1.0 / 40.0
-SEARCH_GRID_MARGIN = 0.25
-
-#: ESM iterations from each starting rotation of the rotation search.
-SEARCH_ITERATIONS = 10
-
-#: Verification rounds (successive halving): ``(source points, ESM iterations at the finest sigma,
-#: distinct poses kept)``. Every candidate runs the first round; the survivors the next.
-VERIFY_ROUNDS = ((200, 6, 6), (400, 12, 4))
-
-#: Target points (evenly strided, at most) checked by :func:`_covers_the_target`.
-COVER_POINTS = 1000
-
-#: At most this many poses are returned as contenders for a full-resolution decision.
-MAX_CONTENDERS = 3
-
-#: Points (at most, of each cloud) and ESM iterations of the full-resolution decision between
-#: contenders that scored alike on the subsample (:func:`_decide`), and its fixed sigma, in target
-#: point spacings (finer than the verification's, so that near-truth poses converge).
-DECIDE_POINTS = 2000
-DECIDE_ITERATIONS = 10
-DECIDE_SIGMA_SPACINGS = 1.0
-
-#: Source points (evenly strided) and ESM iterations of :func:`_settle`.
-SETTLE_POINTS = 400
-SETTLE_ITERATIONS = 12
-
 
 @dataclass(frozen=True)
 class GlobalEstimate:
@@ -160,8 +125,9 @@ def _subsample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.n
     return points[rng.choice(len(points), size=count, replace=False)]
 
 
-def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> list[int]:
-    """Indices (in ``order``) of up to ``limit`` poses, each distinct from those before it."""
+def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int, min_rotation_deg: float) -> list[int]:
+    """Indices (in ``order``) of up to ``limit`` poses, each distinct from those before it (its
+    rotation more than ``min_rotation_deg`` degrees from theirs)."""
     order = [int(index) for index in order]
     if not order:
         return []
@@ -174,7 +140,7 @@ def _distinct(transformations: np.ndarray, order: np.ndarray, limit: int) -> lis
     angles = np.degrees(batched_rotation_angle(relative))
     kept: list[int] = []
     for position in range(len(order)):
-        if (angles[position, kept] > DISTINCT_ROTATION_DEG).all():
+        if (angles[position, kept] > min_rotation_deg).all():
             kept.append(position)
             if len(kept) == limit:
                 break
@@ -296,7 +262,7 @@ def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
     # 3. Everything else verified together: the twins of the rotation search's pose, the scan
     # strategy's unconfident poses and the feature hypotheses, with the rotation search's
     # verified contenders carried into the last round.
-    twins = _twins(work.index.points, rotation.transformation)
+    twins = _twins(work.index.points, rotation.transformation, config.verification.twin_angles_deg)
     scan_poses = _unconfident_scan_poses(scanned, config)
     found = _feature_candidates(work)
     origins = ["rotation-search"] * len(twins) + ["scan"] * len(scan_poses) + ["features"] * len(found)
@@ -321,13 +287,13 @@ def _sharper_or_chosen(work: _Workspace, chosen: GlobalEstimate, scanned: Global
 def _workspace(source, target, rng, full_index: NearestNeighbors, target_spacing: float | None,
                config: SearchConfig, policy: TrustPolicy = DEFAULT_POLICY) -> _Workspace:
     """The :class:`_Workspace` of one search: the target indexed (a subsample of
-    :data:`TARGET_POINTS` drawn from ``rng`` when larger), its spacing and the score width."""
-    if len(target) <= TARGET_POINTS:
+    ``config.rotation.target_points`` drawn from ``rng`` when larger), its spacing and the score width."""
+    if len(target) <= config.rotation.target_points:
         index = full_index
     else:
-        index = NearestNeighbors(_subsample(target, TARGET_POINTS, rng), workers=full_index.workers)
+        index = NearestNeighbors(_subsample(target, config.rotation.target_points, rng), workers=full_index.workers)
     spacing = target_spacing if target_spacing is not None and index is full_index else index.spacing()
-    width = config.score_width_spacings * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target)
+    width = config.verification.score_width_spacings * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target)
     return _Workspace(source, target, rng, full_index, index, spacing, width, config, policy)
 
 
@@ -342,11 +308,10 @@ def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimat
 
     Why: the rotation search's score counts the source points lying on the target, which a cut
     object's wrong pose can satisfy better than the truth (a piano half flipped end to end lies on
-    the other half's surface), while the overlap confidence asks the overlap to coincide both ways.
-    On the ModelNet40 halves, seeds 0-7, 10 such wrong poses become right and none is lost. One
-    search only, and not when the pose covers the whole target: a clean pose of an object under
-    30% outliers is often not confident on the overlap (its outliers are keypoints too), and
-    every search costs time (``docs/scans-partial-overlap.md``)."""
+    the other half's surface), while the overlap confidence asks the overlap to coincide both ways:
+    on cut objects such wrong poses become right and none is lost. One search only, and not when
+    the pose covers the whole target: a clean pose of an object under 30% outliers is often not
+    confident on the overlap (its outliers are keypoints too), and every search costs time (``docs/scans-partial-overlap.md``)."""
     from ..trust.confidence import overlap_confidence
 
     keypoints = work.keypoints()
@@ -356,24 +321,27 @@ def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimat
 
 
 def _covers_the_target(work: _Workspace, transformation: np.ndarray) -> bool:
-    """True when at least ``config.full_cover`` of up to :data:`COVER_POINTS` evenly strided target
-    points lie within two score widths of the source placed by ``transformation``."""
-    target = work.target[np.linspace(0, len(work.target) - 1, min(COVER_POINTS, len(work.target))).astype(np.intp)]
+    """True when at least ``config.full_cover`` of up to ``config.verification.cover_points``
+    evenly strided target points lie within two score widths of the source placed by ``transformation``."""
+    count = min(work.config.verification.cover_points, len(work.target))
+    target = work.target[np.linspace(0, len(work.target) - 1, count).astype(np.intp)]
     distances, _ = work.source_index().query(apply(rigid_inverse(transformation), target))
     return bool(np.mean(distances <= 2.0 * work.width) >= work.config.full_cover)
 
 
 def _settle(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate | None:
-    """``estimate`` with its best pose settled (:data:`SETTLE_ITERATIONS` more ESM iterations on
-    :data:`SETTLE_POINTS` strided source points), the pair's keypoints and the settled pose's
-    overlap confidence, when the settled pose scores ``config.confident_score``; else None. The
+    """``estimate`` with its best pose settled (``config.verification.settle_iterations`` more ESM
+    iterations on ``config.verification.settle_points`` strided source points), the pair's
+    keypoints and the settled pose's overlap confidence, when the settled pose scores
+    ``config.confident_score``; else None. The
     source points are strided, not drawn: the generator's later draws stay those of a search
     without this step."""
     from ..trust.confidence import overlap_confidence
 
-    stride = np.linspace(0, len(work.source) - 1, min(SETTLE_POINTS, len(work.source))).astype(np.intp)
+    count = min(work.config.verification.settle_points, len(work.source))
+    stride = np.linspace(0, len(work.source) - 1, count).astype(np.intp)
     settled, scores = _batched_verification(work, work.index, work.source[stride], estimate.transformations[:1],
-                                            SETTLE_ITERATIONS, work.width)
+                                            work.config.verification.settle_iterations, work.width)
     if scores[0] < work.config.confident_score:
         return None
     keypoints = work.keypoints()
@@ -428,16 +396,15 @@ def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
     unless that is below ``config.confident`` and one of the scan strategy's
     poses is more confident by ``config.sharper_than_chosen``: then the most confident of those, with
     the chosen pose as its runner-up when the two are distinct (rotations more than
-    ``DISTINCT_ROTATION_DEG`` apart), each scored by its overlap score on the keypoints. The
-    chosen pose usually overlaps more, so such a result is usually flagged ambiguous, and its
+    ``config.verification.distinct_rotation_deg`` apart), each scored by its overlap score on the
+    keypoints. The chosen pose usually overlaps more, so such a result is usually flagged ambiguous, and its
     ``runner_up_score`` can exceed its score.
 
     Why: the verification scores how much of the source lies on the target, and a cut object's
     flip or turn about a near-symmetry axis often lies on more of the other part than the truth,
     whose cut-away part hangs free; the scan strategy often has the truth among its poses, ranked
-    below by the same overlap but sharper where the clouds do coincide. On the ModelNet40 halves
-    (seeds 0-7) the pose chosen was wrong in 54 of 326 trials, and in 30 of them a right pose had
-    been weighed (``docs/scans-partial-overlap.md``)."""
+    below by the same overlap but sharper where the clouds do coincide: on cut objects a right pose
+    had often been weighed where the chosen one was wrong (``docs/scans-partial-overlap.md``)."""
     from ..trust.confidence import overlap_confidence
     from .scan import overlap_score
 
@@ -458,7 +425,8 @@ def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
     if confidences[best] < confidence + config.sharper_than_chosen:
         return chosen
     pair = np.stack([poses[best], chosen.transformation])
-    pair = pair[_distinct(pair, np.arange(2), 2)]  # the same pose, sharpened: no runner-up
+    # the same pose, sharpened: no runner-up
+    pair = pair[_distinct(pair, np.arange(2), 2, config.verification.distinct_rotation_deg)]
     scores = np.array([overlap_score(pose, keypoints, workers) for pose in pair])
     strategies = ("scan",) + chosen.strategies[:1] * (len(pair) - 1)
     return GlobalEstimate(pair, scores, strategies, candidates=chosen.candidates, keypoints=keypoints,
@@ -481,28 +449,30 @@ def _unconfident_scan_poses(scanned: GlobalEstimate, config: SearchConfig = DEFA
 def _rotation_candidates(work: _Workspace) -> list[np.ndarray]:
     target = work.index.points
     diagonal = bounding_box_diagonal(target)
-    grid = work.grid = NearestGrid(target, SEARCH_GRID_CELL * diagonal, margin=SEARCH_GRID_MARGIN * diagonal)
+    settings = work.config.rotation
+    grid = work.grid = NearestGrid(target, settings.grid_cell_diagonals * diagonal,
+                                   margin=settings.grid_margin_diagonals * diagonal)
     found = rotation_search(
-        _subsample(work.source, work.config.search_points, work.rng), grid,
-        rotations=work.config.search_rotations, iterations=SEARCH_ITERATIONS, score_width=work.width, sigma_floor=work.width,
+        _subsample(work.source, settings.points, work.rng), grid,
+        rotations=settings.rotations, iterations=settings.iterations, score_width=work.width, sigma_floor=work.width,
         workers=work.full_index.workers,
     )
     return [found.transformations[k] for k in _distinct(found.transformations, np.arange(len(found.scores)),
-                                                         work.config.verify_candidates)]
+                                                         work.config.verification.candidates,
+                                                         work.config.verification.distinct_rotation_deg)]
 
 
 def _feature_candidates(work: _Workspace) -> list[np.ndarray]:
     """The feature strategy's hypotheses, with normals from the dense points and from the
-    keypoints (each kind finds poses the other misses; on the bunny scan pairs the pool gained 4
-    of 111 object-protocol trials and lost none, ``docs/measured-global.md``)."""
+    keypoints (each kind finds poses the other misses: ``docs/measured-global.md``)."""
     from .feature_matching import feature_hypotheses
 
     hypotheses = [
         hypothesis
         for normals_from_keypoints in (False, True)
         for hypothesis in feature_hypotheses(
-            work.source, work.target, voxel=_feature_voxel(work.target), rng=work.rng,
-            workers=work.full_index.workers, normals_from_keypoints=normals_from_keypoints,
+            work.source, work.target, voxel=_feature_voxel(work.target, work.config), rng=work.rng,
+            workers=work.full_index.workers, normals_from_keypoints=normals_from_keypoints, config=work.config,
         )
     ]
     return [hypothesis.transformation for hypothesis in hypotheses]
@@ -525,24 +495,25 @@ def _verify(
     *,
     carried: GlobalEstimate | None = None,
 ) -> GlobalEstimate:
-    """The verifier: successive halving over ``candidates`` (:data:`VERIFY_ROUNDS`: batched ESM on
+    """The verifier: successive halving over ``candidates`` (``config.verification.rounds``: batched ESM on
     a source subsample, each pose scored by the soft fraction of those points on the target);
     ``origins`` names each candidate's generator (one name for all). ``carried`` poses (with their
     scores and origins), verified before by the same rounds, join the survivors after the last
     round. Returns the contenders (:func:`_contenders`), best first."""
     verified = np.stack(candidates)
     origins_array = np.array([origins] * len(candidates) if isinstance(origins, str) else origins)
-    for points, iterations, keep in VERIFY_ROUNDS:
+    for points, iterations, keep in work.config.verification.rounds:
         verified, scores = _batched_verification(
             work, work.index, _subsample(work.source, points, work.rng), verified, iterations, work.width
         )
-        survivors = _distinct(verified, np.argsort(-scores, kind="stable"), keep)
+        survivors = _distinct(verified, np.argsort(-scores, kind="stable"), keep,
+                              work.config.verification.distinct_rotation_deg)
         verified, scores, origins_array = verified[survivors], scores[survivors], origins_array[survivors]
     if carried is not None:
         verified = np.concatenate([verified, carried.transformations])
         scores = np.concatenate([scores, carried.scores])
         origins_array = np.concatenate([origins_array, np.array(carried.strategies)])
-    kept = _contenders(verified, scores, work.config.ambiguity_ratio)
+    kept = _contenders(verified, scores, work.config)
     return GlobalEstimate(verified[kept], scores[kept], tuple(origins_array[kept]), candidates=len(candidates),
                           ambiguity_ratio=work.config.ambiguity_ratio)
 
@@ -555,7 +526,7 @@ def _decide(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
     if len(scores) < 2 or scores[1] < work.config.decide_ratio * scores[0]:
         return estimate
     refined, decided = _full_resolution_scores(work, estimate.transformations)
-    order = _contenders(refined, decided, work.config.ambiguity_ratio)
+    order = _contenders(refined, decided, work.config)
     strategies = tuple(estimate.strategies[k] for k in order)
     return GlobalEstimate(refined[order], decided[order], strategies, candidates=estimate.candidates,
                           ambiguity_ratio=work.config.ambiguity_ratio)
@@ -564,18 +535,19 @@ def _decide(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate:
 def _full_resolution_scores(work: _Workspace, transformations: np.ndarray,
                             refine: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """The verifier's full-resolution score of each pose, both ways: the mean of two Gaussian
-    overlap scores (0-1), ``DECIDE_POINTS`` source points on the full target and ``DECIDE_POINTS``
-    target points on the full placed source. With ``refine``, each pose is first refined by
-    ``DECIDE_ITERATIONS`` ESM iterations at a sigma of ``DECIDE_SIGMA_SPACINGS`` target spacings
+    overlap scores (0-1), ``decide_points`` source points on the full target and ``decide_points``
+    target points on the full placed source (``config.verification``). With ``refine``, each pose
+    is first refined by ``decide_iterations`` ESM iterations at a sigma of ``decide_sigma_spacings`` target spacings
     on those source points; without, scored where it is. Returns the (refined) poses and their
     scores."""
     full_spacing = work.spacing if work.index is work.full_index else work.full_index.spacing()
-    full_width = work.config.score_width_spacings * full_spacing if full_spacing > 0 else work.width
-    source_points = _subsample(work.source, DECIDE_POINTS, work.rng)
+    settings = work.config.verification
+    full_width = settings.score_width_spacings * full_spacing if full_spacing > 0 else work.width
+    source_points = _subsample(work.source, settings.decide_points, work.rng)
     if refine:
-        sigma = DECIDE_SIGMA_SPACINGS * full_spacing if full_spacing > 0 else None
+        sigma = settings.decide_sigma_spacings * full_spacing if full_spacing > 0 else None
         refined, forward = _batched_verification(work, work.full_index, source_points, transformations,
-                                                 DECIDE_ITERATIONS, full_width, sigma=sigma)
+                                                 settings.decide_iterations, full_width, sigma=sigma)
     else:
         refined = np.asarray(transformations, dtype=np.float64)
         placed = np.matmul(source_points[None], refined[:, :3, :3].transpose(0, 2, 1)) + refined[:, None, :3, 3]
@@ -583,7 +555,7 @@ def _full_resolution_scores(work: _Workspace, transformations: np.ndarray,
         forward = gaussian_overlap_score(distances.reshape(len(refined), -1), full_width)
     # Coverage the other way: the target points (clean, unlike a noisy source) lying on the placed
     # source. A symmetric twin leaves the target's asymmetric details uncovered.
-    target_points = _subsample(work.target, DECIDE_POINTS, work.rng)
+    target_points = _subsample(work.target, settings.decide_points, work.rng)
     source_index = work.source_index()
     # Target points in the source frame under each pose: rows (t - translation) @ R = R^T (t - translation).
     in_source = np.matmul(target_points[None] - refined[:, None, :3, 3], refined[:, :3, :3])
@@ -595,7 +567,7 @@ def _on_the_verifier_scale(work: _Workspace, estimate: GlobalEstimate) -> Global
     """The scan strategy's result (its poses ranked by its own overlap count on keypoints) with
     every pose's score on the verifier's scale (:func:`_full_resolution_scores`, each scored where
     the scan strategy's ICP left it: refining them first builds a neighbour graph of the full
-    target, and gave the same verdicts at up to 1.6 times a 3DMatch crop's registration time), so that
+    target, and gave the same verdicts at up to 1.6 times a partial scan pair's registration time), so that
     ``ambiguous`` and ``runner_up_ratio`` read alike whichever generator won: the returned pose
     stays first (the decision stands; it may now score below its runner-up, which then makes the
     result ambiguous), the others follow by their new score, and the poses are not moved.
@@ -611,27 +583,24 @@ def _on_the_verifier_scale(work: _Workspace, estimate: GlobalEstimate) -> Global
                    strategies=tuple(estimate.strategies[k] for k in order))
 
 
-def _contenders(transformations: np.ndarray, scores: np.ndarray, ratio: float) -> list[int]:
-    """Indices of the best pose, every distinct pose within ``ratio`` of it (at most
-    ``MAX_CONTENDERS`` in all), and the best distinct pose below that, best first."""
+def _contenders(transformations: np.ndarray, scores: np.ndarray, config: SearchConfig) -> list[int]:
+    """Indices of the best pose, every distinct pose within ``config.ambiguity_ratio`` of it (at
+    most ``config.verification.max_contenders`` in all), and the best distinct pose below that,
+    best first."""
+    ratio, most = config.ambiguity_ratio, config.verification.max_contenders
     order = np.argsort(-scores, kind="stable")
-    distinct = _distinct(transformations, order, MAX_CONTENDERS + 1)
+    distinct = _distinct(transformations, order, most + 1, config.verification.distinct_rotation_deg)
     close = sum(scores[index] >= ratio * scores[distinct[0]] for index in distinct)
-    return distinct[: min(close + 1, MAX_CONTENDERS + 1)]
+    return distinct[: min(close + 1, most + 1)]
 
 
 
 
-#: Twins of the rotation search's best pose join the candidates when ``"auto"`` is not confident:
-#: the pose turned by each of these angles (degrees) about each principal axis of the target,
-#: through the target's centroid. A near-symmetric object (a box-like night stand) under heavy
-#: noise otherwise ends on a symmetric twin of the truth that neither strategy proposes.
-TWIN_ANGLES_DEG = (180.0,)
-
-
-def _twins(target: np.ndarray, transformation: np.ndarray) -> list[np.ndarray]:
-    """``transformation`` composed on the left with turns by :data:`TWIN_ANGLES_DEG` about the
-    principal axes of ``target`` through its centroid (``len(TWIN_ANGLES_DEG) * 3`` poses)."""
+def _twins(target: np.ndarray, transformation: np.ndarray,
+           angles_deg: tuple = DEFAULT.verification.twin_angles_deg) -> list[np.ndarray]:
+    """``transformation`` composed on the left with turns by ``angles_deg`` (degrees;
+    :attr:`~esmicp.globalreg.config.VerificationConfig.twin_angles_deg`) about the principal axes
+    of ``target`` through its centroid (``len(angles_deg) * 3`` poses)."""
     from scipy.spatial.transform import Rotation
 
     centre = target.mean(axis=0)
@@ -639,15 +608,13 @@ def _twins(target: np.ndarray, transformation: np.ndarray) -> list[np.ndarray]:
     _, axes = np.linalg.eigh(centred.T @ centred)
     twins = []
     for axis in axes.T:
-        for angle in TWIN_ANGLES_DEG:
+        for angle in angles_deg:
             turn = Rotation.from_rotvec(np.radians(angle) * axis).as_matrix()
             twins.append(to_matrix(turn, centre - turn @ centre) @ transformation)
     return twins
 
 
-#: Voxel of the feature strategy, as a fraction of the target's bounding-box diagonal.
-FEATURE_VOXEL_FRACTION = 1.0 / 40.0
-
-
-def _feature_voxel(target: np.ndarray) -> float:
-    return FEATURE_VOXEL_FRACTION * bounding_box_diagonal(target)
+def _feature_voxel(target: np.ndarray, config: SearchConfig = DEFAULT) -> float:
+    """The feature strategy's voxel: ``config.features.voxel_diagonals`` of the target's
+    bounding-box diagonal (cloud units)."""
+    return config.features.voxel_diagonals * bounding_box_diagonal(target)
