@@ -347,6 +347,24 @@ def test_neighbour_graph_matches_ckdtree_with_duplicates():
     np.testing.assert_allclose(graph.radii, expected[:, -1] ** 2, rtol=1e-12, atol=1e-15)
 
 
+def test_batched_esm_without_a_graph_finds_the_same_neighbours():
+    """With no neighbour graph (:meth:`NeighbourGraph.none`) the tree answers every query: the
+    same poses and distances as with the graph, which only spares queries."""
+    rng = np.random.default_rng(21)
+    target = asymmetric_shape(2000, rng)
+    source = target[rng.choice(len(target), 300, replace=False)] + rng.normal(scale=0.002, size=(300, 3))
+    index = NearestNeighbors(target)
+    starts = np.stack([random_rotation(rng, 20.0) for _ in range(4)])
+    translations = rng.normal(scale=0.05, size=(4, 3))
+    options = dict(iterations=8, sigma_floor=0.01, fine_iterations=4)
+    with_graph = batched_esm(source, index, starts, translations, graph=NeighbourGraph.of(index), **options)
+    without = batched_esm(source, index, starts, translations, graph=NeighbourGraph.none(), **options)
+    assert NeighbourGraph.none().empty and not NeighbourGraph.of(index).empty
+    for found, expected in zip(without, with_graph):
+        np.testing.assert_array_equal(found, expected)
+    assert np.ptp(with_graph[2].mean(axis=1)) > 1e-4  # the starts did not all end at one pose
+
+
 def test_batched_esm_keeps_a_non_finite_pose_to_itself():
     """A NaN start ends as NaN distances without touching the other hypotheses (no out-of-range
     neighbour is read)."""

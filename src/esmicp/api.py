@@ -117,7 +117,7 @@ def register(
         translates less than ``tolerance`` times the target's bounding-box diagonal, or once the
         RMS correspondence distance changes by less than ``tolerance`` relative to itself. After a
         global search, the refinement of a source of more than ``config.refine.looser_from_points``
-        (10,000) points stops at ``config.refine.strided_tolerance`` (3e-6) when ``tolerance`` is
+        (10,000) points stops at ``config.refine.strided_tolerance`` (1e-5) when ``tolerance`` is
         finer. A given ``init`` and smaller sources keep ``tolerance``. (A source of more than twice
         ``config.refine.strided_points`` (20,000) points is refined on that many evenly strided
         points.)

@@ -34,6 +34,7 @@ struct TreeLookup {
     const int64_t *rank;
     const double *target;  // (M, 3) as given (the neighbours' coordinates)
     const NeighbourGraph<int64_t> &graph;
+    bool walk;  // false: no graph (an empty one was given), the tree answers every query
     const Grid *seeds;  // or nullptr: a query without a warm start starts from its cell's point there
     const double *points() const { return target; }
     // Exact nearest target point: with a warm start, the certified walk (graph_descent) on the
@@ -44,7 +45,7 @@ struct TreeLookup {
             int64_t p = warm;
             const double ex = target[3 * p] - x, ey = target[3 * p + 1] - y, ez = target[3 * p + 2] - z;
             double best = ex * ex + ey * ey + ez * ez;
-            if (graph_descent(graph, target, x, y, z, p, best)) {
+            if (walk && graph_descent(graph, target, x, y, z, p, best)) {
                 distance = std::sqrt(best);
                 index = p;
                 return;
@@ -156,7 +157,9 @@ void batched_esm_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t i
     Tree tree{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
               int64_t(tree_points.shape(0))};
     const int64_t k = int64_t(graph_neighbours.shape(1));
-    if (int64_t(graph_radii.shape(0)) != tree.count || k < 1 || int64_t(graph_neighbours.shape(0)) != tree.count)
+    // An empty graph ((0, k) neighbours, (0,) radii): none, the tree answers every query from its warm start.
+    const bool walk = graph_neighbours.shape(0) > 0 || graph_radii.shape(0) > 0;
+    if (walk && (int64_t(graph_radii.shape(0)) != tree.count || k < 1 || int64_t(graph_neighbours.shape(0)) != tree.count))
         throw std::invalid_argument("batched ESM: the neighbour graph does not match the target");
     const NeighbourGraph<int64_t> graph{graph_neighbours.data(), graph_radii.data(), k};
     // The seeds' grid (esmicp.core.nearest_grid.NearestGrid over the same target), if any (an empty lookup: none).
@@ -165,7 +168,7 @@ void batched_esm_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t i
     const bool seeded = seed_lookup.shape(0) > 0;
     if (seeded && int64_t(seed_lookup.shape(0)) != seeds.shape[0] * seeds.shape[1] * seeds.shape[2])
         throw std::invalid_argument("batched ESM: the seeds' lookup table does not match its grid's shape");
-    esm_hypotheses(TreeLookup{tree, rank.data(), target.data(), graph, seeded ? &seeds : nullptr}, source, rotations,
+    esm_hypotheses(TreeLookup{tree, rank.data(), target.data(), graph, walk, seeded ? &seeds : nullptr}, source, rotations,
                    translations, iterations, floor, factor, fine, out_distances, threads);
 }
 

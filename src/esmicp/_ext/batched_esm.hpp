@@ -17,8 +17,9 @@ namespace kernels {
 // weighted centroids and cross-covariance, Horn's rotation, the composed pose. After the last
 // step, the distances of the placed source (out_distances, K x n).
 //
-// batched_esm_tree: on the exact tree, its neighbour graph, and optionally the lookup grid for the
-// first queries' seeds (an empty seed_lookup: none).
+// batched_esm_tree: on the exact tree, its neighbour graph (an empty one: none, the tree answers
+// every query from its warm start), and optionally the lookup grid for the first queries' seeds
+// (an empty seed_lookup: none).
 void batched_esm_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations, double floor,
                       double factor, int64_t fine, Arr2 out_distances, CArr2 target, CIdx rank, CArr2 tree_points,
                       CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, CIdx2 graph_neighbours,

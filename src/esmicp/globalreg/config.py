@@ -97,11 +97,20 @@ class VerificationConfig(Config):
         confident: the pose turned by each of these angles (degrees) about each principal axis of
         the target, through the target's centroid. A near-symmetric object under heavy noise
         otherwise ends on a symmetric twin of the truth that neither strategy proposes.
+    graph_queries_per_point : float
+        A batched ESM of the verification or the decision builds the neighbour graph of its target
+        (:class:`~esmicp.globalreg.rotation_search.NeighbourGraph`) only when it makes at least
+        this many nearest-neighbour queries per target point (poses x source points x iterations
+        over target points; ratio); fewer are answered by the tree alone, from their warm starts,
+        with the same neighbours: only the time changes.
 
     References
     ----------
     ``rounds``, ``decide_*``, ``settle_*`` and ``twin_angles_deg``: the object protocols of
-    ``docs/measured-global.md``; ``distinct_rotation_deg``: its symmetric shapes.
+    ``docs/measured-global.md``; ``distinct_rotation_deg``: its symmetric shapes;
+    ``graph_queries_per_point``: the break-even on 3DMatch ``t00_s04`` (258k target points, 12
+    neighbours each: the graph took 4-5 us a target point to build and spares about 6 us a query
+    it answers; the poses are the same either way).
     """
 
     candidates: int = count(16)
@@ -116,6 +125,7 @@ class VerificationConfig(Config):
     settle_iterations: int = count(12)
     cover_points: int = count(1000)
     twin_angles_deg: tuple = numbers_tuple((180.0,))
+    graph_queries_per_point: float = number(1.0, least=0.0)
 
 
 @dataclass(frozen=True)

@@ -91,6 +91,16 @@ class NeighbourGraph:
                                  radii, compiled_tree.threads(index.workers))
         return cls(neighbours, radii)
 
+    @classmethod
+    def none(cls) -> "NeighbourGraph":
+        """No graph: :func:`batched_esm` then answers every query by the tree, from its warm start
+        (the same neighbours; cheaper than building the graph of a large target for few queries)."""
+        return cls(np.empty((0, GRAPH_NEIGHBOURS), dtype=np.int64), np.empty(0))
+
+    @property
+    def empty(self) -> bool:
+        return len(self.radii) == 0
+
 
 def batched_esm(
     source: np.ndarray,
@@ -112,7 +122,8 @@ def batched_esm(
     ``source`` ``(n, 3)`` is in the source frame, ``target`` an exact index or the global search's
     lookup grid. With an exact index, each hypothesis' queries start from its previous neighbours
     and are answered through ``graph`` (:class:`NeighbourGraph` of ``target``, built here if not
-    given) where it certifies them, by the tree otherwise: exact either way. ``seeds`` (optional,
+    given; :meth:`NeighbourGraph.none`: no graph) where it certifies them, by the tree otherwise:
+    exact either way. ``seeds`` (optional,
     the lookup grid over the same target points) starts each first query from its cell's point
     instead of from scratch (only the speed changes). Each hypothesis
     anneals its own sigma as ``max(sigma_floor, sigma_factor * median distance)`` (cloud units);

@@ -185,9 +185,15 @@ class _Workspace:
         on ``index`` then start from its answers), else None."""
         return self.grid if self.grid is not None and self.grid.points is index.points else None
 
-    def graph(self, index: NearestNeighbors) -> NeighbourGraph:
-        """The :class:`NeighbourGraph` of ``index`` (one of the two above), built once."""
+    def graph(self, index: NearestNeighbors, queries: int) -> NeighbourGraph:
+        """The :class:`NeighbourGraph` of ``index`` (one of the two above), built once, for a batched
+        ESM of ``queries`` nearest-neighbour queries; :meth:`NeighbourGraph.none` when it has not
+        been built and would serve fewer than ``config.verification.graph_queries_per_point``
+        queries per target point (the tree answers them sooner than the graph is built: the same
+        neighbours)."""
         if id(index) not in self.graphs:
+            if queries < self.config.verification.graph_queries_per_point * len(index.points):
+                return NeighbourGraph.none()
             self.graphs[id(index)] = NeighbourGraph.of(index)
         return self.graphs[id(index)]
 
@@ -482,7 +488,8 @@ def _batched_verification(work, index, source_points, transformations, iteration
     rotations, translations, distances = batched_esm(
         source_points, index, transformations[:, :3, :3], transformations[:, :3, 3],
         iterations=iterations, sigma_floor=width if sigma is None else sigma, fine_iterations=iterations,
-        workers=index.workers, graph=work.graph(index), seeds=work.seeds(index),
+        workers=index.workers, graph=work.graph(index, len(transformations) * len(source_points) * iterations),
+        seeds=work.seeds(index),
     )
     refined = np.stack([to_matrix(rotation, translation) for rotation, translation in zip(rotations, translations)])
     return refined, gaussian_overlap_score(distances, width)
