@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Mapping
 
 import numpy as np
 
+from .trust.judge import DOUBT_KINDS, Verdict
 from .trust.policy import DEFAULT_POLICY, TrustPolicy
+from .trust.uncertainty import PoseUncertainty
 
 
 @dataclass(frozen=True)
@@ -38,6 +42,59 @@ class IterationRecord:
             "weight_max": self.weight_max,
             "effective_pairs": self.effective_pairs,
         }
+
+
+@dataclass(frozen=True, eq=False)
+class Stage:
+    """What one stage of :func:`esmicp.register` did (:attr:`RegistrationResult.stages`).
+
+    Attributes
+    ----------
+    name : str
+        ``"validate"`` (the arguments checked, the working frame chosen), ``"start"`` (a global
+        search, or the given start), ``"plane"`` (``esm-plane`` iterations before ``esm`` on a
+        large source after a global search), ``"refine"`` (the local refinement), ``"second try"``
+        (a second run from a given start with a tighter coarse sigma), ``"evaluate"`` (fitness
+        and inliers of the final pose), ``"judge"`` (the verdict, :func:`esmicp.trust.judge.judge`).
+    seconds : float
+        Wall time of the stage (s).
+    pose : (4, 4) float64 array or None
+        The ``T_target_source`` the stage passed on (the clouds' own frames); None for a stage
+        that passes on no pose.
+    points : int or None
+        Source points the stage used (None: not a per-point stage).
+    iterations : int
+        Iterations the stage ran (0 for a stage that does not iterate).
+    decided : mapping
+        What else the stage decided, by name (read-only; plain numbers, strings, booleans and
+        tuples), e.g. ``candidates`` of the global search, ``converged`` of the refinement,
+        ``kept`` of the second try, ``trusted`` of the judgement.
+    """
+
+    name: str
+    seconds: float
+    pose: np.ndarray | None = field(default=None, repr=False)
+    points: int | None = None
+    iterations: int = 0
+    decided: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "decided", MappingProxyType(dict(self.decided)))
+
+    def to_dict(self) -> dict:
+        """A JSON-ready dict of the stage."""
+        return {"name": self.name, "seconds": self.seconds,
+                "pose": None if self.pose is None else self.pose.tolist(), "points": self.points,
+                "iterations": self.iterations, "decided": {key: _plain(value) for key, value in self.decided.items()}}
+
+
+def _plain(value):
+    """``value`` as JSON holds it (tuples as lists, NumPy scalars as Python numbers)."""
+    if isinstance(value, (tuple, list)):
+        return [_plain(item) for item in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
 
 
 @dataclass(frozen=True, eq=False)
@@ -166,6 +223,15 @@ class RegistrationResult:
     policy : TrustPolicy
         The trust policy the result is judged by (:class:`esmicp.trust.policy.TrustPolicy`: the
         bars of :attr:`trusted` and :meth:`doubts`), as ``register``'s ``config`` gave it.
+    verdict : Verdict or None
+        The judgement :func:`esmicp.register` made of the pose (:class:`esmicp.trust.judge.Verdict`:
+        the measures above and every reason not to trust the pose); :attr:`trusted` and
+        :meth:`doubts` return what it found. It is the judgement of the pose as registered:
+        ``dataclasses.replace`` of another field leaves it as it was. None for a result built by
+        hand, whose :attr:`trusted` and :meth:`doubts` then weigh its fields when asked.
+    stages : tuple of Stage
+        What each stage of :func:`esmicp.register` did, in order (:class:`Stage`); empty for a
+        result built by hand.
     """
 
     transformation: np.ndarray
@@ -191,6 +257,8 @@ class RegistrationResult:
     degenerate_directions: tuple = ()
     free_space: float | None = None
     policy: TrustPolicy = field(default=DEFAULT_POLICY, repr=False)
+    verdict: Verdict | None = field(default=None, repr=False)
+    stages: tuple[Stage, ...] = field(default=(), repr=False)
 
     @property
     def trusted(self) -> bool:
@@ -205,19 +273,23 @@ class RegistrationResult:
         (``register_scans``, the CLI) apply."""
         return not self.doubts()
 
-    def doubts(self, bar: float | None = None) -> list[str]:
-        """Why the pose is not to be trusted, one phrase per reason (empty: :attr:`trusted`).
-        ``bar``: the confidence asked for, a number in [0, 1] (default the trust bar,
-        ``policy.trusted``).
+    def doubts(self, bar: float | None = None, *, ignore: tuple[str, ...] = ()) -> list[str]:
+        """Why the pose is not to be trusted, one phrase per reason (empty: :attr:`trusted`), as
+        the :attr:`verdict` found them. ``bar``: the confidence asked for, a number in [0, 1]
+        (default the trust bar, ``policy.trusted``); ``ignore``: kinds of doubt to leave out
+        (:data:`esmicp.trust.judge.DOUBT_KINDS`, e.g. ``("ambiguous",)``).
 
         Raises
         ------
         InvalidInputError
-            ``bar`` is not a number, is NaN, or lies outside [0, 1].
+            ``bar`` is not a number, is NaN, or lies outside [0, 1]; ``ignore`` names an unknown kind.
         """
-        if bar is None:
-            bar = self.policy.trusted
-        else:
+        unknown = [kind for kind in ignore if kind not in DOUBT_KINDS]
+        if unknown or isinstance(ignore, str):
+            from .errors import InvalidInputError
+
+            raise InvalidInputError(f"ignore: expected kinds of doubt among {', '.join(DOUBT_KINDS)}, got {ignore!r}")
+        if bar is not None:
             from .types import as_real
 
             value = as_real(bar, "bar")
@@ -226,26 +298,18 @@ class RegistrationResult:
 
                 raise InvalidInputError(f"bar: expected a confidence in [0, 1], got {bar!r}")
             bar = value
+        verdict = self._judged()
+        doubts = verdict.doubts if bar is None else verdict.at(bar)
+        return [doubt.words for doubt in doubts if doubt.kind not in ignore]
 
-        reasons = []
-        if not self.converged:
-            reasons.append(f"not converged: the refinement stopped after {self.num_iterations} iteration(s) "
-                           f"before reaching its tolerance, so the pose may still be moving")
-        if self.confidence is None:
-            reasons.append("no overlap confidence")
-        elif self.confidence < bar:
-            reasons.append(f"confidence {self.confidence:.2f} is below {bar:g}")
-        if self.ambiguous:
-            ratio = "" if self.runner_up_ratio is None else f" (score ratio {self.runner_up_ratio:.3f})"
-            reasons.append(f"ambiguous: a clearly different pose fits almost as well{ratio}")
-        reasons.extend(direction.describe() for direction in self.degenerate_directions)
-        if self.free_space is not None:
-            from .trust.free_space import pair_verdict  # here: it loads SciPy
-
-            failed, words = pair_verdict(self.free_space, self.policy)
-            if failed:
-                reasons.append(words)
-        return reasons
+    def _judged(self) -> Verdict:
+        """The verdict ``register`` stored, or for a result built by hand the one its fields give."""
+        if self.verdict is not None:
+            return self.verdict
+        return Verdict.of(converged=self.converged, num_iterations=self.num_iterations, confidence=self.confidence,
+                          ambiguous=self.ambiguous, runner_up_ratio=self.runner_up_ratio,
+                          uncertainty=PoseUncertainty(self.covariance, self.information, self.degenerate_directions, 0),
+                          free_space=self.free_space, policy=self.policy)
 
     def __repr__(self) -> str:
         """One line: the method, the verdict, the overlap and how far the pose moves the source,
