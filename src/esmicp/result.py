@@ -343,7 +343,8 @@ class RegistrationResult:
 
     def to_dict(self, *, include_history: bool = False) -> dict:
         """A JSON-ready dict (nested lists, plain floats): the fields, ``trusted`` and ``doubts``
-        (:meth:`doubts`: why the pose is not to be trusted, empty when it is)."""
+        (:meth:`doubts`: why the pose is not to be trusted, empty when it is), and the ``stages``
+        (:meth:`Stage.to_dict`)."""
         doubts = self.doubts()
         data = {
             "method": self.method,
@@ -370,6 +371,7 @@ class RegistrationResult:
             "information": None if self.information is None else self.information.tolist(),
             "degenerate_directions": [direction.to_dict() for direction in self.degenerate_directions],
             "free_space": self.free_space,
+            "stages": [stage.to_dict() for stage in self.stages],
         }
         if include_history and self.history is not None:
             data["history"] = [record.to_dict() for record in self.history]
