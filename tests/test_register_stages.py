@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import pickle
 
 import numpy as np
 import pytest
@@ -73,7 +74,7 @@ def test_the_stages_record_what_each_did(noisy_pair, init):
     np.testing.assert_array_equal(judged.pose, result.transformation)
 
 
-def test_the_stages_are_frozen_data_that_json_holds(noisy_pair):
+def test_the_stages_are_frozen_data_that_json_and_pickle_hold(noisy_pair):
     source, target, _ = noisy_pair
     result = esmicp.register(source, target, init="identity")
     stage = result.stages[2]
@@ -83,6 +84,11 @@ def test_the_stages_are_frozen_data_that_json_holds(noisy_pair):
         stage.decided["converged"] = False
     text = json.dumps([stage.to_dict() for stage in result.stages])
     assert json.loads(text)[2]["pose"] == result.transformation.tolist()
+    assert json.loads(json.dumps(result.to_dict()))["stages"] == json.loads(text)
+    # a result crosses process boundaries (register_many) with its stages and its verdict
+    copied = pickle.loads(pickle.dumps(result))
+    assert [dict(stage.decided) for stage in copied.stages] == [dict(stage.decided) for stage in result.stages]
+    assert copied.verdict.doubts == result.verdict.doubts and copied.trusted == result.trusted
 
 
 def test_a_fixed_sigma_refines_once_and_a_low_confidence_start_tries_twice(noisy_pair):

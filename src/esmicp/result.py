@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
@@ -76,16 +75,36 @@ class Stage:
     pose: np.ndarray | None = field(default=None, repr=False)
     points: int | None = None
     iterations: int = 0
-    decided: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    decided: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "decided", MappingProxyType(dict(self.decided)))
+        object.__setattr__(self, "decided", _ReadOnly(self.decided))
 
     def to_dict(self) -> dict:
         """A JSON-ready dict of the stage."""
         return {"name": self.name, "seconds": self.seconds,
                 "pose": None if self.pose is None else self.pose.tolist(), "points": self.points,
                 "iterations": self.iterations, "decided": {key: _plain(value) for key, value in self.decided.items()}}
+
+
+class _ReadOnly(Mapping):
+    """A read-only copy of a mapping (unlike ``types.MappingProxyType``, it pickles: results cross
+    process boundaries in :func:`esmicp.register_many`)."""
+
+    def __init__(self, items: Mapping):
+        self._items = dict(items)
+
+    def __getitem__(self, key: str) -> Any:
+        return self._items[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __repr__(self) -> str:
+        return repr(self._items)
 
 
 def _plain(value):
