@@ -122,8 +122,12 @@ def test_the_verdict_is_one_call_of_judge_and_the_result_returns_it(noisy_pair):
     np.testing.assert_array_equal(verdict.uncertainty.covariance, result.covariance)
     assert verdict.doubts == result.verdict.doubts
     assert result.trusted == result.verdict.trusted and result.doubts() == [d.words for d in result.verdict.doubts]
-    # the stored verdict, not a new judgement: a replaced field leaves it as registered
-    assert dataclasses.replace(result, confidence=0.0).verdict is result.verdict
+    # a field the verdict weighed, replaced: weighed again from the fields, by the same rules
+    assert result.trusted
+    lowered = dataclasses.replace(result, confidence=0.0)
+    assert lowered.verdict is result.verdict and not lowered.trusted
+    assert lowered.doubts() == [f"confidence 0.00 is below {result.policy.trusted:g}"]
+    assert dataclasses.replace(result, converged=False).doubts(ignore=("confidence",))[0].startswith("not converged")
 
 
 def test_doubts_at_another_bar_and_without_some_kinds():

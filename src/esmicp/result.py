@@ -243,11 +243,13 @@ class RegistrationResult:
         The trust policy the result is judged by (:class:`esmicp.trust.policy.TrustPolicy`: the
         bars of :attr:`trusted` and :meth:`doubts`), as ``register``'s ``config`` gave it.
     verdict : Verdict or None
-        The judgement :func:`esmicp.register` made of the pose (:class:`esmicp.trust.judge.Verdict`:
-        the measures above and every reason not to trust the pose); :attr:`trusted` and
-        :meth:`doubts` return what it found. It is the judgement of the pose as registered:
-        ``dataclasses.replace`` of another field leaves it as it was. None for a result built by
-        hand, whose :attr:`trusted` and :meth:`doubts` then weigh its fields when asked.
+        The judgement :func:`esmicp.register` made of the pose (:class:`esmicp.trust.judge.Verdict`,
+        one call of :func:`esmicp.trust.judge.judge`: the measures above and every reason not to
+        trust the pose); :attr:`trusted` and :meth:`doubts` return what it found. None for a result
+        built by hand. A result built by hand, or one whose judged fields ``dataclasses.replace``
+        changed (``converged``, ``confidence``, ``ambiguous``, ``free_space``, ``policy``, ...), is
+        weighed from its own fields when asked, by the same rules
+        (:func:`esmicp.trust.judge.weigh`); nothing is measured again.
     stages : tuple of Stage
         What each stage of :func:`esmicp.register` did, in order (:class:`Stage`); empty for a
         result built by hand.
@@ -322,13 +324,25 @@ class RegistrationResult:
         return [doubt.words for doubt in doubts if doubt.kind not in ignore]
 
     def _judged(self) -> Verdict:
-        """The verdict ``register`` stored, or for a result built by hand the one its fields give."""
-        if self.verdict is not None:
+        """The verdict ``register`` stored while it weighed this result's fields; else (a result
+        built by hand, or one whose fields ``dataclasses.replace`` changed) the one its fields give."""
+        if self.verdict is not None and self._weighed_by(self.verdict):
             return self.verdict
         return Verdict.of(converged=self.converged, num_iterations=self.num_iterations, confidence=self.confidence,
                           ambiguous=self.ambiguous, runner_up_ratio=self.runner_up_ratio,
                           uncertainty=PoseUncertainty(self.covariance, self.information, self.degenerate_directions, 0),
                           free_space=self.free_space, policy=self.policy)
+
+    def _weighed_by(self, verdict: Verdict) -> bool:
+        """True when ``verdict`` weighed this result's own fields."""
+        mine, theirs = self.degenerate_directions, verdict.degenerate_directions
+        same_directions = mine is theirs or (len(mine) == len(theirs) and all(
+            a.ratio == b.ratio and np.array_equal(a.rotation, b.rotation) and np.array_equal(a.translation, b.translation)
+            for a, b in zip(mine, theirs)))
+        return (same_directions and verdict.converged == self.converged and verdict.num_iterations == self.num_iterations
+                and verdict.confidence == self.confidence and verdict.ambiguous == self.ambiguous
+                and verdict.runner_up_ratio == self.runner_up_ratio and verdict.free_space == self.free_space
+                and verdict.policy == self.policy)
 
     def __repr__(self) -> str:
         """One line: the method, the verdict, the overlap and how far the pose moves the source,
