@@ -170,6 +170,8 @@ def register(
     Returns
     -------
     RegistrationResult
+        With the judgement of the pose (``result.verdict``, :func:`esmicp.trust.judge.judge`) and
+        what each stage did (``result.stages``, :class:`esmicp.result.Stage`).
 
     Raises
     ------

@@ -50,7 +50,8 @@ class Stage:
     Attributes
     ----------
     name : str
-        ``"validate"`` (the arguments checked, the working frame chosen), ``"start"`` (a global
+        ``"prepare"`` (the arguments checked, the working frame chosen, the target's index
+        built), ``"start"`` (a global
         search, or the given start), ``"plane"`` (``esm-plane`` iterations before ``esm`` on a
         large source after a global search), ``"refine"`` (the local refinement), ``"second try"``
         (a second run from a given start with a tighter coarse sigma), ``"evaluate"`` (fitness
