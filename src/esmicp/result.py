@@ -9,7 +9,6 @@ import numpy as np
 
 from .trust.judge import DOUBT_KINDS, Verdict
 from .trust.policy import DEFAULT_POLICY, TrustPolicy
-from .trust.uncertainty import PoseUncertainty
 
 
 @dataclass(frozen=True)
@@ -331,7 +330,7 @@ class RegistrationResult:
             return self.verdict
         return Verdict.of(converged=self.converged, num_iterations=self.num_iterations, confidence=self.confidence,
                           ambiguous=self.ambiguous, runner_up_ratio=self.runner_up_ratio,
-                          uncertainty=PoseUncertainty(self.covariance, self.information, self.degenerate_directions, 0),
+                          degenerate_directions=self.degenerate_directions,
                           free_space=self.free_space, policy=self.policy)
 
     def _weighed_by(self, verdict: Verdict) -> bool:

@@ -43,6 +43,8 @@ class Verdict:
     uncertainty : PoseUncertainty or None
         The pose covariance, its inverse and the degenerate directions
         (:func:`esmicp.trust.uncertainty.from_registration`); None when not measured.
+    degenerate_directions : tuple of DegenerateDirection
+        The directions the overlap barely constrains (target frame), as weighed; empty when none.
     free_space : float or None
         The free-space fraction of a pair of range images (0-1,
         :func:`esmicp.trust.free_space.free_space_fraction`); None when not tested, or when neither
@@ -60,6 +62,7 @@ class Verdict:
 
     confidence: float | None
     uncertainty: PoseUncertainty | None
+    degenerate_directions: tuple[DegenerateDirection, ...]
     free_space: float | None
     free_space_words: str | None
     converged: bool
@@ -74,11 +77,6 @@ class Verdict:
         """True when nothing casts doubt on the pose (:attr:`doubts` is empty)."""
         return not self.doubts
 
-    @property
-    def degenerate_directions(self) -> tuple[DegenerateDirection, ...]:
-        """The directions the overlap barely constrains (target frame); empty when none or not measured."""
-        return () if self.uncertainty is None else self.uncertainty.degenerate_directions
-
     def at(self, bar: float) -> tuple[Doubt, ...]:
         """The doubts with the overlap confidence held to ``bar`` (0-1) instead of the policy's bar."""
         return weigh(self.converged, self.num_iterations, self.confidence, self.ambiguous, self.runner_up_ratio,
@@ -87,14 +85,16 @@ class Verdict:
     @classmethod
     def of(cls, *, converged: bool, num_iterations: int, confidence: float | None, ambiguous: bool = False,
            runner_up_ratio: float | None = None, uncertainty: PoseUncertainty | None = None,
-           free_space: float | None = None, free_space_words: str | None = None,
-           policy: TrustPolicy = DEFAULT_POLICY) -> "Verdict":
-        """The verdict on measurements already made (no measuring: :func:`judge` measures)."""
-        degenerate = () if uncertainty is None else uncertainty.degenerate_directions
-        doubts = weigh(converged, num_iterations, confidence, ambiguous, runner_up_ratio, degenerate, free_space,
-                       policy)
-        return cls(confidence, uncertainty, free_space, free_space_words, bool(converged), int(num_iterations),
-                   bool(ambiguous), runner_up_ratio, policy, doubts)
+           degenerate_directions: tuple[DegenerateDirection, ...] | None = None, free_space: float | None = None,
+           free_space_words: str | None = None, policy: TrustPolicy = DEFAULT_POLICY) -> "Verdict":
+        """The verdict on measurements already made (no measuring: :func:`judge` measures).
+        ``degenerate_directions``: those of ``uncertainty`` when None (none without it)."""
+        if degenerate_directions is None:
+            degenerate_directions = () if uncertainty is None else uncertainty.degenerate_directions
+        doubts = weigh(converged, num_iterations, confidence, ambiguous, runner_up_ratio, degenerate_directions,
+                       free_space, policy)
+        return cls(confidence, uncertainty, tuple(degenerate_directions), free_space, free_space_words,
+                   bool(converged), int(num_iterations), bool(ambiguous), runner_up_ratio, policy, doubts)
 
 
 def weigh(converged: bool, num_iterations: int, confidence: float | None, ambiguous: bool,
