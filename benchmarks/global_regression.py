@@ -51,7 +51,6 @@ holds under a machine's changing load, which absolute times do not.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -115,7 +114,7 @@ def _record(name: str, source, target, seed: int, judge, peer_voxel: float | Non
            "degenerate": len(result.degenerate_directions)}
     if options.get("range_images"):
         row["free_space"] = result.free_space
-        row["trusted_without_free_space"] = dataclasses.replace(result, free_space=None).trusted
+        row["trusted_without_free_space"] = not result.doubts(ignore=("free space",))
     row.update({key: value for key, value in result.to_dict().items() if key.startswith("std_")})
     row.update(judge(result.transformation))
     if PEER is not None:

@@ -217,7 +217,8 @@ def test_a_non_finite_global_estimate_is_reported_and_not_refined(monkeypatch):
     def nan_estimate(*args, **kwargs):
         return types.SimpleNamespace(
             transformation=np.full((4, 4), np.nan), strategies=("rotation-search",), ambiguous=False,
-            runner_up=None, runner_up_score=None, runner_up_ratio=None, score=1.0, candidates=1,
+            runner_up=None, runner_up_score=None, runner_up_ratio=None, score=1.0, candidates=1, confidence=None,
+            keypoints=None,
         )
 
     monkeypatch.setattr(esmicp.api, "global_estimate", nan_estimate)
@@ -225,6 +226,8 @@ def test_a_non_finite_global_estimate_is_reported_and_not_refined(monkeypatch):
     np.testing.assert_array_equal(result.transformation, np.eye(4))
     assert not result.converged and result.num_iterations == 0
     assert "no pose" in result.message and "NaN" in result.message
+    start, refine = result.stages[1:3]
+    assert np.isnan(start.pose).all() and refine.iterations == 0 and not refine.decided["converged"]
 
 
 # --- Numbers float64 geometry cannot use: blamed before the degeneracy and voxel checks ------------

@@ -106,6 +106,18 @@ def test_the_result_imports_nothing_of_ours_but_trust_core_types_and_errors():
     assert not [name for name in ours if not _within(name, allowed)], ours
 
 
+def test_a_pose_is_judged_in_one_place():
+    """``trust.judge`` measures and weighs a registered pose; the result stores its verdict and
+    measures nothing (no overlap confidence, no free-space test), and ``register`` reaches the
+    covariance and the free-space test only through it."""
+    measures = ("esmicp.trust.confidence", "esmicp.trust.free_space")
+    result = [name for name in _imports(PACKAGE / "result.py") if _within(name, measures)]
+    assert not result, result
+    api = [name for name in _imports(PACKAGE / "api.py") if _within(name, ("esmicp.trust.uncertainty",
+                                                                          "esmicp.trust.free_space"))]
+    assert not api, api
+
+
 def test_trust_and_core_import_no_search_merge_registration_or_lab():
     above = tuple(f"esmicp.{name}" for name in ("globalreg", "multiview", "api", "batch", "cli", "viz")) + ("esmicp_lab",)
     offenders = _imports_from(("trust", "core"), above)

@@ -181,9 +181,10 @@ def test_normals_come_from_the_offered_tree_only_when_it_holds_the_target(scene,
 def test_the_plane_stage_is_undone_when_it_loses_the_overlap(monkeypatch, plane_moves_by_deg, kept):
     """After a global search on a large source, ``register`` runs ``esm-plane`` first; a stage that
     lowers the overlap confidence by more than ``RefineConfig.plane_confidence_drop`` (as on a 15%-overlap
-    scan pair, where its sigma grew with the pairs off the overlap) is undone, and the message says
-    so. Here the stage is replaced by one that turns the pose by a set angle."""
+    scan pair, where its sigma grew with the pairs off the overlap) is undone, and its stage record
+    says so. Here the stage is replaced by one that turns the pose by a set angle."""
     import esmicp.api as api
+    from esmicp.working_frame import WorkingFrame
     from esmicp.core.keypoints import Keypoints
     from esmicp.globalreg.config import DEFAULT
     from esmicp.trust.confidence import overlap_confidence
@@ -202,12 +203,13 @@ def test_the_plane_stage_is_undone_when_it_loses_the_overlap(monkeypatch, plane_
     monkeypatch.setattr(api, "guarded_refine", fake_stage)
     request = api._validate(source, target, "esm", truth, None, 100, 1e-8, None, None, None)
     index = NearestNeighbors(target)
-    pose, iterations, note = api._plane_start(source, index, truth, request, 1.0, keypoints)
-    assert iterations == 7
-    dropped = overlap_confidence(truth, keypoints, config=DEFAULT) - overlap_confidence(turned, keypoints, config=DEFAULT)
-    if kept:
-        assert dropped <= request.refine.plane_confidence_drop
-        assert pose is turned and "undone" not in note
-    else:
-        assert dropped > request.refine.plane_confidence_drop
-        assert pose is truth and "undone" in note
+    clouds = api._Clouds(WorkingFrame(None), source, target, index, 1.0)
+    stages = []
+    pose, iterations, _ = api._plane_start(source, clouds, truth, request, keypoints, None, None, stages)
+    (stage,) = stages
+    assert iterations == stage.iterations == 7 and stage.name == "plane" and stage.points == len(source)
+    before, after = overlap_confidence(truth, keypoints, config=DEFAULT), overlap_confidence(turned, keypoints, config=DEFAULT)
+    assert (stage.decided["confidence_before"], stage.decided["confidence_after"]) == (before, after)
+    assert stage.decided["undone"] == (not kept) == (before - after > request.refine.plane_confidence_drop)
+    assert pose is (turned if kept else truth)
+    np.testing.assert_array_equal(stage.pose, pose)

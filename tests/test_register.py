@@ -206,16 +206,18 @@ def test_a_large_source_is_refined_on_a_subsample_where_every_point_takes_it():
     rotation, translation = small_motion(5, diagonal(target), 30.0, 60.0)
     source = move_to_source(target, rotation, translation)[np.random.default_rng(5).permutation(len(target))]
     result = esmicp.register(source, target, config=strided)
-    assert result.message.endswith("on 2,000 strided source points"), result.message
+    refine = next(stage for stage in result.stages if stage.name == "refine")
+    assert refine.points == 2000 and refine.decided["tolerance"] == strided.refine.strided_tolerance
+    np.testing.assert_array_equal(refine.pose, result.transformation)
     assert rotation_error_deg(result.transformation, rotation) < 0.05
     spacing = float(np.median(cKDTree(target).query(target, k=2)[0][:, 1]))
     # Every point from the start: a subsample as large as the source.
     full = esmicp.register(source, target, init=result.transformation, config=refined_on(len(source)))
-    assert "strided" not in full.message
+    assert next(stage for stage in full.stages if stage.name == "refine").points == len(source)
     assert rotation_error_deg(full.transformation, result.transformation[:3, :3]) < 0.05
     assert np.linalg.norm(full.transformation[:3, 3] - result.transformation[:3, 3]) < 0.1 * spacing
     capped = esmicp.register(source, target, max_iterations=3, config=strided)
-    assert capped.num_iterations <= 3
+    assert capped.num_iterations == sum(stage.iterations for stage in capped.stages) <= 3
 
 
 def test_a_large_source_from_a_given_start_is_refined_on_a_subsample():
@@ -232,8 +234,9 @@ def test_a_large_source_from_a_given_start_is_refined_on_a_subsample():
     spacing = float(np.median(cKDTree(target).query(target, k=2)[0][:, 1]))
     for method in ("esm", "icp", "esm-plane"):
         given = esmicp.register(source, target, init=start, method=method, config=refined_on(2000))
-        assert given.message.endswith("on 2,000 strided source points"), (method, given.message)
-        assert "esm-plane iteration" not in given.message
+        names = [stage.name for stage in given.stages]
+        assert names == ["prepare", "start", "refine", "evaluate", "judge"], (method, names)  # no plane stage
+        assert given.stages[2].points == 2000 and given.stages[2].decided["tolerance"] == 1e-8, method
         # every point from the start
         full = esmicp.register(source, target, init=start, method=method, config=refined_on(len(source)))
         assert rotation_error_deg(given.transformation, full.transformation[:3, :3]) < 0.05, method
@@ -251,7 +254,8 @@ def test_a_street_scan_slid_along_the_road_by_the_global_search_is_pulled_back()
     source, target, truth = load_pair(pair, bin_columns=3)
     result = esmicp.register(source, target, rng=1)
     rotation_deg, translation_m = pair_errors(result.transformation, truth)
-    assert f"esm-plane iteration(s) on {REFINE.plane_points:,} points, then" in result.message, result.message
+    plane = next(stage for stage in result.stages if stage.name == "plane")
+    assert plane.points == REFINE.plane_points and plane.iterations > 0 and not plane.decided["undone"], plane
     assert rotation_deg < 5.0 and translation_m < 0.6, (rotation_deg, translation_m, result.message)
 
 

@@ -63,13 +63,19 @@ def test_a_whole_object_still_converges_from_a_poor_given_start(rng):
     assert translation_error(result.transformation, truth, cloud.mean(axis=0)) < 1e-4
 
 
-def test_a_half_slid_off_by_the_first_run_is_kept_by_the_tighter_second_try(monkeypatch):
+def _stage(result, name):
+    """The one stage of ``result`` called ``name`` (None when it did not run)."""
+    found = [stage for stage in result.stages if stage.name == name]
+    assert len(found) <= 1, [stage.name for stage in result.stages]
+    return found[0] if found else None
+
+
+def test_a_half_slid_off_by_the_first_run_is_kept_by_the_tighter_second_try():
     """``start_drift.py``'s ``partial-70`` trial 6 (seed 0, a lamp cut to 70%) from its start 5
     degrees and 5% of the diagonal off: the first run's coarse sigma (from the start's 25%
     distance quantile) pulls the half off (overlap confidence 0.02); the second try, from the 5%
     quantile, keeps it (0.73). Fails without the second try, or if it stopped keeping the more
     confident run."""
-    from esmicp import api
     from esmicp.metrics import up_to_symmetry_success
     from esmicp_lab.bench.scans import _modelnet_clouds, _seed_of
     from esmicp_lab.bench.trials import perturbed_start
@@ -82,13 +88,14 @@ def test_a_half_slid_off_by_the_first_run_is_kept_by_the_tighter_second_try(monk
     start = perturbed_start(trial.T_target_source, trial.source, 5.0, 0.05 * diagonal,
                                   np.random.default_rng(_seed_of(0, 3, 0, 6)))
     result = esmicp.register(trial.source, trial.target, init=start)
-    assert "second try" in result.message and "raised the overlap confidence" in result.message, result.message
-    assert result.confidence >= 0.5
+    first, second = _stage(result, "refine"), _stage(result, "second try")
+    assert [stage.name for stage in result.stages] == ["prepare", "start", "refine", "second try", "evaluate", "judge"]
+    assert second.decided["kept"] == "second" and result.confidence == second.decided["confidence"] >= 0.5
+    np.testing.assert_array_equal(second.pose, result.transformation)
     assert up_to_symmetry_success(trial.source, result.transformation, trial.T_target_source, diagonal)
-    monkeypatch.setattr(api, "_second_try", lambda *arguments, **_: arguments[-2:])  # the first run only
-    first = esmicp.register(trial.source, trial.target, init=start)
-    assert first.confidence < result.confidence
-    assert not up_to_symmetry_success(trial.source, first.transformation, trial.T_target_source, diagonal)
+    # the first run, as the refine stage passed it on
+    assert second.decided["first_confidence"] < result.policy.trusted
+    assert not up_to_symmetry_success(trial.source, first.pose, trial.T_target_source, diagonal)
 
 
 def test_the_second_try_runs_only_below_the_trust_bar_and_keeps_the_more_confident():
@@ -102,14 +109,18 @@ def test_the_second_try_runs_only_below_the_trust_bar_and_keeps_the_more_confide
     truth = to_matrix(random_rotation(np.random.default_rng(3), 3.0), np.full(3, 0.01))
     target = apply(truth, cloud)
     confident = esmicp.register(cloud, target, init=np.eye(4))
-    assert confident.confidence >= confident.policy.trusted and "second try" not in confident.message
+    assert confident.confidence >= confident.policy.trusted and _stage(confident, "second try") is None
     never = RegistrationConfig(trust=TrustPolicy(trusted=1.01))  # every run is below the bar
     tried = esmicp.register(cloud, target, init=np.eye(4), config=never)
-    assert "second try" in tried.message
+    second = _stage(tried, "second try")
+    assert second is not None and second.decided["first_confidence"] == confident.confidence
+    assert tried.confidence == max(second.decided["first_confidence"], second.decided["confidence"])
     assert tried.confidence >= confident.confidence
-    if "this run kept" in tried.message:
+    kept = _stage(tried, "refine") if second.decided["kept"] == "first" else second
+    np.testing.assert_array_equal(kept.pose, tried.transformation)
+    if second.decided["kept"] == "first":
         np.testing.assert_array_equal(tried.transformation, confident.transformation)
-    assert "second try" not in esmicp.register(cloud, target, init=np.eye(4), sigma=0.05, config=never).message
+    assert _stage(esmicp.register(cloud, target, init=np.eye(4), sigma=0.05, config=never), "second try") is None
     # A callback sees both runs and changes neither: the same pose, the same message.
     states = []
     watched = esmicp.register(cloud, target, init=np.eye(4), callback=states.append, record_history=True,

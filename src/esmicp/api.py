@@ -1,5 +1,6 @@
-"""``register()``: one registration as its stages: validate, move to a working frame, start (a
-global search unless a pose is given), refine, evaluate."""
+"""``register()``: one registration as its stages: validate and prepare (a working frame, the
+target's index), start (a global search unless a pose is given), refine, evaluate, judge
+(:func:`esmicp.trust.judge.judge`); each records what it did in ``result.stages``."""
 
 from __future__ import annotations
 
@@ -23,9 +24,9 @@ from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimato
 from .methods.esm import COARSE_POINTS, TIGHT_START_QUANTILE, EsmEstimator
 from .methods.guard import guarded_refine
 from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome
-from .result import Correspondences, RegistrationResult
-from .trust import uncertainty
+from .result import Correspondences, RegistrationResult, Stage
 from .trust.confidence import overlap_confidence
+from .trust.judge import SensorClouds, Verdict, judge
 from .trust.policy import TrustPolicy
 from .types import as_count, as_generator, as_points, as_positive, as_real, as_transform, as_workers, check_not_degenerate
 from .types import InitName, MethodName, PointsLike, TransformLike, check_geometry
@@ -59,6 +60,7 @@ class _Request:
     refine: RefineConfig  # the refinement's and the evaluation's
     trust: TrustPolicy  # the bars the result is judged by
     coincident_warning: float  # RegistrationConfig.coincident_warning_fraction
+    range_images: bool = False  # both clouds are range images in their sensor frames
 
 
 @keeps_keyboard_interrupt
@@ -168,6 +170,8 @@ def register(
     Returns
     -------
     RegistrationResult
+        With the judgement of the pose (``result.verdict``, :func:`esmicp.trust.judge.judge`) and
+        what each stage did (``result.stages``, :class:`esmicp.result.Stage`).
 
     Raises
     ------
@@ -177,57 +181,23 @@ def register(
         or non-positive ``sigma``, ``max_iterations``, ``inlier_distance`` or ``workers``.
     """
     started = time.perf_counter()
+    stages: list[Stage] = []
     request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
-                        config)
-    if not isinstance(range_images, (bool, np.bool_)):
-        raise InvalidInputError(f"range_images: expected True or False, got {range_images!r}")
-    frame = WorkingFrame.for_target(request.target)
-    source_points, target_points = frame.points(request.source), frame.points(request.target)
-    target_index = NearestNeighbors(target_points, workers=request.workers)
-    _warn_if_coincident(request.source, "source", coincident_points(request.source), request.coincident_warning)
-    _warn_if_coincident(request.target, "target", target_index.coincident(), request.coincident_warning)
-    diagonal = bounding_box_diagonal(target_points)
-    initial, init_name, estimate = _start(request, source_points, target_points, target_index, frame)
-    keypoints = getattr(estimate, "keypoints", None)
-    if keypoints is None:
-        keypoints = Keypoints.of(source_points, target_points, target_index.spacing(), request.config.keypoints)
-    # After a global search (which ends at the finest sigma) the pose is already close: start in
-    # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
-    estimator = _estimator(method, request, target_index, diagonal, start_fine=estimate is not None)
-    start_distances = None
-    if estimate is None and isinstance(estimator, EsmEstimator):
-        # A given start: its coarse sigma comes from the overlap's residuals (partial overlaps).
-        start_distances = target_index.query_near(source_points, transform=initial)[0]
-        estimator.start_from(start_distances)
+                        config, range_images)
+    clouds = _prepare(request, started, stages)
+    initial, init_name, estimate, keypoints = _start(request, clouds, stages)
     observer = None
     if callback is not None or record_history:
-        observer = Observer(source_points, target_index, frame.callback(callback), record_history)
-    outcome = _refine(source_points, target_index, estimator, initial, request, diagonal, keypoints, estimate,
-                      observer)
-    confidence = overlap_confidence(outcome.transformation, keypoints, request.workers, config=request.config,
-                                    policy=request.trust)
-    if start_distances is not None and request.sigma is None and confidence < request.trust.trusted \
-            and not (observer is not None and observer.stopped):
-        outcome, confidence = _second_try(source_points, target_index, initial, request, diagonal, keypoints,
-                                          start_distances, outcome, confidence, observer=observer)
-    if observer is not None:
-        outcome = dataclasses.replace(outcome, history=observer.recorded())
-    fitness, inlier_rmse, inlier_distance, pairs = _evaluate(source_points, target_index, outcome.transformation,
-                                                             request, outcome.neighbours)
+        observer = Observer(clouds.source, clouds.index, clouds.frame.callback(callback), record_history)
+    outcome, confidence = _refine_from(initial, request, clouds, keypoints, estimate, observer, stages)
+    fitness, inlier_rmse, inlier_distance, pairs = _evaluate(clouds, outcome, request, stages)
     correspondences = None
     if return_correspondences:
-        correspondences = _correspondences(pairs, _estimator(method, request, target_index, diagonal), outcome.sigma)
-    weights_sigma = None if method == "icp" else outcome.sigma  # ICP: unit weights
-    pose = uncertainty.from_registration(source_points, target_index, outcome.transformation, weights_sigma,
-                                         origin=frame.origin, workers=request.workers, pairs=pairs[:2],
-                                         policy=request.trust)
-    outcome = frame.outcome(outcome)
-    free_space = None
-    if range_images:
-        from .trust.free_space import pair_verdict
-
-        free_space = _free_space(request, outcome.transformation, inlier_distance)
-        outcome = dataclasses.replace(outcome, message=f"{outcome.message}; {pair_verdict(free_space, request.trust)[1]}")
+        estimator = _estimator(method, request, clouds.index, clouds.diagonal)
+        correspondences = _correspondences(pairs, estimator, outcome.sigma)
+    verdict = _judge(outcome, confidence, request, clouds, keypoints, estimate, pairs, inlier_distance, stages)
+    outcome = clouds.frame.outcome(outcome)
+    message = outcome.message if verdict.free_space_words is None else f"{outcome.message}; {verdict.free_space_words}"
     return RegistrationResult(
         transformation=outcome.transformation,
         converged=outcome.converged,
@@ -238,36 +208,336 @@ def register(
         runtime_s=time.perf_counter() - started,
         method=method,
         sigma=outcome.sigma,
-        message=outcome.message,
+        message=message,
         history=outcome.history,
         init=init_name,
-        ambiguous=bool(estimate is not None and estimate.ambiguous),
-        runner_up_ratio=None if estimate is None else estimate.runner_up_ratio,
-        global_candidates=0 if estimate is None else estimate.candidates,
-        runner_up=None if estimate is None or estimate.runner_up is None else frame.transform_out(
-            np.array(estimate.runner_up, dtype=np.float64)),
-        confidence=confidence,
+        **_search_summary(estimate, clouds.frame),
+        confidence=verdict.confidence,
         correspondences=correspondences,
-        covariance=pose.covariance,
-        information=pose.information,
-        degenerate_directions=pose.degenerate_directions,
-        free_space=free_space,
+        covariance=verdict.uncertainty.covariance,
+        information=verdict.uncertainty.information,
+        degenerate_directions=verdict.degenerate_directions,
+        free_space=verdict.free_space,
         policy=request.trust,
+        verdict=verdict,
+        stages=tuple(stages),
     )
 
 
-def _free_space(request: _Request, transformation: np.ndarray, inlier_distance: float) -> float | None:
-    """The free-space test of the pair at ``transformation`` (``T_target_source``, the clouds' own
-    frames), at the policy's ``free_space_tolerance_inliers`` inlier distances."""
-    from .trust import free_space  # here: it loads SciPy
+@dataclass(frozen=True, eq=False)
+class _Clouds:
+    """The two clouds in the working frame ``frame``, the target's nearest-neighbour index and
+    bounding-box diagonal (cloud units)."""
 
-    policy = request.trust
-    return free_space.free_space_fraction(request.target, request.source, transformation,
-                                          policy.free_space_tolerance_inliers * inlier_distance, policy)
+    frame: WorkingFrame
+    source: np.ndarray
+    target: np.ndarray
+    index: NearestNeighbors
+    diagonal: float
 
+    def pose_out(self, transformation: np.ndarray) -> np.ndarray:
+        """A copy of ``transformation`` (working frame) in the clouds' own frames."""
+        return np.array(self.frame.transform_out(transformation), dtype=np.float64)
+
+
+def _prepare(request: _Request, started: float, stages: list) -> _Clouds:
+    """Stage 1 (after :func:`_validate`): the working frame, the target's index, and a warning for
+    either cloud made largely of copies; the stage ``prepare``, timed from ``started``."""
+    frame = WorkingFrame.for_target(request.target)
+    source_points, target_points = frame.points(request.source), frame.points(request.target)
+    target_index = NearestNeighbors(target_points, workers=request.workers)
+    _warn_if_coincident(request.source, "source", coincident_points(request.source), request.coincident_warning)
+    _warn_if_coincident(request.target, "target", target_index.coincident(), request.coincident_warning)
+    clouds = _Clouds(frame, source_points, target_points, target_index, bounding_box_diagonal(target_points))
+    stages.append(Stage("prepare", time.perf_counter() - started, points=len(source_points),
+                        decided={"method": request.method, "target_points": len(target_points),
+                                 "shifted": frame.origin is not None}))
+    return clouds
+
+
+def _start(request: _Request, clouds: _Clouds, stages: list) -> tuple[np.ndarray, str, GlobalEstimate | None, Keypoints]:
+    """Stage 2: the starting pose (working frame), its name, the global estimate if one was made,
+    and the keypoints the overlap confidence is measured on (the search's, else new ones)."""
+    started = time.perf_counter()
+    estimate = None
+    if request.initial is not None:
+        initial, name = clouds.frame.transform_in(request.initial), request.init_name
+    else:
+        estimate = global_estimate(
+            clouds.source, clouds.target, strategy=request.init_name, rng=request.rng, target_index=clouds.index,
+            target_spacing=clouds.index.spacing(), workers=request.workers, config=request.config,
+            policy=request.trust,
+        )
+        initial, name = estimate.transformation, f"global:{estimate.strategies[0]}"
+    keypoints = getattr(estimate, "keypoints", None)
+    if keypoints is None:
+        keypoints = Keypoints.of(clouds.source, clouds.target, clouds.index.spacing(), request.config.keypoints)
+    decided = {"init": name}
+    if estimate is not None:
+        decided.update(candidates=estimate.candidates, confidence=estimate.confidence,
+                       ambiguous=bool(estimate.ambiguous), runner_up_ratio=estimate.runner_up_ratio)
+    stages.append(Stage("start", time.perf_counter() - started, pose=clouds.pose_out(initial), decided=decided))
+    return initial, name, estimate, keypoints
+
+
+def _search_summary(estimate: GlobalEstimate | None, frame: WorkingFrame) -> dict:
+    """The result's fields of the global search (its defaults without one)."""
+    if estimate is None:
+        return {"ambiguous": False, "runner_up_ratio": None, "global_candidates": 0, "runner_up": None}
+    runner_up = estimate.runner_up
+    return {"ambiguous": bool(estimate.ambiguous), "runner_up_ratio": estimate.runner_up_ratio,
+            "global_candidates": estimate.candidates,
+            "runner_up": None if runner_up is None else frame.transform_out(np.array(runner_up, dtype=np.float64))}
+
+
+def _refine_from(initial: np.ndarray, request: _Request, clouds: _Clouds, keypoints: Keypoints,
+                 estimate: GlobalEstimate | None, observer: Observer | None, stages: list):
+    """Stage 3: ``(outcome, confidence)``: the refinement from ``initial`` (working frame) and the
+    overlap confidence of its pose on ``keypoints``; from a given start, ``esm`` with the automatic
+    sigma tries a second run when the first ends below the trust bar (:func:`_second_try`).
+    ``observer`` (the callback and the history, working frame) watches every run and changes none."""
+    # After a global search (which ends at the finest sigma) the pose is already close: start in
+    # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
+    estimator = _estimator(request.method, request, clouds.index, clouds.diagonal, start_fine=estimate is not None)
+    start_distances = None
+    if estimate is None and isinstance(estimator, EsmEstimator):
+        # A given start: its coarse sigma comes from the overlap's residuals (partial overlaps).
+        start_distances = clouds.index.query_near(clouds.source, transform=initial)[0]
+        estimator.start_from(start_distances)
+    outcome = _refine(clouds, estimator, initial, request, keypoints, estimate, observer, stages)
+    confidence = _confidence(outcome.transformation, keypoints, request)
+    if start_distances is not None and request.sigma is None and confidence < request.trust.trusted \
+            and not (observer is not None and observer.stopped):
+        outcome, confidence = _second_try(clouds, initial, request, keypoints, start_distances, outcome, confidence,
+                                          observer, stages)
+    if observer is not None:
+        outcome = dataclasses.replace(outcome, history=observer.recorded())
+    return outcome, confidence
+
+
+def _confidence(transformation: np.ndarray, keypoints: Keypoints, request: _Request) -> float:
+    """The overlap confidence of ``transformation`` (working frame) on ``keypoints``, by the request's
+    ranges and policy."""
+    return overlap_confidence(transformation, keypoints, request.workers, config=request.config, policy=request.trust)
+
+
+def _refine(clouds: _Clouds, estimator, initial, request: _Request, keypoints: Keypoints,
+            estimate: GlobalEstimate | None, observer: Observer | None, stages: list, name: str = "refine"):
+    """``estimator`` from ``initial`` (working frame): on a large source the strided run
+    (:func:`_refine_strided`), else the whole source at once (after a global
+    search, from ``refine.looser_from_points`` points on, at ``refine.strided_tolerance`` when the request's
+    tolerance is finer); the stage ``name``. ``observer`` (the callback and the history, working
+    frame) watches every stage and changes none."""
+    source = clouds.source
+    if len(source) > 2 * request.refine.strided_points and estimator.order_invariant:
+        # (``esm-paper`` pairs source point k with target point k: a strided subset has no pairs.)
+        return _refine_strided(clouds, estimator, initial, request, keypoints, estimate, observer, stages, name)
+    started = time.perf_counter()
+    criteria = request.criteria
+    if estimate is not None and len(source) > request.refine.looser_from_points:
+        criteria = _at_strided_tolerance(criteria, request.refine)
+    outcome = guarded_refine(
+        source, clouds.index, estimator, init=initial, criteria=criteria, scale=clouds.diagonal,
+        coarse_points=COARSE_POINTS, observer=observer,
+    )
+    stages.append(_refine_stage(name, started, clouds, outcome, len(source), outcome.num_iterations, criteria))
+    return outcome
+
+
+def _refine_stage(name: str, started: float, clouds: _Clouds, outcome, points: int, iterations: int,
+                  criteria: ConvergenceCriteria):
+    """The record of a refinement stage begun at ``started`` that ran ``iterations`` on ``points``
+    source points with ``criteria`` and ended at ``outcome``."""
+    return Stage(name, time.perf_counter() - started, pose=clouds.pose_out(outcome.transformation), points=points,
+                 iterations=iterations, decided={"converged": bool(outcome.converged), "sigma": outcome.sigma,
+                                                 "tolerance": criteria.tolerance,
+                                                 "max_iterations": criteria.max_iterations})
+
+
+def _second_try(clouds: _Clouds, initial, request: _Request, keypoints: Keypoints, start_distances: np.ndarray,
+                outcome, confidence: float, observer: Observer | None, stages: list):
+    """``(outcome, confidence)``: of ``outcome`` (an ``esm`` run from a given start, overlap
+    confidence ``confidence`` below the trust bar) and a second run from the same start whose coarse
+    sigma comes from the start's ``TIGHT_START_QUANTILE`` distance quantile, the more confident
+    (the first on a tie); the message says what the second try gave, and the stage ``second try``
+    which run was kept.
+
+    Why: the first run's coarse sigma assumes a quarter of the source overlaps. Where less does
+    (scans cut to 15-50%), that sigma pulls a good start apart; the tight one keeps it, but
+    narrows the reach from a poor start on a whole object, so it only comes second, and only
+    where the first run is not trusted (measured on the ModelNet40 halves and whole objects:
+    ``docs/scans-start-drift.md``). ``observer`` watches the second run as a new run;
+    its history ends as that of the run kept."""
+    first_confidence = confidence
+    tight = _estimator(request.method, request, clouds.index, clouds.diagonal)
+    tight.start_from(start_distances, TIGHT_START_QUANTILE)
+    first_history = None if observer is None else observer.new_run()
+    second = _refine(clouds, tight, initial, request, keypoints, None, observer, stages, "second try")
+    second_confidence = _confidence(second.transformation, keypoints, request)
+    tried = stages.pop()
+    if observer is not None and observer.stopped:
+        kept, outcome, confidence = "second", second, second_confidence
+    elif second_confidence > confidence:
+        note = (f"; a second try with a tighter coarse sigma (the start's {TIGHT_START_QUANTILE:.0%} distance "
+                f"quantile) raised the overlap confidence {confidence:.2f} -> {second_confidence:.2f}")
+        kept, outcome = "second", dataclasses.replace(second, message=second.message + note)
+        confidence = second_confidence
+    else:
+        note = (f"; a second try with a tighter coarse sigma ended at overlap confidence {second_confidence:.2f}: "
+                f"this run kept")
+        if observer is not None and observer.history is not None:
+            observer.history = list(first_history or ())
+        kept, outcome = "first", dataclasses.replace(outcome, message=outcome.message + note)
+    decided = {**tried.decided, "first_confidence": first_confidence, "confidence": second_confidence, "kept": kept}
+    stages.append(dataclasses.replace(tried, pose=clouds.pose_out(outcome.transformation), decided=decided))
+    return outcome, confidence
+
+
+def _refine_strided(clouds: _Clouds, estimator, initial, request: _Request, keypoints: Keypoints,
+                    estimate: GlobalEstimate | None, observer: Observer | None, stages: list, name: str):
+    """:func:`_refine` on a large source: ``estimator`` on ``refine.strided_points`` evenly strided source
+    points (where every point would take the pose from there lies well inside its standard
+    deviation). The outcome's iterations count every stage; ``refine`` is ``request.refine``.
+
+    After a global search (``estimate``, whose ``confidence`` is that of ``initial`` on
+    ``keypoints`` when it judged it), ``esm`` is preceded by at most ``refine.plane_iterations`` of
+    ``esm-plane`` on ``refine.plane_points`` of the strided points (the stage ``plane``), undone when they lower the
+    overlap confidence on ``keypoints`` by more than ``refine.plane_confidence_drop``, and the
+    strided stages stop at ``refine.strided_tolerance`` when the request's tolerance is finer: a
+    global pose is already close.
+    From a given start (``estimate`` None) the strided run keeps the request's tolerance, since a
+    start can lie further off and a slow slide toward the optimum must run to its end. ``observer``
+    watches every stage (a stage its callback stopped is the last)."""
+    source = clouds.source
+    strided = source[np.linspace(0, len(source) - 1, request.refine.strided_points).astype(np.intp)]
+    plane_iterations, plane_note = 0, ""
+    if estimate is not None:
+        request = dataclasses.replace(request, criteria=_at_strided_tolerance(request.criteria, request.refine))
+    if estimate is not None and request.method == "esm":
+        count = min(request.refine.plane_points, len(strided))
+        planed = strided[np.linspace(0, len(strided) - 1, count).astype(np.intp)]
+        initial, plane_iterations, plane_note = _plane_start(planed, clouds, initial, request, keypoints,
+                                                             estimate.confidence, observer, stages)
+        if observer is not None and observer.stopped:
+            return RefinementOutcome(initial, False, plane_iterations, None, plane_note + STOPPED_BY_CALLBACK, None)
+        request = dataclasses.replace(request, criteria=dataclasses.replace(
+            request.criteria, max_iterations=request.criteria.max_iterations - plane_iterations))
+    started = time.perf_counter()
+    coarse = guarded_refine(strided, clouds.index, estimator, init=initial, criteria=request.criteria,
+                            scale=clouds.diagonal, observer=observer)
+    stages.append(_refine_stage(name, started, clouds, coarse, len(strided), coarse.num_iterations, request.criteria))
+    if coarse.num_iterations == 0:
+        return coarse  # no start to refine (the guard's message says why)
+    return dataclasses.replace(coarse, message=f"{plane_note}{coarse.message} on {len(strided):,} strided source points",
+                               num_iterations=plane_iterations + coarse.num_iterations)
+
+
+def _at_strided_tolerance(criteria: ConvergenceCriteria, refine: RefineConfig) -> ConvergenceCriteria:
+    """``criteria`` stopping at ``refine.strided_tolerance`` when its own tolerance is finer: a
+    refinement from a global pose, whose last iterations creep in no steady direction."""
+    return dataclasses.replace(criteria, tolerance=max(criteria.tolerance, refine.strided_tolerance))
+
+
+def _estimator(method: str, request: _Request, target_index, diagonal: float, start_fine: bool = False):
+    """``make_estimator`` for this request; ``esm-plane`` takes its normals' neighbours from the
+    target index's own KD-tree, on the request's threads."""
+    estimator = make_estimator(method, request.sigma, target_index.spacing(), diagonal, start_fine=start_fine)
+    if isinstance(estimator, PlaneEstimator):
+        estimator.use_target_tree(target_index.exact_tree(), request.workers)
+    return estimator
+
+
+def _plane_start(points, clouds: _Clouds, initial, request: _Request, keypoints: Keypoints,
+                 initial_confidence: float | None, observer: Observer | None, stages: list) -> tuple[np.ndarray, int, str]:
+    """``(pose, iterations, note)`` of at most ``refine.plane_iterations`` ``esm-plane`` iterations
+    on ``points`` (``refine.plane_points`` strided source points) from ``initial``, leaving ``esm`` at least
+    one iteration of ``max_iterations``; the note begins the result's message, the stage ``plane``
+    records them. ``initial`` when the budget leaves none, the guard
+    refused the start, or the iterations lowered the overlap confidence on ``keypoints`` by more
+    than ``refine.plane_confidence_drop`` (they still count against the budget and the note says
+    so); ``refine`` is ``request.refine``."""
+    started = time.perf_counter()
+    budget = min(request.refine.plane_iterations, request.criteria.max_iterations - 1)
+    if budget <= 0:
+        return initial, 0, ""
+    planar = _estimator("esm-plane", request, clouds.index, clouds.diagonal)
+    criteria = dataclasses.replace(request.criteria, max_iterations=budget)
+    plane = guarded_refine(points, clouds.index, planar, init=initial, criteria=criteria, scale=clouds.diagonal,
+                           observer=observer)
+    if plane.num_iterations == 0:
+        return initial, 0, ""
+    if observer is not None and observer.stopped:
+        stages.append(Stage("plane", time.perf_counter() - started, pose=clouds.pose_out(plane.transformation),
+                            points=len(points), iterations=plane.num_iterations, decided={"undone": False}))
+        return plane.transformation, plane.num_iterations, ""
+    before = initial_confidence
+    if before is None:
+        before = _confidence(initial, keypoints, request)
+    after = _confidence(plane.transformation, keypoints, request)
+    undone = after < before - request.refine.plane_confidence_drop
+    pose = initial if undone else plane.transformation
+    stages.append(Stage("plane", time.perf_counter() - started, pose=clouds.pose_out(pose), points=len(points),
+                        iterations=plane.num_iterations,
+                        decided={"undone": bool(undone), "confidence_before": before, "confidence_after": after}))
+    if undone:
+        return initial, plane.num_iterations, (
+            f"{plane.num_iterations} esm-plane iteration(s) on {len(points):,} points undone (overlap confidence "
+            f"{before:.2f} -> {after:.2f}), then ")
+    note = f"{plane.num_iterations} esm-plane iteration(s) on {len(points):,} points, then "
+    return plane.transformation, plane.num_iterations, note
+
+
+def _evaluate(clouds: _Clouds, outcome, request: _Request, stages: list):
+    """Stage 4: ``(fitness, inlier_rmse, inlier_distance, (distances, indices, inliers))`` of the
+    final pose of ``outcome`` (working frame), in Open3D's meaning, with each source point's nearest
+    target distance and index (and, for ``esm-paper``, a warning when the clouds were not
+    index-aligned). The refinement's last neighbours of the source points, if it has them, are
+    where the queries start (the same answers, sooner)."""
+    started = time.perf_counter()
+    source, target_index, warm = clouds.source, clouds.index, outcome.neighbours
+    inlier_distance = request.inlier_distance
+    if inlier_distance is None:
+        spacing = target_index.spacing()
+        inlier_distance = (request.refine.inlier_distance_spacings * spacing if spacing > 0
+                           else 1e-6 * bounding_box_diagonal(target_index.points))
+    if warm is not None and len(warm) != len(source):
+        warm = None  # another source's (the strided subsample's)
+    distances, indices = target_index.query_near(source, warm=warm, transform=outcome.transformation)
+    inliers = distances <= inlier_distance
+    fitness = float(inliers.mean())
+    inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
+    if request.method == "esm-paper" and len(source) == len(target_index.points):
+        _warn_if_not_index_aligned(indices, request.refine.index_aligned_fraction)
+    stages.append(Stage("evaluate", time.perf_counter() - started, points=len(source),
+                        decided={"fitness": fitness, "inlier_rmse": inlier_rmse,
+                                 "inlier_distance": float(inlier_distance)}))
+    return fitness, inlier_rmse, float(inlier_distance), (distances, indices, inliers)
+
+
+def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypoints: Keypoints,
+           estimate: GlobalEstimate | None, pairs, inlier_distance: float, stages: list) -> Verdict:
+    """Stage 5: the verdict on the final pose of ``outcome`` (working frame), whose overlap
+    confidence the refinement measured (:func:`esmicp.trust.judge.judge`); with range images, the
+    free-space test too."""
+    started = time.perf_counter()
+    sensors = None
+    if request.range_images:
+        sensors = SensorClouds(request.source, request.target, inlier_distance)
+    verdict = judge(outcome.transformation, source=clouds.source, target_index=clouds.index, keypoints=keypoints,
+                    pairs=pairs[:2], sigma=None if request.method == "icp" else outcome.sigma,  # ICP: unit weights
+                    converged=outcome.converged, num_iterations=outcome.num_iterations, config=request.config,
+                    policy=request.trust, ambiguous=bool(estimate is not None and estimate.ambiguous),
+                    runner_up_ratio=None if estimate is None else estimate.runner_up_ratio, confidence=confidence,
+                    origin=clouds.frame.origin, sensors=sensors, workers=request.workers)
+    stages.append(Stage("judge", time.perf_counter() - started, pose=clouds.pose_out(outcome.transformation),
+                        decided={"confidence": verdict.confidence, "trusted": verdict.trusted,
+                                 "doubts": tuple(doubt.kind for doubt in verdict.doubts),
+                                 "degenerate_directions": len(verdict.degenerate_directions),
+                                 "free_space": verdict.free_space}))
+    return verdict
 
 def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
-              config=None) -> _Request:
+              config=None, range_images=False) -> _Request:
     """Stage 1: every argument checked (one clear :class:`InvalidInputError` otherwise)."""
     source_points = as_points(source, "source")
     target_points = as_points(target, "target")
@@ -291,6 +561,7 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
         refine=registration.refine,
         trust=registration.trust,
         coincident_warning=registration.coincident_warning_fraction,
+        range_images=_as_flag(range_images, "range_images"),
     )
     if method == "esm-paper" and len(source_points) != len(target_points):
         warnings.warn(
@@ -300,178 +571,6 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
             stacklevel=3,
         )
     return request
-
-
-def _start(request: _Request, source, target, target_index, frame) -> tuple[np.ndarray, str, GlobalEstimate | None]:
-    """Stage 3: the starting pose (working frame), its name, and the global estimate if one was made."""
-    if request.initial is not None:
-        return frame.transform_in(request.initial), request.init_name, None
-    estimate = global_estimate(
-        source, target, strategy=request.init_name, rng=request.rng, target_index=target_index,
-        target_spacing=target_index.spacing(), workers=request.workers, config=request.config,
-        policy=request.trust,
-    )
-    return estimate.transformation, f"global:{estimate.strategies[0]}", estimate
-
-
-def _refine(source, target_index, estimator, initial, request: _Request, diagonal: float, keypoints: Keypoints,
-            estimate: GlobalEstimate | None, observer: Observer | None = None):
-    """Stage 4: ``estimator`` from ``initial`` (working frame): on a large source the strided run
-    (:func:`_refine_strided`), else the whole source at once (after a global
-    search, from ``refine.looser_from_points`` points on, at ``refine.strided_tolerance`` when the request's
-    tolerance is finer). ``observer`` (the callback and the history, working frame) watches every
-    stage and changes none."""
-    if len(source) > 2 * request.refine.strided_points and estimator.order_invariant:
-        # (``esm-paper`` pairs source point k with target point k: a strided subset has no pairs.)
-        return _refine_strided(source, target_index, estimator, initial, request, diagonal, keypoints, estimate,
-                               observer)
-    criteria = request.criteria
-    if estimate is not None and len(source) > request.refine.looser_from_points:
-        criteria = _at_strided_tolerance(criteria, request.refine)
-    return guarded_refine(
-        source, target_index, estimator, init=initial, criteria=criteria, scale=diagonal,
-        coarse_points=COARSE_POINTS, observer=observer,
-    )
-
-
-def _second_try(source, target_index, initial, request: _Request, diagonal: float, keypoints: Keypoints,
-                start_distances: np.ndarray, outcome, confidence: float, observer: Observer | None = None):
-    """``(outcome, confidence)``: of ``outcome`` (an ``esm`` run from a given start, overlap
-    confidence ``confidence`` below the trust bar) and a second run from the same start whose coarse
-    sigma comes from the start's ``TIGHT_START_QUANTILE`` distance quantile, the more confident
-    (the first on a tie); the message says what the second try gave.
-
-    Why: the first run's coarse sigma assumes a quarter of the source overlaps. Where less does
-    (scans cut to 15-50%), that sigma pulls a good start apart; the tight one keeps it, but
-    narrows the reach from a poor start on a whole object, so it only comes second, and only
-    where the first run is not trusted (measured on the ModelNet40 halves and whole objects:
-    ``docs/scans-start-drift.md``). ``observer`` watches the second run as a new run;
-    its history ends as that of the run kept."""
-    tight = _estimator(request.method, request, target_index, diagonal)
-    tight.start_from(start_distances, TIGHT_START_QUANTILE)
-    first_history = None if observer is None else observer.new_run()
-    second = _refine(source, target_index, tight, initial, request, diagonal, keypoints, None, observer)
-    second_confidence = overlap_confidence(second.transformation, keypoints, request.workers, config=request.config,
-                                           policy=request.trust)
-    if observer is not None and observer.stopped:
-        return second, second_confidence
-    if second_confidence > confidence:
-        note = (f"; a second try with a tighter coarse sigma (the start's {TIGHT_START_QUANTILE:.0%} distance "
-                f"quantile) raised the overlap confidence {confidence:.2f} -> {second_confidence:.2f}")
-        return dataclasses.replace(second, message=second.message + note), second_confidence
-    note = (f"; a second try with a tighter coarse sigma ended at overlap confidence {second_confidence:.2f}: "
-            f"this run kept")
-    if observer is not None and observer.history is not None:
-        observer.history = list(first_history or ())
-    return dataclasses.replace(outcome, message=outcome.message + note), confidence
-
-
-def _refine_strided(source, target_index, estimator, initial, request: _Request, diagonal: float,
-                    keypoints: Keypoints, estimate: GlobalEstimate | None = None,
-                    observer: Observer | None = None):
-    """Stage 4 on a large source: ``estimator`` on ``refine.strided_points`` evenly strided source
-    points (where every point would take the pose from there lies well inside its standard
-    deviation). The outcome's iterations count every stage; ``refine`` is ``request.refine``.
-
-    After a global search (``estimate``, whose ``confidence`` is that of ``initial`` on
-    ``keypoints`` when it judged it), ``esm`` is preceded by at most ``refine.plane_iterations`` of
-    ``esm-plane`` on ``refine.plane_points`` of the strided points, undone when they lower the
-    overlap confidence on ``keypoints`` by more than ``refine.plane_confidence_drop``, and the
-    strided stages stop at ``refine.strided_tolerance`` when the request's tolerance is finer: a
-    global pose is already close.
-    From a given start (``estimate`` None) the strided run keeps the request's tolerance, since a
-    start can lie further off and a slow slide toward the optimum must run to its end. ``observer``
-    watches every stage (a stage its callback stopped is the last)."""
-    strided = source[np.linspace(0, len(source) - 1, request.refine.strided_points).astype(np.intp)]
-    plane_iterations, plane_note = 0, ""
-    if estimate is not None:
-        request = dataclasses.replace(request, criteria=_at_strided_tolerance(request.criteria, request.refine))
-    if estimate is not None and request.method == "esm":
-        count = min(request.refine.plane_points, len(strided))
-        planed = strided[np.linspace(0, len(strided) - 1, count).astype(np.intp)]
-        initial, plane_iterations, plane_note = _plane_start(planed, target_index, initial, request, diagonal,
-                                                             keypoints, estimate.confidence, observer)
-        if observer is not None and observer.stopped:
-            return RefinementOutcome(initial, False, plane_iterations, None, plane_note + STOPPED_BY_CALLBACK, None)
-        request = dataclasses.replace(request, criteria=dataclasses.replace(
-            request.criteria, max_iterations=request.criteria.max_iterations - plane_iterations))
-    coarse = guarded_refine(strided, target_index, estimator, init=initial, criteria=request.criteria, scale=diagonal,
-                            observer=observer)
-    if coarse.num_iterations == 0:
-        return coarse  # no start to refine (the guard's message says why)
-    return dataclasses.replace(coarse, message=f"{plane_note}{coarse.message} on {len(strided):,} strided source points",
-                               num_iterations=plane_iterations + coarse.num_iterations)
-
-
-def _at_strided_tolerance(criteria: ConvergenceCriteria, refine: RefineConfig) -> ConvergenceCriteria:
-    """``criteria`` stopping at ``refine.strided_tolerance`` when its own tolerance is finer: a
-    refinement from a global pose, whose last iterations creep in no steady direction."""
-    return dataclasses.replace(criteria, tolerance=max(criteria.tolerance, refine.strided_tolerance))
-
-
-def _estimator(method: str, request: _Request, target_index, diagonal: float, start_fine: bool = False):
-    """``make_estimator`` for this request; ``esm-plane`` takes its normals' neighbours from the
-    target index's own KD-tree, on the request's threads."""
-    estimator = make_estimator(method, request.sigma, target_index.spacing(), diagonal, start_fine=start_fine)
-    if isinstance(estimator, PlaneEstimator):
-        estimator.use_target_tree(target_index.exact_tree(), request.workers)
-    return estimator
-
-
-def _plane_start(points, target_index, initial, request: _Request, diagonal: float,
-                 keypoints: Keypoints, initial_confidence: float | None = None,
-                 observer: Observer | None = None) -> tuple[np.ndarray, int, str]:
-    """``(pose, iterations, note)`` of at most ``refine.plane_iterations`` ``esm-plane`` iterations
-    on ``points`` (``refine.plane_points`` strided source points) from ``initial``, leaving ``esm`` at least
-    one iteration of ``max_iterations``; the note begins the result's message. ``initial`` when the budget leaves none, the guard
-    refused the start, or the iterations lowered the overlap confidence on ``keypoints`` by more
-    than ``refine.plane_confidence_drop`` (they still count against the budget and the note says
-    so); ``refine`` is ``request.refine``."""
-    budget = min(request.refine.plane_iterations, request.criteria.max_iterations - 1)
-    if budget <= 0:
-        return initial, 0, ""
-    planar = _estimator("esm-plane", request, target_index, diagonal)
-    criteria = dataclasses.replace(request.criteria, max_iterations=budget)
-    plane = guarded_refine(points, target_index, planar, init=initial, criteria=criteria, scale=diagonal,
-                           observer=observer)
-    if plane.num_iterations == 0:
-        return initial, 0, ""
-    if observer is not None and observer.stopped:
-        return plane.transformation, plane.num_iterations, ""
-    before = initial_confidence
-    if before is None:
-        before = overlap_confidence(initial, keypoints, request.workers, config=request.config,
-                                        policy=request.trust)
-    after = overlap_confidence(plane.transformation, keypoints, request.workers, config=request.config,
-                               policy=request.trust)
-    if after < before - request.refine.plane_confidence_drop:
-        return initial, plane.num_iterations, (
-            f"{plane.num_iterations} esm-plane iteration(s) on {len(points):,} points undone (overlap confidence "
-            f"{before:.2f} -> {after:.2f}), then ")
-    note = f"{plane.num_iterations} esm-plane iteration(s) on {len(points):,} points, then "
-    return plane.transformation, plane.num_iterations, note
-
-
-def _evaluate(source, target_index, transformation, request: _Request, warm=None):
-    """Stage 5: ``(fitness, inlier_rmse, inlier_distance, (distances, indices, inliers))`` of the
-    final pose, in Open3D's meaning, with each source point's nearest target distance and index
-    (and, for ``esm-paper``, a warning when the clouds were not index-aligned). ``warm``: the
-    refinement's last neighbours of the source points, if it has them (the queries start there:
-    the same answers, sooner)."""
-    inlier_distance = request.inlier_distance
-    if inlier_distance is None:
-        spacing = target_index.spacing()
-        inlier_distance = (request.refine.inlier_distance_spacings * spacing if spacing > 0
-                           else 1e-6 * bounding_box_diagonal(target_index.points))
-    if warm is not None and len(warm) != len(source):
-        warm = None  # another source's (the strided subsample's)
-    distances, indices = target_index.query_near(source, warm=warm, transform=transformation)
-    inliers = distances <= inlier_distance
-    fitness = float(inliers.mean())
-    inlier_rmse = float(np.sqrt(np.mean(np.square(distances[inliers])))) if inliers.any() else 0.0
-    if request.method == "esm-paper" and len(source) == len(target_index.points):
-        _warn_if_not_index_aligned(indices, request.refine.index_aligned_fraction)
-    return fitness, inlier_rmse, float(inlier_distance), (distances, indices, inliers)
 
 
 def _correspondences(pairs, estimator, sigma: float | None) -> Correspondences:
@@ -504,7 +603,7 @@ def _warn_if_coincident(points: np.ndarray, name: str, coincident, fraction: flo
         f"other points (the most repeated: {most_count:,} at ({where})); copies add no information, and many "
         f"at one place pull the fit toward it: {advice}",
         CoincidentPointsWarning,
-        stacklevel=4,  # the caller of register (through its interrupt wrapper)
+        stacklevel=5,  # the caller of register (through _prepare and the interrupt wrapper)
     )
 
 
@@ -550,6 +649,12 @@ def _resolve_init(init) -> tuple[str, np.ndarray | None]:
             f"init: unknown strategy {init!r}; choose one of {', '.join(INIT_NAMES)}, or give a 4x4 matrix"
         )
     return "given", as_transform(init, "init")
+
+
+def _as_flag(value, name: str) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise InvalidInputError(f"{name}: expected True or False, got {value!r}")
+    return bool(value)
 
 
 def _as_tolerance(value) -> float:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from .trust.judge import DOUBT_KINDS, Verdict
 from .trust.policy import DEFAULT_POLICY, TrustPolicy
 
 
@@ -38,6 +40,80 @@ class IterationRecord:
             "weight_max": self.weight_max,
             "effective_pairs": self.effective_pairs,
         }
+
+
+@dataclass(frozen=True, eq=False)
+class Stage:
+    """What one stage of :func:`esmicp.register` did (:attr:`RegistrationResult.stages`).
+
+    Attributes
+    ----------
+    name : str
+        ``"prepare"`` (the arguments checked, the working frame chosen, the target's index
+        built), ``"start"`` (a global
+        search, or the given start), ``"plane"`` (``esm-plane`` iterations before ``esm`` on a
+        large source after a global search), ``"refine"`` (the local refinement), ``"second try"``
+        (a second run from a given start with a tighter coarse sigma), ``"evaluate"`` (fitness
+        and inliers of the final pose), ``"judge"`` (the verdict, :func:`esmicp.trust.judge.judge`).
+    seconds : float
+        Wall time of the stage (s).
+    pose : (4, 4) float64 array or None
+        The ``T_target_source`` the stage passed on (the clouds' own frames); None for a stage
+        that passes on no pose.
+    points : int or None
+        Source points the stage used (None: not a per-point stage).
+    iterations : int
+        Iterations the stage ran (0 for a stage that does not iterate).
+    decided : mapping
+        What else the stage decided, by name (read-only; plain numbers, strings, booleans and
+        tuples), e.g. ``candidates`` of the global search, ``converged`` of the refinement,
+        ``kept`` of the second try, ``trusted`` of the judgement.
+    """
+
+    name: str
+    seconds: float
+    pose: np.ndarray | None = field(default=None, repr=False)
+    points: int | None = None
+    iterations: int = 0
+    decided: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "decided", _ReadOnly(self.decided))
+
+    def to_dict(self) -> dict:
+        """A JSON-ready dict of the stage."""
+        return {"name": self.name, "seconds": self.seconds,
+                "pose": None if self.pose is None else self.pose.tolist(), "points": self.points,
+                "iterations": self.iterations, "decided": {key: _plain(value) for key, value in self.decided.items()}}
+
+
+class _ReadOnly(Mapping):
+    """A read-only copy of a mapping (unlike ``types.MappingProxyType``, it pickles: results cross
+    process boundaries in :func:`esmicp.register_many`)."""
+
+    def __init__(self, items: Mapping):
+        self._items = dict(items)
+
+    def __getitem__(self, key: str) -> Any:
+        return self._items[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __repr__(self) -> str:
+        return repr(self._items)
+
+
+def _plain(value):
+    """``value`` as JSON holds it (tuples as lists, NumPy scalars as Python numbers)."""
+    if isinstance(value, (tuple, list)):
+        return [_plain(item) for item in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
 
 
 @dataclass(frozen=True, eq=False)
@@ -166,6 +242,17 @@ class RegistrationResult:
     policy : TrustPolicy
         The trust policy the result is judged by (:class:`esmicp.trust.policy.TrustPolicy`: the
         bars of :attr:`trusted` and :meth:`doubts`), as ``register``'s ``config`` gave it.
+    verdict : Verdict or None
+        The judgement :func:`esmicp.register` made of the pose (:class:`esmicp.trust.judge.Verdict`,
+        one call of :func:`esmicp.trust.judge.judge`: the measures above and every reason not to
+        trust the pose); :attr:`trusted` and :meth:`doubts` return what it found. None for a result
+        built by hand. A result built by hand, or one whose judged fields ``dataclasses.replace``
+        changed (``converged``, ``confidence``, ``ambiguous``, ``free_space``, ``policy``, ...), is
+        weighed from its own fields when asked, by the same rules
+        (:func:`esmicp.trust.judge.weigh`); nothing is measured again.
+    stages : tuple of Stage
+        What each stage of :func:`esmicp.register` did, in order (:class:`Stage`); empty for a
+        result built by hand.
     """
 
     transformation: np.ndarray
@@ -191,6 +278,8 @@ class RegistrationResult:
     degenerate_directions: tuple = ()
     free_space: float | None = None
     policy: TrustPolicy = field(default=DEFAULT_POLICY, repr=False)
+    verdict: Verdict | None = field(default=None, repr=False)
+    stages: tuple[Stage, ...] = field(default=(), repr=False)
 
     @property
     def trusted(self) -> bool:
@@ -205,19 +294,23 @@ class RegistrationResult:
         (``register_scans``, the CLI) apply."""
         return not self.doubts()
 
-    def doubts(self, bar: float | None = None) -> list[str]:
-        """Why the pose is not to be trusted, one phrase per reason (empty: :attr:`trusted`).
-        ``bar``: the confidence asked for, a number in [0, 1] (default the trust bar,
-        ``policy.trusted``).
+    def doubts(self, bar: float | None = None, *, ignore: tuple[str, ...] = ()) -> list[str]:
+        """Why the pose is not to be trusted, one phrase per reason (empty: :attr:`trusted`), as
+        the :attr:`verdict` found them. ``bar``: the confidence asked for, a number in [0, 1]
+        (default the trust bar, ``policy.trusted``); ``ignore``: kinds of doubt to leave out
+        (:data:`esmicp.trust.judge.DOUBT_KINDS`, e.g. ``("ambiguous",)``).
 
         Raises
         ------
         InvalidInputError
-            ``bar`` is not a number, is NaN, or lies outside [0, 1].
+            ``bar`` is not a number, is NaN, or lies outside [0, 1]; ``ignore`` names an unknown kind.
         """
-        if bar is None:
-            bar = self.policy.trusted
-        else:
+        unknown = [kind for kind in ignore if kind not in DOUBT_KINDS]
+        if unknown or isinstance(ignore, str):
+            from .errors import InvalidInputError
+
+            raise InvalidInputError(f"ignore: expected kinds of doubt among {', '.join(DOUBT_KINDS)}, got {ignore!r}")
+        if bar is not None:
             from .types import as_real
 
             value = as_real(bar, "bar")
@@ -226,26 +319,30 @@ class RegistrationResult:
 
                 raise InvalidInputError(f"bar: expected a confidence in [0, 1], got {bar!r}")
             bar = value
+        verdict = self._judged()
+        doubts = verdict.doubts if bar is None else verdict.at(bar)
+        return [doubt.words for doubt in doubts if doubt.kind not in ignore]
 
-        reasons = []
-        if not self.converged:
-            reasons.append(f"not converged: the refinement stopped after {self.num_iterations} iteration(s) "
-                           f"before reaching its tolerance, so the pose may still be moving")
-        if self.confidence is None:
-            reasons.append("no overlap confidence")
-        elif self.confidence < bar:
-            reasons.append(f"confidence {self.confidence:.2f} is below {bar:g}")
-        if self.ambiguous:
-            ratio = "" if self.runner_up_ratio is None else f" (score ratio {self.runner_up_ratio:.3f})"
-            reasons.append(f"ambiguous: a clearly different pose fits almost as well{ratio}")
-        reasons.extend(direction.describe() for direction in self.degenerate_directions)
-        if self.free_space is not None:
-            from .trust.free_space import pair_verdict  # here: it loads SciPy
+    def _judged(self) -> Verdict:
+        """The verdict ``register`` stored while it weighed this result's fields; else (a result
+        built by hand, or one whose fields ``dataclasses.replace`` changed) the one its fields give."""
+        if self.verdict is not None and self._weighed_by(self.verdict):
+            return self.verdict
+        return Verdict.of(converged=self.converged, num_iterations=self.num_iterations, confidence=self.confidence,
+                          ambiguous=self.ambiguous, runner_up_ratio=self.runner_up_ratio,
+                          degenerate_directions=self.degenerate_directions,
+                          free_space=self.free_space, policy=self.policy)
 
-            failed, words = pair_verdict(self.free_space, self.policy)
-            if failed:
-                reasons.append(words)
-        return reasons
+    def _weighed_by(self, verdict: Verdict) -> bool:
+        """True when ``verdict`` weighed this result's own fields."""
+        mine, theirs = self.degenerate_directions, verdict.degenerate_directions
+        same_directions = mine is theirs or (len(mine) == len(theirs) and all(
+            a.ratio == b.ratio and np.array_equal(a.rotation, b.rotation) and np.array_equal(a.translation, b.translation)
+            for a, b in zip(mine, theirs)))
+        return (same_directions and verdict.converged == self.converged and verdict.num_iterations == self.num_iterations
+                and verdict.confidence == self.confidence and verdict.ambiguous == self.ambiguous
+                and verdict.runner_up_ratio == self.runner_up_ratio and verdict.free_space == self.free_space
+                and verdict.policy == self.policy)
 
     def __repr__(self) -> str:
         """One line: the method, the verdict, the overlap and how far the pose moves the source,
@@ -279,7 +376,8 @@ class RegistrationResult:
 
     def to_dict(self, *, include_history: bool = False) -> dict:
         """A JSON-ready dict (nested lists, plain floats): the fields, ``trusted`` and ``doubts``
-        (:meth:`doubts`: why the pose is not to be trusted, empty when it is)."""
+        (:meth:`doubts`: why the pose is not to be trusted, empty when it is), and the ``stages``
+        (:meth:`Stage.to_dict`)."""
         doubts = self.doubts()
         data = {
             "method": self.method,
@@ -306,6 +404,7 @@ class RegistrationResult:
             "information": None if self.information is None else self.information.tolist(),
             "degenerate_directions": [direction.to_dict() for direction in self.degenerate_directions],
             "free_space": self.free_space,
+            "stages": [stage.to_dict() for stage in self.stages],
         }
         if include_history and self.history is not None:
             data["history"] = [record.to_dict() for record in self.history]

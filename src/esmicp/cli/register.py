@@ -4,7 +4,6 @@ the outputs asked for."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -187,7 +186,7 @@ def verdict(result) -> str:
         return (f"{text} (LOW: below {bar:g}, do not trust this pose; the clouds may not coincide where it puts "
                 f"them, or their overlap may not hold it{_also(result.doubts(0.0))})")
     if result.ambiguous:
-        others = dataclasses.replace(result, ambiguous=False).doubts(0.0)
+        others = result.doubts(0.0, ignore=("ambiguous",))
         return (f"{text} (>= {bar:g}, but AMBIGUOUS: a clearly different pose fits almost as well, score ratio "
                 f"{result.runner_up_ratio:.3f}; do not trust this pose: the object may be symmetric or the "
                 f"overlap too small to tell{_also(others)})")

@@ -1,0 +1,185 @@
+"""Judging a registered pose in one call: :func:`judge` measures what a verdict rests on (the overlap
+confidence, the pose covariance and its degenerate directions, the free-space test of range
+images) and weighs it against a :class:`~esmicp.trust.policy.TrustPolicy`, as Open3D's
+``evaluate_registration`` is one function. :func:`esmicp.register` calls it once and the
+:class:`~esmicp.result.RegistrationResult` keeps the :class:`Verdict` it returns.
+
+Transforms are ``T_target_source`` (``target ~= source @ R.T + t``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.keypoints import Keypoints
+from .confidence import ConfidenceRanges, overlap_confidence
+from .policy import DEFAULT_POLICY, TrustPolicy
+from .uncertainty import DegenerateDirection, PoseUncertainty, from_registration
+
+#: The kinds of :class:`Doubt`, in the order a verdict lists them.
+DOUBT_KINDS = ("not converged", "confidence", "ambiguous", "degenerate", "free space")
+
+
+@dataclass(frozen=True)
+class Doubt:
+    """One reason not to trust a pose: its ``kind`` (one of :data:`DOUBT_KINDS`) and the reason in
+    ``words``."""
+
+    kind: str
+    words: str
+
+
+@dataclass(frozen=True, eq=False)
+class Verdict:
+    """What a pose was judged on and what the judgement found.
+
+    Attributes
+    ----------
+    confidence : float or None
+        The overlap confidence (0-1, :func:`esmicp.trust.confidence.overlap_confidence`); None when
+        not measured.
+    uncertainty : PoseUncertainty or None
+        The pose covariance, its inverse and the degenerate directions
+        (:func:`esmicp.trust.uncertainty.from_registration`); None when not measured.
+    degenerate_directions : tuple of DegenerateDirection
+        The directions the overlap barely constrains (target frame), as weighed; empty when none.
+    free_space : float or None
+        The free-space fraction of a pair of range images (0-1,
+        :func:`esmicp.trust.free_space.free_space_fraction`); None when not tested, or when neither
+        sensor saw enough of the other cloud.
+    free_space_words : str or None
+        The free-space test's outcome in words (:func:`esmicp.trust.free_space.pair_verdict`);
+        None when the test did not apply (clouds not declared range images).
+    converged, num_iterations, ambiguous, runner_up_ratio
+        What the refinement and the search reported, as weighed.
+    policy : TrustPolicy
+        The bars the pose was judged by.
+    doubts : tuple of Doubt
+        Every reason not to trust the pose at the policy's trust bar (empty: trusted).
+    """
+
+    confidence: float | None
+    uncertainty: PoseUncertainty | None
+    degenerate_directions: tuple[DegenerateDirection, ...]
+    free_space: float | None
+    free_space_words: str | None
+    converged: bool
+    num_iterations: int
+    ambiguous: bool
+    runner_up_ratio: float | None
+    policy: TrustPolicy
+    doubts: tuple[Doubt, ...]
+
+    @property
+    def trusted(self) -> bool:
+        """True when nothing casts doubt on the pose (:attr:`doubts` is empty)."""
+        return not self.doubts
+
+    def at(self, bar: float) -> tuple[Doubt, ...]:
+        """The doubts with the overlap confidence held to ``bar`` (0-1) instead of the policy's bar."""
+        return weigh(self.converged, self.num_iterations, self.confidence, self.ambiguous, self.runner_up_ratio,
+                     self.degenerate_directions, self.free_space, self.policy, bar)
+
+    @classmethod
+    def of(cls, *, converged: bool, num_iterations: int, confidence: float | None, ambiguous: bool = False,
+           runner_up_ratio: float | None = None, uncertainty: PoseUncertainty | None = None,
+           degenerate_directions: tuple[DegenerateDirection, ...] | None = None, free_space: float | None = None,
+           free_space_words: str | None = None, policy: TrustPolicy = DEFAULT_POLICY) -> "Verdict":
+        """The verdict on measurements already made (no measuring: :func:`judge` measures).
+        ``degenerate_directions``: those of ``uncertainty`` when None (none without it)."""
+        if degenerate_directions is None:
+            degenerate_directions = () if uncertainty is None else uncertainty.degenerate_directions
+        doubts = weigh(converged, num_iterations, confidence, ambiguous, runner_up_ratio, degenerate_directions,
+                       free_space, policy)
+        return cls(confidence, uncertainty, tuple(degenerate_directions), free_space, free_space_words,
+                   bool(converged), int(num_iterations), bool(ambiguous), runner_up_ratio, policy, doubts)
+
+
+def weigh(converged: bool, num_iterations: int, confidence: float | None, ambiguous: bool,
+          runner_up_ratio: float | None, degenerate_directions, free_space: float | None,
+          policy: TrustPolicy = DEFAULT_POLICY, bar: float | None = None) -> tuple[Doubt, ...]:
+    """Every reason not to trust a pose, in the order of :data:`DOUBT_KINDS`: the refinement did not
+    converge (a run stopped by ``max_iterations``, a callback or a problem may still be degrees
+    from where it was heading), the overlap ``confidence`` is missing or below ``bar`` (default
+    ``policy.trusted``), the search found the pose ``ambiguous``, a direction is degenerate (a
+    floor or a wall seen alone, or a corridor, lets the pose slide however sharply the clouds
+    coincide), the ``free_space`` fraction (when measured) is above ``policy.max_free_space_pair``."""
+    bar = policy.trusted if bar is None else bar
+    doubts = []
+    if not converged:
+        doubts.append(Doubt("not converged", f"not converged: the refinement stopped after {num_iterations} "
+                                             f"iteration(s) before reaching its tolerance, so the pose may still be "
+                                             f"moving"))
+    if confidence is None:
+        doubts.append(Doubt("confidence", "no overlap confidence"))
+    elif confidence < bar:
+        doubts.append(Doubt("confidence", f"confidence {confidence:.2f} is below {bar:g}"))
+    if ambiguous:
+        ratio = "" if runner_up_ratio is None else f" (score ratio {runner_up_ratio:.3f})"
+        doubts.append(Doubt("ambiguous", f"ambiguous: a clearly different pose fits almost as well{ratio}"))
+    doubts.extend(Doubt("degenerate", direction.describe()) for direction in degenerate_directions)
+    if free_space is not None:
+        from .free_space import pair_verdict  # here: it loads SciPy
+
+        failed, words = pair_verdict(free_space, policy)
+        if failed:
+            doubts.append(Doubt("free space", words))
+    return tuple(doubts)
+
+
+@dataclass(frozen=True, eq=False)
+class SensorClouds:
+    """The two clouds of a pair of range images, each in its own sensor frame (the sensor at the
+    origin), and the inlier distance (cloud units) the free-space test's tolerance is a gain of."""
+
+    source: np.ndarray
+    target: np.ndarray
+    inlier_distance: float
+
+
+def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypoints: Keypoints,
+          pairs: tuple[np.ndarray, np.ndarray] | None, sigma: float | None, converged: bool, num_iterations: int,
+          config: ConfidenceRanges, policy: TrustPolicy = DEFAULT_POLICY, ambiguous: bool = False,
+          runner_up_ratio: float | None = None, confidence: float | None = None, origin: np.ndarray | None = None,
+          sensors: SensorClouds | None = None, workers: int | None = None) -> Verdict:
+    """The verdict on a registered pose.
+
+    ``transformation`` (4x4 ``T_target_source``), ``source`` (N, 3) and ``keypoints`` are in the
+    frame of ``target_index`` (a :class:`~esmicp.core.correspondence.NearestNeighbors`), whose
+    origin lies at ``origin`` in the target's own coordinates (None: the same frame). ``pairs``:
+    each source point's nearest target ``(distances, indices)`` at this pose, if known; ``sigma``:
+    the Gaussian weights' width (cloud units; None: unit weights, as ICP); ``converged``,
+    ``num_iterations``: the refinement's; ``ambiguous``, ``runner_up_ratio``: the global search's
+    (False and None without one). ``confidence``: the overlap confidence of this pose on
+    ``keypoints`` when the refinement already measured it (else measured here, with the ranges of
+    ``config``, a :class:`~esmicp.globalreg.config.SearchConfig`). ``sensors``: the clouds as range
+    images in their sensor frames, for the free-space test (None: no such test). ``policy``: the
+    bars and the measures' values; ``workers``: threads of the compiled kernels (None: every core).
+    """
+    if confidence is None:
+        confidence = overlap_confidence(transformation, keypoints, workers, config=config, policy=policy)
+    uncertainty = from_registration(source, target_index, transformation, sigma, origin=origin, workers=workers,
+                                    pairs=pairs, policy=policy)
+    free_space, words = None, None
+    if sensors is not None:
+        from . import free_space as test  # here: it loads SciPy
+
+        own = _unshifted(transformation, origin)
+        free_space = test.free_space_fraction(sensors.target, sensors.source, own,
+                                              policy.free_space_tolerance_inliers * sensors.inlier_distance, policy)
+        words = test.pair_verdict(free_space, policy)[1]
+    return Verdict.of(converged=converged, num_iterations=num_iterations, confidence=confidence, ambiguous=ambiguous,
+                      runner_up_ratio=runner_up_ratio, uncertainty=uncertainty, free_space=free_space,
+                      free_space_words=words, policy=policy)
+
+
+def _unshifted(transformation: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
+    """``transformation`` of a frame whose origin lies at ``origin`` in the clouds' own coordinates,
+    in those coordinates (same rotation, translation ``t + o - R o``)."""
+    if origin is None:
+        return transformation
+    own = transformation.copy()
+    own[:3, 3] = transformation[:3, 3] + (origin - transformation[:3, :3] @ origin)
+    return own
