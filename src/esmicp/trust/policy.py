@@ -103,7 +103,10 @@ class TrustPolicy(Config):
         (ratio, 0-1).
     covariance_normals : int
         The covariance's Hessian comes from target normals at the matches of at most this many
-        pairs, evenly strided (count).
+        pairs, evenly strided (count); each cloud's noise is measured at as many of its points.
+    noise_neighbours : int
+        A cloud's noise is the scatter of this many nearest points about their plane (count;
+        fewer: less of the surface's curvature read as noise, a noisier reading).
 
     References
     ----------
@@ -148,6 +151,7 @@ class TrustPolicy(Config):
     singular_ratio: float = fraction(1e-9)
     negligible_weight: float = number(1e-6, least=0.0, below=1.0)
     covariance_normals: int = count(600)
+    noise_neighbours: int = count(10, least=4)
 
 
 #: The policy every judgement uses unless given another.

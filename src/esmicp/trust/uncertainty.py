@@ -273,14 +273,16 @@ def sharing(indices: np.ndarray, weights: np.ndarray | None = None) -> float:
     return float(np.square(np.bincount(indices, weights=weights)).sum()) / squares
 
 
-def surface_noise(points: np.ndarray, at: np.ndarray, tree=None, neighbours: int = 20,
+def surface_noise(points: np.ndarray, at: np.ndarray, tree=None, neighbours: int = 10,
                   workers: int | None = 1) -> float:
     """A cloud's noise variance along its surface normal (cloud units squared): the median, over
     the query points ``at``, of the least eigenvalue of the covariance of their ``neighbours``
     nearest points of ``points`` (the mean square distance to their best-fitting plane), times
     ``k / (k - 3)`` (a plane fitted through ``k`` noisy points absorbs 3 of their degrees of
-    freedom). Curvature within a neighbourhood adds to it, so on smooth, clean clouds it is an
-    upper bound. ``tree``: a :class:`~esmicp.core.compiled_tree.CompiledTree` of ``points``
+    freedom). Curvature within a neighbourhood adds to it (the more, the more neighbours), so on
+    curved, clean clouds it is an upper bound; a noise as large as the point spacing is read low
+    (the nearest points are then chosen by their noise: about 2/3 of the variance at 0.7
+    spacings, 1/3 at 1.1, with 10 neighbours). ``tree``: a :class:`~esmicp.core.compiled_tree.CompiledTree` of ``points``
     (built when None); ``workers``: threads of the neighbour search."""
     from ..core.compiled_tree import CompiledTree
 
@@ -385,7 +387,7 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
     ``exp(-d^2 / (2 sigma^2))`` (all 1 when ``sigma`` is None: ICP); the target normals at the
     matches of ``policy.covariance_normals`` of them come from the ``NORMAL_NEIGHBOURS`` nearest
     target points (as ``esm-plane``), and each cloud's noise (:func:`surface_noise`) from as many
-    of its points and their ``NORMAL_NEIGHBOURS`` nearest; ``policy``: the estimate's values.
+    of its points and their ``policy.noise_neighbours`` nearest; ``policy``: the estimate's values.
     """
     from ..core.procrustes import apply
     from ..core.weights import relative_gaussian_weights
@@ -410,9 +412,9 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
                                     workers=workers)
         normals[chosen] = estimator.at(target[unique])[inverse]
         noise = (surface_noise(source, source[_strided(len(source), policy.covariance_normals)],
-                               neighbours=NORMAL_NEIGHBOURS, workers=workers),
-                 surface_noise(target, target[unique], tree=target_index.exact_tree(), neighbours=NORMAL_NEIGHBOURS,
-                               workers=workers) * sharing(indices, weights))
+                               neighbours=policy.noise_neighbours, workers=workers),
+                 surface_noise(target, target[unique], tree=target_index.exact_tree(),
+                               neighbours=policy.noise_neighbours, workers=workers) * sharing(indices, weights))
     return pose_uncertainty(placed, target[indices], weights, normals, spacing=target_index.spacing(), origin=origin,
                             noise=noise, policy=policy)
 
