@@ -291,7 +291,8 @@ class Table:
             inside = np.mean(np.nan_to_num(values, nan=np.inf) <= CHI2_6_95) if len(values) else math.nan
             done, kept = self.trials.get((name, half), (len(values), len(values)))
             counted = f"{kept} / {done}" if truth != "cycles" else f"{len(values)} cycles"
-            lines.append(f"| {name} | {half} | {truth} | {method} | {counted} | {mean} | {median} | {100 * inside:.0f}% |")
+            lines.append(f"| {name} | {half} | {truth} | {method} | {counted} | {mean} | {median} "
+                         f"| {100 * inside:.0f}% |")
         return "\n".join(lines)
 
 
@@ -399,8 +400,9 @@ def _noise_table(by_noise) -> str:
              "|---|---|---:|---:|---:|---:|"]
     for (name, band), values in sorted(by_noise.items()):
         values = np.array(values, dtype=np.float64)
+        inside = np.mean(np.nan_to_num(values, nan=np.inf) <= CHI2_6_95)
         lines.append(f"| {name} | {band / 3:.2f}-{(band + 1) / 3:.2f} | {len(values)} | {np.nanmean(values):.3g} | "
-                     f"{np.nanmedian(values):.3g} | {100 * np.mean(np.nan_to_num(values, nan=np.inf) <= CHI2_6_95):.0f}% |")
+                     f"{np.nanmedian(values):.3g} | {100 * inside:.0f}% |")
     return "\n".join(lines)
 
 

@@ -282,8 +282,9 @@ def surface_noise(points: np.ndarray, at: np.ndarray, tree=None, neighbours: int
     freedom). Curvature within a neighbourhood adds to it (the more, the more neighbours), so on
     curved, clean clouds it is an upper bound; a noise as large as the point spacing is read low
     (the nearest points are then chosen by their noise: about 2/3 of the variance at 0.7
-    spacings, 1/3 at 1.1, with 10 neighbours). ``tree``: a :class:`~esmicp.core.compiled_tree.CompiledTree` of ``points``
-    (built when None); ``workers``: threads of the neighbour search."""
+    spacings, 1/3 at 1.1, with 10 neighbours). ``tree``: a
+    :class:`~esmicp.core.compiled_tree.CompiledTree` of ``points`` (built when None); ``workers``:
+    threads of the neighbour search."""
     from ..core.compiled_tree import CompiledTree
 
     points = np.asarray(points, dtype=np.float64)
