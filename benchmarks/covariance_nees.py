@@ -323,6 +323,7 @@ def main(argv=None) -> int:
     parser.add_argument("--plot", type=Path, help="write a PNG of predicted against observed errors (esmicp)")
     parser.add_argument("--doc", type=Path, help="rewrite the generated part of this page (docs/uncertainty.md)")
     args = parser.parse_args(argv)
+    began = time.perf_counter()
     rng = np.random.default_rng(args.seed)
     names = args.sets.split(",")
     table, shares, by_noise = Table(), [], {}
@@ -384,7 +385,8 @@ def main(argv=None) -> int:
         f"spacings from the truth; kitchen truth error {KITCHEN_TRUTH_DEG:g} deg and {100 * KITCHEN_TRUTH_M:g} cm "
         "per axis.", "", table.markdown(), "", _noise_table(by_noise), "",
         f"Cost of the covariance: median {100 * np.median(shares):.1f}% of the registration that computed it "
-        f"(max {100 * shares.max():.1f}%), {len(shares)} registrations from a given start, one thread."])
+        f"(max {100 * shares.max():.1f}%), {len(shares)} registrations from a given start, one thread; the whole "
+        f"run {(time.perf_counter() - began) / 60:.0f} minutes{' with the peers' if args.peers else ''}."])
     print(text)
     if args.plot is not None:
         _plot(table.points, args.plot)
@@ -423,7 +425,7 @@ def _plot(points, path: Path) -> None:
     import matplotlib.ticker
 
     figure, axes = plt.subplots(1, 2, figsize=(8, 3.6))
-    labels = ("rotation (deg)", "translation (target point spacings)")
+    labels = ("rotation (deg)", "translation (spacings)")
     for panel, (axis, label) in enumerate(zip(axes, labels)):
         for set_name in sorted({name for name, *_ in points}):
             chosen = [(e, s, spacing) for name, e, s, spacing in points if name == set_name]
