@@ -1,29 +1,53 @@
-"""Calibration of the pose covariance: NEES of esmicp, Open3D and small_gicp on the same trials.
+"""Calibration of the pose covariance: NEES on whole objects, cut objects and real scan pairs.
 
-For each trial a source and a target are made from a real scan with an exactly known pose
-(``exact`` sets: two disjoint random resamples of one scan, each with its own Gaussian noise,
-cropped by random planes, some with the bench's outlier noise, the source moved by a random pose),
-or taken from a real pair with its recorded ground truth (``real-GT`` sets, whose truth has its own
-error). Every method starts from the same perturbed pose. With ``e`` the left error vector of the
-result (``T_true = Exp(e) @ T_est``, rotation vector then translation, target frame),
-``NEES = e^T Sigma^-1 e``; a calibrated 6x6 covariance gives a mean of 6 and 95% of trials below
-the chi-square(6) 95% bound (12.59).
+Sets (each a choice half, on which ``TrustPolicy.border_spacings`` and ``TrustPolicy.inflation``
+were chosen, and a confirmation half):
 
-Peers: Open3D point-to-plane ICP and its ``get_information_matrix_from_point_clouds`` (inverse
-taken as the covariance: as returned, i.e. unit noise, and scaled by the per-axis mean square of
-the inlier distances, ``inlier_rmse^2 / 3``); small_gicp GICP and its Hessian ``H`` (``H^-1`` as
-returned, and scaled by the mean squared Mahalanobis residual ``2 error / (3 inliers - 6)``),
-mapped from its right (source-frame) perturbation to the left one.
+- ``objects``: a ModelNet40 shape (10,000 points) split into two disjoint random halves, each with
+  its own Gaussian noise (0-1 point spacing), the source moved by a random pose (any rotation);
+  the truth is exact. Choice: the 12 shapes of ``modelnet40``; confirmation: shapes of
+  ``modelnet40_extra``.
+- ``cut objects``: the same, each half then cut by its own random plane to 70% of its points
+  (a partial overlap; the truth is exact).
+- ``kitchen``: depth frames of the kitchen walk (``sequences/redkitchen_seq01_every10``), triplets
+  ``a, b, c`` of frames 10-20 apart (pairs 10-40 apart), each pair registered; the truth is the
+  dataset's KinectFusion tracking, good to about a centimetre. Choice: frames 0-490; confirmation:
+  frames 500-990.
+- ``bunny``: the Stanford bunny's raw scans, every pair overlapping by at least half, truth from
+  ``bun.conf`` (confirmation only).
 
-    python benchmarks/covariance_nees.py --trials 20 [--plot docs/images/covariance_predicted_observed.png]
+With ``e`` the left error vector of the result (``T_true = Exp(e) @ T_est``, rotation vector then
+translation, target frame), ``NEES = e^T Sigma^-1 e``; a calibrated covariance gives a mean of 6
+and 95% of trials below the chi-square(6) 95% bound (12.59). Only trusted results count (the
+covariance describes the local optimum a trusted pose sits in).
 
-Prints Markdown. Timings are ratios within the run (the covariance's cost over the registration
-that computed it).
+A real truth has its own error, which the NEES charges to the covariance. Two ways around it:
+
+- ``+ truth error``: the kitchen truth's error modelled as independent, ``KITCHEN_TRUTH_DEG`` and
+  ``KITCHEN_TRUTH_M`` per axis, added to the predicted covariance;
+- ``cycles`` (no truth at all): for three scans registered pairwise, ``T_ab @ T_bc`` against
+  ``T_ac``, whose covariance is the sum of the three (first order). An error common to the three
+  registrations (a scan's own distortion, seen by both of its pairs) cancels in a cycle, so the
+  cycle NEES is a lower bound of the pairs' own.
+
+Peers (``--peers``): Open3D point-to-plane ICP and its ``get_information_matrix_from_point_clouds``
+(inverse taken as the covariance: as returned, i.e. unit noise, and scaled by the per-axis mean
+square of the inlier distances, ``inlier_rmse^2 / 3``); small_gicp GICP and its Hessian ``H``
+(``H^-1`` as returned, and scaled by the mean squared Mahalanobis residual ``2 error / (3 inliers
+- 6)``), mapped from its right (source-frame) perturbation to the left one.
+
+    python benchmarks/covariance_nees.py [--peers] [--plot docs/images/covariance_predicted_observed.png]
+        [--doc docs/uncertainty.md]
+
+Prints Markdown; ``--doc`` rewrites the generated part of that page (between its
+``<!-- covariance_nees -->`` markers). Timings are ratios within the run (the covariance's cost
+over the registration that computed it).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import sys
 import time
@@ -35,9 +59,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 import esmicp  # noqa: E402
 from esmicp.trust import uncertainty  # noqa: E402
-from esmicp_lab.bench.protocols import paper_noise  # noqa: E402
 from esmicp.core.correspondence import NearestNeighbors  # noqa: E402
-from esmicp.core.procrustes import apply, bounding_box_diagonal, skew  # noqa: E402
+from esmicp.core.procrustes import apply, skew  # noqa: E402
 from esmicp.metrics import random_rotation  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -47,6 +70,17 @@ CHI2_6_95 = 12.591587243743977
 #: many target spacings (random directions).
 START_DEGREES = 3.0
 START_SPACINGS = 8.0
+#: Share of its points each half of a cut object keeps (a random plane's side).
+CUT_KEEP = 0.7
+#: The kitchen truth's error per axis (degrees, metres): the sequence's README finds ICP from it
+#: moving 0.2-0.5 degrees and 5-12 mm per pair, "good to about a centimetre".
+KITCHEN_TRUTH_DEG = 0.3
+KITCHEN_TRUTH_M = 0.01
+#: Bunny scan pairs used: those of which at least this share of the source lies within 3 target
+#: spacings of the target at the truth.
+BUNNY_MIN_OVERLAP = 0.5
+#: Markers of the generated part of the results page.
+DOC_BEGIN, DOC_END = "<!-- covariance_nees: begin -->", "<!-- covariance_nees: end -->"
 
 
 def spacing_of(points: np.ndarray) -> float:
@@ -61,84 +95,68 @@ def random_pose(rng, degrees: float, distance: float) -> np.ndarray:
     return pose
 
 
-def exact_trial(cloud: np.ndarray, rng: np.random.Generator, points: int):
-    """Two disjoint resamples of ``cloud`` with their own noise, each cut by a random plane, the source
-    moved by a random pose; a third of the trials add the bench's outlier noise to 20% of the source.
-    Returns ``(source, target, truth, noise)``: ``noise`` the added noise's standard deviation in
-    point spacings of ``cloud`` (uniform in 0-1)."""
-    spacing = spacing_of(cloud)
-    order = rng.permutation(len(cloud))
-    half = min(points, len(cloud) // 2)
-    source, target = cloud[order[:half]].astype(np.float64), cloud[order[half:2 * half]].astype(np.float64)
-    fraction = rng.uniform(0.0, 1.0)
-    noise = fraction * spacing
-    source = source + rng.normal(0.0, noise, source.shape)
-    target = target + rng.normal(0.0, noise, target.shape)
-    source, target = _cut(source, rng, 0.75), _cut(target, rng, 0.75)
-    if rng.uniform() < 1 / 3:
-        source, _ = paper_noise(source, 0.2, rng, 0.5 * bounding_box_diagonal(cloud))
-    truth = random_pose(rng, 180.0, 0.5 * bounding_box_diagonal(cloud))
-    source = apply(np.linalg.inv(truth), source)  # truth maps the source back onto the target
-    return source, target, truth, fraction
-
-
 def _cut(points: np.ndarray, rng, keep: float) -> np.ndarray:
     normal = rng.normal(size=3)
     heights = (points - points.mean(axis=0)) @ (normal / np.linalg.norm(normal))
     return points[heights <= np.quantile(heights, keep)]
 
 
-def kitchen_frames():
-    from esmicp_lab.bench.sequences import read_poses
+def object_trial(path: Path, rng: np.random.Generator, keep: float):
+    """Two disjoint random halves of a ModelNet40 shape, each with its own Gaussian noise (0-1 point
+    spacing), each cut to ``keep`` of its points by a random plane (1: whole), the source moved by
+    a random pose. Returns ``(source, target, truth, fraction)``: the noise's standard deviation is
+    ``fraction`` (uniform in 0-1) point spacings of the shape."""
+    cloud = np.loadtxt(path, delimiter=",", usecols=(0, 1, 2))
+    fraction = rng.uniform(0.0, 1.0)
+    noise = fraction * spacing_of(cloud)
+    order = rng.permutation(len(cloud))
+    half = len(cloud) // 2
+    source, target = cloud[order[:half]], cloud[order[half:2 * half]]
+    source = source + rng.normal(0.0, noise, source.shape)
+    target = target + rng.normal(0.0, noise, target.shape)
+    if keep < 1.0:
+        source, target = _cut(source, rng, keep), _cut(target, rng, keep)
+    truth = random_pose(rng, 180.0, 1.0)
+    return apply(np.linalg.inv(truth), source), target, truth, fraction
+
+
+def shapes(folder: str, count: int | None, rng) -> list[Path]:
+    paths = sorted((DATA / folder).glob("*/*.txt"))
+    if count is not None and count < len(paths):
+        paths = [paths[k] for k in sorted(rng.choice(len(paths), size=count, replace=False))]
+    return paths
+
+
+def kitchen_triplets(first: int, last: int, count: int, rng):
+    """``count`` triplets of kept kitchen frames ``a, b, c`` (frame numbers in ``first..last``), b
+    10 or 20 frames after a and c 10 or 20 after b: ``(names, {name: points}, {name: T_world})``."""
+    from esmicp_lab.bench.sequences import read_frame, read_poses
 
     folder = DATA / "sequences" / "redkitchen_seq01_every10"
-    return folder / "frames", read_poses(folder)
+    poses = read_poses(folder)
+    names = [name for name in sorted(poses) if first <= int(name.split("-")[-1]) <= last]
+    for k in rng.choice(len(names) - 4, size=count, replace=False):
+        b = k + int(rng.integers(1, 3))
+        c = b + int(rng.integers(1, 3))
+        triplet = (names[k], names[b], names[c])
+        yield triplet, {name: read_frame(folder, name) for name in triplet}, {name: poses[name] for name in triplet}
 
 
-def real_pairs():
-    from esmicp_lab.bench.real_pairs import load_pair, read_pairs
+def bunny_scans():
+    """``({name: points}, {name: T_world}, [(target, source)])``: the bunny's scans and their
+    pairs overlapping by at least ``BUNNY_MIN_OVERLAP`` at the truth."""
+    from esmicp.io.stanford_conf import load_scans
 
-    for pair in read_pairs(DATA / "real_pairs"):
-        if pair.dataset == "kitti_00":
-            continue  # its ground truth is coarse (0.18 m): no use for a covariance
-        source, target, truth = load_pair(pair, bin_columns=3)
-        yield pair.dataset, source, target, truth
-
-
-def trial_sets(count: int, rng: np.random.Generator, names: list[str], points_scale: float = 1.0):
-    """``{set name: [(source, target, truth, kind, noise)]}`` (``noise``: :func:`exact_trial`'s, None
-    for real pairs). ``points_scale`` scales the resamples' sizes (15,000 points of the 3DMatch
-    fragment's 80,000, 8,000 of a kitchen frame's about 17,000), each at most half of its scan."""
-    sets = {}
-    frames, poses = kitchen_frames()
-    if "3dmatch-resampled" in names:
-        import esmicp.io as io
-
-        cloud = io.read_points(DATA / "real_pairs" / "3dmatch_redkitchen" / "cloud_bin_0.ply")
-        cloud = cloud[rng.permutation(len(cloud))[:80_000]]
-        sets["3dmatch-resampled"] = [_exact(exact_trial(cloud, rng, round(15_000 * points_scale))) for _ in range(count)]
-    if "kitchen-resampled" in names:
-        chosen = rng.choice(sorted(poses), size=count, replace=False)
-        sets["kitchen-resampled"] = [
-            _exact(exact_trial(np.load(frames / f"{name}.npy").astype(np.float64), rng, round(8_000 * points_scale))) for name in chosen]
-    if "kitchen-walk-GT" in names:
-        ordered = sorted(poses)
-        trials = []
-        for k in rng.choice(len(ordered) - 1, size=count, replace=False):
-            a, b = ordered[k], ordered[k + 1]
-            truth = np.linalg.inv(poses[a]) @ poses[b]
-            trials.append((np.load(frames / f"{b}.npy").astype(np.float64), np.load(frames / f"{a}.npy").astype(np.float64),
-                           truth, "real-GT", None))
-        sets["kitchen-walk-GT"] = trials
-    if "real-pairs-GT" in names:
-        for dataset, source, target, truth in real_pairs():
-            sets.setdefault(f"real_pairs {dataset}", []).append((source, target, truth, "real-GT", None))
-    return sets
-
-
-def _exact(trial):
-    source, target, truth, noise = trial
-    return source, target, truth, "exact", noise
+    scans = load_scans(DATA / "bunny_scans")
+    points = {name: value[0] for name, value in scans.items()}
+    poses = {name: value[1] for name, value in scans.items()}
+    pairs = []
+    for a, b in itertools.combinations(scans, 2):
+        index = NearestNeighbors(points[a], workers=1)
+        distances, _ = index.query(apply(np.linalg.inv(poses[a]) @ poses[b], points[b][::10]))
+        if np.mean(distances < 3 * index.spacing()) >= BUNNY_MIN_OVERLAP:
+            pairs.append((a, b))
+    return points, poses, pairs
 
 
 def nees(error: np.ndarray, covariance: np.ndarray | None) -> float:
@@ -149,6 +167,17 @@ def nees(error: np.ndarray, covariance: np.ndarray | None) -> float:
         return math.inf
     projected = vectors.T @ error
     return float(np.sum(projected ** 2 / values))
+
+
+def adjoint(pose: np.ndarray) -> np.ndarray:
+    """The 6x6 ``A`` with ``pose @ Exp(delta) = Exp(A @ delta) @ pose`` (rotation vector, then
+    translation): a perturbation of the factor right of ``pose``, seen on the left."""
+    matrix = np.zeros((6, 6))
+    rotation, translation = pose[:3, :3], pose[:3, 3]
+    matrix[:3, :3] = rotation
+    matrix[3:, 3:] = rotation
+    matrix[3:, :3] = skew(translation) @ rotation
+    return matrix
 
 
 class _Timed:
@@ -165,30 +194,22 @@ class _Timed:
             self.seconds += time.perf_counter() - began
 
 
-def run_ours(source, target, start):
-    """``(estimate, {name: covariance}, share)``: ``share`` is the covariance's part of the run time."""
-    timed = _Timed()
-    uncertainty.from_registration = timed
-    try:
-        result = esmicp.register(source, target, init=start, workers=1)
-    finally:
-        uncertainty.from_registration = timed.inner
-    return result.transformation, {"esmicp": result.covariance}, timed.seconds / result.runtime_s
+class Run:
+    """One registration from a perturbed start: the estimate, the covariance, the verdict."""
 
-
-def global_cost(trials, count: int) -> np.ndarray:
-    """The covariance's share of the run time of default registrations (global search) of the
-    first ``count`` trials."""
-    shares = []
-    for source, target, *_ in trials[:count]:
+    def __init__(self, source, target, truth, rng):
+        self.spacing = spacing_of(target)
+        start = random_pose(rng, START_DEGREES, START_SPACINGS * self.spacing) @ truth
         timed = _Timed()
         uncertainty.from_registration = timed
         try:
-            result = esmicp.register(source, target, workers=1)
+            result = esmicp.register(source, target, init=start, workers=1)
         finally:
             uncertainty.from_registration = timed.inner
-        shares.append(timed.seconds / result.runtime_s)
-    return np.array(shares)
+        self.source, self.target, self.truth, self.start = source, target, truth, start
+        self.estimate, self.covariance, self.trusted = result.transformation, result.covariance, result.trusted
+        self.share = timed.seconds / result.runtime_s
+        self.error = uncertainty.left_error(truth, self.estimate)
 
 
 def run_open3d(source, target, start, spacing):
@@ -239,74 +260,161 @@ def _inverse(matrix):
     return inverse if np.all(np.isfinite(inverse)) else None
 
 
+def cycle(ab: Run, bc: Run, ac: Run) -> tuple[np.ndarray, np.ndarray]:
+    """``(error, covariance)`` of ``T_ab @ T_bc`` against ``T_ac`` (left error, frame a)."""
+    error = uncertainty.left_error(ab.estimate @ bc.estimate, ac.estimate)
+    moved = adjoint(ab.estimate)
+    return error, ab.covariance + moved @ bc.covariance @ moved.T + ac.covariance
+
+
+class Table:
+    """NEES values per ``(set, half, truth, method)``, and the points of the plot."""
+
+    def __init__(self):
+        self.rows, self.points, self.trials = {}, [], {}
+
+    def add(self, key, value):
+        self.rows.setdefault(key, []).append(value)
+
+    def count(self, key, trusted: bool):
+        done, kept = self.trials.get(key, (0, 0))
+        self.trials[key] = (done + 1, kept + int(trusted))
+
+    def markdown(self) -> str:
+        lines = ["| set | half | truth | method | trusted / trials | mean NEES | median NEES | inside chi2(6) 95% |",
+                 "|---|---|---|---|---:|---:|---:|---:|"]
+        for (name, half, truth, method), values in self.rows.items():
+            values = np.array(values, dtype=np.float64)
+            valid = values[np.isfinite(values)]
+            mean = f"{valid.mean():.3g}" if len(valid) else "n/a"
+            median = f"{np.median(valid):.3g}" if len(valid) else "n/a"
+            inside = np.mean(np.nan_to_num(values, nan=np.inf) <= CHI2_6_95) if len(values) else math.nan
+            done, kept = self.trials.get((name, half), (len(values), len(values)))
+            counted = f"{kept} / {done}" if truth != "cycles" else f"{len(values)} cycles"
+            lines.append(f"| {name} | {half} | {truth} | {method} | {counted} | {mean} | {median} "
+                         f"| {100 * inside:.0f}% |")
+        return "\n".join(lines)
+
+
+def score(table: Table, name: str, half: str, truth: str, run: Run, peers: bool, extra=None):
+    """Add one trusted run's NEES (esmicp, plus the peers from the same start), and its plot point."""
+    extra = np.zeros((6, 6)) if extra is None else extra
+    table.add((name, half, truth, "esmicp"), nees(run.error, run.covariance + extra))
+    if truth == "exact":
+        table.points.append((name, np.abs(run.error), np.sqrt(np.diag(run.covariance)), run.spacing))
+    if not peers:
+        return
+    for peer in (run_open3d, run_small_gicp):
+        estimate, covariances = peer(run.source, run.target, run.start, run.spacing)
+        error = uncertainty.left_error(run.truth, estimate)
+        for method, covariance in covariances.items():
+            table.add((name, half, truth, method), nees(error, None if covariance is None else covariance + extra))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--trials", type=int, default=20, help="trials per exact set (default 20)")
-    parser.add_argument("--starts", type=int, default=2, help="perturbed starts per real-GT pair (default 2)")
+    parser.add_argument("--objects", type=int, default=2, help="trials per shape of the choice half (default 2)")
+    parser.add_argument("--shapes", type=int, default=None, help="paper shapes used (default: all 12)")
+    parser.add_argument("--extra", type=int, default=24, help="modelnet40_extra shapes, one trial each (default 24)")
+    parser.add_argument("--triplets", type=int, default=6, help="kitchen triplets per half (default 6)")
+    parser.add_argument("--sets", default="objects,cut,kitchen,bunny", help="of objects, cut, kitchen, bunny")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--sets", default="3dmatch-resampled,kitchen-resampled,kitchen-walk-GT,real-pairs-GT")
-    parser.add_argument("--no-peers", action="store_true", help="esmicp only")
-    parser.add_argument("--points-scale", type=float, default=1.0,
-                        help="scale the exact sets' resample sizes (default 1: 15,000 and 8,000 points)")
-    parser.add_argument("--global-cost", type=int, default=0, help="also time N default (global) registrations")
+    parser.add_argument("--peers", action="store_true", help="also Open3D's and small_gicp's matrices")
     parser.add_argument("--plot", type=Path, help="write a PNG of predicted against observed errors (esmicp)")
+    parser.add_argument("--doc", type=Path, help="rewrite the generated part of this page (docs/uncertainty.md)")
     args = parser.parse_args(argv)
+    began = time.perf_counter()
     rng = np.random.default_rng(args.seed)
     names = args.sets.split(",")
-    sets = trial_sets(args.trials, rng, names, args.points_scale)
-    table, ratios, points, by_noise = {}, [], [], {}
-    for set_name, trials in sets.items():
-        for source, target, truth, kind, noise in trials:
-            spacing = spacing_of(target)
-            for _ in range(args.starts if kind == "real-GT" else 1):
-                start = random_pose(rng, START_DEGREES, START_SPACINGS * spacing) @ truth
-                runs = []
-                estimate, covariances, ratio = run_ours(source, target, start)
-                ratios.append(ratio)
-                runs.append((estimate, covariances))
-                if not args.no_peers:
-                    runs.append(run_open3d(source, target, start, spacing))
-                    runs.append(run_small_gicp(source, target, start, spacing))
-                for estimate, covariances in runs:
-                    error = uncertainty.left_error(truth, estimate)
-                    for peer, covariance in covariances.items():
-                        table.setdefault((set_name, kind, peer), []).append(nees(error, covariance))
-                        if peer == "esmicp" and covariance is not None:
-                            points.append((set_name, np.abs(error), np.sqrt(np.diag(covariance))))
-                        if peer == "esmicp" and noise is not None:
-                            band = min(int(3 * noise), 2)
-                            by_noise.setdefault((set_name, band), []).append(nees(error, covariance))
-    print(f"Trials: {args.trials} per exact set (resample sizes x{args.points_scale:g}), {args.starts} starts per "
-          f"real-GT pair, seed {args.seed}; "
-          f"start {START_DEGREES:g} deg and {START_SPACINGS:g} target spacings from the truth.\n")
-    print("| set | truth | method | trials | mean NEES | median NEES | inside chi2(6) 95% |")
-    print("|---|---|---|---:|---:|---:|---:|")
-    for (set_name, kind, peer), values in table.items():
-        values = np.array(values, dtype=np.float64)
-        valid = values[np.isfinite(values)]
-        mean = f"{valid.mean():.3g}" if len(valid) else "n/a"
-        median = f"{np.median(valid):.3g}" if len(valid) else "n/a"
-        inside = np.mean(np.nan_to_num(values, nan=np.inf) <= CHI2_6_95)
-        print(f"| {set_name} | {kind} | {peer} | {len(values)} | {mean} | {median} | {100 * inside:.0f}% |")
-    if by_noise:
-        print("\nesmicp on the exact sets, by the added noise (standard deviation, in point spacings):\n")
-        print("| set | added noise | trials | mean NEES | median NEES | inside chi2(6) 95% |")
-        print("|---|---|---:|---:|---:|---:|")
-        for (set_name, band), values in sorted(by_noise.items()):
-            values = np.array(values, dtype=np.float64)
-            print(f"| {set_name} | {band / 3:.2f}-{(band + 1) / 3:.2f} | {len(values)} | {np.nanmean(values):.3g} | "
-                  f"{np.nanmedian(values):.3g} | {100 * np.mean(np.nan_to_num(values, nan=np.inf) <= CHI2_6_95):.0f}% |")
-    ratios = np.array(ratios)
-    print(f"\nCost of the covariance (esmicp): median {100 * np.median(ratios):.1f}% of the registration that "
-          f"computed it (max {100 * ratios.max():.1f}%), {len(ratios)} registrations from a given start, one thread.")
-    if args.global_cost:
-        first = next(iter(sets.values()))
-        shares = global_cost(first, args.global_cost)
-        print(f"With the default global search ({len(shares)} trials of {next(iter(sets))}): median "
-              f"{100 * np.median(shares):.2f}% (max {100 * shares.max():.2f}%).")
+    table, shares, by_noise = Table(), [], {}
+    for kind, keep in (("objects", 1.0), ("cut", CUT_KEEP)):
+        if kind not in names:
+            continue
+        name = "whole objects" if keep == 1.0 else f"cut objects ({CUT_KEEP:.0%})"
+        for half, paths in (("choice", shapes("modelnet40", args.shapes, rng) * args.objects),
+                            ("confirmation", shapes("modelnet40_extra", args.extra, rng))):
+            for path in paths:
+                source, target, truth, fraction = object_trial(path, rng, keep)
+                run = Run(source, target, truth, rng)
+                shares.append(run.share)
+                table.count((name, half), run.trusted)
+                if run.trusted:
+                    score(table, name, half, "exact", run, args.peers)
+                    band = min(int(3 * fraction), 2)
+                    by_noise.setdefault((name, band), []).append(nees(run.error, run.covariance))
+    if "kitchen" in names:
+        truth_error = np.diag([math.radians(KITCHEN_TRUTH_DEG) ** 2] * 3 + [KITCHEN_TRUTH_M ** 2] * 3)
+        for half, (first, last) in (("choice", (0, 490)), ("confirmation", (500, 990))):
+            runs = []
+            for (a, b, c), frames, poses in kitchen_triplets(first, last, args.triplets, rng):
+                triplet = []
+                for target, source in ((a, b), (b, c), (a, c)):
+                    run = Run(frames[source], frames[target], np.linalg.inv(poses[target]) @ poses[source], rng)
+                    shares.append(run.share)
+                    table.count(("kitchen pairs", half), run.trusted)
+                    triplet.append(run)
+                runs.append(triplet)
+            for triplet in runs:
+                for run in (r for r in triplet if r.trusted):
+                    score(table, "kitchen pairs", half, "recorded", run, False)
+            for triplet in runs:
+                for run in (r for r in triplet if r.trusted):
+                    score(table, "kitchen pairs", half, "recorded + truth error", run, args.peers, truth_error)
+            for triplet in runs:
+                if all(run.trusted for run in triplet):
+                    error, covariance = cycle(*triplet)
+                    table.add(("kitchen pairs", half, "cycles", "esmicp"), nees(error, covariance))
+    if "bunny" in names:
+        points, poses, pairs = bunny_scans()
+        runs = {}
+        for target, source in pairs:
+            run = Run(points[source], points[target], np.linalg.inv(poses[target]) @ poses[source], rng)
+            shares.append(run.share)
+            table.count(("bunny scan pairs", "confirmation"), run.trusted)
+            if run.trusted:
+                runs[(target, source)] = run
+                score(table, "bunny scan pairs", "confirmation", "recorded", run, args.peers)
+        for a, b, c in itertools.combinations(list(points), 3):
+            if all(key in runs for key in ((a, b), (b, c), (a, c))):
+                error, covariance = cycle(runs[(a, b)], runs[(b, c)], runs[(a, c)])
+                table.add(("bunny scan pairs", "confirmation", "cycles", "esmicp"), nees(error, covariance))
+    shares = np.array(shares)
+    text = "\n".join([
+        f"Seed {args.seed}; {args.objects} trial(s) per paper shape, {args.extra} `modelnet40_extra` shapes, "
+        f"{args.triplets} kitchen triplets per half; every start {START_DEGREES:g} deg and {START_SPACINGS:g} target "
+        f"spacings from the truth; kitchen truth error {KITCHEN_TRUTH_DEG:g} deg and {100 * KITCHEN_TRUTH_M:g} cm "
+        "per axis.", "", table.markdown(), "", _noise_table(by_noise), "",
+        f"Cost of the covariance: median {100 * np.median(shares):.1f}% of the registration that computed it "
+        f"(max {100 * shares.max():.1f}%), {len(shares)} registrations from a given start, one thread; the whole "
+        f"run {(time.perf_counter() - began) / 60:.0f} minutes{' with the peers' if args.peers else ''}."])
+    print(text)
     if args.plot is not None:
-        _plot(points, args.plot)
+        _plot(table.points, args.plot)
+    if args.doc is not None:
+        _write_doc(args.doc, text)
     return 0
+
+
+def _noise_table(by_noise) -> str:
+    """esmicp's NEES on the object sets (both halves) by the added noise."""
+    lines = ["esmicp on the objects (both halves), by the added noise (standard deviation, in point spacings):", "",
+             "| set | added noise | trusted trials | mean NEES | median NEES | inside chi2(6) 95% |",
+             "|---|---|---:|---:|---:|---:|"]
+    for (name, band), values in sorted(by_noise.items()):
+        values = np.array(values, dtype=np.float64)
+        inside = np.mean(np.nan_to_num(values, nan=np.inf) <= CHI2_6_95)
+        lines.append(f"| {name} | {band / 3:.2f}-{(band + 1) / 3:.2f} | {len(values)} | {np.nanmean(values):.3g} | "
+                     f"{np.nanmedian(values):.3g} | {100 * inside:.0f}% |")
+    return "\n".join(lines)
+
+
+def _write_doc(path: Path, text: str) -> None:
+    page = path.read_text(encoding="utf-8")
+    if DOC_BEGIN not in page or DOC_END not in page:
+        raise SystemExit(f"{path}: no generated part (the markers {DOC_BEGIN} and {DOC_END})")
+    before, rest = page.split(DOC_BEGIN, 1)
+    after = rest.split(DOC_END, 1)[1]
+    path.write_text(f"{before}{DOC_BEGIN}\n{text}\n{DOC_END}{after}", encoding="utf-8")
 
 
 def _plot(points, path: Path) -> None:
@@ -317,13 +425,17 @@ def _plot(points, path: Path) -> None:
     import matplotlib.ticker
 
     figure, axes = plt.subplots(1, 2, figsize=(8, 3.6))
-    labels = ("rotation (deg)", "translation (cloud units)")
+    labels = ("rotation (deg)", "translation (spacings)")
     for panel, (axis, label) in enumerate(zip(axes, labels)):
-        for set_name in sorted({name for name, _, _ in points}):
-            observed = np.concatenate([e[3 * panel:3 * panel + 3] for name, e, _ in points if name == set_name])
-            predicted = np.concatenate([s[3 * panel:3 * panel + 3] for name, _, s in points if name == set_name])
+        for set_name in sorted({name for name, *_ in points}):
+            chosen = [(e, s, spacing) for name, e, s, spacing in points if name == set_name]
+            observed = np.concatenate([e[3 * panel:3 * panel + 3] for e, _, _ in chosen])
+            predicted = np.concatenate([s[3 * panel:3 * panel + 3] for _, s, _ in chosen])
             if panel == 0:
                 observed, predicted = np.degrees(observed), np.degrees(predicted)
+            else:
+                scale = np.repeat([spacing for _, _, spacing in chosen], 3)
+                observed, predicted = observed / scale, predicted / scale
             axis.loglog(predicted, observed, ".", ms=3, label=set_name, alpha=0.7)
         low, high = axis.get_xlim()
         grid = np.geomspace(low, high, 10)

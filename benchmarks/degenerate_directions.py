@@ -76,9 +76,10 @@ def real_pairs():
 
 
 def kitchen_pairs(step: int = 10):
-    from covariance_nees import kitchen_frames
+    from esmicp_lab.bench.sequences import read_poses
 
-    frames, poses = kitchen_frames()
+    folder = DATA / "sequences" / "redkitchen_seq01_every10"
+    frames, poses = folder / "frames", read_poses(folder)
     names = sorted(poses)
     for a, b in zip(names[::step], names[step // 2::step]):
         truth = np.linalg.inv(poses[a]) @ poses[b]

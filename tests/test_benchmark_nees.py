@@ -13,15 +13,22 @@ from conftest import require_module, require_shared
 BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "covariance_nees.py"
 
 
-def test_one_trial_with_the_peers_prints_every_row():
-    require_shared("real_pairs/3dmatch_redkitchen/cloud_bin_0.ply")
-    require_shared("sequences/redkitchen_seq01_every10")
+def test_one_trial_per_half_with_the_peers_prints_every_row(tmp_path):
+    require_shared("modelnet40")
+    require_shared("modelnet40_extra")
     require_module("open3d", "baselines")
     require_module("small_gicp", "baselines")
-    done = subprocess.run([sys.executable, str(BENCHMARK), "--trials", "1", "--sets", "3dmatch-resampled"],
-                          capture_output=True, text=True)
+    page = tmp_path / "page.md"
+    page.write_text("# Title\n\nbefore\n<!-- covariance_nees: begin -->\nold\n<!-- covariance_nees: end -->\nafter\n")
+    done = subprocess.run([sys.executable, str(BENCHMARK), "--shapes", "1", "--objects", "1", "--extra", "1",
+                           "--sets", "objects", "--peers", "--doc", str(page)], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-3000:]
     out = done.stdout
-    for method in ("esmicp", "Open3D (as returned)", "small_gicp H^-1 (as returned)"):
-        assert f"| 3dmatch-resampled | exact | {method} | 1 |" in out
+    for half in ("choice", "confirmation"):
+        for method in ("esmicp", "Open3D (as returned)", "small_gicp H^-1 (as returned)"):
+            assert f"| whole objects | {half} | exact | {method} |" in out
     assert "by the added noise" in out
+    # The page's generated part is the table printed, the rest of the page untouched.
+    text = page.read_text()
+    assert "old" not in text and "before" in text and "after" in text
+    assert "| whole objects | choice | exact | esmicp |" in text

@@ -290,3 +290,124 @@ def test_a_real_surface_that_slides_is_reported_along_its_slide():
         return abs(float((moved[:3, 3] - truth[:3, 3]) @ direction))
 
     assert max(left_after(along), left_after(-along)) > 0.03
+
+
+# --- The covariance's contract: it means what it says, and moves with the data as it should. ---
+
+def ellipsoid(count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``(points, unit normals)`` spread over an ellipsoid of radii 1.0 / 0.6 / 0.4: every pose
+    direction constrained, the normals known exactly."""
+    radii = np.array([1.0, 0.6, 0.4])
+    directions = rng.normal(size=(count, 3))
+    points = directions / np.linalg.norm(directions, axis=1, keepdims=True) * radii
+    normals = points / radii ** 2
+    return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def test_predicted_spread_matches_the_spread_over_noise_draws():
+    """A synthetic pair with known isotropic noise (0.01, about half a point spacing, on both clouds),
+    both clouds sampled afresh for each of 16 draws and registered: the observed RMS rotation and
+    translation errors match the predicted standard deviations within a factor of 2 (neither far
+    too sure nor far too cautious)."""
+    truth = pose([1, 2, 0.5], 40.0, [0.3, -0.2, 0.1])
+    rotation_errors, translation_errors, rotation_std, translation_std = [], [], [], []
+    for seed in range(16):
+        rng = np.random.default_rng(seed)
+        target = asymmetric_shape(1500, rng) + rng.normal(0.0, 0.01, (1500, 3))
+        surface = asymmetric_shape(1500, rng) + rng.normal(0.0, 0.01, (1500, 3))
+        result = esmicp.register(apply(np.linalg.inv(truth), surface), target, init=truth, workers=1)
+        error = uncertainty.left_error(truth, result.transformation)
+        rotation_errors.append(error[:3])
+        translation_errors.append(error[3:])
+        deviations = np.sqrt(np.diag(result.covariance))
+        rotation_std.append(deviations[:3])
+        translation_std.append(deviations[3:])
+    for errors, predicted in ((rotation_errors, rotation_std), (translation_errors, translation_std)):
+        observed = np.sqrt(np.mean(np.square(errors)))
+        ratio = observed / np.sqrt(np.mean(np.square(predicted)))
+        assert 1 / 2 < ratio < 2, ratio
+
+
+def test_covariance_scales_with_the_noise_variance():
+    """Every residual and the clouds' noise twice as large: the covariance four times as large."""
+    rng = np.random.default_rng(5)
+    placed, normals = ellipsoid(3000, rng)
+    offsets = rng.normal(0.0, 1.0, placed.shape)
+    single, double = (uncertainty.pose_uncertainty(placed, placed - scale * 0.002 * offsets, None, normals,
+                                                   spacing=0.03, noise=((scale * 0.002) ** 2,) * 2).covariance
+                      for scale in (1.0, 2.0))
+    assert np.allclose(double, 4.0 * single, rtol=1e-9, atol=0.0)
+
+
+def test_covariance_falls_as_one_over_the_number_of_independent_pairs():
+    """Four times as many pairs, each with its own independent noise, over the same surface: the
+    covariance about a quarter as large. (Cubes of 2 spacings: thousands of clusters, so that the
+    cluster-robust estimate is itself steady; with independent residuals its expectation does not
+    depend on the cube.)"""
+    rng = np.random.default_rng(8)
+    policy = TrustPolicy(cluster_spacings=2.0)
+    traces = []
+    for count in (2000, 8000):
+        placed, normals = ellipsoid(count, rng)
+        matched = placed - normals * rng.normal(0.0, 0.003, (count, 1))
+        spacing = 1.6 / np.sqrt(count)
+        covariance = uncertainty.pose_uncertainty(placed, matched, None, normals, spacing=spacing,
+                                                  policy=policy).covariance
+        traces.append((np.trace(covariance[:3, :3]), np.trace(covariance[3:, 3:])))
+    ratios = np.array(traces[0]) / np.array(traces[1])
+    assert np.all((ratios > 4 / 1.3) & (ratios < 4 * 1.3)), ratios
+
+
+def _registered_uncertainty(source, target, transformation, policy=DEFAULT_POLICY):
+    from esmicp.core.correspondence import NearestNeighbors
+
+    return uncertainty.from_registration(source, NearestNeighbors(target, workers=1), transformation, None, workers=1,
+                                         policy=policy)
+
+
+def test_covariance_follows_the_scene_scaled_by_1000_and_moved_rigidly():
+    """The same pair in millimetres instead of metres: rotation block unchanged, cross blocks x 1e3,
+    translation block x 1e6. The same pair with the whole scene (target frame) moved by ``M``: the
+    covariance is ``Ad(M) Sigma Ad(M)^T`` (left perturbation, target frame), up to the cluster
+    cubes, which stay aligned with the axes (small cubes here, so that their grouping matters
+    little)."""
+    rng = np.random.default_rng(21)
+    target = asymmetric_shape(1500, rng)
+    truth = pose([0, 1, 1], 30.0, [0.2, 0.1, -0.3])
+    source = apply(np.linalg.inv(truth), asymmetric_shape(1500, rng) + rng.normal(0.0, 0.01, (1500, 3)))
+    base = _registered_uncertainty(source, target, truth).covariance
+    scaled = _registered_uncertainty(1000.0 * source, 1000.0 * target,
+                                     np.block([[truth[:3, :3], 1000.0 * truth[:3, 3:]], [truth[3:]]])).covariance
+    factor = np.outer([1.0] * 3 + [1000.0] * 3, [1.0] * 3 + [1000.0] * 3)
+    assert np.allclose(scaled, base * factor, rtol=1e-6, atol=1e-12 * np.abs(base * factor).max())
+
+    motion = pose([3, -1, 2], 70.0, [5.0, -2.0, 1.0])
+    small_cubes = TrustPolicy(cluster_spacings=2.0)
+    base = _registered_uncertainty(source, target, truth, small_cubes).covariance
+    moved = _registered_uncertainty(source, apply(motion, target), motion @ truth, small_cubes).covariance
+    adjoint = np.zeros((6, 6))
+    adjoint[:3, :3] = adjoint[3:, 3:] = motion[:3, :3]
+    adjoint[3:, :3] = skew(motion[:3, 3]) @ motion[:3, :3]
+    back = np.linalg.inv(adjoint) @ moved @ np.linalg.inv(adjoint).T  # in the unmoved target frame
+    assert np.allclose(np.sqrt(np.diag(back)), np.sqrt(np.diag(base)), rtol=0.1)
+    # Without the adjoint (about the old origin, along the old axes) it is not the same matrix.
+    assert not np.allclose(np.sqrt(np.diag(moved)), np.sqrt(np.diag(base)), rtol=0.5)
+
+
+def test_surface_noise_reads_a_planes_gaussian_noise():
+    """5,000 points on a unit square with Gaussian noise across it of 0.002 (about a third of the
+    point spacing): the noise variance read is 4e-6 within 20%, and four times that for twice the
+    noise."""
+    rng = np.random.default_rng(2)
+    flat = np.column_stack([rng.uniform(0, 1, 5000), rng.uniform(0, 1, 5000), np.zeros(5000)])
+    across = rng.normal(0.0, 1.0, 5000)
+    for deviation in (0.002, 0.004):
+        points = flat + np.outer(deviation * across, [0.0, 0.0, 1.0])
+        variance = uncertainty.surface_noise(points, points[::10])
+        assert 0.8 < variance / deviation ** 2 < 1.2, variance / deviation ** 2
+
+
+def test_sharing_counts_the_pairs_per_target_point():
+    assert uncertainty.sharing(np.arange(10)) == 1.0
+    assert uncertainty.sharing(np.repeat(np.arange(5), 2)) == 2.0
+    assert uncertainty.sharing(np.array([0, 0, 1]), np.array([1.0, 1.0, 2.0])) == pytest.approx((4 + 4) / 6)

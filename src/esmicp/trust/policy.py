@@ -85,7 +85,13 @@ class TrustPolicy(Config):
         Fewest cubes the cluster-robust covariance is computed over: the cube is halved until
         there are this many (count).
     inflation : float
-        The pose covariance is the cluster-robust sandwich times this factor (dimensionless).
+        The pose covariance is the cluster-robust sandwich times this factor (dimensionless): what
+        the residuals do not show (an overlap border's pull beyond the one cluster it is counted
+        as, a cloud's smooth distortions).
+    border_spacings : float
+        Pairs farther apart than this many target point spacings (where a partial overlap ends,
+        a source point is paired with the target's border) pull the pose as one: the covariance
+        counts their summed gradient as a single cluster (gain).
     degenerate_ratio : float
         A direction whose eigenvalue in the scaled point-to-plane Hessian is below this fraction
         of the largest is a degenerate direction, and the result is not trusted (ratio, 0-1).
@@ -97,7 +103,10 @@ class TrustPolicy(Config):
         (ratio, 0-1).
     covariance_normals : int
         The covariance's Hessian comes from target normals at the matches of at most this many
-        pairs, evenly strided (count).
+        pairs, evenly strided (count); each cloud's noise is measured at as many of its points.
+    noise_neighbours : int
+        A cloud's noise is the scatter of this many nearest points about their plane (count;
+        fewer: less of the surface's curvature read as noise, a noisier reading).
 
     References
     ----------
@@ -110,8 +119,11 @@ class TrustPolicy(Config):
     kitchen walk, confirmed on the Newer College LiDAR scans. The range-image test's bars: chosen
     on kitchen depth frames and the bunny's scans in their scanner's frame, confirmed on LiDAR
     scans as recorded, ModelNet objects and 3DMatch crops (``docs/merge.md``, step 5).
-    ``cluster_spacings``, ``min_clusters`` and ``inflation``: fitted on resamples of a 3DMatch
-    fragment, confirmed on resamples of the kitchen walk's frames; ``degenerate_ratio``: chosen on
+    ``cluster_spacings`` and ``min_clusters``: fitted on resamples of a 3DMatch fragment,
+    confirmed on resamples of the kitchen walk's frames; ``border_spacings`` and ``inflation``:
+    chosen on the 12 ModelNet40 shapes (whole and cut) and kitchen-walk frames 0-490, confirmed on
+    ``modelnet40_extra``, frames 500-990 and the bunny's scans (``docs/uncertainty.md``,
+    ``benchmarks/covariance_nees.py``); ``degenerate_ratio``: chosen on
     the 12 ModelNet40 shapes, confirmed on ``modelnet40_extra`` (``docs/uncertainty.md``).
     """
 
@@ -133,11 +145,13 @@ class TrustPolicy(Config):
     min_angular_radius_deg: float = number(0.5, least=0.0, below=180.0)
     cluster_spacings: float = number(16.0, above=0.0)
     min_clusters: int = count(30)
-    inflation: float = number(5.4, above=0.0)
+    inflation: float = number(1.5, above=0.0)
+    border_spacings: float = number(2.0, above=0.0)
     degenerate_ratio: float = fraction(0.01)
     singular_ratio: float = fraction(1e-9)
     negligible_weight: float = number(1e-6, least=0.0, below=1.0)
     covariance_normals: int = count(600)
+    noise_neighbours: int = count(10, least=4)
 
 
 #: The policy every judgement uses unless given another.

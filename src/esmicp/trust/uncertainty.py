@@ -21,7 +21,7 @@ along itself); without normals, through the three coordinates of ``p_i - q_i``.
 Censi's closed form (2007) for a least-squares estimate is ``H^-1 B H^-1`` with the Hessian
 ``H = sum_i w_i a_i a_i^T`` and ``B`` the covariance of the gradient the estimate zeroes. Taking the
 residuals as independent, with one variance estimated from them (``B = sigma^2 sum_i w_i^2 a_i
-a_i^T``), is known to be over-confident, for two reasons this estimate corrects:
+a_i^T``), is known to be over-confident, for four reasons this estimate corrects:
 
 - the correspondences themselves are in error: a nearest neighbour lies up to a point spacing
   beside the true match, and the point-to-point cost the methods minimise feels that offset.
@@ -29,13 +29,23 @@ a_i^T``), is known to be over-confident, for two reasons this estimate corrects:
   ``s_i = w_i (u_i x d_i, d_i)`` with ``d_i = p_i - q_i`` the whole 3-D residual, while ``H`` keeps
   the point-to-plane curvature (the cost's true stiffness once the pairs may slide);
 - the residuals of neighbouring pairs are correlated (the same target points and surface patch
-  serve many source points; a cut or a depth camera's smooth errors pull whole regions one way),
-  so there are far fewer independent pairs than pairs. ``B`` is the cluster-robust estimate
-  (Liang and Zeger's sandwich): the pairs are grouped into cubes of ``cluster_spacings``
-  target point spacings and ``B = sum_c g_c g_c^T`` with ``g_c`` the sum of the cube's ``s_i``.
-  Within a cube the residuals may be correlated in any way; cubes are taken as independent.
+  serve many source points; a depth camera's smooth errors pull whole regions one way), so there
+  are far fewer independent pairs than pairs. ``B`` is the cluster-robust estimate (Liang and
+  Zeger's sandwich): the pairs are grouped into cubes of ``cluster_spacings`` target point
+  spacings and ``B = sum_c g_c g_c^T`` with ``g_c`` the sum of the cube's ``s_i``. Within a cube
+  the residuals may be correlated in any way; cubes are taken as independent;
+- the residuals understate the clouds' noise where it is comparable to the spacing: each source
+  point is paired with the nearest of several noisy target points, the one whose noise happens to
+  bring it closest. Each cloud's noise is measured on its own, from the scatter of its points
+  about their local planes (:func:`surface_noise`), and its share along the normals is added to
+  ``B``: a source point's noise is its own, a target point's is shared by the pairs that matched
+  it (:func:`sharing`);
+- where a partial overlap ends, source points are paired with the target's border, and those
+  pairs pull the pose the same way all along it, not as independent cubes: the pairs farther
+  apart than ``border_spacings`` target spacings add their summed gradient to ``B`` as one more
+  cluster.
 
-The result is multiplied by ``inflation``, fitted on one set of trials and confirmed on
+The result is multiplied by ``inflation``, chosen on one set of trials and confirmed on
 another (``docs/uncertainty.md``). The values named here are fields of
 :class:`~esmicp.trust.policy.TrustPolicy`.
 
@@ -136,6 +146,7 @@ class PoseUncertainty:
 
 def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarray | None = None,
                      normals: np.ndarray | None = None, *, spacing: float, origin: np.ndarray | None = None,
+                     noise: tuple[float, float] | None = None,
                      policy: TrustPolicy = DEFAULT_POLICY) -> PoseUncertainty:
     """The covariance, information and degenerate directions of a pose from its final pairs.
 
@@ -152,13 +163,19 @@ def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarra
         for that pair; the Hessian then comes from the pairs that have one, scaled to the total
         weight of all of them.
     spacing : float
-        The target's point spacing (cloud units): sets the cube size of the cluster-robust estimate.
+        The target's point spacing (cloud units): sets the cube size of the cluster-robust estimate
+        and the border distance.
     origin : (3,) array, optional
         Where the frame of ``placed`` and ``matched`` has its origin in the frame the result is
         wanted in (a registration's working frame is shifted by it); default 0.
+    noise : (float, float), optional
+        ``(source_variance, target_variance)`` per pair along the surface normal (cloud units
+        squared): each cloud's noise variance (e.g. :func:`surface_noise`), the target's times
+        :func:`sharing` when several pairs share a target point. With normals, it adds the noise's
+        share to the spread of the gradient (see the module docstring); None: the residuals alone.
     policy : TrustPolicy
-        The estimate's values: ``cluster_spacings``, ``min_clusters``, ``inflation``,
-        ``degenerate_ratio``, ``singular_ratio`` and ``negligible_weight``.
+        The estimate's values: ``cluster_spacings``, ``min_clusters``, ``border_spacings``,
+        ``inflation``, ``degenerate_ratio``, ``singular_ratio`` and ``negligible_weight``.
 
     Returns
     -------
@@ -198,6 +215,13 @@ def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarra
     # Small-sample corrections of the sandwich (the usual ones of cluster-robust estimates).
     correction = groups / max(groups - 1, 1) * count / max(count - 6, 1)
     meat = correction * (sums.T @ sums)
+    if noise is not None and normals is not None:
+        meat = meat + _noise_meat(unit_offsets, weights, normals, noise)
+    # The pairs beyond an overlap's border pull as one: their summed gradient is one more cluster.
+    far = np.einsum("ij,ij->i", differences, differences) > (policy.border_spacings * spacing) ** 2
+    if far.any():
+        pull = scores[far].sum(axis=0)
+        meat = meat + np.outer(pull, pull)
 
     values, vectors = np.linalg.eigh(hessian)
     largest = max(float(values[-1]), 0.0)
@@ -219,6 +243,63 @@ def pose_uncertainty(placed: np.ndarray, matched: np.ndarray, weights: np.ndarra
         for k in range(6) if ratios[k] < policy.degenerate_ratio
     )
     return PoseUncertainty(0.5 * (covariance + covariance.T), information, degenerate, count)
+
+
+def _noise_meat(unit_offsets: np.ndarray, weights: np.ndarray, normals: np.ndarray,
+                noise: tuple[float, float]) -> np.ndarray:
+    """The spread the clouds' noise gives the gradient along the normals (6x6, scaled units),
+    ``(var_s + var_t) sum_i w_i^2 a_i a_i^T`` over the pairs with a normal (not NaN rows), scaled
+    to the weight of all."""
+    variance = sum(max(float(value), 0.0) for value in noise)
+    known = ~np.isnan(normals[:, 0])
+    squares = float(np.square(weights[known]).sum())
+    if not known.any() or variance <= 0 or not squares > 0:
+        return np.zeros((6, 6))
+    share = float(np.square(weights).sum()) / squares
+    rows = np.hstack([np.cross(unit_offsets[known], normals[known]), normals[known]])
+    return variance * share * ((rows * np.square(weights[known])[:, None]).T @ rows)
+
+
+def sharing(indices: np.ndarray, weights: np.ndarray | None = None) -> float:
+    """How many pairs share a target point's noise: ``sum_j W_j^2 / sum_i w_i^2`` with ``W_j`` the
+    total weight of the pairs matched to target point ``j`` (``indices``: each pair's target
+    index; 1 when no two pairs share one). A target point's noise moves every pair that matched
+    it alike, so its share of the gradient's spread is this many times an independent point's."""
+    indices = np.asarray(indices).ravel()
+    weights = np.ones(len(indices)) if weights is None else np.asarray(weights, dtype=np.float64)
+    squares = float(np.square(weights).sum())
+    if not squares > 0:
+        return 1.0
+    return float(np.square(np.bincount(indices, weights=weights)).sum()) / squares
+
+
+def surface_noise(points: np.ndarray, at: np.ndarray, tree=None, neighbours: int = 10,
+                  workers: int | None = 1) -> float:
+    """A cloud's noise variance along its surface normal (cloud units squared): the median, over
+    the query points ``at``, of the least eigenvalue of the covariance of their ``neighbours``
+    nearest points of ``points`` (the mean square distance to their best-fitting plane), times
+    ``k / (k - 3)`` (a plane fitted through ``k`` noisy points absorbs 3 of their degrees of
+    freedom). Curvature within a neighbourhood adds to it (the more, the more neighbours), so on
+    curved, clean clouds it is an upper bound; a noise as large as the point spacing is read low
+    (the nearest points are then chosen by their noise: about 2/3 of the variance at 0.7
+    spacings, 1/3 at 1.1, with 10 neighbours). ``tree``: a
+    :class:`~esmicp.core.compiled_tree.CompiledTree` of ``points`` (built when None); ``workers``:
+    threads of the neighbour search."""
+    from ..core.compiled_tree import CompiledTree
+
+    points = np.asarray(points, dtype=np.float64)
+    k = min(int(neighbours), len(points))
+    if k < 4 or len(at) == 0:
+        return 0.0
+    tree = CompiledTree(points) if tree is None else tree
+    _, indices = tree.query_k(np.asarray(at, dtype=np.float64), k, workers=workers)
+    indices = indices[np.all(indices < len(points), axis=1)]
+    if not len(indices):
+        return 0.0
+    patches = points[indices]
+    patches = patches - patches.mean(axis=1, keepdims=True)
+    least = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", patches, patches) / k)[:, 0]
+    return float(np.median(np.clip(least, 0.0, None))) * k / (k - 3)
 
 
 def _hessian(unit_offsets: np.ndarray, weights: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
@@ -306,7 +387,8 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
     near the final pose, where the queries start) and weighted by
     ``exp(-d^2 / (2 sigma^2))`` (all 1 when ``sigma`` is None: ICP); the target normals at the
     matches of ``policy.covariance_normals`` of them come from the ``NORMAL_NEIGHBOURS`` nearest
-    target points (as ``esm-plane``); ``policy``: the estimate's values.
+    target points (as ``esm-plane``), and each cloud's noise (:func:`surface_noise`) from as many
+    of its points and their ``policy.noise_neighbours`` nearest; ``policy``: the estimate's values.
     """
     from ..core.procrustes import apply
     from ..core.weights import relative_gaussian_weights
@@ -322,16 +404,25 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
         distances, indices = target_index.query_near(placed, warm=warm)
     weights = None if sigma is None else relative_gaussian_weights(distances, sigma)
     target = target_index.points
-    normals = None
+    normals, noise = None, None
     if len(target) >= 3:
         normals = np.full((len(placed), 3), np.nan)
-        chosen = np.unique(np.linspace(0, len(placed) - 1, min(policy.covariance_normals, len(placed))).astype(np.intp))
+        chosen = _strided(len(placed), policy.covariance_normals)
         unique, inverse = np.unique(indices[chosen], return_inverse=True)
         estimator = NormalEstimator(target, min(NORMAL_NEIGHBOURS, len(target)), tree=target_index.exact_tree(),
                                     workers=workers)
         normals[chosen] = estimator.at(target[unique])[inverse]
+        noise = (surface_noise(source, source[_strided(len(source), policy.covariance_normals)],
+                               neighbours=policy.noise_neighbours, workers=workers),
+                 surface_noise(target, target[unique], tree=target_index.exact_tree(),
+                               neighbours=policy.noise_neighbours, workers=workers) * sharing(indices, weights))
     return pose_uncertainty(placed, target[indices], weights, normals, spacing=target_index.spacing(), origin=origin,
-                            policy=policy)
+                            noise=noise, policy=policy)
+
+
+def _strided(count: int, at_most: int) -> np.ndarray:
+    """At most ``at_most`` indices evenly strided over ``range(count)``."""
+    return np.unique(np.linspace(0, count - 1, min(at_most, count)).astype(np.intp))
 
 
 def rotation_log(rotation: np.ndarray) -> np.ndarray:
