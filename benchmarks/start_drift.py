@@ -18,6 +18,7 @@ centroid): a start that was already right should barely move.
     python benchmarks/start_drift.py --doc docs/scans-start-drift.md --picture docs/images/scans-start-drift.png
     python benchmarks/start_drift.py --start-quantile 0.1 --out /tmp/q010.json
     python benchmarks/start_drift.py --compare /tmp/q010.json
+    python benchmarks/start_drift.py --from-out /tmp/q010.json --picture docs/images/scans-start-drift.png
 
 ``--doc`` replaces (or appends) the section "Refining from a given start" of that Markdown file;
 ``--picture`` draws the picture the page opens on (the share of right results per kind of data
@@ -199,17 +200,19 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, help="write this run's rows (JSON)")
     parser.add_argument("--compare", type=Path, help="rows of another run (its --out JSON) to show beside")
     parser.add_argument("--doc", type=Path, help="Markdown file whose section to replace")
+    parser.add_argument("--from-out", type=Path, help="take the rows of an earlier run (its --out JSON) instead of "
+                        "running (for --doc and --picture)")
     parser.add_argument("--picture", type=Path, help="draw the page's picture (PNG, replaced if it exists; "
                         "needs matplotlib): right results per kind of data and start")
     args = parser.parse_args(argv)
     esm.START_QUANTILE = args.start_quantile
-    rows = []
-    if not args.skip_real:
+    rows = json.loads(args.from_out.read_text()) if args.from_out else []
+    if not args.from_out and not args.skip_real:
         for row in real_rows(args.data / "real_pairs", args.seed):
             print(json.dumps(row), flush=True)
             rows.append(row)
-    for row in object_rows(args.data, args.trials, args.seed):
-        rows.append(row)
+    if not args.from_out:
+        rows.extend(object_rows(args.data, args.trials, args.seed))
     if args.out:
         args.out.write_text(json.dumps(rows))
     compared = json.loads(args.compare.read_text()) if args.compare else None

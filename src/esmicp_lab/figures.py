@@ -115,24 +115,25 @@ def success_bars_figure(rates: Iterable[Mapping], *, title: str, ylabel: str = "
     methods = list(dict.fromkeys(r["method"] for r in rates))
     figure = new_figure(PICTURE_WIDTH_PX / PICTURE_DPI, 4.0, PICTURE_DPI)
     axes = figure.subplots()
-    width = 0.84 / len(methods)
+    found = {(r["group"], r["method"]): r for r in rates}
+    present = {group: [m for m in methods if (group, m) in found] for group in groups}
+    width = 0.84 / max(len(shown) for shown in present.values())
     palette = "tab10" if len(methods) <= 10 else "tab20"
     colours = [_palette_colour(palette, k) for k in range(len(methods))]
-    labelled = len(methods) * len(groups) <= 40
-    for index, method in enumerate(methods):
-        for position, group in enumerate(groups):
-            found = [r for r in rates if r["method"] == method and r["group"] == group]
-            if not found:
-                continue
-            rate = found[0]
-            x = position + (index - (len(methods) - 1) / 2) * width
+    labelled = len(found) <= 40
+    for position, group in enumerate(groups):
+        shown = present[group]
+        for slot, method in enumerate(shown):
+            index = methods.index(method)
+            rate = found[group, method]
+            x = position + (slot - (len(shown) - 1) / 2) * width
             height = 100.0 * rate["successes"] / rate["trials"]
             axes.bar(x, height, width * 0.92, color=colours[index], zorder=3)
             if height == 0:  # ran and solved none: a mark on the axis, so it is not taken for "not run"
                 axes.plot([x], [0.8], marker="^", ms=3.5, color=colours[index], zorder=4, clip_on=False)
             if labelled:
                 axes.text(x, height + 1.0, f"{height:.3g}%", ha="center", va="bottom", fontsize=6.5,
-                          rotation=90 if len(methods) > 4 else 0)
+                          rotation=90 if width < 0.2 else 0)
     axes.set_xticks(range(len(groups)))
     axes.set_xticklabels(groups, fontsize=8, rotation=15 if len(groups) > 5 else 0)
     axes.set_ylim(0, 118)
