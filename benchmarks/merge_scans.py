@@ -58,8 +58,8 @@ median time is reported. Nothing is written unless ``--json``, ``--doc`` or ``--
 ``--json`` report holds every run's poses (``T_world_scan``, NaN rows unplaced) and the truth;
 ``--pictures`` draws from them the pictures docs/merge.md opens on (:data:`PICTURES`): the bunny's
 scans placed by ``register_scans`` (else ``esmicp merge``), one colour per scan, and the kitchen
-walk's positions as ``register_scans`` places them (in order and shuffled) against the truth,
-all in the reference scan's frame.
+walk's positions as ``register_scans(..., sequence=True)`` places them (else shuffled) against the
+truth, all in the reference scan's frame.
 """
 
 from __future__ import annotations
@@ -500,14 +500,13 @@ def draw_pictures(report: dict, folder: Path, datasets: dict) -> list[Path]:
                       f"frame, {placed} placed, one colour per scan")
         else:
             truth = _relative(np.array(entry["truth"], dtype=float), reference)
-            estimates = {results[k]["method"]: _relative(np.array(results[k]["poses"], dtype=float),
-                                                         reference)[:, :3, 3]
-                         for k in ("api-sequence", "api") if results.get(k, {}).get("poses") is not None}
-            if not estimates:
+            key = next((k for k in ("api-sequence", "api") if results.get(k, {}).get("poses") is not None), None)
+            if key is None:
                 continue
+            estimate = _relative(np.array(results[key]["poses"], dtype=float), reference)
             figure = trajectory_figure(
-                truth[:, :3, 3], estimates,
-                title=f"{entry['title']}: positions in the first frame's coordinates, seen from above")
+                truth[:, :3, 3], {results[key]["method"]: estimate[:, :3, 3]},
+                title=f"{entry['title']}: positions in {entry['reference']}'s frame, seen from above")
         written.append(write_picture(figure, folder / PICTURES[name]))
     return written
 

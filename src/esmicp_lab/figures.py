@@ -238,8 +238,8 @@ def trajectory_figure(truth, estimates: Mapping[str, np.ndarray], *, title: str,
     axes.set_xlabel(f"({unit}) along the walk's main direction")
     axes.set_ylabel(f"({unit})")
     axes.grid(alpha=0.3, lw=0.4)
-    axes.legend(fontsize=7.5, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-    axes.set_title(title, fontsize=10)
+    axes.legend(fontsize=7.5, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
+    figure.suptitle(title, fontsize=10)
     figure.tight_layout()
     return figure
 
