@@ -18,7 +18,7 @@ source's centroid < 2 % of the target's diagonal). Prints one Markdown table: pe
 ``k/n``, median rotation error (deg) and median time (ms); and the ratio of each method's median
 time to ``esm (local)``'s on the 15-degree set. A method that cannot run says why in its row.
 
-    python benchmarks/baselines_table.py --trials 20
+    python benchmarks/baselines_table.py --trials 20 --picture docs/images/baselines.png
 """
 
 from __future__ import annotations
@@ -91,6 +91,8 @@ def main(argv=None) -> int:
     parser.add_argument("--max-iterations", type=int, default=50)
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--methods", default=",".join(PEERS + tuple(BASELINES)))
+    parser.add_argument("--picture", type=Path, help="also draw the page's picture (PNG, replaced if it exists; "
+                        "needs matplotlib): success per set of trials and method")
     args = parser.parse_args(argv)
 
     cloud = read_points(args.data / "bunny" / "bun_zipper.ply")
@@ -146,7 +148,27 @@ def main(argv=None) -> int:
             cells += [success, f"{median([r[1] for r in results]):.3g}", f"{1000 * median([r[2] for r in results]):.3g}"]
         ratio = median([r[2] for r in rows[method]["15deg"]]) / reference if reference else float("nan")
         print(f"| {method} | {kind} | " + " | ".join(cells) + f" | {ratio:.2g}x |")
+    if args.picture:
+        print(picture(rows, args.picture), file=sys.stderr)
     return 0
+
+
+#: The picture's names of the two sets of trials.
+SET_LABELS = {"15deg": "15 degrees", "so3": "any rotation (SO(3))"}
+
+
+def picture(rows: dict, path: Path) -> Path:
+    """The page's picture: strict success per set of trials (groups) and method (bars), the
+    methods that could not run left out."""
+    from esmicp_lab.figures import success_bars_figure, write_picture
+
+    rates = [{"group": SET_LABELS[trial_set], "method": method, "successes": sum(r[0] for r in results),
+              "trials": len(results)}
+             for trial_set in ("15deg", "so3") for method, by_set in rows.items()
+             if (results := by_set[trial_set])]
+    figure = success_bars_figure(rates, title="The bunny, two samples of its surface: strict success per method",
+                                 ylabel="strict success (%)")
+    return write_picture(figure, path)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ of ``esmicp bench`` (its rows.jsonl), so that the docs can be regenerated exactl
     python benchmarks/bench_doc_tables.py paper bench-paper
 
     esmicp bench --datasets modelnet40,bunny-scans --trials 24 --out bench-honest
-    python benchmarks/bench_doc_tables.py honest bench-honest
+    python benchmarks/bench_doc_tables.py honest bench-honest --picture docs/images/bench-honest.png
 
     esmicp bench --protocols paper --datasets modelnet40 --methods esm,esm-paper --points 1024 --trials 24 \
         --sigma-sweep 0.005,0.01,0.02,0.05,0.1,0.2,0.5,1 --out bench-sigma
@@ -16,7 +16,8 @@ of ``esmicp bench`` (its rows.jsonl), so that the docs can be regenerated exactl
 
     python benchmarks/bench_doc_tables.py times bench-paper     # where a run's time goes, per method
 
-Figures are measured in the run, never stored in the repository.
+Figures are measured in the run, never stored in the repository. ``--picture PATH`` also draws
+the page's picture from the same rows: strict success per protocol and method.
 """
 
 from __future__ import annotations
@@ -187,16 +188,42 @@ def times(rows) -> str:
     return "\n".join(lines) + "\n"
 
 
+def success_rates(rows) -> list[dict]:
+    """Strict successes and trials per protocol and method of the rows that ran (``unavailable``
+    rows and sigma-sweep rows left out; ``failed`` / ``timeout`` count as trials not solved)."""
+    counts: dict[tuple[str, str], list[bool]] = {}
+    for row in rows:
+        if row["status"] == "unavailable" or row.get("sigma") is not None:
+            continue
+        solved = row["status"] == "ok" and bool(row["success_strict"])
+        counts.setdefault((protocol_label(row), row["method"]), []).append(solved)
+    return [{"group": protocol, "method": method, "successes": sum(found), "trials": len(found)}
+            for (protocol, method), found in counts.items()]
+
+
+def picture(rows, path: Path) -> Path:
+    """The page's picture: strict success per protocol (groups) and method (bars), from the rows."""
+    from esmicp_lab.figures import success_bars_figure, write_picture
+
+    figure = success_bars_figure(success_rates(rows), title="Strict success per protocol and method",
+                                 ylabel="strict success (%)")
+    return write_picture(figure, path)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("kind", choices=("paper", "honest", "sigma", "paper-1000", "times"))
     parser.add_argument("results", type=Path, help="the --out folder of the run")
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
                         help="the shared data folder (paper-1000: the paper's tables; default ../shared/data)")
+    parser.add_argument("--picture", type=Path, help="also draw the page's picture from the rows (PNG, replaced if "
+                        "it exists; needs matplotlib): strict success per protocol and method")
     args = parser.parse_args(argv)
     rows = read_rows(args.results / "rows.jsonl")
     if not rows:
         sys.exit(f"{args.results / 'rows.jsonl'}: no rows")
+    if args.picture:
+        print(picture(rows, args.picture), file=sys.stderr)
     if args.kind == "paper-1000":
         print(paper_1000(rows, args.data))
         return 0

@@ -4,6 +4,13 @@ runs side by side, row by row.)
 
     python benchmarks/global_doc.py groups RUN.jsonl   # one row per group
     python benchmarks/global_doc.py pairs RUN.jsonl    # one row per real pair
+    python benchmarks/global_doc.py picture RUN.jsonl [RUN.jsonl ...] --picture PICTURE.png --title TITLE
+
+``picture`` draws every registration of the runs that has a rotation error: that error against
+its confidence, right and wrong apart, trusted ones filled, the trust bar
+(:attr:`esmicp.trust.policy.TrustPolicy.trusted`) as a line, one marker per group of rows
+(:func:`group_of`, the first part of the group's name), the page's picture
+(``pip install 'esmicp[viz]'`` for matplotlib).
 """
 
 from __future__ import annotations
@@ -46,19 +53,57 @@ def groups(run: dict) -> str:
 def pairs(run: dict) -> str:
     lines = ["| pair | error (deg / m), confidence | trusted |", "|---|---|---|"]
     for name, row in run.items():
-        if "rotation_error_deg" in row:
+        if "translation_error" in row:
             verdict = "ok" if row["success"] else "**failed**"
             lines.append(f"| {name} | {verdict} {row['rotation_error_deg']:.2f}° / {row['translation_error']:.3f}, "
                          f"{row['confidence']:.2f} | {'yes' if row['trusted'] else 'no'} |")
     return "\n".join(lines)
 
 
+#: The marker groups of the picture: a row group's kind of data, by the first part of its name.
+KINDS = {"modelnet40": "ModelNet40 objects and halves", "modelnet40_extra": "ModelNet40 extra, objects and halves",
+         "real": "real pairs (3DMatch, LiDAR)", "3DMatch crops": "3DMatch crops (25%, 15%)",
+         "kitchen": "kitchen frame pairs"}
+
+
+def kind_of(name: str) -> str:
+    """The data kind of a row (its marker in the picture)."""
+    first = group_of(name).split("/")[0]
+    return KINDS.get(first, first)
+
+
+def picture(runs: list[dict], path: Path, title: str) -> Path:
+    """Draw the rows of ``runs`` that have a rotation error (confidence against error, the trust
+    bar) into the PNG ``path``."""
+    from esmicp.trust.policy import DEFAULT_POLICY
+    from esmicp_lab.figures import confidence_error_figure, write_picture
+
+    records = [row | {"kind": kind_of(name)} for run in runs for name, row in run.items()
+               if row.get("rotation_error_deg") is not None]
+    figure = confidence_error_figure(records, trust_bar=DEFAULT_POLICY.trusted, title=title,
+                                     group=lambda record: record["kind"])
+    return write_picture(figure, path)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("kind", choices=("groups", "pairs"))
-    parser.add_argument("run", type=Path, help="the --out JSONL of benchmarks/global_regression.py")
+    parser.add_argument("kind", choices=("groups", "pairs", "picture"))
+    parser.add_argument("runs", type=Path, nargs="+", help="the --out JSONL of benchmarks/global_regression.py "
+                        "(one for groups and pairs; any number for picture)")
+    parser.add_argument("--picture", type=Path, help="picture: the PNG to write (replaced if it exists)")
+    parser.add_argument("--title", default="Rotation error against confidence", help="picture: its title")
     args = parser.parse_args()
-    run = load(args.run)
+    for path in args.runs:
+        if not path.is_file():
+            parser.error(f"{path}: no such file")
+    if args.kind == "picture":
+        if args.picture is None:
+            parser.error("picture: --picture PATH is needed")
+        print(picture([load(path) for path in args.runs], args.picture, args.title))
+        return
+    if len(args.runs) != 1:
+        parser.error(f"{args.kind}: one run, got {len(args.runs)}")
+    run = load(args.runs[0])
     print(groups(run) if args.kind == "groups" else pairs(run))
 
 

@@ -34,7 +34,8 @@ Sets (``--sets``, comma-separated):
 
 Each registration is ``esmicp.register(source, target, rng=seed)`` with every default (``workers=1``)
 but for ``kitchen-far``'s ``range_images=True``.
-Writes one JSON line per registration (pose, success, converged, confidence, trusted, ambiguous,
+Writes one JSON line per registration (pose, success, rotation error against the truth (degrees; on
+the object sets right up to symmetry may still be far from it), converged, confidence, trusted, ambiguous,
 runner_up_ratio, where the pose came from, time) to ``--out``. ``--compare BEFORE.jsonl`` instead
 compares two such files: the rows whose pose moved, whose success changed, and the totals
 (successes, trusted and trusted-and-wrong, time). With ``--peer NAME`` each row also runs that
@@ -69,7 +70,7 @@ from esmicp.core.procrustes import bounding_box_diagonal, rotation_angle
 from esmicp.core.keypoints import Keypoints
 from esmicp.globalreg.config import DEFAULT
 from esmicp.globalreg.scan import overlap_score
-from esmicp.metrics import strict_success, up_to_symmetry_success
+from esmicp.metrics import rotation_error_deg, strict_success, up_to_symmetry_success
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SETS = ("objects", "halves", "real", "crops", "extra-halves", "extra-objects", "kitchen", "kitchen-far")
@@ -131,7 +132,8 @@ def object_rows(data: Path, trials: int, seed: int, folder: str = "modelnet40", 
             def judge(estimate, trial=trial, pivot=pivot):
                 truth = trial.T_target_source
                 return {"success": bool(up_to_symmetry_success(trial.clean_source, estimate, truth, trial.diagonal)),
-                        "strict": bool(strict_success(estimate, truth, trial.diagonal, pivot=pivot))}
+                        "strict": bool(strict_success(estimate, truth, trial.diagonal, pivot=pivot)),
+                        "rotation_error_deg": rotation_error_deg(estimate, truth)}
 
             yield _record(f"{folder}/{protocol}/{trial.seed[1]}/{trial.cloud}", trial.source, trial.target,
                           _seed(seed, 0, PROTOCOLS.index(protocol), trial.seed[1]), judge)
@@ -150,7 +152,8 @@ def half_rows(data: Path, trials: int, seed: int, folder: str = "modelnet40"):
             def judge(estimate, trial=trial, diagonal=diagonal):
                 return {"success": bool(up_to_symmetry_success(trial.source_half, estimate, trial.T_target_source,
                                                                diagonal)),
-                        "overlap": trial.overlap}
+                        "overlap": trial.overlap,
+                        "rotation_error_deg": rotation_error_deg(estimate, trial.T_target_source)}
 
             yield _record(f"{folder}/half-{round(100 * keep)}/{index}/{name}", trial.source, trial.target,
                           _seed(seed, 1, number, index), judge)

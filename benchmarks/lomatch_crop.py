@@ -9,6 +9,10 @@ error < 15 deg and translation error < 0.30 m. Prints a Markdown section; figure
 the run:
 
     nice -n 5 python benchmarks/lomatch_crop.py --folder ../shared/data/real_pairs > /tmp/lomatch.md
+    python benchmarks/lomatch_crop.py --crops 4 --methods esm-global --picture docs/images/scans-partial-overlap.png
+
+``--picture`` also draws esmicp's results (rotation error against confidence, the trust bar
+:attr:`esmicp.trust.policy.TrustPolicy.trusted` as a line, trusted results filled), from the same rows.
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ def main() -> None:
     parser.add_argument("--crops", type=int, default=1, help="seeded crops per pair and overlap")
     parser.add_argument("--methods", default=",".join(m for m in SCAN_METHODS if m != "fgr-icp"))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--picture", type=Path, help="draw esmicp's rotation error against its confidence (PNG, "
+                        "replaced if it exists; needs matplotlib)")
     args = parser.parse_args()
     methods = args.methods.split(",")
     pairs = [p for p in read_pairs(Path(args.folder)) if p.kind == "3DMatch"]
@@ -54,13 +60,31 @@ def main() -> None:
                         row = {"pair": pair.name, "crop": crop, "overlap": cropped.source_overlap, "back": cropped.target_overlap,
                                "points": (len(cropped.source), len(cropped.target)), "variant": variant,
                                "method": method, "time_s": outcome["time_s"], "success": False,
-                               "rotation": None, "translation": None, "confidence": outcome.get("confidence")}
+                               "rotation": None, "translation": None, "confidence": outcome.get("confidence"),
+                               "trusted": outcome.get("trusted"), "asked_overlap": overlap}
                         if outcome["status"] == "ok":
                             rotation, translation = pair_errors(estimate_in_pair_frame(outcome["estimate"], moved_by), truth)
                             row.update(rotation=rotation, translation=translation,
                                        success=criteria.success(rotation, translation))
                         rows.append(row)
     print(markdown(rows, methods))
+    if args.picture:
+        print(picture(rows, args.picture, args.seed))
+
+
+def picture(rows, path: Path, seed: int) -> Path:
+    """esmicp's rows (those with a confidence that ran): rotation error against confidence, one
+    marker per overlap asked for."""
+    from esmicp_lab.figures import confidence_error_figure, write_picture
+
+    records = [{"confidence": r["confidence"], "rotation_error_deg": r["rotation"], "success": r["success"],
+                "trusted": r["trusted"], "overlap": f"cropped to {round(100 * r['asked_overlap'])}% overlap"}
+               for r in rows if r["confidence"] is not None and r["rotation"] is not None]
+    figure = confidence_error_figure(
+        records, trust_bar=DEFAULT_POLICY.trusted, group=lambda record: record["overlap"],
+        title=f"3DMatch pairs cropped (seed {seed}): esmicp's rotation error against its confidence, "
+              f"{len(records)} registrations")
+    return write_picture(figure, path)
 
 
 def markdown(rows, methods) -> str:

@@ -7,6 +7,8 @@ Usage::
     python benchmarks/merge_scans.py --datasets kitchen --frames 20 --skip-peer   # a quick look
     python benchmarks/merge_scans.py --datasets bunny newer-college --json results.json
     python benchmarks/merge_scans.py --check-harness            # Open3D from the truth, 0 ICP iterations: errors ~0
+    python benchmarks/merge_scans.py --datasets bunny kitchen --skip-peer --skip-pairwise --json run.json --pictures docs/images
+    python benchmarks/merge_scans.py --pictures-from run.json --pictures docs/images   # the same pictures, no run
 
 Data sets (``../shared/data`` or ``$ESMICP_SHARED_DATA``), each given to every method in the
 same order:
@@ -51,8 +53,13 @@ whole trajectory, as for the ATE); *silently* wrong when reported placed (not do
 :func:`esmicp.metrics.absolute_trajectory_error` over the placed scans; relative errors:
 :func:`esmicp.metrics.relative_pose_errors` over consecutive frames both placed. Times are wall
 clock, loading excluded except for the CLI; with ``--repeat`` the methods take turns and the
-median time is reported. Nothing is written unless ``--json`` or ``--doc`` is given; ``--doc`` replaces the blocks of the
-data sets run, so each can be regenerated on its own.
+median time is reported. Nothing is written unless ``--json``, ``--doc`` or ``--pictures`` is given;
+``--doc`` replaces the blocks of the data sets run, so each can be regenerated on its own. The
+``--json`` report holds every run's poses (``T_world_scan``, NaN rows unplaced) and the truth;
+``--pictures`` draws from them the pictures docs/merge.md opens on (:data:`PICTURES`): the bunny's
+scans placed by ``register_scans`` (else ``esmicp merge``), one colour per scan, and the kitchen
+walk's positions as ``register_scans(..., sequence=True)`` places them (else shuffled) against the
+truth, all in the reference scan's frame.
 """
 
 from __future__ import annotations
@@ -343,9 +350,12 @@ def run_dataset(data: Dataset, args, log=print) -> dict:
         if run.seconds is not None:
             run.seconds = float(np.median(run.times))
         results[key] = {"method": run.method} | evaluate(data, run)
+        if run.poses is not None:
+            results[key]["poses"] = run.poses.tolist()
     return {"title": data.title, "unit": data.unit, "scale": data.scale, "wrong": data.wrong,
             "ordered": data.ordered, "reference": data.names[data.reference], "order": data.names,
-            "pairs": [[data.names[p], data.names[c]] for p, c in data.tree], "results": results}
+            "pairs": [[data.names[p], data.names[c]] for p, c in data.tree], "results": results,
+            "truth": data.truth.tolist()}
 
 
 def load(name: str, args) -> Dataset:
@@ -449,6 +459,58 @@ def markdown(report: dict) -> dict[str, str]:
     return blocks
 
 
+#: The pictures docs/merge.md opens on (file names in the --pictures folder): the bunny's scans
+#: merged, coloured by scan, and the kitchen walk's estimated positions against the truth.
+PICTURES = {"bunny": "merge-bunny.png", "kitchen": "merge-kitchen-trajectory.png"}
+#: The bunny's views (panel title, horizontal axis, vertical axis; 0, 1, 2 = x, y, z of the
+#: reference scan bun000, whose y axis points up).
+BUNNY_VIEWS = (("front (x, y)", 0, 1), ("from above (x, z)", 0, 2))
+
+
+def _relative(poses: np.ndarray, reference: int) -> np.ndarray:
+    """``T_reference_scan`` of every scan from ``T_world_scan`` (NaN rows stay NaN)."""
+    return np.linalg.inv(poses[reference]) @ poses
+
+
+def draw_pictures(report: dict, folder: Path, datasets: dict) -> list[Path]:
+    """Draw the pictures of :data:`PICTURES` whose data sets are in ``report``, into ``folder``,
+    from the poses the report stores (``datasets``: the loaded :class:`Dataset` by name, for the
+    bunny's points)."""
+    from esmicp_lab.figures import merged_scans_figure, trajectory_figure, write_picture
+
+    written = []
+    for name, entry in report["datasets"].items():
+        if name not in PICTURES:
+            continue
+        results = entry["results"]
+        reference = entry["order"].index(entry["reference"])
+        if name == "bunny":
+            key = next((k for k in ("api", "cli") if results.get(k, {}).get("poses") is not None), None)
+            if key is None:
+                continue
+            data = datasets[name]
+            if list(data.names) != list(entry["order"]):
+                raise SystemExit(f"bunny: the scans' order {data.names} is not the report's {entry['order']} "
+                                 "(give the run's --seed)")
+            poses = _relative(np.array(results[key]["poses"], dtype=float), reference)
+            placed = sum(np.isfinite(pose).all() for pose in poses)
+            figure = merged_scans_figure(
+                data.clouds, poses, data.names, views=BUNNY_VIEWS,
+                title=f"{results[key]['method']}: the bunny's {len(poses)} raw scans in {entry['reference']}'s "
+                      f"frame, {placed} placed, one colour per scan")
+        else:
+            truth = _relative(np.array(entry["truth"], dtype=float), reference)
+            key = next((k for k in ("api-sequence", "api") if results.get(k, {}).get("poses") is not None), None)
+            if key is None:
+                continue
+            estimate = _relative(np.array(results[key]["poses"], dtype=float), reference)
+            figure = trajectory_figure(
+                truth[:, :3, 3], {results[key]["method"]: estimate[:, :3, 3]},
+                title=f"{entry['title']}: positions in {entry['reference']}'s frame, seen from above")
+        written.append(write_picture(figure, folder / PICTURES[name]))
+    return written
+
+
 def versions() -> dict:
     out = {"esmicp": esmicp.__version__, "numpy": np.__version__, "python": platform.python_version(),
            "cpus": os.cpu_count()}
@@ -500,26 +562,49 @@ def main(argv=None) -> int:
     parser.add_argument("--check-harness", action="store_true", help="only check the Open3D harness on the truth")
     parser.add_argument("--json", type=Path, help="write every figure here")
     parser.add_argument("--doc", type=Path, help="replace the generated section of this Markdown file")
+    parser.add_argument("--pictures", type=Path, help="draw the pictures of the bunny and kitchen runs into this "
+                        f"folder ({', '.join(PICTURES.values())}, replaced if they exist; needs matplotlib)")
+    parser.add_argument("--pictures-from", type=Path, metavar="REPORT",
+                        help="with --pictures: draw them from the --json of an earlier run instead of running "
+                        "(the bunny's scans are read again, in the order of --seed)")
     args = parser.parse_args(argv)
     if args.check_harness:
         return check_harness(args)
+    if args.pictures is not None and not args.pictures.is_dir():
+        parser.error(f"--pictures {args.pictures}: no such folder")
+    if args.pictures_from is not None:
+        if args.pictures is None:
+            parser.error("--pictures-from needs --pictures FOLDER")
+        if not args.pictures_from.is_file():
+            parser.error(f"--pictures-from {args.pictures_from}: no such file")
+        report = json.loads(args.pictures_from.read_text())
+        loaded = {name: load(name, args) for name in report["datasets"] if name == "bunny"}
+        for path in draw_pictures(report, args.pictures, loaded):
+            print(path)
+        return 0
     given = list(argv if argv is not None else sys.argv[1:])
     if "--json" in given:  # where the figures were also written is the runner's business, not the page's
         del given[given.index("--json"):given.index("--json") + 2]
     report = {"started": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
               "settings": {"command": " ".join(["python benchmarks/merge_scans.py"] + given)},
               "versions": versions(), "datasets": {}}
+    loaded = {}
     for name in args.datasets:
         data = load(name, args)
         print(f"== {data.title}: {sum(len(c) for c in data.clouds)} points, reference {data.names[data.reference]}")
         load_before = os.getloadavg()[0]
         report["datasets"][name] = run_dataset(data, args) | {"load": [load_before, os.getloadavg()[0]]}
+        if name == "bunny":
+            loaded[name] = data
     blocks = markdown(report)
     print("\n\n".join(blocks.values()))
     if args.json:
         args.json.write_text(json.dumps(report, indent=2, default=float))
     if args.doc:
         write_doc(args.doc, blocks)
+    if args.pictures:
+        for path in draw_pictures(report, args.pictures, loaded):
+            print(path)
     return 0
 
 

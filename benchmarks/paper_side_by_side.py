@@ -13,6 +13,9 @@ without re-running the bench:
     python benchmarks/paper_side_by_side.py write
         # -> the tables between the side-by-side markers of docs/bench-paper.md
     python benchmarks/paper_side_by_side.py write --check      # exit 1 if the docs drifted
+    python benchmarks/paper_side_by_side.py pictures docs/images
+        # -> bench-paper.png and bench-paper-1000.png: the summary CSV's strict success rates, per
+        #    paper table (printed transforms: per table and size) and method
 
 The paper's figures come from ``<data>/esm_icp_paper/paper_tables.json`` (``--data``, default
 ``$ESMICP_SHARED_DATA`` or ../shared/data beside the checkout).
@@ -100,6 +103,55 @@ def _write(args) -> int:
     return 0
 
 
+#: The pictures of the bench pages, drawn from the summary CSV: file name -> (title, which tables).
+PICTURES = {
+    "bench-paper.png": ("The paper's printed transforms (one trial each): strict success, per table and size",
+                        lambda table: not table.startswith("kiss-matcher-1000")),
+    "bench-paper-1000.png": ("The 1,000-transform tables: strict success over 1,000 trials per object",
+                             lambda table: table.startswith("kiss-matcher-1000")),
+}
+
+
+def success_rates(summary_text: str, keep) -> list[dict]:
+    """Strict successes and trials of every (table, cloud, points, method) record of the summary
+    CSV whose table ``keep`` accepts, with at least one trial that ran (``unavailable`` rows are
+    left out)."""
+    import csv
+    import io
+
+    rates = []
+    for record in csv.DictReader(io.StringIO(summary_text)):
+        ran = int(record["rows"]) - int(record["unavailable"])
+        if not keep(record["table"]) or ran <= 0:
+            continue
+        if record["table"].startswith("kiss-matcher-1000"):
+            noise = record["table"].removeprefix("kiss-matcher-1000").removeprefix("-").split("-")
+            group = record["cloud"] + (f" + {noise[-1]}% noise" if noise[-1].isdigit() else "")
+        else:
+            group = f"{record['table'].replace('-outliers-', ' +')}{'%' if '-outliers-' in record['table'] else ''}"
+            group = f"{group}, {record['points']} pts"
+        successes = round(float(record["success_strict_pct"] or 0.0) * ran / 100.0)
+        rates.append({"group": group, "method": record["method"], "successes": successes, "trials": ran})
+    return rates
+
+
+def _pictures(args) -> int:
+    from esmicp_lab.figures import success_bars_figure, write_picture
+
+    if not args.folder.is_dir():
+        sys.exit(f"{args.folder}: no such folder")
+    try:
+        summary_text = args.summary.read_text(encoding="utf-8")
+    except OSError as exc:
+        sys.exit(f"{exc.filename}: cannot read ({exc.strerror})")
+    for name, (title, keep) in PICTURES.items():
+        rates = success_rates(summary_text, keep)
+        if not rates:
+            sys.exit(f"{args.summary}: no record for {name}")
+        print(write_picture(success_bars_figure(rates, title=title, ylabel="strict success (%)"), args.folder / name))
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=default_data_dir(), help="the shared data folder")
@@ -116,9 +168,12 @@ def main(argv=None) -> int:
     write.add_argument("--summary", type=Path, default=SUMMARY)
     write.add_argument("--doc", type=Path, default=DOC)
     write.add_argument("--check", action="store_true", help="change nothing; exit 1 if the docs differ")
+    pictures = commands.add_parser("pictures", help="the summary CSV -> the bench pages' pictures (matplotlib)")
+    pictures.add_argument("folder", type=Path, help="where to write them (replaced if they exist)")
+    pictures.add_argument("--summary", type=Path, default=SUMMARY)
     args = parser.parse_args(argv)
     try:
-        return {"run": _run, "summarize": _summarize, "write": _write}[args.command](args)
+        return {"run": _run, "summarize": _summarize, "write": _write, "pictures": _pictures}[args.command](args)
     except EsmicpError as exc:
         sys.exit(str(exc))
 

@@ -24,6 +24,7 @@ Only the registration call is timed (esmicp: ``result.runtime_s``; peers: their
 ``runtime_s``, normals and covariances included); one untimed warm-up per method first.
 
     nice -n 5 python benchmarks/scan_refinement.py --seeds 3 --doc docs/scans-refinement.md
+    python benchmarks/scan_refinement.py --from-rows rows.jsonl --picture docs/images/scans-refinement.png
 """
 
 from __future__ import annotations
@@ -197,6 +198,21 @@ def markdown(rows: list[dict], command: str, iterations: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+def picture(rows: list[dict], path: Path) -> Path:
+    """The page's picture: the share of right results per kind of pair and start, one bar per
+    method (the peers beside esmicp's), from the same rows as the tables."""
+    from esmicp_lab.figures import success_bars_figure, write_picture
+
+    counts: dict[tuple[str, str], list[bool]] = {}
+    for row in rows:
+        counts.setdefault((f"{row['family']}, {row['start']} start", LABELS.get(row["method"], row["method"])),
+                          []).append(bool(row["success"]))
+    rates = [{"group": group, "method": method, "successes": sum(found), "trials": len(found)}
+             for (group, method), found in counts.items()]
+    figure = success_bars_figure(rates, title="Local refinement on scan pairs: right results per kind of pair and start")
+    return write_picture(figure, path)
+
+
 def write_section(doc: Path, section: str, notes: str) -> None:
     """Replace (or append) the section of ``doc`` that starts with :data:`SECTION`."""
     text = doc.read_text(encoding="utf-8") if doc.exists() else ""
@@ -223,6 +239,8 @@ def main() -> None:
     parser.add_argument("--from-rows", type=Path, nargs="+", help="only rebuild the tables from these rows")
     parser.add_argument("--doc", type=Path, help="write the section into this Markdown file")
     parser.add_argument("--notes", type=Path, help="Markdown appended to the section (the decision)")
+    parser.add_argument("--picture", type=Path, help="draw the page's picture from the rows (PNG, replaced if it "
+                        "exists; needs matplotlib): right results per kind of pair, start and method")
     args = parser.parse_args()
     command = ("python benchmarks/scan_refinement.py --seeds {} --seed {} --max-iterations {}{}"
                .format(args.seeds, args.seed, args.max_iterations, " --no-global" if args.no_global else ""))
@@ -242,6 +260,8 @@ def main() -> None:
     print(section)
     if args.doc:
         write_section(args.doc, section, args.notes.read_text(encoding="utf-8") if args.notes else "")
+    if args.picture:
+        print(picture(rows, args.picture))
 
 
 if __name__ == "__main__":

@@ -15,11 +15,14 @@ objects within 2% of the diagonal up to symmetry (:func:`esmicp.metrics.up_to_sy
 "moved" is how far the result is from the start (rotation, and translation at the source's
 centroid): a start that was already right should barely move.
 
-    python benchmarks/start_drift.py --doc docs/scans-start-drift.md
+    python benchmarks/start_drift.py --doc docs/scans-start-drift.md --picture docs/images/scans-start-drift.png
     python benchmarks/start_drift.py --start-quantile 0.1 --out /tmp/q010.json
     python benchmarks/start_drift.py --compare /tmp/q010.json
+    python benchmarks/start_drift.py --from-out /tmp/q010.json --picture docs/images/scans-start-drift.png
 
 ``--doc`` replaces (or appends) the section "Refining from a given start" of that Markdown file;
+``--picture`` draws the picture the page opens on (the share of right results per kind of data
+and start, from the same rows);
 ``--start-quantile Q`` runs with another ``esmicp.methods.esm.START_QUANTILE`` (how it was chosen);
 ``--compare`` puts the rows of another run (``--out`` of a run with other settings) in a column
 beside this run's, and lists the cases this run does worse on.
@@ -65,7 +68,8 @@ def real_rows(folder: Path, seed: int):
             result = esmicp.register(source, target, init=start)
             rot, trans = pair_errors(result.transformation, truth)
             moved_rot, moved_trans = _moved(result.transformation, start, source)
-            yield {"group": "real", "case": pair.name, "start": start_name, "rotation_error_deg": rot,
+            yield {"group": "real", "kind": pair.kind.replace("-coarse-GT", ""), "case": pair.name, "start": start_name,
+                   "rotation_error_deg": rot,
                    "translation_error": trans, "success": pair.criteria.success(rot, trans),
                    "moved_deg": moved_rot, "moved": moved_trans, "seconds": result.runtime_s}
 
@@ -158,6 +162,22 @@ def _worse(compared, rows) -> bool:
     return len(rows) == 1 and rows[0]["translation_error"] > 1.5 * compared[0]["translation_error"]
 
 
+def picture(rows: list[dict], path: Path) -> Path:
+    """The page's picture: the share of right results per kind of data (real pairs by kind,
+    objects by protocol), one bar per start."""
+    from esmicp_lab.figures import success_bars_figure, write_picture
+
+    counts: dict[tuple[str, str], list[bool]] = {}
+    for row in rows:
+        group = f"{row['kind']} pairs" if row["group"] == "real" else row["case"]
+        counts.setdefault((group, f"from {row['start']}"), []).append(bool(row["success"]))
+    rates = [{"group": group, "method": start, "successes": sum(found), "trials": len(found)}
+             for (group, start), found in counts.items()]
+    figure = success_bars_figure(rates, title="register(init=start), method esm: right results per kind of data and start",
+                                 ylabel="right (%)")
+    return write_picture(figure, path)
+
+
 def write_section(path: Path, section: str) -> None:
     text = path.read_text()
     start = text.find(SECTION)
@@ -180,15 +200,19 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, help="write this run's rows (JSON)")
     parser.add_argument("--compare", type=Path, help="rows of another run (its --out JSON) to show beside")
     parser.add_argument("--doc", type=Path, help="Markdown file whose section to replace")
+    parser.add_argument("--from-out", type=Path, help="take the rows of an earlier run (its --out JSON) instead of "
+                        "running (for --doc and --picture)")
+    parser.add_argument("--picture", type=Path, help="draw the page's picture (PNG, replaced if it exists; "
+                        "needs matplotlib): right results per kind of data and start")
     args = parser.parse_args(argv)
     esm.START_QUANTILE = args.start_quantile
-    rows = []
-    if not args.skip_real:
+    rows = json.loads(args.from_out.read_text()) if args.from_out else []
+    if not args.from_out and not args.skip_real:
         for row in real_rows(args.data / "real_pairs", args.seed):
             print(json.dumps(row), flush=True)
             rows.append(row)
-    for row in object_rows(args.data, args.trials, args.seed):
-        rows.append(row)
+    if not args.from_out:
+        rows.extend(object_rows(args.data, args.trials, args.seed))
     if args.out:
         args.out.write_text(json.dumps(rows))
     compared = json.loads(args.compare.read_text()) if args.compare else None
@@ -197,6 +221,8 @@ def main(argv=None) -> None:
     print(section)
     if args.doc:
         write_section(args.doc, section)
+    if args.picture:
+        print(picture(rows, args.picture))
 
 
 if __name__ == "__main__":

@@ -301,7 +301,7 @@ def test_scan_bench_judges_a_wrong_pose_as_failure(tmp_path, monkeypatch):
     import esmicp_lab.bench.scans as scans
 
     make_folder(tmp_path)
-    monkeypatch.setattr(scans, "run_global", lambda *args: (np.eye(4), "identity", None, None))
+    monkeypatch.setattr(scans, "run_global", lambda *args: (np.eye(4), "identity", None, None, None))
     rows = run_scan_bench(ScanBenchConfig(real_pairs_dir=str(tmp_path), methods=("esm-global",), partial_trials=0))
     assert all(not row["success"] and row["rotation_error_deg"] > 19.0 for row in rows)
 
@@ -341,7 +341,7 @@ def test_partial_rows_judge_success_up_to_the_objects_symmetry(monkeypatch):
     turn = {"about the axis": to_matrix(rotation_about_z(90.0), np.zeros(3)),
             "about x": to_matrix(about_x, np.zeros(3))}
     for name, move in turn.items():
-        monkeypatch.setattr(scans, "run_global", lambda *args: (move @ made[-1].T_target_source, name, None, None))
+        monkeypatch.setattr(scans, "run_global", lambda *args: (move @ made[-1].T_target_source, name, None, None, None))
         rows = []
         scans.partial_rows(ScanBenchConfig(real_pairs_dir=None, methods=("esm-global",), partial_trials=1,
                                            partial_keeps=(0.7,)), rows.append)

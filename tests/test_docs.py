@@ -126,3 +126,29 @@ def test_every_test_the_reliability_page_names_exists():
     missing = [f"{file}::{test}" for file, test in sorted(named)
                if not re.search(rf"^def {test}\(", (REPO / "tests" / file).read_text(encoding="utf-8"), re.MULTILINE)]
     assert not missing, f"docs/reliability.md names tests that do not exist: {missing}"
+
+
+#: The results pages (written by the scripts of benchmarks/) and the picture each opens on.
+RESULTS_PAGES = ("measured-global", "real-scans", "merge", "bench", "bench-paper", "bench-paper-1000", "speed",
+                 "scans-partial-overlap", "scans-start-drift")
+#: A page's picture: small enough for a page (bytes).
+MAX_PICTURE_BYTES = 150_000
+IMAGE_LINE = re.compile(r"^!\[(?P<alt>[^\]]+)\]\((?P<path>images/[^)\s]+\.png)\)$")
+
+
+@pytest.mark.parametrize("page", RESULTS_PAGES)
+def test_every_results_page_opens_on_a_picture_of_its_results(page):
+    if not (REPO / "docs").is_dir():
+        pytest.skip("not run from a source tree")
+    lines = (REPO / "docs" / f"{page}.md").read_text(encoding="utf-8").splitlines()
+    assert lines[0].startswith("# "), f"docs/{page}.md: no title on its first line"
+    content = [line for line in lines[1:] if line.strip()]
+    found = IMAGE_LINE.match(content[0].strip())
+    assert found, f"docs/{page}.md: the first thing after the title is not a picture: {content[0][:80]!r}"
+    assert len(found["alt"].split()) >= 6, f"docs/{page}.md: the picture's alt text does not say what it shows"
+    picture = REPO / "docs" / found["path"]
+    assert picture.is_file(), f"docs/{page}.md: {found['path']} does not exist"
+    assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", f"{found['path']}: not a PNG"
+    assert picture.stat().st_size < MAX_PICTURE_BYTES, f"{found['path']}: {picture.stat().st_size} bytes"
+    caption = content[1].strip()
+    assert caption and not caption.startswith(("#", "!", "|", "```")), f"docs/{page}.md: no caption under the picture"

@@ -161,14 +161,19 @@ def _run_script(name: str, *arguments: str, data) -> str:
 
 def test_every_method_on_four_kitchen_frames(four_kitchen_frames, tmp_path):
     require_module("open3d", "baselines")
+    require_module("matplotlib", "viz")
     start, end = merge.markers("kitchen")
     doc = tmp_path / "merge.md"
     doc.write_text(f"# Merge\n{start}\nold\n{end}\nafter\n")
     figures = tmp_path / "figures.json"
     _run_script("merge_scans.py", "--datasets", "kitchen", "--frames", "4", "--loop-gap", "2", "--loop-stride", "1",
-                "--json", str(figures), "--doc", str(doc), data=four_kitchen_frames)
-    results = json.loads(figures.read_text())["datasets"]["kitchen"]["results"]
+                "--json", str(figures), "--doc", str(doc), "--pictures", str(tmp_path), data=four_kitchen_frames)
+    entry = json.loads(figures.read_text())["datasets"]["kitchen"]
+    results = entry["results"]
     assert set(results) == {"api", "api-sequence", "open3d", "pairwise"}
+    # The report keeps each run's poses and the truth, which the page's picture is drawn from.
+    assert np.shape(entry["truth"]) == (4, 4, 4) and np.shape(results["api-sequence"]["poses"]) == (4, 4, 4)
+    assert (tmp_path / "merge-kitchen-trajectory.png").read_bytes()[:4] == b"\x89PNG"
     for key in ("api", "open3d", "pairwise"):
         result = results[key]
         assert result["placed"] + result["doubtful"] + result["unplaced"] == 4

@@ -164,3 +164,20 @@ def test_docs_hold_what_the_script_writes():
     assert records
     changed = dict(records[0], mean_mse_r=(records[0]["mean_mse_r"] or 1.0) * 7.0)
     assert replace_sections(doc, sections(paper, [changed, *records[1:]])) != doc
+
+
+def test_the_pages_pictures_draw_the_summarys_success_rates():
+    """The bench pages' pictures (paper_side_by_side.py pictures) show, for every record of the
+    committed summary that ran, its strict success rate: one bar per record, none made up."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("paper_side_by_side", REPO_ROOT / "benchmarks" / "paper_side_by_side.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    summary = (REPO_ROOT / "docs" / "bench-paper-side-by-side.csv").read_text(encoding="utf-8")
+    records = [r for r in read_summary_csv(summary) if r["rows"] > r["unavailable"]]
+    drawn = [rate for _, keep in script.PICTURES.values() for rate in script.success_rates(summary, keep)]
+    assert len(drawn) == len(records)
+    assert sorted(100.0 * r["successes"] / r["trials"] for r in drawn) == pytest.approx(
+        sorted(r["success_strict_pct"] or 0.0 for r in records), abs=0.05)
+    assert sum(r["trials"] for r in drawn) == sum(r["rows"] - r["unavailable"] for r in records)

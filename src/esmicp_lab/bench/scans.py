@@ -90,15 +90,15 @@ class ScanBenchConfig:
 
 
 def run_global(name: str, source, target, voxel: float | None, seed: int):
-    """Run one global method; returns ``(T_target_source, notes, ambiguous, confidence)``: esmicp's
-    ``ambiguous`` flag and overlap ``confidence`` (0-1, :attr:`esmicp.RegistrationResult.confidence`),
-    None for the peers, which report neither."""
+    """Run one global method; returns ``(T_target_source, notes, ambiguous, confidence, trusted)``:
+    esmicp's ``ambiguous`` flag, overlap ``confidence`` (0-1, :attr:`esmicp.RegistrationResult.confidence`)
+    and ``trusted`` verdict, None for the peers, which report none of them."""
     if name == "esm-global":
         from esmicp.api import register
 
         result = register(source, target, rng=seed)
         note = f"init={result.init} fitness={result.fitness:.3f} iterations={result.num_iterations}"
-        return result.transformation, note, bool(result.ambiguous), result.confidence
+        return result.transformation, note, bool(result.ambiguous), result.confidence, bool(result.trusted)
     from .. import baselines
 
     if name == "fgr-icp":
@@ -110,19 +110,19 @@ def run_global(name: str, source, target, voxel: float | None, seed: int):
         fine, note = refine(o3d, o3d_cloud(o3d, np.asarray(source, dtype=np.float64)),
                             o3d_cloud(o3d, np.asarray(target, dtype=np.float64)), coarse.transformation, used,
                             FGR_ICP_ITERATIONS, "point-to-point")
-        return fine, f"{coarse.notes}; {note}", None, None
+        return fine, f"{coarse.notes}; {note}", None, None, None
     result = baselines.get_baseline(name)(source, target, voxel_size=voxel, rng=seed)
-    return np.asarray(result.transformation, dtype=np.float64), result.notes, None, None
+    return np.asarray(result.transformation, dtype=np.float64), result.notes, None, None, None
 
 
 def _timed(name, source, target, voxel, seed) -> dict:
     start = time.perf_counter()
     try:
-        estimate, notes, ambiguous, confidence = run_global(name, source, target, voxel, seed)
+        estimate, notes, ambiguous, confidence, trusted = run_global(name, source, target, voxel, seed)
     except Exception as exc:  # noqa: BLE001 - a method's failure is a row, not the end of the run
         return {"status": "failed", "reason": f"{type(exc).__name__}: {exc}", "time_s": time.perf_counter() - start}
     return {"status": "ok", "time_s": time.perf_counter() - start, "estimate": np.asarray(estimate, dtype=np.float64),
-            "notes": notes, "ambiguous": ambiguous, "confidence": confidence}
+            "notes": notes, "ambiguous": ambiguous, "confidence": confidence, "trusted": trusted}
 
 
 def _warm_up(methods) -> None:
