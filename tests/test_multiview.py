@@ -258,7 +258,7 @@ def test_a_reference_left_apart_by_its_first_pairs_still_reaches_the_other_scans
     distances = 0.01 * np.abs(index[:, None] - index[None, :]) + (group[:, None] != group[None, :])
     distances[2, 3:5] = distances[3:5, 2] = 0.9  # the views where the groups meet are the most alike across
     np.fill_diagonal(distances, 0.0)
-    monkeypatch.setattr(scans_module.candidates, "descriptor_distances", lambda clouds: distances)
+    monkeypatch.setattr(scans_module.candidates, "matching_distances", lambda clouds, **_: distances)
     _patch(monkeypatch, truth, clouds, overlapping=overlapping)
     result = register_scans(clouds, refine_rounds=0, threads=1, partners=2)
     assert result.unplaced == (), result.reasons

@@ -134,6 +134,18 @@ class MergeConfig(Config):
     partners : int
         Without ``sequence``: the most similar scans each scan is first registered with, and the
         pairs a round asks for per piece of unplaced scans (count).
+    match_candidates : int
+        Without ``sequence``: each scan's nearest scans by the shape descriptor whose surface
+        features are matched to rank its partners
+        (:func:`esmicp.multiview.pairs.matching_distances`; count).
+    match_radius_spacings : float
+        The FPFH neighbourhood of those features, in median point spacings of the sparse subset
+        (gain).
+    match_normal_neighbours : int
+        Nearest points of the normals under those features (count).
+    match_points : int
+        Features per scan (evenly strided over the sparse subset) matched between two scans
+        (count).
     sequence_neighbours : int
         With ``sequence``: the next scans each scan is registered with (count; 2 gives triangles).
     max_edge_error_deg : float
@@ -210,6 +222,10 @@ class MergeConfig(Config):
     pair_points: int = count(1500, least=MIN_POINTS)
     refine_points: int = count(8000, least=MIN_POINTS)
     partners: int = count(2)
+    match_candidates: int = count(8, least=0)
+    match_radius_spacings: float = number(10.0, above=0.0)
+    match_normal_neighbours: int = count(20, least=3)
+    match_points: int = count(500)
     sequence_neighbours: int = count(2)
     max_edge_error_deg: float = number(2.0, above=0.0, most=180.0)
     refine_rounds: int = count(6, least=0)

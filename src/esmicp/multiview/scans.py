@@ -638,7 +638,7 @@ class _Pieces:
         self.pairwise, self.small, self.config = pairwise, small, config
         self.pair_points, self.partners = config.pair_points, config.partners
         self.placed_at: dict[frozenset, frozenset] = {}  # piece -> the placed scans it was last searched against
-        self.unlike = None  # the descriptors' distances, once asked for
+        self.unlike = None  # the scans' dissimilarities (:func:`_unlike`), once asked for
 
     def _fused(self, poses: dict) -> np.ndarray:
         points = np.concatenate([self.small[k] @ T[:3, :3].T + T[:3, 3] for k, T in sorted(poses.items())])
@@ -689,11 +689,19 @@ class _Pieces:
                 blind.append(piece)
         if blind:
             if self.unlike is None:
-                self.unlike = candidates.descriptor_distances(self.small)
+                self.unlike = _unlike(self.small, self.config)
             asked = set(out)
             out.extend(p for p in candidates.bridging_pairs(self.unlike, poses, blind, tried, self.partners)
                        if p not in asked)
         return out
+
+
+def _unlike(small, config: MergeConfig) -> np.ndarray:
+    """The scans' ``(N, N)`` dissimilarities, most similar first (:func:`candidates.matching_distances`
+    on the sparse subsets, with ``config``'s ``match_*`` values)."""
+    return candidates.matching_distances(small, candidates=config.match_candidates,
+                                         radius_spacings=config.match_radius_spacings,
+                                         normal_neighbours=config.match_normal_neighbours, count=config.match_points)
 
 
 def _apart(n, poses, edges) -> tuple[str, ...]:
@@ -912,7 +920,7 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, config: M
         retry = [(e.i, e.j, None) for e in pairwise.edges.values() if not e.trusted and not {e.i, e.j} <= core]
         pairwise.run(retry, "pairs (global retry)")
     elif n > 1:
-        pieces.unlike = candidates.descriptor_distances(small)
+        pieces.unlike = _unlike(small, config)
         ranked = candidates.ranked_partners(pieces.unlike)
         first = {(min(i, j), max(i, j)) for i in range(n) for j in ranked[i][:partners]}
         pairwise.run([(i, j, None) for i, j in sorted(first)])
