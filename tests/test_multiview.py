@@ -667,3 +667,48 @@ def test_the_merge_bounds_the_scan_searches_of_its_global_pair_searches_only(mon
         assert config.trust == given.trust and config.refine == given.refine
     assert all(config == given for config in checks)
     assert DEFAULT.scan_searches is None
+
+
+def _bumpy_ring_views(n, rng, points=3000, window_deg=75.0):
+    """``n`` views, ``360 / n`` degrees apart, of one closed surface with distinct local shapes (a
+    cylinder with 80 random bumps), each view the points within ``window_deg`` of its direction,
+    in a frame of its own (``truth[k]`` is ``T_world_view``): views k and k+1 overlap, k and k+3
+    do not."""
+    theta, z = rng.uniform(0, 2 * np.pi, points), rng.uniform(-0.5, 0.5, points)
+    bumps = rng.uniform([0, -0.5, 0.02, 0.08], [2 * np.pi, 0.5, 0.08, 0.2], size=(80, 4))
+    turned = np.angle(np.exp(1j * (theta[:, None] - bumps[:, 0])))
+    radius = 1 + np.sum(bumps[:, 2] * np.exp(-(turned ** 2 + (z[:, None] - bumps[:, 1]) ** 2) / bumps[:, 3] ** 2), axis=1)
+    world = np.c_[radius * np.cos(theta), radius * np.sin(theta), z]
+    truth = _truth(n, rng)
+    views = []
+    for k in range(n):
+        inside = np.abs(np.angle(np.exp(1j * (theta - 2 * np.pi * k / n)))) <= np.radians(window_deg) / 2
+        views.append((world[inside] - truth[k][:3, 3]) @ truth[k][:3, :3])
+    return truth, views
+
+
+def _matching(views):
+    from esmicp.multiview import pairs
+
+    config = MergeConfig()
+    return pairs.matching_distances(views, candidates=config.match_candidates,
+                                    radius_spacings=config.match_radius_spacings,
+                                    normal_neighbours=config.match_normal_neighbours, count=config.match_points)
+
+
+def test_surface_matching_finds_the_overlapping_views_wherever_they_lie_and_in_any_order():
+    """Views of one surface ranked by their matching surface features, with no poses: each view's
+    most similar is nearly always a view it overlaps (by the shape descriptor alone, 0-3 of 10 are); the ranking does not depend on the order the
+    views come in, and a rigid motion of a view changes it by no more than rounding."""
+    n = 10
+    truth, views = _bumpy_ring_views(n, np.random.default_rng(0))
+    distances = _matching(views)
+    assert distances.shape == (n, n) and np.allclose(np.diag(distances), 0.0) and np.allclose(distances, distances.T)
+    nearest = [int(np.argsort(distances[k])[1]) for k in range(n)]
+    neighbours = sum((nearest[k] - k) % n in (1, n - 1) for k in range(n))
+    assert neighbours >= n - 1, nearest
+    order = np.random.default_rng(1).permutation(n)
+    np.testing.assert_allclose(_matching([views[k] for k in order]), distances[np.ix_(order, order)], atol=1e-12)
+    turn = Rotation.from_rotvec([0.4, -0.9, 1.3]).as_matrix()
+    moved = _matching([v @ turn.T + [3.0, -1.0, 2.0] if k == 0 else v for k, v in enumerate(views)])
+    assert np.abs(moved - distances).max() < 0.02

@@ -21,6 +21,7 @@ Pairs are unordered ``(i, j)`` with ``i < j``; the caller decides which is the t
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -109,11 +110,16 @@ def matching_distances(clouds: Sequence[np.ndarray], *, candidates: int, radius_
         return out
     pairs = {(min(i, int(j)), max(i, int(j))) for i in range(n)
              for j in [j for j in np.argsort(coarse[i], kind="stable") if j != i][:candidates]}
-    features = [surface_features(c, radius_spacings=radius_spacings, normal_neighbours=normal_neighbours,
-                                 count=count) for c in clouds]
-    trees = [cKDTree(f) if len(f) else None for f in features]
-    for i, j in sorted(pairs):
-        out[i, j] = out[j, i] = 1.0 - mutual_matches(features[i], features[j], trees[i], trees[j]) + 1e-7 * coarse[i, j]
+    pairs = sorted(pairs)
+    # on threads: the compiled kernels and the KD-tree queries release the GIL
+    with ThreadPoolExecutor() as pool:
+        features = list(pool.map(lambda c: surface_features(c, radius_spacings=radius_spacings,
+                                                            normal_neighbours=normal_neighbours, count=count), clouds))
+        trees = list(pool.map(cKDTree, features))
+        matched = list(pool.map(lambda pair: mutual_matches(features[pair[0]], features[pair[1]], trees[pair[0]],
+                                                            trees[pair[1]]), pairs))
+    for (i, j), fraction in zip(pairs, matched):
+        out[i, j] = out[j, i] = 1.0 - fraction + 1e-7 * coarse[i, j]
     return out
 
 
