@@ -677,7 +677,8 @@ def _bumpy_ring_views(n, rng, points=3000, window_deg=75.0):
     theta, z = rng.uniform(0, 2 * np.pi, points), rng.uniform(-0.5, 0.5, points)
     bumps = rng.uniform([0, -0.5, 0.02, 0.08], [2 * np.pi, 0.5, 0.08, 0.2], size=(80, 4))
     turned = np.angle(np.exp(1j * (theta[:, None] - bumps[:, 0])))
-    radius = 1 + np.sum(bumps[:, 2] * np.exp(-(turned ** 2 + (z[:, None] - bumps[:, 1]) ** 2) / bumps[:, 3] ** 2), axis=1)
+    height = np.exp(-(turned ** 2 + (z[:, None] - bumps[:, 1]) ** 2) / bumps[:, 3] ** 2)
+    radius = 1 + np.sum(bumps[:, 2] * height, axis=1)
     world = np.c_[radius * np.cos(theta), radius * np.sin(theta), z]
     truth = _truth(n, rng)
     views = []
@@ -698,8 +699,9 @@ def _matching(views):
 
 def test_surface_matching_finds_the_overlapping_views_wherever_they_lie_and_in_any_order():
     """Views of one surface ranked by their matching surface features, with no poses: each view's
-    most similar is nearly always a view it overlaps (by the shape descriptor alone, 0-3 of 10 are); the ranking does not depend on the order the
-    views come in, and a rigid motion of a view changes it by no more than rounding."""
+    most similar is nearly always a view it overlaps (by the shape descriptor alone, 0-3 of 10
+    are); the ranking does not depend on the order the views come in, and a rigid motion of a view
+    changes it by no more than rounding."""
     n = 10
     truth, views = _bumpy_ring_views(n, np.random.default_rng(0))
     distances = _matching(views)
