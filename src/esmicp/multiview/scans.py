@@ -10,7 +10,9 @@
    ``sequence_neighbours`` scans, refined locally from the identity (the pairs it leaves
    untrusted searched globally where the walk needs them: where the trusted ones leave a scan on
    no cycle through the reference); without, each scan with its
-   ``partners`` most similar scans by a cheap shape descriptor (:mod:`esmicp.multiview.pairs`),
+   ``partners`` most similar scans: a cheap shape descriptor proposes each scan's nearest few,
+   the fraction of their surface features (FPFH) that match each other mutually ranks them
+   (:func:`esmicp.multiview.pairs.matching_distances`),
    searched globally by :func:`esmicp.register`. Every pair is then refined locally on denser
    subsets and judged there.
    The jobs run on a thread pool, a process pool or a Dask cluster (:func:`esmicp.register_many`).
@@ -631,7 +633,7 @@ class _Pieces:
     pairs across (:class:`candidates.PredictedOverlap`), and only those pairs are searched, each
     globally: the piece's pose chooses the pairs and is never an edge or a start, so a wrong one
     only costs the searches it proposed. A piece whose pose predicts no pair, or whose proposed
-    pairs placed nothing, gets the placed scans most like its own by the shape descriptor instead
+    pairs placed nothing, gets the placed scans most like its own by the surface matching instead
     (:func:`candidates.bridging_pairs`, ``partners * min(len(piece), partners)`` pairs a round)."""
 
     def __init__(self, pairwise: "_Pairwise", small, config: MergeConfig):
@@ -774,7 +776,7 @@ def register_scans(
         ``sequence_neighbours=2``, ``max_edge_error_deg=2.0``, ``refine_rounds=6``).
     partners : int, optional
         Without ``sequence``: each scan is first registered with its ``partners`` most similar
-        scans (a shape descriptor). Then, each round, each piece of scans not placed (scans joined
+        scans (their surface features matched). Then, each round, each piece of scans not placed (scans joined
         to each other, or one scan) gets up to ``partners`` pairs with the placed scans: those its
         pose as a whole predicts to overlap, else those most like its scans, each scan in at most
         ``partners``. (Scans placed but not yet confirmed get one pair across each edge on no
@@ -850,8 +852,10 @@ def register_scans(
     edge). The free-space check holds, per posed scan, a 4,000-point subset and a KD-tree of its
     directions (about 0.25 MB; 0.25 GB for 1,000 scans). Choosing pairs from poses holds, per posed
     scan asked about, its sparse subset in the world frame and a KD-tree over it (about 0.1 MB;
-    0.1 GB for 1,000 scans, while the pairs are chosen). The N x N arrays are the descriptors'
-    distances (8 MB for 1,000 scans) and, with ``sequence``, the graph's path lengths while the
+    0.1 GB for 1,000 scans, while the pairs are chosen). Ranking the first pairs holds, per scan,
+    its ``match_points`` surface features and a KD-tree over them (about 0.25 MB; 0.25 GB for
+    1,000 scans, while they are ranked). The N x N arrays are the scans' dissimilarities (8 MB for
+    1,000 scans) and, with ``sequence``, the graph's path lengths while the
     loop closures are chosen (8 MB, and as much again for each update). Each
     registration running at once holds its own pair's working set besides. Measured
     (``benchmarks/merge_scale.py``: 1,000 scans of 8,000 points, 2,997 edges): peak memory 1.15
