@@ -404,6 +404,35 @@ def closing_pairs(parts: list[set[int]], extents: dict[int, tuple[np.ndarray, fl
     return out
 
 
+def similar_crossing_pairs(parts: list[set[int]], distances: np.ndarray, posed: Iterable[int], tried: set,
+                           chosen: Iterable[tuple[int, int]], *, per_part: int) -> list[tuple[int, int]]:
+    """For each set of ``parts`` (smallest first) that no pair of ``chosen`` or of those picked
+    before crosses, up to ``per_part`` untried pairs of one of its scans and a posed scan outside
+    it, the most similar first (``distances`` from :func:`matching_distances`): the pairs that may
+    put a bridge on a cycle when the poses predict no overlap across it (a view seen from a
+    direction no placed scan comes near)."""
+    posed = sorted(posed)
+    out: list[tuple[int, int]] = []
+    taken = list(chosen)
+    for part in parts:
+        if any((i in part) != (j in part) for i, j in taken + out):
+            continue
+        inside, outside = sorted(part), [k for k in posed if k not in part]
+        if not inside or not outside:
+            continue
+        block = distances[np.ix_(inside, outside)]
+        picked = []
+        for slot in np.argsort(block, axis=None, kind="stable"):
+            i, j = inside[slot // len(outside)], outside[slot % len(outside)]
+            pair = (min(i, j), max(i, j))
+            if pair not in tried and pair not in out and pair not in picked:
+                picked.append(pair)
+                if len(picked) >= per_part:
+                    break
+        out.extend(picked)
+    return out
+
+
 def pieces(scans: Iterable[int], joined: Iterable[tuple[int, int]]) -> list[list[int]]:
     """The connected pieces of ``scans`` under the pairs ``joined`` (pairs with a scan outside
     ``scans`` are ignored), each sorted, in order of their first scan."""

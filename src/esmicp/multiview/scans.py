@@ -606,21 +606,27 @@ def _predicted_overlap(poses, small, edges, config: MergeConfig) -> candidates.P
                                       points=config.predict_points)
 
 
-def _closing(reference, poses, edges, small, unconfirmed, tried, config: MergeConfig) -> list[tuple[int, int]]:
+def _closing(reference, poses, edges, small, unconfirmed, tried, config: MergeConfig,
+             unlike: Callable[[], np.ndarray]) -> list[tuple[int, int]]:
     """Pairs to search for the posed scans in ``unconfirmed``: across each edge on no cycle of the
     kept graph (:func:`candidates.hanging_parts`), and for each scan contradicted in the
     reference's 2-edge-connected core, the pairs the poses predict to overlap most
-    (:func:`candidates.closing_pairs`)."""
+    (:func:`candidates.closing_pairs`); across an edge on no cycle where the poses predict no
+    such pair, the most similar pairs (``unlike()``: the scans' dissimilarities,
+    :func:`candidates.similar_crossing_pairs`)."""
     if not unconfirmed:
         return []
     kept = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
-    parts = candidates.hanging_parts(reference, kept)
-    hanging = set().union(*parts)
-    parts += [{k} for k in unconfirmed if k not in hanging]  # in the core, but contradicted
-    return candidates.closing_pairs(parts, candidates.world_extents(poses, small),
-                                    _predicted_overlap(poses, small, edges, config), tried,
-                                    min_overlap=config.min_predicted_overlap, per_part=config.closing_pairs,
-                                    partners=config.predict_partners)
+    bridged = candidates.hanging_parts(reference, kept)
+    hanging = set().union(*bridged)
+    parts = bridged + [{k} for k in unconfirmed if k not in hanging]  # in the core, but contradicted
+    out = candidates.closing_pairs(parts, candidates.world_extents(poses, small),
+                                   _predicted_overlap(poses, small, edges, config), tried,
+                                   min_overlap=config.min_predicted_overlap, per_part=config.closing_pairs,
+                                   partners=config.predict_partners)
+    if any(not any((i in part) != (j in part) for i, j in out) for part in bridged):
+        out += candidates.similar_crossing_pairs(bridged, unlike(), poses, tried, out, per_part=config.closing_pairs)
+    return out
 
 
 class _Pieces:
@@ -641,6 +647,12 @@ class _Pieces:
         self.pair_points, self.partners = config.pair_points, config.partners
         self.placed_at: dict[frozenset, frozenset] = {}  # piece -> the placed scans it was last searched against
         self.unlike = None  # the scans' dissimilarities (:func:`_unlike`), once asked for
+
+    def dissimilarities(self) -> np.ndarray:
+        """The scans' ``(N, N)`` dissimilarities (:func:`_unlike`), made once when first asked for."""
+        if self.unlike is None:
+            self.unlike = _unlike(self.small, self.config)
+        return self.unlike
 
     def _fused(self, poses: dict) -> np.ndarray:
         points = np.concatenate([self.small[k] @ T[:3, :3].T + T[:3, 3] for k, T in sorted(poses.items())])
@@ -690,10 +702,8 @@ class _Pieces:
             if not chosen:  # no pose for the piece, or its proposals were searched last round
                 blind.append(piece)
         if blind:
-            if self.unlike is None:
-                self.unlike = _unlike(self.small, self.config)
             asked = set(out)
-            out.extend(p for p in candidates.bridging_pairs(self.unlike, poses, blind, tried, self.partners)
+            out.extend(p for p in candidates.bridging_pairs(self.dissimilarities(), poses, blind, tried, self.partners)
                        if p not in asked)
         return out
 
@@ -924,8 +934,7 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, config: M
         retry = [(e.i, e.j, None) for e in pairwise.edges.values() if not e.trusted and not {e.i, e.j} <= core]
         pairwise.run(retry, "pairs (global retry)")
     elif n > 1:
-        pieces.unlike = _unlike(small, config)
-        ranked = candidates.ranked_partners(pieces.unlike)
+        ranked = candidates.ranked_partners(pieces.dissimilarities())
         first = {(min(i, j), max(i, j)) for i in range(n) for j in ranked[i][:partners]}
         pairwise.run([(i, j, None) for i, j in sorted(first)])
     vetoed: dict[tuple[int, int], str] = {}  # edges cut by a free-space conflict -> why
@@ -957,7 +966,7 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, config: M
             if stalled >= config.stalled_rounds:
                 break
             wanted = _closing(reference, poses, edges, small, [k for k in unconfirmed if k in poses],
-                              pairwise.settled(), config)
+                              pairwise.settled(), config, pieces.dissimilarities)
             unplaced = [k for k in unconfirmed if k not in poses]
             if unplaced:  # not placed at all: each piece of them placed as a whole proposes its pairs
                 joined = [(e.i, e.j) for e in edges if e.trusted and not e.reason.startswith(("cycle", "free-space"))]
