@@ -714,3 +714,25 @@ def test_surface_matching_finds_the_overlapping_views_wherever_they_lie_and_in_a
     turn = Rotation.from_rotvec([0.4, -0.9, 1.3]).as_matrix()
     moved = _matching([v @ turn.T + [3.0, -1.0, 2.0] if k == 0 else v for k, v in enumerate(views)])
     assert np.abs(moved - distances).max() < 0.02
+
+
+def test_a_bridge_the_poses_predict_no_pair_across_gets_the_most_similar_pair_across_it():
+    """Scans 4-5 hang from 0-3 by one edge, 6 from 4-5 by another. For each bridge not crossed by
+    a pair chosen already, the most similar untried pair with one scan on each side (never one
+    inside a part, never one tried, never one of an unposed scan), smallest part first: one pair
+    may cross both bridges."""
+    from esmicp.multiview import pairs
+
+    distances = np.full((8, 8), 0.9)
+    distances[6, 1] = distances[1, 6] = 0.1   # crosses both bridges
+    distances[4, 5] = distances[5, 4] = 0.05  # inside a part
+    distances[5, 2] = distances[2, 5] = 0.2
+    distances[5, 6] = distances[6, 5] = 0.3
+    distances[4, 7] = distances[7, 4] = 0.01  # scan 7 is not posed
+    np.fill_diagonal(distances, 0.0)
+    parts = [{6}, {4, 5, 6}]
+    posed = range(7)
+    assert pairs.similar_crossing_pairs(parts, distances, posed, set(), [], per_part=1) == [(1, 6)]
+    assert pairs.similar_crossing_pairs(parts, distances, posed, {(1, 6)}, [], per_part=1) == [(5, 6), (2, 5)]
+    assert pairs.similar_crossing_pairs(parts, distances, posed, {(1, 6)}, [(3, 4)], per_part=1) == [(5, 6)]
+    assert pairs.similar_crossing_pairs(parts, distances, posed, {(1, 6)}, [(3, 6)], per_part=1) == []
