@@ -125,7 +125,7 @@ def matching_distances(clouds: Sequence[np.ndarray], *, candidates: int, radius_
 
 def ranked_partners(distances: np.ndarray) -> list[list[int]]:
     """For every scan, every other scan, most similar first (``distances`` from
-    :func:`descriptor_distances`; ties by index)."""
+    :func:`matching_distances`; ties by index)."""
     return [[int(j) for j in np.argsort(row, kind="stable") if j != i] for i, row in enumerate(distances)]
 
 
@@ -133,7 +133,7 @@ def bridging_pairs(distances: np.ndarray, placed: Iterable[int], pieces: Iterabl
                    per_scan: int) -> list[tuple[int, int]]:
     """Untried pairs of one scan of a piece not placed (``pieces``: each a list of scans joined
     to each other, not to the placed ones) and one placed scan, most similar first (``distances``
-    from :func:`descriptor_distances`), each scan in at most ``per_scan`` of them and each piece
+    from :func:`matching_distances`), each scan in at most ``per_scan`` of them and each piece
     in at most ``per_scan * min(len(piece), per_scan)``.
 
     Only such a pair can place a piece: one between two unplaced scans joins them to each other,
