@@ -841,9 +841,10 @@ def register_scans(
 
     Notes
     -----
-    Work: without ``sequence``, about ``N * partners * 0.7`` global searches (the union of every
-    scan's ``partners`` most similar), each followed by a local check on the dense subsets; then in
-    each round one per edge on no cycle, and per piece of unplaced scans one registration of the
+    Work: without ``sequence``, ``N * match_candidates`` matchings of surface features at most (a
+    few milliseconds each) to rank the pairs, then about ``N * partners * 0.7`` global searches
+    (the union of every scan's ``partners`` most similar), each followed by a local check on the
+    dense subsets; then in each round one per edge on no cycle, and per piece of unplaced scans one registration of the
     piece as a whole and up to ``partners`` pairs (``partners * min(len(piece), partners)`` when
     its pose proposes none), until ``stalled_rounds`` rounds in a row place or confirm no scan.
     With ``sequence``, about
