@@ -736,3 +736,23 @@ def test_a_bridge_the_poses_predict_no_pair_across_gets_the_most_similar_pair_ac
     assert pairs.similar_crossing_pairs(parts, distances, posed, {(1, 6)}, [], per_part=1) == [(5, 6), (2, 5)]
     assert pairs.similar_crossing_pairs(parts, distances, posed, {(1, 6)}, [(3, 4)], per_part=1) == [(5, 6)]
     assert pairs.similar_crossing_pairs(parts, distances, posed, {(1, 6)}, [(3, 6)], per_part=1) == []
+
+
+@pytest.mark.parametrize("n", [6, 12])
+def test_a_clean_ring_costs_its_own_pairs_and_no_more(monkeypatch, n):
+    """Scans on a ring, each overlapping its two neighbours only, and each the most similar to its
+    neighbours: the first pairs are the ring's n pairs, every scan is on their cycle, and no pair is
+    asked for beyond them (one registration of each, the search and its check)."""
+    rng = np.random.default_rng(13)
+    truth = _truth(n, rng)
+    clouds = _clouds(truth, rng)
+    ring = {(min(k, (k + 1) % n), max(k, (k + 1) % n)) for k in range(n)}
+    index = np.arange(n)
+    hops = np.abs(index[:, None] - index[None, :])
+    distances = np.minimum(hops, n - hops) / n
+    monkeypatch.setattr(scans_module.candidates, "matching_distances", lambda clouds, **_: distances)
+    _patch(monkeypatch, truth, clouds, overlapping=ring)
+    result = register_scans(clouds, refine_rounds=0, threads=1)
+    assert result.status == ("placed",) * n, result.reasons
+    assert {(min(e.i, e.j), max(e.i, e.j)) for e in result.edges} == ring
+    assert result.pairs_registered == 2 * n
