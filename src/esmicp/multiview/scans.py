@@ -785,12 +785,12 @@ def register_scans(
         :class:`~esmicp.config.MergeConfig`'s: 1500 and 8000 points, ``partners=2``,
         ``sequence_neighbours=2``, ``max_edge_error_deg=2.0``, ``refine_rounds=6``).
     partners : int, optional
-        Without ``sequence``: each scan is first registered with its ``partners`` most similar
-        scans (their surface features matched). Then, each round, each piece of scans not placed (scans joined
-        to each other, or one scan) gets up to ``partners`` pairs with the placed scans: those its
-        pose as a whole predicts to overlap, else those most like its scans, each scan in at most
-        ``partners``. (Scans placed but not yet confirmed get one pair across each edge on no
-        cycle, whatever ``partners``.)
+        Without ``sequence``: each scan is first registered with its ``partners`` most similar scans
+        (their surface features matched). Then, each round, each piece of scans not placed (scans
+        joined to each other, or one scan) gets up to ``partners`` pairs with the placed scans:
+        those its pose as a whole predicts to overlap, else those most like its scans, each scan in
+        at most ``partners``. (Scans placed but not yet confirmed get one pair across each edge on
+        no cycle, whatever ``partners``.)
     sequence_neighbours : int, optional
         With ``sequence``: each scan with the next this many scans (2 gives triangles, so every
         scan can be confirmed around a cycle).
@@ -842,12 +842,12 @@ def register_scans(
     Notes
     -----
     Work: without ``sequence``, ``N * match_candidates`` matchings of surface features at most (a
-    few milliseconds each) to rank the pairs, then about ``N * partners * 0.7`` global searches
-    (the union of every scan's ``partners`` most similar), each followed by a local check on the
-    dense subsets; then in each round one per edge on no cycle, and per piece of unplaced scans one registration of the
-    piece as a whole and up to ``partners`` pairs (``partners * min(len(piece), partners)`` when
-    its pose proposes none), until ``stalled_rounds`` rounds in a row place or confirm no scan.
-    With ``sequence``, about
+    few milliseconds each) to rank the pairs, then about ``N * partners * 0.7`` global searches (the
+    union of every scan's ``partners`` most similar), each followed by a local check on the dense
+    subsets; then in each round one per edge on no cycle, and per piece of unplaced scans one
+    registration of the piece as a whole and up to ``partners`` pairs
+    (``partners * min(len(piece), partners)`` when its pose proposes none), until
+    ``stalled_rounds`` rounds in a row place or confirm no scan. With ``sequence``, about
     ``N * sequence_neighbours`` local refinements (a global search for those they leave untrusted
     where the walk needs them), at most ``N * loop_searches_per_scan`` loop closures, then the
     same rounds.
