@@ -258,7 +258,7 @@ def test_a_reference_left_apart_by_its_first_pairs_still_reaches_the_other_scans
     distances = 0.01 * np.abs(index[:, None] - index[None, :]) + (group[:, None] != group[None, :])
     distances[2, 3:5] = distances[3:5, 2] = 0.9  # the views where the groups meet are the most alike across
     np.fill_diagonal(distances, 0.0)
-    monkeypatch.setattr(scans_module.candidates, "descriptor_distances", lambda clouds: distances)
+    monkeypatch.setattr(scans_module.candidates, "matching_distances", lambda clouds, **_: distances)
     _patch(monkeypatch, truth, clouds, overlapping=overlapping)
     result = register_scans(clouds, refine_rounds=0, threads=1, partners=2)
     assert result.unplaced == (), result.reasons
@@ -667,3 +667,92 @@ def test_the_merge_bounds_the_scan_searches_of_its_global_pair_searches_only(mon
         assert config.trust == given.trust and config.refine == given.refine
     assert all(config == given for config in checks)
     assert DEFAULT.scan_searches is None
+
+
+def _bumpy_ring_views(n, rng, points=3000, window_deg=75.0):
+    """``n`` views, ``360 / n`` degrees apart, of one closed surface with distinct local shapes (a
+    cylinder with 80 random bumps), each view the points within ``window_deg`` of its direction,
+    in a frame of its own (``truth[k]`` is ``T_world_view``): views k and k+1 overlap, k and k+3
+    do not."""
+    theta, z = rng.uniform(0, 2 * np.pi, points), rng.uniform(-0.5, 0.5, points)
+    bumps = rng.uniform([0, -0.5, 0.02, 0.08], [2 * np.pi, 0.5, 0.08, 0.2], size=(80, 4))
+    turned = np.angle(np.exp(1j * (theta[:, None] - bumps[:, 0])))
+    height = np.exp(-(turned ** 2 + (z[:, None] - bumps[:, 1]) ** 2) / bumps[:, 3] ** 2)
+    radius = 1 + np.sum(bumps[:, 2] * height, axis=1)
+    world = np.c_[radius * np.cos(theta), radius * np.sin(theta), z]
+    truth = _truth(n, rng)
+    views = []
+    for k in range(n):
+        inside = np.abs(np.angle(np.exp(1j * (theta - 2 * np.pi * k / n)))) <= np.radians(window_deg) / 2
+        views.append((world[inside] - truth[k][:3, 3]) @ truth[k][:3, :3])
+    return truth, views
+
+
+def _matching(views):
+    from esmicp.multiview import pairs
+
+    config = MergeConfig()
+    return pairs.matching_distances(views, candidates=config.match_candidates,
+                                    radius_spacings=config.match_radius_spacings,
+                                    normal_neighbours=config.match_normal_neighbours, count=config.match_points)
+
+
+def test_surface_matching_finds_the_overlapping_views_wherever_they_lie_and_in_any_order():
+    """Views of one surface ranked by their matching surface features, with no poses: each view's
+    most similar is nearly always a view it overlaps (by the shape descriptor alone, 0-3 of 10
+    are); the ranking does not depend on the order the views come in, and a rigid motion of a view
+    changes it by no more than rounding."""
+    n = 10
+    truth, views = _bumpy_ring_views(n, np.random.default_rng(0))
+    distances = _matching(views)
+    assert distances.shape == (n, n) and np.allclose(np.diag(distances), 0.0) and np.allclose(distances, distances.T)
+    nearest = [int(np.argsort(distances[k])[1]) for k in range(n)]
+    neighbours = sum((nearest[k] - k) % n in (1, n - 1) for k in range(n))
+    assert neighbours >= n - 1, nearest
+    order = np.random.default_rng(1).permutation(n)
+    np.testing.assert_allclose(_matching([views[k] for k in order]), distances[np.ix_(order, order)], atol=1e-12)
+    turn = Rotation.from_rotvec([0.4, -0.9, 1.3]).as_matrix()
+    moved = _matching([v @ turn.T + [3.0, -1.0, 2.0] if k == 0 else v for k, v in enumerate(views)])
+    assert np.abs(moved - distances).max() < 0.02
+
+
+def test_a_bridge_the_poses_predict_no_pair_across_gets_the_most_similar_pair_across_it():
+    """Scans 4-5 hang from 0-3 by one edge, 6 from 4-5 by another. For each bridge not crossed by
+    a pair chosen already, the most similar untried pair with one scan on each side (never one
+    inside a part, never one tried, never one of an unposed scan), smallest part first: one pair
+    may cross both bridges."""
+    from esmicp.multiview import pairs
+
+    distances = np.full((8, 8), 0.9)
+    distances[6, 1] = distances[1, 6] = 0.1   # crosses both bridges
+    distances[4, 5] = distances[5, 4] = 0.05  # inside a part
+    distances[5, 2] = distances[2, 5] = 0.2
+    distances[5, 6] = distances[6, 5] = 0.3
+    distances[4, 7] = distances[7, 4] = 0.01  # scan 7 is not posed
+    np.fill_diagonal(distances, 0.0)
+    parts = [{6}, {4, 5, 6}]
+    posed = range(7)
+    assert pairs.similar_crossing_pairs(parts, distances, posed, set(), [], per_part=1) == [(1, 6)]
+    assert pairs.similar_crossing_pairs(parts, distances, posed, {(1, 6)}, [], per_part=1) == [(5, 6), (2, 5)]
+    assert pairs.similar_crossing_pairs(parts, distances, posed, {(1, 6)}, [(3, 4)], per_part=1) == [(5, 6)]
+    assert pairs.similar_crossing_pairs(parts, distances, posed, {(1, 6)}, [(3, 6)], per_part=1) == []
+
+
+@pytest.mark.parametrize("n", [6, 12])
+def test_a_clean_ring_costs_its_own_pairs_and_no_more(monkeypatch, n):
+    """Scans on a ring, each overlapping its two neighbours only, and each the most similar to its
+    neighbours: the first pairs are the ring's n pairs, every scan is on their cycle, and no pair is
+    asked for beyond them (one registration of each, the search and its check)."""
+    rng = np.random.default_rng(13)
+    truth = _truth(n, rng)
+    clouds = _clouds(truth, rng)
+    ring = {(min(k, (k + 1) % n), max(k, (k + 1) % n)) for k in range(n)}
+    index = np.arange(n)
+    hops = np.abs(index[:, None] - index[None, :])
+    distances = np.minimum(hops, n - hops) / n
+    monkeypatch.setattr(scans_module.candidates, "matching_distances", lambda clouds, **_: distances)
+    _patch(monkeypatch, truth, clouds, overlapping=ring)
+    result = register_scans(clouds, refine_rounds=0, threads=1)
+    assert result.status == ("placed",) * n, result.reasons
+    assert {(min(e.i, e.j), max(e.i, e.j)) for e in result.edges} == ring
+    assert result.pairs_registered == 2 * n

@@ -146,6 +146,18 @@ class MergeConfig(Config):
     partners : int
         Without ``sequence``: the most similar scans each scan is first registered with, and the
         pairs a round asks for per piece of unplaced scans (count).
+    match_candidates : int
+        Without ``sequence``: each scan's nearest scans by the shape descriptor whose surface
+        features are matched to rank its partners
+        (:func:`esmicp.multiview.pairs.matching_distances`; count).
+    match_radius_spacings : float
+        The FPFH neighbourhood of those features, in median point spacings of the sparse subset
+        (gain).
+    match_normal_neighbours : int
+        Nearest points of the normals under those features (count).
+    match_points : int
+        Features per scan (evenly strided over the sparse subset) matched between two scans
+        (count).
     sequence_neighbours : int
         With ``sequence``: the next scans each scan is registered with (count; 2 gives triangles).
     max_edge_error_deg : float
@@ -216,12 +228,21 @@ class MergeConfig(Config):
     and confirmed on the kitchen walk in order (100 depth frames): ``refine_floor_spacings``, ``query_points``, ``check_iterations`` and
     ``check_tolerance`` (confirmed on pairs of the walk 1 and 2 frames apart). Chosen on the
     kitchen walk in order and confirmed on every 20th frame of it: ``loop_searches_per_scan``.
+    Chosen on the bunny's 10 raw scans shuffled (how often a scan's 2 most similar overlap it
+    under the ground truth, and the pairs a merge registers) and confirmed on 15 turntable scans
+    in two orders, the bunny off its sensors' frames, 5 Newer College LiDAR scans and 30 frames of
+    the kitchen walk shuffled: ``match_candidates``, ``match_radius_spacings``,
+    ``match_normal_neighbours`` and ``match_points``.
     The measurements: ``docs/merge.md``, "Tuned values".
     """
 
     pair_points: int = count(1500, least=MIN_POINTS)
     refine_points: int = count(8000, least=MIN_POINTS)
     partners: int = count(2)
+    match_candidates: int = count(8, least=0)
+    match_radius_spacings: float = number(10.0, above=0.0)
+    match_normal_neighbours: int = count(20, least=3)
+    match_points: int = count(500)
     sequence_neighbours: int = count(2)
     max_edge_error_deg: float = number(2.0, above=0.0, most=180.0)
     refine_rounds: int = count(6, least=0)

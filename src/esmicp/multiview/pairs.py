@@ -2,8 +2,10 @@
 
 * With the capture order (``sequence=True``): each scan with its next few scans
   (:func:`sequence_pairs`).
-* Without: each scan with the scans most similar to it by a cheap shape descriptor
-  (:func:`descriptor_distances`, :func:`ranked_partners`).
+* Without: each scan with the scans most similar to it: a cheap shape descriptor
+  (:func:`descriptor_distances`) proposes each scan's nearest few, and the fraction of their
+  local surface features that match each other mutually ranks those (:func:`matching_distances`,
+  :func:`ranked_partners`).
 * Once poses exist, what they predict two scans share (:class:`PredictedOverlap`) chooses the
   pairs worth a global search: loop closures where they bypass the longest stretch of the graph
   (:func:`loop_pairs`), and pairs that put an edge on no cycle on one (:func:`closing_pairs`).
@@ -19,6 +21,7 @@ Pairs are unordered ``(i, j)`` with ``i < j``; the caller decides which is the t
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -51,9 +54,78 @@ def descriptor_distances(clouds: Sequence[np.ndarray]) -> np.ndarray:
     return cdist(descriptors, descriptors)
 
 
+def surface_features(points: np.ndarray, *, radius_spacings: float, normal_neighbours: int, count: int) -> np.ndarray:
+    """The FPFH features (:func:`esmicp.core.features.fpfh`) of ``count`` evenly strided points of
+    one scan (at most), over a neighbourhood of ``radius_spacings`` times its median point spacing,
+    normals from its ``normal_neighbours`` nearest points: ``(count, 33)``, invariant to a rigid
+    motion of the scan."""
+    from scipy.spatial import cKDTree
+
+    from ..core.features import estimate_normals, fpfh
+
+    if len(points) < 3:
+        return np.zeros((0, 33))
+    spacing = float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
+    if not spacing > 0:
+        return np.zeros((0, 33))
+    features = fpfh(points, estimate_normals(points, k=normal_neighbours), radius_spacings * spacing)
+    return features[np.linspace(0, len(points) - 1, min(count, len(points))).astype(np.intp)]
+
+
+def mutual_matches(a: np.ndarray, b: np.ndarray, tree_a=None, tree_b=None) -> float:
+    """The fraction (0-1, of the smaller set) of the features ``a`` and ``b`` (rows) that are each
+    other's nearest neighbour in feature space. Two views of one surface share features where
+    they overlap, so the fraction grows with the overlap; it does not need their poses."""
+    from scipy.spatial import cKDTree
+
+    if len(a) == 0 or len(b) == 0:
+        return 0.0
+    tree_a = cKDTree(a) if tree_a is None else tree_a
+    tree_b = cKDTree(b) if tree_b is None else tree_b
+    _, a_to_b = tree_b.query(a)
+    _, b_to_a = tree_a.query(b)
+    return float(np.sum(b_to_a[a_to_b] == np.arange(len(a)))) / min(len(a), len(b))
+
+
+def matching_distances(clouds: Sequence[np.ndarray], *, candidates: int, radius_spacings: float,
+                       normal_neighbours: int, count: int) -> np.ndarray:
+    """``(N, N)`` dissimilarities of the scans (0 on the diagonal; small for scans worth
+    registering first): among each scan's ``candidates`` nearest by :func:`descriptor_distances`,
+    one minus the fraction of their surface features that match mutually (:func:`surface_features`,
+    :func:`mutual_matches`; 0-1), plus a ten-millionth of their descriptor distance (ties, such as
+    two pairs with no match at all, are broken by the descriptor, not by the scans' input order);
+    every other pair one plus its descriptor distance, so that it ranks after every matched pair.
+    O(N * candidates) feature matchings.
+
+    On the Stanford bunny's 10 scans, the 2 most similar of a scan overlap it by 20% or more
+    (under the ground truth) in 80% of cases (70% by the descriptor alone); on 15 turntable
+    scans 24 degrees apart, in 100% (80%)."""
+    from scipy.spatial import cKDTree
+
+    coarse = descriptor_distances(clouds)
+    n = len(clouds)
+    out = 1.0 + coarse
+    np.fill_diagonal(out, 0.0)
+    if n < 2 or candidates < 1:
+        return out
+    pairs = {(min(i, int(j)), max(i, int(j))) for i in range(n)
+             for j in [j for j in np.argsort(coarse[i], kind="stable") if j != i][:candidates]}
+    pairs = sorted(pairs)
+    # on threads: the compiled kernels and the KD-tree queries release the GIL
+    with ThreadPoolExecutor() as pool:
+        features = list(pool.map(lambda c: surface_features(c, radius_spacings=radius_spacings,
+                                                            normal_neighbours=normal_neighbours, count=count), clouds))
+        trees = list(pool.map(cKDTree, features))
+        matched = list(pool.map(lambda pair: mutual_matches(features[pair[0]], features[pair[1]], trees[pair[0]],
+                                                            trees[pair[1]]), pairs))
+    for (i, j), fraction in zip(pairs, matched):
+        out[i, j] = out[j, i] = 1.0 - fraction + 1e-7 * coarse[i, j]
+    return out
+
+
 def ranked_partners(distances: np.ndarray) -> list[list[int]]:
     """For every scan, every other scan, most similar first (``distances`` from
-    :func:`descriptor_distances`; ties by index)."""
+    :func:`matching_distances`; ties by index)."""
     return [[int(j) for j in np.argsort(row, kind="stable") if j != i] for i, row in enumerate(distances)]
 
 
@@ -61,7 +133,7 @@ def bridging_pairs(distances: np.ndarray, placed: Iterable[int], pieces: Iterabl
                    per_scan: int) -> list[tuple[int, int]]:
     """Untried pairs of one scan of a piece not placed (``pieces``: each a list of scans joined
     to each other, not to the placed ones) and one placed scan, most similar first (``distances``
-    from :func:`descriptor_distances`), each scan in at most ``per_scan`` of them and each piece
+    from :func:`matching_distances`), each scan in at most ``per_scan`` of them and each piece
     in at most ``per_scan * min(len(piece), per_scan)``.
 
     Only such a pair can place a piece: one between two unplaced scans joins them to each other,
@@ -329,6 +401,35 @@ def closing_pairs(parts: list[set[int]], extents: dict[int, tuple[np.ndarray, fl
         scored = sorted({(min(i, j), max(i, j)) for i, others in near.items() for j in others},
                         key=lambda p: (-overlap(*p), p))
         out.extend([p for p in scored if overlap(*p) >= min_overlap and p not in out][:per_part])
+    return out
+
+
+def similar_crossing_pairs(parts: list[set[int]], distances: np.ndarray, posed: Iterable[int], tried: set,
+                           chosen: Iterable[tuple[int, int]], *, per_part: int) -> list[tuple[int, int]]:
+    """For each set of ``parts`` (smallest first) that no pair of ``chosen`` or of those picked
+    before crosses, up to ``per_part`` untried pairs of one of its scans and a posed scan outside
+    it, the most similar first (``distances`` from :func:`matching_distances`): the pairs that may
+    put a bridge on a cycle when the poses predict no overlap across it (a view seen from a
+    direction no placed scan comes near)."""
+    posed = sorted(posed)
+    out: list[tuple[int, int]] = []
+    taken = list(chosen)
+    for part in parts:
+        if any((i in part) != (j in part) for i, j in taken + out):
+            continue
+        inside, outside = sorted(part), [k for k in posed if k not in part]
+        if not inside or not outside:
+            continue
+        block = distances[np.ix_(inside, outside)]
+        picked = []
+        for slot in np.argsort(block, axis=None, kind="stable"):
+            i, j = inside[slot // len(outside)], outside[slot % len(outside)]
+            pair = (min(i, j), max(i, j))
+            if pair not in tried and pair not in out and pair not in picked:
+                picked.append(pair)
+                if len(picked) >= per_part:
+                    break
+        out.extend(picked)
     return out
 
 

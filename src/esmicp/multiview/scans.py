@@ -10,7 +10,9 @@
    ``sequence_neighbours`` scans, refined locally from the identity (the pairs it leaves
    untrusted searched globally where the walk needs them: where the trusted ones leave a scan on
    no cycle through the reference); without, each scan with its
-   ``partners`` most similar scans by a cheap shape descriptor (:mod:`esmicp.multiview.pairs`),
+   ``partners`` most similar scans: a cheap shape descriptor proposes each scan's nearest few,
+   the fraction of their surface features (FPFH) that match each other mutually ranks them
+   (:func:`esmicp.multiview.pairs.matching_distances`),
    searched globally by :func:`esmicp.register`. Every pair is then refined locally on denser
    subsets and judged there.
    The jobs run on a thread pool, a process pool or a Dask cluster (:func:`esmicp.register_many`).
@@ -604,21 +606,27 @@ def _predicted_overlap(poses, small, edges, config: MergeConfig) -> candidates.P
                                       points=config.predict_points)
 
 
-def _closing(reference, poses, edges, small, unconfirmed, tried, config: MergeConfig) -> list[tuple[int, int]]:
+def _closing(reference, poses, edges, small, unconfirmed, tried, config: MergeConfig,
+             unlike: Callable[[], np.ndarray]) -> list[tuple[int, int]]:
     """Pairs to search for the posed scans in ``unconfirmed``: across each edge on no cycle of the
     kept graph (:func:`candidates.hanging_parts`), and for each scan contradicted in the
     reference's 2-edge-connected core, the pairs the poses predict to overlap most
-    (:func:`candidates.closing_pairs`)."""
+    (:func:`candidates.closing_pairs`); across an edge on no cycle where the poses predict no
+    such pair, the most similar pairs (``unlike()``: the scans' dissimilarities,
+    :func:`candidates.similar_crossing_pairs`)."""
     if not unconfirmed:
         return []
     kept = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
-    parts = candidates.hanging_parts(reference, kept)
-    hanging = set().union(*parts)
-    parts += [{k} for k in unconfirmed if k not in hanging]  # in the core, but contradicted
-    return candidates.closing_pairs(parts, candidates.world_extents(poses, small),
-                                    _predicted_overlap(poses, small, edges, config), tried,
-                                    min_overlap=config.min_predicted_overlap, per_part=config.closing_pairs,
-                                    partners=config.predict_partners)
+    bridged = candidates.hanging_parts(reference, kept)
+    hanging = set().union(*bridged)
+    parts = bridged + [{k} for k in unconfirmed if k not in hanging]  # in the core, but contradicted
+    out = candidates.closing_pairs(parts, candidates.world_extents(poses, small),
+                                   _predicted_overlap(poses, small, edges, config), tried,
+                                   min_overlap=config.min_predicted_overlap, per_part=config.closing_pairs,
+                                   partners=config.predict_partners)
+    if any(not any((i in part) != (j in part) for i, j in out) for part in bridged):
+        out += candidates.similar_crossing_pairs(bridged, unlike(), poses, tried, out, per_part=config.closing_pairs)
+    return out
 
 
 class _Pieces:
@@ -631,14 +639,20 @@ class _Pieces:
     pairs across (:class:`candidates.PredictedOverlap`), and only those pairs are searched, each
     globally: the piece's pose chooses the pairs and is never an edge or a start, so a wrong one
     only costs the searches it proposed. A piece whose pose predicts no pair, or whose proposed
-    pairs placed nothing, gets the placed scans most like its own by the shape descriptor instead
+    pairs placed nothing, gets the placed scans most like its own by the surface matching instead
     (:func:`candidates.bridging_pairs`, ``partners * min(len(piece), partners)`` pairs a round)."""
 
     def __init__(self, pairwise: "_Pairwise", small, config: MergeConfig):
         self.pairwise, self.small, self.config = pairwise, small, config
         self.pair_points, self.partners = config.pair_points, config.partners
         self.placed_at: dict[frozenset, frozenset] = {}  # piece -> the placed scans it was last searched against
-        self.unlike = None  # the descriptors' distances, once asked for
+        self.unlike = None  # the scans' dissimilarities (:func:`_unlike`), once asked for
+
+    def dissimilarities(self) -> np.ndarray:
+        """The scans' ``(N, N)`` dissimilarities (:func:`_unlike`), made once when first asked for."""
+        if self.unlike is None:
+            self.unlike = _unlike(self.small, self.config)
+        return self.unlike
 
     def _fused(self, poses: dict) -> np.ndarray:
         points = np.concatenate([self.small[k] @ T[:3, :3].T + T[:3, 3] for k, T in sorted(poses.items())])
@@ -688,12 +702,18 @@ class _Pieces:
             if not chosen:  # no pose for the piece, or its proposals were searched last round
                 blind.append(piece)
         if blind:
-            if self.unlike is None:
-                self.unlike = candidates.descriptor_distances(self.small)
             asked = set(out)
-            out.extend(p for p in candidates.bridging_pairs(self.unlike, poses, blind, tried, self.partners)
+            out.extend(p for p in candidates.bridging_pairs(self.dissimilarities(), poses, blind, tried, self.partners)
                        if p not in asked)
         return out
+
+
+def _unlike(small, config: MergeConfig) -> np.ndarray:
+    """The scans' ``(N, N)`` dissimilarities, most similar first (:func:`candidates.matching_distances`
+    on the sparse subsets, with ``config``'s ``match_*`` values)."""
+    return candidates.matching_distances(small, candidates=config.match_candidates,
+                                         radius_spacings=config.match_radius_spacings,
+                                         normal_neighbours=config.match_normal_neighbours, count=config.match_points)
 
 
 def _apart(n, poses, edges) -> tuple[str, ...]:
@@ -765,12 +785,12 @@ def register_scans(
         :class:`~esmicp.config.MergeConfig`'s: 1500 and 8000 points, ``partners=2``,
         ``sequence_neighbours=2``, ``max_edge_error_deg=2.0``, ``refine_rounds=6``).
     partners : int, optional
-        Without ``sequence``: each scan is first registered with its ``partners`` most similar
-        scans (a shape descriptor). Then, each round, each piece of scans not placed (scans joined
-        to each other, or one scan) gets up to ``partners`` pairs with the placed scans: those its
-        pose as a whole predicts to overlap, else those most like its scans, each scan in at most
-        ``partners``. (Scans placed but not yet confirmed get one pair across each edge on no
-        cycle, whatever ``partners``.)
+        Without ``sequence``: each scan is first registered with its ``partners`` most similar scans
+        (their surface features matched). Then, each round, each piece of scans not placed (scans
+        joined to each other, or one scan) gets up to ``partners`` pairs with the placed scans:
+        those its pose as a whole predicts to overlap, else those most like its scans, each scan in
+        at most ``partners``. (Scans placed but not yet confirmed get one pair across each edge on
+        no cycle, whatever ``partners``.)
     sequence_neighbours : int, optional
         With ``sequence``: each scan with the next this many scans (2 gives triangles, so every
         scan can be confirmed around a cycle).
@@ -821,12 +841,13 @@ def register_scans(
 
     Notes
     -----
-    Work: without ``sequence``, about ``N * partners * 0.7`` global searches (the union of every
-    scan's ``partners`` most similar), each followed by a local check on the dense subsets; then in
-    each round one per edge on no cycle, and per piece of unplaced scans one registration of the
-    piece as a whole and up to ``partners`` pairs (``partners * min(len(piece), partners)`` when
-    its pose proposes none), until ``stalled_rounds`` rounds in a row place or confirm no scan.
-    With ``sequence``, about
+    Work: without ``sequence``, ``N * match_candidates`` matchings of surface features at most (a
+    few milliseconds each) to rank the pairs, then about ``N * partners * 0.7`` global searches (the
+    union of every scan's ``partners`` most similar), each followed by a local check on the dense
+    subsets; then in each round one per edge on no cycle, and per piece of unplaced scans one
+    registration of the piece as a whole and up to ``partners`` pairs
+    (``partners * min(len(piece), partners)`` when its pose proposes none), until
+    ``stalled_rounds`` rounds in a row place or confirm no scan. With ``sequence``, about
     ``N * sequence_neighbours`` local refinements (a global search for those they leave untrusted
     where the walk needs them), at most ``N * loop_searches_per_scan`` loop closures, then the
     same rounds.
@@ -842,8 +863,10 @@ def register_scans(
     edge). The free-space check holds, per posed scan, a 4,000-point subset and a KD-tree of its
     directions (about 0.25 MB; 0.25 GB for 1,000 scans). Choosing pairs from poses holds, per posed
     scan asked about, its sparse subset in the world frame and a KD-tree over it (about 0.1 MB;
-    0.1 GB for 1,000 scans, while the pairs are chosen). The N x N arrays are the descriptors'
-    distances (8 MB for 1,000 scans) and, with ``sequence``, the graph's path lengths while the
+    0.1 GB for 1,000 scans, while the pairs are chosen). Ranking the first pairs holds, per scan,
+    its ``match_points`` surface features and a KD-tree over them (about 0.25 MB; 0.25 GB for
+    1,000 scans, while they are ranked). The N x N arrays are the scans' dissimilarities (8 MB for
+    1,000 scans) and, with ``sequence``, the graph's path lengths while the
     loop closures are chosen (8 MB, and as much again for each update). Each
     registration running at once holds its own pair's working set besides. Measured
     (``benchmarks/merge_scale.py``: 1,000 scans of 8,000 points, 2,997 edges): peak memory 1.15
@@ -912,8 +935,7 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, config: M
         retry = [(e.i, e.j, None) for e in pairwise.edges.values() if not e.trusted and not {e.i, e.j} <= core]
         pairwise.run(retry, "pairs (global retry)")
     elif n > 1:
-        pieces.unlike = candidates.descriptor_distances(small)
-        ranked = candidates.ranked_partners(pieces.unlike)
+        ranked = candidates.ranked_partners(pieces.dissimilarities())
         first = {(min(i, j), max(i, j)) for i in range(n) for j in ranked[i][:partners]}
         pairwise.run([(i, j, None) for i, j in sorted(first)])
     vetoed: dict[tuple[int, int], str] = {}  # edges cut by a free-space conflict -> why
@@ -945,7 +967,7 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, config: M
             if stalled >= config.stalled_rounds:
                 break
             wanted = _closing(reference, poses, edges, small, [k for k in unconfirmed if k in poses],
-                              pairwise.settled(), config)
+                              pairwise.settled(), config, pieces.dissimilarities)
             unplaced = [k for k in unconfirmed if k not in poses]
             if unplaced:  # not placed at all: each piece of them placed as a whole proposes its pairs
                 joined = [(e.i, e.j) for e in edges if e.trusted and not e.reason.startswith(("cycle", "free-space"))]
