@@ -71,7 +71,8 @@ def read_npy(path) -> np.ndarray:
     if needed > data_bytes:
         raise PointCloudFileError(
             path,
-            f"truncated or corrupt .npy file: its header declares shape {shape} of {dtype}, which needs "
+            f"truncated or corrupt .npy file: its header declares shape {one_line(str(shape), 40)} of "
+            f"{one_line(str(dtype), 40)}, which needs "
             f"{needed} bytes, but only {data_bytes} bytes of data follow the header",
         )
     try:
