@@ -47,6 +47,11 @@
    the scans they placed lose their pose and are searched again.
 6. A verdict per scan (:mod:`esmicp.multiview.verdict`): ``"placed"``, ``"doubtful"`` or
    ``"unplaced"`` with its reasons; a doubtful or unplaced scan is never silently merged.
+
+:func:`register_scans` reads as these steps, each a function of its own below (``_prepare``,
+``_first_pairs``, the pose graph's ``_Graph.solve``, ``_loop_closures``, ``_more_pairs``,
+``_joint_refinement``, ``_free_space_check``, ``_verdict``), and each records what it did
+(:class:`esmicp.result.Stage`) in :attr:`MultiRegistrationResult.stages`.
 """
 
 from __future__ import annotations
@@ -65,6 +70,7 @@ from ..config import MergeConfig, RegistrationConfig
 from ..core.features import estimate_normals, voxel_grid
 from ..core.procrustes import skew
 from ..errors import InvalidInputError
+from ..result import Stage
 from ..trust import free_space
 from ..types import as_points
 from . import pairs as candidates
@@ -136,7 +142,9 @@ class MultiRegistrationResult:
     placed scans; the others are not range images, e.g. scan k: <why>"`` (only pairs of two range
     images are judged); ``"not range images: ..."`` (fewer than two placed scans are range images
     seen from their origins, as their points show: not applied); ``"declared off"``
-    (``range_images=False``); ``"too few edges"`` (nothing placed to judge).
+    (``range_images=False``); ``"too few edges"`` (nothing placed to judge). ``stages``: what each
+    stage of the merge did, in order (:class:`esmicp.result.Stage`, see :func:`register_scans`);
+    empty for a result built by hand.
     """
 
     poses: np.ndarray
@@ -154,6 +162,7 @@ class MultiRegistrationResult:
     residual: tuple[float | None, ...] = ()
     pairs_registered: int = 0
     free_space_check: str = "too few edges"
+    stages: tuple[Stage, ...] = field(default=(), repr=False)
 
     def __repr__(self) -> str:
         """One line: how many scans are placed, doubtful and unplaced, the reference, the edges
@@ -215,6 +224,7 @@ class MultiRegistrationResult:
             "edges": [e.to_dict() for e in self.edges], "runtime_s": self.runtime_s,
             "pairs_registered": self.pairs_registered, "free_space_check": self.free_space_check,
             "refinement_rmse": self.refinement_rmse, "notes": list(self.notes),
+            "stages": [stage.to_dict() for stage in self.stages],
         }
 
 
@@ -307,13 +317,19 @@ def _with_twins(result: "MultiRegistrationResult", unique: list[int], twin: list
         edges_kept=tuple(result.edges_kept[m] for m in of), residual=tuple(result.residual[m] for m in of))
 
 
-class _Stages:
-    """The ``progress(stage, done, total)`` reports of one merge: each stage opens at ``done == 0``
-    with its total, and closes at ``done == total`` before the next opens."""
+class _Plan:
+    """The stages of one merge as they run: the ``progress(stage, done, total)`` reports (each
+    stage opens at ``done == 0`` with its total, and closes at ``done == total`` before the next
+    opens), and the record of what each stage did (:class:`esmicp.result.Stage`)."""
 
     def __init__(self, progress):
         self.progress = progress
         self.stage, self.total, self.done = None, 0, 0
+        self.records: list[Stage] = []
+
+    def record(self, name: str, started: float, *, points: int | None = None, **decided) -> None:
+        """Record the stage ``name``, begun at ``started`` (``time.perf_counter()``), and what it decided."""
+        self.records.append(Stage(name, time.perf_counter() - started, points=points, decided=decided))
 
     def open(self, stage: str, total: int) -> None:
         self.close()
@@ -346,7 +362,7 @@ class _Pairwise:
     spacing (on the bunny's scans, right pairs score 0.0-0.76 at 1,500 points, 0.74-1.0 at 10,000;
     wrong ones stay below 0.25)."""
 
-    def __init__(self, centred, small, dense, keys, sequence, run_options, stages: _Stages, config: MergeConfig):
+    def __init__(self, centred, small, dense, keys, sequence, run_options, stages: _Plan, config: MergeConfig):
         self.centred, self.small, self.dense, self.keys = centred, small, dense, keys
         self.sequence, self.run_options, self.stages, self.config = sequence, run_options, stages, config
         self.edges: dict[tuple[int, int], Edge] = {}
@@ -402,13 +418,15 @@ class _Pairwise:
         self.done += len(jobs)
         return outcomes
 
-    def run(self, requests, stage: str = "pairs") -> list[Edge]:
+    def run(self, requests, stage: str = "pairs", **asked) -> list[Edge]:
         """Register ``requests`` (``(a, b, T_a_b or None)``: None for a global search) and record
         their edges; returns the new edges. A pair searched globally before, and not trusted, is
         searched on the second draw of the sparse subsets. One progress ``stage`` of two
         registrations a pair (the search, the check; a pair whose search failed has its check
-        counted as done)."""
+        counted as done), recorded with what it found and ``asked`` (why the pairs were asked for)."""
+        started, before = time.perf_counter(), self.done
         if not requests:
+            self._record(stage, started, before, [], {}, asked)
             return []
         once = self.tried - self.settled()
         sparse = {}
@@ -454,7 +472,16 @@ class _Pairwise:
             if old is None or (edge.confidence or -1.0) > (old.confidence or -1.0):
                 self.edges[key] = edge
             new.append(edge)
+        self._record(stage, started, before, new, sparse, asked)
         return new
+
+    def _record(self, stage: str, started: float, before: int, new: list[Edge], sparse: dict, asked: dict) -> None:
+        """Record a stage of pairs: ``new`` its edges, ``sparse`` which pairs were searched on the
+        second draw, ``asked`` why they were asked for."""
+        self.stages.record(stage, started, **asked, pairs=len(new), searched=sum(e.kind == GLOBAL for e in new),
+                           refined=sum(e.kind == LOCAL for e in new), registrations=self.done - before,
+                           trusted=sum(e.trusted for e in new), failed=sum(e.reason.startswith("failed") for e in new),
+                           redrawn=sum(sparse.values()))
 
     def _edge(self, i: int, j: int, outcome, kind: str) -> Edge:
         if not hasattr(outcome, "transformation"):
@@ -667,6 +694,10 @@ class _Pieces:
         return _solve(own, piece[0], self.config, vetoed)[0]
 
     def pairs(self, pieces, poses, edges, vetoed, stage: str) -> list[tuple[int, int]]:
+        """Pairs that may join ``pieces`` (lists of unplaced scans) to the scans placed at
+        ``poses``; the pieces not searched against these placed scans yet are placed as a whole
+        first, one registration each: the progress ``stage``, recorded when it runs."""
+        started = time.perf_counter()
         placed = frozenset(poses)
         fresh = [piece for piece in pieces if self.placed_at.get(frozenset(piece)) != placed]
         proposed: dict[int, np.ndarray] = {}
@@ -701,10 +732,15 @@ class _Pieces:
             out.extend(chosen)
             if not chosen:  # no pose for the piece, or its proposals were searched last round
                 blind.append(piece)
+        by_pose = len(out)
         if blind:
             asked = set(out)
             out.extend(p for p in candidates.bridging_pairs(self.dissimilarities(), poses, blind, tried, self.partners)
                        if p not in asked)
+        if fresh:
+            posed = sum(1 for piece in fresh if piece[0] in proposed)
+            self.pairwise.stages.record(stage, started, pieces=len(pieces), searched=len(fresh), posed=posed,
+                                        pairs_by_pose=by_pose, pairs_by_likeness=len(out) - by_pose)
         return out
 
 
@@ -837,7 +873,19 @@ def register_scans(
     -------
     MultiRegistrationResult
         Poses, a verdict per scan (``status``, ``scan_confidence``, ``reasons``, ``edges_kept``,
-        ``residual``) and every edge tried.
+        ``residual``), every edge tried, and what each stage did (``stages``, in order, each a
+        :class:`esmicp.result.Stage` whose ``decided`` holds its counts): ``"prepare"`` (scans,
+        exact ``duplicates``, the subsets' points), ``"rank pairs"`` (without ``sequence``: the first
+        ``pairs`` chosen by likeness), each stage of pairs (as ``progress`` names it: the ``pairs``
+        registered, ``searched`` globally or ``refined`` from a start, ``registrations`` run,
+        ``trusted``, ``failed``, ``redrawn`` on a second draw; a round of more pairs also the
+        ``unconfirmed`` posed scans and ``unplaced`` scans it was asked for; a stage of piece pairs
+        the ``pieces``, those ``searched`` and ``posed`` as a whole, and the pairs they proposed),
+        ``"pose graph"`` each time it is solved (``edges``, ``trusted``, ``kept``, ``vetoed``,
+        ``cycle_inconsistent``, ``not_connected``, scans ``posed``), ``"joint refinement"`` (scans,
+        edges, rounds, ``rmse``), ``"free-space check"`` (what it did, ``edges_cut``,
+        ``scans_cut_off``) and ``"verdict"`` (scans ``placed``, ``doubtful``, ``unplaced``,
+        ``edges_kept``).
 
     Notes
     -----
@@ -872,7 +920,50 @@ def register_scans(
     (``benchmarks/merge_scale.py``: 1,000 scans of 8,000 points, 2,997 edges): peak memory 1.15
     GB; consensus tree, pose graph and joint refinement 1.7 s, 6 s and 136 s on 2 cores.
     """
-    start = time.perf_counter()
+    started = time.perf_counter()
+    scans, reference, config, range_images = _checked(
+        clouds, reference, config, range_images, progress, pair_points=pair_points, refine_points=refine_points,
+        partners=partners, sequence_neighbours=sequence_neighbours, max_edge_error_deg=max_edge_error_deg,
+        refine_rounds=refine_rounds)
+    sequence, plan = bool(sequence), _Plan(progress)
+    work = _prepare(scans, reference, config, plan, started)
+    pairwise = _Pairwise(work.centred, work.small, work.dense, work.keys, sequence,
+                         {"threads": threads, "processes": processes, "client": client,
+                          "config": config.registration, **register_kwargs}, plan, config)
+    pieces = _Pieces(pairwise, work.small, config)
+    graph = _Graph(pairwise, work.reference, config, plan)
+    _first_pairs(work, pairwise, pieces, sequence, config, plan)
+    poses, edges = graph.solve()
+    if sequence and work.n > config.sequence_neighbours + 1:
+        poses, edges = _loop_closures(work, pairwise, graph, poses, edges, config)
+    premise: dict[int, free_space.RangeImageTest] = {}  # posed scans' range-image tests, made once
+    rounds = 1  # rounds of pairs, for the stages' names
+    for attempt in range(2):
+        poses, edges, rounds = _more_pairs(work, pairwise, pieces, graph, poses, edges, rounds, config)
+        poses, rmse, residual = _joint_refinement(work, poses, edges, config, plan)
+        # on the refined poses (the graph's alone drift along a walk and conflict falsely): the
+        # edges a conflict disproves are cut once, and the scans they placed searched again
+        check = _free_space_check(work, poses, edges, range_images, premise, config, plan)
+        if not check.removed or attempt == 1:
+            break
+        graph.veto(check.removed)
+        poses, edges = graph.solve()
+    result = _verdict(work, poses, edges, rmse, residual, check, pairwise.done, plan)
+    for note in result.notes:
+        logger.warning("register_scans: %s", note)
+    return replace(result, runtime_s=time.perf_counter() - started)
+
+
+def _checked(clouds, reference, config, range_images, progress, **given) -> tuple:
+    """``(scans, reference, config, range_images)``: :func:`register_scans`'s arguments checked,
+    ``given`` (its keywords that are :class:`~esmicp.config.MergeConfig` fields, None when not
+    given) laid over ``config``.
+
+    Raises
+    ------
+    InvalidInputError
+        An argument is not what :func:`register_scans` takes, naming it.
+    """
     try:
         scans = [as_points(c, f"clouds[{k}]") for k, c in enumerate(clouds)]
     except TypeError:
@@ -882,130 +973,213 @@ def register_scans(
         raise InvalidInputError("clouds: expected at least one scan")
     if isinstance(reference, bool) or not isinstance(reference, (int, np.integer)) or not 0 <= reference < n:
         raise InvalidInputError(f"reference: expected a scan index in [0, {n}), got {reference!r}")
-    given = {"pair_points": pair_points, "refine_points": refine_points, "partners": partners,
-             "sequence_neighbours": sequence_neighbours, "max_edge_error_deg": max_edge_error_deg,
-             "refine_rounds": refine_rounds}
     config = replace(MergeConfig.of(config), **{name: MergeConfig.checked(name, value, name)
                                                  for name, value in given.items() if value is not None})
     if range_images is not None and not isinstance(range_images, (bool, np.bool_)):
         raise InvalidInputError(f"range_images: expected True, False or None, got {range_images!r}")
-    range_images = None if range_images is None else bool(range_images)
-    reference = int(reference)
     if progress is not None and not callable(progress):
         raise InvalidInputError(f"progress: expected a callable(stage, done, total), got {type(progress).__name__}")
+    return scans, int(reference), config, None if range_images is None else bool(range_images)
+
+
+@dataclass(frozen=True)
+class _Scans:
+    """The scans one merge registers: one of each group of exact duplicates, each in its centroid
+    frame, with its subsets.
+
+    ``twin[k]``: the input scan that input scan k duplicates (itself when none); ``unique``: the
+    input indices of the scans merged, in order; the other fields are per merged scan, by position
+    in ``unique``: ``reference`` (the reference's position), ``centres`` (centroids in the frames
+    given), ``centred`` (the points minus their centroid), ``small`` and ``dense`` (the sparse and
+    dense subsets, :func:`_subsample`), ``keys`` (:func:`_shape_key`)."""
+
+    twin: list[int]
+    unique: list[int]
+    reference: int
+    centres: list[np.ndarray]
+    centred: list[np.ndarray]
+    small: list[np.ndarray]
+    dense: list[np.ndarray]
+    keys: list[tuple[int, float]]
+
+    @property
+    def n(self) -> int:
+        """How many scans are merged."""
+        return len(self.unique)
+
+
+def _prepare(scans: list[np.ndarray], reference: int, config: MergeConfig, plan: _Plan, started: float) -> _Scans:
+    """The stage ``"prepare"``: the exact duplicates set aside (an exact duplicate confirms nothing:
+    the merge runs on one scan of each group of twins), the others moved to their centroid frames
+    and subsampled.
+
+    Each scan is registered in its centroid frame (its points minus their centroid): every
+    translation the merge measures (an edge's disagreement with the poses, the pose graph's
+    residuals, the joint refinement's steps) is then a displacement at the scan's own points,
+    whatever the origin of the frame it was given in; the poses are mapped back at the end."""
     twin = _exact_twins(scans, reference)
-    # an exact duplicate confirms nothing: the merge runs on one scan of each group of twins
-    unique = [k for k in range(n) if twin[k] == k]
-    result = _merge([scans[k] for k in unique], unique.index(reference), sequence=bool(sequence), config=config,
-                    range_images=range_images, progress=progress,
-                    run_options={"threads": threads, "processes": processes, "client": client,
-                                 "config": config.registration, **register_kwargs})
-    if len(unique) < n:
-        result = _with_twins(result, unique, twin)
-    for note in result.notes:
-        logger.warning("register_scans: %s", note)
-    return replace(result, runtime_s=time.perf_counter() - start)
+    unique = [k for k in range(len(scans)) if twin[k] == k]
+    centres = [scans[k].mean(axis=0) if len(scans[k]) else np.zeros(3) for k in unique]
+    centred = [scans[k] - c for k, c in zip(unique, centres)]
+    small = [_subsample(s, config.pair_points) for s in centred]
+    dense = [_subsample(s, config.refine_points) for s in centred]
+    work = _Scans(twin, unique, unique.index(reference), centres, centred, small, dense,
+                  [_shape_key(s) for s in centred])
+    plan.record("prepare", started, points=sum(len(s) for s in scans), scans=len(scans),
+                duplicates=len(scans) - len(unique), pair_points=sum(len(s) for s in small),
+                refine_points=sum(len(s) for s in dense))
+    return work
 
 
-def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, config: MergeConfig,
-           range_images: bool | None, progress, run_options: dict) -> MultiRegistrationResult:
-    """:func:`register_scans` on checked arguments, of scans no two of which are exact duplicates."""
-    n = len(scans)
-    pair_points, refine_points, partners = config.pair_points, config.refine_points, config.partners
-    # Each scan is registered in its centroid frame (its points minus their centroid): every
-    # translation the merge measures (an edge's disagreement with the poses, the pose graph's
-    # residuals, the joint refinement's steps) is then a displacement at the scan's own points,
-    # whatever the origin of the frame it was given in; the poses are mapped back at the end.
-    centres = [s.mean(axis=0) if len(s) else np.zeros(3) for s in scans]
-    centred = [s - c for s, c in zip(scans, centres)]
-    small = [_subsample(s, pair_points) for s in centred]
-    dense = [_subsample(s, refine_points) for s in centred]
-    keys = [_shape_key(s) for s in centred]
-    stages = _Stages(progress)
-    pairwise = _Pairwise(centred, small, dense, keys, sequence, run_options, stages, config)
+class _Graph:
+    """The pose graph of one merge, solved over the edges tried so far (:func:`_solve`) less those a
+    free-space conflict vetoed: the stage ``"pose graph"`` each time."""
 
-    pieces = _Pieces(pairwise, small, config)
+    def __init__(self, pairwise: _Pairwise, reference: int, config: MergeConfig, plan: _Plan):
+        self.pairwise, self.reference, self.config, self.plan = pairwise, reference, config, plan
+        self.vetoed: dict[tuple[int, int], str] = {}  # edges cut by a free-space conflict -> why
+
+    def solve(self) -> tuple[dict, list[Edge]]:
+        """(poses of the scans joined to the reference, every edge with ``kept``/``reason`` set)."""
+        self.plan.open("pose graph", 1)
+        started = time.perf_counter()
+        poses, edges = _solve(list(self.pairwise.edges.values()), self.reference, self.config, self.vetoed)
+        self.plan.close()
+        self.plan.record("pose graph", started, edges=len(edges), trusted=sum(e.trusted for e in edges),
+                         kept=sum(e.kept for e in edges), vetoed=sum(e.reason.startswith("free-space") for e in edges),
+                         cycle_inconsistent=sum(e.reason.startswith("cycle") for e in edges),
+                         not_connected=sum(e.reason == "not connected to the reference" for e in edges),
+                         posed=len(poses))
+        return poses, edges
+
+    def veto(self, removed: dict) -> None:
+        """Cut the edges a free-space conflict disproved (``removed``, as :func:`cut_off` gives them)."""
+        self.vetoed.update(_veto_reasons(removed))
+
+
+def _first_pairs(work: _Scans, pairwise: _Pairwise, pieces: _Pieces, sequence: bool, config: MergeConfig,
+                 plan: _Plan) -> None:
+    """The first pairs, registered: with ``sequence``, each scan with its next
+    ``config.sequence_neighbours`` refined from the identity, then the untrusted ones the walk needs
+    searched globally (``"pairs (global retry)"``); without, each scan with its ``config.partners``
+    most similar scans (the stage ``"rank pairs"``), searched globally."""
+    n = work.n
     if sequence:
         # from the identity in the frames given: a shift between the centroid frames
-        pairwise.run([(i, j, _shift(centres[j] - centres[i]))
+        pairwise.run([(i, j, _shift(work.centres[j] - work.centres[i]))
                       for i, j in candidates.sequence_pairs(n, config.sequence_neighbours)])
         # a pair the identity start did not bring to trust is searched globally where the walk
         # needs it: where the trusted pairs leave one of its scans off every cycle through the reference
-        core = candidates.two_edge_core(reference, [(e.i, e.j) for e in pairwise.edges.values() if e.trusted])
+        core = candidates.two_edge_core(work.reference, [(e.i, e.j) for e in pairwise.edges.values() if e.trusted])
         retry = [(e.i, e.j, None) for e in pairwise.edges.values() if not e.trusted and not {e.i, e.j} <= core]
         pairwise.run(retry, "pairs (global retry)")
     elif n > 1:
+        started = time.perf_counter()
         ranked = candidates.ranked_partners(pieces.dissimilarities())
-        first = {(min(i, j), max(i, j)) for i in range(n) for j in ranked[i][:partners]}
+        first = {(min(i, j), max(i, j)) for i in range(n) for j in ranked[i][:config.partners]}
+        plan.record("rank pairs", started, scans=n, pairs=len(first))
         pairwise.run([(i, j, None) for i, j in sorted(first)])
-    vetoed: dict[tuple[int, int], str] = {}  # edges cut by a free-space conflict -> why
-    premise: dict[int, free_space.RangeImageTest] = {}  # posed scans' range-image tests, made once
 
-    def solve():
-        stages.open("pose graph", 1)
-        solved = _solve(list(pairwise.edges.values()), reference, config, vetoed)
-        stages.close()
-        return solved
 
-    poses, edges = solve()
-    if sequence and n > config.sequence_neighbours + 1:
-        extents = candidates.world_extents(poses, small)
-        kept = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
-        loops = candidates.loop_pairs(kept, extents, _predicted_overlap(poses, small, edges, config), pairwise.tried,
-                                      min_overlap=config.min_predicted_overlap, min_hops=config.loop_min_hops,
-                                      budget=int(np.ceil(config.loop_searches_per_scan * n)),
-                                      partners=config.predict_partners)
-        pairwise.run([(i, j, None) for i, j in loops], "pairs (loop closures)")
-        poses, edges = solve()
-    rounds = 1  # rounds of pairs, for the progress stages' names
-    for attempt in range(2):
-        stalled, best = 0, -1  # rounds in a row that placed or confirmed no scan; the most placed and confirmed
-        while n > 1 and stalled < config.stalled_rounds:  # more pairs only where a scan is not yet confirmed
-            unconfirmed = _unconfirmed(n, reference, poses, edges)
-            settled = len(poses) + n - len(unconfirmed)
-            stalled, best = (0, settled) if settled > best else (stalled + 1, best)
-            if stalled >= config.stalled_rounds:
-                break
-            wanted = _closing(reference, poses, edges, small, [k for k in unconfirmed if k in poses],
-                              pairwise.settled(), config, pieces.dissimilarities)
-            unplaced = [k for k in unconfirmed if k not in poses]
-            if unplaced:  # not placed at all: each piece of them placed as a whole proposes its pairs
-                joined = [(e.i, e.j) for e in edges if e.trusted and not e.reason.startswith(("cycle", "free-space"))]
-                asked = set(wanted)
-                wanted.extend(p for p in pieces.pairs(candidates.pieces(unplaced, joined), poses, edges, vetoed,
-                                                      f"piece pairs (round {rounds + 1})") if p not in asked)
-            if not wanted:
-                break
-            rounds += 1
-            pairwise.run([(i, j, None) for i, j in wanted], f"more pairs (round {rounds})")
-            poses, edges = solve()
+def _loop_closures(work: _Scans, pairwise: _Pairwise, graph: _Graph, poses: dict, edges: list[Edge],
+                   config: MergeConfig) -> tuple[dict, list[Edge]]:
+    """With a sequence: the loop closures the graph's ``poses`` predict, searched globally
+    (``"pairs (loop closures)"``), and the graph solved again."""
+    extents = candidates.world_extents(poses, work.small)
+    kept = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
+    loops = candidates.loop_pairs(kept, extents, _predicted_overlap(poses, work.small, edges, config), pairwise.tried,
+                                  min_overlap=config.min_predicted_overlap, min_hops=config.loop_min_hops,
+                                  budget=int(np.ceil(config.loop_searches_per_scan * work.n)),
+                                  partners=config.predict_partners)
+    pairwise.run([(i, j, None) for i, j in loops], "pairs (loop closures)")
+    return graph.solve()
 
-        rmse, residual = None, {}
-        kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
-        if kept_pairs and config.refine_rounds > 0:
-            stages.open("joint refinement", 1)
-            fine = {k: dense[k] for k in poses}
-            fine_normals = {k: estimate_normals(fine[k], k=12, workers=None) for k in fine}
-            scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
-            fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
-            reach = np.geomspace(3.0 * scale, max(config.refine_floor_spacings * fine_spacing, 1e-12),
-                                config.refine_rounds)
-            poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, reference, reach,
-                                           query_points=config.query_points)
-            stages.close()
 
-        # on the refined poses (the graph's alone drift along a walk and conflict falsely): the
-        # edges a conflict disproves are cut once, and the scans they placed searched again
-        stages.open("free-space check", 1)
-        conflicted, removed, checked = _free_space_conflicts(n, reference, poses, dense, small, edges, centres,
-                                                             range_images, premise, config)
-        stages.close()
-        if not removed or attempt == 1:
+def _more_pairs(work: _Scans, pairwise: _Pairwise, pieces: _Pieces, graph: _Graph, poses: dict, edges: list[Edge],
+                rounds: int, config: MergeConfig) -> tuple[dict, list[Edge], int]:
+    """Rounds of more pairs only where a scan is not yet confirmed (``"more pairs (round r)"``, the
+    graph solved after each), until ``config.stalled_rounds`` rounds in a row place or confirm no
+    scan or no pair is left to ask for: (poses, edges, the rounds of pairs run so far)."""
+    n, reference = work.n, work.reference
+    stalled, best = 0, -1  # rounds in a row that placed or confirmed no scan; the most placed and confirmed
+    while n > 1 and stalled < config.stalled_rounds:
+        unconfirmed = _unconfirmed(n, reference, poses, edges)
+        settled = len(poses) + n - len(unconfirmed)
+        stalled, best = (0, settled) if settled > best else (stalled + 1, best)
+        if stalled >= config.stalled_rounds:
             break
-        vetoed.update(_veto_reasons(removed))
-        poses, edges = solve()
+        posed = [k for k in unconfirmed if k in poses]
+        wanted = _closing(reference, poses, edges, work.small, posed, pairwise.settled(), config,
+                          pieces.dissimilarities)
+        unplaced = [k for k in unconfirmed if k not in poses]
+        if unplaced:  # not placed at all: each piece of them placed as a whole proposes its pairs
+            joined = [(e.i, e.j) for e in edges if e.trusted and not e.reason.startswith(("cycle", "free-space"))]
+            asked = set(wanted)
+            wanted.extend(p for p in pieces.pairs(candidates.pieces(unplaced, joined), poses, edges, graph.vetoed,
+                                                  f"piece pairs (round {rounds + 1})") if p not in asked)
+        if not wanted:
+            break
+        rounds += 1
+        pairwise.run([(i, j, None) for i, j in wanted], f"more pairs (round {rounds})", unconfirmed=len(posed),
+                     unplaced=len(unplaced))
+        poses, edges = graph.solve()
+    return poses, edges, rounds
 
-    verdicts = scan_verdicts(n, reference, set(poses), edges, conflicted)
+
+def _joint_refinement(work: _Scans, poses: dict, edges: list[Edge], config: MergeConfig,
+                      plan: _Plan) -> tuple[dict, float | None, dict]:
+    """The stage ``"joint refinement"`` (:func:`refine`, when an edge is kept and
+    ``config.refine_rounds`` > 0): (poses, the last step's RMS residual or None, scan -> its residual)."""
+    kept_pairs = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
+    if not kept_pairs or config.refine_rounds <= 0:
+        return poses, None, {}
+    plan.open("joint refinement", 1)
+    started = time.perf_counter()
+    fine = {k: work.dense[k] for k in poses}
+    fine_normals = {k: estimate_normals(fine[k], k=12, workers=None) for k in fine}
+    scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
+    fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
+    reach = np.geomspace(3.0 * scale, max(config.refine_floor_spacings * fine_spacing, 1e-12), config.refine_rounds)
+    poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, work.reference, reach,
+                                   query_points=config.query_points)
+    plan.close()
+    plan.record("joint refinement", started, points=sum(len(f) for f in fine.values()), scans=len(fine),
+                edges=len(kept_pairs), rounds=config.refine_rounds, rmse=rmse)
+    return poses, rmse, residual
+
+
+@dataclass(frozen=True)
+class _Check:
+    """What the free-space check found: ``conflicted`` and ``removed`` as :func:`cut_off` gives them
+    (the scans a conflict cuts off from the reference, the edges it cuts), and ``checked``
+    (:attr:`MultiRegistrationResult.free_space_check`)."""
+
+    conflicted: dict
+    removed: dict
+    checked: str
+
+
+def _free_space_check(work: _Scans, poses: dict, edges: list[Edge], range_images: bool | None, premise: dict,
+                      config: MergeConfig, plan: _Plan) -> _Check:
+    """The stage ``"free-space check"`` (:func:`_free_space_conflicts`)."""
+    plan.open("free-space check", 1)
+    started = time.perf_counter()
+    check = _Check(*_free_space_conflicts(work.n, work.reference, poses, work.dense, work.small, edges, work.centres,
+                                          range_images, premise, config))
+    plan.close()
+    plan.record("free-space check", started, check=check.checked, edges_cut=len(check.removed),
+                scans_cut_off=len(check.conflicted))
+    return check
+
+
+def _verdict(work: _Scans, poses: dict, edges: list[Edge], rmse: float | None, residual: dict, check: _Check,
+             registered: int, plan: _Plan) -> MultiRegistrationResult:
+    """The stage ``"verdict"``: a verdict per scan (:func:`scan_verdicts`), the poses and edges
+    mapped back to the frames given, and every exact duplicate given its twin's pose and verdict;
+    the result, with every stage recorded."""
+    started = time.perf_counter()
+    n, reference, centres = work.n, work.reference, work.centres
+    verdicts = scan_verdicts(n, reference, set(poses), edges, check.conflicted)
     # back to the frames given: T_world_k = C_reference T'_world_k C_k^-1, T_i_j = C_i T'_i_j C_j^-1
     all_poses = np.full((n, 4, 4), np.nan)
     for k, T in poses.items():
@@ -1016,11 +1190,16 @@ def _merge(scans: list[np.ndarray], reference: int, *, sequence: bool, config: M
     status = tuple(v.status for v in verdicts)
     notes = _apart(n, poses, edges) + tuple(f"scan {k}: {v.status}: {'; '.join(v.reasons)}"
                                             for k, v in enumerate(verdicts) if v.status != "placed")
-    return MultiRegistrationResult(
+    result = MultiRegistrationResult(
         all_poses, reference, tuple(s == "placed" for s in status),
         tuple(k for k in range(n) if status[k] == "unplaced"), tuple(edges), 0.0,
         rmse, notes, status=status, scan_confidence=tuple(v.confidence for v in verdicts),
         reasons=tuple(v.reasons for v in verdicts), edges_kept=tuple(v.edges_kept for v in verdicts),
-        residual=tuple(residual.get(k) for k in range(n)), pairs_registered=pairwise.done,
-        free_space_check=checked,
+        residual=tuple(residual.get(k) for k in range(n)), pairs_registered=registered,
+        free_space_check=check.checked,
     )
+    if work.n < len(work.twin):
+        result = _with_twins(result, work.unique, work.twin)
+    plan.record("verdict", started, placed=result.status.count("placed"), doubtful=result.status.count("doubtful"),
+                unplaced=result.status.count("unplaced"), edges_kept=len(result.kept_edges))
+    return replace(result, stages=tuple(plan.records))
