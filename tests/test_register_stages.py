@@ -122,10 +122,15 @@ def test_the_verdict_is_one_call_of_judge_and_the_result_returns_it(noisy_pair):
     np.testing.assert_array_equal(verdict.uncertainty.covariance, result.covariance)
     assert verdict.doubts == result.verdict.doubts
     assert result.trusted == result.verdict.trusted and result.doubts() == [d.words for d in result.verdict.doubts]
+    # the grouped records: the stored verdict is the trust report, its uncertainty the result's
+    assert result.trust is result.verdict and result.search.candidates == result.global_candidates
+    assert result.uncertainty.covariance is result.covariance
+    assert result.uncertainty.pairs == result.verdict.uncertainty.pairs > 0
     # a field the verdict weighed, replaced: weighed again from the fields, by the same rules
     assert result.trusted
     lowered = dataclasses.replace(result, confidence=0.0)
     assert lowered.verdict is result.verdict and not lowered.trusted
+    assert not lowered.trust.trusted and lowered.trust is not result.verdict
     assert lowered.doubts() == [f"confidence 0.00 is below {result.policy.trusted:g}"]
     assert dataclasses.replace(result, converged=False).doubts(ignore=("confidence",))[0].startswith("not converged")
 

@@ -47,3 +47,30 @@ def test_to_dict_carries_trusted_and_the_doubts_behind_it():
         assert report["doubts"] == result.doubts()
         assert report["trusted"] is result.trusted is (not report["doubts"])
     assert _result(confidence=0.2).to_dict()["doubts"] and not _result().to_dict()["doubts"]
+
+
+def test_the_grouped_records_read_the_fields_and_follow_a_replaced_one():
+    """``search``, ``uncertainty`` and ``trust`` group the flat fields as frozen records, made from
+    the fields when asked: a field replaced shows in its record."""
+    import dataclasses
+
+    import pytest
+
+    result = _result(init="global:scan", global_candidates=7, ambiguous=True, runner_up_ratio=0.98)
+    search = result.search
+    assert (search.init, search.candidates, search.ambiguous, search.runner_up_ratio) == ("global:scan", 7, True, 0.98)
+    assert search.runner_up is result.runner_up
+    uncertainty = result.uncertainty
+    assert uncertainty.covariance is result.covariance and uncertainty.information is result.information
+    assert uncertainty.degenerate_directions == () and uncertainty.pairs == 0  # built by hand: not said
+    assert not result.trust.trusted and [d.kind for d in result.trust.doubts] == ["ambiguous"]
+    assert [d.words for d in result.trust.doubts] == result.doubts()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        search.init = "given"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        uncertainty.pairs = 1
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        result.trust.confidence = 0.0
+    cleared = dataclasses.replace(result, ambiguous=False, covariance=None, init="given")
+    assert cleared.search.init == "given" and not cleared.search.ambiguous and cleared.uncertainty.covariance is None
+    assert cleared.trust.trusted and cleared.trusted

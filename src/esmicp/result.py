@@ -9,6 +9,7 @@ import numpy as np
 
 from .trust.judge import DOUBT_KINDS, Verdict
 from .trust.policy import DEFAULT_POLICY, TrustPolicy
+from .trust.uncertainty import PoseUncertainty
 
 
 @dataclass(frozen=True)
@@ -152,6 +153,34 @@ class Correspondences:
         return np.column_stack([self.source_index, self.target_index])
 
 
+@dataclass(frozen=True, eq=False)
+class SearchSummary:
+    """What the start of :func:`esmicp.register` decided (:attr:`RegistrationResult.search`): a
+    read-only view of the result's own fields, grouped.
+
+    Attributes
+    ----------
+    init : str
+        ``"identity"``, ``"given"`` or ``"global:<strategy>"`` (:attr:`RegistrationResult.init`).
+    candidates : int
+        Candidate poses the global search verified (0 without one;
+        :attr:`RegistrationResult.global_candidates`).
+    ambiguous : bool
+        A clearly different pose fits almost as well (:attr:`RegistrationResult.ambiguous`).
+    runner_up_ratio : float or None
+        The lower of the two scores over the higher, 0-1 (:attr:`RegistrationResult.runner_up_ratio`).
+    runner_up : (4, 4) float64 array or None
+        The best clearly different pose verified, ``T_target_source`` in the clouds' own frames
+        (:attr:`RegistrationResult.runner_up`).
+    """
+
+    init: str
+    candidates: int
+    ambiguous: bool
+    runner_up_ratio: float | None
+    runner_up: np.ndarray | None = field(default=None, repr=False)
+
+
 @dataclass(frozen=True)
 class RegistrationResult:
     """Outcome of :func:`esmicp.register`.
@@ -253,6 +282,11 @@ class RegistrationResult:
     stages : tuple of Stage
         What each stage of :func:`esmicp.register` did, in order (:class:`Stage`); empty for a
         result built by hand.
+
+    The fields also read as a core (the pose, the fit, the run) and three grouped read-only
+    records, made from the fields when asked (so ``dataclasses.replace`` of a field shows in
+    them): :attr:`search` (the start), :attr:`uncertainty` (the covariance, its inverse, the
+    degenerate directions) and :attr:`trust` (the verdict the fields give).
     """
 
     transformation: np.ndarray
@@ -280,6 +314,30 @@ class RegistrationResult:
     policy: TrustPolicy = field(default=DEFAULT_POLICY, repr=False)
     verdict: Verdict | None = field(default=None, repr=False)
     stages: tuple[Stage, ...] = field(default=(), repr=False)
+
+    @property
+    def search(self) -> SearchSummary:
+        """The start as one record (:class:`SearchSummary`: ``init``, ``global_candidates``,
+        ``ambiguous``, ``runner_up_ratio``, ``runner_up``)."""
+        return SearchSummary(self.init, self.global_candidates, self.ambiguous, self.runner_up_ratio, self.runner_up)
+
+    @property
+    def uncertainty(self) -> PoseUncertainty:
+        """``covariance``, ``information`` and ``degenerate_directions`` as one record
+        (:class:`esmicp.trust.uncertainty.PoseUncertainty`, same conventions); its ``pairs``, the
+        pairs the estimate used, as the stored :attr:`verdict` measured them, 0 when the result
+        does not say (built by hand, or its covariance replaced)."""
+        measured = None if self.verdict is None else self.verdict.uncertainty
+        pairs = measured.pairs if measured is not None and measured.covariance is self.covariance else 0
+        return PoseUncertainty(self.covariance, self.information, tuple(self.degenerate_directions), pairs)
+
+    @property
+    def trust(self) -> Verdict:
+        """The trust report (:class:`esmicp.trust.judge.Verdict`): the :attr:`verdict`
+        :func:`esmicp.register` stored while it weighed this result's fields, else the one the
+        fields give (weighed by the same rules, nothing measured again); its ``doubts`` are
+        :meth:`doubts`' reasons, its ``trusted`` is :attr:`trusted`."""
+        return self._judged()
 
     @property
     def trusted(self) -> bool:
