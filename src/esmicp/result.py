@@ -45,14 +45,15 @@ class IterationRecord:
 
 @dataclass(frozen=True, eq=False)
 class Stage:
-    """What one stage of :func:`esmicp.register` did (:attr:`RegistrationResult.stages`).
+    """What one stage of :func:`esmicp.register` did (:attr:`RegistrationResult.stages`), or of
+    :func:`esmicp.register_scans` (``MultiRegistrationResult.stages``; its stages and their
+    counts are listed in its Returns section).
 
     Attributes
     ----------
     name : str
-        ``"prepare"`` (the arguments checked, the working frame chosen, the target's index
-        built), ``"start"`` (a global
-        search, or the given start), ``"plane"`` (``esm-plane`` iterations before ``esm`` on a
+        Of ``register``: ``"prepare"`` (the arguments checked, the working frame chosen, the
+        target's index built), ``"start"`` (a global search, or the given start), ``"plane"`` (``esm-plane`` iterations before ``esm`` on a
         large source after a global search), ``"refine"`` (the local refinement), ``"second try"``
         (a second run from a given start with a tighter coarse sigma), ``"evaluate"`` (fitness
         and inliers of the final pose), ``"judge"`` (the verdict, :func:`esmicp.trust.judge.judge`).
