@@ -19,11 +19,17 @@ source's centroid < 2 % of the target's diagonal). Prints one Markdown table: pe
 time to ``esm (local)``'s on the 15-degree set. A method that cannot run says why in its row.
 
     python benchmarks/baselines_table.py --trials 20 --picture docs/images/baselines.png
+    python benchmarks/baselines_table.py --from-page docs/baselines.md --picture docs/images/baselines.png
+
+The rows of a run are not kept (several baselines need torch, probreg or py-goicp): ``--from-page``
+draws the picture from the table this script printed into the page, so that picture and table
+have one source.
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import statistics
 import sys
 from pathlib import Path
@@ -70,6 +76,11 @@ def make_trials(cloud: np.ndarray, points: int, trials: int, shift: float, seed:
     return out
 
 
+def kind_of(method: str) -> str:
+    """``local`` or ``global``, as the table says."""
+    return "local" if method == "esm (local)" else "global" if method in PEERS else BASELINE_KINDS[method]
+
+
 def run(method: str, source, target, seed: int, max_iterations: int):
     """(T_target_source, runtime_s) or raises."""
     if method == "esm (local)":
@@ -93,7 +104,18 @@ def main(argv=None) -> int:
     parser.add_argument("--methods", default=",".join(PEERS + tuple(BASELINES)))
     parser.add_argument("--picture", type=Path, help="also draw the page's picture (PNG, replaced if it exists; "
                         "needs matplotlib): success per set of trials and method")
+    parser.add_argument("--from-page", type=Path, help="draw --picture from the table this script wrote into this "
+                        "page (no run; prints nothing else)")
     args = parser.parse_args(argv)
+    if args.from_page is not None:
+        if args.picture is None:
+            parser.error("--from-page draws the picture: give --picture too")
+        try:
+            rates = rates_from_page(args.from_page.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            sys.exit(f"{args.from_page}: {exc}")
+        print(draw(rates, args.picture), file=sys.stderr)
+        return 0
 
     cloud = read_points(args.data / "bunny" / "bun_zipper.ply")
     trials = make_trials(cloud, args.points, args.trials, args.shift, args.seed)
@@ -136,7 +158,7 @@ def main(argv=None) -> int:
     print("| method | kind | 15 deg: success | median rot. err. (deg) | median time (ms) | SO(3): success | median rot. err. (deg) | median time (ms) | time / esm (15 deg) |")
     print("|---|---|---|---|---|---|---|---|---|")
     for method in methods:
-        kind = "local" if method == "esm (local)" else "global" if method in PEERS else BASELINE_KINDS[method]
+        kind = kind_of(method)
         if method in unavailable:
             print(f"| {method} | {kind} | {unavailable[method]} | | | | | | |")
             continue
@@ -155,19 +177,54 @@ def main(argv=None) -> int:
 
 #: The picture's names of the two sets of trials.
 SET_LABELS = {"15deg": "15 degrees", "so3": "any rotation (SO(3))"}
+#: The table's header (see :func:`main`) and a success cell (``k/n``, maybe with time-outs).
+TABLE_HEADER = "| method | kind | 15 deg: success |"
+SUCCESS_CELL = re.compile(r"^(?P<successes>\d+)/(?P<trials>\d+)\b")
 
 
 def picture(rows: dict, path: Path) -> Path:
-    """The page's picture: strict success per set of trials (groups) and method (bars), the
-    methods that could not run left out."""
-    from esmicp_lab.figures import success_bars_figure, write_picture
+    """The page's picture from a run's rows: strict success per method (rows of the grid) and set of
+    trials (columns), the methods that could not run in grey."""
+    rates = [{"group": SET_LABELS[trial_set], "method": row_label(method, kind_of(method)),
+              "percent": 100.0 * sum(r[0] for r in results) / len(results) if results else None}
+             for method, by_set in rows.items() for trial_set, results in by_set.items()]
+    return draw(rates, path)
 
-    rates = [{"group": SET_LABELS[trial_set], "method": method, "successes": sum(r[0] for r in results),
-              "trials": len(results)}
-             for trial_set in ("15deg", "so3") for method, by_set in rows.items()
-             if (results := by_set[trial_set])]
-    figure = success_bars_figure(rates, title="The bunny, two samples of its surface: strict success per method",
-                                 ylabel="strict success (%)")
+
+def row_label(method: str, kind: str) -> str:
+    """A method's row in the picture: its name and kind (the peers from esmicp name theirs)."""
+    return method if method in PEERS else f"{method} ({kind})"
+
+
+def rates_from_page(markdown: str) -> list[dict]:
+    """The success cells of the table :func:`main` printed, read back from the page it was
+    written into: dicts with ``group`` (the set of trials), ``method`` and ``percent`` (None where
+    the method did not run)."""
+    lines = markdown.splitlines()
+    start = next((k for k, line in enumerate(lines) if line.startswith(TABLE_HEADER)), None)
+    if start is None:
+        raise ValueError(f"no table of this script (a line {TABLE_HEADER!r} ...)")
+    rates = []
+    for line in lines[start + 2:]:
+        if not line.startswith("|"):
+            break
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if len(cells) != 9:
+            raise ValueError(f"{len(cells)} cells in {line[:60]!r}, expected 9")
+        for trial_set, cell in (("15deg", cells[2]), ("so3", cells[5])):
+            found = SUCCESS_CELL.match(cell)
+            rates.append({"group": SET_LABELS[trial_set], "method": row_label(cells[0], cells[1]),
+                          "percent": 100.0 * int(found["successes"]) / int(found["trials"]) if found else None})
+    if not rates:
+        raise ValueError("the table has no rows")
+    return rates
+
+
+def draw(rates: list[dict], path: Path) -> Path:
+    from esmicp_lab.figures import success_grid_figure, write_picture
+
+    figure = success_grid_figure(rates, title="The bunny, two samples of its surface: strict success (%) per method",
+                                 legend="strict success (%)")
     return write_picture(figure, path)
 
 

@@ -6,6 +6,7 @@ of ``esmicp bench`` (its rows.jsonl), so that the docs can be regenerated exactl
 
     esmicp bench --datasets modelnet40,bunny-scans --trials 24 --out bench-honest
     python benchmarks/bench_doc_tables.py honest bench-honest --picture docs/images/bench-honest.png
+    python benchmarks/bench_doc_tables.py honest --from-page docs/bench-honest.md --picture docs/images/bench-honest.png
 
     esmicp bench --protocols paper --datasets modelnet40 --methods esm,esm-paper --points 1024 --trials 24 \
         --sigma-sweep 0.005,0.01,0.02,0.05,0.1,0.2,0.5,1 --out bench-sigma
@@ -17,7 +18,9 @@ of ``esmicp bench`` (its rows.jsonl), so that the docs can be regenerated exactl
     python benchmarks/bench_doc_tables.py times bench-paper     # where a run's time goes, per method
 
 Figures are measured in the run, never stored in the repository. ``--picture PATH`` also draws
-the page's picture from the same rows: strict success per protocol and method.
+the page's picture from the same rows: strict success per protocol and method. A run's rows are
+not kept: ``--from-page PAGE`` draws the picture of ``honest`` from the table this script wrote
+into the page instead (its strict success per cell), so picture and table have one source.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from esmicp_lab.bench import read_rows
 from esmicp_lab.bench.tables import (
     PAPER_METRICS,
     metrics_table,
+    overview_rates,
     overview_table,
     paper_1000_markdown,
     paper_1000_stats,
@@ -210,20 +214,52 @@ def picture(rows, path: Path) -> Path:
     return write_picture(figure, path)
 
 
+def honest_picture(rates, path: Path) -> Path:
+    """The picture of docs/bench-honest.md: strict success of every method (rows) on every protocol
+    (columns), a grid (two dozen methods make bars unreadable). ``rates``: dicts with ``group``,
+    ``method``, ``kind`` and ``percent`` (:func:`esmicp_lab.bench.tables.overview_rates`)."""
+    from esmicp_lab.figures import success_grid_figure, write_picture
+
+    labelled = [{**rate, "method": f"{rate['method']} ({rate['kind']})"} for rate in rates]
+    figure = success_grid_figure(labelled, title="Strict success (%) per method and protocol, the same trials "
+                                 "for every method", legend="strict success (%)")
+    return write_picture(figure, path)
+
+
+def _rates_of_rows(rows) -> list[dict]:
+    kinds = {row["method"]: row["method_kind"] for row in rows}
+    return [{"group": rate["group"], "method": rate["method"], "kind": kinds[rate["method"]],
+             "percent": 100.0 * rate["successes"] / rate["trials"]} for rate in success_rates(rows)]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("kind", choices=("paper", "honest", "sigma", "paper-1000", "times"))
-    parser.add_argument("results", type=Path, help="the --out folder of the run")
+    parser.add_argument("results", type=Path, nargs="?", help="the --out folder of the run")
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
                         help="the shared data folder (paper-1000: the paper's tables; default ../shared/data)")
     parser.add_argument("--picture", type=Path, help="also draw the page's picture from the rows (PNG, replaced if "
                         "it exists; needs matplotlib): strict success per protocol and method")
+    parser.add_argument("--from-page", type=Path, help="honest only: draw --picture from the table this script "
+                        "wrote into this page (a run whose rows were not kept), print nothing else")
     args = parser.parse_args(argv)
+    if args.from_page is not None:
+        if args.kind != "honest" or args.picture is None:
+            parser.error("--from-page draws the picture of 'honest': give the kind honest and --picture")
+        try:
+            rates = overview_rates(args.from_page.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            sys.exit(f"{args.from_page}: {exc}")
+        print(honest_picture(rates, args.picture), file=sys.stderr)
+        return 0
+    if args.results is None:
+        parser.error("the results folder (the --out folder of the run) is required")
     rows = read_rows(args.results / "rows.jsonl")
     if not rows:
         sys.exit(f"{args.results / 'rows.jsonl'}: no rows")
     if args.picture:
-        print(picture(rows, args.picture), file=sys.stderr)
+        drawn = honest_picture(_rates_of_rows(rows), args.picture) if args.kind == "honest" else picture(rows, args.picture)
+        print(drawn, file=sys.stderr)
     if args.kind == "paper-1000":
         print(paper_1000(rows, args.data))
         return 0

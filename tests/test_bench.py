@@ -457,3 +457,40 @@ def test_a_row_that_is_not_utf8_is_one_clear_error(tmp_path):
     path.write_bytes(b'{"a": 1}\n{"b": "\xff\xfe"}\n')
     with pytest.raises(PointCloudFileError, match="line 2 is not UTF-8"):
         read_rows(path)
+
+
+def test_the_overview_table_read_back_from_a_page_gives_each_cells_rates():
+    """A results page keeps only the Markdown table; the picture drawn from it must show the rates
+    the table was made from (strict and up to symmetry), and a method that did not run as such."""
+    from esmicp_lab.bench.tables import overview_rates, overview_table
+
+    rng = np.random.default_rng(7)
+    rows, expected = [], {}
+    for method, kind in (("esm", "local"), ("esm-global", "global"), ("gone", "global")):
+        for protocol in ("copy", "partial"):
+            strict = symmetric = 0
+            for trial in range(6):
+                status = "unavailable" if method == "gone" else "ok"
+                right = status == "ok" and bool(rng.random() < 0.6)
+                up_to_symmetry = right or (status == "ok" and bool(rng.random() < 0.5))
+                strict, symmetric = strict + right, symmetric + up_to_symmetry
+                rows.append({"trial_id": f"{protocol}-{trial}", "protocol": protocol, "method": method, "sigma": None,
+                             "method_kind": kind, "init": "identity", "max_iterations": 40, "status": status,
+                             "reason": "", "success_strict": right if status == "ok" else None,
+                             "success_symmetry": up_to_symmetry if status == "ok" else None,
+                             "rotation_error_deg": 1.0, "translation_error": 0.1, "time_s": 0.01,
+                             **{key: 0.0 for key in ("mse_r", "rmse_r", "mae_r", "mse_t", "rmse_t", "mae_t")}})
+            expected[method, protocol] = (None, None) if method == "gone" else (100 * strict / 6, 100 * symmetric / 6)
+    page = "# A page\n\nSome words.\n\n" + overview_table(rows) + "\nMore words.\n"
+    rates = overview_rates(page)
+    assert {(r["method"], r["group"]) for r in rates} == set(expected)
+    for rate in rates:
+        strict, symmetric = expected[rate["method"], rate["group"]]
+        assert rate["trials"] == 6 and rate["kind"] == ("local" if rate["method"] == "esm" else "global")
+        if strict is None:
+            assert rate["percent"] is None and rate["symmetry_percent"] is None
+        else:
+            assert rate["percent"] == pytest.approx(strict, abs=0.05)  # the table prints 3 digits
+            assert rate["symmetry_percent"] == pytest.approx(symmetric, abs=0.05)
+    with pytest.raises(ValueError, match="no overview table"):
+        overview_rates("# A page without a table\n")

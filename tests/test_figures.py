@@ -15,6 +15,7 @@ from esmicp_lab.figures import (
     confidence_error_figure,
     merged_scans_figure,
     success_bars_figure,
+    success_grid_figure,
     top_view_axes,
     trajectory_figure,
     write_picture,
@@ -117,3 +118,21 @@ def test_scans_are_drawn_where_their_poses_put_them_and_an_unplaced_one_is_named
         points_per_scan=50), tmp_path / "again.png").read_bytes()  # same records, same file
     with pytest.raises(InvalidInputError, match="unsupported picture file"):
         write_picture(figure, tmp_path / "scans.jpg")
+
+
+def test_a_grid_cell_shows_its_rate_and_a_method_not_run_is_grey(tmp_path):
+    require_plotting()
+    rates = [{"group": "copy", "method": "esm", "percent": 100.0}, {"group": "noisy", "method": "esm", "percent": 25.0},
+             {"group": "copy", "method": "dcp", "percent": None}]
+    figure = success_grid_figure(rates, title="grid")
+    axes = figure.axes[0]
+    grid = axes.images[0].get_array()
+    assert grid[0, 0] == 100.0 and grid[0, 1] == 25.0
+    assert grid.mask[1, 0] and grid.mask[1, 1]  # not run, and not in the rates at all: grey
+    cells = {(round(t.get_position()[1]), round(t.get_position()[0])): t.get_text() for t in axes.texts}
+    assert cells == {(0, 0): "100", (0, 1): "25", (1, 0): "-", (1, 1): "-"}
+    assert [t.get_text() for t in axes.get_yticklabels()] == ["esm", "dcp"]
+    assert [t.get_text() for t in axes.get_xticklabels()] == ["copy", "noisy"]
+    check_image(write_picture(figure, tmp_path / "grid.png"), min_width=PICTURE_WIDTH_PX, min_height=150)
+    with pytest.raises(InvalidInputError, match=r"rates\[0\]: percent 120"):
+        success_grid_figure([{"group": "g", "method": "m", "percent": 120.0}], title="t")

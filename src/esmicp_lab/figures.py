@@ -9,6 +9,8 @@ matplotlib Figure (Agg canvas, no pyplot state); :func:`write_picture` saves one
   against its confidence, right and wrong results in two colours, trusted ones filled, the trust
   bar as a vertical line;
 - :func:`success_bars_figure`: success rates of several methods, grouped by data kind or protocol;
+- :func:`success_grid_figure`: the same as a grid (methods down, protocols across), for tables
+  too wide for bars;
 - :func:`merged_scans_figure`: scans placed by their poses, one colour per scan, in two views;
 - :func:`trajectory_figure`: estimated scan positions against the true ones, seen from above.
 """
@@ -145,6 +147,52 @@ def success_bars_figure(rates: Iterable[Mapping], *, title: str, ylabel: str = "
 
     axes.legend([Patch(color=c) for c in colours], methods, fontsize=7, loc="upper left",
                 bbox_to_anchor=(1.01, 1.0), frameon=False)
+    figure.tight_layout()
+    return figure
+
+
+#: Colour map of :func:`success_grid_figure` (0% to 100%), and the grey of a cell not run.
+GRID_COLOURS, NOT_RUN_COLOUR = "YlGn", "#e6e6e6"
+
+
+def success_grid_figure(rates: Iterable[Mapping], *, title: str, legend: str = "success rate (%)"):
+    """Success rates as a grid: one row per ``method`` (in the order they first appear), one column
+    per ``group``, each cell coloured by its rate and labelled with it in percent; a pair not in
+    ``rates``, or whose ``percent`` is None (not run, unavailable), is a grey cell with a dash.
+    ``rates``: dicts with ``group``, ``method`` and ``percent`` (0-100 or None)."""
+    rates = _records(rates, ("group", "method", "percent"), "rates")
+    for number, rate in enumerate(rates):
+        if rate["percent"] is not None and not 0.0 <= float(rate["percent"]) <= 100.0:
+            raise InvalidInputError(f"rates[{number}]: percent {rate['percent']} outside 0-100")
+    groups = list(dict.fromkeys(r["group"] for r in rates))
+    methods = list(dict.fromkeys(r["method"] for r in rates))
+    grid = np.full((len(methods), len(groups)), np.nan)
+    for rate in rates:
+        if rate["percent"] is not None:
+            grid[methods.index(rate["method"]), groups.index(rate["group"])] = float(rate["percent"])
+    height = 1.3 + 0.24 * len(methods)
+    figure = new_figure(PICTURE_WIDTH_PX / PICTURE_DPI, height, PICTURE_DPI)
+    axes = figure.subplots()
+    from matplotlib import colormaps
+
+    colours = colormaps[GRID_COLOURS].with_extremes(bad=NOT_RUN_COLOUR)
+    image = axes.imshow(np.ma.masked_invalid(grid), cmap=colours, vmin=0.0, vmax=100.0, aspect="auto")
+    for row, column in np.ndindex(grid.shape):
+        value = grid[row, column]
+        text = "-" if np.isnan(value) else f"{value:.0f}"
+        dark = not np.isnan(value) and value > 60.0
+        axes.text(column, row, text, ha="center", va="center", fontsize=7,
+                  color="white" if dark else "black")
+    axes.set_xticks(range(len(groups)))
+    axes.set_xticklabels(groups, fontsize=8)
+    axes.xaxis.tick_top()
+    axes.set_yticks(range(len(methods)))
+    axes.set_yticklabels(methods, fontsize=7.5)
+    axes.tick_params(length=0)
+    axes.set_title(title, fontsize=10, pad=24)
+    bar = figure.colorbar(image, ax=axes, fraction=0.03, pad=0.02)
+    bar.set_label(legend, fontsize=8)
+    bar.ax.tick_params(labelsize=7)
     figure.tight_layout()
     return figure
 

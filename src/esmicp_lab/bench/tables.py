@@ -129,6 +129,41 @@ def overview_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+_OVERVIEW_HEADER = re.compile(r"^\| method \| kind \|(?P<protocols>.+)\|\s*$")
+_OVERVIEW_CELL = re.compile(r"^(?P<strict>[\d.e+-]+) / (?P<symmetry>[\d.e+-]+)\b")
+
+
+def overview_rates(markdown: str) -> list[dict]:
+    """The cells of the first :func:`overview_table` in ``markdown`` (a results page the table was
+    written into), read back: one dict per method and protocol with ``method``, ``kind``,
+    ``group`` (the protocol), ``trials`` (the header's count), ``percent`` (strict success %) and
+    ``symmetry_percent``; both None where the cell says the method did not run."""
+    lines = markdown.splitlines()
+    start = next((k for k, line in enumerate(lines) if _OVERVIEW_HEADER.match(line)), None)
+    if start is None:
+        raise ValueError("no overview table (a line '| method | kind | ...') in the text")
+    protocols = []
+    for heading in _OVERVIEW_HEADER.match(lines[start])["protocols"].split("|"):
+        found = re.match(r"\s*(?P<name>.+?) \((?P<trials>\d+) trials\)\s*$", heading)
+        if found is None:
+            raise ValueError(f"overview table: unexpected protocol heading {heading.strip()!r}")
+        protocols.append((found["name"], int(found["trials"])))
+    rates = []
+    for line in lines[start + 2:]:
+        if not line.startswith("|"):
+            break
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if len(cells) != len(protocols) + 2:
+            raise ValueError(f"overview table: {len(cells)} cells in {line[:60]!r}, expected {len(protocols) + 2}")
+        method, kind = cells[0], cells[1]
+        for (protocol, trials), cell in zip(protocols, cells[2:]):
+            found = _OVERVIEW_CELL.match(cell)
+            rates.append({"method": method, "kind": kind, "group": protocol, "trials": trials,
+                          "percent": float(found["strict"]) if found else None,
+                          "symmetry_percent": float(found["symmetry"]) if found else None})
+    return rates
+
+
 def metrics_table(rows: list[dict]) -> str:
     """The paper's layout for one group of trials: rows = methods, columns = metrics."""
     names = " | ".join(label for _, label in PAPER_METRICS)
