@@ -1,8 +1,11 @@
-"""Write docs/real-scans.md from a results folder of the scan benchmark (its rows.jsonl), so that
-the page can be regenerated exactly:
+"""Print the tables of esmicp against its peers on the scan benchmark (the section "Against the
+peers" of docs/real-scans.md) from a results folder of that benchmark (its rows.jsonl):
 
     esmicp bench --datasets real-pairs,partial-overlap --trials 24 --out bench-scans
-    python benchmarks/real_scans_doc.py bench-scans > docs/real-scans.md
+    python benchmarks/real_scans_doc.py bench-scans
+
+(The rest of docs/real-scans.md, its picture and its choice and confirmation sets, comes from
+``benchmarks/global_regression.py`` and ``benchmarks/global_doc.py``: see the page.)
 
 The quick variant for comparing algorithm variants (esmicp only, a few minutes):
 
