@@ -15,6 +15,13 @@ were chosen, and a confirmation half):
   frames 500-990.
 - ``bunny``: the Stanford bunny's raw scans, every pair overlapping by at least half, truth from
   ``bun.conf`` (confirmation only).
+- ``lidar``: the LiDAR scans of ``real_pairs`` (confirmation only): the 5 Newer College scans, all
+  10 pairs, truth from the dataset's pose graph (``graph.txt``), and their 10 cycles; the KITTI
+  pair, truth from KITTI's published poses. Before any NEES, whether the truth can judge it:
+  each pair registered from the truth itself by ``esm``, Open3D point-to-plane ICP and small_gicp
+  GICP; the median of the three poses' offsets from the truth estimates the truth's own error,
+  compared with the predicted standard deviation axis by axis (:data:`TRUTH_GOOD_RATIO`). The
+  generated text goes between the page's ``<!-- covariance_nees lidar -->`` markers.
 
 With ``e`` the left error vector of the result (``T_true = Exp(e) @ T_est``, rotation vector then
 translation, target frame), ``NEES = e^T Sigma^-1 e``; a calibrated covariance gives a mean of 6
@@ -79,8 +86,16 @@ KITCHEN_TRUTH_M = 0.01
 #: Bunny scan pairs used: those of which at least this share of the source lies within 3 target
 #: spacings of the target at the truth.
 BUNNY_MIN_OVERLAP = 0.5
-#: Markers of the generated part of the results page.
+#: Markers of the generated part of the results page, and of its LiDAR part (``--sets lidar``).
 DOC_BEGIN, DOC_END = "<!-- covariance_nees: begin -->", "<!-- covariance_nees: end -->"
+LIDAR_BEGIN, LIDAR_END = "<!-- covariance_nees lidar: begin -->", "<!-- covariance_nees lidar: end -->"
+#: A recorded truth can judge a covariance when its own error, estimated per axis, is at most this
+#: many predicted standard deviations (root mean square over the six axes, median over the pairs):
+#: an independent truth error of ``r`` standard deviations per axis adds about ``6 r^2`` to the
+#: mean NEES, 1.5 of the 6 at 0.5.
+TRUTH_GOOD_RATIO = 0.5
+#: The ``lidar`` set draws its starts from its own stream (seed, this), so that it can run alone.
+LIDAR_STREAM = 5
 
 
 def spacing_of(points: np.ndarray) -> float:
@@ -157,6 +172,92 @@ def bunny_scans():
         if np.mean(distances < 3 * index.spacing()) >= BUNNY_MIN_OVERLAP:
             pairs.append((a, b))
     return points, poses, pairs
+
+
+def lidar_pairs():
+    """``[(family, name, source, target, T_target_source, metres apart)]``: the 10 pairs of the 5
+    Newer College scans (truth from ``graph.txt``: ``vK x y z qx qy qz qw`` per scan, world from
+    scan), then the KITTI pair (its ``T_target_source.txt``); and the Newer College triplets."""
+    from scipy.spatial.transform import Rotation
+
+    from esmicp.io import read_points
+
+    folder = DATA / "real_pairs" / "newer_college_01"
+    world = {}
+    for line in (folder / "graph.txt").read_text().splitlines():
+        fields = line.split()
+        if len(fields) == 8 and fields[0].startswith("v"):
+            pose = np.eye(4)
+            pose[:3, :3] = Rotation.from_quat([float(v) for v in fields[4:8]]).as_matrix()
+            pose[:3, 3] = [float(v) for v in fields[1:4]]
+            world[int(fields[0][1:])] = pose
+    scans = {k: read_points(folder / f"planes_{10 * k:06d}.bin", bin_columns=3) for k in sorted(world)}
+    pairs = []
+    for a, b in itertools.combinations(sorted(world), 2):
+        truth = np.linalg.inv(world[a]) @ world[b]
+        pairs.append(("Newer College", (a, b), scans[b], scans[a], truth, float(np.linalg.norm(truth[:3, 3]))))
+    kitti = DATA / "real_pairs" / "kitti_00"
+    truth = np.loadtxt(kitti / "t0_s1" / "T_target_source.txt")
+    pairs.append(("KITTI", (0, 1), read_points(kitti / "000001.bin", bin_columns=3),
+                  read_points(kitti / "000000.bin", bin_columns=3), truth, float(np.linalg.norm(truth[:3, 3]))))
+    return pairs, list(itertools.combinations(sorted(world), 3))
+
+
+def truth_offset(source, target, truth, spacing) -> tuple[np.ndarray, np.ndarray]:
+    """``(offset, standard deviations)``: the median, per axis, of the left errors of ``esm``,
+    Open3D point-to-plane ICP and small_gicp GICP each started at ``truth`` (where the data put the
+    pose, by three methods: the truth's own error plus the methods' shared one), and ``esm``'s
+    predicted standard deviations there (rotation vector, radians; translation)."""
+    result = esmicp.register(source, target, init=truth, workers=1)
+    errors = [uncertainty.left_error(truth, result.transformation)]
+    for peer in (run_open3d, run_small_gicp):
+        estimate, _ = peer(source, target, truth, spacing)
+        errors.append(uncertainty.left_error(truth, estimate))
+    return np.median(np.array(errors), axis=0), np.sqrt(np.diag(result.covariance))
+
+
+def lidar(table: Table, rng, peers: bool) -> str:
+    """The ``lidar`` set: the truth check (a Markdown table and what it says), then each pair's
+    NEES against the recorded truth and the Newer College cycles into ``table``."""
+    pairs, triplets = lidar_pairs()
+    lines = ["Is the recorded truth good enough to judge the covariance? Each pair registered from the truth "
+             "itself by `esm`, Open3D point-to-plane ICP and small_gicp GICP; the median of their offsets from "
+             "the truth (target frame) estimates the truth's own error, beside `esm`'s predicted standard "
+             "deviation there; `ratio` is the root mean square over the six axes of offset / standard deviation "
+             f"(a truth error of `r` standard deviations per axis adds about `6 r^2` to the mean NEES; good "
+             f"enough: a median ratio up to {TRUTH_GOOD_RATIO:g}).", "",
+             "| pair | apart (m) | truth offset, rotation (deg, x y z) | truth offset, translation (cm, x y z) | "
+             "predicted sd, translation (cm, x y z) | ratio |", "|---|---:|---|---|---|---:|"]
+    ratios, signs, runs = {}, {}, {}
+    for family, (a, b), source, target, truth, apart in pairs:
+        spacing = spacing_of(target)
+        offset, deviation = truth_offset(source, target, truth, spacing)
+        ratio = float(np.sqrt(np.mean((offset / deviation) ** 2)))
+        ratios.setdefault(family, []).append(ratio)
+        signs.setdefault(family, []).append(np.sign(offset[3:]))
+        lines.append(f"| {family} {a}-{b} | {apart:.2f} | {' '.join(f'{v:+.3f}' for v in np.degrees(offset[:3]))} | "
+                     f"{' '.join(f'{100 * v:+.1f}' for v in offset[3:])} | "
+                     f"{' '.join(f'{100 * v:.1f}' for v in deviation[3:])} | {ratio:.2f} |")
+        run = Run(source, target, truth, rng)
+        table.count((f"LiDAR pairs ({family})", "confirmation"), run.trusted)
+        if run.trusted:
+            runs[(family, a, b)] = run
+            score(table, f"LiDAR pairs ({family})", "confirmation", "recorded", run, peers)
+    for a, b, c in triplets:
+        keys = [("Newer College", *pair) for pair in ((a, b), (b, c), (a, c))]
+        if all(key in runs for key in keys):
+            error, covariance = cycle(*(runs[key] for key in keys))
+            table.add(("LiDAR pairs (Newer College)", "confirmation", "cycles", "esmicp"), nees(error, covariance))
+    lines.append("")
+    for family, values in ratios.items():
+        median = float(np.median(values))
+        chosen = np.array(signs[family])
+        same = np.maximum(np.sum(chosen > 0, axis=0), np.sum(chosen < 0, axis=0))
+        verdict = "good enough" if median <= TRUTH_GOOD_RATIO else "not good enough"
+        lines.append(f"- {family}: median ratio {median:.2f} over {len(values)} pair(s): {verdict}"
+                     + (f"; the translation offsets share their sign on {', '.join(map(str, same))} of "
+                        f"{len(values)} pairs (x, y, z)" if len(values) > 1 else "") + ".")
+    return "\n".join(lines)
 
 
 def nees(error: np.ndarray, covariance: np.ndarray | None) -> float:
@@ -317,7 +418,8 @@ def main(argv=None) -> int:
     parser.add_argument("--shapes", type=int, default=None, help="paper shapes used (default: all 12)")
     parser.add_argument("--extra", type=int, default=24, help="modelnet40_extra shapes, one trial each (default 24)")
     parser.add_argument("--triplets", type=int, default=6, help="kitchen triplets per half (default 6)")
-    parser.add_argument("--sets", default="objects,cut,kitchen,bunny", help="of objects, cut, kitchen, bunny")
+    parser.add_argument("--sets", default="objects,cut,kitchen,bunny,lidar",
+                        help="of objects, cut, kitchen, bunny, lidar")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--peers", action="store_true", help="also Open3D's and small_gicp's matrices")
     parser.add_argument("--plot", type=Path, help="write a PNG of predicted against observed errors (esmicp)")
@@ -378,20 +480,32 @@ def main(argv=None) -> int:
             if all(key in runs for key in ((a, b), (b, c), (a, c))):
                 error, covariance = cycle(runs[(a, b)], runs[(b, c)], runs[(a, c)])
                 table.add(("bunny scan pairs", "confirmation", "cycles", "esmicp"), nees(error, covariance))
-    shares = np.array(shares)
-    text = "\n".join([
-        f"Seed {args.seed}; {args.objects} trial(s) per paper shape, {args.extra} `modelnet40_extra` shapes, "
-        f"{args.triplets} kitchen triplets per half; every start {START_DEGREES:g} deg and {START_SPACINGS:g} target "
-        f"spacings from the truth; kitchen truth error {KITCHEN_TRUTH_DEG:g} deg and {100 * KITCHEN_TRUTH_M:g} cm "
-        "per axis.", "", table.markdown(), "", _noise_table(by_noise), "",
-        f"Cost of the covariance: median {100 * np.median(shares):.1f}% of the registration that computed it "
-        f"(max {100 * shares.max():.1f}%), {len(shares)} registrations from a given start, one thread; the whole "
-        f"run {(time.perf_counter() - began) / 60:.0f} minutes{' with the peers' if args.peers else ''}."])
-    print(text)
-    if args.plot is not None:
+    texts = {}
+    if shares:
+        shares = np.array(shares)
+        texts[DOC_BEGIN, DOC_END] = "\n".join([
+            f"Seed {args.seed}; {args.objects} trial(s) per paper shape, {args.extra} `modelnet40_extra` shapes, "
+            f"{args.triplets} kitchen triplets per half; every start {START_DEGREES:g} deg and {START_SPACINGS:g} "
+            f"target spacings from the truth; kitchen truth error {KITCHEN_TRUTH_DEG:g} deg and "
+            f"{100 * KITCHEN_TRUTH_M:g} cm per axis.", "", table.markdown(), "", _noise_table(by_noise), "",
+            f"Cost of the covariance: median {100 * np.median(shares):.1f}% of the registration that computed it "
+            f"(max {100 * shares.max():.1f}%), {len(shares)} registrations from a given start, one thread; the "
+            f"whole run {(time.perf_counter() - began) / 60:.0f} minutes{' with the peers' if args.peers else ''}."])
+    if "lidar" in names:
+        began = time.perf_counter()
+        lidar_table = Table()
+        check = lidar(lidar_table, np.random.default_rng([args.seed, LIDAR_STREAM]), args.peers)
+        texts[LIDAR_BEGIN, LIDAR_END] = "\n".join([
+            f"Seed {args.seed}; every start {START_DEGREES:g} deg and {START_SPACINGS:g} target spacings from the "
+            "truth; the Newer College cycles use no truth.", "", check, "", lidar_table.markdown(), "",
+            f"The LiDAR part took {(time.perf_counter() - began) / 60:.0f} minutes"
+            f"{' with the peers' if args.peers else ''}."])
+    for (begin, end), text in texts.items():
+        print(text + "\n")
+        if args.doc is not None:
+            _write_doc(args.doc, text, begin, end)
+    if args.plot is not None and table.points:
         _plot(table.points, args.plot)
-    if args.doc is not None:
-        _write_doc(args.doc, text)
     return 0
 
 
@@ -408,13 +522,13 @@ def _noise_table(by_noise) -> str:
     return "\n".join(lines)
 
 
-def _write_doc(path: Path, text: str) -> None:
+def _write_doc(path: Path, text: str, begin: str = DOC_BEGIN, end: str = DOC_END) -> None:
     page = path.read_text(encoding="utf-8")
-    if DOC_BEGIN not in page or DOC_END not in page:
-        raise SystemExit(f"{path}: no generated part (the markers {DOC_BEGIN} and {DOC_END})")
-    before, rest = page.split(DOC_BEGIN, 1)
-    after = rest.split(DOC_END, 1)[1]
-    path.write_text(f"{before}{DOC_BEGIN}\n{text}\n{DOC_END}{after}", encoding="utf-8")
+    if begin not in page or end not in page:
+        raise SystemExit(f"{path}: no generated part (the markers {begin} and {end})")
+    before, rest = page.split(begin, 1)
+    after = rest.split(end, 1)[1]
+    path.write_text(f"{before}{begin}\n{text}\n{end}{after}", encoding="utf-8")
 
 
 def _plot(points, path: Path) -> None:
