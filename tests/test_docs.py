@@ -129,8 +129,8 @@ def test_every_test_the_reliability_page_names_exists():
 
 
 #: The results pages (written by the scripts of benchmarks/) and the picture each opens on.
-RESULTS_PAGES = ("measured-global", "real-scans", "merge", "bench", "bench-paper", "bench-paper-1000", "speed",
-                 "scans-partial-overlap", "scans-start-drift")
+RESULTS_PAGES = ("measured-global", "real-scans", "merge", "bench", "bench-paper", "bench-paper-1000", "bench-honest",
+                 "baselines", "speed", "scans-partial-overlap", "scans-refinement", "scans-start-drift", "uncertainty")
 #: A page's picture: small enough for a page (bytes).
 MAX_PICTURE_BYTES = 150_000
 IMAGE_LINE = re.compile(r"^!\[(?P<alt>[^\]]+)\]\((?P<path>images/[^)\s]+\.png)\)$")
