@@ -26,7 +26,7 @@ Only the registration call is timed (esmicp: ``result.runtime_s``; peers: their
 ``runtime_s``, normals and covariances included); one untimed warm-up per method first.
 
     nice -n 5 python benchmarks/scan_refinement.py --seeds 3 --rows rows.jsonl --doc docs/scans-refinement.md \
-        --notes notes.md --picture docs/images/scans-refinement.png
+        --picture docs/images/scans-refinement.png      # the page's notes kept (--notes FILE: replaced)
     python benchmarks/scan_refinement.py --from-rows rows.jsonl --picture docs/images/scans-refinement.png
 """
 
@@ -58,6 +58,8 @@ SHORT_LABELS = {"global+esm": "register()", "global+esm-plane": "register(method
 #: (angle deg low, high; translation m low, high) of the perturbed starts, by kind family.
 OFFSETS = {"3DMatch": (5.0, 5.0, 0.1, 0.1), "LiDAR": (5.0, 10.0, 0.2, 0.5)}
 SECTION = "## Refinement on scans"
+#: Where the generated tables of the section end and its notes (``--notes``) begin.
+TABLES_END = "<!-- scan_refinement: end of the generated tables -->"
 
 
 def family(kind: str) -> str:
@@ -203,6 +205,7 @@ def markdown(rows: list[dict], command: str, iterations: int) -> str:
                 strategy = next(r.get("strategy") for r in rows if r["pair"] == pair and r["start"] == start)
                 label = f"{start} ({strategy})" if strategy else start
                 lines.append(f"| {pair} | {label} | " + " | ".join(cells) + " |")
+    lines += ["", TABLES_END]
     return "\n".join(lines) + "\n"
 
 
@@ -221,17 +224,21 @@ def picture(rows: list[dict], path: Path) -> Path:
     return write_picture(figure, path)
 
 
-def write_section(doc: Path, section: str, notes: str) -> None:
-    """Replace (or append) the section of ``doc`` that starts with :data:`SECTION`."""
+def write_section(doc: Path, section: str, notes: str | None) -> None:
+    """Replace (or append) the section of ``doc`` that starts with :data:`SECTION`: the generated
+    tables, then ``notes`` (None: the notes the page has after its tables, :data:`TABLES_END`)."""
     text = doc.read_text(encoding="utf-8") if doc.exists() else ""
-    block = section + ("\n" + notes if notes else "")
     if SECTION in text:
         head, rest = text.split(SECTION, 1)
         following = rest.find("\n## ")
         tail = rest[following + 1:] if following >= 0 else ""
+        if notes is None:
+            current = rest[:following + 1] if following >= 0 else rest
+            notes = current.split(TABLES_END, 1)[1].strip("\n") + "\n" if TABLES_END in current else ""
+        block = section + ("\n" + notes if notes else "")
         text = head + block + ("\n" + tail if tail else "")
     else:
-        text = text.rstrip("\n") + "\n\n" + block
+        text = text.rstrip("\n") + "\n\n" + section + ("\n" + notes if notes else "")
     doc.write_text(text, encoding="utf-8")
 
 
@@ -246,7 +253,8 @@ def main() -> None:
     parser.add_argument("--rows", type=Path, help="write the rows as JSON lines here")
     parser.add_argument("--from-rows", type=Path, nargs="+", help="only rebuild the tables from these rows")
     parser.add_argument("--doc", type=Path, help="write the section into this Markdown file")
-    parser.add_argument("--notes", type=Path, help="Markdown appended to the section (the decision)")
+    parser.add_argument("--notes", type=Path, help="Markdown appended to the section (the decision); default: "
+                        "the notes the page already has after its tables")
     parser.add_argument("--picture", type=Path, help="draw the page's picture from the rows (PNG, replaced if it "
                         "exists; needs matplotlib): right results per kind of pair, start and method")
     args = parser.parse_args()
@@ -267,7 +275,7 @@ def main() -> None:
     section = markdown(rows, command, args.max_iterations)
     print(section)
     if args.doc:
-        write_section(args.doc, section, args.notes.read_text(encoding="utf-8") if args.notes else "")
+        write_section(args.doc, section, args.notes.read_text(encoding="utf-8") if args.notes else None)
     if args.picture:
         print(picture(rows, args.picture))
 

@@ -494,3 +494,25 @@ def test_the_overview_table_read_back_from_a_page_gives_each_cells_rates():
             assert rate["symmetry_percent"] == pytest.approx(symmetric, abs=0.05)
     with pytest.raises(ValueError, match="no overview table"):
         overview_rates("# A page without a table\n")
+
+
+def test_regenerating_the_refinement_section_keeps_the_pages_notes_and_the_rest(tmp_path):
+    """``benchmarks/scan_refinement.py --doc`` rewrites its tables; the notes written under them
+    and the page's other sections stay unless ``--notes`` replaces them."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "scan_refinement", Path(__file__).resolve().parents[1] / "benchmarks" / "scan_refinement.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    page = tmp_path / "page.md"
+    page.write_text("# Title\n\n![a picture](images/x.png)\n\ncaption\n\n## Other\n\nkept\n")
+    tables = f"{module.SECTION}\n\n| a |\n|---|\n| 1 |\n\n{module.TABLES_END}\n"
+    module.write_section(page, tables, "The notes.\n")
+    first = page.read_text()
+    assert first.index("caption") < first.index("| 1 |") < first.index("The notes.") and "kept" in first
+    module.write_section(page, tables.replace("| 1 |", "| 2 |"), None)
+    second = page.read_text()
+    assert second == first.replace("| 1 |", "| 2 |")
+    module.write_section(page, tables, "Other notes.\n")
+    assert "The notes." not in page.read_text() and "Other notes." in page.read_text()
