@@ -298,6 +298,34 @@ def test_view_shows_what_register_gives_a_given_transform_or_the_files_as_they_a
     assert code == 2 and "not allowed with" in stderr
 
 
+
+def test_view_shows_the_result_register_json_wrote_without_registering(tmp_path, capsys):
+    """``esmicp register --json > r.json`` then ``esmicp view --transform r.json``: the page shows
+    that result's pose, captioned with its verdict, and registers nothing; a JSON file without a
+    pose is one line naming it."""
+    require_plotting()
+    pair = builtin_pair(points=300, angle_deg=120)
+    source, target, out = tmp_path / "s.xyz", tmp_path / "t.xyz", tmp_path / "v.html"
+    np.savetxt(source, pair.source, fmt="%.17g")
+    np.savetxt(target, pair.target, fmt="%.17g")
+    code, stdout, stderr = run(capsys, "register", str(source), str(target), "--json")
+    assert code == 0, stderr
+    (tmp_path / "r.json").write_text(stdout)
+    result = json.loads(stdout)
+    code, stdout, stderr = run(capsys, "view", str(source), str(target), "-o", str(out), "--transform",
+                               str(tmp_path / "r.json"))
+    assert code == 0, stderr
+    verdict = "trusted" if result["trusted"] else "not trusted"
+    assert f"r.json ({result['method']}, confidence {result['confidence']:.2f}, {verdict})" in stdout
+    meta = view_meta(out)
+    assert meta["iterations"] == [0]
+    np.testing.assert_allclose(meta["poses"][0][0], result["transformation"], atol=1e-12)
+    (tmp_path / "other.json").write_text(json.dumps({"fitness": 1.0}))
+    code, _, stderr = run(capsys, "view", str(source), str(target), "-o", str(tmp_path / "w.html"), "--transform",
+                          str(tmp_path / "other.json"))
+    assert code == 2 and "other.json: no 'transformation'" in stderr and len(stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "w.html").exists()
+
 @pytest.mark.parametrize(
     "argv, message",
     [

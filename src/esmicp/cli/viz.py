@@ -79,7 +79,8 @@ def add_parser(commands) -> None:
                        "a file holding a 4x4 T_target_source to refine from (default: global)")
     shown.add_argument("--transform", type=Path, metavar="T_FILE",
                        help="show the source placed by this 4x4 T_target_source (for instance from "
-                       "'esmicp register --transform-out'), without registering")
+                       "'esmicp register --transform-out'), or by the result 'esmicp register --json' wrote "
+                       "(a .json file: its pose, its verdict in the caption), without registering")
     shown.add_argument("--as-is", action="store_true",
                        help="show the clouds as they are, without registering (files already aligned)")
     view.add_argument("--method", choices=list(METHODS), default="esm", help="default esm")
@@ -171,6 +172,48 @@ def _inputs(args):
     return source, target, description, None, init
 
 
+#: Largest result file ``esmicp view --transform`` reads (bytes): ``esmicp register --json`` writes a
+#: few kilobytes (a merge's stages more), so this is no limit for a real one.
+MAX_RESULT_BYTES = 16 * 1024 * 1024
+
+
+def given_pose_file(path: Path):
+    """``(T_target_source, label)`` of ``--transform FILE``: a ``.json`` file is the result
+    ``esmicp register --json`` wrote (its ``transformation``; its method, confidence and verdict
+    label the view), any other file a 4x4 matrix as :func:`esmicp.io.read_transform` reads it."""
+    from .. import io
+
+    if path.suffix.lower() != ".json":
+        return io.read_transform(path), f"source placed by {path.name}"
+    import json
+
+    import numpy as np
+
+    from ..errors import PointCloudFileError
+    from ..io._files import check_input_file
+    from ..io.text import read_text_file
+    from ..types import as_transform
+
+    check_input_file(path)  # missing, a folder, a FIFO, empty: refused in the readers' words
+    try:
+        result = json.loads(read_text_file(path, max_bytes=MAX_RESULT_BYTES))
+    except ValueError as exc:
+        raise PointCloudFileError(path, f"not JSON ({exc}); expected the output of 'esmicp register --json'") from None
+    if not isinstance(result, dict) or "transformation" not in result:
+        raise PointCloudFileError(path, "no 'transformation' in it; expected the output of 'esmicp register --json' "
+                                  "(or a text file of 16 numbers)")
+    try:
+        pose = as_transform(np.asarray(result["transformation"], dtype=np.float64), "transformation")
+    except (TypeError, ValueError) as exc:
+        raise PointCloudFileError(path, f"its transformation: {exc}") from None
+    facts = [str(result["method"])] if isinstance(result.get("method"), str) else []
+    if isinstance(result.get("confidence"), (int, float)):
+        facts.append(f"confidence {result['confidence']:.2f}")
+    if isinstance(result.get("trusted"), bool):
+        facts.append("trusted" if result["trusted"] else "not trusted")
+    return pose, f"source placed by {path.name}" + (f" ({', '.join(facts)})" if facts else "")
+
+
 def _run_view(args) -> int:
     from .. import io
     from ..viz.view import view_figure, view_html, write_view
@@ -186,7 +229,7 @@ def _run_view(args) -> int:
                                 "without registering")
     if args.show_iteration is not None and not args.show_run:
         raise InvalidInputError("--show-iteration: a step of the registration run; add --show-run to draw the run")
-    pose = io.read_transform(args.transform) if args.transform is not None else None
+    pose, label = given_pose_file(args.transform) if args.transform is not None else (None, "as given (not registered)")
     source, target, description, truth, init = _inputs(args)
     display = {"max_display_points": args.max_display_points, "camera": args.camera, "up": args.up}
     if fixed:
@@ -194,7 +237,6 @@ def _run_view(args) -> int:
 
         from ..viz.trace import fixed_trace
 
-        label = f"source placed by {args.transform.name}" if pose is not None else "as given (not registered)"
         trace = fixed_trace(source, target, np.eye(4) if pose is None else pose, label)
         figure = view_figure([trace], title=args.title or description, truth=truth, **display,
                              subtitle=f"{label}, without registering")
