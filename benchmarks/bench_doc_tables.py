@@ -221,8 +221,8 @@ def honest_picture(rates, path: Path) -> Path:
     from esmicp_lab.figures import success_grid_figure, write_picture
 
     labelled = [{**rate, "method": f"{rate['method']} ({rate['kind']})"} for rate in rates]
-    figure = success_grid_figure(labelled, title="Strict success (%) per method and protocol, the same trials "
-                                 "for every method", legend="strict success (%)")
+    figure = success_grid_figure(labelled, title="Strict success (%) per method and protocol",
+                                 legend="strict success (%)")
     return write_picture(figure, path)
 
 
