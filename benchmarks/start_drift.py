@@ -23,7 +23,7 @@ centroid): a start that was already right should barely move.
 ``--doc`` replaces (or appends) the section "Refining from a given start" of that Markdown file;
 ``--picture`` draws the picture the page opens on (the share of right results per kind of data
 and start, from the same rows);
-``--start-quantile Q`` runs with another ``esmicp.methods.esm.START_QUANTILE`` (how it was chosen);
+``--start-quantile Q`` runs with another ``RefineConfig.esm.start_quantile`` (how it was chosen);
 ``--compare`` puts the rows of another run (``--out`` of a run with other settings) in a column
 beside this run's, and lists the cases this run does worse on.
 """
@@ -43,8 +43,8 @@ from esmicp_lab.bench.real_pairs import load_pair, pair_errors, partial_trial, r
 from esmicp_lab.bench.scans import _modelnet_clouds, _seed_of
 from esmicp_lab.bench.trials import perturbed_start
 from esmicp.core.procrustes import bounding_box_diagonal
-from esmicp.methods import esm
-from esmicp.methods.esm import START_QUANTILE
+from esmicp.config import RefineConfig, RegistrationConfig
+from esmicp.methods.config import EsmConfig
 from esmicp.metrics import rotation_error_deg, translation_error, up_to_symmetry_success
 
 SECTION = "## Refining from a given start"
@@ -59,13 +59,13 @@ def _moved(result, start, source):
     return rotation_error_deg(result, start), translation_error(result, start, source.mean(axis=0))
 
 
-def real_rows(folder: Path, seed: int):
+def real_rows(folder: Path, seed: int, config: RegistrationConfig | None = None):
     for index, pair in enumerate(read_pairs(folder)):
         source, target, truth = load_pair(pair, bin_columns=3)
         angle, shift = REAL_PERTURBATION[pair.kind]
         rng = np.random.default_rng(_seed_of(seed, 2, index))
         for start_name, start in (("truth", truth), (f"{angle:g}° / {shift:g} m", perturbed_start(truth, source, angle, shift, rng))):
-            result = esmicp.register(source, target, init=start)
+            result = esmicp.register(source, target, init=start, config=config)
             rot, trans = pair_errors(result.transformation, truth)
             moved_rot, moved_trans = _moved(result.transformation, start, source)
             yield {"group": "real", "kind": pair.kind.replace("-coarse-GT", ""), "case": pair.name, "start": start_name,
@@ -74,7 +74,7 @@ def real_rows(folder: Path, seed: int):
                    "moved_deg": moved_rot, "moved": moved_trans, "seconds": result.runtime_s}
 
 
-def object_rows(data_dir: Path, trials: int, seed: int):
+def object_rows(data_dir: Path, trials: int, seed: int, config: RegistrationConfig | None = None):
     clouds = _modelnet_clouds(data_dir)
     names = list(clouds)
     for number, keep in enumerate((0.7, 0.5)):
@@ -88,7 +88,7 @@ def object_rows(data_dir: Path, trials: int, seed: int):
                       (f"{angle:g}° / {shift:g} diag",
                        perturbed_start(trial.T_target_source, trial.source, angle, shift * diagonal, start_rng)))
             yield from _object_rows(f"partial-{round(100 * keep)}", trial.source, trial.target,
-                                    trial.T_target_source, diagonal, starts)
+                                    trial.T_target_source, diagonal, starts, config)
     for protocol in ("resampled", "outliers-30"):
         for index in range(trials):
             trial = make_trial(protocol, clouds[names[index % len(names)]], seed, index)
@@ -97,12 +97,12 @@ def object_rows(data_dir: Path, trials: int, seed: int):
             starts = [(f"{angle:g}° / {shift:g} diag",
                        perturbed_start(trial.T_target_source, trial.source, angle, shift * diagonal, start_rng))
                       for angle, shift in POOR_STARTS]
-            yield from _object_rows(protocol, trial.source, trial.target, trial.T_target_source, diagonal, starts)
+            yield from _object_rows(protocol, trial.source, trial.target, trial.T_target_source, diagonal, starts, config)
 
 
-def _object_rows(protocol, source, target, truth, diagonal, starts):
+def _object_rows(protocol, source, target, truth, diagonal, starts, config=None):
     for start_name, start in starts:
-        result = esmicp.register(source, target, init=start)
+        result = esmicp.register(source, target, init=start, config=config)
         moved_rot, moved_trans = _moved(result.transformation, start, source)
         yield {"group": "objects", "case": protocol, "start": start_name,
                "rotation_error_deg": rotation_error_deg(result.transformation, truth),
@@ -151,7 +151,7 @@ def markdown(rows: list[dict], command: str, compared: list[dict] | None = None)
                 worse.append(f"{case} from {start}")
         lines += ["", "Worse in this run than in the compared one (fewer successes, or a single pair's translation "
                   "error up by more than half): " + ("; ".join(worse) if worse else "none") + "."]
-    lines += ["", "The coarse sigma from a given start is `SIGMA_MEDIAN_FACTOR` times the `START_QUANTILE` "
+    lines += ["", "The coarse sigma from a given start is `RefineConfig.esm.sigma_median_factor` times the `start_quantile` "
               "quantile of the start's distances; rerun with `--start-quantile Q` to compare another quantile."]
     return "\n".join(lines) + "\n"
 
@@ -195,8 +195,8 @@ def main(argv=None) -> None:
     parser.add_argument("--trials", type=int, default=24, help="trials per object protocol (default 24)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--skip-real", action="store_true", help="objects only")
-    parser.add_argument("--start-quantile", type=float, default=START_QUANTILE,
-                        help=f"esm's START_QUANTILE for this run (default {START_QUANTILE})")
+    parser.add_argument("--start-quantile", type=float, default=EsmConfig().start_quantile,
+                        help=f"RefineConfig.esm.start_quantile for this run (default {EsmConfig().start_quantile})")
     parser.add_argument("--out", type=Path, help="write this run's rows (JSON)")
     parser.add_argument("--compare", type=Path, help="rows of another run (its --out JSON) to show beside")
     parser.add_argument("--doc", type=Path, help="Markdown file whose section to replace")
@@ -205,14 +205,14 @@ def main(argv=None) -> None:
     parser.add_argument("--picture", type=Path, help="draw the page's picture (PNG, replaced if it exists; "
                         "needs matplotlib): right results per kind of data and start")
     args = parser.parse_args(argv)
-    esm.START_QUANTILE = args.start_quantile
+    config = RegistrationConfig(refine=RefineConfig(esm=EsmConfig(start_quantile=args.start_quantile)))
     rows = json.loads(args.from_out.read_text()) if args.from_out else []
     if not args.from_out and not args.skip_real:
-        for row in real_rows(args.data / "real_pairs", args.seed):
+        for row in real_rows(args.data / "real_pairs", args.seed, config):
             print(json.dumps(row), flush=True)
             rows.append(row)
     if not args.from_out:
-        rows.extend(object_rows(args.data, args.trials, args.seed))
+        rows.extend(object_rows(args.data, args.trials, args.seed, config))
     if args.out:
         args.out.write_text(json.dumps(rows))
     compared = json.loads(args.compare.read_text()) if args.compare else None

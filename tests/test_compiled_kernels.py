@@ -200,7 +200,7 @@ def test_the_one_call_iteration_gives_the_pose_of_the_numpy_step(method, count):
     source = _bunny_like(count, 6) @ rotation.T + [0.02, 0.01, 0.0]
     budget = {} if count <= 1000 else {"max_iterations": 30, "tolerance": 1e-300}
     from esmicp.methods import ConvergenceCriteria, make_estimator
-    from esmicp.methods.esm import COARSE_POINTS
+    from esmicp.methods.config import EsmConfig
     from esmicp.methods.local import refine
 
     index = NearestNeighbors(target)
@@ -212,7 +212,7 @@ def test_the_one_call_iteration_gives_the_pose_of_the_numpy_step(method, count):
         if not compiled:
             estimator.compiled_step = estimator.fused_step = False
         return refine(source, index, estimator, init=np.eye(4), criteria=criteria, scale=scale,
-                      coarse_points=COARSE_POINTS)
+                      coarse_points=EsmConfig().coarse_points)
 
     fused, plain = run(True), run(False)
     assert fused.num_iterations == plain.num_iterations > 2

@@ -158,7 +158,8 @@ def test_the_lab_is_a_floor_above_the_library():
 def test_the_configuration_tree_is_data_only():
     """The configuration objects import nothing of ours but each other, the errors and the input
     checks: any floor takes its values without loading an algorithm."""
-    tree = ("esmicp.config", "esmicp.core.config", "esmicp.trust.policy", "esmicp.globalreg.config")
+    tree = ("esmicp.config", "esmicp.core.config", "esmicp.methods.config", "esmicp.trust.policy",
+            "esmicp.globalreg.config")
     offenders = []
     for module in tree:
         path = PACKAGE.joinpath(*module.split(".")[1:]).with_suffix(".py")
@@ -171,14 +172,14 @@ def test_the_configuration_tree_is_data_only():
 ALGORITHM_LAYERS = ("core", "methods", "globalreg", "multiview", "trust", "api.py")
 #: At most this many numeric module constants in :data:`ALGORITHM_LAYERS`: a tuned value belongs
 #: in the configuration tree (``esmicp.config``), so the count may fall, never grow.
-MAX_MODULE_CONSTANTS = 39
+MAX_MODULE_CONSTANTS = 24
 #: Layers with no numeric module constant left.
 WITHOUT_CONSTANTS = ("multiview", "trust")
 #: Layers whose constants left are design values only, at most this many each: memory bounds of
 #: chunked work (``_CHUNK_ROWS``, ``_SCORE_CHUNK``), a switch between two exact nearest-neighbour
 #: searches (``_BRUTE_FORCE_PAIRS``), a speed-only graph size (``GRAPH_NEIGHBOURS``), a
 #: mathematical constant (``_PSI``), the default seed (``DEFAULT_SEED``).
-MAX_CONSTANTS_PER_LAYER = {"globalreg": 5, "api.py": 1}
+MAX_CONSTANTS_PER_LAYER = {"globalreg": 5, "methods": 2, "api.py": 1}
 
 
 def _numeric(node) -> bool:

@@ -165,7 +165,7 @@ def test_normals_come_from_the_offered_tree_only_when_it_holds_the_target(scene,
 
     _, target = scene
     indices = np.arange(0, len(target), 7)
-    expected = estimate_normals(target, plane.NORMAL_NEIGHBOURS, at=target[indices])
+    expected = estimate_normals(target, plane.PlaneConfig().normal_neighbours, at=target[indices])
     built = []
     monkeypatch.setattr(plane, "CompiledTree", lambda points: built.append(len(points)) or CompiledTree(points))
     for offered, builds in [(NearestNeighbors(target).exact_tree(), 0), (CompiledTree(target[::-1].copy()), 1)]:

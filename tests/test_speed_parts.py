@@ -16,7 +16,7 @@ from esmicp.core import compiled_tree, voxel_hash
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import apply, rotation_angle, to_matrix
 from esmicp.methods import ConvergenceCriteria, EsmEstimator, SigmaSchedule
-from esmicp.methods.esm import COARSE_POINTS, SIGMA_FLOOR_SPACINGS
+from esmicp.methods.config import EsmConfig
 from esmicp.methods.esm_paper import paper_cross_covariance, similarity_entries
 from esmicp.methods.local import refine
 
@@ -148,12 +148,12 @@ def test_coarse_to_fine_converges_to_the_full_resolution_pose_on_lidar():
     rng = np.random.default_rng(0)
     source = source[rng.choice(len(source), 40_000, replace=False)]
     target = target[rng.choice(len(target), 40_000, replace=False)]
-    assert len(source) > COARSE_POINTS
+    assert len(source) > EsmConfig().coarse_points
     index = NearestNeighbors(target)
     diagonal = float(np.linalg.norm(np.ptp(target, axis=0)))
     common = {"diagonal": diagonal, "spacing": index.spacing()}
     start = yawed(truth, source, 5.0)
-    coarse = _refine(source, index, start, coarse_points=COARSE_POINTS, max_iterations=200, **common)
+    coarse = _refine(source, index, start, coarse_points=EsmConfig().coarse_points, max_iterations=200, **common)
     full = _refine(source, index, start, max_iterations=200, **common)
     assert coarse.converged and full.converged
     difference = coarse.transformation @ np.linalg.inv(full.transformation)
@@ -176,14 +176,14 @@ def test_the_last_neighbours_come_back_in_the_sources_order_only_from_the_whole_
     diagonal = float(np.linalg.norm(np.ptp(target, axis=0)))
     common = {"diagonal": diagonal, "spacing": index.spacing()}
     start = yawed(truth, source, 5.0)
-    outcome = _refine(source, index, start, coarse_points=COARSE_POINTS, max_iterations=200, **common)
+    outcome = _refine(source, index, start, coarse_points=EsmConfig().coarse_points, max_iterations=200, **common)
     assert outcome.converged and outcome.neighbours is not None and len(outcome.neighbours) == len(source)
     _, nearest = cKDTree(target).query(apply(outcome.transformation, source))
     # Measured 93% (the last step still moves some LiDAR points to another neighbour); points in
     # another order would match almost none.
     assert np.mean(outcome.neighbours == nearest) > 0.8
     # Stopped while still on the subset: no neighbours of the whole source.
-    early = _refine(source, index, start, coarse_points=COARSE_POINTS, max_iterations=1, **common)
+    early = _refine(source, index, start, coarse_points=EsmConfig().coarse_points, max_iterations=1, **common)
     assert early.neighbours is None
 
 
@@ -352,7 +352,7 @@ def test_register_leaves_the_coarse_phase_as_soon_as_the_subset_has_converged():
     source = source[rng.choice(len(source), 40_000, replace=False)]
     target = target[rng.choice(len(target), 40_000, replace=False)]
     tolerance = 1e-2  # loose, so that the coarse phase settles before the estimator's own switch
-    floor = SIGMA_FLOOR_SPACINGS * NearestNeighbors(target).spacing()
+    floor = EsmConfig().sigma_floor_spacings * NearestNeighbors(target).spacing()
     diagonal = float(np.linalg.norm(np.ptp(target, axis=0)))
     result = esmicp.register(source, target, init=yawed(truth, source, 15.0), tolerance=tolerance, record_history=True)
     history = result.history

@@ -12,7 +12,8 @@ import esmicp
 from esmicp_lab.bench.real_pairs import load_pair, pair_errors, partial_trial, read_pairs
 from esmicp.core.procrustes import apply, bounding_box_diagonal, to_matrix
 from esmicp.io import read_points
-from esmicp.methods.esm import SIGMA_MEDIAN_FACTOR, SigmaSchedule
+from esmicp.methods.config import EsmConfig
+from esmicp.methods.esm import SigmaSchedule
 from esmicp.metrics import random_rotation, rotation_error_deg, symmetric_placement_error, translation_error
 from esmicp.shapes import asymmetric_shape
 
@@ -44,7 +45,7 @@ def test_start_sigma_is_set_by_the_overlap_and_bounded_by_floor_and_median_rule(
     schedule = SigmaSchedule.auto(0.01, 1.0)
     # 30% of the points on the overlap (1 mm off), the rest 0.5 away: the median rule says 1.5.
     distances = np.r_[np.full(30, 0.001), np.full(70, 0.5)]
-    assert schedule(distances) == SIGMA_MEDIAN_FACTOR * 0.5
+    assert schedule(distances) == EsmConfig().sigma_median_factor * 0.5
     assert schedule.from_start(distances)(distances) == schedule.floor
     assert schedule.from_start(distances)(distances, fine=True) == schedule.floor
     spread = np.linspace(0.1, 1.0, 100)

@@ -21,7 +21,7 @@ from .globalreg.config import SearchConfig
 from .globalreg.search import STRATEGIES, GlobalEstimate, global_estimate
 from .interrupts import keeps_keyboard_interrupt
 from .methods import METHODS, ConvergenceCriteria, PlaneEstimator, make_estimator
-from .methods.esm import COARSE_POINTS, TIGHT_START_QUANTILE, EsmEstimator
+from .methods.esm import EsmEstimator
 from .methods.guard import guarded_refine
 from .methods.local import STOPPED_BY_CALLBACK, Callback, Observer, RefinementOutcome
 from .result import Correspondences, RegistrationResult, Stage
@@ -338,7 +338,7 @@ def _refine(clouds: _Clouds, estimator, initial, request: _Request, keypoints: K
         criteria = _at_strided_tolerance(criteria, request.refine)
     outcome = guarded_refine(
         source, clouds.index, estimator, init=initial, criteria=criteria, scale=clouds.diagonal,
-        coarse_points=COARSE_POINTS, observer=observer,
+        coarse_points=request.refine.esm.coarse_points, observer=observer, loop=request.refine.loop,
     )
     stages.append(_refine_stage(name, started, clouds, outcome, len(source), outcome.num_iterations, criteria))
     return outcome
@@ -358,7 +358,7 @@ def _second_try(clouds: _Clouds, initial, request: _Request, keypoints: Keypoint
                 outcome, confidence: float, observer: Observer | None, stages: list):
     """``(outcome, confidence)``: of ``outcome`` (an ``esm`` run from a given start, overlap
     confidence ``confidence`` below the trust bar) and a second run from the same start whose coarse
-    sigma comes from the start's ``TIGHT_START_QUANTILE`` distance quantile, the more confident
+    sigma comes from the start's ``refine.esm.tight_start_quantile`` distance quantile, the more confident
     (the first on a tie); the message says what the second try gave, and the stage ``second try``
     which run was kept.
 
@@ -370,7 +370,7 @@ def _second_try(clouds: _Clouds, initial, request: _Request, keypoints: Keypoint
     its history ends as that of the run kept."""
     first_confidence = confidence
     tight = _estimator(request.method, request, clouds.index, clouds.diagonal)
-    tight.start_from(start_distances, TIGHT_START_QUANTILE)
+    tight.start_from(start_distances, request.refine.esm.tight_start_quantile)
     first_history = None if observer is None else observer.new_run()
     second = _refine(clouds, tight, initial, request, keypoints, None, observer, stages, "second try")
     second_confidence = _confidence(second.transformation, keypoints, request)
@@ -378,7 +378,8 @@ def _second_try(clouds: _Clouds, initial, request: _Request, keypoints: Keypoint
     if observer is not None and observer.stopped:
         kept, outcome, confidence = "second", second, second_confidence
     elif second_confidence > confidence:
-        note = (f"; a second try with a tighter coarse sigma (the start's {TIGHT_START_QUANTILE:.0%} distance "
+        quantile = request.refine.esm.tight_start_quantile
+        note = (f"; a second try with a tighter coarse sigma (the start's {quantile:.0%} distance "
                 f"quantile) raised the overlap confidence {confidence:.2f} -> {second_confidence:.2f}")
         kept, outcome = "second", dataclasses.replace(second, message=second.message + note)
         confidence = second_confidence
@@ -424,7 +425,7 @@ def _refine_strided(clouds: _Clouds, estimator, initial, request: _Request, keyp
             request.criteria, max_iterations=request.criteria.max_iterations - plane_iterations))
     started = time.perf_counter()
     coarse = guarded_refine(strided, clouds.index, estimator, init=initial, criteria=request.criteria,
-                            scale=clouds.diagonal, observer=observer)
+                            scale=clouds.diagonal, observer=observer, loop=request.refine.loop)
     stages.append(_refine_stage(name, started, clouds, coarse, len(strided), coarse.num_iterations, request.criteria))
     if coarse.num_iterations == 0:
         return coarse  # no start to refine (the guard's message says why)
@@ -441,7 +442,8 @@ def _at_strided_tolerance(criteria: ConvergenceCriteria, refine: RefineConfig) -
 def _estimator(method: str, request: _Request, target_index, diagonal: float, start_fine: bool = False):
     """``make_estimator`` for this request; ``esm-plane`` takes its normals' neighbours from the
     target index's own KD-tree, on the request's threads."""
-    estimator = make_estimator(method, request.sigma, target_index.spacing(), diagonal, start_fine=start_fine)
+    estimator = make_estimator(method, request.sigma, target_index.spacing(), diagonal, start_fine=start_fine,
+                               esm=request.refine.esm, plane=request.refine.plane)
     if isinstance(estimator, PlaneEstimator):
         estimator.use_target_tree(target_index.exact_tree(), request.workers)
     return estimator
@@ -463,7 +465,7 @@ def _plane_start(points, clouds: _Clouds, initial, request: _Request, keypoints:
     planar = _estimator("esm-plane", request, clouds.index, clouds.diagonal)
     criteria = dataclasses.replace(request.criteria, max_iterations=budget)
     plane = guarded_refine(points, clouds.index, planar, init=initial, criteria=criteria, scale=clouds.diagonal,
-                           observer=observer)
+                           observer=observer, loop=request.refine.loop)
     if plane.num_iterations == 0:
         return initial, 0, ""
     if observer is not None and observer.stopped:

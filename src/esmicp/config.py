@@ -23,6 +23,7 @@ from dataclasses import dataclass, fields
 from .core.config import Config, count, fraction, number, part
 from .errors import InvalidInputError
 from .globalreg.config import SearchConfig, as_config
+from .methods.config import EsmConfig, LoopConfig, PlaneConfig
 from .trust.policy import TrustPolicy
 from .types import MIN_POINTS
 
@@ -64,6 +65,13 @@ class RefineConfig(Config):
         An ``esm-paper`` result whose source points lie nearest to the target point of their own
         index for less than this fraction of them (0-1) warns that the clouds are not
         index-aligned (:class:`~esmicp.errors.IndexAlignmentWarning`).
+    esm : EsmConfig
+        ``esm``'s automatic sigma and ``esm-paper``'s sigma
+        (:class:`esmicp.methods.config.EsmConfig`).
+    plane : PlaneConfig
+        ``esm-plane``'s values (:class:`esmicp.methods.config.PlaneConfig`).
+    loop : LoopConfig
+        The local loop's values (:class:`esmicp.methods.config.LoopConfig`).
 
     References
     ----------
@@ -81,6 +89,9 @@ class RefineConfig(Config):
     plane_confidence_drop: float = number(0.25, least=0.0)
     inlier_distance_spacings: float = number(3.0, above=0.0)
     index_aligned_fraction: float = fraction(0.5)
+    esm: EsmConfig = part(EsmConfig)
+    plane: PlaneConfig = part(PlaneConfig)
+    loop: LoopConfig = part(LoopConfig)
 
 
 @dataclass(frozen=True)

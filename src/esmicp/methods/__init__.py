@@ -6,8 +6,9 @@ in :mod:`esmicp.methods.local` iterates it.
 """
 
 from .base import ConvergenceCriteria, Estimator, Step
+from .config import EsmConfig, LoopConfig, PlaneConfig
 from .esm import EsmEstimator, SigmaSchedule
-from .esm_paper import PAPER_SIGMA, EsmPaperEstimator, similarity_matrix
+from .esm_paper import EsmPaperEstimator, similarity_matrix
 from .icp import IcpEstimator
 from .plane import PlaneEstimator
 
@@ -22,29 +23,36 @@ METHODS = {
 
 
 def make_estimator(
-    method: str, sigma: float | None, spacing: float, diagonal: float, *, start_fine: bool = False
+    method: str, sigma: float | None, spacing: float, diagonal: float, *, start_fine: bool = False,
+    esm: EsmConfig | None = None, plane: PlaneConfig | None = None,
 ) -> Estimator:
     """A fresh estimator for ``method`` (a key of :data:`METHODS`): ``sigma`` None lets ``esm``
     choose it from the data (a floor of target point spacings, ``diagonal`` as a backstop) and
-    gives ``esm-paper`` the paper's 1.0 (``esm-plane``: from the overlap, above the same floor);
-    ``start_fine`` starts ``esm`` in its fine phase."""
+    gives ``esm-paper`` the paper's (``esm.paper_sigma``; ``esm-plane``: from the overlap, above
+    the same floor); ``start_fine`` starts ``esm`` in its fine phase. ``esm`` and ``plane``: the
+    methods' values (:mod:`esmicp.methods.config`; None: the defaults)."""
+    esm = EsmConfig() if esm is None else esm
     if method == "icp":
         return IcpEstimator()
     if method == "esm-plane":
-        return PlaneEstimator(SigmaSchedule.auto(spacing, diagonal).floor, diagonal, sigma)
+        return PlaneEstimator(SigmaSchedule.auto(spacing, diagonal, esm).floor, diagonal, sigma, config=plane,
+                              fine_phase_step=esm.fine_phase_step)
     if method == "esm-paper":
-        return EsmPaperEstimator(PAPER_SIGMA if sigma is None else sigma)
-    schedule = SigmaSchedule.auto(spacing, diagonal) if sigma is None else SigmaSchedule.constant(sigma)
+        return EsmPaperEstimator(esm.paper_sigma if sigma is None else sigma)
+    schedule = SigmaSchedule.auto(spacing, diagonal, esm) if sigma is None else SigmaSchedule.constant(sigma)
     return EsmEstimator(schedule, start_fine=start_fine)
 
 
 __all__ = [
     "METHODS",
     "ConvergenceCriteria",
+    "EsmConfig",
     "Estimator",
     "EsmEstimator",
     "EsmPaperEstimator",
     "IcpEstimator",
+    "LoopConfig",
+    "PlaneConfig",
     "PlaneEstimator",
     "SigmaSchedule",
     "Step",

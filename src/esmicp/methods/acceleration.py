@@ -19,15 +19,15 @@ from __future__ import annotations
 import numpy as np
 
 from .. import _kernels
-
-#: Past residuals combined by each proposal.
-WINDOW = 5
-
+from .config import LoopConfig
 
 class AndersonAccelerator:
-    """Proposes accelerated poses from the plain iteration's poses (4x4 ``T_target_source``)."""
+    """Proposes accelerated poses from the plain iteration's poses (4x4 ``T_target_source``), each
+    combining the last ``window`` residuals (count; None:
+    :attr:`~esmicp.methods.config.LoopConfig.acceleration_window`)."""
 
-    def __init__(self, scale: float, window: int = WINDOW):
+    def __init__(self, scale: float, window: int | None = None):
+        window = LoopConfig().acceleration_window if window is None else window
         self.scale = scale if scale > 0 else 1.0
         self.window = window
         # The compiled state: steps stored, the reference pose, the residual and image rows.

@@ -20,25 +20,26 @@ pairs are wrong by about the median distance, so weights stay broad (a typical p
 coarse-to-fine annealing that needs no tuning), down to the floor, where sampling noise still
 weighs about 0.9 and pairs several spacings off (outliers, non-overlapping parts) weigh almost
 nothing. When many points are outliers the median stays large, so the schedule has a second,
-fine phase: once an increment rotates by less than ``FINE_PHASE_STEP`` radians and translates by
-less than ``FINE_PHASE_STEP`` times the target's diagonal, sigma drops to the floor and stays there
+fine phase: once an increment rotates by less than ``fine_phase_step`` radians and translates by
+less than ``fine_phase_step`` times the target's diagonal, sigma drops to the floor and stays there
 until convergence. The factor 3 on the median is the best of those measured
 (``docs/measured-global.md``, "Why these choices"). The floor makes the choice unit-free:
 the same default serves a unit-size ModelNet object, the bunny in metres and a LiDAR scan.
 
 From a start the user gives (``init``), the median is the wrong scale on partial overlap: it
 measures how far the non-overlapping part lies, and a coarse sigma that wide pulls a good start
-apart. There the coarse sigma is held at ``SIGMA_MEDIAN_FACTOR`` times the ``START_QUANTILE``
+apart. There the coarse sigma is held at ``sigma_median_factor`` times the ``start_quantile``
 quantile of the start's distances (the overlap's residuals; at least the floor, at most the
 median rule), then the fine phase follows as above (:meth:`SigmaSchedule.from_start`). When that
-run ends unconfident, :func:`esmicp.register` tries once more from the ``TIGHT_START_QUANTILE``
+run ends unconfident, :func:`esmicp.register` tries once more from the ``tight_start_quantile``
 quantile and keeps the more confident run (less than a quarter of the source may overlap). After
-a global search the refinement starts in the fine phase.
+a global search the refinement starts in the fine phase. The values named here are the fields of
+:class:`esmicp.methods.config.EsmConfig` (``RefineConfig.esm``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -47,60 +48,41 @@ from ..core.weights import kernel_scale, relative_gaussian_weights
 from ..core.procrustes import rotation_angle, weighted_procrustes
 from ..types import as_positive
 from .base import COMPILED, Estimator, Step
-
-#: The automatic sigma never falls below this many target point spacings.
-SIGMA_FLOOR_SPACINGS = 2.0
-
-#: The automatic sigma is this many times the median correspondence distance (above the floor).
-SIGMA_MEDIAN_FACTOR = 3.0
-
-#: Increment size (radians, and fraction of the target's diagonal) below which the automatic
-#: schedule enters its fine phase (sigma at the floor).
-FINE_PHASE_STEP = 1e-3
-
-#: From a given start, the coarse sigma is held at ``SIGMA_MEDIAN_FACTOR`` times this quantile of
-#: the start's correspondence distances (above the floor, never above the median rule).
-START_QUANTILE = 0.25
-#: ... and on a second try (:func:`esmicp.register`, when the first ends unconfident), this one:
-#: where less than a quarter of the source overlaps (a scan cut to 15-50%), the 0.25 quantile
-#: already measures the non-overlapping part, and that sigma pulls a good start apart
-#: (``docs/scans-start-drift.md``).
-TIGHT_START_QUANTILE = 0.05
-
-#: Source points of the coarse phase (see ``coarse_points`` of :func:`esmicp.methods.local.refine`):
-#: larger sources run their coarse phase on this many evenly strided points, the fine phase on all.
-COARSE_POINTS = 20_000
-
+from .config import EsmConfig
 
 @dataclass(frozen=True)
 class SigmaSchedule:
     """How sigma (cloud units) is chosen each iteration.
 
     ``fixed`` set: that value every iteration. Otherwise ``start`` in the coarse phase when it
-    is set (a given start, :meth:`from_start`), else ``max(floor, SIGMA_MEDIAN_FACTOR * median
-    distance)``; the floor in the fine phase.
+    is set (a given start, :meth:`from_start`), else ``max(floor, config.sigma_median_factor *
+    median distance)``; the floor in the fine phase. ``config``: the schedule's values
+    (:class:`~esmicp.methods.config.EsmConfig`).
     """
 
     fixed: float | None = None
     floor: float = 0.0
     diameter: float = 1.0
     start: float | None = None
+    config: EsmConfig = field(default_factory=EsmConfig)
 
     @classmethod
     def constant(cls, sigma: float) -> "SigmaSchedule":
         return cls(fixed=as_positive(sigma, "sigma"))
 
     @classmethod
-    def auto(cls, target_spacing: float, diameter: float) -> "SigmaSchedule":
-        """Schedule with a floor of ``SIGMA_FLOOR_SPACINGS`` point spacings.
+    def auto(cls, target_spacing: float, diameter: float, config: EsmConfig | None = None) -> "SigmaSchedule":
+        """Schedule with a floor of ``config.sigma_floor_spacings`` point spacings (``config``: an
+        :class:`~esmicp.methods.config.EsmConfig`, None for the defaults).
 
         ``diameter`` (cloud units) backs the floor for clouds with no measurable spacing (all
         target points duplicated): then one millionth of the diameter.
         """
-        floor = SIGMA_FLOOR_SPACINGS * target_spacing
+        config = EsmConfig() if config is None else config
+        floor = config.sigma_floor_spacings * target_spacing
         if not floor > 0:
             floor = 1e-6 * diameter
-        return cls(fixed=None, floor=floor, diameter=diameter)
+        return cls(fixed=None, floor=floor, diameter=diameter, config=config)
 
     def from_start(self, distances: np.ndarray, quantile: float | None = None) -> "SigmaSchedule":
         """This schedule with its coarse sigma held at the scale of the overlap at a given start.
@@ -109,14 +91,15 @@ class SigmaSchedule:
         under the start. On a partial overlap the median of all of them measures how far the
         non-overlapping part lies, not how far off the start is: a coarse sigma that wide pulls
         a good start apart. The overlap's residuals are the small ones, so the coarse sigma is
-        ``SIGMA_MEDIAN_FACTOR`` times their ``quantile`` quantile (default ``START_QUANTILE``; at
+        ``config.sigma_median_factor`` times their ``quantile`` quantile (default
+        ``config.start_quantile``; at
         least the floor, at most what the median rule gives at the start), held until the coarse
         phase converges.
         """
         if self.fixed is not None or len(distances) == 0:
             return self
-        quantile = START_QUANTILE if quantile is None else quantile
-        overlap = SIGMA_MEDIAN_FACTOR * float(np.quantile(distances, quantile))
+        quantile = self.config.start_quantile if quantile is None else quantile
+        overlap = self.config.sigma_median_factor * float(np.quantile(distances, quantile))
         return replace(self, start=min(max(self.floor, overlap), self(distances)))
 
     def __call__(self, distances: np.ndarray, *, fine: bool = False) -> float:
@@ -127,7 +110,7 @@ class SigmaSchedule:
             return self.floor
         if self.start is not None:
             return self.start
-        return max(self.floor, SIGMA_MEDIAN_FACTOR * float(np.median(distances)))
+        return max(self.floor, self.config.sigma_median_factor * float(np.median(distances)))
 
 
 class EsmEstimator(Estimator):
@@ -156,7 +139,7 @@ class EsmEstimator(Estimator):
     def start_from(self, distances: np.ndarray, quantile: float | None = None) -> None:
         """Refine from a given start whose correspondence distances are ``distances`` (cloud
         units): the coarse sigma is held at the overlap's scale, measured by their ``quantile``
-        quantile (default ``START_QUANTILE``; :meth:`SigmaSchedule.from_start`)."""
+        quantile (default the schedule's ``config.start_quantile``; :meth:`SigmaSchedule.from_start`)."""
         self.sigma = self.sigma.from_start(distances, quantile)
 
     def end_coarse_phase(self) -> None:
@@ -195,7 +178,7 @@ class EsmEstimator(Estimator):
         fixed = self.sigma.fixed
         if fixed is None and not self.fine:
             fixed = self.sigma.start
-        return (0.0 if fixed is None else fixed), self.sigma.floor, SIGMA_MEDIAN_FACTOR, self.fine, True
+        return (0.0 if fixed is None else fixed), self.sigma.floor, self.sigma.config.sigma_median_factor, self.fine, True
 
     def pair_weights(self, distances, sigma):
         return None if sigma is None else relative_gaussian_weights(distances, sigma)
@@ -210,6 +193,6 @@ class EsmEstimator(Estimator):
     def _update_phase(self, rotation, translation) -> None:
         if self.coarse:
             self.fine = (
-                rotation_angle(rotation) < FINE_PHASE_STEP
-                and np.linalg.norm(translation) < FINE_PHASE_STEP * self.sigma.diameter
+                rotation_angle(rotation) < self.sigma.config.fine_phase_step
+                and np.linalg.norm(translation) < self.sigma.config.fine_phase_step * self.sigma.diameter
             )

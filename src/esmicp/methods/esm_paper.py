@@ -38,13 +38,10 @@ from ..core.weights import gaussian_weights
 from ..core.procrustes import rotation_from_cross_covariance
 from ..types import as_positive
 from .base import COMPILED, Estimator, Step
+from .config import EsmConfig
 
 if TYPE_CHECKING:  # SciPy is imported where it is used: `register` with `esm` never needs it
     import scipy.sparse
-
-#: The paper's sigma (in the clouds' units; its experiments use unit-size objects).
-PAPER_SIGMA = 1.0
-
 
 def similarity_entries(
     indices: np.ndarray, weights: np.ndarray, size: int
@@ -116,8 +113,10 @@ class EsmPaperEstimator(Estimator):
     order_invariant = False
     compiled_step = COMPILED
 
-    def __init__(self, sigma: float = PAPER_SIGMA):
-        self.sigma = as_positive(sigma, "sigma")
+    def __init__(self, sigma: float | None = None):
+        """``sigma`` (cloud units): None gives the paper's
+        (:attr:`~esmicp.methods.config.EsmConfig.paper_sigma`)."""
+        self.sigma = as_positive(EsmConfig().paper_sigma if sigma is None else sigma, "sigma")
 
     def step(self, moved_source, target, distances, indices) -> Step:
         weights = gaussian_weights(distances, self.sigma)

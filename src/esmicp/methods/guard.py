@@ -11,10 +11,8 @@ import dataclasses
 
 import numpy as np
 
+from .config import LoopConfig
 from .local import RefinementOutcome, refine
-
-#: Fewer effective pairs (Kish's count of the weights) than this cannot fix a rotation.
-MIN_EFFECTIVE_PAIRS = 3.0
 
 #: Tolerance on ``R^T R = I`` of a result (results are re-orthonormalised every iteration).
 RESULT_RIGID_TOLERANCE = 1e-6
@@ -35,14 +33,16 @@ def rigidity_problem(transform: np.ndarray) -> str | None:
     return None
 
 
-def guarded_refine(source, target, estimator, *, init: np.ndarray, **kwargs) -> RefinementOutcome:
-    """:func:`esmicp.methods.local.refine` (same arguments), guarded.
+def guarded_refine(source, target, estimator, *, init: np.ndarray, loop: LoopConfig | None = None,
+                   **kwargs) -> RefinementOutcome:
+    """:func:`esmicp.methods.local.refine` (same arguments; ``loop``: the loop's values, None: the
+    defaults), guarded.
 
     - A start that is not a finite rigid transform (e.g. a failed global search) is not refined:
       the outcome is the identity with ``converged=False`` and the reason.
     - A refined pose that is not a finite rigid transform is replaced by the start, again with
       ``converged=False`` and the reason.
-    - A run whose last step gave fewer than :data:`MIN_EFFECTIVE_PAIRS` effective pairs (half the
+    - A run whose last step gave fewer than ``loop.min_effective_pairs`` effective pairs (half the
       pairs for clouds under 6 points) did not fit the data: every Gaussian weight underflowed to
       0 (a fixed ``sigma`` far below the distances between the clouds, e.g. ``esm-paper``'s 1.0 on
       an object kilometres across), so its step could only align centroids, never rotate. It is
@@ -53,7 +53,8 @@ def guarded_refine(source, target, estimator, *, init: np.ndarray, **kwargs) -> 
         return RefinementOutcome(
             np.eye(4), False, 0, None, f"no pose: the refinement would have started from {problem}", None
         )
-    outcome = refine(source, target, estimator, init=init, **kwargs)
+    loop = LoopConfig() if loop is None else loop
+    outcome = refine(source, target, estimator, init=init, loop=loop, **kwargs)
     problem = rigidity_problem(outcome.transformation)
     if problem is not None:
         return dataclasses.replace(
@@ -64,7 +65,7 @@ def guarded_refine(source, target, estimator, *, init: np.ndarray, **kwargs) -> 
         )
     effective = outcome.effective_pairs
     # (Half the pairs at most: a 3-point cloud with unequal weights has fewer than 3 effective ones.)
-    if effective is not None and effective < min(MIN_EFFECTIVE_PAIRS, 0.5 * outcome.pairs):
+    if effective is not None and effective < min(loop.min_effective_pairs, 0.5 * outcome.pairs):
         sigma = "" if outcome.sigma is None else f" (sigma {outcome.sigma:.3g})"
         return dataclasses.replace(
             outcome,

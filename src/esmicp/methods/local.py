@@ -33,13 +33,7 @@ from ..interrupts import keeps_keyboard_interrupt
 from ..result import IterationRecord
 from .acceleration import AndersonAccelerator
 from .base import ConvergenceCriteria, Estimator, Step
-
-
-#: From this many source points on, :func:`refine` queries the source in the target's spatial
-#: order (:meth:`~esmicp.core.correspondence.NearestNeighbors.spatial_order`): it visits the
-#: source in that order, or, for an order-dependent method (``esm-paper``), keeps the source's
-#: order and only permutes the queries.
-SPATIAL_ORDER_MIN = 2048
+from .config import LoopConfig
 
 
 @dataclass(frozen=True)
@@ -169,6 +163,7 @@ def refine(
     record_history: bool = False,
     coarse_points: int | None = None,
     observer: Observer | None = None,
+    loop: LoopConfig | None = None,
 ) -> RefinementOutcome:
     """Iterate ``estimator`` from ``init`` (4x4 ``T_target_source``) until ``criteria`` are met.
 
@@ -185,14 +180,21 @@ def refine(
 
     ``callback`` / ``record_history``: as in :func:`esmicp.register` (an :class:`Observer` of this
     call); or ``observer``, one shared by several calls. Neither changes the run.
+
+    ``loop``: the loop's values (:class:`~esmicp.methods.config.LoopConfig`, None: the defaults).
+    From ``loop.spatial_order_min`` source points on, the source is queried in the target's
+    spatial order (:meth:`~esmicp.core.correspondence.NearestNeighbors.spatial_order`): visited in
+    that order, or, for an order-dependent method (``esm-paper``), kept in its order with only the
+    queries permuted.
     """
+    loop = LoopConfig() if loop is None else loop
     if observer is None and (callback is not None or record_history):
         observer = Observer(source, target, callback, record_history)
     full_source = source
     coarse = coarse_points is not None and len(source) > coarse_points and estimator.coarse
     workers = getattr(target, "workers", None)
     query_order = visit_order = None
-    if len(source) >= SPATIAL_ORDER_MIN:
+    if len(source) >= loop.spatial_order_min:
         order = target.spatial_order(apply(init, source, workers))
         if estimator.order_invariant:
             # Visit the source points in spatial order (the result does not depend on the order).
@@ -225,7 +227,7 @@ def refine(
     transformation = init.copy()
     previous_rmse: float | None = None
     sigma: float | None = None
-    accelerator = AndersonAccelerator(scale) if estimator.accelerable else None
+    accelerator = AndersonAccelerator(scale, loop.acceleration_window) if estimator.accelerable else None
     fallback: np.ndarray | None = None  # the plain step, while an accelerated proposal is on trial
     objective_before = 0.0
     step: Step | None = None

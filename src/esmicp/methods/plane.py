@@ -2,7 +2,7 @@
 
 Each iteration pairs every source point ``s_i`` (as currently placed, target frame) with its
 nearest target point ``t_c(i)``, whose unit normal ``n_c(i)`` comes from a PCA of the target
-around it (:func:`esmicp.core.features.estimate_normals`, the ``NORMAL_NEIGHBOURS`` nearest
+around it (:func:`esmicp.core.features.estimate_normals`, the ``normal_neighbours`` nearest
 target points: a scale the sampling chooses, so the method is unit-free). The residual is the
 distance of the point to the target's tangent plane,
 
@@ -22,12 +22,14 @@ Choosing sigma: from the overlap, not from every pair
 40% most pairs join points the other scan never saw, the median is theirs, and a wide sigma pulls
 the overlap apart (3DMatch t00_s06 started at its ground truth drifts off it, see
 ``docs/scans-refinement.md``). Here sigma is the robust scale of the distances *of the overlap*:
-``SIGMA_MAD_FACTOR x 1.4826 x`` the median of the distances below ``OVERLAP_SIGMAS`` sigmas, at
-its least fixed point above ``esm``'s floor of ``SIGMA_FLOOR_SPACINGS`` target point spacings
+``sigma_mad_factor x 1.4826 x`` the median of the distances below ``overlap_sigmas`` sigmas, at
+its least fixed point above ``esm``'s floor of ``sigma_floor_spacings`` target point spacings
 (iterated up from the floor, each iteration anew): sigma widens only as far as the close pairs'
 own spread carries it, so the pairs off the overlap are discounted from the first step on. The
 price: a start further off than a few sigmas of the overlap's spread finds too few close pairs
 (this is a refinement, for after a global search). Units: sigma, distances and residuals in the clouds' units.
+The values named here are the fields of :class:`esmicp.methods.config.PlaneConfig`
+(``RefineConfig.plane``) and :class:`esmicp.methods.config.EsmConfig` (``RefineConfig.esm``).
 """
 
 from __future__ import annotations
@@ -42,23 +44,7 @@ from ..core.pose_kernels import rotation_exp
 from ..core.procrustes import rotation_angle
 from ..core.weights import relative_gaussian_weights
 from .base import Estimator, Step
-from .esm import FINE_PHASE_STEP
-
-#: Target points whose PCA gives a target point's normal.
-NORMAL_NEIGHBOURS = 20
-
-#: Pairs farther than this many sigmas are not part of the overlap when sigma is re-estimated.
-OVERLAP_SIGMAS = 3.0
-
-#: Sigma is this many robust standard deviations (1.4826 x median) of the overlap's distances.
-SIGMA_MAD_FACTOR = 2.0
-
-#: At most this many rounds of the sigma fixed point per iteration (it settles in a few).
-SIGMA_ROUNDS = 30
-
-#: Eigenvalues of the 6x6 normal matrix below this fraction of the largest are treated as zero
-#: (directions a plane-like target leaves unconstrained: the step does not move along them).
-SINGULAR_FRACTION = 1e-9
+from .config import EsmConfig, PlaneConfig
 
 #: 1.4826 x the median absolute value estimates a Gaussian's standard deviation.
 _MAD_SCALE = 1.4826
@@ -69,7 +55,10 @@ class PlaneEstimator(Estimator):
 
     ``floor`` (cloud units, > 0) is the smallest sigma; ``sigma`` a fixed sigma (cloud units) in
     place of the schedule of the module docstring; ``diameter`` (cloud units, the target's
-    bounding-box diagonal) scales the increment that ends the subset phase. The target's normals
+    bounding-box diagonal) scales the increment that ends the subset phase, below
+    ``fine_phase_step`` (radians; times ``diameter`` in translation; None: ``esm``'s default,
+    :attr:`~esmicp.methods.config.EsmConfig.fine_phase_step`); ``config``: the method's values
+    (:class:`~esmicp.methods.config.PlaneConfig`, None: the defaults). The target's normals
     are estimated the first time a target point is paired (only where needed), then kept: make a
     new estimator per registration. The same steps run on a subset of a large source first
     (:attr:`coarse`): the subset brings the clouds together, the whole source decides the pose.
@@ -77,7 +66,10 @@ class PlaneEstimator(Estimator):
 
     name = "esm-plane"
 
-    def __init__(self, floor: float, diameter: float, sigma: float | None = None):
+    def __init__(self, floor: float, diameter: float, sigma: float | None = None, *,
+                 config: PlaneConfig | None = None, fine_phase_step: float | None = None):
+        self.config = PlaneConfig() if config is None else config
+        self.fine_phase_step = EsmConfig().fine_phase_step if fine_phase_step is None else float(fine_phase_step)
         self.floor = float(floor)
         self.diameter = float(diameter)
         self.fixed = sigma
@@ -98,7 +90,7 @@ class PlaneEstimator(Estimator):
 
     @property
     def coarse(self) -> bool:
-        """True until the first increment below ``esm``'s ``FINE_PHASE_STEP`` (or the loop's
+        """True until the first increment below ``fine_phase_step`` (or the loop's
         convergence): the loop may iterate on a strided subset of a large source (``coarse_points``
         of :func:`esmicp.methods.local.refine`) until then, then on all of it."""
         return not self._whole
@@ -110,9 +102,10 @@ class PlaneEstimator(Estimator):
         sigma = self._sigma(distances)
         weights = relative_gaussian_weights(distances, sigma)
         normals = self._normals_at(target, indices)
-        rotation, translation = plane_step(moved_source, target[indices], normals, weights)
-        small = rotation_angle(rotation) < FINE_PHASE_STEP
-        self._whole = self._whole or (small and np.linalg.norm(translation) < FINE_PHASE_STEP * self.diameter)
+        rotation, translation = plane_step(moved_source, target[indices], normals, weights,
+                                           self.config.singular_fraction)
+        small = rotation_angle(rotation) < self.fine_phase_step
+        self._whole = self._whole or (small and np.linalg.norm(translation) < self.fine_phase_step * self.diameter)
         return Step(rotation, translation, weights=weights, sigma=sigma)
 
     def pair_weights(self, distances, sigma):
@@ -123,9 +116,10 @@ class PlaneEstimator(Estimator):
         if self.fixed is not None:
             return self.fixed
         sigma = self.floor
-        for _ in range(SIGMA_ROUNDS):
-            overlap = distances[distances <= OVERLAP_SIGMAS * sigma]
-            scale = SIGMA_MAD_FACTOR * _MAD_SCALE * float(np.median(overlap)) if len(overlap) else 0.0
+        config = self.config
+        for _ in range(config.sigma_rounds):
+            overlap = distances[distances <= config.overlap_sigmas * sigma]
+            scale = config.sigma_mad_factor * _MAD_SCALE * float(np.median(overlap)) if len(overlap) else 0.0
             if scale <= (1.0 + 1e-3) * sigma:
                 break
             sigma = scale
@@ -138,7 +132,7 @@ class PlaneEstimator(Estimator):
             same = offered is not None and len(offered.points) == len(target) and np.array_equal(
                 offered.points[offered.rank], target)
             self._target = target
-            self._estimator = NormalEstimator(target, NORMAL_NEIGHBOURS, tree=offered if same else CompiledTree(target),
+            self._estimator = NormalEstimator(target, self.config.normal_neighbours, tree=offered if same else CompiledTree(target),
                                               workers=self._workers)
             self._normals = np.empty_like(target)
             self._known = np.zeros(len(target), dtype=bool)
@@ -149,16 +143,20 @@ class PlaneEstimator(Estimator):
         return self._normals[indices]
 
 
-def plane_step(source: np.ndarray, target: np.ndarray, normals: np.ndarray, weights: np.ndarray):
+def plane_step(source: np.ndarray, target: np.ndarray, normals: np.ndarray, weights: np.ndarray,
+               singular_fraction: float | None = None):
     """``(R, t)`` minimising ``sum_i w_i (n_i . (R s_i + t - t_i))^2`` to first order in the rotation.
 
     ``source``, ``target``, ``normals`` are ``(N, 3)`` (target frame, unit normals), ``weights``
     ``(N,)``. The rotation is linearised about the weighted centroid ``c`` of the source and its
     columns scaled by the source's weighted RMS radius ``L`` about it, so that the 6x6 system is
     unit-free (a cloud in millimetres gives the same step); the solution ``(omega L, tau)`` gives
-    ``R = exp(omega)``, ``t = c + tau - R c``. Unconstrained directions (see
-    :data:`SINGULAR_FRACTION`) get no motion.
+    ``R = exp(omega)``, ``t = c + tau - R c``. Unconstrained directions (eigenvalues of the normal
+    matrix below ``singular_fraction`` of the largest; None:
+    :attr:`~esmicp.methods.config.PlaneConfig.singular_fraction`) get no motion.
     """
+    if singular_fraction is None:
+        singular_fraction = PlaneConfig().singular_fraction
     total = float(weights.sum())
     centre = np.einsum("i,ij->j", weights, source) / total
     offsets = source - centre
@@ -171,7 +169,7 @@ def plane_step(source: np.ndarray, target: np.ndarray, normals: np.ndarray, weig
     normal_matrix = np.einsum("ni,nj->ij", weighted, jacobian)
     gradient = np.einsum("ni,n->i", weighted, residuals)
     values, vectors = np.linalg.eigh(normal_matrix)
-    keep = values > SINGULAR_FRACTION * max(float(values[-1]), 0.0)
+    keep = values > singular_fraction * max(float(values[-1]), 0.0)
     solution = -vectors[:, keep] @ ((vectors[:, keep].T @ gradient) / values[keep])
     rotation = rotation_exp(solution[:3] / radius)
     return rotation, centre + solution[3:] - rotation @ centre

@@ -104,6 +104,9 @@ class TrustPolicy(Config):
     covariance_normals : int
         The covariance's Hessian comes from target normals at the matches of at most this many
         pairs, evenly strided (count); each cloud's noise is measured at as many of its points.
+    covariance_normal_neighbours : int
+        Nearest target points whose PCA gives the target normal at each of those matches (count;
+        ``esm-plane``'s, :attr:`esmicp.methods.config.PlaneConfig.normal_neighbours`, by default).
     noise_neighbours : int
         A cloud's noise is the scatter of this many nearest points about their plane (count;
         fewer: less of the surface's curvature read as noise, a noisier reading).
@@ -151,6 +154,7 @@ class TrustPolicy(Config):
     singular_ratio: float = fraction(1e-9)
     negligible_weight: float = number(1e-6, least=0.0, below=1.0)
     covariance_normals: int = count(600)
+    covariance_normal_neighbours: int = count(20, least=3)
     noise_neighbours: int = count(10, least=4)
 
 

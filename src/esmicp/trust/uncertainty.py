@@ -386,14 +386,13 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
     this pose if already known; ``warm``: optional nearest target indices of the source points
     near the final pose, where the queries start) and weighted by
     ``exp(-d^2 / (2 sigma^2))`` (all 1 when ``sigma`` is None: ICP); the target normals at the
-    matches of ``policy.covariance_normals`` of them come from the ``NORMAL_NEIGHBOURS`` nearest
-    target points (as ``esm-plane``), and each cloud's noise (:func:`surface_noise`) from as many
+    matches of ``policy.covariance_normals`` of them come from the
+    ``policy.covariance_normal_neighbours`` nearest target points, and each cloud's noise (:func:`surface_noise`) from as many
     of its points and their ``policy.noise_neighbours`` nearest; ``policy``: the estimate's values.
     """
     from ..core.procrustes import apply
     from ..core.weights import relative_gaussian_weights
     from ..core.features import NormalEstimator
-    from ..methods.plane import NORMAL_NEIGHBOURS
 
     placed = apply(transformation, source)
     if pairs is not None:
@@ -409,7 +408,7 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
         normals = np.full((len(placed), 3), np.nan)
         chosen = _strided(len(placed), policy.covariance_normals)
         unique, inverse = np.unique(indices[chosen], return_inverse=True)
-        estimator = NormalEstimator(target, min(NORMAL_NEIGHBOURS, len(target)), tree=target_index.exact_tree(),
+        estimator = NormalEstimator(target, min(policy.covariance_normal_neighbours, len(target)), tree=target_index.exact_tree(),
                                     workers=workers)
         normals[chosen] = estimator.at(target[unique])[inverse]
         noise = (surface_noise(source, source[_strided(len(source), policy.covariance_normals)],
