@@ -246,7 +246,8 @@ def kitchen_far_rows(data: Path, seed: int, pairs_per_gap: int = 3):
         # free-space test (range_images=True) is measured on every pair
         turned, turned_truth, moved_by = turn_source(source, truth, rng, about=np.zeros(3))
         refined = esmicp.register(turned, target, init=turned_truth, workers=1).transformation
-        keypoints = Keypoints.of(turned, target, NearestNeighbors(target, workers=1).spacing(), DEFAULT.keypoints)
+        keypoints = Keypoints.of(turned, target, NearestNeighbors(target, workers=1).spacing(),
+                                 DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings)
         truth_overlap = overlap_score(refined, keypoints, workers=1)
 
         def judge(estimate, truth=truth, moved_by=moved_by, truth_overlap=truth_overlap):

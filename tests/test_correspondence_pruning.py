@@ -171,12 +171,14 @@ def test_a_wrong_pose_does_not_come_back_confident(real_pair, angle_deg):
     result = esmicp.register(source, target, init=wrong, max_iterations=3)
     assert rotation_error_deg(result.rotation, truth[:3, :3]) > 15.0, "the refinement found the truth: no test"
     assert result.confidence < DEFAULT.confident
-    assert overlap_confidence(wrong, Keypoints.of(source, target, NearestNeighbors(target).spacing(), DEFAULT.keypoints), config=DEFAULT) < DEFAULT.confident
+    assert overlap_confidence(wrong, Keypoints.of(source, target, NearestNeighbors(target).spacing(),
+                                                  DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings), config=DEFAULT) < DEFAULT.confident
 
 
 def test_confidence_is_high_at_the_truth(real_pair):
     source, target, truth = real_pair
-    assert overlap_confidence(truth, Keypoints.of(source, target, NearestNeighbors(target).spacing(), DEFAULT.keypoints), config=DEFAULT) >= DEFAULT.confident
+    assert overlap_confidence(truth, Keypoints.of(source, target, NearestNeighbors(target).spacing(),
+                                                  DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings), config=DEFAULT) >= DEFAULT.confident
 
 
 def test_occupied_voxels_equal_the_distinct_cell_keys():
@@ -413,7 +415,7 @@ def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, co
 
     cropped, truth = _lomatch_crop("t04_s06", 0, crop)
     spacing = NearestNeighbors(cropped.target).spacing()
-    standard = keypoint_voxel(cropped.target, spacing, DEFAULT.keypoints)
+    standard = keypoint_voxel(cropped.target, spacing, DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings)
     chosen = scan.scan_estimate_until_confident(cropped.source, cropped.target, spacing=spacing)
     assert _right_3dmatch(chosen.transformations[0], truth)
     assert overlap_confidence(chosen.transformations[0], chosen.keypoints, config=DEFAULT) >= DEFAULT.confident
@@ -428,7 +430,8 @@ def test_a_last_search_finds_a_pose_the_standard_ones_miss(monkeypatch, crop, co
 
 def test_a_small_cloud_skips_the_last_searches(monkeypatch):
     """Two unrelated 1,000-point clouds: no search is confident, and the voxels of every count of
-    ``DEFAULT.scan.last_keypoints`` are the standard one (all at ``MIN_VOXEL_SPACINGS``), so those searches
+    ``DEFAULT.scan.last_keypoints`` are the standard one
+    (all at ``DEFAULT.scan.keypoint.min_voxel_spacings``), so those searches
     would repeat the first: they must not run (objects reach the scan strategy often, and every
     search costs time)."""
     from esmicp.globalreg import scan

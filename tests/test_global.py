@@ -264,7 +264,8 @@ def test_sharper_on_the_overlap_replaces_only_an_unconfident_choice(monkeypatch)
     from esmicp.core.keypoints import Keypoints
 
     cloud = _cloud("chair_0848")
-    keypoints = Keypoints.of(cloud, cloud, NearestNeighbors(cloud).spacing(), DEFAULT.keypoints)
+    keypoints = Keypoints.of(cloud, cloud, NearestNeighbors(cloud).spacing(),
+                             DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings)
     right, wrong = np.eye(4), np.eye(4)
     wrong[:3, :3] = Rotation.from_euler("z", 180, degrees=True).as_matrix()
     wrong[:3, 3] = cloud.mean(axis=0) - wrong[:3, :3] @ cloud.mean(axis=0)

@@ -194,7 +194,8 @@ def test_the_plane_stage_is_undone_when_it_loses_the_overlap(monkeypatch, plane_
     target = room(1500, rng)
     truth = to_matrix(random_rotation(rng, 4.0), [0.08, -0.05, 0.06])
     source = apply(rigid_inverse(truth), target)
-    keypoints = Keypoints.of(source, target, NearestNeighbors(target).spacing(), DEFAULT.keypoints)
+    keypoints = Keypoints.of(source, target, NearestNeighbors(target).spacing(),
+                             DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings)
     turned = to_matrix(random_rotation(np.random.default_rng(2), plane_moves_by_deg), [0.0, 0.0, 0.0]) @ truth
 
     def fake_stage(points, index, estimator, *, init, criteria, scale, **_):

@@ -114,7 +114,8 @@ def test_the_verdict_is_one_call_of_judge_and_the_result_returns_it(noisy_pair):
     source, target, _ = noisy_pair
     result = esmicp.register(source, target, init="identity")
     index = NearestNeighbors(target)
-    keypoints = Keypoints.of(source, target, index.spacing(), DEFAULT.keypoints)
+    keypoints = Keypoints.of(source, target, index.spacing(),
+                             DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings)
     verdict = judge(result.transformation, source=source, target_index=index, keypoints=keypoints, pairs=None,
                     sigma=result.sigma, converged=result.converged, num_iterations=result.num_iterations,
                     config=DEFAULT, policy=result.policy)

@@ -98,7 +98,6 @@ def test_spacing_matches_scipys_k_nearest(count):
 def test_overlap_confidence_counts_as_scipys_tree_does():
     """The confidence (compiled tree) against the same counts from SciPy's KD-tree, at the truth,
     near it and far from it."""
-    from esmicp.core import keypoints as scale
     from esmicp.trust.policy import DEFAULT_POLICY as trust
     from esmicp.core.features import estimate_normals
     from esmicp.core.keypoints import Keypoints
@@ -111,7 +110,7 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
                              ((keypoints.target - translation) @ rotation, keypoints.source)):
             distances, nearest = cKDTree(fixed).query(moved)
             overlap = np.count_nonzero(distances <= trust.overlap_voxels * keypoints.voxel)
-            coincide = distances <= scale.VERIFY_VOXELS * keypoints.voxel
+            coincide = distances <= DEFAULT.scan.keypoint.coincide_voxels * keypoints.voxel
             if overlap < 3 or np.count_nonzero(coincide) < 3:
                 return 0.0
             sharpness.append(np.count_nonzero(coincide) / overlap)
@@ -119,7 +118,8 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
             touched = nearest[coincide]
             if len(touched) > trust.spread_points:
                 touched = touched[np.linspace(0, len(touched) - 1, trust.spread_points).astype(int)]
-            normals = estimate_normals(fixed, k=30, radius=scale.NORMAL_RADIUS_VOXELS * keypoints.voxel)[touched]
+            normals = estimate_normals(fixed, k=trust.spread_normal_neighbours,
+                                       radius=trust.spread_normal_radius_voxels * keypoints.voxel)[touched]
             spread.append(np.sort(np.linalg.eigvalsh(np.cov(normals.T, bias=True) + np.outer(*[normals.mean(axis=0)] * 2))))
 
         def ramp(value, bounds):
@@ -138,7 +138,7 @@ def test_overlap_confidence_counts_as_scipys_tree_does():
         truth = esmicp.core.procrustes.to_matrix(random_rotation(rng, angle), rng.normal(size=3) * 0.01 * angle)
         source = (target - truth[:3, 3]) @ truth[:3, :3] + rng.normal(size=target.shape) * 0.002
         keypoints = Keypoints.of(source[rng.permutation(len(source))], target, NearestNeighbors(target).spacing(),
-                                 DEFAULT.keypoints)
+                                 DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings)
         for shift in (0.0, 0.9, 1.05, 1.2, 30.0):  # keypoint voxels along x
             pose = esmicp.core.procrustes.to_matrix(np.eye(3), [shift * keypoints.voxel, 0.0, 0.0]) @ truth
             values.add(overlap_confidence(pose, keypoints, config=DEFAULT))
@@ -171,8 +171,9 @@ def test_a_floor_slid_over_a_floor_is_not_confident(monkeypatch):
     floor = source[(source[:, 2] == 0.0) & (source[:, 0] > 1.0) & (source[:, 1] > 1.0)]
     spacing = NearestNeighbors(target).spacing()
     slid = to_matrix(np.eye(3), [-0.6, -0.4, 0.0])  # stays on the target's floor
-    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing, DEFAULT.keypoints), config=DEFAULT) >= DEFAULT.confident
-    floor_keys = Keypoints.of(floor, target, spacing, DEFAULT.keypoints)
+    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing,
+                                                      DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings), config=DEFAULT) >= DEFAULT.confident
+    floor_keys = Keypoints.of(floor, target, spacing, DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings)
     assert overlap_confidence(slid, floor_keys, config=DEFAULT) < DEFAULT.confident
     spread_off = replace(DEFAULT, spread_range=(-2.0, -1.0), third_range=(-2.0, -1.0))
     assert overlap_confidence(slid, floor_keys, config=spread_off) >= DEFAULT.confident
@@ -197,8 +198,9 @@ def test_a_corner_of_floor_and_wall_slid_along_their_line_is_not_confident(monke
     corner = source[(source[:, 0] > 1.5) & (source[:, 0] < 3.0) & (source[:, 1] < 1.5) & (source[:, 2] < 1.2)]
     spacing = NearestNeighbors(target).spacing()
     slid = to_matrix(np.eye(3), [-0.7, 0.0, 0.0])  # along the line: stays on the target's floor and wall
-    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing, DEFAULT.keypoints), config=DEFAULT) >= DEFAULT.confident
-    corner_keys = Keypoints.of(corner, target, spacing, DEFAULT.keypoints)
+    assert overlap_confidence(np.eye(4), Keypoints.of(source, target, spacing,
+                                                      DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings), config=DEFAULT) >= DEFAULT.confident
+    corner_keys = Keypoints.of(corner, target, spacing, DEFAULT.keypoints, DEFAULT.scan.keypoint.min_voxel_spacings)
     assert overlap_confidence(slid, corner_keys, config=DEFAULT) < DEFAULT.confident
     third_off = replace(DEFAULT, third_range=(-2.0, -1.0))  # the third-direction term off
     assert overlap_confidence(slid, corner_keys, config=third_off) >= DEFAULT.confident

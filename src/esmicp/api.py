@@ -271,7 +271,8 @@ def _start(request: _Request, clouds: _Clouds, stages: list) -> tuple[np.ndarray
         initial, name = estimate.transformation, f"global:{estimate.strategies[0]}"
     keypoints = getattr(estimate, "keypoints", None)
     if keypoints is None:
-        keypoints = Keypoints.of(clouds.source, clouds.target, clouds.index.spacing(), request.config.keypoints)
+        keypoints = Keypoints.of(clouds.source, clouds.target, clouds.index.spacing(), request.config.keypoints,
+                                 request.config.scan.keypoint.min_voxel_spacings)
     decided = {"init": name}
     if estimate is not None:
         decided.update(candidates=estimate.candidates, confidence=estimate.confidence,

@@ -19,16 +19,6 @@ from .correspondence import coincident_points
 from .features import voxel_grid
 from .procrustes import axis_bounds
 
-#: The keypoint voxel is at least this many target point spacings.
-MIN_VOXEL_SPACINGS = 1.5
-
-#: A keypoint lies on the other cloud when within this many voxels of one of its keypoints.
-VERIFY_VOXELS = 1.0
-
-#: Radius of a keypoint's normal, in voxels.
-NORMAL_RADIUS_VOXELS = 3.0
-
-
 @dataclass(frozen=True)
 class Keypoints:
     """The keypoint clouds of a pair (voxel centroids, cloud units) and their voxel."""
@@ -38,10 +28,12 @@ class Keypoints:
     voxel: float
 
     @classmethod
-    def of(cls, source: np.ndarray, target: np.ndarray, spacing: float, count: int) -> "Keypoints":
+    def of(cls, source: np.ndarray, target: np.ndarray, spacing: float, count: int,
+           min_spacings: float) -> "Keypoints":
         """Both clouds voxel-downsampled at :func:`keypoint_voxel` of the target (``count``
-        voxels: ``SearchConfig.keypoints``)."""
-        voxel = keypoint_voxel(target, max(spacing, 0.0), count)
+        voxels: ``SearchConfig.keypoints``; at least ``min_spacings`` target point spacings:
+        ``SearchConfig.scan.keypoint.min_voxel_spacings``)."""
+        voxel = keypoint_voxel(target, max(spacing, 0.0), count, min_spacings)
         return cls(voxel_grid(source, voxel)[0], voxel_grid(target, voxel)[0], voxel)
 
     @cached_property
@@ -55,10 +47,12 @@ class Keypoints:
         return CompiledTree(self.target)
 
 
-def keypoint_voxel(points: np.ndarray, spacing: float, count: int) -> float:
+def keypoint_voxel(points: np.ndarray, spacing: float, count: int, min_spacings: float) -> float:
     """The voxel edge (cloud units) at which ``points`` occupy about ``count`` voxels
-    (``SearchConfig.keypoints`` for the standard keypoints), at least ``MIN_VOXEL_SPACINGS * spacing``."""
-    floor = MIN_VOXEL_SPACINGS * spacing
+    (``SearchConfig.keypoints`` for the standard keypoints), at least ``min_spacings * spacing``
+    (``spacing``: the points' median spacing; ``min_spacings``: a gain,
+    ``SearchConfig.scan.keypoint.min_voxel_spacings``)."""
+    floor = min_spacings * spacing
     low, high = axis_bounds(points)
     # Start from a surface guess (the bounding box's largest face) and correct by the 1/v^2 law.
     faces = np.sort(high - low)[1:]

@@ -129,6 +129,34 @@ class VerificationConfig(Config):
 
 
 @dataclass(frozen=True)
+class KeypointConfig(Config):
+    """The keypoints' values (:class:`esmicp.core.keypoints.Keypoints`: both clouds voxel-downsampled
+    at one voxel the data choose), which the scan strategy and the overlap confidence
+    (:func:`esmicp.trust.confidence.overlap_confidence`) share. Lengths are gains times the keypoint
+    voxel, or the target's median point spacing.
+
+    Attributes
+    ----------
+    min_voxel_spacings : float
+        The keypoint voxel is at least this many target point spacings (gain).
+    coincide_voxels : float
+        A keypoint coincides with the other cloud within this many keypoint voxels of one of its
+        keypoints (gain): the verification's overlap score and the overlap confidence's sharpness
+        count those.
+    normal_radius_voxels : float
+        Radius of a keypoint normal's PCA, in keypoint voxels (gain): the keypoints' FPFH and the
+        target normals of the slide votes (:func:`~esmicp.globalreg.scan.rank_poses`).
+    slide_normal_neighbours : int
+        Neighbours (at most) of each target normal of the slide votes (count).
+    """
+
+    min_voxel_spacings: float = number(1.5, above=0.0)
+    coincide_voxels: float = number(1.0, above=0.0)
+    normal_radius_voxels: float = number(3.0, above=0.0)
+    slide_normal_neighbours: int = count(20, least=3)
+
+
+@dataclass(frozen=True)
 class ScanStrategyConfig(Config):
     """Values of the scan strategy (:mod:`esmicp.globalreg.scan`: FPFH correspondences of voxel
     keypoints pruned by second-order spatial compatibility, verified on the overlap). Lengths are
@@ -187,6 +215,9 @@ class ScanStrategyConfig(Config):
     tie_ratio : float
         A pose of about the leader's rotation scoring at least this fraction of its overlap score
         challenges it on the slide-constraining inliers (0-1).
+    keypoint : KeypointConfig
+        The keypoints' own values (:class:`KeypointConfig`): the voxel's floor, when two
+        coincide, their normals.
 
     References
     ----------
@@ -213,6 +244,7 @@ class ScanStrategyConfig(Config):
     icp_settled_voxels: float = number(0.05, least=0.0)
     icp_points: int = count(1500)
     tie_ratio: float = fraction(0.5)
+    keypoint: KeypointConfig = part(KeypointConfig)
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,8 @@ so a pair scaled by 1000 gives the same pose):
 
 1. **Scale.** :func:`~esmicp.core.keypoints.keypoint_voxel`: the voxel edge at which the target has about
    ``SearchConfig.keypoints`` occupied voxels (found from the voxel counts, which scale as the inverse square of
-   the edge on a surface), never below ``MIN_VOXEL_SPACINGS`` target point spacings.
+   the edge on a surface), never below ``SearchConfig.scan.keypoint.min_voxel_spacings`` target
+   point spacings.
 2. **Keypoints and descriptors.** Voxel centroids of each cloud, isolated ones dropped; PCA
    normals from the keypoints (or from the dense points), FPFH within ``ScanStrategyConfig.fpfh_radius_keypoint_voxels``
    (:mod:`esmicp.globalreg.feature_matching`'s keypoints).
@@ -25,7 +26,7 @@ so a pair scaled by 1000 gives the same pose):
    distance; the best distinct ones are refit on their inliers.
 6. **Verification on the overlap** (:func:`overlap_counts`). ICP on the keypoints until each
    pose settles (:func:`_icp`, all poses in one batch), then the keypoints lying within
-   ``VERIFY_VOXELS`` of the other cloud, counted both ways (source on target and target on
+   ``SearchConfig.scan.keypoint.coincide_voxels`` of the other cloud, counted both ways (source on target and target on
    source): the overlap, not the whole source. When two distinct poses
    count alike (a corridor, a road), each is scored by the inliers whose target normal points
    along the displacement between the two poses: only that geometry constrains the slide.
@@ -48,7 +49,7 @@ import numpy as np
 from .. import _kernels
 from ..core.compiled_tree import CompiledTree, threads
 from ..core.features import estimate_normals, voxel_grid
-from ..core.keypoints import NORMAL_RADIUS_VOXELS, VERIFY_VOXELS, Keypoints, keypoint_voxel
+from ..core.keypoints import Keypoints, keypoint_voxel
 from ..core.procrustes import batched_weighted_procrustes, rigid_inverse, rotation_angle, to_matrix
 from ..trust.confidence import overlap_confidence
 from ..trust.policy import DEFAULT_POLICY, TrustPolicy
@@ -88,13 +89,14 @@ class ScanEstimate:
         return cls(np.eye(4)[None], np.zeros(1), keypoints, 0, np.zeros(1, dtype=np.intp))
 
 
-def overlap_score(transformation: np.ndarray, keypoints: Keypoints, workers: int | None = None) -> float:
-    """The fraction of both clouds' keypoints within ``VERIFY_VOXELS`` of the other cloud under
-    ``transformation`` (the verification's score, :func:`rank_poses`). ``workers``: threads of the
-    compiled tree's queries (None: every core)."""
+def overlap_score(transformation: np.ndarray, keypoints: Keypoints, workers: int | None = None, *,
+                  config: SearchConfig = DEFAULT) -> float:
+    """The fraction of both clouds' keypoints within ``config.scan.keypoint.coincide_voxels`` of the other cloud
+    under ``transformation`` (the verification's score, :func:`rank_poses`). ``workers``: threads
+    of the compiled tree's queries (None: every core)."""
     forward, backward = overlap_counts(
         transformation[None], keypoints.source, keypoints.target, keypoints.source_tree,
-        keypoints.target_tree, VERIFY_VOXELS * keypoints.voxel, workers,
+        keypoints.target_tree, config.scan.keypoint.coincide_voxels * keypoints.voxel, workers,
     )
     return float(forward[0] + backward[0]) / (len(keypoints.source) + len(keypoints.target))
 
@@ -280,8 +282,10 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     dense points (:func:`~esmicp.globalreg.feature_matching._keypoints`); ``voxel``: the keypoint
     voxel (cloud units; default :func:`~esmicp.core.keypoints.keypoint_voxel` of the target). Deterministic."""
     settings = config.scan
-    voxel = keypoint_voxel(target, spacing, config.keypoints) if voxel is None else voxel
-    normal_radius, feature_radius = NORMAL_RADIUS_VOXELS * voxel, settings.fpfh_radius_keypoint_voxels * voxel
+    if voxel is None:
+        voxel = keypoint_voxel(target, spacing, config.keypoints, settings.keypoint.min_voxel_spacings)
+    normal_radius = settings.keypoint.normal_radius_voxels * voxel
+    feature_radius = settings.fpfh_radius_keypoint_voxels * voxel
     filter_radius = settings.filter_radius_voxels * voxel
     with ThreadPoolExecutor(max_workers=1 if workers == 1 else 2) as pool:
         grids = list(pool.map(lambda cloud: voxel_grid(cloud, voxel), (source, target)))
@@ -358,7 +362,8 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
         done += 1
         return best.confidence >= config.confident or done == searches
 
-    voxel = keypoint_voxel(target, spacing, config.keypoints)  # the same for each standard search: found once
+    floor = config.scan.keypoint.min_voxel_spacings
+    voxel = keypoint_voxel(target, spacing, config.keypoints, floor)  # the same for each standard search: found once
     for normals_from_keypoints in NORMALS_FROM_KEYPOINTS:
         if keep_if_better(scan_estimate(source, target, spacing=spacing, workers=workers,
                                         normals_from_keypoints=normals_from_keypoints, voxel=voxel,
@@ -366,9 +371,9 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
             return best
     searched = {voxel}
     for count in config.scan.last_keypoints:
-        other = keypoint_voxel(target, spacing, count)
+        other = keypoint_voxel(target, spacing, count, floor)
         if other in searched:
-            continue  # a repeat (a small cloud is at the floor, MIN_VOXEL_SPACINGS, for every count)
+            continue  # a repeat (a small cloud is at the floor for every count)
         searched.add(other)
         found = scan_estimate(source, target, spacing=spacing, workers=workers, voxel=other, config=config)
         if keep_if_better(replace(found, keypoints=best.keypoints)):
@@ -381,7 +386,7 @@ def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel:
                workers: int | None = None, config: SearchConfig = DEFAULT) -> tuple[np.ndarray, np.ndarray]:
     """Verification on the overlap (module docstring, step 6): the indices of the mutually
     distinct ``poses`` ``(C, 4, 4)``, best first, and every pose's overlap score (the fraction of
-    ``source`` and ``target`` keypoints within ``VERIFY_VOXELS`` of the other cloud).
+    ``source`` and ``target`` keypoints within ``config.scan.keypoint.coincide_voxels`` of the other cloud).
 
     A pose of about the same rotation as the leader (within
     ``config.verification.distinct_rotation_deg``) and a score of at least
@@ -394,7 +399,7 @@ def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel:
     """
     target_tree = CompiledTree(target) if target_tree is None else target_tree
     source_tree = CompiledTree(source) if source_tree is None else source_tree
-    distance = VERIFY_VOXELS * voxel
+    distance = config.scan.keypoint.coincide_voxels * voxel
     forward, backward = overlap_counts(poses, source, target, source_tree, target_tree, distance, workers)
     scores = (forward + backward) / float(len(source) + len(target))
     distinct_deg = config.verification.distinct_rotation_deg
@@ -410,7 +415,8 @@ def rank_poses(poses: np.ndarray, source: np.ndarray, target: np.ndarray, voxel:
         if turn > distinct_deg:
             continue
         if normals is None:
-            normals = estimate_normals(target, k=20, radius=NORMAL_RADIUS_VOXELS * voxel, tree=target_tree)
+            normals = estimate_normals(target, k=config.scan.keypoint.slide_normal_neighbours,
+                                       radius=config.scan.keypoint.normal_radius_voxels * voxel, tree=target_tree)
         best_votes, challenger_votes = _slide_votes(poses[best], poses[challenger], source, target_tree, normals,
                                                     distance, workers)
         if challenger_votes > best_votes:

@@ -171,7 +171,8 @@ class _Workspace:
         from ..core.keypoints import Keypoints
 
         if self._keypoints is None:
-            self._keypoints = Keypoints.of(self.source, self.target, self.full_index.spacing(), self.config.keypoints)
+            self._keypoints = Keypoints.of(self.source, self.target, self.full_index.spacing(), self.config.keypoints,
+                                           self.config.scan.keypoint.min_voxel_spacings)
         return self._keypoints
 
     def source_index(self) -> NearestNeighbors:
@@ -388,7 +389,8 @@ def _scan_leads(scanned: GlobalEstimate, other: np.ndarray, *, margin: float = 1
     keypoints, confidence = scanned.keypoints, scanned.confidence  # judged by the scan strategy itself
     if confidence < config.confident:
         return False
-    mine, theirs = overlap_score(scanned.transformation, keypoints, workers), overlap_score(other, keypoints, workers)
+    mine = overlap_score(scanned.transformation, keypoints, workers, config=config)
+    theirs = overlap_score(other, keypoints, workers, config=config)
     if mine > margin * theirs:
         return True
     return mine >= config.sharper_score_ratio * theirs and \
@@ -433,7 +435,7 @@ def _sharper_on_the_overlap(chosen: GlobalEstimate, scanned: GlobalEstimate,
     pair = np.stack([poses[best], chosen.transformation])
     # the same pose, sharpened: no runner-up
     pair = pair[_distinct(pair, np.arange(2), 2, config.verification.distinct_rotation_deg)]
-    scores = np.array([overlap_score(pose, keypoints, workers) for pose in pair])
+    scores = np.array([overlap_score(pose, keypoints, workers, config=config) for pose in pair])
     strategies = ("scan",) + chosen.strategies[:1] * (len(pair) - 1)
     return GlobalEstimate(pair, scores, strategies, candidates=chosen.candidates, keypoints=keypoints,
                           confidence=confidences[best], ambiguity_ratio=config.ambiguity_ratio)

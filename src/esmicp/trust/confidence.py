@@ -11,19 +11,23 @@ Transforms are ``T_target_source`` (``target ~= source @ R.T + t``).
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from ..core.compiled_tree import CompiledTree
 from ..core.features import estimate_normals
-from ..core.keypoints import NORMAL_RADIUS_VOXELS, VERIFY_VOXELS, Keypoints
+from ..core.keypoints import Keypoints
 from .policy import DEFAULT_POLICY, TrustPolicy
 
 
 class ConfidenceRanges(Protocol):
     """The tuned ranges :func:`overlap_confidence` maps its measures from, each a ``(low, high)``
-    pair mapped linearly onto 0-1 (held by :class:`esmicp.globalreg.config.SearchConfig`)."""
+    pair mapped linearly onto 0-1, and the keypoints' values (``scan.keypoint``: when two
+    coincide); held by :class:`esmicp.globalreg.config.SearchConfig`."""
+
+    @property
+    def scan(self) -> Any: ...
 
     @property
     def sharpness_range(self) -> tuple[float, float]: ...
@@ -39,16 +43,17 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
                        config: ConfidenceRanges, policy: TrustPolicy = DEFAULT_POLICY) -> float:
     """How sharply the clouds coincide where they overlap under ``transformation``
     (``T_target_source``), 0-1: of the keypoints within ``policy.overlap_voxels`` of the other
-    cloud, the fraction within ``VERIFY_VOXELS``, the smaller of the two directions, mapped from
+    cloud, the fraction within ``config.scan.keypoint.coincide_voxels``, the smaller of the two directions, mapped from
     ``config.sharpness_range``; or, when smaller and when less than ``policy.spread_below`` of
     either cloud coincides, how well the coincident part's normals hold the pose
     (:func:`coincident_spread`: its middle eigenvalue mapped from ``config.spread_range``, its
     smallest from ``config.third_range``), the smallest of these in either direction. 0 when fewer
     than ``policy.min_coincident`` keypoints of either cloud coincide (too little evidence: clouds
     that sparse cannot resolve the pose at the keypoint voxel, never finer than
-    ``MIN_VOXEL_SPACINGS`` spacings, where a pose tens of degrees off still makes every point
+    ``SearchConfig.scan.keypoint.min_voxel_spacings`` spacings, where a pose tens of degrees off still makes every point
     "coincide"). ``workers``: threads of the compiled tree's queries (None: every core);
-    ``config``: the ranges (a :class:`~esmicp.globalreg.config.SearchConfig`); ``policy``: the
+    ``config``: the ranges and the coincidence distance (a
+    :class:`~esmicp.globalreg.config.SearchConfig`); ``policy``: the
     measure's other values (:class:`~esmicp.trust.policy.TrustPolicy`)."""
     if not np.isfinite(transformation).all() or min(len(keypoints.source), len(keypoints.target)) < 3:
         return 0.0
@@ -61,7 +66,7 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
     ):
         distances, nearest = fixed.query(moved, workers=workers)  # the counts SciPy's tree gives, cheaper
         overlap = np.count_nonzero(distances <= policy.overlap_voxels * voxel)
-        coincide = distances <= VERIFY_VOXELS * voxel
+        coincide = distances <= config.scan.keypoint.coincide_voxels * voxel
         if np.count_nonzero(coincide) < policy.min_coincident:
             return 0.0
         sharpness.append(np.count_nonzero(coincide) / overlap)
@@ -86,11 +91,12 @@ def coincident_spread(points: np.ndarray, tree: CompiledTree, touched: np.ndarra
     eigenvalue of their second moment (the middle one 0 when they are all parallel, as on one
     plane; the smallest 0 when they lie in one plane's worth of directions, as on two planes; both
     1/3 when they point every way). At most ``policy.spread_points`` of ``touched`` (evenly strided),
-    each normal from its 30 nearest of ``points`` (``tree`` is over them) within
-    ``NORMAL_RADIUS_VOXELS * voxel``."""
+    each normal from its ``policy.spread_normal_neighbours`` nearest of ``points`` (``tree`` is over
+    them) within ``policy.spread_normal_radius_voxels * voxel``."""
     if len(touched) > policy.spread_points:
         touched = touched[np.linspace(0, len(touched) - 1, policy.spread_points).astype(np.intp)]
-    normals = estimate_normals(points, k=30, radius=NORMAL_RADIUS_VOXELS * voxel, at=points[touched], tree=tree,
+    normals = estimate_normals(points, k=policy.spread_normal_neighbours,
+                               radius=policy.spread_normal_radius_voxels * voxel, at=points[touched], tree=tree,
                                workers=workers)
     values = np.linalg.eigvalsh(normals.T @ normals / len(normals))
     return float(values[0]), float(values[1])

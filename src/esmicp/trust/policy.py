@@ -39,6 +39,10 @@ class TrustPolicy(Config):
         (0-1) of either cloud's keypoints coincides; more is held by the clouds' whole shape.
     spread_points : int
         Coincident keypoints (at most, evenly strided) whose normals measure that spread (count).
+    spread_normal_neighbours : int
+        Nearest keypoints (at most) of each of those normals' PCA (count).
+    spread_normal_radius_voxels : float
+        ... within this many keypoint voxels (gain).
     trusted : float
         The overlap confidence a result must reach to be trusted (0-1; above 1: nothing is); above
         the global search's own bar (:attr:`esmicp.globalreg.config.SearchConfig.confident`),
@@ -134,6 +138,8 @@ class TrustPolicy(Config):
     overlap_voxels: float = number(3.0, above=0.0)
     spread_below: float = fraction(0.5)
     spread_points: int = count(500)
+    spread_normal_neighbours: int = count(30, least=3)
+    spread_normal_radius_voxels: float = number(3.0, above=0.0)
     trusted: float = number(0.55, least=0.0)
     max_free_space_pair: float = fraction(0.08)
     max_free_space: float = fraction(0.12)
