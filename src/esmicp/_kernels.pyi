@@ -12,6 +12,8 @@ from numpy.typing import NDArray
 
 STACK: int = 96
 
+GRAPH_K_MAX: int = 64
+
 CELL_SCAN_MAX: int = 256
 
 def build_tree(arg0: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], arg1: int, arg2: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu')], arg3: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu')], arg4: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu')], arg5: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu')], arg6: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu')], arg7: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu')], /) -> int: ...
@@ -60,7 +62,13 @@ def fpfh(arg0: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order=
 
 def nearest_descriptors(arg0: Annotated[NDArray[numpy.float32], dict(shape=(None, None), order='C', device='cpu', writable=False)], arg1: Annotated[NDArray[numpy.float32], dict(shape=(None,), order='C', device='cpu', writable=False)], arg2: Annotated[NDArray[numpy.float32], dict(shape=(None,), order='C', device='cpu', writable=False)], arg3: int, arg4: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu')], arg5: Annotated[NDArray[numpy.float32], dict(shape=(None,), order='C', device='cpu')], arg6: Annotated[NDArray[numpy.float32], dict(shape=(None,), order='C', device='cpu')], arg7: Annotated[NDArray[numpy.float32], dict(shape=(None, None), order='C', device='cpu')], arg8: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu')], arg9: int, /) -> None: ...
 
+FPFH_BINS: int = 11
+
 FPFH_DIMENSION: int = 33
+
+SPFH_BLOCK_SUM: float = 100.0
+
+FPFH_BLOCK_SUM: float = 200.0
 
 def nearest_grid(arg0: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], arg1: Annotated[NDArray[numpy.float64], dict(shape=(None,), order='C', device='cpu', writable=False)], arg2: float, arg3: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)], arg4: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu')], /) -> None: ...
 

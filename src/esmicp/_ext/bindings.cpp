@@ -129,6 +129,7 @@ NB_MODULE(_kernels, m) {
     });
     m.doc() = "esmicp's compiled kernels (KD-tree, voxel hash, pair moments); std::thread, GIL released.";
     m.attr("STACK") = kernels::STACK;
+    m.attr("GRAPH_K_MAX") = kernels::GRAPH_K_MAX;
     m.attr("CELL_SCAN_MAX") = kernels::CELL_SCAN_MAX;
     m.def("build_tree", &Bound<&kernels::build_tree>::call);
     m.def("tree_query", &Bound<&kernels::tree_query>::call);
@@ -157,7 +158,10 @@ NB_MODULE(_kernels, m) {
     m.def("pair_inlier_counts", &Bound<&kernels::pair_inlier_counts>::call);
     m.def("fpfh", &Bound<&kernels::fpfh>::call);
     m.def("nearest_descriptors", &Bound<&kernels::nearest_descriptors>::call);
+    m.attr("FPFH_BINS") = kernels::FPFH_BINS;
     m.attr("FPFH_DIMENSION") = kernels::FPFH_DIMENSION;
+    m.attr("SPFH_BLOCK_SUM") = kernels::SPFH_BLOCK_SUM;
+    m.attr("FPFH_BLOCK_SUM") = kernels::FPFH_BLOCK_SUM;
     m.def("nearest_grid", &Bound<&kernels::nearest_grid>::call);
     m.attr("STEP_OUT") = kernels::STEP_OUT;
     nb::class_<BoundIndex>(m, "Index")

@@ -23,8 +23,6 @@ constexpr int64_t PARALLEL_NORMALS_MIN = 512;
 // FPFH (features.fpfh documents the definition; the formulas and their order of operations are
 // the ones there, so that the bins are those of the NumPy reference to the last bit).
 
-//: What each SPFH block sums to.
-constexpr double SPFH_BLOCK_SUM = 100.0;
 //: Two cosines closer than this count as equal when choosing a pair's source point.
 constexpr double FPFH_TIE = 1e-9;
 //: Points per piece of the FPFH passes.

@@ -10,6 +10,11 @@ namespace kernels {
 //: Bins per FPFH angle feature, and the feature length.
 inline constexpr int FPFH_BINS = 11;
 inline constexpr int FPFH_DIMENSION = 3 * FPFH_BINS;
+//: What each block of an SPFH sums to (a point with at least one neighbour).
+inline constexpr double SPFH_BLOCK_SUM = 100.0;
+//: What each block of an FPFH sums to: the point's own SPFH block plus its neighbours' weighted
+//: blocks, renormalised to one SPFH block's sum.
+inline constexpr double FPFH_BLOCK_SUM = 2.0 * SPFH_BLOCK_SUM;
 
 // PCA normals: for each query, its k nearest tree points within `upper` (cloud units; INF for no
 // radius), their covariance (coordinates relative to `centre`, the cloud's centroid, for accuracy)

@@ -21,11 +21,10 @@ from .. import _kernels
 #: Points per leaf (at most).
 LEAF_SIZE = 8
 
-#: Most neighbours :meth:`CompiledTree.query_k` returns per query.
-K_MAX = 64
-
-#: Depth of the search stack: median splits give depth log2(M / LEAF_SIZE) + 1 (27 for 1e9 points).
-STACK = 96
+#: Most neighbours :meth:`CompiledTree.query_k` returns per query (the kernels' bound, as are the
+#: search stack's depth ``_kernels.STACK``: median splits give depth log2(M / LEAF_SIZE) + 1, 27
+#: for 1e9 points).
+K_MAX = _kernels.GRAPH_K_MAX
 
 
 def available() -> bool:

@@ -67,15 +67,17 @@ from ..types import as_positive
 if TYPE_CHECKING:  # SciPy is imported where it is used: `register` on a clean pair never needs it
     from scipy.spatial import cKDTree
 
-#: Bins per FPFH angle feature, and the feature length (three blocks: theta, alpha, phi).
-FPFH_BINS = 11
-FPFH_DIMENSION = 3 * FPFH_BINS
+#: Bins per FPFH angle feature, and the feature length (three blocks: theta, alpha, phi): the
+#: compiled kernel's layout.
+FPFH_BINS = _kernels.FPFH_BINS
+FPFH_DIMENSION = _kernels.FPFH_DIMENSION
 
-#: Value each 11-bin block of an SPFH sums to (a point with at least one neighbour).
-SPFH_BLOCK_SUM = 100.0
+#: Value each block of an SPFH sums to (a point with at least one neighbour).
+SPFH_BLOCK_SUM = _kernels.SPFH_BLOCK_SUM
 
-#: Value each 11-bin block of an FPFH sums to (a point with at least one neighbour).
-FPFH_BLOCK_SUM = 200.0
+#: Value each block of an FPFH sums to (a point with at least one neighbour): its own SPFH block
+#: plus its neighbours' weighted blocks renormalised to one SPFH block's sum.
+FPFH_BLOCK_SUM = _kernels.FPFH_BLOCK_SUM
 
 
 def _as_cloud(points, name: str = "points", *, min_points: int = 1) -> np.ndarray:
