@@ -404,16 +404,16 @@ def _pose(angle, translation):
 
 
 @pytest.mark.parametrize("case", ["near", "far", "duplicates", "plane"])
-def test_the_steps_graph_walk_matches_ckdtree(case, monkeypatch):
+def test_the_steps_graph_walk_matches_ckdtree(case):
     """The step's warm-started queries walk the target's neighbour graph first (certified answers)
     and hand the rest to the hash or the tree: every answer is the exact nearest distance of
     scipy's KD-tree, on 1 and 2 threads alike, where the walk certifies most queries ("near") and
     where many must fall back (far source points, copies of target points, a flat target). The
     walk runs whatever the RMS distance here (the far points would otherwise switch it off)."""
     from esmicp import _kernels
-    from esmicp.core import correspondence
+    from esmicp.core.config import NeighbourIndexConfig
 
-    monkeypatch.setattr(correspondence, "STEP_GRAPH_RMS_SPACINGS", np.inf)
+    always_walk = NeighbourIndexConfig(graph_rms_spacings=1e300)
 
     target, source, pose = _walk_case(case)
     source = np.ascontiguousarray(source)
@@ -421,7 +421,7 @@ def test_the_steps_graph_walk_matches_ckdtree(case, monkeypatch):
     weighting = np.array([0.0, 0.01, 3.0, 1.0, 1.0])
     results = []
     for workers in (1, 2):
-        index = NearestNeighbors(target, workers=workers)
+        index = NearestNeighbors(target, workers=workers, config=always_walk)
         indices, distances, out = np.empty(len(source), dtype=np.int64), np.empty(len(source)), np.empty(_kernels.STEP_OUT)
         index.step(source, np.eye(4), indices, distances, out, warm=False, weighting=weighting, objective_sigma=0.0)
         assert out[40] == 0  # no warm start: nothing to walk from

@@ -245,7 +245,7 @@ def _prepare(request: _Request, started: float, stages: list) -> _Clouds:
     either cloud made largely of copies; the stage ``prepare``, timed from ``started``."""
     frame = WorkingFrame.for_target(request.target)
     source_points, target_points = frame.points(request.source), frame.points(request.target)
-    target_index = NearestNeighbors(target_points, workers=request.workers)
+    target_index = NearestNeighbors(target_points, workers=request.workers, config=request.refine.index)
     _warn_if_coincident(request.source, "source", coincident_points(request.source), request.coincident_warning)
     _warn_if_coincident(request.target, "target", target_index.coincident(), request.coincident_warning)
     clouds = _Clouds(frame, source_points, target_points, target_index, bounding_box_diagonal(target_points))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
-from .core.config import Config, count, fraction, number, part
+from .core.config import Config, NeighbourIndexConfig, count, fraction, number, part
 from .errors import InvalidInputError
 from .globalreg.config import SearchConfig, as_config
 from .methods.config import EsmConfig, LoopConfig, PlaneConfig
@@ -72,6 +72,10 @@ class RefineConfig(Config):
         ``esm-plane``'s values (:class:`esmicp.methods.config.PlaneConfig`).
     loop : LoopConfig
         The local loop's values (:class:`esmicp.methods.config.LoopConfig`).
+    index : NeighbourIndexConfig
+        When the target's nearest-neighbour index answers through its voxel hash and its
+        neighbour graph (:class:`esmicp.core.config.NeighbourIndexConfig`; speed only): the index
+        :func:`esmicp.register` builds, which its global search shares.
 
     References
     ----------
@@ -92,6 +96,7 @@ class RefineConfig(Config):
     esm: EsmConfig = part(EsmConfig)
     plane: PlaneConfig = part(PlaneConfig)
     loop: LoopConfig = part(LoopConfig)
+    index: NeighbourIndexConfig = part(NeighbourIndexConfig)
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,9 @@ A configuration class derives from :class:`Config` and declares each field with 
 record what the field accepts. Making an instance (directly, by :func:`dataclasses.replace` or by
 :meth:`Config.from_dict`) checks every field and raises :class:`~esmicp.errors.InvalidInputError`
 naming the class and the field; :meth:`Config.from_dict` refuses unknown keys.
+
+The core's own tuned values are here too: :class:`NeighbourIndexConfig`, the nearest-neighbour
+index's (:class:`esmicp.core.correspondence.NearestNeighbors`).
 """
 
 from __future__ import annotations
@@ -183,3 +186,41 @@ class Config:
         if isinstance(value, dict):
             return cls.from_dict(value)
         raise InvalidInputError(f"{name}: expected a {cls.__name__} or a dict, got {type(value).__name__}")
+
+
+@dataclass(frozen=True)
+class NeighbourIndexConfig(Config):
+    """When the nearest-neighbour index (:class:`esmicp.core.correspondence.NearestNeighbors`)
+    answers through its voxel hash and its neighbour graph. The answers are exact whatever the
+    values: only the speed changes.
+
+    Attributes
+    ----------
+    near_cell_spacings : float
+        Cell edge of the voxel hash of ``query_near``, in target point spacings (gain): queries
+        whose nearest target point lies within one cell are answered by the hash.
+    near_query_min : int
+        Below this many query points ``query_near`` and ``step`` use the KD-tree alone (count):
+        a few queries do not pay for building the hash.
+    hash_miss_limit : float
+        The voxel hash is skipped while more than this fraction of the last call's points had
+        their neighbour beyond one cell (0-1): a scan far from its sensor, or a start far from the
+        solution, where the hash would only delay the tree.
+    graph_neighbours : int
+        Neighbours per target point of the graph that ``step`` walks from the warm starts
+        (count; 0: no graph).
+    graph_rms_spacings : float
+        ``step`` walks the graph (and builds it, the first time) while the last step's RMS
+        distance is within this many target point spacings (gain): farther, few walks certify
+        their answer.
+
+    References
+    ----------
+    The costs of the hash, the tree and the graph: ``docs/speed.md``.
+    """
+
+    near_cell_spacings: float = number(5.0, above=0.0)
+    near_query_min: int = count(256, least=0)
+    hash_miss_limit: float = fraction(0.5)
+    graph_neighbours: int = count(8, least=0)
+    graph_rms_spacings: float = number(3.0, least=0.0)

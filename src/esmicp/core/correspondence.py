@@ -14,32 +14,8 @@ import numpy as np
 
 from .. import _kernels
 from . import compiled_tree, voxel_hash
+from .config import NeighbourIndexConfig
 from .procrustes import axis_bounds
-
-
-#: Cell edge of the voxel hash of :meth:`NearestNeighbors.query_near`, in target point spacings.
-#: Queries whose nearest target point is within one cell are answered by the hash. Measured on the
-#: bunny resampled to 100k points (CPU time of 100k queries, 0-10 degrees from the solution): 2, 3
-#: and 5 spacings cost 80, 67 and 38 ms with warm starts, scipy's KD-tree 127-255 ms.
-NEAR_CELL_SPACINGS = 5.0
-
-#: Below this many query points :meth:`NearestNeighbors.query_near` uses the KD-tree alone (a
-#: few queries do not pay for building the hash). Measured on the bunny at 1,000 points, near the
-#: solution, one thread: the compiled step 137 us of CPU with the hash, 230 us with the tree alone.
-NEAR_QUERY_MIN = 256
-
-#: :meth:`NearestNeighbors.query_near` skips the voxel hash while more than this fraction of the
-#: last call's points had their neighbour beyond one cell (a LiDAR scan far from the sensor, or a
-#: start far from the solution): the hash would only delay the tree there.
-HASH_MISS_LIMIT = 0.5
-
-#: Neighbours per target point of the graph that :meth:`NearestNeighbors.step` walks from the warm
-#: starts (0: no graph).
-STEP_GRAPH_NEIGHBOURS = 8
-
-#: :meth:`NearestNeighbors.step` walks the graph (and builds it, the first time) while the last
-#: step's RMS distance is within this many target spacings: farther, few walks certify their answer.
-STEP_GRAPH_RMS_SPACINGS = 3.0
 
 
 def coincident_points(points: np.ndarray) -> tuple[int, int, int, np.ndarray]:
@@ -62,11 +38,15 @@ class NearestNeighbors:
     workers : int or None
         Threads of every compiled call made through this index (queries, and the steps of the
         local loop that uses it); None uses every core.
+    config : NeighbourIndexConfig or None
+        When the voxel hash and the neighbour graph answer (speed only; None: the defaults).
     """
 
-    def __init__(self, target: np.ndarray, *, workers: int | None = None):
+    def __init__(self, target: np.ndarray, *, workers: int | None = None,
+                 config: NeighbourIndexConfig | None = None):
         self.points = target
         self.workers = workers
+        self.config = NeighbourIndexConfig() if config is None else config
         self._compiled: compiled_tree.CompiledTree | None = None
         self._spacing: float | None = None
         self._near: voxel_hash.VoxelHash | None = None
@@ -108,14 +88,14 @@ class NearestNeighbors:
         ``transform`` (optional 4x4 ``T_target_source``): query ``points`` as mapped by it (no
         mapped copy is made). ``warm`` (optional, (N,) target indices, e.g. last iteration's
         ``indices``) seeds each search with that candidate's distance; any valid index is correct,
-        only the speed changes. From :data:`NEAR_QUERY_MIN` points on, a voxel hash answers the
+        only the speed changes. From ``config.near_query_min`` points on, a voxel hash answers the
         points whose neighbour is within a few spacings, the compiled tree the rest.
         """
         tree = self.exact_tree()
-        near = self._near_index() if len(points) >= NEAR_QUERY_MIN else None
+        near = self._near_index() if len(points) >= self.config.near_query_min else None
         if near is None:
             return tree.query(points, transform=transform, warm=warm, workers=self.workers)
-        use_hash = self._hash_misses <= HASH_MISS_LIMIT
+        use_hash = self._hash_misses <= self.config.hash_miss_limit
         distances, indices, misses = near.query(points, tree, transform=transform, warm=warm, use_hash=use_hash,
                                                 workers=self.workers)
         self._hash_misses = misses / len(points)
@@ -142,16 +122,17 @@ class NearestNeighbors:
         weights, 1.0 if the call stopped below ``reject_below`` (else 0.0), the number of queries
         the graph walk answered.
 
-        Near convergence (the last step's RMS distance within :data:`STEP_GRAPH_RMS_SPACINGS`
+        Near convergence (the last step's RMS distance within ``config.graph_rms_spacings``
         target spacings) each warm-started query first walks a neighbour graph of the target
         from its last neighbour, and takes the point the walk certifies as the exact nearest
         (every nearer point would be in that point's list); the others go to the hash and the
         tree as before. The graph is built then, once per target (or by :meth:`prepare_step`).
         """
-        near = len(source) >= NEAR_QUERY_MIN
+        config = self.config
+        near = len(source) >= config.near_query_min
         index = self._compiled_index(near)
-        use_hash = bool(near and self._index_hashed and self._hash_misses <= HASH_MISS_LIMIT)
-        use_graph = bool(warm and use_hash and self._step_rmse <= STEP_GRAPH_RMS_SPACINGS * self.spacing())
+        use_hash = bool(near and self._index_hashed and self._hash_misses <= config.hash_miss_limit)
+        use_graph = bool(warm and use_hash and self._step_rmse <= config.graph_rms_spacings * self.spacing())
         if use_graph:
             self._step_graph()  # built once, when the warm starts first come near the target
         index.step(source, transformation, indices, distances, warm, use_hash, use_graph, weighting, objective_sigma,
@@ -165,14 +146,15 @@ class NearestNeighbors:
         """Build now what :meth:`step` uses for ``count`` source points (the compiled index, the
         voxel hash, the neighbour graph), which it otherwise builds on first use (the graph at
         the first warm-started step near the target): benchmarks time the builds apart."""
-        self._compiled_index(count >= NEAR_QUERY_MIN)
+        self._compiled_index(count >= self.config.near_query_min)
         self._step_graph()
 
     def _step_graph(self) -> None:
-        """The target's neighbour graph (:data:`STEP_GRAPH_NEIGHBOURS` each, from the voxel hash) in
-        the compiled index; none without the hash (fewer than :data:`NEAR_QUERY_MIN` queries)."""
-        if STEP_GRAPH_NEIGHBOURS and self._index_hashed and not self._index_graphed:
-            self._index.build_graph(min(STEP_GRAPH_NEIGHBOURS, len(self.points)), compiled_tree.threads(self.workers))
+        """The target's neighbour graph (``config.graph_neighbours`` each, from the voxel hash) in
+        the compiled index; none without the hash (fewer than ``config.near_query_min`` queries)."""
+        neighbours = self.config.graph_neighbours
+        if neighbours and self._index_hashed and not self._index_graphed:
+            self._index.build_graph(min(neighbours, len(self.points)), compiled_tree.threads(self.workers))
             self._index_graphed = True
 
     def _compiled_index(self, hashed: bool) -> "_kernels.Index":
@@ -196,7 +178,7 @@ class NearestNeighbors:
         100k (1M) points, :meth:`query_near` then costs 37 (330) instead of 70 (800) ms of CPU.
         """
         near = self._near_index()
-        cell = near.cell if near is not None else max(NEAR_CELL_SPACINGS * self.spacing(), 1e-12)
+        cell = near.cell if near is not None else max(self.config.near_cell_spacings * self.spacing(), 1e-12)
         low = self._bounds()[0]
         ijk = np.floor((points - low) / cell).astype(np.int64)
         ijk_low, ijk_high = axis_bounds(ijk)
@@ -209,7 +191,7 @@ class NearestNeighbors:
             spacing = self.spacing() if self._spacing is None else self._spacing
             low, high = self._bounds()
             diagonal = float(np.linalg.norm(high - low))
-            cell = max(NEAR_CELL_SPACINGS * spacing, 1e-6 * diagonal)
+            cell = max(self.config.near_cell_spacings * spacing, 1e-6 * diagonal)
             if cell > 0:
                 self._near = voxel_hash.VoxelHash(self.points, cell)
         return self._near
