@@ -18,7 +18,8 @@ import numpy as np
 
 from .. import _kernels
 
-#: Points per leaf (at most).
+#: Points per leaf, at most (count): a speed and memory trade of the tree's layout, every answer
+#: exact whatever its value.
 LEAF_SIZE = 8
 
 #: Most neighbours :meth:`CompiledTree.query_k` returns per query (the kernels' bound, as are the

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Sigmas below this are computed as this one. ``1 / (2 sigma^2)`` overflows to inf near 1e-154
+#: Sigmas below this (cloud units) are computed as this one. ``1 / (2 sigma^2)`` overflows to inf near 1e-154
 #: (and 2 sigma^2 is 0 near 1e-162); at 1e-150 every distance a representable cloud can hold
 #: (clouds span at least 1e-100, see :mod:`esmicp.types`) other than 0 already weighs exactly 0,
 #: so any smaller sigma gives the same weights.

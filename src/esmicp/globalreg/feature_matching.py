@@ -61,10 +61,12 @@ from .config import DEFAULT, SearchConfig
 if TYPE_CHECKING:  # SciPy is imported where it is used: `register` on a clean pair never needs it
     from scipy.spatial import cKDTree
 
-#: Feature-space problems up to this many (source x target) pairs use brute force, not a KD-tree.
+#: Feature-space problems up to this many (source x target) pairs use brute force, not a KD-tree
+#: (count; both exact, only the speed differs).
 _BRUTE_FORCE_PAIRS = 4_000_000
 
-#: Largest number of (candidate x correspondence) residuals evaluated at once.
+#: Largest number of (candidate x correspondence) residuals evaluated at once (count; bounds the
+#: memory of the scoring).
 _SCORE_CHUNK = 2_000_000
 
 #: Ways of turning matched features into hypotheses (``method`` of :func:`feature_hypotheses`).

@@ -116,7 +116,7 @@ def _correspondences(source_features: np.ndarray, target_features: np.ndarray, l
     return pairs[:limit].astype(np.intp)
 
 
-#: Rows of the descriptor distance matrix computed at once.
+#: Rows of the descriptor distance matrix computed at once (count; bounds the memory).
 _CHUNK_ROWS = 1024
 
 

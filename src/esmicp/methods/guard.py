@@ -14,7 +14,8 @@ import numpy as np
 from .config import LoopConfig
 from .local import RefinementOutcome, refine
 
-#: Tolerance on ``R^T R = I`` of a result (results are re-orthonormalised every iteration).
+#: Tolerance on the entries of ``R^T R - I`` of a result (absolute; results are re-orthonormalised
+#: every iteration, so anything above rounding is not a rotation).
 RESULT_RIGID_TOLERANCE = 1e-6
 
 

@@ -46,7 +46,8 @@ from ..core.weights import relative_gaussian_weights
 from .base import Estimator, Step
 from .config import EsmConfig, PlaneConfig
 
-#: 1.4826 x the median absolute value estimates a Gaussian's standard deviation.
+#: 1.4826 (about 1 / the normal distribution's 0.75 quantile) times the median absolute value
+#: estimates a Gaussian's standard deviation (dimensionless).
 _MAD_SCALE = 1.4826
 
 
