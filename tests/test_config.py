@@ -9,18 +9,24 @@ import re
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 import esmicp
 from esmicp.config import MergeConfig, RefineConfig, RegistrationConfig
+from esmicp.core.config import NeighbourIndexConfig
+from esmicp.core.correspondence import NearestNeighbors
 from esmicp.errors import InvalidInputError
-from esmicp.globalreg.config import SearchConfig
+from esmicp.globalreg.config import KeypointConfig, SearchConfig
+from esmicp.methods import make_estimator
+from esmicp.methods.config import EsmConfig, LoopConfig, PlaneConfig
 from esmicp.multiview import register_scans
 from esmicp.shapes import asymmetric_shape
 from esmicp.trust.policy import DEFAULT_POLICY, TrustPolicy
 
 from test_multiview import _clouds, _patch, _truth
 
-CONFIGS = (MergeConfig, RefineConfig, TrustPolicy, RegistrationConfig)
+CONFIGS = (MergeConfig, RefineConfig, TrustPolicy, RegistrationConfig, EsmConfig, PlaneConfig, LoopConfig,
+           NeighbourIndexConfig, KeypointConfig)
 
 
 @pytest.mark.parametrize("kind", CONFIGS)
@@ -93,6 +99,42 @@ def test_an_invalid_trust_value_is_refused_naming_its_field(changes, field):
 def test_an_invalid_refinement_value_is_refused_naming_its_field(changes, field):
     with pytest.raises(InvalidInputError, match=rf"^RefineConfig\.{field}: expected a "):
         RefineConfig(**changes)
+
+
+def test_the_methods_take_their_values_from_the_tree():
+    """A method made with the tree's records uses their values, not the defaults (lengths as gains
+    times the target's spacing)."""
+    spacing, diagonal = 0.01, 1.0
+    esm = make_estimator("esm", None, spacing, diagonal, esm=EsmConfig(sigma_floor_spacings=5.0))
+    assert esm.sigma.floor == pytest.approx(5.0 * spacing)
+    assert esm.sigma.config.sigma_floor_spacings == 5.0
+    paper = make_estimator("esm-paper", None, spacing, diagonal, esm=EsmConfig(paper_sigma=0.3))
+    assert paper.sigma == 0.3
+    plane = make_estimator("esm-plane", None, spacing, diagonal, esm=EsmConfig(sigma_floor_spacings=4.0,
+                                                                                  fine_phase_step=1e-2),
+                           plane=PlaneConfig(normal_neighbours=7))
+    assert plane.floor == pytest.approx(4.0 * spacing)
+    assert (plane.config.normal_neighbours, plane.fine_phase_step) == (7, 1e-2)
+    with pytest.raises(InvalidInputError, match=r"^PlaneConfig\.normal_neighbours: expected a "):
+        PlaneConfig(normal_neighbours=2)
+    with pytest.raises(InvalidInputError, match=r"^EsmConfig\.start_quantile: expected a "):
+        EsmConfig(start_quantile=1.5)
+
+
+@pytest.mark.parametrize("index", [NeighbourIndexConfig(), NeighbourIndexConfig(near_query_min=0, hash_miss_limit=1.0,
+                                                                                  near_cell_spacings=0.5),
+                                   NeighbourIndexConfig(near_query_min=10**9, graph_neighbours=0)])
+def test_the_index_answers_exactly_whatever_its_values(index):
+    """The index's values choose how it answers (tree, hash, graph), never what: every answer is
+    the exact nearest distance."""
+    rng = np.random.default_rng(3)
+    target = rng.normal(size=(3000, 3))
+    points = target[:1000] + rng.normal(scale=0.01, size=(1000, 3))
+    nearest = NearestNeighbors(target, workers=1, config=index)
+    expected = cKDTree(target).query(points)[0]
+    distances, indices = nearest.query_near(points)
+    np.testing.assert_allclose(distances, expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(target[indices] - points, axis=1), expected, rtol=0, atol=1e-12)
 
 
 def test_nested_configs_are_read_from_dicts_and_checked():
