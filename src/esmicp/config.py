@@ -218,6 +218,9 @@ class MergeConfig(Config):
         than this times the target's bounding-box diagonal); measured for the merge's checks
         (``docs/merge.md``), finer than :attr:`RefineConfig.strided_tolerance`, where
         :func:`esmicp.register`'s own refinement stops after a global search.
+    refine_normal_neighbours : int
+        Nearest points of each normal of the dense subsets, whose planes the joint refinement's
+        residuals measure (count).
     refine_floor_spacings : float
         The joint refinement's last correspondence distance, in median point spacings of the
         dense subsets (its first is 3 median inlier distances of the kept edges).
@@ -273,6 +276,7 @@ class MergeConfig(Config):
     loop_searches_per_scan: float = number(0.125, least=0.0)
     check_iterations: int = count(30)
     check_tolerance: float = number(3e-6, least=0.0)
+    refine_normal_neighbours: int = count(12, least=3)
     refine_floor_spacings: float = number(2.0, above=0.0)
     query_points: int = count(1000)
     direct_solve_max_poses: int = count(200, least=0)

@@ -1136,7 +1136,7 @@ def _joint_refinement(work: _Scans, poses: dict, edges: list[Edge], config: Merg
     plan.open("joint refinement", 1)
     started = time.perf_counter()
     fine = {k: work.dense[k] for k in poses}
-    fine_normals = {k: estimate_normals(fine[k], k=12, workers=None) for k in fine}
+    fine_normals = {k: estimate_normals(fine[k], k=config.refine_normal_neighbours, workers=None) for k in fine}
     scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
     fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
     reach = np.geomspace(3.0 * scale, max(config.refine_floor_spacings * fine_spacing, 1e-12), config.refine_rounds)

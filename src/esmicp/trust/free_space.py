@@ -175,7 +175,7 @@ def range_image_test(points, policy: TrustPolicy = DEFAULT_POLICY) -> RangeImage
         ranges[other] < ranges[:, None] - policy.hidden_depth_spacings * np.maximum(local[:, None], local[other]))
     hidden = float(np.mean(behind.any(axis=1)))
 
-    normals = estimate_normals(p, k=12)
+    normals = estimate_normals(p, k=policy.sampling_normal_neighbours)
     cosine = np.abs(np.einsum("ij,ij->i", normals, directions))
     ok = (cosine > 0.05) & (spacing > 0)  # grazing: the normal says little
     x = 0.5 * np.log(cosine[ok]) - np.log(ranges[ok])

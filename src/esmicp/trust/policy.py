@@ -76,6 +76,8 @@ class TrustPolicy(Config):
     hidden_depth_spacings : float
         ... and it lies farther from the origin by more than this many local point spacings (the
         mean distance to the 4 nearest points, the larger of the two's; gain).
+    sampling_normal_neighbours : int
+        Nearest points of each normal whose incidence the range-image test reads (count).
     premise_min_points : int
         Fewer points than this are too few to judge a scan a range image (count; at least 17, the
         16 nearest directions the test reads and the point itself).
@@ -150,6 +152,7 @@ class TrustPolicy(Config):
     max_hidden: float = fraction(0.005)
     hidden_pixel: float = number(0.25, above=0.0)
     hidden_depth_spacings: float = number(2.0, least=0.0)
+    sampling_normal_neighbours: int = count(12, least=3)
     premise_min_points: int = count(1000, least=17)
     min_angular_radius_deg: float = number(0.5, least=0.0, below=180.0)
     cluster_spacings: float = number(16.0, above=0.0)
