@@ -75,7 +75,8 @@ class RefineConfig(Config):
     index : NeighbourIndexConfig
         When the target's nearest-neighbour index answers through its voxel hash and its
         neighbour graph (:class:`esmicp.core.config.NeighbourIndexConfig`; speed only): the index
-        :func:`esmicp.register` builds, which its global search shares.
+        :func:`esmicp.register` builds, which its global search shares (and the indices the search
+        builds for itself take).
 
     References
     ----------

@@ -176,9 +176,11 @@ class _Workspace:
         return self._keypoints
 
     def source_index(self) -> NearestNeighbors:
-        """A :class:`NearestNeighbors` over the source (for target points placed on it), built once."""
+        """A :class:`NearestNeighbors` over the source (for target points placed on it), built once,
+        with the target index's workers and values."""
         if self._source_index is None:
-            self._source_index = NearestNeighbors(self.source, workers=self.full_index.workers)
+            self._source_index = NearestNeighbors(self.source, workers=self.full_index.workers,
+                                                  config=self.full_index.config)
         return self._source_index
 
     def seeds(self, index: NearestNeighbors) -> NearestGrid | None:
@@ -217,7 +219,8 @@ def global_estimate(
     every random subsample, so a seeded generator makes the result reproducible. ``target_index``
     (a :class:`NearestNeighbors` over ``target``) is reused when given, and so is
     ``target_spacing`` (its :meth:`~NearestNeighbors.spacing`, cloud units). ``workers``: threads
-    of the compiled kernels (None: every core; a given ``target_index`` keeps its own).
+    of the compiled kernels (None: every core; a given ``target_index`` keeps its own, and the
+    indices the search builds take its workers and its values, ``target_index.config``).
     ``strategy``: one of :data:`STRATEGIES`; ``config``: the tuned values; ``policy``: the overlap
     confidence's values (:class:`~esmicp.trust.policy.TrustPolicy`).
     """
@@ -298,7 +301,8 @@ def _workspace(source, target, rng, full_index: NearestNeighbors, target_spacing
     if len(target) <= config.rotation.target_points:
         index = full_index
     else:
-        index = NearestNeighbors(_subsample(target, config.rotation.target_points, rng), workers=full_index.workers)
+        index = NearestNeighbors(_subsample(target, config.rotation.target_points, rng), workers=full_index.workers,
+                                 config=full_index.config)
     spacing = target_spacing if target_spacing is not None and index is full_index else index.spacing()
     width = config.verification.score_width_spacings * spacing if spacing > 0 else 1e-6 * bounding_box_diagonal(target)
     return _Workspace(source, target, rng, full_index, index, spacing, width, config, policy)
