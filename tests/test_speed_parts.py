@@ -191,11 +191,28 @@ def test_registers_fitness_is_the_cold_querys():
     """register() warm-starts its fitness query from the refinement's last neighbours: the
     figures are those of a cold exact query at the final pose."""
     source, target, truth = lidar_pair()
-    result = esmicp.register(source, target, init=yawed(truth, source, 3.0))
+    result = esmicp.register(source, target, init=yawed(truth, source, 3.0),
+                             config={"refine": {"evaluated_points": len(source)}})
     distances, _ = cKDTree(target).query(apply(result.transformation, source))
     inliers = distances <= result.inlier_distance
     assert result.fitness == pytest.approx(inliers.mean(), abs=1e-12)
     assert result.inlier_rmse == pytest.approx(np.sqrt(np.mean(distances[inliers] ** 2)), rel=1e-9)
+
+
+def test_fitness_on_a_strided_sample_is_that_samples_and_near_the_whole_sources():
+    """On a source larger than ``evaluated_points``, fitness is the exact figure of that many evenly
+    strided source points, within the binomial bound (three standard errors, 1.5 / sqrt(n)) of the
+    whole source's."""
+    source, target, truth = lidar_pair()
+    count = len(source) // 7
+    result = esmicp.register(source, target, init=truth, max_iterations=2,
+                             config={"refine": {"evaluated_points": count}})
+    sample = np.linspace(0, len(source) - 1, count).astype(np.intp)
+    distances, _ = cKDTree(target).query(apply(result.transformation, source))
+    inliers = distances <= result.inlier_distance
+    assert [stage.points for stage in result.stages if stage.name == "evaluate"] == [count]
+    assert result.fitness == pytest.approx(inliers[sample].mean(), abs=1e-12)
+    assert abs(result.fitness - inliers.mean()) <= 1.5 / np.sqrt(count)
 
 
 def test_fast_index_gives_the_pose_of_the_plain_kd_tree_loop():

@@ -190,7 +190,8 @@ def register(
     if callback is not None or record_history:
         observer = Observer(clouds.source, clouds.index, clouds.frame.callback(callback), record_history)
     outcome, confidence = _refine_from(initial, request, clouds, keypoints, estimate, observer, stages)
-    fitness, inlier_rmse, inlier_distance, pairs = _evaluate(clouds, outcome, request, stages)
+    fitness, inlier_rmse, inlier_distance, pairs = _evaluate(clouds, outcome, request, stages,
+                                                             every_point=return_correspondences)
     correspondences = None
     if return_correspondences:
         estimator = _estimator(method, request, clouds.index, clouds.diagonal)
@@ -490,21 +491,28 @@ def _plane_start(points, clouds: _Clouds, initial, request: _Request, keypoints:
     return plane.transformation, plane.num_iterations, note
 
 
-def _evaluate(clouds: _Clouds, outcome, request: _Request, stages: list):
-    """Stage 4: ``(fitness, inlier_rmse, inlier_distance, (distances, indices, inliers))`` of the
-    final pose of ``outcome`` (working frame), in Open3D's meaning, with each source point's nearest
-    target distance and index (and, for ``esm-paper``, a warning when the clouds were not
-    index-aligned). The refinement's last neighbours of the source points, if it has them, are
-    where the queries start (the same answers, sooner)."""
+def _evaluate(clouds: _Clouds, outcome, request: _Request, stages: list, every_point: bool = False):
+    """Stage 4: ``(fitness, inlier_rmse, inlier_distance, (distances, indices, inliers, sample))`` of
+    the final pose of ``outcome`` (working frame), in Open3D's meaning, on at most
+    ``refine.evaluated_points`` evenly strided source points (``sample``: their indices, None for
+    every point, as with ``every_point`` and ``esm-paper``), with each one's nearest target distance
+    and index (and, for ``esm-paper``, a warning when the clouds were not index-aligned). The
+    refinement's last neighbours of the source points, if it has them, are where the queries start
+    (the same answers, sooner)."""
     started = time.perf_counter()
     source, target_index, warm = clouds.source, clouds.index, outcome.neighbours
+    if warm is not None and len(warm) != len(source):
+        warm = None  # another source's (the strided subsample's)
+    sample = None
+    if not every_point and request.method != "esm-paper" and len(source) > request.refine.evaluated_points:
+        sample = np.linspace(0, len(source) - 1, request.refine.evaluated_points).astype(np.intp)
+        source = source[sample]
+        warm = None if warm is None else warm[sample]
     inlier_distance = request.inlier_distance
     if inlier_distance is None:
         spacing = target_index.spacing()
         inlier_distance = (request.refine.inlier_distance_spacings * spacing if spacing > 0
                            else 1e-6 * bounding_box_diagonal(target_index.points))
-    if warm is not None and len(warm) != len(source):
-        warm = None  # another source's (the strided subsample's)
     distances, indices = target_index.query_near(source, warm=warm, transform=outcome.transformation)
     inliers = distances <= inlier_distance
     fitness = float(inliers.mean())
@@ -514,7 +522,7 @@ def _evaluate(clouds: _Clouds, outcome, request: _Request, stages: list):
     stages.append(Stage("evaluate", time.perf_counter() - started, points=len(source),
                         decided={"fitness": fitness, "inlier_rmse": inlier_rmse,
                                  "inlier_distance": float(inlier_distance)}))
-    return fitness, inlier_rmse, float(inlier_distance), (distances, indices, inliers)
+    return fitness, inlier_rmse, float(inlier_distance), (distances, indices, inliers, sample)
 
 
 def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypoints: Keypoints,
@@ -527,7 +535,7 @@ def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypo
     if request.range_images:
         sensors = SensorClouds(request.source, request.target, inlier_distance)
     verdict = judge(outcome.transformation, source=clouds.source, target_index=clouds.index, keypoints=keypoints,
-                    pairs=pairs[:2], sigma=None if request.method == "icp" else outcome.sigma,  # ICP: unit weights
+                    pairs=pairs[:2], sample=pairs[3], sigma=None if request.method == "icp" else outcome.sigma,  # ICP: unit weights
                     converged=outcome.converged, num_iterations=outcome.num_iterations, config=request.config,
                     policy=request.trust, ambiguous=bool(estimate is not None and estimate.ambiguous),
                     runner_up_ratio=None if estimate is None else estimate.runner_up_ratio, confidence=confidence,
@@ -577,9 +585,10 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
 
 
 def _correspondences(pairs, estimator, sigma: float | None) -> Correspondences:
-    """The inlier pairs of :func:`_evaluate` (``(distances, indices, inliers)``) with the weight
+    """The inlier pairs of :func:`_evaluate` (``(distances, indices, inliers, None)``: every source
+    point's) with the weight
     ``estimator`` gives each at ``sigma`` (1 where it weighs none)."""
-    distances, indices, inliers = pairs
+    distances, indices, inliers, _ = pairs
     weights = estimator.pair_weights(distances, sigma)
     weights = np.ones(len(distances)) if weights is None else np.clip(weights, 0.0, 1.0)
     chosen = np.flatnonzero(inliers)

@@ -61,6 +61,12 @@ class RefineConfig(Config):
     inlier_distance_spacings : float
         The default inlier distance of ``fitness`` and ``inlier_rmse``, in target point spacings
         (gain).
+    evaluated_points : int
+        ``fitness``, ``inlier_rmse`` and the pose covariance's pairs are measured on at most this
+        many evenly strided source points (count; every point when ``return_correspondences`` asks
+        for the pairs, and with ``esm-paper``, whose pairs are by index). A fraction measured on
+        ``n`` such points has a standard error of at most ``0.5 / sqrt(n)`` (0.0025 at 40,000);
+        each pair of the covariance stands for the source points strided over.
     index_aligned_fraction : float
         An ``esm-paper`` result whose source points lie nearest to the target point of their own
         index for less than this fraction of them (0-1) warns that the clouds are not
@@ -93,6 +99,7 @@ class RefineConfig(Config):
     plane_points: int = count(5_000)
     plane_confidence_drop: float = number(0.25, least=0.0)
     inlier_distance_spacings: float = number(3.0, above=0.0)
+    evaluated_points: int = count(40_000, least=3)
     index_aligned_fraction: float = fraction(0.5)
     esm: EsmConfig = part(EsmConfig)
     plane: PlaneConfig = part(PlaneConfig)

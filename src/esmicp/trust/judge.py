@@ -141,6 +141,7 @@ class SensorClouds:
 
 def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypoints: Keypoints,
           pairs: tuple[np.ndarray, np.ndarray] | None, sigma: float | None, converged: bool, num_iterations: int,
+          sample: np.ndarray | None = None,
           config: ConfidenceRanges, policy: TrustPolicy = DEFAULT_POLICY, ambiguous: bool = False,
           runner_up_ratio: float | None = None, confidence: float | None = None, origin: np.ndarray | None = None,
           sensors: SensorClouds | None = None, workers: int | None = None) -> Verdict:
@@ -149,7 +150,9 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     ``transformation`` (4x4 ``T_target_source``), ``source`` (N, 3) and ``keypoints`` are in the
     frame of ``target_index`` (a :class:`~esmicp.core.correspondence.NearestNeighbors`), whose
     origin lies at ``origin`` in the target's own coordinates (None: the same frame). ``pairs``:
-    each source point's nearest target ``(distances, indices)`` at this pose, if known; ``sigma``:
+    each source point's nearest target ``(distances, indices)`` at this pose, if known (``sample``:
+    the indices of the evenly strided source points they are of, None: every point; see
+    :func:`~esmicp.trust.uncertainty.from_registration`); ``sigma``:
     the Gaussian weights' width (cloud units; None: unit weights, as ICP); ``converged``,
     ``num_iterations``: the refinement's; ``ambiguous``, ``runner_up_ratio``: the global search's
     (False and None without one). ``confidence``: the overlap confidence of this pose on
@@ -161,7 +164,7 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     if confidence is None:
         confidence = overlap_confidence(transformation, keypoints, workers, config=config, policy=policy)
     uncertainty = from_registration(source, target_index, transformation, sigma, origin=origin, workers=workers,
-                                    pairs=pairs, policy=policy)
+                                    pairs=pairs, sample=sample, policy=policy)
     free_space, words = None, None
     if sensors is not None:
         from . import free_space as test  # here: it loads SciPy

@@ -376,6 +376,7 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
                       origin: np.ndarray | None = None, workers: int | None = None,
                       warm: np.ndarray | None = None,
                       pairs: tuple[np.ndarray, np.ndarray] | None = None,
+                      sample: np.ndarray | None = None,
                       policy: TrustPolicy = DEFAULT_POLICY) -> PoseUncertainty:
     """:func:`pose_uncertainty` of a registration's final pose.
 
@@ -389,19 +390,31 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
     matches of ``policy.covariance_normals`` of them come from the
     ``policy.covariance_normal_neighbours`` nearest target points, and each cloud's noise (:func:`surface_noise`) from as many
     of its points and their ``policy.noise_neighbours`` nearest; ``policy``: the estimate's values.
+    ``sample``: the indices of evenly strided source points that alone are paired (``pairs`` then
+    theirs); each pair stands for ``len(source) / len(sample)`` source points (its weight and its
+    gradient that many times, the clouds' noise variance along the normals that many times less),
+    so that the covariance is the whole source's where neighbouring residuals are correlated and
+    no smaller where they are not. Each cloud's noise is still measured on all its points.
     """
     from ..core.procrustes import apply
     from ..core.weights import relative_gaussian_weights
     from ..core.features import NormalEstimator
 
-    placed = apply(transformation, source)
+    stands_for = 1.0
+    paired = source
+    if sample is not None:
+        paired = source[sample]
+        stands_for = len(source) / max(len(sample), 1)
+    placed = apply(transformation, paired)
     if pairs is not None:
         distances, indices = pairs
     else:
-        if warm is not None and len(warm) != len(source):
+        if warm is not None and len(warm) != len(paired):
             warm = None  # another source's (a subsample's)
         distances, indices = target_index.query_near(placed, warm=warm)
     weights = None if sigma is None else relative_gaussian_weights(distances, sigma)
+    if stands_for != 1.0:
+        weights = np.full(len(placed), stands_for) if weights is None else weights * stands_for
     target = target_index.points
     normals, noise = None, None
     if len(target) >= 3:
@@ -415,6 +428,7 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
                                neighbours=policy.noise_neighbours, workers=workers),
                  surface_noise(target, target[unique], tree=target_index.exact_tree(),
                                neighbours=policy.noise_neighbours, workers=workers) * sharing(indices, weights))
+        noise = (noise[0] / stands_for, noise[1] / stands_for)
     return pose_uncertainty(placed, target[indices], weights, normals, spacing=target_index.spacing(), origin=origin,
                             noise=noise, policy=policy)
 
