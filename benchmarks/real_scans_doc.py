@@ -70,6 +70,14 @@ def not_leading(rows) -> list[str]:
     return lines or ["- nowhere in this run."]
 
 
+#: The section ``benchmarks/fastest_peer_doc.py`` fills (between its markers) from its own run.
+FASTEST_PEER = """## Against the fastest peer pipeline
+
+<!-- fastest_peer: begin -->
+(`python benchmarks/fastest_peer_doc.py RESULTS --doc docs/real-scans.md` writes this part.)
+<!-- fastest_peer: end -->
+"""
+
 MORE_ON_SCANS = """## More on scans
 
 Written by their own benchmarks, so that regenerating this page keeps them:
@@ -141,6 +149,7 @@ def page(rows, command: str, objects: str | None = None, objects_command: str = 
             objects.strip(),
             "",
         ]
+    parts += FASTEST_PEER.splitlines()
     parts += MORE_ON_SCANS.splitlines()
     return "\n".join(parts) + "\n"
 
