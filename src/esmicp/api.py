@@ -147,8 +147,10 @@ def register(
     return_correspondences : bool
         Also return the final pose's point pairs in ``result.correspondences``
         (:class:`~esmicp.result.Correspondences`: source and target indices, weights, distances
-        of the pairs within ``inlier_distance``, Open3D's ``correspondence_set``); they cost
-        nothing more to find, but hold four arrays per pair.
+        of the pairs within ``inlier_distance``, Open3D's ``correspondence_set``); they hold
+        four arrays per pair, and on a source of more than ``config.refine.evaluated_points``
+        (40,000) points every source point is then evaluated (else a strided subset is: see
+        :class:`esmicp.config.RefineConfig`).
     config : esmicp.config.RegistrationConfig, esmicp.globalreg.config.SearchConfig or dict, optional
         The tuned values: the global search's (and the overlap confidence's ranges), the local
         refinement's (:class:`esmicp.config.RefineConfig`) and the trust policy the result is
