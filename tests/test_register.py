@@ -796,11 +796,11 @@ def test_the_strided_stages_stop_at_their_own_tolerance_without_moving_the_pose(
     assert np.linalg.norm(default.transformation[:3, 3] - followed.transformation[:3, 3]) < 1e-3 * diagonal
 
 
-def test_a_small_source_after_a_global_search_stops_at_the_strided_tolerance():
+def test_a_small_source_after_a_global_search_stops_at_the_whole_tolerance():
     """After a global search, a source too small for the strided stages (the 3DMatch pair
-    ``t04_s06``: 16k source points) is refined whole at ``strided_tolerance`` too: following the
-    caller's 1e-8 there crept on for 94 iterations and moved the pose by 0.004
-    degrees. Fails if the small-source path ignores the strided tolerance. A given ``init`` keeps
+    ``t04_s06``: 16k source points) is refined whole at ``whole_tolerance``: following the
+    caller's 1e-8 there creeps on for many more iterations and moves the pose by hundredths of a
+    degree. Fails if the small-source path ignores that tolerance. A given ``init`` keeps
     the caller's tolerance."""
     from esmicp_lab.bench.real_pairs import load_pair, read_pairs
 
@@ -808,20 +808,20 @@ def test_a_small_source_after_a_global_search_stops_at_the_strided_tolerance():
     source, target, _ = load_pair(pair)
     assert len(source) <= 2 * REFINE.strided_points
     default = esmicp.register(source, target)
-    followed = esmicp.register(source, target, config=refined_on(REFINE.strided_points, strided_tolerance=0.0))
+    followed = esmicp.register(source, target, config=refined_on(REFINE.strided_points, whole_tolerance=0.0))
     assert default.num_iterations < followed.num_iterations
     assert rotation_error_deg(default.transformation, followed.transformation[:3, :3]) < 0.05
     assert np.linalg.norm(default.transformation[:3, 3] - followed.transformation[:3, 3]) < 0.01  # metres
-    # a strided tolerance of 1 would stop a tolerance-driven run at once
+    # a tolerance of 1 would stop a tolerance-driven run at once
     given = esmicp.register(source, target, init=default.transformation, max_iterations=5,
-                            config=refined_on(REFINE.strided_points, strided_tolerance=1.0))
+                            config=refined_on(REFINE.strided_points, whole_tolerance=1.0, strided_tolerance=1.0))
     assert given.num_iterations > 1  # one iteration would mean it stopped at the strided tolerance
 
 
 def test_a_small_object_after_a_global_search_keeps_the_callers_tolerance():
     """Below ``RefineConfig.looser_from_points`` source points the refinement after a global search
     keeps the caller's tolerance: on 2,000-point objects with 60% outliers it can still be sliding
-    steadily at ``strided_tolerance`` (measured: a cup 0.8 -> 5.1 degrees). Fails if the floor is
+    steadily at the looser tolerances (measured: a cup 0.8 -> 5.1 degrees). Fails if the floor is
     dropped."""
     from esmicp.shapes import asymmetric_shape
 
@@ -829,6 +829,7 @@ def test_a_small_object_after_a_global_search_keeps_the_callers_tolerance():
     target = asymmetric_shape(2000, rng)
     source = apply(to_matrix(Rotation.random(random_state=4).as_matrix(), [0.3, -0.2, 0.1]), asymmetric_shape(2000, rng))
     assert len(source) <= REFINE.looser_from_points
-    # a strided tolerance of 1 would stop a tolerance-driven run at once
-    result = esmicp.register(source, target, config=refined_on(REFINE.strided_points, strided_tolerance=1.0))
+    # a tolerance of 1 would stop a tolerance-driven run at once
+    result = esmicp.register(source, target, config=refined_on(REFINE.strided_points, strided_tolerance=1.0,
+                                                                whole_tolerance=1.0))
     assert result.init.startswith("global") and result.num_iterations > 1

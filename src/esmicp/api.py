@@ -119,10 +119,10 @@ def register(
         translates less than ``tolerance`` times the target's bounding-box diagonal, or once the
         RMS correspondence distance changes by less than ``tolerance`` relative to itself. After a
         global search, the refinement of a source of more than ``config.refine.looser_from_points``
-        (10,000) points stops at ``config.refine.strided_tolerance`` (1e-5) when ``tolerance`` is
-        finer. A given ``init`` and smaller sources keep ``tolerance``. (A source of more than twice
-        ``config.refine.strided_points`` (20,000) points is refined on that many evenly strided
-        points.)
+        (10,000) points stops at ``config.refine.whole_tolerance`` (3e-5) when ``tolerance`` is
+        finer, and at ``config.refine.strided_tolerance`` (1e-5) on a source of more than twice
+        ``config.refine.strided_points`` (20,000) points, which is refined on that many evenly
+        strided points. A given ``init`` and smaller sources keep ``tolerance``.
     rng : None, int or numpy.random.Generator
         Randomness of the global search (its subsamples). None uses a fixed seed, so the same input
         gives the same result; local refinement itself is deterministic.
@@ -329,7 +329,7 @@ def _refine(clouds: _Clouds, estimator, initial, request: _Request, keypoints: K
             estimate: GlobalEstimate | None, observer: Observer | None, stages: list, name: str = "refine"):
     """``estimator`` from ``initial`` (working frame): on a large source the strided run
     (:func:`_refine_strided`), else the whole source at once (after a global
-    search, from ``refine.looser_from_points`` points on, at ``refine.strided_tolerance`` when the request's
+    search, from ``refine.looser_from_points`` points on, at ``refine.whole_tolerance`` when the request's
     tolerance is finer); the stage ``name``. ``observer`` (the callback and the history, working
     frame) watches every stage and changes none."""
     source = clouds.source
@@ -339,7 +339,7 @@ def _refine(clouds: _Clouds, estimator, initial, request: _Request, keypoints: K
     started = time.perf_counter()
     criteria = request.criteria
     if estimate is not None and len(source) > request.refine.looser_from_points:
-        criteria = _at_strided_tolerance(criteria, request.refine)
+        criteria = dataclasses.replace(criteria, tolerance=max(criteria.tolerance, request.refine.whole_tolerance))
     outcome = guarded_refine(
         source, clouds.index, estimator, init=initial, criteria=criteria, scale=clouds.diagonal,
         coarse_points=request.refine.esm.coarse_points, observer=observer, loop=request.refine.loop,
