@@ -193,6 +193,11 @@ class ScanStrategyConfig(Config):
     leading_tolerance : float
         The power iteration of the compatibility matrix's leading eigenvector stops once a step
         moves no entry by more than this (unit-norm vector entries).
+    occupancy_points : int
+        Source keypoints (at most, evenly strided) on which every pose fit of the pruning is
+        scored before the best distinct ones are verified (count): the fraction it places within
+        about two ``VERIFY_VOXELS`` of a target keypoint
+        (:func:`~esmicp.globalreg.pruning.occupancy_scores`).
     hypotheses : int
         Distinct hypotheses verified on the overlap (count).
     distinct_voxels : float
@@ -236,6 +241,7 @@ class ScanStrategyConfig(Config):
     seed_spread_voxels: float = number(3.0, least=0.0)
     group_size: int = count(30)
     leading_tolerance: float = number(1e-6, above=0.0)
+    occupancy_points: int = count(500)
     hypotheses: int = count(6)
     distinct_voxels: float = number(3.0, least=0.0)
     contender_voxels: float = number(6.0, least=0.0)
