@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from esmicp.core.procrustes import batched_weighted_procrustes, to_matrix
 from esmicp.globalreg.feature_matching import _inlier_mask
-from esmicp.globalreg.pruning import occupancy_scores
+from esmicp.globalreg.pruning import best_of_both, occupancy_scores
 from esmicp.globalreg.scan import prune
 from esmicp.metrics import rotation_error_deg
 
@@ -58,7 +58,7 @@ def _best_fit(source, target, paired_source, paired_target):
     """The pruning's fit that places the most source points on the target, refit twice on its own
     inliers (as the scan strategy does before its ICP)."""
     rotations, translations = prune(paired_source, paired_target, TOLERANCE)
-    scores = occupancy_scores(rotations, translations, source, target, VOXEL, 500)
+    scores = occupancy_scores(rotations, translations, source, target, 0.5 * VOXEL, 500)  # as the scan search
     best = int(np.argmax(scores))
     rotation, translation = rotations[best:best + 1], translations[best:best + 1]
     for _ in range(2):
@@ -107,3 +107,14 @@ def test_occupancy_counts_what_lands_near_the_target_and_not_the_target_order():
     np.testing.assert_array_equal(scores, shuffled)
     assert np.all((scores >= 0.0) & (scores < 1.0))
     assert len(occupancy_scores(np.zeros((0, 3, 3)), np.zeros((0, 3)), target, target, VOXEL, 400)) == 0
+
+
+def test_the_fits_kept_are_the_best_distinct_ones_of_each_score():
+    rotations = Rotation.from_rotvec(np.outer(np.arange(8), [0.0, 0.0, np.radians(30)])).as_matrix()
+    translations = np.zeros((8, 3))
+    rotations[1], rotations[5] = rotations[0], rotations[4]  # 1 repeats 0, 5 repeats 4
+    first = np.array([9.0, 8.0, 7.0, 1.0, 2.0, 3.0, 0.0, 0.0])
+    second = np.array([0.0, 0.0, 1.0, 5.0, 9.0, 8.0, 7.0, 0.0])
+    kept = best_of_both(rotations, translations, first, second, 2, 0.1, 10.0)
+    np.testing.assert_array_equal(kept, [0, 2, 4, 6])  # 1 and 5 repeat a better fit; 7 is best by neither
+    assert set(best_of_both(rotations, translations, first, first, 2, 0.1, 10.0)) == {0, 2}

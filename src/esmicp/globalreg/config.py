@@ -196,10 +196,11 @@ class ScanStrategyConfig(Config):
     occupancy_points : int
         Source keypoints (at most, evenly strided) on which every pose fit of the pruning is
         scored before the best distinct ones are verified (count): the fraction it places within
-        about two ``VERIFY_VOXELS`` of a target keypoint
-        (:func:`~esmicp.globalreg.pruning.occupancy_scores`).
+        about ``VERIFY_VOXELS`` of a target keypoint
+        (:func:`~esmicp.globalreg.pruning.occupancy_scores`, cells of half that distance).
     hypotheses : int
-        Distinct hypotheses verified on the overlap (count).
+        Distinct hypotheses verified on the overlap from each ranking of the pruning's fits (by
+        correspondence inliers and by ``occupancy_points``; count, at most twice this in all).
     distinct_voxels : float
         Two hypotheses are distinct when their translations differ by more than this many
         keypoint voxels (gain; or their rotations by

@@ -11,7 +11,9 @@ keypoints land on the target.
 strided sample of the source keypoints that each fit places in a cell occupied by the target (its
 keypoints' cells and their 26 neighbours, so a hit lies within about two cell edges). A sorted
 array of the occupied cells' keys answers every lookup; no tree descent, whose cost grows with a
-wrong pose's distance from the data. The scan strategy keeps the best distinct fits by this score.
+wrong pose's distance from the data. This score does not tell a fit slid along a wall or a floor
+from the truth, which the correspondences do: :func:`best_of_both` keeps the best distinct fits by
+each score, for the verification on the overlap to decide.
 
 Transforms are ``T_target_source``: a fit maps ``source @ R.T + t`` into the target frame.
 """
@@ -19,6 +21,8 @@ Transforms are ``T_target_source``: a fit maps ``source @ R.T + t`` into the tar
 from __future__ import annotations
 
 import numpy as np
+
+from .feature_matching import _distinct_order
 
 #: The 27 cell offsets of a cell and its neighbours (a target cell is counted as occupied around it).
 _NEIGHBOURS = np.stack(np.meshgrid(*(np.arange(-1, 2),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -67,3 +71,21 @@ def occupancy_scores(rotations: np.ndarray, translations: np.ndarray, source: np
     occupied = _OccupiedCells(np.asarray(target, dtype=np.float64), cell)
     placed = np.matmul(sample, rotations.transpose(0, 2, 1)) + translations[:, None, :]
     return occupied.contains(placed).mean(axis=1)
+
+
+def best_of_both(rotations: np.ndarray, translations: np.ndarray, first: np.ndarray, second: np.ndarray,
+                 count: int, min_translation: float, min_rotation_deg: float) -> np.ndarray:
+    """Indices of the fits to verify: at most ``count`` mutually distinct fits best by score
+    ``first`` (e.g. correspondence inliers), then at most ``count`` best by ``second`` (e.g.
+    :func:`occupancy_scores`) that are distinct from all kept before them. Two fits are distinct
+    when their rotations differ by more than ``min_rotation_deg`` degrees or their translations by
+    more than ``min_translation`` (cloud units)."""
+    by_first = _distinct_order(rotations, translations, np.asarray(first, dtype=np.float64), count,
+                               min_translation, min_rotation_deg)
+    by_second = _distinct_order(rotations, translations, np.asarray(second, dtype=np.float64), count,
+                                min_translation, min_rotation_deg)
+    pooled = np.concatenate([by_first, by_second])
+    priority = -np.arange(len(pooled), dtype=np.float64)  # the order above: first's, then second's
+    kept = _distinct_order(rotations[pooled], translations[pooled], priority, len(pooled), min_translation,
+                           min_rotation_deg)
+    return pooled[kept]
