@@ -193,14 +193,8 @@ class ScanStrategyConfig(Config):
     leading_tolerance : float
         The power iteration of the compatibility matrix's leading eigenvector stops once a step
         moves no entry by more than this (unit-norm vector entries).
-    occupancy_points : int
-        Source keypoints (at most, evenly strided) on which every pose fit of the pruning is
-        scored before the best distinct ones are verified (count): the fraction it places within
-        about ``VERIFY_VOXELS`` of a target keypoint
-        (:func:`~esmicp.globalreg.pruning.occupancy_scores`, cells of half that distance).
     hypotheses : int
-        Distinct hypotheses verified on the overlap from each ranking of the pruning's fits (by
-        correspondence inliers and by ``occupancy_points``; count, at most twice this in all).
+        Distinct hypotheses verified on the overlap (count).
     distinct_voxels : float
         Two hypotheses are distinct when their translations differ by more than this many
         keypoint voxels (gain; or their rotations by
@@ -242,7 +236,6 @@ class ScanStrategyConfig(Config):
     seed_spread_voxels: float = number(3.0, least=0.0)
     group_size: int = count(30)
     leading_tolerance: float = number(1e-6, above=0.0)
-    occupancy_points: int = count(500)
     hypotheses: int = count(6)
     distinct_voxels: float = number(3.0, least=0.0)
     contender_voxels: float = number(6.0, least=0.0)

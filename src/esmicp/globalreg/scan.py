@@ -22,12 +22,8 @@ so a pair scaled by 1000 gives the same pose):
    highest leading-eigenvector score of the compatibility matrix, spread apart in both clouds)
    each grow a group of their ``group_size`` most second-order-compatible partners; each group is
    solved by a Kabsch fit weighted by the leading eigenvector of its own second-order matrix.
-5. **Hypotheses.** The best distinct fits by each of two scores, which fail differently: the
-   correspondences a fit maps within the compatibility distance, and the fraction of source
-   keypoints it places on the target (:mod:`esmicp.globalreg.pruning`; at 1-5% true
-   correspondences a wrong fit agrees with about as many correspondences as the right one, while
-   the keypoints it places do not tell a slide along a wall or floor from the truth). Each is
-   refit on its correspondence inliers.
+5. **Hypotheses.** Each fit is scored by the correspondences it maps within the compatibility
+   distance; the best distinct ones are refit on their inliers.
 6. **Verification on the overlap** (:func:`overlap_counts`). ICP on the keypoints until each
    pose settles (:func:`_icp`, all poses in one batch), then the keypoints lying within
    ``SearchConfig.scan.keypoint.coincide_voxels`` of the other cloud, counted both ways (source on target and target on
@@ -59,7 +55,6 @@ from ..trust.confidence import overlap_confidence
 from ..trust.policy import DEFAULT_POLICY, TrustPolicy
 from .feature_matching import _keypoints, _inlier_counts, _inlier_mask, _distinct_order
 from .config import DEFAULT, SearchConfig
-from .pruning import best_of_both, occupancy_scores
 
 
 
@@ -314,12 +309,8 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
     if len(rotations) == 0:
         return empty
     counts = _inlier_counts(rotations, translations, paired_source, paired_target, tolerance, workers)
-    # Cells of half the verification's distance: a hit (its cell or a neighbour occupied) lies
-    # within about that distance of a target keypoint, as the verification counts it.
-    landed = occupancy_scores(rotations, translations, source_keys, target_keys,
-                              0.5 * VERIFY_VOXELS * voxel, settings.occupancy_points)
-    keep = best_of_both(rotations, translations, counts, landed, settings.hypotheses,
-                        settings.distinct_voxels * voxel, config.verification.distinct_rotation_deg)
+    keep = _distinct_order(rotations, translations, counts, settings.hypotheses,
+                           settings.distinct_voxels * voxel, config.verification.distinct_rotation_deg)
     rotations, translations = rotations[keep], translations[keep]
     # Refit each on its own inliers (twice).
     for _ in range(2):
