@@ -392,7 +392,8 @@ class RegistrationResult:
         return Verdict.of(converged=self.converged, num_iterations=self.num_iterations, confidence=self.confidence,
                           ambiguous=self.ambiguous, runner_up_ratio=self.runner_up_ratio,
                           degenerate_directions=self.degenerate_directions,
-                          free_space=self.free_space, policy=self.policy)
+                          free_space=self.free_space, policy=self.policy,
+                          handedness=None if self.verdict is None else self.verdict.handedness)
 
     def _weighed_by(self, verdict: Verdict) -> bool:
         """True when ``verdict`` weighed this result's own fields."""

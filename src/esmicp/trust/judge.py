@@ -15,11 +15,12 @@ import numpy as np
 
 from ..core.keypoints import Keypoints
 from .confidence import ConfidenceRanges, overlap_confidence
+from .handedness import Handedness, handedness as handedness_of
 from .policy import DEFAULT_POLICY, TrustPolicy
 from .uncertainty import DegenerateDirection, PoseUncertainty, from_registration
 
 #: The kinds of :class:`Doubt`, in the order a verdict lists them.
-DOUBT_KINDS = ("not converged", "confidence", "ambiguous", "degenerate", "free space")
+DOUBT_KINDS = ("not converged", "confidence", "ambiguous", "degenerate", "free space", "mirrored")
 
 
 @dataclass(frozen=True)
@@ -54,6 +55,10 @@ class Verdict:
         None when the test did not apply (clouds not declared range images).
     converged, num_iterations, ambiguous, runner_up_ratio
         What the refinement and the search reported, as weighed.
+    handedness : Handedness or None
+        The pose's fit against the best mirror image of the source near it
+        (:func:`esmicp.trust.handedness.handedness`); None when not tested: the test runs only on a
+        pose nothing else casts doubt on at the policy's bar.
     policy : TrustPolicy
         The bars the pose was judged by.
     doubts : tuple of Doubt
@@ -71,6 +76,7 @@ class Verdict:
     runner_up_ratio: float | None
     policy: TrustPolicy
     doubts: tuple[Doubt, ...]
+    handedness: Handedness | None = None
 
     @property
     def trusted(self) -> bool:
@@ -80,32 +86,36 @@ class Verdict:
     def at(self, bar: float) -> tuple[Doubt, ...]:
         """The doubts with the overlap confidence held to ``bar`` (0-1) instead of the policy's bar."""
         return weigh(self.converged, self.num_iterations, self.confidence, self.ambiguous, self.runner_up_ratio,
-                     self.degenerate_directions, self.free_space, self.policy, bar)
+                     self.degenerate_directions, self.free_space, self.policy, bar, self.handedness)
 
     @classmethod
     def of(cls, *, converged: bool, num_iterations: int, confidence: float | None, ambiguous: bool = False,
            runner_up_ratio: float | None = None, uncertainty: PoseUncertainty | None = None,
            degenerate_directions: tuple[DegenerateDirection, ...] | None = None, free_space: float | None = None,
-           free_space_words: str | None = None, policy: TrustPolicy = DEFAULT_POLICY) -> "Verdict":
+           free_space_words: str | None = None, policy: TrustPolicy = DEFAULT_POLICY,
+           handedness: Handedness | None = None) -> "Verdict":
         """The verdict on measurements already made (no measuring: :func:`judge` measures).
         ``degenerate_directions``: those of ``uncertainty`` when None (none without it)."""
         if degenerate_directions is None:
             degenerate_directions = () if uncertainty is None else uncertainty.degenerate_directions
         doubts = weigh(converged, num_iterations, confidence, ambiguous, runner_up_ratio, degenerate_directions,
-                       free_space, policy)
+                       free_space, policy, handedness=handedness)
         return cls(confidence, uncertainty, tuple(degenerate_directions), free_space, free_space_words,
-                   bool(converged), int(num_iterations), bool(ambiguous), runner_up_ratio, policy, doubts)
+                   bool(converged), int(num_iterations), bool(ambiguous), runner_up_ratio, policy, doubts, handedness)
 
 
 def weigh(converged: bool, num_iterations: int, confidence: float | None, ambiguous: bool,
           runner_up_ratio: float | None, degenerate_directions, free_space: float | None,
-          policy: TrustPolicy = DEFAULT_POLICY, bar: float | None = None) -> tuple[Doubt, ...]:
+          policy: TrustPolicy = DEFAULT_POLICY, bar: float | None = None,
+          handedness: Handedness | None = None) -> tuple[Doubt, ...]:
     """Every reason not to trust a pose, in the order of :data:`DOUBT_KINDS`: the refinement did not
     converge (a run stopped by ``max_iterations``, a callback or a problem may still be degrees
     from where it was heading), the overlap ``confidence`` is missing or below ``bar`` (default
     ``policy.trusted``), the search found the pose ``ambiguous``, a direction is degenerate (a
     floor or a wall seen alone, or a corridor, lets the pose slide however sharply the clouds
-    coincide), the ``free_space`` fraction (when measured) is above ``policy.max_free_space_pair``."""
+    coincide), the ``free_space`` fraction (when measured) is above ``policy.max_free_space_pair``,
+    a mirror image of the source fits clearly better than the pose (``handedness``, when tested:
+    no rotation turns a left hand into a right one)."""
     bar = policy.trusted if bar is None else bar
     doubts = []
     if not converged:
@@ -126,6 +136,10 @@ def weigh(converged: bool, num_iterations: int, confidence: float | None, ambigu
         failed, words = pair_verdict(free_space, policy)
         if failed:
             doubts.append(Doubt("free space", words))
+    if handedness is not None and handedness.mirrored:
+        doubts.append(Doubt("mirrored", f"mirrored: a mirror image of the source coincides with the target on "
+                                        f"{100 * handedness.improper:.0f}% of the overlap, the pose on "
+                                        f"{100 * handedness.proper:.0f}%: one cloud looks left-handed to the other"))
     return tuple(doubts)
 
 
@@ -173,9 +187,15 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
         free_space = test.free_space_fraction(sensors.target, sensors.source, own,
                                               policy.free_space_tolerance_inliers * sensors.inlier_distance, policy)
         words = test.pair_verdict(free_space, policy)[1]
-    return Verdict.of(converged=converged, num_iterations=num_iterations, confidence=confidence, ambiguous=ambiguous,
-                      runner_up_ratio=runner_up_ratio, uncertainty=uncertainty, free_space=free_space,
-                      free_space_words=words, policy=policy)
+    verdict = Verdict.of(converged=converged, num_iterations=num_iterations, confidence=confidence,
+                         ambiguous=ambiguous, runner_up_ratio=runner_up_ratio, uncertainty=uncertainty,
+                         free_space=free_space, free_space_words=words, policy=policy)
+    if verdict.trusted:  # the handedness test costs some hundred keypoint queries: only where it decides
+        verdict = Verdict.of(converged=converged, num_iterations=num_iterations, confidence=confidence,
+                             ambiguous=ambiguous, runner_up_ratio=runner_up_ratio, uncertainty=uncertainty,
+                             free_space=free_space, free_space_words=words, policy=policy,
+                             handedness=handedness_of(transformation, keypoints, workers, policy=policy))
+    return verdict
 
 
 def _unshifted(transformation: np.ndarray, origin: np.ndarray | None) -> np.ndarray:

@@ -116,6 +116,24 @@ class TrustPolicy(Config):
     noise_neighbours : int
         A cloud's noise is the scatter of this many nearest points about their plane (count;
         fewer: less of the surface's curvature read as noise, a noisier reading).
+    mirror_margin : float
+        A pose is doubted as mirrored when the best mirror image of the source, fitted near it,
+        coincides with the target on more than this share (0-1) of the overlapping keypoints
+        beyond the pose's own share (:func:`esmicp.trust.handedness.handedness`).
+    mirror_iterations : int
+        Iterations of the trimmed ICP on keypoints that fits the pose and the best mirror image in
+        that test (count) ...
+    mirror_planes : int
+        Mirror planes tried besides the three principal planes of the source keypoints: their
+        normals spread evenly over a hemisphere (count).
+    mirror_points : int
+        ... on at most this many source keypoints, evenly strided (count).
+    mirror_coarse_iterations : int
+        Iterations that fit each mirror image before the best is chosen (count) ...
+    mirror_coarse_points : int
+        ... on at most this many source keypoints, evenly strided (count).
+    mirror_candidates : int
+        The mirror images that coincide best after that coarse fit and are fitted on (count).
 
     References
     ----------
@@ -165,6 +183,13 @@ class TrustPolicy(Config):
     covariance_normals: int = count(600)
     covariance_normal_neighbours: int = count(20, least=3)
     noise_neighbours: int = count(10, least=4)
+    mirror_margin: float = fraction(0.1)
+    mirror_iterations: int = count(10)
+    mirror_planes: int = count(16)
+    mirror_points: int = count(1000)
+    mirror_coarse_iterations: int = count(10)
+    mirror_coarse_points: int = count(300)
+    mirror_candidates: int = count(3)
 
 
 #: The policy every judgement uses unless given another.
