@@ -139,3 +139,4 @@ def _coincident_share(pose: np.ndarray, source: np.ndarray, keypoints: Keypoints
             return 0.0
         shares.append(np.count_nonzero(distances <= VERIFY_VOXELS * voxel) / overlap)
     return float(min(shares))
+

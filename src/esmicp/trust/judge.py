@@ -145,12 +145,31 @@ def weigh(converged: bool, num_iterations: int, confidence: float | None, ambigu
 
 @dataclass(frozen=True, eq=False)
 class SensorClouds:
-    """The two clouds of a pair of range images, each in its own sensor frame (the sensor at the
-    origin), and the inlier distance (cloud units) the free-space test's tolerance is a gain of."""
+    """The two clouds of a pair, each in its own frame, for the free-space test; the inlier
+    distance (cloud units) the test's tolerance is a gain of; and whether they are range images
+    in their sensor frames (the sensor at the origin): ``range_images`` True or False as declared,
+    None to establish it from each cloud's own points
+    (:func:`esmicp.trust.free_space.range_image_test`; the test then runs only when both are)."""
 
     source: np.ndarray
     target: np.ndarray
     inlier_distance: float
+    range_images: bool | None = True
+
+    def premise(self, policy: TrustPolicy) -> str | None:
+        """None when both clouds are range images (declared, or as their points show); else why
+        not, in words."""
+        if self.range_images is not None:
+            return None if self.range_images else "declared not range images"
+        from .free_space import range_image_test  # here: it loads SciPy
+
+        for name, cloud in (("source", self.source), ("target", self.target)):
+            cloud = np.asarray(cloud, dtype=np.float64)
+            subset = cloud[np.linspace(0, len(cloud) - 1, min(len(cloud), policy.free_space_points)).astype(np.intp)]
+            test = range_image_test(subset, policy)
+            if not test.range_image:
+                return f"the {name} is not a range image from its origin: {test.reason}"
+        return None
 
 
 def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypoints: Keypoints,
@@ -171,30 +190,31 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     ``num_iterations``: the refinement's; ``ambiguous``, ``runner_up_ratio``: the global search's
     (False and None without one). ``confidence``: the overlap confidence of this pose on
     ``keypoints`` when the refinement already measured it (else measured here, with the ranges of
-    ``config``, a :class:`~esmicp.globalreg.config.SearchConfig`). ``sensors``: the clouds as range
-    images in their sensor frames, for the free-space test (None: no such test). ``policy``: the
-    bars and the measures' values; ``workers``: threads of the compiled kernels (None: every core).
+    ``config``, a :class:`~esmicp.globalreg.config.SearchConfig`). ``sensors``: the clouds in their
+    own frames for the free-space test (None: no such test); declared range images are tested
+    always, clouds of unknown kind (``sensors.range_images`` None) only when nothing else casts
+    doubt on the pose and both prove range images (:meth:`SensorClouds.premise`). The handedness
+    test (:func:`esmicp.trust.handedness.handedness`) runs last, on a pose nothing else casts doubt
+    on. ``policy``: the bars and the measures' values; ``workers``: threads of the compiled
+    kernels (None: every core).
     """
     if confidence is None:
         confidence = overlap_confidence(transformation, keypoints, workers, config=config, policy=policy)
     uncertainty = from_registration(source, target_index, transformation, sigma, origin=origin, workers=workers,
                                     pairs=pairs, sample=sample, policy=policy)
-    free_space, words = None, None
-    if sensors is not None:
+    measured = dict(converged=converged, num_iterations=num_iterations, confidence=confidence, ambiguous=ambiguous,
+                    runner_up_ratio=runner_up_ratio, uncertainty=uncertainty, policy=policy)
+    verdict = Verdict.of(**measured)
+    if sensors is not None and (sensors.range_images or (verdict.trusted and sensors.premise(policy) is None)):
         from . import free_space as test  # here: it loads SciPy
 
         own = _unshifted(transformation, origin)
-        free_space = test.free_space_fraction(sensors.target, sensors.source, own,
-                                              policy.free_space_tolerance_inliers * sensors.inlier_distance, policy)
-        words = test.pair_verdict(free_space, policy)[1]
-    verdict = Verdict.of(converged=converged, num_iterations=num_iterations, confidence=confidence,
-                         ambiguous=ambiguous, runner_up_ratio=runner_up_ratio, uncertainty=uncertainty,
-                         free_space=free_space, free_space_words=words, policy=policy)
+        measured["free_space"] = test.free_space_fraction(
+            sensors.target, sensors.source, own, policy.free_space_tolerance_inliers * sensors.inlier_distance, policy)
+        measured["free_space_words"] = test.pair_verdict(measured["free_space"], policy)[1]
+        verdict = Verdict.of(**measured)
     if verdict.trusted:  # the handedness test costs some hundred keypoint queries: only where it decides
-        verdict = Verdict.of(converged=converged, num_iterations=num_iterations, confidence=confidence,
-                             ambiguous=ambiguous, runner_up_ratio=runner_up_ratio, uncertainty=uncertainty,
-                             free_space=free_space, free_space_words=words, policy=policy,
-                             handedness=handedness_of(transformation, keypoints, workers, policy=policy))
+        verdict = Verdict.of(**measured, handedness=handedness_of(transformation, keypoints, workers, policy=policy))
     return verdict
 
 
