@@ -31,11 +31,12 @@ from .policy import DEFAULT_POLICY, TrustPolicy
 class Handedness:
     """The outcome of :func:`handedness`: ``proper``, the share (0-1) of the overlapping keypoints
     that coincide at the pose (fitted on keypoints), and ``improper``, the same share at the best
-    mirror image of the source (the smaller of the two directions each); ``mirrored``, whether
-    ``improper`` exceeds ``proper`` by more than the policy's ``mirror_margin``."""
+    mirror image of the source (the smaller of the two directions each; None when not measured:
+    ``proper`` is within the policy's ``mirror_margin`` of 1, so no mirror image can beat it);
+    ``mirrored``, whether ``improper`` exceeds ``proper`` by more than that margin."""
 
     proper: float
-    improper: float
+    improper: float | None
     mirrored: bool
 
 
@@ -69,6 +70,8 @@ def handedness(transformation: np.ndarray, keypoints: Keypoints, workers: int | 
 
     pose = _fit(transformation, fine, keypoints, workers, policy, policy.mirror_iterations)
     proper = _coincident_share(pose, fine, keypoints, workers, policy)
+    if proper + policy.mirror_margin >= 1.0:  # no mirror image can beat it by the margin
+        return Handedness(proper, None, False)
     ranked = []
     for normal in normals:
         fitted = _fit(transformation, mirror(coarse, normal), keypoints, workers, policy,
