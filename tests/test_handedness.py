@@ -45,6 +45,8 @@ def test_a_shape_that_is_its_own_mirror_image_is_not_doubted():
     box[np.arange(len(box)), rng.integers(0, 3, len(box))] = rng.choice([-1.0, 1.0], len(box))
     box *= np.array([1.0, 0.6, 0.3])
     source, target = box[::2] * np.array([-1.0, 1.0, 1.0]), box[1::2]
-    keypoints = Keypoints.of(source, target, NearestNeighbors(target).spacing(), SearchConfig().keypoints)
-    result = handedness(np.eye(4), keypoints)
+    config = SearchConfig()
+    keypoints = Keypoints.of(source, target, NearestNeighbors(target).spacing(), config.keypoints,
+                             config.scan.keypoint.min_voxel_spacings)
+    result = handedness(np.eye(4), keypoints, coincide_voxels=config.scan.keypoint.coincide_voxels)
     assert result is not None and not result.mirrored

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.keypoints import VERIFY_VOXELS, Keypoints
+from ..core.keypoints import Keypoints
 from ..core.procrustes import weighted_procrustes
 from .policy import DEFAULT_POLICY, TrustPolicy
 
@@ -41,10 +41,11 @@ class Handedness:
 
 
 def handedness(transformation: np.ndarray, keypoints: Keypoints, workers: int | None = None, *,
-               policy: TrustPolicy = DEFAULT_POLICY) -> Handedness | None:
+               coincide_voxels: float, policy: TrustPolicy = DEFAULT_POLICY) -> Handedness | None:
     """:class:`Handedness` of the pose ``transformation`` (4x4 ``T_target_source``) on
-    ``keypoints``; None when either cloud has fewer than ``policy.min_coincident`` keypoints (too
-    few to tell).
+    ``keypoints``, two keypoints coinciding within ``coincide_voxels`` keypoint voxels (the
+    overlap confidence's distance, ``SearchConfig.scan.keypoint.coincide_voxels``); None when
+    either cloud has fewer than ``policy.min_coincident`` keypoints (too few to tell).
 
     The mirror planes pass through the source keypoints' centroid; their normals are the three
     principal axes and ``policy.mirror_planes`` directions spread evenly over a hemisphere. Each
@@ -69,20 +70,21 @@ def handedness(transformation: np.ndarray, keypoints: Keypoints, workers: int | 
         return points - 2.0 * np.outer((points - centre) @ normal, normal)
 
     pose = _fit(transformation, fine, keypoints, workers, policy, policy.mirror_iterations)
-    proper = _coincident_share(pose, fine, keypoints, workers, policy)
+    proper = _coincident_share(pose, fine, keypoints, workers, policy, coincide_voxels)
     if proper + policy.mirror_margin >= 1.0:  # no mirror image can beat it by the margin
         return Handedness(proper, None, False)
     ranked = []
     for normal in normals:
         fitted = _fit(transformation, mirror(coarse, normal), keypoints, workers, policy,
                       policy.mirror_coarse_iterations)
-        ranked.append((_coincident_share(fitted, mirror(coarse, normal), keypoints, workers, policy, both=False),
+        ranked.append((_coincident_share(fitted, mirror(coarse, normal), keypoints, workers, policy, coincide_voxels,
+                                         both=False),
                        fitted, normal))
     improper = 0.0
     for _, fitted, normal in sorted(ranked, key=lambda entry: -entry[0])[:policy.mirror_candidates]:
         fitted = _fit(fitted, mirror(fine, normal), keypoints, workers, policy, policy.mirror_iterations)
-        improper = max(improper, _coincident_share(fitted, mirror(fine, normal), keypoints, workers, policy, centre,
-                                                   normal))
+        improper = max(improper, _coincident_share(fitted, mirror(fine, normal), keypoints, workers, policy,
+                                                   coincide_voxels, centre, normal))
     return Handedness(proper, improper, improper > proper + policy.mirror_margin)
 
 
@@ -120,10 +122,11 @@ def _fit(transformation: np.ndarray, source: np.ndarray, keypoints: Keypoints, w
 
 
 def _coincident_share(pose: np.ndarray, source: np.ndarray, keypoints: Keypoints, workers: int | None,
-                      policy: TrustPolicy, centre: np.ndarray | None = None, normal: np.ndarray | None = None,
+                      policy: TrustPolicy, coincide_voxels: float, centre: np.ndarray | None = None,
+                      normal: np.ndarray | None = None,
                       both: bool = True) -> float:
     """Of the keypoints within ``policy.overlap_voxels`` voxels of the other cloud at ``pose``, the
-    share within ``VERIFY_VOXELS`` voxels, the smaller of the two directions. ``source``: the
+    share within ``coincide_voxels`` voxels, the smaller of the two directions. ``source``: the
     source keypoints, or their mirror image through the plane through ``centre`` with ``normal``
     (the reverse direction queries the source keypoints' tree at the target mirrored back).
     ``both=False``: the source's direction alone (a cheaper ranking)."""
@@ -140,6 +143,6 @@ def _coincident_share(pose: np.ndarray, source: np.ndarray, keypoints: Keypoints
         overlap = np.count_nonzero(distances <= policy.overlap_voxels * voxel)
         if overlap == 0:
             return 0.0
-        shares.append(np.count_nonzero(distances <= VERIFY_VOXELS * voxel) / overlap)
+        shares.append(np.count_nonzero(distances <= coincide_voxels * voxel) / overlap)
     return float(min(shares))
 

@@ -214,7 +214,8 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
         measured["free_space_words"] = test.pair_verdict(measured["free_space"], policy)[1]
         verdict = Verdict.of(**measured)
     if verdict.trusted:  # the handedness test costs some hundred keypoint queries: only where it decides
-        verdict = Verdict.of(**measured, handedness=handedness_of(transformation, keypoints, workers, policy=policy))
+        verdict = Verdict.of(**measured, handedness=handedness_of(
+            transformation, keypoints, workers, coincide_voxels=config.scan.keypoint.coincide_voxels, policy=policy))
     return verdict
 
 
