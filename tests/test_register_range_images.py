@@ -1,5 +1,6 @@
 """``register(..., range_images=True)``: the pose of a pair of range images is checked against the
-space each sensor saw empty, and a pose that contradicts it is not trusted (``result.free_space``)."""
+space each sensor saw empty, and a pose that contradicts it is not trusted (``result.free_space``).
+At the default (``range_images=None``) the premise is established from each cloud's own points."""
 
 from __future__ import annotations
 
@@ -56,7 +57,7 @@ def test_a_right_pose_passes_and_a_turned_one_fails(walk):  # noqa: F811
     assert "free-space test passed" in right.message
     assert right.free_space == free_space.free_space_fraction(
         clouds[0], clouds[1], right.transformation, DEFAULT_POLICY.free_space_tolerance_inliers * right.inlier_distance)
-    plain = esmicp.register(clouds[1], clouds[0], init=poses[1], workers=1)
+    plain = esmicp.register(clouds[1], clouds[0], init=poses[1], range_images=False, workers=1)
     np.testing.assert_array_equal(plain.transformation, right.transformation)
     assert plain.free_space is None and "free-space" not in plain.message
 
@@ -67,7 +68,7 @@ def test_a_right_pose_passes_and_a_turned_one_fails(walk):  # noqa: F811
     assert "free-space test failed" in wrong.message
 
 
-@pytest.mark.parametrize("bad", ["yes", 1, None])
+@pytest.mark.parametrize("bad", ["yes", 1, "auto"])
 def test_range_images_must_be_a_bool(walk, bad):  # noqa: F811
     clouds, _, _ = walk
     with pytest.raises(InvalidInputError, match="range_images"):
@@ -105,9 +106,63 @@ def test_cli_range_images(walk, tmp_path, capsys):  # noqa: F811
     common = ["register", str(source), str(target), "--init"]
     assert main(common + [str(init), "--range-images", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["free_space"] <= DEFAULT_POLICY.max_free_space_pair
-    assert main(common + [str(init), "--json"]) == 0
+    assert main(common + [str(init), "--no-range-images", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["free_space"] is None
     # a pose the sensors contradict: the summary says so, and --min-confidence refuses it even at 0
     code = main(common + [str(turned), "--max-iterations", "1", "--range-images", "--min-confidence", "0"])
     out, err = capsys.readouterr()
     assert code == 3 and "free-space test" in err and "free-space test failed" in out
+
+
+def test_by_default_the_premise_comes_from_the_clouds_own_points(in_scanner_frames, stored):
+    """The bunny's scans in their scanner's frame are range images: at the default the free-space
+    test runs, as declared. As stored (a frame near the object, as a turntable's), they are not:
+    the test does not run, unless declared. Moved 0.1-0.3 m and 5-20 degrees off the scanner
+    (a few percent of the 1.3 m range: still nearly the same range image), the right pose stays
+    trusted whether the test runs or not."""
+    from esmicp_lab.bench.off_sensor import moved_off
+
+    clouds, truth = in_scanner_frames
+    pose = np.linalg.inv(truth[0]) @ truth[1]
+    found = esmicp.register(clouds[1], clouds[0], init=pose, workers=1)
+    declared = esmicp.register(clouds[1], clouds[0], init=pose, range_images=True, workers=1)
+    assert found.trusted and found.free_space is not None and found.free_space == declared.free_space
+
+    clouds, truth = stored
+    pose = np.linalg.inv(truth[0]) @ truth[1]
+    found = esmicp.register(clouds[1], clouds[0], init=pose, workers=1)
+    assert found.trusted and found.free_space is None
+    assert esmicp.register(clouds[1], clouds[0], init=pose, range_images=True, workers=1).free_space is not None
+
+    clouds, truth = moved_off(*in_scanner_frames, rng=5)
+    assert esmicp.register(clouds[1], clouds[0], init=np.linalg.inv(truth[0]) @ truth[1], workers=1).trusted
+
+
+@pytest.fixture(scope="module")
+def in_scanner_frames():
+    from esmicp_lab.bench.off_sensor import bunny_in_scanner_frames
+
+    _, clouds, truth = bunny_in_scanner_frames(require_shared("bunny_scans"), ("bun000", "bun045"), max_points=6000,
+                                               rng=3)
+    return clouds, truth
+
+
+@pytest.fixture(scope="module")
+def stored():
+    """The bunny's raw scans as stored: a frame near the object, not the scanner's."""
+    from esmicp.io.stanford_conf import load_scans
+
+    scans = load_scans(require_shared("bunny_scans"), max_points=6000, rng=3)
+    return [scans[n][0] for n in ("bun000", "bun045")], [scans[n][1] for n in ("bun000", "bun045")]
+
+
+def test_bunny_scans_are_range_images_in_their_scanner_frames_and_not_as_stored(in_scanner_frames, stored):
+    """The pair verdict's premise (:meth:`SensorClouds.premise`) on real scans: the bunny's scans in
+    their scanner's frame are range images; as stored, they are not; declared, they are."""
+    from esmicp.trust.judge import SensorClouds
+
+    clouds, _ = in_scanner_frames
+    assert SensorClouds(clouds[1], clouds[0], 0.001, None).premise(DEFAULT_POLICY) is None
+    clouds, _ = stored
+    assert "not a range image" in SensorClouds(clouds[1], clouds[0], 0.001, None).premise(DEFAULT_POLICY)
+    assert SensorClouds(clouds[1], clouds[0], 0.001, True).premise(DEFAULT_POLICY) is None  # declared wins

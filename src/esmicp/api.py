@@ -60,7 +60,7 @@ class _Request:
     refine: RefineConfig  # the refinement's and the evaluation's
     trust: TrustPolicy  # the bars the result is judged by
     coincident_warning: float  # RegistrationConfig.coincident_warning_fraction
-    range_images: bool = False  # both clouds are range images in their sensor frames
+    range_images: bool | None = None  # both clouds are range images in their sensor frames (None: as their points show)
 
 
 @keeps_keyboard_interrupt
@@ -80,7 +80,7 @@ def register(
     workers: int | None = None,
     return_correspondences: bool = False,
     config: RegistrationConfig | SearchConfig | dict | None = None,
-    range_images: bool = False,
+    range_images: bool | None = None,
 ) -> RegistrationResult:
     """Rigidly register ``source`` onto ``target``.
 
@@ -158,16 +158,19 @@ def register(
         ``result.policy``). A SearchConfig (or a dict of its fields) sets the search's values with
         the default policy; a dict with the keys ``search`` and / or ``trust`` is a
         RegistrationConfig's. None: the measured defaults.
-    range_images : bool
-        Both clouds are range images in their sensor frames: every point as its sensor saw it,
-        the sensor at the origin (depth-camera frames, LiDAR scans as recorded). The final pose
+    range_images : bool or None
+        True: both clouds are range images in their sensor frames: every point as its sensor saw
+        it, the sensor at the origin (depth-camera frames, LiDAR scans as recorded). The final pose
         is then also checked against the space each sensor saw empty
         (:func:`esmicp.trust.free_space.free_space_fraction`, in ``result.free_space``): a pose
         that puts more than the policy's ``max_free_space_pair`` (8%) of either cloud there is not
         trusted, however sharply the clouds coincide (a repeated structure
         matched in the wrong place, a pair that shares no surface). The pose itself is the same.
-        False (the default): no such check (clouds in another frame, such as meshes, fused
-        fragments or maps, would fail it).
+        None (the default): as each cloud's own points show
+        (:func:`esmicp.trust.free_space.range_image_test`, never from the pose being judged): the
+        check runs when both clouds prove range images and nothing else already casts doubt on
+        the pose. False: no such check (clouds in another frame, such as meshes, fused fragments
+        or maps, would fail it).
 
     Returns
     -------
@@ -534,8 +537,8 @@ def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypo
     free-space test too."""
     started = time.perf_counter()
     sensors = None
-    if request.range_images:
-        sensors = SensorClouds(request.source, request.target, inlier_distance)
+    if request.range_images is not False:
+        sensors = SensorClouds(request.source, request.target, inlier_distance, request.range_images)
     verdict = judge(outcome.transformation, source=clouds.source, target_index=clouds.index, keypoints=keypoints,
                     pairs=pairs[:2], sample=pairs[3], sigma=None if request.method == "icp" else outcome.sigma,  # ICP: unit weights
                     converged=outcome.converged, num_iterations=outcome.num_iterations, config=request.config,
@@ -550,7 +553,7 @@ def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypo
     return verdict
 
 def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
-              config=None, range_images=False) -> _Request:
+              config=None, range_images=None) -> _Request:
     """Stage 1: every argument checked (one clear :class:`InvalidInputError` otherwise)."""
     source_points = as_points(source, "source")
     target_points = as_points(target, "target")
@@ -574,7 +577,7 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
         refine=registration.refine,
         trust=registration.trust,
         coincident_warning=registration.coincident_warning_fraction,
-        range_images=_as_flag(range_images, "range_images"),
+        range_images=None if range_images is None else _as_flag(range_images, "range_images"),
     )
     if method == "esm-paper" and len(source_points) != len(target_points):
         warnings.warn(

@@ -266,11 +266,12 @@ class RegistrationResult:
         best-constrained one (:class:`esmicp.trust.uncertainty.DegenerateDirection`); empty for a
         well-constrained pair.
     free_space : float or None
-        With ``register(..., range_images=True)``: the larger fraction (0-1) of either cloud that
+        When the free-space test ran (``register(..., range_images=True)``, or at the default when
+        both clouds' points show range images and nothing else doubted the pose): the larger fraction (0-1) of either cloud that
         the pose puts in the space the other's sensor saw empty
         (:func:`esmicp.trust.free_space.free_space_fraction`); above ``policy.max_free_space_pair``
-        the result is not trusted. None without that option, or when neither sensor sees enough
-        of the other cloud to judge.
+        the result is not trusted. None when the test did not run, or when neither sensor sees
+        enough of the other cloud to judge.
     policy : TrustPolicy
         The trust policy the result is judged by (:class:`esmicp.trust.policy.TrustPolicy`: the
         bars of :attr:`trusted` and :meth:`doubts`), as ``register``'s ``config`` gave it.
@@ -351,7 +352,8 @@ class RegistrationResult:
         ``ambiguous``, the overlap constrains the pose in every direction (no
         ``degenerate_directions``: a floor or a wall seen alone, or a corridor, lets the pose slide
         however sharply the clouds coincide), and ``free_space`` (when measured) is within
-        ``policy.max_free_space_pair``. The one test callers
+        ``policy.max_free_space_pair``, and no mirror image of the source fits clearly better
+        (:func:`esmicp.trust.handedness.handedness`). The one test callers
         (``register_scans``, the CLI) apply."""
         return not self.doubts()
 
@@ -392,7 +394,8 @@ class RegistrationResult:
         return Verdict.of(converged=self.converged, num_iterations=self.num_iterations, confidence=self.confidence,
                           ambiguous=self.ambiguous, runner_up_ratio=self.runner_up_ratio,
                           degenerate_directions=self.degenerate_directions,
-                          free_space=self.free_space, policy=self.policy)
+                          free_space=self.free_space, policy=self.policy,
+                          handedness=None if self.verdict is None else self.verdict.handedness)
 
     def _weighed_by(self, verdict: Verdict) -> bool:
         """True when ``verdict`` weighed this result's own fields."""

@@ -96,10 +96,11 @@ def add_parser(commands) -> None:
         "(RegistrationResult.trusted). For scripts: 'esmicp register A B --min-confidence && ...'",
     )
     reg.add_argument(
-        "--range-images", action="store_true",
+        "--range-images", action=argparse.BooleanOptionalAction, default=None,
         help="the clouds are range images in their sensor frames (depth-camera frames, LiDAR scans as "
         "recorded): also check the pose against the space each sensor saw empty, and do not trust a "
-        "pose that contradicts it (not for meshes, fused fragments or maps)",
+        "pose that contradicts it (not for meshes, fused fragments or maps); --no-range-images: never "
+        "check; neither: check when both clouds' own points show range images",
     )
     add_workers(reg)
     add_verbosity(reg, "the files, where the run started, why it stopped, the inlier RMSE and sigma, and the "

@@ -402,7 +402,8 @@ class _Pairwise:
         def report(done, _):
             self.stages.advance(offset + done)
 
-        options = {**extra, **self.run_options}
+        # the merge judges free space itself, on the scans in their own frames (step 5), not per pair
+        options = {"range_images": False, **extra, **self.run_options}
         if config is not None:
             options["config"] = config
         outcomes = register_many(jobs, progress=report, inits=inits, **options)
@@ -413,7 +414,8 @@ class _Pairwise:
         """Global searches of ``jobs`` (``(source cloud, target cloud)``: a piece's fused scans onto
         the placed scans'); one progress ``stage``, counted among the registrations run."""
         self.stages.open(stage, len(jobs))
-        outcomes = register_many(jobs, progress=lambda done, _: self.stages.advance(done), **self.run_options)
+        outcomes = register_many(jobs, progress=lambda done, _: self.stages.advance(done),
+                                 **{"range_images": False, **self.run_options})
         self.stages.close()
         self.done += len(jobs)
         return outcomes

@@ -15,11 +15,12 @@ import numpy as np
 
 from ..core.keypoints import Keypoints
 from .confidence import ConfidenceRanges, overlap_confidence
+from .handedness import Handedness, handedness as handedness_of
 from .policy import DEFAULT_POLICY, TrustPolicy
 from .uncertainty import DegenerateDirection, PoseUncertainty, from_registration
 
 #: The kinds of :class:`Doubt`, in the order a verdict lists them.
-DOUBT_KINDS = ("not converged", "confidence", "ambiguous", "degenerate", "free space")
+DOUBT_KINDS = ("not converged", "confidence", "ambiguous", "degenerate", "free space", "mirrored")
 
 
 @dataclass(frozen=True)
@@ -54,6 +55,10 @@ class Verdict:
         None when the test did not apply (clouds not declared range images).
     converged, num_iterations, ambiguous, runner_up_ratio
         What the refinement and the search reported, as weighed.
+    handedness : Handedness or None
+        The pose's fit against the best mirror image of the source near it
+        (:func:`esmicp.trust.handedness.handedness`); None when not tested: the test runs only on a
+        pose nothing else casts doubt on at the policy's bar.
     policy : TrustPolicy
         The bars the pose was judged by.
     doubts : tuple of Doubt
@@ -71,6 +76,7 @@ class Verdict:
     runner_up_ratio: float | None
     policy: TrustPolicy
     doubts: tuple[Doubt, ...]
+    handedness: Handedness | None = None
 
     @property
     def trusted(self) -> bool:
@@ -80,32 +86,36 @@ class Verdict:
     def at(self, bar: float) -> tuple[Doubt, ...]:
         """The doubts with the overlap confidence held to ``bar`` (0-1) instead of the policy's bar."""
         return weigh(self.converged, self.num_iterations, self.confidence, self.ambiguous, self.runner_up_ratio,
-                     self.degenerate_directions, self.free_space, self.policy, bar)
+                     self.degenerate_directions, self.free_space, self.policy, bar, self.handedness)
 
     @classmethod
     def of(cls, *, converged: bool, num_iterations: int, confidence: float | None, ambiguous: bool = False,
            runner_up_ratio: float | None = None, uncertainty: PoseUncertainty | None = None,
            degenerate_directions: tuple[DegenerateDirection, ...] | None = None, free_space: float | None = None,
-           free_space_words: str | None = None, policy: TrustPolicy = DEFAULT_POLICY) -> "Verdict":
+           free_space_words: str | None = None, policy: TrustPolicy = DEFAULT_POLICY,
+           handedness: Handedness | None = None) -> "Verdict":
         """The verdict on measurements already made (no measuring: :func:`judge` measures).
         ``degenerate_directions``: those of ``uncertainty`` when None (none without it)."""
         if degenerate_directions is None:
             degenerate_directions = () if uncertainty is None else uncertainty.degenerate_directions
         doubts = weigh(converged, num_iterations, confidence, ambiguous, runner_up_ratio, degenerate_directions,
-                       free_space, policy)
+                       free_space, policy, handedness=handedness)
         return cls(confidence, uncertainty, tuple(degenerate_directions), free_space, free_space_words,
-                   bool(converged), int(num_iterations), bool(ambiguous), runner_up_ratio, policy, doubts)
+                   bool(converged), int(num_iterations), bool(ambiguous), runner_up_ratio, policy, doubts, handedness)
 
 
 def weigh(converged: bool, num_iterations: int, confidence: float | None, ambiguous: bool,
           runner_up_ratio: float | None, degenerate_directions, free_space: float | None,
-          policy: TrustPolicy = DEFAULT_POLICY, bar: float | None = None) -> tuple[Doubt, ...]:
+          policy: TrustPolicy = DEFAULT_POLICY, bar: float | None = None,
+          handedness: Handedness | None = None) -> tuple[Doubt, ...]:
     """Every reason not to trust a pose, in the order of :data:`DOUBT_KINDS`: the refinement did not
     converge (a run stopped by ``max_iterations``, a callback or a problem may still be degrees
     from where it was heading), the overlap ``confidence`` is missing or below ``bar`` (default
     ``policy.trusted``), the search found the pose ``ambiguous``, a direction is degenerate (a
     floor or a wall seen alone, or a corridor, lets the pose slide however sharply the clouds
-    coincide), the ``free_space`` fraction (when measured) is above ``policy.max_free_space_pair``."""
+    coincide), the ``free_space`` fraction (when measured) is above ``policy.max_free_space_pair``,
+    a mirror image of the source fits clearly better than the pose (``handedness``, when tested:
+    no rotation turns a left hand into a right one)."""
     bar = policy.trusted if bar is None else bar
     doubts = []
     if not converged:
@@ -126,17 +136,40 @@ def weigh(converged: bool, num_iterations: int, confidence: float | None, ambigu
         failed, words = pair_verdict(free_space, policy)
         if failed:
             doubts.append(Doubt("free space", words))
+    if handedness is not None and handedness.mirrored:
+        doubts.append(Doubt("mirrored", f"mirrored: a mirror image of the source coincides with the target on "
+                                        f"{100 * handedness.improper:.0f}% of the overlap, the pose on "
+                                        f"{100 * handedness.proper:.0f}%: one cloud looks left-handed to the other"))
     return tuple(doubts)
 
 
 @dataclass(frozen=True, eq=False)
 class SensorClouds:
-    """The two clouds of a pair of range images, each in its own sensor frame (the sensor at the
-    origin), and the inlier distance (cloud units) the free-space test's tolerance is a gain of."""
+    """The two clouds of a pair, each in its own frame, for the free-space test; the inlier
+    distance (cloud units) the test's tolerance is a gain of; and whether they are range images
+    in their sensor frames (the sensor at the origin): ``range_images`` True or False as declared,
+    None to establish it from each cloud's own points
+    (:func:`esmicp.trust.free_space.range_image_test`; the test then runs only when both are)."""
 
     source: np.ndarray
     target: np.ndarray
     inlier_distance: float
+    range_images: bool | None = True
+
+    def premise(self, policy: TrustPolicy) -> str | None:
+        """None when both clouds are range images (declared, or as their points show); else why
+        not, in words."""
+        if self.range_images is not None:
+            return None if self.range_images else "declared not range images"
+        from .free_space import range_image_test  # here: it loads SciPy
+
+        for name, cloud in (("source", self.source), ("target", self.target)):
+            cloud = np.asarray(cloud, dtype=np.float64)
+            subset = cloud[np.linspace(0, len(cloud) - 1, min(len(cloud), policy.free_space_points)).astype(np.intp)]
+            test = range_image_test(subset, policy)
+            if not test.range_image:
+                return f"the {name} is not a range image from its origin: {test.reason}"
+        return None
 
 
 def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypoints: Keypoints,
@@ -157,25 +190,33 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     ``num_iterations``: the refinement's; ``ambiguous``, ``runner_up_ratio``: the global search's
     (False and None without one). ``confidence``: the overlap confidence of this pose on
     ``keypoints`` when the refinement already measured it (else measured here, with the ranges of
-    ``config``, a :class:`~esmicp.globalreg.config.SearchConfig`). ``sensors``: the clouds as range
-    images in their sensor frames, for the free-space test (None: no such test). ``policy``: the
-    bars and the measures' values; ``workers``: threads of the compiled kernels (None: every core).
+    ``config``, a :class:`~esmicp.globalreg.config.SearchConfig`). ``sensors``: the clouds in their
+    own frames for the free-space test (None: no such test); declared range images are tested
+    always, clouds of unknown kind (``sensors.range_images`` None) only when nothing else casts
+    doubt on the pose and both prove range images (:meth:`SensorClouds.premise`). The handedness
+    test (:func:`esmicp.trust.handedness.handedness`) runs last, on a pose nothing else casts doubt
+    on. ``policy``: the bars and the measures' values; ``workers``: threads of the compiled
+    kernels (None: every core).
     """
     if confidence is None:
         confidence = overlap_confidence(transformation, keypoints, workers, config=config, policy=policy)
     uncertainty = from_registration(source, target_index, transformation, sigma, origin=origin, workers=workers,
                                     pairs=pairs, sample=sample, policy=policy)
-    free_space, words = None, None
-    if sensors is not None:
+    measured = dict(converged=converged, num_iterations=num_iterations, confidence=confidence, ambiguous=ambiguous,
+                    runner_up_ratio=runner_up_ratio, uncertainty=uncertainty, policy=policy)
+    verdict = Verdict.of(**measured)
+    if sensors is not None and (sensors.range_images or (verdict.trusted and sensors.premise(policy) is None)):
         from . import free_space as test  # here: it loads SciPy
 
         own = _unshifted(transformation, origin)
-        free_space = test.free_space_fraction(sensors.target, sensors.source, own,
-                                              policy.free_space_tolerance_inliers * sensors.inlier_distance, policy)
-        words = test.pair_verdict(free_space, policy)[1]
-    return Verdict.of(converged=converged, num_iterations=num_iterations, confidence=confidence, ambiguous=ambiguous,
-                      runner_up_ratio=runner_up_ratio, uncertainty=uncertainty, free_space=free_space,
-                      free_space_words=words, policy=policy)
+        measured["free_space"] = test.free_space_fraction(
+            sensors.target, sensors.source, own, policy.free_space_tolerance_inliers * sensors.inlier_distance, policy)
+        measured["free_space_words"] = test.pair_verdict(measured["free_space"], policy)[1]
+        verdict = Verdict.of(**measured)
+    if verdict.trusted:  # the handedness test costs some hundred keypoint queries: only where it decides
+        verdict = Verdict.of(**measured, handedness=handedness_of(
+            transformation, keypoints, workers, coincide_voxels=config.scan.keypoint.coincide_voxels, policy=policy))
+    return verdict
 
 
 def _unshifted(transformation: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
