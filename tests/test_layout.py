@@ -236,3 +236,31 @@ def test_the_constant_count_sees_what_it_should():
     source = ("import numpy as np\nA = 3\nB: float = 0.5\nC = A // 2\nD = -1e-6\nE = A\nF = (0.5, 0.8)\n"
               "names = 2\nG = 'text'\nH = np.eye(3)\nI = True\nJ = K = 4\n")
     assert _constants(ast.parse(source)) == ["A", "B", "C", "D", "E", "F", "J", "K"]
+
+
+#: The library layers that must name no benchmark data set: a docstring there states a meaning and a
+#: unit, and the data a value was chosen and confirmed on are in ``docs/design.md`` ("Tuned values")
+#: and the results pages. The built-in demo shapes (``shapes.py``), the readers (``io``), the
+#: command line and the pictures are outside.
+NAMELESS_LAYERS = ALGORITHM_LAYERS + ("config.py", "result.py")
+#: The benchmark data sets of ``docs/`` (a word of each that names it, matched case-insensitively).
+BENCHMARK_DATA_SETS = ("3dmatch", "kitchen", "bunny", "kitti", "modelnet", "newer college", "newer_college",
+                       "turntable", "lomatch", "redkitchen", "real_pairs")
+
+
+def data_set_names(source: str) -> list[str]:
+    """``line: name`` of every mention of a :data:`BENCHMARK_DATA_SETS` name in ``source``."""
+    return [f"{number}: {name}" for number, line in enumerate(source.splitlines(), 1)
+            for name in BENCHMARK_DATA_SETS if name in line.lower()]
+
+
+def test_the_library_names_no_benchmark_data_set():
+    offenders = [f"{path.relative_to(PACKAGE)}:{hit}" for layer in NAMELESS_LAYERS for path in _modules(layer)
+                 for hit in data_set_names(path.read_text(encoding="utf-8"))]
+    assert not offenders, "\n".join(offenders)
+
+
+def test_the_data_set_check_sees_what_it_should():
+    source = '"""Chosen on 3DMatch crops,\nconfirmed on the Kitchen walk and Newer College."""\nX = 1\n'
+    assert data_set_names(source) == ["1: 3dmatch", "2: kitchen", "2: newer college"]
+    assert data_set_names('"""A scan pair, a walk, an object turned in small steps."""') == []

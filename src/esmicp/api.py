@@ -372,8 +372,7 @@ def _second_try(clouds: _Clouds, initial, request: _Request, keypoints: Keypoint
     Why: the first run's coarse sigma assumes a quarter of the source overlaps. Where less does
     (scans cut to 15-50%), that sigma pulls a good start apart; the tight one keeps it, but
     narrows the reach from a poor start on a whole object, so it only comes second, and only
-    where the first run is not trusted (measured on the ModelNet40 halves and whole objects:
-    ``docs/scans-start-drift.md``). ``observer`` watches the second run as a new run;
+    where the first run is not trusted (``docs/scans-start-drift.md``). ``observer`` watches the second run as a new run;
     its history ends as that of the run kept."""
     first_confidence = confidence
     tight = _estimator(request.method, request, clouds.index, clouds.diagonal)

@@ -42,9 +42,8 @@ class RefineConfig(Config):
         After a global search, the strided stages stop at this tolerance when the caller's is
         finer (radians; times the target's bounding-box diagonal for a translation): the
         subsample's optimum is not the whole source's, and the strided ``esm`` creeps on in no
-        steady direction. Chosen on 3DMatch ``t00_s04`` (as recorded and turned: 34 -> 24 and 51 -> 22
-        iterations, the pose moved by at most 0.42 of its own standard deviation from the pose at
-        3e-6), confirmed on KITTI ``t0_s1`` (at most 0.23 standard deviations).
+        steady direction; stopping there moves the pose by a fraction of its own standard
+        deviation.
     looser_from_points : int
         After a global search, a source too small for the strided stages is refined at
         ``whole_tolerance``, from this many points on (count); smaller sources (objects
@@ -99,10 +98,10 @@ class RefineConfig(Config):
 
     References
     ----------
-    ``strided_points``, ``strided_tolerance``, ``plane_iterations`` and ``plane_points``: measured
-    on the 3DMatch, KITTI and bunny scan pairs (``docs/speed.md``, "Real scan pairs";
-    ``docs/scans-refinement.md``); ``looser_from_points`` on the ModelNet40 objects under 60%
-    outliers; ``plane_confidence_drop`` on the 3DMatch crops (``docs/scans-partial-overlap.md``).
+    Each field's value, the data it was chosen on and confirmed on, and the page with the figures:
+    ``docs/design.md``, "Tuned values" (``strided_*`` and ``plane_*``: ``docs/speed.md``, "Real
+    scan pairs", and ``docs/scans-refinement.md``; ``plane_confidence_drop``:
+    ``docs/scans-partial-overlap.md``).
     """
 
     strided_points: int = count(20_000)
@@ -261,19 +260,10 @@ class MergeConfig(Config):
 
     References
     ----------
-    Chosen on the Stanford bunny's 10 raw scans shuffled, each scan the reference in turn, and
-    confirmed on the kitchen walk shuffled: ``stalled_rounds``. Chosen on the bunny's 10 raw
-    scans in three shuffled orders, 15 turntable scans and the bunny off its sensor's frames, and
-    confirmed on 5 Newer College LiDAR scans and the kitchen walk (every 20th frame in order, 30
-    frames shuffled): ``pair_scan_searches``. Chosen on the bunny's 10 raw scans
-    and confirmed on the kitchen walk in order (100 depth frames): ``refine_floor_spacings``, ``query_points``, ``check_iterations`` and
-    ``check_tolerance`` (confirmed on pairs of the walk 1 and 2 frames apart). Chosen on the
-    kitchen walk in order and confirmed on every 20th frame of it: ``loop_searches_per_scan``.
-    Chosen on the bunny's 10 raw scans shuffled (how often a scan's 2 most similar overlap it
-    under the ground truth, and the pairs a merge registers) and confirmed on 15 turntable scans
-    in two orders, the bunny off its sensors' frames, 5 Newer College LiDAR scans and 30 frames of
-    the kitchen walk shuffled: ``match_candidates``, ``match_radius_spacings``,
-    ``match_normal_neighbours`` and ``match_points``.
+    ``stalled_rounds``, ``pair_scan_searches``, ``refine_floor_spacings``, ``query_points``,
+    ``check_iterations``, ``check_tolerance``, ``loop_searches_per_scan`` and the ``match_*``
+    fields were each chosen on one set of scans and confirmed on another: ``docs/design.md``,
+    "Tuned values".
     The measurements: ``docs/merge.md``, "Tuned values".
     """
 

@@ -248,7 +248,7 @@ class RegistrationResult:
         clouds of a few dozen points cannot resolve the pose, so are never trusted). Below the
         trust bar (``policy.trusted``, 0.55 by default): do not trust the pose. At or above it the pose
         is usually right, not always: a repeated structure matched in the wrong place coincides
-        sharply too (kitchen depth frames that share no surface: 4 of 5 trusted, metres off).
+        sharply too (frames of one room that share no surface can come back trusted, metres off).
         Measured figures: ``docs/measured-global.md``, "How far the confidence can be trusted".
     correspondences : Correspondences or None
         The final pose's inlier pairs (:class:`Correspondences`), when asked for

@@ -174,8 +174,8 @@ class NearestNeighbors:
     def spatial_order(self, points: np.ndarray) -> np.ndarray:
         """A permutation of ``points`` (target frame) that sorts them by voxel-hash cell.
 
-        Queries in this order touch the target's memory coherently: measured on the bunny at
-        100k (1M) points, :meth:`query_near` then costs 37 (330) instead of 70 (800) ms of CPU.
+        Queries in this order touch the target's memory coherently, which roughly halves the CPU
+        time of :meth:`query_near` on large targets (``docs/design.md``, "Measured design choices").
         """
         near = self._near_index()
         cell = near.cell if near is not None else max(self.config.near_cell_spacings * self.spacing(), 1e-12)

@@ -6,10 +6,9 @@ bar, a ratio, a count whose value trades accuracy for time). The other numbers o
 stage) or derived from these. ``register(..., config=SearchConfig(...))`` runs the search with
 other values; the default is :data:`DEFAULT`.
 
-"Development set" below means the 12 ModelNet40 shapes of ``modelnet40/`` (object protocols and
-halves cut to 70% / 50%), the Stanford bunny's scan pairs and the 3DMatch / LiDAR pairs of
-``real_pairs/`` with their crops to 15-25% overlap; the confirmation set is ``modelnet40_extra/``
-and frame pairs of the kitchen walk (``docs/measured-global.md``).
+Each value was chosen on a development set and confirmed on another: the data sets, the values
+and the pages with the figures are in ``docs/design.md``, "Tuned values"
+(``docs/measured-global.md`` holds most figures).
 """
 
 from __future__ import annotations
@@ -108,9 +107,9 @@ class VerificationConfig(Config):
     ----------
     ``rounds``, ``decide_*``, ``settle_*`` and ``twin_angles_deg``: the object protocols of
     ``docs/measured-global.md``; ``distinct_rotation_deg``: its symmetric shapes;
-    ``graph_queries_per_point``: the break-even on 3DMatch ``t00_s04`` (258k target points, 12
-    neighbours each: the graph took 4-5 us a target point to build and spares about 6 us a query
-    it answers; the poses are the same either way).
+    ``graph_queries_per_point``: the break-even between the graph's build time per target point
+    and the time it spares per query it answers (``docs/design.md``, "Tuned values"; the poses
+    are the same either way).
     """
 
     candidates: int = count(16)
@@ -221,8 +220,8 @@ class ScanStrategyConfig(Config):
 
     References
     ----------
-    ``last_keypoints``, ``seeds``, ``seed_spread_voxels`` and ``icp_steps``: the 3DMatch crops at
-    15-25% overlap of ``docs/scans-partial-overlap.md``.
+    ``last_keypoints``, ``seeds``, ``seed_spread_voxels`` and ``icp_steps``: scan crops at
+    15-25% overlap (``docs/scans-partial-overlap.md``; ``docs/design.md``, "Tuned values").
     """
 
     last_keypoints: tuple = numbers_tuple((10000, 2500))
@@ -315,7 +314,7 @@ class SearchConfig(Config):
     full_cover : float
         Such a pose is also final when at least this fraction (0-1) of the target's points lie
         within two score widths of the placed source: the full overlap the score assumes holds
-        (objects under 30% outliers: 1.0; cut halves and bunny scan pairs: at most 0.96).
+        (``docs/design.md``, "Tuned values").
     settle_from : float
         A rotation-search pose scoring at least this fraction of ``confident_score`` is refined a
         little further ("settled") and final when it then reaches ``confident_score`` and
@@ -353,16 +352,16 @@ class SearchConfig(Config):
     sharpness_range : tuple of float
         The overlap confidence's sharpness (of the keypoints within 3 voxels of the other cloud,
         the fraction within 1 voxel, the worse direction) mapped linearly from this range onto
-        0-1. Measured on the 3DMatch crops and the development halves.
+        0-1 (dimensionless: fractions of keypoints).
     spread_range : tuple of float
         The middle eigenvalue of the coincident part's normal moments (0 for one plane) mapped
         from this range onto 0-1 (the confidence is the smaller term) when less than half of
-        either cloud coincides. Measured on the 3DMatch crops: wrong flat-on-flat poses
-        0.014-0.083, right poses 0.11-0.38.
+        either cloud coincides (dimensionless, 0-1/3, of unit normals; the range separates
+        wrong flat-on-flat poses from right ones, ``docs/design.md``, "Tuned values").
     third_range : tuple of float
         The smallest eigenvalue of the same (0 for a floor and one wall, which leave a slide free)
-        mapped from this range onto 0-1. Measured on the 3DMatch crops: wrong poses 0.001-0.003,
-        every ground truth 0.010-0.19.
+        mapped from this range onto 0-1 (dimensionless; the range separates wrong poses from
+        ground truths, ``docs/design.md``, "Tuned values").
     """
 
     ambiguity_ratio: float = fraction(0.97)

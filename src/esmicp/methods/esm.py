@@ -24,7 +24,7 @@ fine phase: once an increment rotates by less than ``fine_phase_step`` radians a
 less than ``fine_phase_step`` times the target's diagonal, sigma drops to the floor and stays there
 until convergence. The factor 3 on the median is the best of those measured
 (``docs/measured-global.md``, "Why these choices"). The floor makes the choice unit-free:
-the same default serves a unit-size ModelNet object, the bunny in metres and a LiDAR scan.
+the same default serves a unit-size object, a scan in millimetres and a LiDAR scan in metres.
 
 From a start the user gives (``init``), the median is the wrong scale on partial overlap: it
 measures how far the non-overlapping part lies, and a coarse sigma that wide pulls a good start

@@ -20,7 +20,7 @@ Choosing sigma: from the overlap, not from every pair
 -----------------------------------------------------
 ``esm``'s schedule (``3 x`` the median distance) measures every pair; on scans that overlap by
 40% most pairs join points the other scan never saw, the median is theirs, and a wide sigma pulls
-the overlap apart (3DMatch t00_s06 started at its ground truth drifts off it, see
+the overlap apart (a scan pair started at its ground truth drifts off it, see
 ``docs/scans-refinement.md``). Here sigma is the robust scale of the distances *of the overlap*:
 ``sigma_mad_factor x 1.4826 x`` the median of the distances below ``overlap_sigmas`` sigmas, at
 its least fixed point above ``esm``'s floor of ``sigma_floor_spacings`` target point spacings

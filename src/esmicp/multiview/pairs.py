@@ -31,9 +31,8 @@ def descriptor(points: np.ndarray) -> np.ndarray:
     eigenvalues, normalised to sum 1; the histogram (8 bins) of its points' distances from the
     centroid, relative to the largest; and the histogram (16 bins) of the distances between 4,000
     random pairs of its points, relative to their median (the D2 shape distribution). Similar views
-    of one surface have nearby descriptors. On the kitchen walk (100 frames, 1,500 points each),
-    the 3 nearest by descriptor lie within 0.5 m of the frame in 75% of cases (67% without D2;
-    21% for random frames)."""
+    of one surface have nearby descriptors (dimensionless; how often the nearest are true
+    neighbours: ``docs/design.md``, "Measured design choices")."""
     centred = points - points.mean(axis=0)
     eigen = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(centred.T)), 0.0))
     radii = np.linalg.norm(centred, axis=1)
@@ -95,11 +94,8 @@ def matching_distances(clouds: Sequence[np.ndarray], *, candidates: int, radius_
     :func:`mutual_matches`; 0-1), plus a ten-millionth of their descriptor distance (ties, such as
     two pairs with no match at all, are broken by the descriptor, not by the scans' input order);
     every other pair one plus its descriptor distance, so that it ranks after every matched pair.
-    O(N * candidates) feature matchings.
-
-    On the Stanford bunny's 10 scans, the 2 most similar of a scan overlap it by 20% or more
-    (under the ground truth) in 80% of cases (70% by the descriptor alone); on 15 turntable
-    scans 24 degrees apart, in 100% (80%)."""
+    O(N * candidates) feature matchings. How often a scan's most similar overlap it:
+    ``docs/design.md``, "Measured design choices"."""
     from scipy.spatial import cKDTree
 
     coarse = descriptor_distances(clouds)

@@ -32,8 +32,8 @@
    like its scans; then the graph is solved again, until ``stalled_rounds`` rounds in a row place
    or confirm no scan. These pairs are chosen from poses but searched globally, never refined
    from those poses: a refinement started at a wrong pose can settle next to it and confirm it
-   (measured on the kitchen walk: a scan 90 degrees off "confirmed" by a refinement from its own
-   wrong pose), and a wrong proposal only costs the searches it asked for.
+   (``docs/design.md``, "Measured design choices"), and a wrong proposal only costs the searches
+   it asked for.
 4. Joint refinement: all placed scans against each other (multi-view point-to-plane over the
    kept edges, a few rounds with a shrinking correspondence distance).
 5. A free-space check (:mod:`esmicp.trust.free_space`) between scans that are range images
@@ -359,8 +359,8 @@ class _Pairwise:
     the sparse subsets, when it is asked for again (:meth:`run`): a search's outcome depends on
     the points drawn, and a second draw is a second, independent try. The overlap confidence of a
     registration is only meaningful at a density where the clouds' noise is finer than their
-    spacing (on the bunny's scans, right pairs score 0.0-0.76 at 1,500 points, 0.74-1.0 at 10,000;
-    wrong ones stay below 0.25)."""
+    spacing: right pairs of sparse subsets can score as low as wrong ones (``docs/design.md``,
+    "Measured design choices")."""
 
     def __init__(self, centred, small, dense, keys, sequence, run_options, stages: _Plan, config: MergeConfig):
         self.centred, self.small, self.dense, self.keys = centred, small, dense, keys
@@ -810,8 +810,8 @@ def register_scans(
     reference : int
         The scan whose frame is the world (``poses[reference]`` is the identity).
     sequence : bool
-        The input order is the capture order, consecutive scans close in pose (a walk, a turntable
-        with small steps): each scan is registered with its next ``sequence_neighbours`` scans
+        The input order is the capture order, consecutive scans close in pose (a walk, an object
+        turned in small steps): each scan is registered with its next ``sequence_neighbours`` scans
         (locally from the identity, globally when that is not trusted), then loop closures are
         sought among placed scans that overlap in the world. Without it the order means nothing.
     pair_points, refine_points : int, optional

@@ -9,7 +9,7 @@ cycle checks cannot: wrong edges that agree with each other (two views of one re
 matched to the same wrong place) pass every cycle, but not the free-space test.
 
 Not every scan is a range image from its origin: a mesh, a map's crop, a scan stored in a frame
-other than its sensor's (a turntable's, an object's, georeferenced coordinates). The premise is
+other than its sensor's (a rotary stage's, an object's, georeferenced coordinates). The premise is
 established per scan from the scan's own points (:func:`range_image_test`), never from the poses
 the check is to judge, or declared by the caller; the merge checks a pair only when both of its
 scans are range images from their origins.

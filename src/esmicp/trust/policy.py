@@ -137,26 +137,14 @@ class TrustPolicy(Config):
 
     References
     ----------
-    ``min_coincident``: chosen on the 12 ModelNet40 shapes resampled to 21-1,000 points
-    (``benchmarks/sparse_trust.py``), confirmed on the 69 of ``modelnet40_extra``
-    (``docs/measured-global.md``, "Sparse clouds"). ``trusted``: chosen on the 3DMatch crops of ``real_pairs`` (``docs/scans-partial-overlap.md``,
-    ``docs/measured-global.md``). ``max_free_space_pair``: chosen on kitchen depth frames 60-150
-    frames apart, confirmed on the kitchen pairs 10-50 frames apart and the pairs of
-    ``real_pairs`` (``docs/measured-global.md``). ``max_free_space``: chosen on a merge of the
-    kitchen walk, confirmed on the Newer College LiDAR scans. The range-image test's bars: chosen
-    on kitchen depth frames and the bunny's scans in their scanner's frame, confirmed on LiDAR
-    scans as recorded, ModelNet objects and 3DMatch crops (``docs/merge.md``, step 5).
-    ``cluster_spacings`` and ``min_clusters``: fitted on resamples of a 3DMatch fragment,
-    confirmed on resamples of the kitchen walk's frames; ``border_spacings`` and ``inflation``:
-    chosen on the 12 ModelNet40 shapes (whole and cut) and kitchen-walk frames 0-490, confirmed on
-    ``modelnet40_extra``, frames 500-990 and the bunny's scans (``docs/uncertainty.md``,
-    ``benchmarks/covariance_nees.py``); ``degenerate_ratio``: chosen on
-    the 12 ModelNet40 shapes, confirmed on ``modelnet40_extra`` (``docs/uncertainty.md``).
-    ``mirror_*``: chosen on the whole bunny mirrored through x, y and z (the mirror image
-    coincides on 99-100% of the overlap, the pose on 74-76%) against the whole bunny and seven
-    bunny scan pairs registered right (the pose 0.74-1.00, the best mirror image 0.26-0.71);
-    confirmed on ModelNet40 halves (``modelnet40`` and ``modelnet40_extra``, cut and whole),
-    where no right pose is doubted as mirrored.
+    Each value was chosen on one data set and confirmed on another; the data sets and the pages
+    with the figures are in ``docs/design.md``, "Tuned values": ``min_coincident``
+    (``docs/measured-global.md``, "Sparse clouds"), ``trusted`` (``docs/scans-partial-overlap.md``),
+    ``max_free_space_pair`` and ``max_free_space`` (``docs/measured-global.md``), the range-image
+    test's bars (``docs/merge.md``, step 5), ``cluster_spacings``, ``min_clusters``,
+    ``border_spacings``, ``inflation`` and ``degenerate_ratio`` (``docs/uncertainty.md``), and
+    ``mirror_*`` (a right pose's mirror image coincides on less of the overlap than the pose; a
+    mirrored pose's on more).
     """
 
     min_coincident: int = count(60)
