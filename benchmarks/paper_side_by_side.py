@@ -30,7 +30,7 @@ import sys
 from pathlib import Path
 
 from esmicp_lab.bench import read_rows
-from esmicp_lab.bench.side_by_side import regenerate, summary_csv, summary_records
+from esmicp_lab.bench.side_by_side import PICTURES, regenerate, success_rates, summary_csv, summary_records
 from esmicp.errors import EsmicpError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -101,38 +101,6 @@ def _write(args) -> int:
     args.doc.write_text(new, encoding="utf-8")
     print(f"{args.doc}: side-by-side tables written")
     return 0
-
-
-#: The pictures of the bench pages, drawn from the summary CSV: file name -> (title, which tables).
-PICTURES = {
-    "bench-paper.png": ("The paper's printed transforms (one trial each): strict success, per table and size",
-                        lambda table: not table.startswith("kiss-matcher-1000")),
-    "bench-paper-1000.png": ("The 1,000-transform tables: strict success over 1,000 trials per object",
-                             lambda table: table.startswith("kiss-matcher-1000")),
-}
-
-
-def success_rates(summary_text: str, keep) -> list[dict]:
-    """Strict successes and trials of every (table, cloud, points, method) record of the summary
-    CSV whose table ``keep`` accepts, with at least one trial that ran (``unavailable`` rows are
-    left out)."""
-    import csv
-    import io
-
-    rates = []
-    for record in csv.DictReader(io.StringIO(summary_text)):
-        ran = int(record["rows"]) - int(record["unavailable"])
-        if not keep(record["table"]) or ran <= 0:
-            continue
-        if record["table"].startswith("kiss-matcher-1000"):
-            noise = record["table"].removeprefix("kiss-matcher-1000").removeprefix("-").split("-")
-            group = record["cloud"] + (f" + {noise[-1]}% noise" if noise[-1].isdigit() else "")
-        else:
-            group = f"{record['table'].replace('-outliers-', ' +')}{'%' if '-outliers-' in record['table'] else ''}"
-            group = f"{group}, {record['points']} pts"
-        successes = round(float(record["success_strict_pct"] or 0.0) * ran / 100.0)
-        rates.append({"group": group, "method": record["method"], "successes": successes, "trials": ran})
-    return rates
 
 
 def _pictures(args) -> int:

@@ -16,6 +16,7 @@ from esmicp_lab.bench import BenchConfig, RunOptions, read_rows, run_bench
 from esmicp_lab.bench.side_by_side import (
     BEGIN,
     END,
+    PICTURES,
     implied_rotation_error_deg,
     paper_quirks,
     paper_table_of,
@@ -25,6 +26,7 @@ from esmicp_lab.bench.side_by_side import (
     replace_sections,
     sections,
     side_by_side_markdown,
+    success_rates,
     summary_csv,
     summary_records,
 )
@@ -167,16 +169,11 @@ def test_docs_hold_what_the_script_writes():
 
 
 def test_the_pages_pictures_draw_the_summarys_success_rates():
-    """The bench pages' pictures (paper_side_by_side.py pictures) show, for every record of the
+    """The bench pages' pictures (``python benchmarks/paper_side_by_side.py pictures``) show, for every record of the
     committed summary that ran, its strict success rate: one bar per record, none made up."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("paper_side_by_side", REPO_ROOT / "benchmarks" / "paper_side_by_side.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
     summary = (REPO_ROOT / "docs" / "bench-paper-side-by-side.csv").read_text(encoding="utf-8")
     records = [r for r in read_summary_csv(summary) if r["rows"] > r["unavailable"]]
-    drawn = [rate for _, keep in script.PICTURES.values() for rate in script.success_rates(summary, keep)]
+    drawn = [rate for _, keep in PICTURES.values() for rate in success_rates(summary, keep)]
     assert len(drawn) == len(records)
     assert sorted(100.0 * r["successes"] / r["trials"] for r in drawn) == pytest.approx(
         sorted(r["success_strict_pct"] or 0.0 for r in records), abs=0.05)

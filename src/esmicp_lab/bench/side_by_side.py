@@ -462,6 +462,35 @@ def regenerate(doc_text: str, paper: dict, summary_text: str, summary_name: str 
     return replace_sections(doc_text, sections(paper, read_summary_csv(summary_text, summary_name)), doc_name)
 
 
-__all__ = ["BEGIN", "END", "PAPER_PEERS", "SUMMARY_COLUMNS", "identity_metrics", "implied_rotation_error_deg", "paper_quirks",
+#: The pictures of the bench pages, drawn from the summary CSV: file name -> (title, which tables).
+PICTURES = {
+    "bench-paper.png": ("The paper's printed transforms (one trial each): strict success, per table and size",
+                        lambda table: not table.startswith("kiss-matcher-1000")),
+    "bench-paper-1000.png": ("The 1,000-transform tables: strict success over 1,000 trials per object",
+                             lambda table: table.startswith("kiss-matcher-1000")),
+}
+
+
+def success_rates(summary_text: str, keep) -> list[dict]:
+    """Strict successes and trials of every (table, cloud, points, method) record of the summary
+    CSV whose table ``keep`` accepts, with at least one trial that ran (``unavailable`` rows are
+    left out)."""
+    rates = []
+    for record in csv.DictReader(io.StringIO(summary_text)):
+        ran = int(record["rows"]) - int(record["unavailable"])
+        if not keep(record["table"]) or ran <= 0:
+            continue
+        if record["table"].startswith("kiss-matcher-1000"):
+            noise = record["table"].removeprefix("kiss-matcher-1000").removeprefix("-").split("-")
+            group = record["cloud"] + (f" + {noise[-1]}% noise" if noise[-1].isdigit() else "")
+        else:
+            group = f"{record['table'].replace('-outliers-', ' +')}{'%' if '-outliers-' in record['table'] else ''}"
+            group = f"{group}, {record['points']} pts"
+        successes = round(float(record["success_strict_pct"] or 0.0) * ran / 100.0)
+        rates.append({"group": group, "method": record["method"], "successes": successes, "trials": ran})
+    return rates
+
+
+__all__ = ["BEGIN", "END", "PAPER_PEERS", "PICTURES", "SUMMARY_COLUMNS", "identity_metrics", "implied_rotation_error_deg", "paper_quirks",
            "paper_table_of", "ratio_text", "read_summary_csv", "regenerate", "replace_sections", "sections",
-           "side_by_side_markdown", "summary_csv", "summary_records"]
+           "side_by_side_markdown", "success_rates", "summary_csv", "summary_records"]
