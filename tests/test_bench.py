@@ -499,12 +499,8 @@ def test_the_overview_table_read_back_from_a_page_gives_each_cells_rates():
 def test_regenerating_the_refinement_section_keeps_the_pages_notes_and_the_rest(tmp_path):
     """``benchmarks/scan_refinement.py --doc`` rewrites its tables; the notes written under them
     and the page's other sections stay unless ``--notes`` replaces them."""
-    import importlib.util
+    from esmicp_lab.bench import scan_refinement as module
 
-    spec = importlib.util.spec_from_file_location(
-        "scan_refinement", Path(__file__).resolve().parents[1] / "benchmarks" / "scan_refinement.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
     page = tmp_path / "page.md"
     page.write_text("# Title\n\n![a picture](images/x.png)\n\ncaption\n\n## Other\n\nkept\n")
     tables = f"{module.SECTION}\n\n| a |\n|---|\n| 1 |\n\n{module.TABLES_END}\n"
