@@ -34,23 +34,18 @@ def test_one_trial_per_half_with_the_peers_prints_every_row(tmp_path):
     assert "| whole objects | choice | exact | esmicp |" in text
 
 
-def test_the_lidar_sets_truth_is_the_datas_own_for_every_pair_it_shares_with_pairs_csv(monkeypatch):
+def test_the_lidar_sets_truth_is_the_datas_own_for_every_pair_it_shares_with_pairs_csv():
     """The ``lidar`` set builds the Newer College truth from the scans' poses (``graph.txt``) for
     all 10 pairs of the 5 scans: on the 7 pairs ``pairs.csv`` also lists, it must be the stored
     ``T_target_source`` (target from source: the same scans, the same order, the quaternion read
     x y z w), and KITTI's must be its file."""
-    import importlib.util
-
     import numpy as np
 
+    from esmicp_lab.bench.nees import lidar_pairs
     from esmicp_lab.bench.real_pairs import read_pairs
 
     folder = require_shared("real_pairs")
-    spec = importlib.util.spec_from_file_location("covariance_nees", BENCHMARK)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    monkeypatch.setattr(module, "DATA", folder.parent)
-    pairs, triplets = module.lidar_pairs()
+    pairs, triplets = lidar_pairs(folder.parent)
     assert len(pairs) == 11 and len(triplets) == 10
     stored = {(pair.target.name, pair.source.name): np.loadtxt(pair.transform) for pair in read_pairs(folder)}
     checked = 0
