@@ -199,7 +199,13 @@ class MergeConfig(Config):
         With ``sequence``: the next scans each scan is registered with (count; 2 gives triangles).
     max_edge_error_deg : float
         A trusted edge disagreeing with the solved poses by more than this rotation (degrees; or
-        by more than 3 of its inlier distances in translation) is rejected as cycle inconsistent.
+        by more than ``max_edge_shift_inliers`` in translation) is rejected as cycle inconsistent.
+    max_edge_shift_inliers : float
+        ... the translation bar, in the edge's own inlier distances (gain).
+    first_check_gain : float
+        Before the robust optimisation, the consensus tree and the first cycle check allow this
+        many times ``max_edge_error_deg`` and ``max_edge_shift_inliers`` (gain): the unoptimised
+        tree's poses carry the error of every edge on their path.
     refine_rounds : int
         Correspondence distances of the joint refinement, each used for two Gauss-Newton steps
         (count; 0: no joint refinement).
@@ -242,9 +248,12 @@ class MergeConfig(Config):
     refine_normal_neighbours : int
         Nearest points of each normal of the dense subsets, whose planes the joint refinement's
         residuals measure (count).
+    refine_reach_inliers : float
+        The joint refinement's first correspondence distance, in median inlier distances of the
+        kept edges (gain).
     refine_floor_spacings : float
         The joint refinement's last correspondence distance, in median point spacings of the
-        dense subsets (its first is 3 median inlier distances of the kept edges).
+        dense subsets (gain; the distances in between shrink geometrically).
     query_points : int
         Points of a scan each direction of an edge queries in a step of the joint refinement
         (count; evenly strided).
@@ -276,6 +285,8 @@ class MergeConfig(Config):
     match_points: int = count(500)
     sequence_neighbours: int = count(2)
     max_edge_error_deg: float = number(2.0, above=0.0, most=180.0)
+    max_edge_shift_inliers: float = number(3.0, above=0.0)
+    first_check_gain: float = number(2.0, least=1.0)
     refine_rounds: int = count(6, least=0)
     stalled_rounds: int = count(3)
     pair_scan_searches: int = count(1)
@@ -289,6 +300,7 @@ class MergeConfig(Config):
     check_iterations: int = count(30)
     check_tolerance: float = number(3e-6, least=0.0)
     refine_normal_neighbours: int = count(12, least=3)
+    refine_reach_inliers: float = number(3.0, above=0.0)
     refine_floor_spacings: float = number(2.0, above=0.0)
     query_points: int = count(1000)
     direct_solve_max_poses: int = count(200, least=0)

@@ -509,6 +509,7 @@ def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict 
     except the ``vetoed`` pairs (``(min, max) -> reason``: cut by a free-space conflict)."""
     vetoed = vetoed or {}
     max_edge_error_deg, direct = config.max_edge_error_deg, config.direct_solve_max_poses
+    max_shift, gain = config.max_edge_shift_inliers, config.first_check_gain
 
     def start(e):
         pair = (min(e.i, e.j), max(e.i, e.j))
@@ -528,8 +529,8 @@ def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict 
         return [(e.i, e.j, e.T_i_j, e.confidence) for e in of]
 
     scale = float(np.median([e.inlier_distance for e in usable]))
-    poses = pose_graph.consensus_tree(tree_edges(usable), reference, max_angle_deg=2 * max_edge_error_deg,
-                                      max_shift=lambda m: 6 * usable[m].inlier_distance)
+    poses = pose_graph.consensus_tree(tree_edges(usable), reference, max_angle_deg=gain * max_edge_error_deg,
+                                      max_shift=lambda m: gain * max_shift * usable[m].inlier_distance)
 
     def check(edges, poses, angle_deg, spacings):
         out = []
@@ -546,10 +547,10 @@ def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict 
 
     # Edges the consensus tree contradicts are rejected; the rest are optimised robustly and
     # checked again at the final tolerance.
-    edges = check(edges, poses, 2 * max_edge_error_deg, 6)
+    edges = check(edges, poses, gain * max_edge_error_deg, gain * max_shift)
     poses = pose_graph.optimise(poses, graph(placed(edges, poses)), reference, translation_scale=scale,
                                 direct_solve_max_poses=direct)
-    edges = check(edges, poses, max_edge_error_deg, 3)
+    edges = check(edges, poses, max_edge_error_deg, max_shift)
     kept = placed(edges, poses)
     poses = {k: T for k, T in pose_graph.consensus_tree(tree_edges(kept), reference, max_angle_deg=max_edge_error_deg,
                                                         max_shift=lambda m: float("inf")).items() if k in poses}
@@ -595,7 +596,7 @@ def _free_space_conflicts(n, reference, poses, dense, small, edges, centres, ran
             return {}, {}, (f"not range images: {others} of {len(posed)} placed scans are not, e.g. scan {first}: "
                             f"{premise[first].reason}")
         world = {k: poses[k] @ _shift(-centres[k]) for k in seen}
-        views = dict(zip(seen, pool.map(lambda k: free_space.RangeView(points[k]), seen)))
+        views = dict(zip(seen, pool.map(lambda k: free_space.RangeView(points[k], policy), seen)))
 
         def fractions(pairs):
             return dict(zip(pairs, pool.map(
@@ -1141,7 +1142,7 @@ def _joint_refinement(work: _Scans, poses: dict, edges: list[Edge], config: Merg
     fine_normals = {k: estimate_normals(fine[k], k=config.refine_normal_neighbours, workers=None) for k in fine}
     scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
     fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
-    reach = np.geomspace(3.0 * scale, max(config.refine_floor_spacings * fine_spacing, 1e-12), config.refine_rounds)
+    reach = np.geomspace(config.refine_reach_inliers * scale, max(config.refine_floor_spacings * fine_spacing, 1e-12), config.refine_rounds)
     poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, work.reference, reach,
                                    query_points=config.query_points)
     plan.close()

@@ -28,26 +28,26 @@ from .policy import DEFAULT_POLICY, TrustPolicy
 
 class RangeView:
     """One scan seen from its origin: the unit direction and range of each point, and the angular
-    radius within which a direction counts as seen (twice the median angular spacing)."""
+    radius within which a direction counts as near one of its own (``policy.seen_radius_spacings``
+    median angular spacings)."""
 
-    def __init__(self, points: np.ndarray):
+    def __init__(self, points: np.ndarray, policy: TrustPolicy = DEFAULT_POLICY):
         ranges = np.linalg.norm(points, axis=1)
         keep = ranges > 0
         self.ranges = ranges[keep]
         self.tree = cKDTree(points[keep] / self.ranges[:, None])
+        self.seen_directions = policy.seen_directions
         nearest, _ = self.tree.query(self.tree.data, k=2)
-        self.radius = 2.0 * float(np.median(nearest[:, 1]))
+        self.radius = policy.seen_radius_spacings * float(np.median(nearest[:, 1]))
 
     def free_space_fraction(self, points: np.ndarray, tolerance: float) -> tuple[int, float]:
         """(points in this view's field of view, fraction of them in its free space): ``points``
-        in this scan's frame; a point is in the field of view when four of this scan's directions
-        lie within :attr:`radius` of its own, and in free space when it lies more than
-        ``tolerance`` (cloud units) in front of the surfaces seen along those four."""
+        in this scan's frame; a point is in the field of view when :attr:`seen_directions` of this
+        scan's directions lie within :attr:`radius` of its own, and in free space when it lies more
+        than ``tolerance`` (cloud units) in front of the surfaces seen along those."""
         ranges = np.linalg.norm(points, axis=1)
         directions = points / np.maximum(ranges, 1e-300)[:, None]
-        distance, index = self.tree.query(directions, k=4, distance_upper_bound=self.radius)
-        # seen: four of this scan's directions around it (just past the border of the field of
-        # view only one or two are near, and the surface there is extrapolated, not seen)
+        distance, index = self.tree.query(directions, k=self.seen_directions, distance_upper_bound=self.radius)
         seen = np.isfinite(distance).all(axis=1)
         nearest_surface = np.where(seen[:, None], self.ranges[np.where(seen[:, None], index, 0)], np.inf).min(axis=1)
         count = int(seen.sum())
@@ -102,7 +102,7 @@ def free_space_fraction(target: np.ndarray, source: np.ndarray, T_target_source:
     for key, cloud in ((0, target), (1, source)):
         cloud = np.asarray(cloud, dtype=np.float64)
         points[key] = cloud[np.linspace(0, len(cloud) - 1, min(len(cloud), policy.free_space_points)).astype(np.intp)]
-    views = {key: RangeView(cloud) for key, cloud in points.items()}
+    views = {key: RangeView(cloud, policy) for key, cloud in points.items()}
     poses = {0: np.eye(4), 1: np.asarray(T_target_source, dtype=np.float64)}
     return pair_free_space(views, points, poses, 0, 1, tolerance, policy)
 
@@ -130,12 +130,13 @@ def range_image_test(points, policy: TrustPolicy = DEFAULT_POLICY) -> RangeImage
     A sensor at the origin samples directions on its own grid and sees one surface along each;
     two things follow, and both must hold:
 
-    * *Sampling*: the angular spacing of the points (mean angle to the 4 nearest directions) does
-      not depend on the surface. Points spread evenly over a surface (a mesh, a fused map, a scan
-      moved into another frame seen from that frame's origin) have an angular spacing that grows
-      as ``sqrt(cos(incidence)) / range`` (solid angle per point ``cos / (density range^2)``). The
-      log-log slope of one against the other is 0 for a sensor's grid and 1 for even spreading;
-      its upper 95% bound must be below ``policy.max_sampling_slope``.
+    * *Sampling*: the angular spacing of the points (mean angle to the
+      ``policy.spacing_directions`` nearest directions) does not depend on the surface. Points
+      spread evenly over a surface (a mesh, a fused map, a scan moved into another frame seen from
+      that frame's origin) have an angular spacing that grows as ``sqrt(cos(incidence)) / range``
+      (solid angle per point ``cos / (density range^2)``). The log-log slope of one against the
+      other is 0 for a sensor's grid and 1 for even spreading; its upper 95% bound must be below
+      ``policy.max_sampling_slope``.
     * *One surface per direction*: at most ``policy.max_hidden`` of the points lie behind another
       point (within ``policy.hidden_pixel`` of its angular spacing in direction, more than
       ``policy.hidden_depth_spacings`` local spacings farther).
@@ -166,18 +167,19 @@ def range_image_test(points, policy: TrustPolicy = DEFAULT_POLICY) -> RangeImage
         return RangeImageTest(False, nan, nan, nan,
                               f"its points lie within {radius:.2g} degrees of one direction from its origin: "
                               f"far from the origin for their size, not seen from it (bar {policy.min_angular_radius_deg:g} deg)")
-    k = min(16, len(p) - 1)
+    k = min(max(policy.hidden_directions, policy.spacing_directions), len(p) - 1)
     angle, other = cKDTree(directions).query(directions, k=k + 1)
     angle, other = angle[:, 1:], other[:, 1:]
-    spacing = angle[:, :4].mean(axis=1)  # angular spacing (rad)
-    local = cKDTree(p).query(p, k=5)[0][:, 1:].mean(axis=1)  # point spacing (cloud units)
+    spacing = angle[:, :policy.spacing_directions].mean(axis=1)  # angular spacing (rad)
+    angle, other = angle[:, :policy.hidden_directions], other[:, :policy.hidden_directions]
+    local = cKDTree(p).query(p, k=policy.spacing_points + 1)[0][:, 1:].mean(axis=1)  # point spacing (cloud units)
     behind = (angle < policy.hidden_pixel * spacing[other]) & (
         ranges[other] < ranges[:, None] - policy.hidden_depth_spacings * np.maximum(local[:, None], local[other]))
     hidden = float(np.mean(behind.any(axis=1)))
 
     normals = estimate_normals(p, k=policy.sampling_normal_neighbours)
     cosine = np.abs(np.einsum("ij,ij->i", normals, directions))
-    ok = (cosine > 0.05) & (spacing > 0)  # grazing: the normal says little
+    ok = (cosine > policy.min_incidence_cosine) & (spacing > 0)
     x = 0.5 * np.log(cosine[ok]) - np.log(ranges[ok])
     y = np.log(spacing[ok])
     if ok.sum() < policy.premise_min_points or not np.ptp(x) > 0:

@@ -62,6 +62,13 @@ class TrustPolicy(Config):
     free_space_min_seen : int
         A pair is judged only when at least this many points of one cloud lie in the other's field
         of view (count).
+    seen_radius_spacings : float
+        A direction counts as near one of a scan's own within this many of the scan's median
+        angular spacings (the angle to a direction's nearest; gain).
+    seen_directions : int
+        A point lies in a scan's field of view when at least this many of the scan's directions
+        are near its own (count): just past the border of the field of view only one or two are,
+        and the surface there is extrapolated, not seen.
     max_sampling_slope : float
         A scan is a range image seen from its origin only when the upper 95% bound of the log-log
         slope of its points' angular spacing against ``sqrt(cos(incidence)) / range`` is below this
@@ -71,16 +78,26 @@ class TrustPolicy(Config):
         seen from the origin.
     hidden_pixel : float
         A point is hidden behind another when its direction lies within this fraction of the
-        other's angular spacing (the mean angle to its 4 nearest directions) of the other's
-        direction (ratio) ...
+        other's angular spacing (``spacing_directions``) of the other's direction (ratio) ...
     hidden_depth_spacings : float
-        ... and it lies farther from the origin by more than this many local point spacings (the
-        mean distance to the 4 nearest points, the larger of the two's; gain).
+        ... and it lies farther from the origin by more than this many local point spacings
+        (``spacing_points``, the larger of the two's; gain).
+    hidden_directions : int
+        The nearest directions of each point among which the range-image test looks for one it
+        lies hidden behind (count).
+    spacing_directions : int
+        A point's angular spacing is the mean angle to this many of its nearest directions (count).
+    spacing_points : int
+        A point's local spacing is the mean distance to this many of its nearest points (count).
+    min_incidence_cosine : float
+        Points whose normal makes a cosine below this with their direction from the origin (seen
+        edge-on, where the normal says little of the sampling) are left out of the sampling
+        slope (cosine, 0-1).
     sampling_normal_neighbours : int
         Nearest points of each normal whose incidence the range-image test reads (count).
     premise_min_points : int
         Fewer points than this are too few to judge a scan a range image (count; at least 17, the
-        16 nearest directions the test reads and the point itself).
+        ``hidden_directions`` nearest directions the test reads by default and the point itself).
     min_angular_radius_deg : float
         A scan whose points lie within this angle of their mean direction (the median angle,
         degrees) is far from its origin for its size, as no sensor sees a scan: not a range image.
@@ -159,10 +176,16 @@ class TrustPolicy(Config):
     free_space_tolerance_inliers: float = number(3.0, least=0.0)
     free_space_points: int = count(4000)
     free_space_min_seen: int = count(200)
+    seen_radius_spacings: float = number(2.0, above=0.0)
+    seen_directions: int = count(4)
     max_sampling_slope: float = number(0.5)
     max_hidden: float = fraction(0.005)
     hidden_pixel: float = number(0.25, above=0.0)
     hidden_depth_spacings: float = number(2.0, least=0.0)
+    hidden_directions: int = count(16)
+    spacing_directions: int = count(4)
+    spacing_points: int = count(4)
+    min_incidence_cosine: float = fraction(0.05)
     sampling_normal_neighbours: int = count(12, least=3)
     premise_min_points: int = count(1000, least=17)
     min_angular_radius_deg: float = number(0.5, least=0.0, below=180.0)
