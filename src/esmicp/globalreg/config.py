@@ -299,8 +299,7 @@ class SearchConfig(Config):
     ambiguity_ratio : float
         A clearly different pose (rotation more than
         :attr:`VerificationConfig.distinct_rotation_deg` away) scoring at least this fraction of
-        the best makes the result ambiguous (0-1). Measured on the symmetric development shapes
-        (bottle, cup, vase, lamp, flower pot), whose twins score within 3%.
+        the best makes the result ambiguous (0-1): a symmetric object's twin poses score alike.
     decide_ratio : float
         The full-resolution decision (both ways, up to 2,000 points of each cloud) runs when the
         runner-up scores at least this fraction of the best on the subsample (0-1): the one early
@@ -308,9 +307,7 @@ class SearchConfig(Config):
     confident_score : float
         ``"auto"`` stops after the rotation search when its best pose puts at least this soft
         fraction of the source on the target (0-1; above 1: never) and is unambiguous and
-        confident on the overlap or covers the target. Measured on outliers-30 / outliers-60 of
-        the development shapes (the right poses scored 0.58-0.78, 5th percentile 0.63; wrong ones
-        reached 0.62 once).
+        confident on the overlap or covers the target.
     full_cover : float
         Such a pose is also final when at least this fraction (0-1) of the target's points lie
         within two score widths of the placed source: the full overlap the score assumes holds
@@ -318,7 +315,7 @@ class SearchConfig(Config):
     settle_from : float
         A rotation-search pose scoring at least this fraction of ``confident_score`` is refined a
         little further ("settled") and final when it then reaches ``confident_score`` and
-        ``confident`` on the overlap (a LiDAR pair ending 2.6 degrees short scored 0.597).
+        ``confident`` on the overlap: a right pose can end a little short of the bar.
     scan_margin : float
         The scan strategy's confident pose wins before the feature strategy runs when its overlap
         score is above this many times the rotation search's pose's (ratio, >= 1).
@@ -331,8 +328,8 @@ class SearchConfig(Config):
     sharper_than_chosen : float
         A chosen pose not ``confident`` on the overlap gives way to the scan strategy's pose most
         confident there when that is higher by at least this much (confidence units, 0-1); the
-        result is then ambiguous. Measured on the development halves (a cut object's flip lies on
-        more of the other part than the truth).
+        result is then ambiguous: a cut object's flip can lie on more of the other part than the
+        truth does.
     scan_candidates : int
         The scan strategy's best poses (count) that join the verification when its best is not
         ``confident``.
@@ -362,6 +359,13 @@ class SearchConfig(Config):
         The smallest eigenvalue of the same (0 for a floor and one wall, which leave a slide free)
         mapped from this range onto 0-1 (dimensionless; the range separates wrong poses from
         ground truths, ``docs/design.md``, "Tuned values").
+
+    References
+    ----------
+    ``ambiguity_ratio``, ``confident_score``, ``settle_from``, ``sharper_than_chosen``,
+    ``full_cover`` and the confidence's ranges: the data they were chosen and confirmed on and the
+    figures, ``docs/design.md``, "Tuned values"; the search's success and cost,
+    ``docs/measured-global.md``.
     """
 
     ambiguity_ratio: float = fraction(0.97)
