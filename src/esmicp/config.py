@@ -51,22 +51,14 @@ class RefineConfig(Config):
     whole_tolerance : float
         ... that tolerance, when the caller's is finer (radians; times the target's bounding-box
         diagonal for a translation): a global pose is already close, and the last iterations
-        creep on by less than the pose's own standard deviation. Chosen on the 3DMatch pairs of
-        16k source points (``t00_s06``, ``t04_s06``; against 1e-5: 20 -> 12 and 17 -> 9 iterations,
-        the pose moved by at most 0.59 of its own standard deviation, the overlap confidence by at
-        most 0.003, both right and trusted; 1e-4 moved it by up to 0.75), confirmed on 10 kitchen-walk
-        pairs 10-60 frames apart (at most 0.52 standard deviations, the same right and trusted) and the 7
-        Newer College LiDAR pairs (at most 0.35).
+        creep on by less than the pose's own standard deviation.
     plane_iterations : int
         After a global search, ``esm`` on the strided points is preceded by at most this many
         ``esm-plane`` iterations (count; 0: none): the plane residual pulls back a pose slid along
         a road or a corridor, where ``esm``'s Gaussian weight is nil.
     plane_points : int
-        ... on this many of the strided points, evenly strided again (count). Chosen on 3DMatch
-        ``t00_s04`` (as recorded and turned, against 5,000: the refinement's CPU time 0.53 -> 0.32 s,
-        24 -> 20 and 21 iterations in all, the pose moved by at most 0.53 of its own standard
-        deviation, the overlap confidence by at most 0.003; 1,000 and 1,500 took more iterations),
-        confirmed on KITTI ``t0_s1`` (0.68 -> 0.50 s, at most 0.76 standard deviations).
+        ... on this many of the strided points, evenly strided again (count): fewer points cost
+        less per iteration, too few take more iterations.
     plane_confidence_drop : float
         The ``esm-plane`` stage is undone when it lowers the overlap confidence by more than this
         (confidence units, 0-1).
@@ -99,8 +91,8 @@ class RefineConfig(Config):
     References
     ----------
     Each field's value, the data it was chosen on and confirmed on, and the page with the figures:
-    ``docs/design.md``, "Tuned values" (``strided_*`` and ``plane_*``: ``docs/speed.md``, "Real
-    scan pairs", and ``docs/scans-refinement.md``; ``plane_confidence_drop``:
+    ``docs/design.md``, "Tuned values" (``strided_*``, ``whole_tolerance`` and ``plane_*``:
+    ``docs/speed.md``, "Real scan pairs", and ``docs/scans-refinement.md``; ``plane_confidence_drop``:
     ``docs/scans-partial-overlap.md``).
     """
 
