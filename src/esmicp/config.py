@@ -199,8 +199,8 @@ class MergeConfig(Config):
         many times ``max_edge_error_deg`` and ``max_edge_shift_inliers`` (gain): the unoptimised
         tree's poses carry the error of every edge on their path.
     refine_rounds : int
-        Correspondence distances of the joint refinement, each used for two Gauss-Newton steps
-        (count; 0: no joint refinement).
+        Correspondence distances of the joint refinement, each used for ``refine_steps``
+        Gauss-Newton steps (count; 0: no joint refinement).
     stalled_rounds : int
         Rounds in a row that place or confirm no scan after which the merge stops asking for
         more pairs (count).
@@ -240,6 +240,14 @@ class MergeConfig(Config):
     refine_normal_neighbours : int
         Nearest points of each normal of the dense subsets, whose planes the joint refinement's
         residuals measure (count).
+    refine_steps : int
+        Gauss-Newton steps of the joint refinement at each correspondence distance (count).
+    refine_huber_ratio : float
+        The joint refinement weighs a residual by Huber's rule beyond the correspondence distance
+        divided by this (ratio).
+    refine_min_pairs : int
+        A direction of an edge with fewer correspondences than this within the distance adds
+        nothing to a step of the joint refinement (count).
     refine_reach_inliers : float
         The joint refinement's first correspondence distance, in median inlier distances of the
         kept edges (gain).
@@ -292,6 +300,9 @@ class MergeConfig(Config):
     check_iterations: int = count(30)
     check_tolerance: float = number(3e-6, least=0.0)
     refine_normal_neighbours: int = count(12, least=3)
+    refine_steps: int = count(2)
+    refine_huber_ratio: float = number(3.0, above=0.0)
+    refine_min_pairs: int = count(10)
     refine_reach_inliers: float = number(3.0, above=0.0)
     refine_floor_spacings: float = number(2.0, above=0.0)
     query_points: int = count(1000)

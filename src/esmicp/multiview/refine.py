@@ -12,14 +12,16 @@ from . import pose_graph
 
 
 def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: int, distances, *,
-           query_points: int, rounds_per_distance: int = 2):
+           query_points: int, rounds_per_distance: int, huber_ratio: float, min_pairs: int):
     """``(poses, rmse, residual per scan)`` after refining ``poses`` (``T_world_scan``, modified in
     place) over the pairs ``edges``; ``clouds`` and ``clouds_normals`` in each scan's frame.
     Each step turns a scan about the world's origin: the merge passes its scans in their centroid
     frames (the world the reference's), so the steps are well scaled wherever the data lie.
 
     ``distances`` are the correspondence cutoffs (cloud units), each used for
-    ``rounds_per_distance`` Gauss-Newton steps. Each direction of an edge queries at most
+    ``rounds_per_distance`` Gauss-Newton steps, its residuals Huber-weighted beyond the cutoff over
+    ``huber_ratio``; a direction of an edge with fewer than ``min_pairs`` correspondences within the
+    cutoff adds nothing to a step. Each direction of an edge queries at most
     ``query_points`` points of its scan (evenly strided): a 6-degree-of-freedom step needs no more,
     and the queries are its cost. ``rmse`` is the point-to-plane RMS over all
     correspondences of the last step; the residual of scan k is the same over the correspondences
@@ -36,20 +38,21 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
 
     def linearise(a_scan, b_scan, cutoff):
         """(J^T W J, J^T W r, sum of r^2, count) of scan b's points against scan a's planes, J the
-        derivative of the residuals by scan a's increment (scan b's is -J); None with under 10."""
+        derivative of the residuals by scan a's increment (scan b's is -J); None with under
+        ``min_pairs``."""
         P_a, P_b = poses[a_scan], poses[b_scan]
         mine = clouds[b_scan][queried[b_scan]]
         d, idx = trees[a_scan].query(mine, transform=np.linalg.inv(P_a) @ P_b, warm=warm.get((a_scan, b_scan)),
                                      workers=1)
         warm[(a_scan, b_scan)] = idx
         ok = d <= cutoff
-        if ok.sum() < 10:
+        if ok.sum() < min_pairs:
             return None
         b = mine[ok] @ P_b[:3, :3].T + P_b[:3, 3]  # world frame
         a = clouds[a_scan][idx[ok]] @ P_a[:3, :3].T + P_a[:3, 3]
         n = clouds_normals[a_scan][idx[ok]] @ P_a[:3, :3].T
         r = np.einsum("ij,ij->i", n, a - b)
-        huber = cutoff / 3
+        huber = cutoff / huber_ratio
         w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-300))
         J = np.hstack([np.cross(b, n), n])
         return (J * w[:, None]).T @ J, (J * (w * r)[:, None]).sum(axis=0), float(np.sum(r * r)), len(r)

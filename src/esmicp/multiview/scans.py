@@ -1142,9 +1142,11 @@ def _joint_refinement(work: _Scans, poses: dict, edges: list[Edge], config: Merg
     fine_normals = {k: estimate_normals(fine[k], k=config.refine_normal_neighbours, workers=None) for k in fine}
     scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
     fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
-    reach = np.geomspace(config.refine_reach_inliers * scale, max(config.refine_floor_spacings * fine_spacing, 1e-12), config.refine_rounds)
+    reach = np.geomspace(config.refine_reach_inliers * scale, max(config.refine_floor_spacings * fine_spacing, 1e-12),
+                         config.refine_rounds)
     poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, work.reference, reach,
-                                   query_points=config.query_points)
+                                   query_points=config.query_points, rounds_per_distance=config.refine_steps,
+                                   huber_ratio=config.refine_huber_ratio, min_pairs=config.refine_min_pairs)
     plan.close()
     plan.record("joint refinement", started, points=sum(len(f) for f in fine.values()), scans=len(fine),
                 edges=len(kept_pairs), rounds=config.refine_rounds, rmse=rmse)
