@@ -211,6 +211,10 @@ class MergeConfig(Config):
         draw of the subsets when the graph needs it.
     closing_pairs : int
         Pairs searched a round across each edge on no cycle of the kept graph (count).
+    piece_points : int
+        Points (a content-seeded random subset, at most) of each fused cloud in the global search
+        that places a piece of unplaced scans as a whole: the piece's scans fused at their poses
+        within it, and the placed scans fused at theirs (count).
     predict_radius_inliers : float
         What the poses predict two posed scans share is measured within this many median inlier
         distances of the kept edges (gain).
@@ -291,6 +295,7 @@ class MergeConfig(Config):
     stalled_rounds: int = count(3)
     pair_scan_searches: int = count(1)
     closing_pairs: int = count(1)
+    piece_points: int = count(3000, least=MIN_POINTS)
     predict_radius_inliers: float = number(3.0, above=0.0)
     min_predicted_overlap: float = fraction(0.3)
     predict_points: int = count(300)

@@ -674,7 +674,7 @@ class _Pieces:
 
     def __init__(self, pairwise: "_Pairwise", small, config: MergeConfig):
         self.pairwise, self.small, self.config = pairwise, small, config
-        self.pair_points, self.partners = config.pair_points, config.partners
+        self.piece_points, self.partners = config.piece_points, config.partners
         self.placed_at: dict[frozenset, frozenset] = {}  # piece -> the placed scans it was last searched against
         self.unlike = None  # the scans' dissimilarities (:func:`_unlike`), once asked for
 
@@ -686,7 +686,7 @@ class _Pieces:
 
     def _fused(self, poses: dict) -> np.ndarray:
         points = np.concatenate([self.small[k] @ T[:3, :3].T + T[:3, 3] for k, T in sorted(poses.items())])
-        return _subsample(points, self.pair_points)
+        return _subsample(points, self.piece_points)
 
     def _within(self, piece, vetoed) -> dict:
         """The piece's own poses (its first scan's frame) from its trusted edges."""
