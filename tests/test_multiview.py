@@ -270,6 +270,36 @@ def test_a_reference_left_apart_by_its_first_pairs_still_reaches_the_other_scans
     assert any(group[e.i] != group[e.j] and e.kept for e in result.edges)
 
 
+def test_a_piece_that_joins_only_through_pairs_the_ranking_puts_low_is_still_placed(monkeypatch):
+    """Scans 0-5 (the reference's) and 6-11 overlap within their groups, and across them only
+    where the groups meet (3-5 with 6-8); the similarity ranks every pair of 0-2 with 6-11 (none
+    overlapping) before those. Scans 6-11 stand apart after the first pairs, their fused piece
+    finds no pose, and the pairs most like them find nothing: the pairs that join them rank after
+    18 that do not, and the merge still reaches them before it stops."""
+    n = 12
+    rng = np.random.default_rng(21)
+    truth = _truth(n, rng)
+    clouds = _clouds(truth, rng)
+    group = np.array([0] * 6 + [1] * 6)
+    meet = {(i, j) for i in (3, 4, 5) for j in (6, 7, 8)}
+    overlapping = {(i, j) for i in range(n) for j in range(i + 1, n) if group[i] == group[j]} | meet
+    index = np.arange(n)
+    hops = np.abs(index[:, None] - index[None, :]) % 6
+    distances = 0.01 * np.minimum(hops, 6 - hops) + 2.0 * (group[:, None] != group[None, :])  # a ring in each group
+    decoys = np.ix_([0, 1, 2], range(6, n))
+    distances[decoys] = 0.5 + 0.01 * rng.random((3, 6))  # alike across, yet sharing nothing
+    distances = np.minimum(distances, distances.T)
+    np.fill_diagonal(distances, 0.0)
+    monkeypatch.setattr(scans_module.candidates, "matching_distances", lambda clouds, **_: distances)
+    _patch(monkeypatch, truth, clouds, overlapping=overlapping)
+    result = register_scans(clouds, refine_rounds=0, threads=1, partners=2)
+    assert result.status == ("placed",) * n, result.reasons
+    for k in range(n):
+        angle, shift = _errors(result.poses[k], truth[k])
+        assert angle < 1e-6 and shift < 1e-6
+    assert any(group[e.i] != group[e.j] and e.kept for e in result.edges)
+
+
 def test_a_search_that_failed_on_one_draw_of_the_points_is_tried_on_another_where_the_graph_needs_it(monkeypatch):
     """The reference's pairs with scans 2-5 find nothing on the first draw of the sparse subsets
     (as the bunny's bun270 with bun180 on some draws): scans 1-5 then hang from the reference by

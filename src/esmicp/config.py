@@ -211,6 +211,11 @@ class MergeConfig(Config):
         draw of the subsets when the graph needs it.
     closing_pairs : int
         Pairs searched a round across each edge on no cycle of the kept graph (count).
+    bridging_growth : float
+        A piece of unplaced scans paired with the placed scans most like its own (its pose found
+        no pairs) gets this many times the pairs of its previous such round (ratio, at least 1;
+        ``partners * min(len(piece), partners)`` the first time): the pairs that join it may
+        rank low, and the search stays bounded by ``stalled_rounds``.
     piece_points : int
         Points (a content-seeded random subset, at most) of each fused cloud in the global search
         that places a piece of unplaced scans as a whole: the piece's scans fused at their poses
@@ -296,6 +301,7 @@ class MergeConfig(Config):
     pair_scan_searches: int = count(1)
     closing_pairs: int = count(1)
     piece_points: int = count(3000, least=MIN_POINTS)
+    bridging_growth: float = number(2.0, least=1.0)
     predict_radius_inliers: float = number(3.0, above=0.0)
     min_predicted_overlap: float = fraction(0.3)
     predict_points: int = count(300)

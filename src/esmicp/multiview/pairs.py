@@ -126,11 +126,13 @@ def ranked_partners(distances: np.ndarray) -> list[list[int]]:
 
 
 def bridging_pairs(distances: np.ndarray, placed: Iterable[int], pieces: Iterable[Sequence[int]], tried: set,
-                   per_scan: int) -> list[tuple[int, int]]:
+                   per_scan: int, widen: Sequence[float] | None = None) -> list[tuple[int, int]]:
     """Untried pairs of one scan of a piece not placed (``pieces``: each a list of scans joined
     to each other, not to the placed ones) and one placed scan, most similar first (``distances``
     from :func:`matching_distances`), each scan in at most ``per_scan`` of them and each piece
-    in at most ``per_scan * min(len(piece), per_scan)``.
+    in at most ``per_scan * min(len(piece), per_scan)``; ``widen[n]`` (at least 1) multiplies
+    both caps for the scans of piece n (a piece whose first pairs found nothing: the pairs that
+    join it may rank low).
 
     Only such a pair can place a piece: one between two unplaced scans joins them to each other,
     not to the reference. One trusted pair places a whole piece, so a piece of many scans that
@@ -139,9 +141,12 @@ def bridging_pairs(distances: np.ndarray, placed: Iterable[int], pieces: Iterabl
     whichever side is the larger (a few unplaced scans among many placed, or a reference whose
     few placed scans face all the others)."""
     placed = sorted(placed)
-    pieces = [sorted(piece) for piece in pieces if len(piece)]
+    pieces_given = list(pieces)
+    pieces = [sorted(piece) for piece in pieces_given if len(piece)]
     if not placed or not pieces or per_scan < 1:
         return []
+    widen = [1.0] * len(pieces) if widen is None else [max(1.0, float(w)) for w, piece in zip(widen, pieces_given)
+                                                        if len(piece)]
     unplaced = [k for piece in pieces for k in piece]
     piece_of = {k: n for n, piece in enumerate(pieces) for k in piece}
     block = distances[np.ix_(unplaced, placed)]
@@ -153,8 +158,9 @@ def bridging_pairs(distances: np.ndarray, placed: Iterable[int], pieces: Iterabl
         i, j = unplaced[row], placed[column]
         piece = piece_of[i]
         pair = (min(i, j), max(i, j))
-        if (pair in tried or used.get(i, 0) >= per_scan or used.get(j, 0) >= per_scan
-                or per_piece.get(piece, 0) >= per_scan * min(len(pieces[piece]), per_scan)):
+        scan_cap = per_scan * widen[piece]
+        if (pair in tried or used.get(i, 0) >= scan_cap or used.get(j, 0) >= scan_cap
+                or per_piece.get(piece, 0) >= scan_cap * min(len(pieces[piece]), per_scan)):
             continue
         out.append(pair)
         used[i], used[j] = used.get(i, 0) + 1, used.get(j, 0) + 1

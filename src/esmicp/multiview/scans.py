@@ -670,12 +670,14 @@ class _Pieces:
     globally: the piece's pose chooses the pairs and is never an edge or a start, so a wrong one
     only costs the searches it proposed. A piece whose pose predicts no pair, or whose proposed
     pairs placed nothing, gets the placed scans most like its own by the surface matching instead
-    (:func:`candidates.bridging_pairs`, ``partners * min(len(piece), partners)`` pairs a round)."""
+    (:func:`candidates.bridging_pairs`, ``partners * min(len(piece), partners)`` pairs the first
+    time, ``bridging_growth`` times more each time after: the pairs that join it may rank low)."""
 
     def __init__(self, pairwise: "_Pairwise", small, config: MergeConfig):
         self.pairwise, self.small, self.config = pairwise, small, config
         self.piece_points, self.partners = config.piece_points, config.partners
         self.placed_at: dict[frozenset, frozenset] = {}  # piece -> the placed scans it was last searched against
+        self.blind: dict[frozenset, int] = {}  # piece -> rounds it was paired by similarity alone
         self.unlike = None  # the scans' dissimilarities (:func:`_unlike`), once asked for
 
     def dissimilarities(self) -> np.ndarray:
@@ -738,8 +740,12 @@ class _Pieces:
         by_pose = len(out)
         if blind:
             asked = set(out)
-            out.extend(p for p in candidates.bridging_pairs(self.dissimilarities(), poses, blind, tried, self.partners)
-                       if p not in asked)
+            # a piece left apart by its earlier pairs gets more of them each time: the pairs that join it may rank low
+            widen = [self.config.bridging_growth ** self.blind.get(frozenset(piece), 0) for piece in blind]
+            for piece in blind:
+                self.blind[frozenset(piece)] = self.blind.get(frozenset(piece), 0) + 1
+            out.extend(p for p in candidates.bridging_pairs(self.dissimilarities(), poses, blind, tried, self.partners,
+                                                            widen) if p not in asked)
         if fresh:
             posed = sum(1 for piece in fresh if piece[0] in proposed)
             self.pairwise.stages.record(stage, started, pieces=len(pieces), searched=len(fresh), posed=posed,
