@@ -227,7 +227,7 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
     beyond by conjugate gradients (:func:`_conjugate_gradients`), as a direct solve fills in when
     loop closures join far-apart scans.
     """
-    from scipy.sparse import coo_matrix, diags
+    from scipy.sparse import csc_matrix, csr_matrix
     from scipy.sparse.linalg import spsolve
 
     if loss not in ("cauchy", "linear"):
@@ -265,6 +265,14 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
     pair = keep[:, :, None] & keep[:, None, :]
     H_rows = np.broadcast_to(index[:, :, None], pair.shape)[pair]
     H_cols = np.broadcast_to(index[:, None, :], pair.shape)[pair]
+    # the normal matrix's pattern, made once: its nonzeros (and its whole diagonal, for the damping)
+    # sorted by row, then column (CSR order), and which of them each block entry adds to
+    where = np.concatenate([H_rows.astype(np.int64) * size + H_cols, np.arange(size, dtype=np.int64) * (size + 1)])
+    entries, entry_of = np.unique(where, return_inverse=True)
+    entry_of = entry_of[:len(H_rows)]
+    columns = (entries % size).astype(np.int32)
+    starts = np.concatenate([[0], np.cumsum(np.bincount(entries // size, minlength=size))]).astype(np.int32)
+    on_diagonal = np.searchsorted(entries, np.arange(size, dtype=np.int64) * (size + 1))
     r, phi, back, d = errors(rotations, translations)
     current = cost(r)
     damping = 1e-4
@@ -283,9 +291,9 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
         weight = 1.0 / (1.0 + r**2) if loss == "cauchy" else np.ones_like(r)
         H = np.einsum("nai,na,naj->nij", J, weight, J)
         g = np.einsum("nai,na->ni", J, weight * r)
-        normal = coo_matrix((H[pair], (H_rows, H_cols)), shape=(size, size)).tocsr()
+        normal = np.bincount(entry_of, weights=H[pair], minlength=len(entries))
         gradient = np.bincount(index[keep], weights=g[keep], minlength=size)
-        diagonal = normal.diagonal()
+        diagonal = normal[on_diagonal]
         # the 6x6 diagonal blocks of the free poses, for the preconditioner
         own = np.zeros((len(free) + 1, 6, 6))
         np.add.at(own, first, H[:, :6, :6])
@@ -293,11 +301,15 @@ def optimise(poses: dict[int, np.ndarray], edges, reference: int, *, translation
         own = own[:-1]
         while True:
             lift = damping * np.maximum(diagonal, 1e-12)
-            damped = normal + diags(lift, format="csr")
+            damped = normal.copy()
+            damped[on_diagonal] += lift
             if len(free) <= direct_solve_max_poses:
-                step = -spsolve(damped.tocsc(), gradient, permc_spec="MMD_AT_PLUS_A")
+                # symmetric: its CSR arrays read as CSC are the same matrix
+                step = -spsolve(csc_matrix((damped, columns, starts), shape=(size, size)), gradient,
+                                permc_spec="MMD_AT_PLUS_A")
             else:
-                step = -_conjugate_gradients(damped, gradient, own + lift.reshape(-1, 6)[:, :, None] * np.eye(6))
+                step = -_conjugate_gradients(csr_matrix((damped, columns, starts), shape=(size, size)), gradient,
+                                             own + lift.reshape(-1, 6)[:, :, None] * np.eye(6))
             step = step.reshape(-1, 6)
             trial_R = rotations.copy()
             trial_t = translations.copy()
