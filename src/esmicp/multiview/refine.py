@@ -12,7 +12,8 @@ from . import pose_graph
 
 
 def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: int, distances, *,
-           query_points: int, rounds_per_distance: int, huber_ratio: float, min_pairs: int):
+           query_points: int, rounds_per_distance: int, huber_ratio: float, min_pairs: int,
+           trees: dict | None = None):
     """``(poses, rmse, residual per scan)`` after refining ``poses`` (``T_world_scan``, modified in
     place) over the pairs ``edges``; ``clouds`` and ``clouds_normals`` in each scan's frame.
     Each step turns a scan about the world's origin: the merge passes its scans in their centroid
@@ -25,12 +26,15 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
     ``query_points`` points of its scan (evenly strided): a 6-degree-of-freedom step needs no more,
     and the queries are its cost. ``rmse`` is the point-to-plane RMS over all
     correspondences of the last step; the residual of scan k is the same over the correspondences
-    it takes part in (None for a scan with none, and everything None without a step)."""
+    it takes part in (None for a scan with none, and everything None without a step). ``trees``:
+    each scan's :class:`~esmicp.core.compiled_tree.CompiledTree` over ``clouds[k]``, when the caller
+    has them (made here otherwise)."""
     from ..core.compiled_tree import CompiledTree
 
     free = [k for k in sorted(poses) if k != reference]
     slot = {k: n for n, k in enumerate(free)}
-    trees = {k: CompiledTree(clouds[k]) for k in poses}  # each in its scan's frame, built once
+    given = trees or {}
+    trees = {k: given[k] if k in given else CompiledTree(clouds[k]) for k in poses}  # each in its scan's frame, built once
     # each direction of an edge queries an evenly strided subset of at most query_points points
     queried = {k: np.arange(0, len(clouds[k]), max(1, len(clouds[k]) // query_points)) for k in poses}
     warm: dict[tuple[int, int], np.ndarray] = {}  # last nearest neighbours: seeds (speed only)

@@ -67,6 +67,7 @@ from scipy.spatial import cKDTree
 
 from ..batch import register_many
 from ..config import MergeConfig, RegistrationConfig
+from ..core.compiled_tree import CompiledTree
 from ..core.features import estimate_normals, voxel_grid
 from ..core.procrustes import skew
 from ..errors import InvalidInputError
@@ -1145,14 +1146,18 @@ def _joint_refinement(work: _Scans, poses: dict, edges: list[Edge], config: Merg
     plan.open("joint refinement", 1)
     started = time.perf_counter()
     fine = {k: work.dense[k] for k in poses}
-    fine_normals = {k: estimate_normals(fine[k], k=config.refine_normal_neighbours, workers=None) for k in fine}
+    # one compiled KD-tree per scan gives its normals, its point spacing and the refinement's queries
+    trees = {k: CompiledTree(fine[k]) for k in fine}
+    fine_normals = {k: estimate_normals(fine[k], k=config.refine_normal_neighbours, tree=trees[k], workers=None)
+                    for k in fine}
     scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
-    fine_spacing = float(np.median([np.median(cKDTree(f).query(f, k=2)[0][:, 1]) for f in fine.values()]))
+    fine_spacing = float(np.median([np.median(trees[k].query_k(fine[k], 2)[0][:, 1]) for k in fine]))
     reach = np.geomspace(config.refine_reach_inliers * scale, max(config.refine_floor_spacings * fine_spacing, 1e-12),
                          config.refine_rounds)
     poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, work.reference, reach,
                                    query_points=config.query_points, rounds_per_distance=config.refine_steps,
-                                   huber_ratio=config.refine_huber_ratio, min_pairs=config.refine_min_pairs)
+                                   huber_ratio=config.refine_huber_ratio, min_pairs=config.refine_min_pairs,
+                                   trees=trees)
     plan.close()
     plan.record("joint refinement", started, points=sum(len(f) for f in fine.values()), scans=len(fine),
                 edges=len(kept_pairs), rounds=config.refine_rounds, rmse=rmse)
