@@ -492,8 +492,8 @@ class _Pairwise:
         T = outcome.transformation
         inverse = np.linalg.inv(T)
         moved = self.dense[i] @ inverse[:3, :3].T + inverse[:3, 3]
-        d, _ = cKDTree(self.dense[j]).query(moved, distance_upper_bound=outcome.inlier_distance)
-        reverse = float(np.isfinite(d).mean())
+        d, _ = CompiledTree(self.dense[j]).query(moved, workers=1)
+        reverse = float(np.mean(d < outcome.inlier_distance))
         confidence = getattr(outcome, "confidence", None)
         doubts = outcome.doubts()
         trusted = not doubts
