@@ -279,9 +279,10 @@ class MergeConfig(Config):
     References
     ----------
     ``stalled_rounds``, ``pair_scan_searches``, ``refine_floor_spacings``, ``query_points``,
-    ``check_iterations``, ``check_tolerance``, ``loop_searches_per_scan`` and the ``match_*``
-    fields were each chosen on one set of scans and confirmed on another: ``docs/design.md``,
-    "Tuned values".
+    ``check_iterations``, ``check_tolerance``, ``loop_searches_per_scan``, ``piece_points`` and the
+    ``match_*`` fields were each chosen on one set of scans and confirmed on another:
+    ``docs/design.md``, "Tuned values". ``bridging_growth`` is a bound on the search, not a tuned
+    optimum.
     The measurements: ``docs/merge.md``, "Tuned values".
     """
 
