@@ -22,7 +22,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from ..core.compiled_tree import CompiledTree
 
 from .policy import DEFAULT_POLICY, TrustPolicy
 
@@ -35,6 +36,8 @@ class RangeView:
         ranges = np.linalg.norm(points, axis=1)
         keep = ranges > 0
         self.ranges = ranges[keep]
+        from scipy.spatial import cKDTree
+
         self.tree = cKDTree(points[keep] / self.ranges[:, None])
         self.seen_directions = policy.seen_directions
         nearest, _ = self.tree.query(self.tree.data, k=2)
@@ -168,11 +171,11 @@ def range_image_test(points, policy: TrustPolicy = DEFAULT_POLICY) -> RangeImage
                               f"its points lie within {radius:.2g} degrees of one direction from its origin: "
                               f"far from the origin for their size, not seen from it (bar {policy.min_angular_radius_deg:g} deg)")
     k = min(max(policy.hidden_directions, policy.spacing_directions), len(p) - 1)
-    angle, other = cKDTree(directions).query(directions, k=k + 1)
+    angle, other = CompiledTree(directions).query_k(directions, k + 1)
     angle, other = angle[:, 1:], other[:, 1:]
     spacing = angle[:, :policy.spacing_directions].mean(axis=1)  # angular spacing (rad)
     angle, other = angle[:, :policy.hidden_directions], other[:, :policy.hidden_directions]
-    local = cKDTree(p).query(p, k=policy.spacing_points + 1)[0][:, 1:].mean(axis=1)  # point spacing (cloud units)
+    local = CompiledTree(p).query_k(p, policy.spacing_points + 1)[0][:, 1:].mean(axis=1)  # point spacing (cloud units)
     behind = (angle < policy.hidden_pixel * spacing[other]) & (
         ranges[other] < ranges[:, None] - policy.hidden_depth_spacings * np.maximum(local[:, None], local[other]))
     hidden = float(np.mean(behind.any(axis=1)))
