@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.keypoints import Keypoints
-from ..core.procrustes import weighted_procrustes
+from ..core.procrustes import batched_weighted_procrustes
 from .policy import DEFAULT_POLICY, TrustPolicy
 
 
@@ -52,40 +52,46 @@ def handedness(transformation: np.ndarray, keypoints: Keypoints, workers: int | 
     mirror image starts at ``transformation`` itself (which maps it to the pose's placement
     mirrored through the plane's image: the improper pose nearest the pose) and is fitted by
     ``policy.mirror_coarse_iterations`` iterations of ICP on ``policy.mirror_coarse_points``
-    source keypoints; the ``policy.mirror_candidates`` that coincide best are fitted on by
-    ``policy.mirror_iterations`` on ``policy.mirror_points`` keypoints, as the pose itself is
-    (evenly strided subsets). Cost: about ``(policy.mirror_planes + 3) *
-    policy.mirror_coarse_iterations`` queries of the coarse subset and ``(policy.mirror_candidates
-    + 1) * policy.mirror_iterations`` of the finer one."""
+    source keypoints, every mirror image in one batch (one nearest-neighbour query per iteration
+    over all of them); the ``policy.mirror_candidates`` that coincide best are fitted on by
+    ``policy.mirror_iterations`` on ``policy.mirror_points`` keypoints, as the pose itself is; the
+    pose and those fits are judged on ``policy.mirror_share_points`` keypoints of each cloud
+    (evenly strided subsets throughout). A fit leaves the batch once it has converged. Cost: at
+    most ``(policy.mirror_planes + 3) * policy.mirror_coarse_points *
+    (policy.mirror_coarse_iterations + 1) + (policy.mirror_candidates + 1) *
+    (policy.mirror_points * policy.mirror_iterations + 2 * policy.mirror_share_points)`` keypoint
+    queries."""
     source, target = keypoints.source, keypoints.target
     if min(len(source), len(target)) < policy.min_coincident or not np.isfinite(transformation).all():
         return None
-    fine, coarse = (source[np.linspace(0, len(source) - 1, min(len(source), count)).astype(np.intp)]
-                    for count in (policy.mirror_points, policy.mirror_coarse_points))
+    fine, coarse = (_strided(source, count) for count in (policy.mirror_points, policy.mirror_coarse_points))
     centre = source.mean(axis=0)
     _, axes = np.linalg.eigh(np.cov((source - centre).T))
     normals = np.vstack([axes.T, _hemisphere(policy.mirror_planes) @ axes.T])
+    # Householder reflections through the planes through ``centre``, as 4x4 maps of the source.
+    reflections = np.tile(np.eye(4), (len(normals), 1, 1))
+    reflections[:, :3, :3] -= 2.0 * normals[:, :, None] * normals[:, None, :]
+    reflections[:, :3, 3] = 2.0 * (normals @ centre)[:, None] * normals
+    # Each mirror image's start, as a map of the unreflected source: the pose after its reflection.
+    poses = transformation @ reflections
 
-    def mirror(points, normal):
-        return points - 2.0 * np.outer((points - centre) @ normal, normal)
-
-    pose = _fit(transformation, fine, keypoints, workers, policy, policy.mirror_iterations)
-    proper = _coincident_share(pose, fine, keypoints, workers, policy, coincide_voxels)
+    judged = (_strided(source, policy.mirror_share_points), _strided(target, policy.mirror_share_points))
+    pose = _fit(np.asarray(transformation, dtype=np.float64)[None], fine, keypoints, workers, policy,
+                policy.mirror_iterations)
+    proper = float(_shares(pose, *judged, keypoints, workers, policy, coincide_voxels)[0])
     if proper + policy.mirror_margin >= 1.0:  # no mirror image can beat it by the margin
         return Handedness(proper, None, False)
-    ranked = []
-    for normal in normals:
-        fitted = _fit(transformation, mirror(coarse, normal), keypoints, workers, policy,
-                      policy.mirror_coarse_iterations)
-        ranked.append((_coincident_share(fitted, mirror(coarse, normal), keypoints, workers, policy, coincide_voxels,
-                                         both=False),
-                       fitted, normal))
-    improper = 0.0
-    for _, fitted, normal in sorted(ranked, key=lambda entry: -entry[0])[:policy.mirror_candidates]:
-        fitted = _fit(fitted, mirror(fine, normal), keypoints, workers, policy, policy.mirror_iterations)
-        improper = max(improper, _coincident_share(fitted, mirror(fine, normal), keypoints, workers, policy,
-                                                   coincide_voxels, centre, normal))
+    coarse_poses = _fit(poses, coarse, keypoints, workers, policy, policy.mirror_coarse_iterations)
+    coarse_shares = _shares(coarse_poses, coarse, None, keypoints, workers, policy, coincide_voxels)
+    best = np.argsort(-coarse_shares, kind="stable")[:policy.mirror_candidates]
+    fitted = _fit(coarse_poses[best], fine, keypoints, workers, policy, policy.mirror_iterations)
+    improper = float(_shares(fitted, *judged, keypoints, workers, policy, coincide_voxels).max())
     return Handedness(proper, improper, improper > proper + policy.mirror_margin)
+
+
+def _strided(points: np.ndarray, count: int) -> np.ndarray:
+    """At most ``count`` of ``points``, evenly strided."""
+    return points[np.linspace(0, len(points) - 1, min(len(points), count)).astype(np.intp)]
 
 
 def _hemisphere(count: int) -> np.ndarray:
@@ -97,52 +103,60 @@ def _hemisphere(count: int) -> np.ndarray:
     return np.column_stack([radius * np.cos(angle), radius * np.sin(angle), height])
 
 
-def _fit(transformation: np.ndarray, source: np.ndarray, keypoints: Keypoints, workers: int | None,
+def _fit(maps: np.ndarray, source: np.ndarray, keypoints: Keypoints, workers: int | None,
          policy: TrustPolicy, iterations: int) -> np.ndarray:
-    """``transformation`` refined by at most ``iterations`` of trimmed point-to-point ICP of
-    ``source`` onto the target keypoints: pairs within twice the median pair distance, and never
-    fewer than those within ``policy.overlap_voxels`` keypoint voxels (far from the fit, the
-    median reaches across the overlap; near it, the overlap alone)."""
+    """Each of the 4x4 ``maps`` ``(K, 4, 4)`` of ``source`` (improper ones included) refined by at
+    most ``iterations`` of trimmed point-to-point ICP onto the target keypoints, all in one batch:
+    pairs within twice the median pair distance, and never fewer than those within
+    ``policy.overlap_voxels`` keypoint voxels (far from the fit, the median reaches across the
+    overlap; near it, the overlap alone). The Procrustes step fits a proper rotation to the mapped
+    source, so a map keeps its handedness. A fit leaves the batch once it moves less than a
+    hundredth of a voxel or keeps fewer than ``policy.min_coincident`` pairs."""
     floor = policy.overlap_voxels * keypoints.voxel
-    pose = np.array(transformation, dtype=np.float64)
+    maps = np.array(maps, dtype=np.float64)
+    active = np.arange(len(maps))
     nearest = None
     for _ in range(iterations):
-        distances, nearest = keypoints.target_tree.query(source, pose, warm=nearest, workers=workers)
-        near = distances <= max(floor, 2.0 * float(np.median(distances)))
-        if np.count_nonzero(near) < policy.min_coincident:
-            return pose
-        rotation, translation = weighted_procrustes(source[near], keypoints.target[nearest[near]])
-        step = np.eye(4)
-        step[:3, :3], step[:3, 3] = rotation, translation
-        moved = np.abs(step - pose).max()
-        pose = step
-        if moved < 1e-2 * keypoints.voxel:
+        if len(active) == 0:
             break
-    return pose
+        moved = np.einsum("kij,nj->kni", maps[active, :3, :3], source) + maps[active, None, :3, 3]
+        distances, nearest = keypoints.target_tree.query(
+            moved.reshape(-1, 3), warm=None if nearest is None else nearest.reshape(-1), workers=workers)
+        distances, nearest = distances.reshape(len(active), -1), nearest.reshape(len(active), -1)
+        bar = np.maximum(floor, 2.0 * np.median(distances, axis=1))
+        near = distances <= bar[:, None]
+        enough = np.count_nonzero(near, axis=1) >= policy.min_coincident
+        if not enough.all():
+            active, moved, near, nearest = active[enough], moved[enough], near[enough], nearest[enough]
+            if len(active) == 0:
+                break
+        rotations, translations = batched_weighted_procrustes(moved, keypoints.target[nearest], near.astype(np.float64))
+        steps = np.tile(np.eye(4), (len(active), 1, 1))
+        steps[:, :3, :3], steps[:, :3, 3] = rotations, translations
+        updated = steps @ maps[active]
+        still = np.abs(updated - maps[active]).max(axis=(1, 2)) >= 1e-2 * keypoints.voxel
+        maps[active] = updated
+        active, nearest = active[still], nearest[still]
+    return maps
 
 
-def _coincident_share(pose: np.ndarray, source: np.ndarray, keypoints: Keypoints, workers: int | None,
-                      policy: TrustPolicy, coincide_voxels: float, centre: np.ndarray | None = None,
-                      normal: np.ndarray | None = None,
-                      both: bool = True) -> float:
-    """Of the keypoints within ``policy.overlap_voxels`` voxels of the other cloud at ``pose``, the
-    share within ``coincide_voxels`` voxels, the smaller of the two directions. ``source``: the
-    source keypoints, or their mirror image through the plane through ``centre`` with ``normal``
-    (the reverse direction queries the source keypoints' tree at the target mirrored back).
-    ``both=False``: the source's direction alone (a cheaper ranking)."""
+def _shares(maps: np.ndarray, source: np.ndarray, target: np.ndarray | None, keypoints: Keypoints,
+            workers: int | None, policy: TrustPolicy, coincide_voxels: float) -> np.ndarray:
+    """For each 4x4 map ``(K, 4, 4)`` of ``source`` (source keypoints), of the keypoints within
+    ``policy.overlap_voxels`` voxels of the other cloud, the share within ``coincide_voxels``
+    voxels: the smaller of the two directions, the reverse one of ``target`` (target keypoints)
+    mapped back into the source tree; ``target`` None: the source's direction alone (a cheaper
+    ranking). 0 where nothing overlaps."""
     voxel = keypoints.voxel
-    shares = []
-    queries = [lambda: keypoints.target_tree.query(source, pose, workers=workers)[0]]
-    if both:
-        back = (keypoints.target - pose[:3, 3]) @ pose[:3, :3]
-        if normal is not None:
-            back = back - 2.0 * np.outer((back - centre) @ normal, normal)
-        queries.append(lambda: keypoints.source_tree.query(back, workers=workers)[0])
-    for query in queries:
-        distances = query()
-        overlap = np.count_nonzero(distances <= policy.overlap_voxels * voxel)
-        if overlap == 0:
-            return 0.0
-        shares.append(np.count_nonzero(distances <= coincide_voxels * voxel) / overlap)
-    return float(min(shares))
-
+    moved = np.einsum("kij,nj->kni", maps[:, :3, :3], source) + maps[:, None, :3, 3]
+    queries = [keypoints.target_tree.query(moved.reshape(-1, 3), workers=workers)[0].reshape(len(maps), -1)]
+    if target is not None:
+        inverse = np.linalg.inv(maps)
+        back = np.einsum("kij,nj->kni", inverse[:, :3, :3], target) + inverse[:, None, :3, 3]
+        queries.append(keypoints.source_tree.query(back.reshape(-1, 3), workers=workers)[0].reshape(len(maps), -1))
+    shares = np.full(len(maps), np.inf)
+    for distances in queries:
+        overlap = np.count_nonzero(distances <= policy.overlap_voxels * voxel, axis=1)
+        coincide = np.count_nonzero(distances <= coincide_voxels * voxel, axis=1)
+        shares = np.minimum(shares, np.where(overlap > 0, coincide / np.maximum(overlap, 1), 0.0))
+    return shares

@@ -151,6 +151,10 @@ class TrustPolicy(Config):
         ... on at most this many source keypoints, evenly strided (count).
     mirror_candidates : int
         The mirror images that coincide best after that coarse fit and are fitted on (count).
+    mirror_share_points : int
+        The shares of coinciding keypoints that judge the pose against those mirror images are
+        measured on at most this many keypoints of each cloud, evenly strided (count; the share's
+        sampling scatter, about ``0.5 / sqrt(count)``, stays well inside ``mirror_margin``).
 
     References
     ----------
@@ -200,12 +204,13 @@ class TrustPolicy(Config):
     covariance_normal_neighbours: int = count(20, least=3)
     noise_neighbours: int = count(10, least=4)
     mirror_margin: float = fraction(0.1)
-    mirror_iterations: int = count(10)
+    mirror_iterations: int = count(12)
     mirror_planes: int = count(16)
-    mirror_points: int = count(1000)
-    mirror_coarse_iterations: int = count(10)
-    mirror_coarse_points: int = count(300)
+    mirror_points: int = count(200)
+    mirror_coarse_iterations: int = count(4)
+    mirror_coarse_points: int = count(100)
     mirror_candidates: int = count(3)
+    mirror_share_points: int = count(1000)
 
 
 #: The policy every judgement uses unless given another.
