@@ -103,6 +103,11 @@ def _hemisphere(count: int) -> np.ndarray:
     return np.column_stack([radius * np.cos(angle), radius * np.sin(angle), height])
 
 
+def _mapped(maps: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``points`` ``(N, 3)`` mapped by each 4x4 map ``(K, 4, 4)``: ``(K, N, 3)``."""
+    return np.matmul(points, np.swapaxes(maps[:, :3, :3], 1, 2)) + maps[:, None, :3, 3]
+
+
 def _fit(maps: np.ndarray, source: np.ndarray, keypoints: Keypoints, workers: int | None,
          policy: TrustPolicy, iterations: int) -> np.ndarray:
     """Each of the 4x4 ``maps`` ``(K, 4, 4)`` of ``source`` (improper ones included) refined by at
@@ -119,7 +124,7 @@ def _fit(maps: np.ndarray, source: np.ndarray, keypoints: Keypoints, workers: in
     for _ in range(iterations):
         if len(active) == 0:
             break
-        moved = np.einsum("kij,nj->kni", maps[active, :3, :3], source) + maps[active, None, :3, 3]
+        moved = _mapped(maps[active], source)
         distances, nearest = keypoints.target_tree.query(
             moved.reshape(-1, 3), warm=None if nearest is None else nearest.reshape(-1), workers=workers)
         distances, nearest = distances.reshape(len(active), -1), nearest.reshape(len(active), -1)
@@ -148,11 +153,11 @@ def _shares(maps: np.ndarray, source: np.ndarray, target: np.ndarray | None, key
     mapped back into the source tree; ``target`` None: the source's direction alone (a cheaper
     ranking). 0 where nothing overlaps."""
     voxel = keypoints.voxel
-    moved = np.einsum("kij,nj->kni", maps[:, :3, :3], source) + maps[:, None, :3, 3]
+    moved = _mapped(maps, source)
     queries = [keypoints.target_tree.query(moved.reshape(-1, 3), workers=workers)[0].reshape(len(maps), -1)]
     if target is not None:
         inverse = np.linalg.inv(maps)
-        back = np.einsum("kij,nj->kni", inverse[:, :3, :3], target) + inverse[:, None, :3, 3]
+        back = _mapped(inverse, target)
         queries.append(keypoints.source_tree.query(back.reshape(-1, 3), workers=workers)[0].reshape(len(maps), -1))
     shares = np.full(len(maps), np.inf)
     for distances in queries:
