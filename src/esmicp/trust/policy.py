@@ -207,7 +207,7 @@ class TrustPolicy(Config):
     mirror_iterations: int = count(30)
     mirror_planes: int = count(16)
     mirror_points: int = count(120)
-    mirror_coarse_iterations: int = count(8)
+    mirror_coarse_iterations: int = count(10)
     mirror_coarse_points: int = count(100)
     mirror_candidates: int = count(3)
     mirror_share_points: int = count(1000)
