@@ -910,17 +910,16 @@ def register_scans(
     where the walk needs them), at most ``N * loop_searches_per_scan`` loop closures, then the
     same rounds.
 
-    Memory, for 1,000 scans of 20,000 points (the input clouds, 480 MB as float64, stay the
-    caller's): per scan, the sparse subset (``pair_points`` x 24 bytes: 36 KB) and the dense one
-    (``refine_points`` x 24 bytes: 192 KB), its normals (192 KB) and, in the joint refinement, a
-    compiled KD-tree over it (about 320 KB): about 0.75 MB a scan, 0.75 GB for 1,000 at the
-    defaults (linear in ``refine_points``). Per kept edge, the refinement's last neighbours
-    (2 x ``query_points`` x 8 bytes: 16 KB; about 0.05 GB for 3,000
-    edges); the pose graph's sparse Jacobian (72 numbers per edge and residual block, a few MB
-    for 5,000 edges) and the refinement's block-sparse normal matrix (two 6x6 blocks per kept
-    edge). The free-space check holds, per posed scan, a 4,000-point subset and a KD-tree of its
-    directions (about 0.25 MB; 0.25 GB for 1,000 scans). Choosing pairs from poses holds, per posed
-    scan asked about, its sparse subset in the world frame and a KD-tree over it (about 0.1 MB;
+    Memory, for 1,000 scans of 20,000 points (the input clouds, 480 MB as float64, stay the caller's): per
+    scan, the sparse subset (``pair_points`` x 24 bytes: 36 KB) and the dense one (``refine_points`` x 24
+    bytes: 192 KB), its normals (192 KB) and, from the first joint refinement to the end of the merge, a
+    compiled KD-tree over it (about 320 KB): about 0.75 MB a scan, 0.75 GB for 1,000 at the defaults (linear in
+    ``refine_points``). Per kept edge, the refinement's last neighbours (2 x ``query_points`` x 8 bytes: 16 KB;
+    about 0.05 GB for 3,000 edges); the pose graph's sparse Jacobian (72 numbers per edge and residual block, a
+    few MB for 5,000 edges) and the refinement's block-sparse normal matrix (two 6x6 blocks per kept edge). The
+    free-space check holds, per posed scan, from its first call to the end of the merge, a 4,000-point subset
+    and a KD-tree of its directions (about 0.25 MB; 0.25 GB for 1,000 scans). Choosing pairs from poses holds,
+    per posed scan asked about, its sparse subset in the world frame and a KD-tree over it (about 0.1 MB;
     0.1 GB for 1,000 scans, while the pairs are chosen). Ranking the first pairs holds, per scan,
     its ``match_points`` surface features and a KD-tree over them (about 0.25 MB; 0.25 GB for
     1,000 scans, while they are ranked). The N x N arrays are the scans' dissimilarities (8 MB for
