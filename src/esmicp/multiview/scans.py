@@ -562,16 +562,17 @@ def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict 
     return poses, edges
 
 
-def _free_space_conflicts(n, reference, poses, dense, small, edges, centres, range_images, premise,
+def _free_space_conflicts(work: "_Scans", poses, edges, range_images, premise,
                           config: MergeConfig) -> tuple[dict, dict, str]:
     """(scans a free-space conflict cuts off from the reference, and the edges it cuts, as
     :func:`cut_off` gives them; what the check did, :attr:`MultiRegistrationResult.free_space_check`).
 
-    ``poses``, ``dense`` and ``small`` are in the scans' centroid frames; ``centres[k]`` is scan
-    k's centroid in its own frame, where its sensor is when it is a range image. ``range_images``:
+    ``poses`` are in the scans' centroid frames (``work``'s); ``work.centres[k]`` is scan k's
+    centroid in its own frame, where its sensor is when it is a range image. ``range_images``:
     True or False as declared, None to test each posed scan (:func:`free_space.range_image_test`,
     on the subset the check uses, in the scan's own frame; the tests are kept in ``premise``, scan
     -> test, across calls). Only pairs of two range images are judged."""
+    n, reference, small, centres = work.n, work.reference, work.small, work.centres
     if range_images is False:
         return {}, {}, "declared off"
     kept = [e for e in edges if e.kept and e.i in poses and e.j in poses]
@@ -583,8 +584,7 @@ def _free_space_conflicts(n, reference, poses, dense, small, edges, centres, ran
     # on threads: the KD-tree builds and queries release the GIL
     with ThreadPoolExecutor() as pool:
         # each scan in its own frame (the sensor at the origin), and its pose from there
-        points = dict(zip(posed, pool.map(lambda k: _subsample(dense[k], policy.free_space_points) + centres[k],
-                                          posed)))
+        points = work.own_frame(posed, policy, pool)
         if range_images is None:
             todo = [k for k in posed if k not in premise]
             premise.update(zip(todo, pool.map(lambda k: free_space.range_image_test(points[k], policy), todo)))
@@ -597,7 +597,7 @@ def _free_space_conflicts(n, reference, poses, dense, small, edges, centres, ran
             return {}, {}, (f"not range images: {others} of {len(posed)} placed scans are not, e.g. scan {first}: "
                             f"{premise[first].reason}")
         world = {k: poses[k] @ _shift(-centres[k]) for k in seen}
-        views = dict(zip(seen, pool.map(lambda k: free_space.RangeView(points[k], policy), seen)))
+        views = work.range_views(seen, policy, pool)
 
         def fractions(pairs):
             return dict(zip(pairs, pool.map(
@@ -910,17 +910,16 @@ def register_scans(
     where the walk needs them), at most ``N * loop_searches_per_scan`` loop closures, then the
     same rounds.
 
-    Memory, for 1,000 scans of 20,000 points (the input clouds, 480 MB as float64, stay the
-    caller's): per scan, the sparse subset (``pair_points`` x 24 bytes: 36 KB) and the dense one
-    (``refine_points`` x 24 bytes: 192 KB), its normals (192 KB) and, in the joint refinement, a
-    compiled KD-tree over it (about 320 KB): about 0.75 MB a scan, 0.75 GB for 1,000 at the
-    defaults (linear in ``refine_points``). Per kept edge, the refinement's last neighbours
-    (2 x ``query_points`` x 8 bytes: 16 KB; about 0.05 GB for 3,000
-    edges); the pose graph's sparse Jacobian (72 numbers per edge and residual block, a few MB
-    for 5,000 edges) and the refinement's block-sparse normal matrix (two 6x6 blocks per kept
-    edge). The free-space check holds, per posed scan, a 4,000-point subset and a KD-tree of its
-    directions (about 0.25 MB; 0.25 GB for 1,000 scans). Choosing pairs from poses holds, per posed
-    scan asked about, its sparse subset in the world frame and a KD-tree over it (about 0.1 MB;
+    Memory, for 1,000 scans of 20,000 points (the input clouds, 480 MB as float64, stay the caller's): per
+    scan, the sparse subset (``pair_points`` x 24 bytes: 36 KB) and the dense one (``refine_points`` x 24
+    bytes: 192 KB), its normals (192 KB) and, from the first joint refinement to the end of the merge, a
+    compiled KD-tree over it (about 320 KB): about 0.75 MB a scan, 0.75 GB for 1,000 at the defaults (linear in
+    ``refine_points``). Per kept edge, the refinement's last neighbours (2 x ``query_points`` x 8 bytes: 16 KB;
+    about 0.05 GB for 3,000 edges); the pose graph's sparse Jacobian (72 numbers per edge and residual block, a
+    few MB for 5,000 edges) and the refinement's block-sparse normal matrix (two 6x6 blocks per kept edge). The
+    free-space check holds, per posed scan, from its first call to the end of the merge, a 4,000-point subset
+    and a KD-tree of its directions (about 0.25 MB; 0.25 GB for 1,000 scans). Choosing pairs from poses holds,
+    per posed scan asked about, its sparse subset in the world frame and a KD-tree over it (about 0.1 MB;
     0.1 GB for 1,000 scans, while the pairs are chosen). Ranking the first pairs holds, per scan,
     its ``match_points`` surface features and a KD-tree over them (about 0.25 MB; 0.25 GB for
     1,000 scans, while they are ranked). The N x N arrays are the scans' dissimilarities (8 MB for
@@ -1011,11 +1010,49 @@ class _Scans:
     small: list[np.ndarray]
     dense: list[np.ndarray]
     keys: list[tuple[int, float]]
+    made: dict = field(default_factory=dict, repr=False, compare=False)  # (what, scan) -> made once, see below
 
     @property
     def n(self) -> int:
         """How many scans are merged."""
         return len(self.unique)
+
+    def fine(self, scans, neighbours: int) -> tuple[dict, dict, dict]:
+        """For each of ``scans``, in its centroid frame: a compiled KD-tree over its dense subset,
+        that subset's normals (from its ``neighbours`` nearest points) and its median point spacing
+        (distance to the nearest other point, cloud units), as three dicts scan -> value. Each is
+        made once per merge and scan: the joint refinement asks again after a free-space conflict."""
+        for k in scans:
+            if ("fine", k) not in self.made:
+                tree = CompiledTree(self.dense[k])
+                normals = estimate_normals(self.dense[k], k=neighbours, tree=tree, workers=None)
+                spacing = float(np.median(tree.query_k(self.dense[k], 2)[0][:, 1]))
+                self.made["fine", k] = (neighbours, tree, normals, spacing)
+        made = {k: self.made["fine", k] for k in scans}
+        if any(m[0] != neighbours for m in made.values()):
+            raise ValueError("one merge asks for its normals from one number of neighbours")
+        return ({k: m[1] for k, m in made.items()}, {k: m[2] for k, m in made.items()},
+                {k: m[3] for k, m in made.items()})
+
+    def own_frame(self, scans, policy, pool) -> dict:
+        """Scan -> its ``policy.free_space_points`` subset of its dense subset, in its own frame
+        (its sensor at the origin when it is a range image), for each of ``scans``; made once per
+        merge and scan on ``pool``'s threads (the free-space check asks again after a conflict).
+        One merge has one ``policy``."""
+        todo = [k for k in scans if ("own frame", k) not in self.made]
+        for k, p in zip(todo, pool.map(lambda k: _subsample(self.dense[k], policy.free_space_points) + self.centres[k],
+                                       todo)):
+            self.made["own frame", k] = p
+        return {k: self.made["own frame", k] for k in scans}
+
+    def range_views(self, scans, policy, pool) -> dict:
+        """Scan -> the :class:`free_space.RangeView` of its :meth:`own_frame` subset, for each of
+        ``scans``; made once per merge and scan, as :meth:`own_frame`."""
+        points = self.own_frame(scans, policy, pool)
+        todo = [k for k in scans if ("range view", k) not in self.made]
+        for k, v in zip(todo, pool.map(lambda k: free_space.RangeView(points[k], policy), todo)):
+            self.made["range view", k] = v
+        return {k: self.made["range view", k] for k in scans}
 
 
 def _prepare(scans: list[np.ndarray], reference: int, config: MergeConfig, plan: _Plan, started: float) -> _Scans:
@@ -1147,11 +1184,9 @@ def _joint_refinement(work: _Scans, poses: dict, edges: list[Edge], config: Merg
     started = time.perf_counter()
     fine = {k: work.dense[k] for k in poses}
     # one compiled KD-tree per scan gives its normals, its point spacing and the refinement's queries
-    trees = {k: CompiledTree(fine[k]) for k in fine}
-    fine_normals = {k: estimate_normals(fine[k], k=config.refine_normal_neighbours, tree=trees[k], workers=None)
-                    for k in fine}
+    trees, fine_normals, spacings = work.fine(fine, config.refine_normal_neighbours)
     scale = float(np.median([e.inlier_distance for e in edges if e.kept]))
-    fine_spacing = float(np.median([np.median(trees[k].query_k(fine[k], 2)[0][:, 1]) for k in fine]))
+    fine_spacing = float(np.median([spacings[k] for k in fine]))
     reach = np.geomspace(config.refine_reach_inliers * scale, max(config.refine_floor_spacings * fine_spacing, 1e-12),
                          config.refine_rounds)
     poses, rmse, residual = refine(poses, fine, fine_normals, kept_pairs, work.reference, reach,
@@ -1180,8 +1215,7 @@ def _free_space_check(work: _Scans, poses: dict, edges: list[Edge], range_images
     """The stage ``"free-space check"`` (:func:`_free_space_conflicts`)."""
     plan.open("free-space check", 1)
     started = time.perf_counter()
-    check = _Check(*_free_space_conflicts(work.n, work.reference, poses, work.dense, work.small, edges, work.centres,
-                                          range_images, premise, config))
+    check = _Check(*_free_space_conflicts(work, poses, edges, range_images, premise, config))
     plan.close()
     plan.record("free-space check", started, check=check.checked, edges_cut=len(check.removed),
                 scans_cut_off=len(check.conflicted))
