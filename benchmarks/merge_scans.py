@@ -78,13 +78,13 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 import esmicp
 from esmicp.io import read_points
 from esmicp.io.stanford_conf import load_scans
 from esmicp_lab.bench.merge import Dataset, Run, dataset_table, evaluate, markers, read_poses_file, scan_status, write_doc
 from esmicp_lab.bench.merge import cell as _f
+from esmicp_lab.bench.real_pairs import pose_graph_poses
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import merge_open3d  # noqa: E402  (a sibling module of this script)
@@ -170,14 +170,7 @@ def kitchen(frames: int, step: int = 1, *, gap: float = 0.0, name: str = "kitche
 
 def newer_college() -> Dataset:
     folder = shared_data() / "real_pairs" / "newer_college_01"
-    truth = {}
-    for line in (folder / "graph.txt").read_text().splitlines():
-        fields = line.split()
-        if len(fields) == 8 and fields[0].startswith("v"):
-            pose = np.eye(4)
-            pose[:3, :3] = Rotation.from_quat([float(v) for v in fields[4:8]]).as_matrix()
-            pose[:3, 3] = [float(v) for v in fields[1:4]]
-            truth[int(fields[0][1:])] = pose
+    truth = pose_graph_poses(folder / "graph.txt")
     names = [f"planes_{10 * k:06d}" for k in sorted(truth)]
     files = [folder / f"{name}.bin" for name in names]
     data = Dataset("newer-college", f"Newer College, {len(names)} LiDAR scans", names,

@@ -16,6 +16,8 @@ import esmicp
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.procrustes import apply, skew
 from esmicp.metrics import random_rotation
+
+from .real_pairs import pose_graph_poses
 from esmicp.trust import uncertainty
 
 CHI2_6_95 = 12.591587243743977
@@ -126,19 +128,10 @@ def lidar_pairs(data: Path):
     """``[(family, name, source, target, T_target_source, metres apart)]``: the 10 pairs of the 5
     Newer College scans (truth from ``graph.txt``: ``vK x y z qx qy qz qw`` per scan, world from
     scan), then the KITTI pair (its ``T_target_source.txt``); and the Newer College triplets."""
-    from scipy.spatial.transform import Rotation
-
     from esmicp.io import read_points
 
     folder = data / "real_pairs" / "newer_college_01"
-    world = {}
-    for line in (folder / "graph.txt").read_text().splitlines():
-        fields = line.split()
-        if len(fields) == 8 and fields[0].startswith("v"):
-            pose = np.eye(4)
-            pose[:3, :3] = Rotation.from_quat([float(v) for v in fields[4:8]]).as_matrix()
-            pose[:3, 3] = [float(v) for v in fields[1:4]]
-            world[int(fields[0][1:])] = pose
+    world = pose_graph_poses(folder / "graph.txt")
     scans = {k: read_points(folder / f"planes_{10 * k:06d}.bin", bin_columns=3) for k in sorted(world)}
     pairs = []
     for a, b in itertools.combinations(sorted(world), 2):

@@ -169,6 +169,22 @@ def read_pairs(folder) -> list[RealPair]:
     return pairs
 
 
+def pose_graph_poses(path) -> dict[int, np.ndarray]:
+    """``{K: T_world_scanK}`` (4x4, the file's units) from a pose-graph file whose vertex lines read
+    ``vK x y z qx qy qz qw`` (Newer College's ``graph.txt``); other lines are skipped."""
+    from scipy.spatial.transform import Rotation
+
+    poses = {}
+    for line in Path(path).read_text().splitlines():
+        fields = line.split()
+        if len(fields) == 8 and fields[0].startswith("v"):
+            pose = np.eye(4)
+            pose[:3, :3] = Rotation.from_quat([float(v) for v in fields[4:8]]).as_matrix()
+            pose[:3, 3] = [float(v) for v in fields[1:4]]
+            poses[int(fields[0][1:])] = pose
+    return poses
+
+
 def load_pair(pair: RealPair, bin_columns: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(source, target, T_target_source)`` of ``pair``; ``.bin`` scans read with the pair's own
     ``bin_columns``, else ``bin_columns``."""
