@@ -15,6 +15,7 @@ from .core.correspondence import NearestNeighbors
 from .core.procrustes import bounding_box_diagonal
 from .core.correspondence import coincident_points
 from .core.keypoints import Keypoints
+from .core.sampling import evenly_strided
 from .config import RefineConfig, RegistrationConfig
 from .errors import CoincidentPointsWarning, IndexAlignmentWarning, InvalidInputError
 from .globalreg.config import SearchConfig
@@ -509,7 +510,7 @@ def _evaluate(clouds: _Clouds, outcome, request: _Request, stages: list, every_p
         warm = None  # another source's (the strided subsample's)
     sample = None
     if not every_point and request.method != "esm-paper" and len(source) > request.refine.evaluated_points:
-        sample = np.linspace(0, len(source) - 1, request.refine.evaluated_points).astype(np.intp)
+        sample = evenly_strided(len(source), request.refine.evaluated_points)
         source = source[sample]
         warm = None if warm is None else warm[sample]
     inlier_distance = request.inlier_distance

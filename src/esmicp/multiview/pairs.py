@@ -61,6 +61,7 @@ def surface_features(points: np.ndarray, *, radius_spacings: float, normal_neigh
     from scipy.spatial import cKDTree
 
     from ..core.features import estimate_normals, fpfh
+    from ..core.sampling import evenly_strided
 
     if len(points) < 3:
         return np.zeros((0, 33))
@@ -68,7 +69,7 @@ def surface_features(points: np.ndarray, *, radius_spacings: float, normal_neigh
     if not spacing > 0:
         return np.zeros((0, 33))
     features = fpfh(points, estimate_normals(points, k=normal_neighbours), radius_spacings * spacing)
-    return features[np.linspace(0, len(points) - 1, min(count, len(points))).astype(np.intp)]
+    return features[evenly_strided(len(points), count)]
 
 
 def mutual_matches(a: np.ndarray, b: np.ndarray, tree_a=None, tree_b=None) -> float:

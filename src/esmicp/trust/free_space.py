@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.compiled_tree import CompiledTree
+from ..core.sampling import evenly_strided
 
 from .policy import DEFAULT_POLICY, TrustPolicy
 
@@ -104,7 +105,7 @@ def free_space_fraction(target: np.ndarray, source: np.ndarray, T_target_source:
     points = {}
     for key, cloud in ((0, target), (1, source)):
         cloud = np.asarray(cloud, dtype=np.float64)
-        points[key] = cloud[np.linspace(0, len(cloud) - 1, min(len(cloud), policy.free_space_points)).astype(np.intp)]
+        points[key] = cloud[evenly_strided(len(cloud), policy.free_space_points)]
     views = {key: RangeView(cloud, policy) for key, cloud in points.items()}
     poses = {0: np.eye(4), 1: np.asarray(T_target_source, dtype=np.float64)}
     return pair_free_space(views, points, poses, 0, 1, tolerance, policy)

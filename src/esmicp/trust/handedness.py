@@ -24,6 +24,7 @@ import numpy as np
 
 from ..core.keypoints import Keypoints
 from ..core.procrustes import batched_weighted_procrustes
+from ..core.sampling import evenly_strided
 from .policy import DEFAULT_POLICY, TrustPolicy
 
 
@@ -91,7 +92,7 @@ def handedness(transformation: np.ndarray, keypoints: Keypoints, workers: int | 
 
 def _strided(points: np.ndarray, count: int) -> np.ndarray:
     """At most ``count`` of ``points``, evenly strided."""
-    return points[np.linspace(0, len(points) - 1, min(len(points), count)).astype(np.intp)]
+    return points[evenly_strided(len(points), count)]
 
 
 def _hemisphere(count: int) -> np.ndarray:

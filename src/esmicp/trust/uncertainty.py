@@ -68,6 +68,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.procrustes import skew
+from ..core.sampling import evenly_strided
 from .policy import DEFAULT_POLICY, TrustPolicy
 
 AXES = ("x", "y", "z")
@@ -419,23 +420,18 @@ def from_registration(source: np.ndarray, target_index, transformation: np.ndarr
     normals, noise = None, None
     if len(target) >= 3:
         normals = np.full((len(placed), 3), np.nan)
-        chosen = _strided(len(placed), policy.covariance_normals)
+        chosen = evenly_strided(len(placed), policy.covariance_normals)
         unique, inverse = np.unique(indices[chosen], return_inverse=True)
         estimator = NormalEstimator(target, min(policy.covariance_normal_neighbours, len(target)), tree=target_index.exact_tree(),
                                     workers=workers)
         normals[chosen] = estimator.at(target[unique])[inverse]
-        noise = (surface_noise(source, source[_strided(len(source), policy.covariance_normals)],
+        noise = (surface_noise(source, source[evenly_strided(len(source), policy.covariance_normals)],
                                neighbours=policy.noise_neighbours, workers=workers),
                  surface_noise(target, target[unique], tree=target_index.exact_tree(),
                                neighbours=policy.noise_neighbours, workers=workers) * sharing(indices, weights))
         noise = (noise[0] / stands_for, noise[1] / stands_for)
     return pose_uncertainty(placed, target[indices], weights, normals, spacing=target_index.spacing(), origin=origin,
                             noise=noise, policy=policy)
-
-
-def _strided(count: int, at_most: int) -> np.ndarray:
-    """At most ``at_most`` indices evenly strided over ``range(count)``."""
-    return np.unique(np.linspace(0, count - 1, min(at_most, count)).astype(np.intp))
 
 
 def rotation_log(rotation: np.ndarray) -> np.ndarray:
