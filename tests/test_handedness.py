@@ -50,3 +50,52 @@ def test_a_shape_that_is_its_own_mirror_image_is_not_doubted():
                              config.scan.keypoint.min_voxel_spacings)
     result = handedness(np.eye(4), keypoints, coincide_voxels=config.scan.keypoint.coincide_voxels)
     assert result is not None and not result.mirrored
+
+
+def _keypoints(source, target):
+    from esmicp.core.keypoints import Keypoints as Pair
+
+    return Pair(np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64), 0.05)
+
+
+def test_the_fit_recovers_a_pose_keeps_each_map_handed_and_ignores_the_thread_count():
+    """The trimmed ICP of the test refines a map near the truth onto it, never turns a mirror image
+    proper (its determinant keeps its sign), and gives the same maps on one thread and on two."""
+    from esmicp.trust.handedness import _fit
+    from esmicp.trust.policy import DEFAULT_POLICY
+    from esmicp.metrics import rotation_error_deg
+
+    rng = np.random.default_rng(7)
+    target = rng.uniform(-1.0, 1.0, (1500, 3)) * np.array([1.0, 0.7, 0.4])
+    turn = random_rotation(rng, 5.0)
+    truth = np.eye(4)
+    truth[:3, :3], truth[:3, 3] = turn, [0.05, -0.02, 0.03]
+    source = (target - truth[:3, 3]) @ turn  # target = source @ R.T + t
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+    maps = np.stack([np.eye(4), mirror, truth @ mirror])
+    fitted = [_fit(maps, source[::3], _keypoints(source, target), workers, DEFAULT_POLICY, 30) for workers in (1, 2)]
+    np.testing.assert_array_equal(fitted[0], fitted[1])
+    assert rotation_error_deg(fitted[0][0], truth) < 0.5
+    np.testing.assert_allclose(fitted[0][0][:3, 3], truth[:3, 3], atol=0.02)
+    assert np.linalg.det(fitted[0][0][:3, :3]) > 0 and (np.linalg.det(fitted[0][1:, :3, :3]) < 0).all()
+
+
+def test_the_bounded_distances_are_the_nearest_within_the_bound_and_infinite_beyond():
+    from scipy.spatial import cKDTree
+
+    from esmicp.core.compiled_tree import CompiledTree
+    from esmicp.trust.handedness import _within
+
+    rng = np.random.default_rng(8)
+    target, points = rng.normal(size=(2000, 3)), rng.normal(size=(700, 3)) * 1.5
+    maps = np.stack([np.eye(4), np.diag([1.0, -1.0, 1.0, 1.0])])
+    maps[1, :3, 3] = [0.3, 0.0, -0.2]
+    bound = 0.1
+    for workers in (1, 2):
+        distances = _within(CompiledTree(target), points, maps, bound, workers)
+        for k, placed in enumerate((points, points * [1.0, -1.0, 1.0] + maps[1, :3, 3])):
+            reference, _ = cKDTree(target).query(placed)
+            near = reference <= bound
+            assert near.any() and not near.all()
+            np.testing.assert_allclose(distances[k][near], reference[near], rtol=0, atol=1e-12)
+            assert np.isinf(distances[k][~near]).all()

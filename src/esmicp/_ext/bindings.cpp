@@ -18,6 +18,7 @@
 #include "rotation.hpp"
 #include "step.hpp"
 #include "tree.hpp"
+#include "trimmed_icp.hpp"
 #include "voxel_hash.hpp"
 
 #include <algorithm>
@@ -133,6 +134,7 @@ NB_MODULE(_kernels, m) {
     m.attr("CELL_SCAN_MAX") = kernels::CELL_SCAN_MAX;
     m.def("build_tree", &Bound<&kernels::build_tree>::call);
     m.def("tree_query", &Bound<&kernels::tree_query>::call);
+    m.def("tree_within", &Bound<&kernels::tree_within>::call);
     m.def("build_table", &Bound<&kernels::build_table>::call);
     m.def("hash_query", &Bound<&kernels::hash_query>::call);
     m.def("pair_moments", &Bound<&kernels::pair_moments>::call);
@@ -149,6 +151,7 @@ NB_MODULE(_kernels, m) {
     m.def("anderson_state_size", &Bound<&kernels::anderson_state_size>::call);
     m.def("batched_esm_tree", &Bound<&kernels::batched_esm_tree>::call);
     m.def("batched_esm_grid", &Bound<&kernels::batched_esm_grid>::call);
+    m.def("trimmed_icp_tree", &Bound<&kernels::trimmed_icp_tree>::call);
     m.def("neighbour_graph", &Bound<&kernels::neighbour_graph>::call);
     m.def("tree_knn", &Bound<&kernels::tree_knn>::call);
     m.def("knn_normals", &Bound<&kernels::knn_normals>::call);

@@ -114,6 +114,35 @@ void tree_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, CId
     });
 }
 
+void tree_within(CArr2 points, CArr2 rotations, CArr2 translations, double bound, Arr2 out_distances,
+                 CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t n = int64_t(points.shape(0)), maps = int64_t(rotations.shape(0));
+    if (points.shape(1) != 3 || rotations.shape(1) != 9 || translations.shape(0) != size_t(maps) ||
+        translations.shape(1) != 3 || out_distances.shape(0) != size_t(maps) || out_distances.shape(1) != size_t(n))
+        throw std::invalid_argument("tree_within: points (n, 3), rotations (K, 9), translations (K, 3), distances (K, n)");
+    if (!(bound >= 0.0)) throw std::invalid_argument("tree_within: the bound must be a distance >= 0");
+    // Squared distances strictly below this start: every point within the bound (sqrt rounds to it).
+    const double start = bound * bound * (1.0 + 1e-12);
+    const int64_t count = maps * n;
+    const double *q = points.data(), *r = rotations.data(), *tr = translations.data();
+    double *od = out_distances.data();
+    if (count < PARALLEL_QUERY_MIN) threads = 1;
+    parallel_pieces(piece_count(count, QUERY_PIECE), threads, [&](int64_t piece) {
+        int64_t end = std::min(count, (piece + 1) * QUERY_PIECE);
+        for (int64_t j = piece * QUERY_PIECE; j < end; ++j) {
+            const int64_t k = j / n, i = j % n;
+            double x, y, z;
+            mapped(q, i, r + 9 * k, tr + 3 * k, x, y, z);
+            double best = start;
+            int64_t slot = -1;
+            if (t.count > 0) nearest(t, x, y, z, best, slot);
+            od[j] = slot >= 0 ? std::sqrt(best) : INF;
+        }
+    });
+}
+
 void nearest_k(const Tree &t, int64_t node, double x, double y, double z, int64_t k, double *best, int64_t *slots) {
     const int64_t left = t.lefts[node];
     if (left >= 0) {

@@ -127,6 +127,13 @@ void tree_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, CId
                 CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, Arr1 out_distances, Idx out_indices,
                 int threads);
 
+// The distance of each of the n points, mapped by each of K maps (rotations (K, 9): any 3x3
+// matrix; translations (K, 3)), to its nearest tree point, when within `bound` (cloud units);
+// infinity when none is: out_distances (K, n). A search bounded from the start visits only the
+// nodes within the bound, so points far from the tree cost little.
+void tree_within(CArr2 points, CArr2 rotations, CArr2 translations, double bound, Arr2 out_distances,
+                 CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, int threads);
+
 // The k nearest tree points of (x, y, z) below `node` into best (squared distances) and slots,
 // nearest first: the caller fills both with (INF, -1) and starts at the root. Recursive, nearer
 // child first, a child skipped when its box is beyond the current k-th distance.

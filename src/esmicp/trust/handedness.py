@@ -22,8 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import _kernels
+from ..core.compiled_tree import threads
 from ..core.keypoints import Keypoints
-from ..core.procrustes import batched_weighted_procrustes
 from ..core.sampling import evenly_strided
 from .policy import DEFAULT_POLICY, TrustPolicy
 
@@ -53,9 +54,9 @@ def handedness(transformation: np.ndarray, keypoints: Keypoints, workers: int | 
     mirror image starts at ``transformation`` itself (which maps it to the pose's placement
     mirrored through the plane's image: the improper pose nearest the pose) and is fitted by
     ``policy.mirror_coarse_iterations`` iterations of ICP on ``policy.mirror_coarse_points``
-    source keypoints, every mirror image in one batch (one nearest-neighbour query per iteration
-    over all of them); the ``policy.mirror_candidates`` that coincide best are fitted on by
-    ``policy.mirror_iterations`` on ``policy.mirror_points`` keypoints, as the pose itself is; the
+    source keypoints, every mirror image in one compiled batch; the ``policy.mirror_candidates``
+    that coincide best are fitted on by ``policy.mirror_iterations`` on ``policy.mirror_points``
+    keypoints, as the pose itself is; the
     pose and those fits are judged on ``policy.mirror_share_points`` keypoints of each cloud
     (evenly strided subsets throughout). A fit leaves the batch once it has converged. Cost: at
     most ``(policy.mirror_planes + 3) * policy.mirror_coarse_points *
@@ -104,45 +105,27 @@ def _hemisphere(count: int) -> np.ndarray:
     return np.column_stack([radius * np.cos(angle), radius * np.sin(angle), height])
 
 
-def _mapped(maps: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``points`` ``(N, 3)`` mapped by each 4x4 map ``(K, 4, 4)``: ``(K, N, 3)``."""
-    return np.matmul(points, np.swapaxes(maps[:, :3, :3], 1, 2)) + maps[:, None, :3, 3]
-
-
 def _fit(maps: np.ndarray, source: np.ndarray, keypoints: Keypoints, workers: int | None,
          policy: TrustPolicy, iterations: int) -> np.ndarray:
     """Each of the 4x4 ``maps`` ``(K, 4, 4)`` of ``source`` (improper ones included) refined by at
-    most ``iterations`` of trimmed point-to-point ICP onto the target keypoints, all in one batch:
-    pairs within twice the median pair distance, and never fewer than those within
+    most ``iterations`` of trimmed point-to-point ICP onto the target keypoints, in one compiled
+    call (the maps in parallel, each independent of the others and of the thread count): pairs
+    within twice the median pair distance, and never fewer than those within
     ``policy.overlap_voxels`` keypoint voxels (far from the fit, the median reaches across the
-    overlap; near it, the overlap alone). The Procrustes step fits a proper rotation to the mapped
-    source, so a map keeps its handedness. A fit leaves the batch once it moves less than a
-    hundredth of a voxel or keeps fewer than ``policy.min_coincident`` pairs."""
-    floor = policy.overlap_voxels * keypoints.voxel
+    overlap; near it, the overlap alone). The fitted rotation is proper, composed on the left of
+    the map, so a map keeps its handedness. A fit stops once no entry of its map moves by a
+    hundredth of a voxel or it keeps fewer than ``policy.min_coincident`` pairs."""
     maps = np.array(maps, dtype=np.float64)
-    active = np.arange(len(maps))
-    nearest = None
-    for _ in range(iterations):
-        if len(active) == 0:
-            break
-        moved = _mapped(maps[active], source)
-        distances, nearest = keypoints.target_tree.query(
-            moved.reshape(-1, 3), warm=None if nearest is None else nearest.reshape(-1), workers=workers)
-        distances, nearest = distances.reshape(len(active), -1), nearest.reshape(len(active), -1)
-        bar = np.maximum(floor, 2.0 * np.median(distances, axis=1))
-        near = distances <= bar[:, None]
-        enough = np.count_nonzero(near, axis=1) >= policy.min_coincident
-        if not enough.all():
-            active, moved, near, nearest = active[enough], moved[enough], near[enough], nearest[enough]
-            if len(active) == 0:
-                break
-        rotations, translations = batched_weighted_procrustes(moved, keypoints.target[nearest], near.astype(np.float64))
-        steps = np.tile(np.eye(4), (len(active), 1, 1))
-        steps[:, :3, :3], steps[:, :3, 3] = rotations, translations
-        updated = steps @ maps[active]
-        still = np.abs(updated - maps[active]).max(axis=(1, 2)) >= 1e-2 * keypoints.voxel
-        maps[active] = updated
-        active, nearest = active[still], nearest[still]
+    rotations = np.ascontiguousarray(maps[:, :3, :3].reshape(-1, 9))
+    translations = np.ascontiguousarray(maps[:, :3, 3])
+    tree = keypoints.target_tree
+    _kernels.trimmed_icp_tree(np.ascontiguousarray(source, dtype=np.float64), rotations, translations,
+                              int(iterations), float(policy.overlap_voxels * keypoints.voxel), 2.0,
+                              int(policy.min_coincident), 1e-2 * keypoints.voxel, np.empty(len(maps), dtype=np.int64),
+                              np.ascontiguousarray(keypoints.target, dtype=np.float64), tree.rank, tree.points,
+                              tree.order, tree.starts, tree.ends, tree.lefts, tree.boxes, threads(workers))
+    maps[:, :3, :3] = rotations.reshape(-1, 3, 3)
+    maps[:, :3, 3] = translations
     return maps
 
 
@@ -154,15 +137,26 @@ def _shares(maps: np.ndarray, source: np.ndarray, target: np.ndarray | None, key
     mapped back into the source tree; ``target`` None: the source's direction alone (a cheaper
     ranking). 0 where nothing overlaps."""
     voxel = keypoints.voxel
-    moved = _mapped(maps, source)
-    queries = [keypoints.target_tree.query(moved.reshape(-1, 3), workers=workers)[0].reshape(len(maps), -1)]
+    bound = max(policy.overlap_voxels, coincide_voxels) * voxel  # no farther neighbour counts
+    queries = [_within(keypoints.target_tree, source, maps, bound, workers)]
     if target is not None:
-        inverse = np.linalg.inv(maps)
-        back = _mapped(inverse, target)
-        queries.append(keypoints.source_tree.query(back.reshape(-1, 3), workers=workers)[0].reshape(len(maps), -1))
+        queries.append(_within(keypoints.source_tree, target, np.linalg.inv(maps), bound, workers))
     shares = np.full(len(maps), np.inf)
     for distances in queries:
         overlap = np.count_nonzero(distances <= policy.overlap_voxels * voxel, axis=1)
         coincide = np.count_nonzero(distances <= coincide_voxels * voxel, axis=1)
         shares = np.minimum(shares, np.where(overlap > 0, coincide / np.maximum(overlap, 1), 0.0))
     return shares
+
+
+def _within(tree, points: np.ndarray, maps: np.ndarray, bound: float, workers: int | None) -> np.ndarray:
+    """``(K, N)``: the distance of each of ``points`` ``(N, 3)`` mapped by each 4x4 map ``(K, 4, 4)``
+    to its nearest point of ``tree`` (a :class:`~esmicp.core.compiled_tree.CompiledTree`), where
+    within ``bound`` (cloud units); infinity where none is (a search bounded from the start: far
+    points cost little)."""
+    distances = np.empty((len(maps), len(points)))
+    _kernels.tree_within(np.ascontiguousarray(points, dtype=np.float64),
+                         np.ascontiguousarray(maps[:, :3, :3].reshape(-1, 9)), np.ascontiguousarray(maps[:, :3, 3]),
+                         float(bound), distances, tree.points, tree.order, tree.starts, tree.ends, tree.lefts,
+                         tree.boxes, threads(workers))
+    return distances
