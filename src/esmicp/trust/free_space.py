@@ -117,7 +117,7 @@ class RangeImageTest:
     (:func:`range_image_test`): ``range_image``; ``sampling_slope`` and its standard error
     ``slope_error`` (see :attr:`TrustPolicy.max_sampling_slope`; NaN when not measured); ``hidden``,
     the fraction of points hidden behind another (:attr:`TrustPolicy.max_hidden`; NaN when not
-    measured); and
+    measured: it is measured only on a scan the sampling test passes); and
     ``reason`` in words when it is not."""
 
     range_image: bool
@@ -171,32 +171,34 @@ def range_image_test(points, policy: TrustPolicy = DEFAULT_POLICY) -> RangeImage
         return RangeImageTest(False, nan, nan, nan,
                               f"its points lie within {radius:.2g} degrees of one direction from its origin: "
                               f"far from the origin for their size, not seen from it (bar {policy.min_angular_radius_deg:g} deg)")
-    k = min(max(policy.hidden_directions, policy.spacing_directions), len(p) - 1)
-    angle, other = CompiledTree(directions).query_k(directions, k + 1)
-    angle, other = angle[:, 1:], other[:, 1:]
-    spacing = angle[:, :policy.spacing_directions].mean(axis=1)  # angular spacing (rad)
-    angle, other = angle[:, :policy.hidden_directions], other[:, :policy.hidden_directions]
-    local = CompiledTree(p).query_k(p, policy.spacing_points + 1)[0][:, 1:].mean(axis=1)  # point spacing (cloud units)
-    behind = (angle < policy.hidden_pixel * spacing[other]) & (
-        ranges[other] < ranges[:, None] - policy.hidden_depth_spacings * np.maximum(local[:, None], local[other]))
-    hidden = float(np.mean(behind.any(axis=1)))
-
-    normals = estimate_normals(p, k=policy.sampling_normal_neighbours)
+    # The sampling first: a scan it rejects (as most non-range-images are) skips the hidden test's queries.
+    directions_tree = CompiledTree(directions)
+    k = min(policy.spacing_directions, len(p) - 1)
+    spacing = directions_tree.query_k(directions, k + 1)[0][:, 1:].mean(axis=1)  # angular spacing (rad)
+    points_tree = CompiledTree(p)
+    normals = estimate_normals(p, k=policy.sampling_normal_neighbours, tree=points_tree)
     cosine = np.abs(np.einsum("ij,ij->i", normals, directions))
     ok = (cosine > policy.min_incidence_cosine) & (spacing > 0)
     x = 0.5 * np.log(cosine[ok]) - np.log(ranges[ok])
     y = np.log(spacing[ok])
     if ok.sum() < policy.premise_min_points or not np.ptp(x) > 0:
-        return RangeImageTest(False, nan, nan, hidden, "its points face the origin edge-on: sampling not measurable")
+        return RangeImageTest(False, nan, nan, nan, "its points face the origin edge-on: sampling not measurable")
     xc, yc = x - x.mean(), y - y.mean()
     slope = float(xc @ yc / (xc @ xc))
     residual = yc - slope * xc
     error = float(np.sqrt(residual @ residual / (len(x) - 2) / (xc @ xc)))
     if slope + 1.645 * error > policy.max_sampling_slope:
-        return RangeImageTest(False, slope, error, hidden,
+        return RangeImageTest(False, slope, error, nan,
                               f"not sampled by a sensor at its origin: its angular spacing follows sqrt(cos)/range "
                               f"with slope {slope:.2f} +- {error:.2f} (a sensor's grid: 0, even spreading: 1; "
                               f"bar {policy.max_sampling_slope:g})")
+    k = min(policy.hidden_directions, len(p) - 1)
+    angle, other = directions_tree.query_k(directions, k + 1)
+    angle, other = angle[:, 1:], other[:, 1:]
+    local = points_tree.query_k(p, policy.spacing_points + 1)[0][:, 1:].mean(axis=1)  # point spacing (cloud units)
+    behind = (angle < policy.hidden_pixel * spacing[other]) & (
+        ranges[other] < ranges[:, None] - policy.hidden_depth_spacings * np.maximum(local[:, None], local[other]))
+    hidden = float(np.mean(behind.any(axis=1)))
     if hidden > policy.max_hidden:
         return RangeImageTest(False, slope, error, hidden,
                               f"seen from its origin, {100 * hidden:.1f}% of its points lie behind its own surface "
