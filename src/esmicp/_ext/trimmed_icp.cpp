@@ -19,7 +19,7 @@ namespace {
 // One map (r: 3x3 row-major, t) refined in place; returns the steps taken.
 int64_t fit_map(const Tree &tree, const int64_t *rank, const double *target, const double *source, int64_t n,
                 double *r, double *t, int64_t iterations, double floor, double gain, int64_t min_pairs,
-                double tolerance) {
+                double tolerance, bool settle_on_points) {
     std::vector<double> moved(static_cast<size_t>(3 * n)), distances(static_cast<size_t>(n)), scratch(static_cast<size_t>(n));
     std::vector<int64_t> indices(static_cast<size_t>(n), -1);
     int64_t steps = 0;
@@ -33,12 +33,15 @@ int64_t fit_map(const Tree &tree, const int64_t *rank, const double *target, con
             tree_nearest(tree, rank, x, y, z, indices[i], distances[i], indices[i]);
             if (indices[i] >= tree.count) return steps;  // a non-finite map: nothing to fit
         }
-        scratch.assign(distances.begin(), distances.end());
-        const int64_t half = n / 2;
-        std::nth_element(scratch.begin(), scratch.begin() + half, scratch.end());
-        double median = scratch[half];
-        if (n % 2 == 0) median = 0.5 * (median + *std::max_element(scratch.begin(), scratch.begin() + half));
-        const double bar = std::max(floor, gain * median);
+        double bar = floor;
+        if (gain != 0.0) {
+            scratch.assign(distances.begin(), distances.end());
+            const int64_t half = n / 2;
+            std::nth_element(scratch.begin(), scratch.begin() + half, scratch.end());
+            double median = scratch[half];
+            if (n % 2 == 0) median = 0.5 * (median + *std::max_element(scratch.begin(), scratch.begin() + half));
+            bar = std::max(floor, gain * median);
+        }
         int64_t pairs = 0;
         double cp[3] = {0, 0, 0}, cm[3] = {0, 0, 0};
         for (int64_t i = 0; i < n; ++i) {
@@ -75,10 +78,19 @@ int64_t fit_map(const Tree &tree, const int64_t *rank, const double *target, con
             nt[a] = step_r[3 * a] * t[0] + step_r[3 * a + 1] * t[1] + step_r[3 * a + 2] * t[2] + step_t[a];
             moved_by = std::max(moved_by, std::fabs(nt[a] - t[a]));
         }
+        if (settle_on_points) {
+            moved_by = 0.0;
+            for (int64_t i = 0; i < n; ++i) {
+                double x, y, z;
+                mapped(source, i, nr, nt, x, y, z);
+                moved_by = std::max({moved_by, std::fabs(x - moved[3 * i]), std::fabs(y - moved[3 * i + 1]),
+                                     std::fabs(z - moved[3 * i + 2])});
+            }
+        }
         std::memcpy(r, nr, sizeof nr);
         std::memcpy(t, nt, sizeof nt);
         ++steps;
-        if (!(moved_by >= tolerance)) return steps;
+        if (settle_on_points ? !(moved_by > tolerance) : !(moved_by >= tolerance)) return steps;
     }
     return steps;
 }
@@ -86,8 +98,8 @@ int64_t fit_map(const Tree &tree, const int64_t *rank, const double *target, con
 }  // namespace
 
 void trimmed_icp_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations, double floor, double gain,
-                      int64_t min_pairs, double tolerance, Idx out_steps, CArr2 target, CIdx rank, CArr2 tree_points,
-                      CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, int threads) {
+                      int64_t min_pairs, double tolerance, bool settle_on_points, Idx out_steps, CArr2 target, CIdx rank,
+                      CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, int threads) {
     const int64_t count = int64_t(rotations.shape(0)), n = int64_t(source.shape(0));
     if (source.shape(1) != 3 || rotations.shape(1) != 9 || translations.shape(0) != size_t(count) ||
         translations.shape(1) != 3 || out_steps.shape(0) != size_t(count))
@@ -102,7 +114,7 @@ void trimmed_icp_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t i
     const double *s = source.data(), *m = target.data();
     parallel_pieces(count, threads, [&](int64_t k) {
         steps[k] = fit_map(tree, rank.data(), m, s, n, r + 9 * k, t + 3 * k, iterations, floor, gain, min_pairs,
-                           tolerance);
+                           tolerance, settle_on_points);
     });
 }
 

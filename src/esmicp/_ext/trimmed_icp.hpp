@@ -16,9 +16,11 @@ namespace kernels {
 // bar max(floor, gain * median distance), the pairs within it (fewer than min_pairs: the map
 // stops, unchanged), Horn's proper rotation and the translation fitted to them with equal
 // weights, composed on the left of the map (so the map keeps its handedness). A map stops once
-// no entry of it moves by tolerance or more (cloud units). out_steps: the steps each map took.
+// no entry of it moves by tolerance or more (cloud units); with settle_on_points, once no mapped
+// source point moves by more than tolerance along any axis. gain 0: the bar is the floor (no
+// median taken). out_steps: the steps each map took.
 void trimmed_icp_tree(CArr2 source, Arr2 rotations, Arr2 translations, int64_t iterations, double floor, double gain,
-                      int64_t min_pairs, double tolerance, Idx out_steps, CArr2 target, CIdx rank, CArr2 tree_points,
-                      CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, int threads);
+                      int64_t min_pairs, double tolerance, bool settle_on_points, Idx out_steps, CArr2 target, CIdx rank,
+                      CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes, int threads);
 
 }  // namespace kernels

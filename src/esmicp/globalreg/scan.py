@@ -230,28 +230,17 @@ def overlap_counts(transformations: np.ndarray, source: np.ndarray, target: np.n
 def _icp(poses, source, target_tree: CompiledTree, target, distance, steps, settled=0.0, workers=None):
     """Point-to-point ICP on keypoints for every pose of ``poses`` ``(B, 4, 4)`` at once (pairs
     within ``distance``, cloud units): up to ``steps`` steps, a pose stopping once a step moves none
-    of its keypoints by more than ``settled``, or when fewer than 3 pairs are left. One query of
-    the compiled tree per step for all moving poses, each warm-started from its last neighbours."""
+    of its keypoints by more than ``settled``, or when fewer than 3 pairs are left. One compiled
+    call, the poses in parallel, each query warm-started from the pose's last neighbours."""
     poses = np.array(poses, dtype=np.float64)
-    moved = np.matmul(source, poses[:, :3, :3].transpose(0, 2, 1)) + poses[:, None, :3, 3]
-    warm = np.full(moved.shape[:2], -1, dtype=np.int64)
-    active = np.arange(len(poses))
-    for _ in range(steps):
-        if len(active) == 0:
-            break
-        gaps, nearest = target_tree.query(moved[active].reshape(-1, 3), warm=warm[active].reshape(-1), workers=workers)
-        gaps, nearest = gaps.reshape(len(active), -1), nearest.reshape(len(active), -1)
-        warm[active] = nearest
-        weights = (gaps <= distance).astype(np.float64)
-        enough = weights.sum(axis=1) >= 3
-        active, weights, nearest = active[enough], weights[enough], nearest[enough]
-        if len(active) == 0:
-            break
-        rotations, translations = batched_weighted_procrustes(source, target[nearest], weights)
-        poses[active, :3, :3], poses[active, :3, 3] = rotations, translations
-        previous = moved[active]
-        moved[active] = np.matmul(source, rotations.transpose(0, 2, 1)) + translations[:, None]
-        active = active[np.abs(moved[active] - previous).reshape(len(active), -1).max(axis=1) > settled]
+    rotations = np.ascontiguousarray(poses[:, :3, :3].reshape(-1, 9))
+    translations = np.ascontiguousarray(poses[:, :3, 3])
+    _kernels.trimmed_icp_tree(np.ascontiguousarray(source, dtype=np.float64), rotations, translations, int(steps),
+                              float(distance), 0.0, 3, float(settled), True, np.empty(len(poses), dtype=np.int64),
+                              np.ascontiguousarray(target, dtype=np.float64), target_tree.rank, target_tree.points,
+                              target_tree.order, target_tree.starts, target_tree.ends, target_tree.lefts,
+                              target_tree.boxes, threads(workers))
+    poses[:, :3, :3], poses[:, :3, 3] = rotations.reshape(-1, 3, 3), translations
     return poses
 
 

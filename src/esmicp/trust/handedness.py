@@ -121,7 +121,7 @@ def _fit(maps: np.ndarray, source: np.ndarray, keypoints: Keypoints, workers: in
     tree = keypoints.target_tree
     _kernels.trimmed_icp_tree(np.ascontiguousarray(source, dtype=np.float64), rotations, translations,
                               int(iterations), float(policy.overlap_voxels * keypoints.voxel), 2.0,
-                              int(policy.min_coincident), 1e-2 * keypoints.voxel, np.empty(len(maps), dtype=np.int64),
+                              int(policy.min_coincident), 1e-2 * keypoints.voxel, False, np.empty(len(maps), dtype=np.int64),
                               np.ascontiguousarray(keypoints.target, dtype=np.float64), tree.rank, tree.points,
                               tree.order, tree.starts, tree.ends, tree.lefts, tree.boxes, threads(workers))
     maps[:, :3, :3] = rotations.reshape(-1, 3, 3)
