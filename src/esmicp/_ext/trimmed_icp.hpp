@@ -1,5 +1,6 @@
 // Batched trimmed point-to-point ICP on the exact tree: many maps of one source fitted at once
-// (the handedness test, esmicp.trust.handedness).
+// (the handedness test, esmicp.trust.handedness; the scan strategy's keypoint ICP,
+// esmicp.globalreg.scan).
 #pragma once
 
 #include "arrays.hpp"
