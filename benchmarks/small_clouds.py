@@ -157,7 +157,18 @@ def markdown(rows) -> str:
             lines.append(f"| {kind} | {LABELS[method]} | {right}/{len(mine)} | {trust} | {median:.2f} s | {cpu:.2f} s "
                          f"| {ratio} |")
     sizes = [n for row in rows if row["method"] == "esmicp" for n in row["points"]]
-    return "\n".join(lines) + f"\n\nClouds of {min(sizes):,}-{max(sizes):,} points.\n"
+    return "\n".join(lines) + f"\n\nClouds of {min(sizes):,}-{max(sizes):,} points. {summary(rows)}\n"
+
+
+def summary(rows) -> str:
+    """Where esmicp is slower than the faster peer (wall time, median of per-pair ratios), in words."""
+    words = []
+    for kind in dict.fromkeys(row["kind"] for row in rows):
+        ratio = max(_ratio(rows, kind, peer) for peer in METHODS[1:])
+        cpu = max(_ratio(rows, kind, peer, "cpu_s") for peer in METHODS[1:])
+        verdict = "slower than" if ratio > 1.0 else "at most the time of"
+        words.append(f"{kind}: esmicp {verdict} the faster peer ({ratio:.2f}x its wall time, {cpu:.2f}x its CPU time)")
+    return "; ".join(words) + "."
 
 
 def main(argv=None) -> int:
