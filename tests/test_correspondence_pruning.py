@@ -213,8 +213,8 @@ def test_the_compatibility_matrix_equals_scipys_two_distance_matrices():
 
 
 def test_descriptor_matching_both_ways_equals_a_full_distance_matrix():
-    """The chunked, compiled nearest-descriptor search (rows in chunks of ``_CHUNK_ROWS``, columns
-    in pieces, on 1 and 2 threads) finds what a whole distance matrix gives: the nearest column of
+    """The compiled nearest-descriptor search (each distance from its dot product, columns in
+    pieces, on 1 and 2 threads) finds what a whole distance matrix gives: the nearest column of
     each row and row of each column (the first of equal ones), and Lowe's ratios. Integer
     descriptors make every distance exact, so ties are real ties."""
     from scipy.spatial.distance import cdist
@@ -466,3 +466,22 @@ def test_the_confidence_of_keypoints_too_few_to_compare_is_zero():
     assert overlap_confidence(np.eye(4), Keypoints(points[:2], points, 0.1), config=DEFAULT) == 0.0
     assert overlap_confidence(np.eye(4), Keypoints(points[:DEFAULT_POLICY.min_coincident - 1], points, 0.5), config=DEFAULT) == 0.0
     assert overlap_confidence(np.eye(4), Keypoints(points, points, 0.5), config=DEFAULT) > 0.0
+
+
+def test_the_compiled_leading_vector_is_the_leading_eigenvector():
+    """The compatibility matrix's leading vector (compiled power iteration, 1 and 2 threads) is the
+    unit eigenvector of the largest eigenvalue, non-negative, as a symmetric eigensolver gives it."""
+    from esmicp import _kernels
+
+    generator = np.random.default_rng(4)
+    count = 400
+    upper = np.triu((generator.random((count, count)) < 0.2).astype(np.float32), 1)
+    matrix = upper + upper.T
+    matrix[:40, :40] = 1.0  # a consistent group: a clear leading eigenvalue
+    np.fill_diagonal(matrix, 0.0)
+    expected = np.abs(np.linalg.eigh(matrix.astype(np.float64))[1][:, -1])
+    for workers in (1, 2):
+        found = np.empty(count, dtype=np.float32)
+        _kernels.leading_vector(matrix, 1e-7, 200, found, workers)
+        assert found.min() >= 0.0
+        np.testing.assert_allclose(found, expected, atol=1e-5)

@@ -176,7 +176,7 @@ MAX_MODULE_CONSTANTS = 10
 #: Layers with no numeric module constant left.
 WITHOUT_CONSTANTS = ("multiview", "trust")
 #: Layers whose constants left are design values only, at most this many each: memory bounds of
-#: chunked work (``_CHUNK_ROWS``, ``_SCORE_CHUNK``), a switch between two exact nearest-neighbour
+#: chunked work (``_SCORE_CHUNK``), caps on iterations (``_LEADING_STEPS``), a switch between two exact nearest-neighbour
 #: searches (``_BRUTE_FORCE_PAIRS``), speed-only sizes of exact searches (``GRAPH_NEIGHBOURS``,
 #: ``LEAF_SIZE``), mathematical constants (``_PSI``, ``_MAD_SCALE``), floating-point bounds
 #: (``SIGMA_FLOOR``, ``RESULT_RIGID_TOLERANCE``), the default seed (``DEFAULT_SEED``).

@@ -141,6 +141,7 @@ NB_MODULE(_kernels, m) {
     m.def("paper_moments", &Bound<&kernels::paper_moments>::call);
     m.def("kabsch", &Bound<&kernels::kabsch>::call);
     m.def("transform_points", &Bound<&kernels::transform_points>::call);
+    m.def("voxel_cells", &Bound<&kernels::voxel_cells>::call);
     m.def("coincident", [](CArr2 points, U8Arr1 first) {
         const kernels::Coincident found =
             kernels::coincident(view<kernels::CArr2>(points), view<kernels::U8Arr1>(first));
@@ -156,6 +157,7 @@ NB_MODULE(_kernels, m) {
     m.def("tree_knn", &Bound<&kernels::tree_knn>::call);
     m.def("knn_normals", &Bound<&kernels::knn_normals>::call);
     m.def("compatibility", &Bound<&kernels::compatibility>::call);
+    m.def("leading_vector", &Bound<&kernels::leading_vector>::call);
     m.def("spread_seeds", &Bound<&kernels::spread_seeds>::call);
     m.def("second_order_partners", &Bound<&kernels::second_order_partners>::call);
     m.def("pair_inlier_counts", &Bound<&kernels::pair_inlier_counts>::call);

@@ -15,6 +15,13 @@ namespace kernels {
 // float32 for the power iterations that follow. Rows in parallel.
 void compatibility(CArr2 source, CArr2 target, double tolerance, F32Arr2 out, int threads);
 
+// The leading eigenvector of a symmetric non-negative (K, K) matrix (the compatibility matrix above)
+// by power iteration, into `out` (K,): from the uniform unit vector, each step the product with the
+// matrix (its non-zero entries gathered once, row by row, and each row's sum taken in double),
+// divided by its norm, at most `iterations` steps, fewer once a step moves no entry by more than
+// `tolerance`. The kernels' own threads, never BLAS's. Rows in parallel.
+void leading_vector(CF32Arr2 matrix, double tolerance, int64_t iterations, F32Arr1 out, int threads);
+
 // Seeds of the second-order pruning, spread apart: the candidates `order` (K, best first) are
 // taken in turn, each kept unless a kept one lies within `spread` of it in both clouds (source
 // distance and target distance both below `spread`, as NumPy's norm computes them), until `seeds`
@@ -36,15 +43,14 @@ void second_order_partners(CF32Arr2 compatible, CIdx seeds, Idx2 partners, U8Arr
 void pair_inlier_counts(CArr2 rotations, CArr2 translations, CArr2 source, CArr2 target, double distance, Idx out,
                         int threads);
 
-// One row block of a descriptor matching both ways. gram (R, C) holds the dot products of R source
-// descriptors (rows `row_offset` on of the source) with the C target descriptors, float32 (BLAS);
-// each squared distance is formed as the NumPy version formed it, in float32 and in the same order
-// ((-2 g + |t|^2) + |s|^2, clipped at 0), so the results are its own. Per row: the nearest column
-// (the first of equal ones), its squared distance and the second smallest (out_row_*). Per column,
-// carried across blocks (callers start from INF and 0): the two smallest squared distances over
-// every row so far (column_best (2, C)) and the row of the first (column_index, the first of equal
-// ones). Column pieces in parallel; each piece's row minima are merged in column order.
-void nearest_descriptors(CF32Arr2 gram_, CF32Arr1 row_squares_, CF32Arr1 column_squares_, int64_t row_offset,
+// A descriptor matching both ways: rows (R, D) the source descriptors, columns (D, C) the target
+// descriptors transposed, float32, with their squared norms. Each squared distance is
+// (-2 g + |t|^2) + |s|^2 in float32, clipped at 0, g the dot product (summed over the dimensions
+// in order). Per row: the nearest column (the first of equal ones), its squared distance and the
+// second smallest (out_row_*). Per column: the two smallest squared distances over the rows
+// (column_best (2, C)) and the row of the first (column_index, the first of equal ones). Column
+// pieces in parallel; each piece's row minima are merged in column order.
+void nearest_descriptors(CF32Arr2 rows_, CF32Arr2 columns_, CF32Arr1 row_squares_, CF32Arr1 column_squares_,
                          Idx out_row_index_, F32Arr1 out_row_best_, F32Arr1 out_row_second_, F32Arr2 column_best_,
                          Idx column_index_, int threads);
 

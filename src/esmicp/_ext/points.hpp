@@ -15,6 +15,13 @@ struct Coincident {
 };
 Coincident coincident(CArr2 points_, U8Arr1 first_);
 
+// The voxel grid of a cloud: each point's cell floor((p - low) / voxel) (per axis, in double, as
+// NumPy computes it), the occupied cells numbered in lexicographic order of their integer
+// coordinates (x-major), owner[i] the number of point i's cell, sums[c] the sum of its points'
+// coordinates in point order and counts[c] their number (sums and counts at least N long).
+// Returns the number of cells; -1 when a cell coordinate reaches 2^62 (too fine a voxel).
+int64_t voxel_cells(CArr2 points, CArr1 low, double voxel, Idx owner, Arr2 sums, Idx counts);
+
 // points @ R^T + t into out (N, 3), on `threads` threads (NumPy would call BLAS, whose own
 // threads then compete with the kernels').
 void transform_points(CArr2 points, CArr2 rotation, CArr1 translation, Arr2 out_, int threads);

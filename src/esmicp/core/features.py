@@ -122,21 +122,18 @@ def voxel_grid(points, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     owner : (N,) intp array
         ``centroids[owner[i]]`` is the centroid of the voxel of ``points[i]``.
     """
-    points = _as_cloud(points)
+    points = np.ascontiguousarray(_as_cloud(points), dtype=np.float64)
     voxel = as_positive(voxel, "voxel")
-    scaled = np.floor((points - axis_bounds(points)[0]) / voxel)
-    if float(scaled.max()) >= 2.0**62:
+    # One compiled pass with a hash of the cells (no sort of every point's key), the occupied
+    # cells then sorted: the centroids and owners of a sort of the keys, sums in point order.
+    owner = np.empty(len(points), dtype=np.intp)
+    sums = np.empty((len(points), 3))
+    counts = np.empty(len(points), dtype=np.int64)
+    occupied = _kernels.voxel_cells(points, np.ascontiguousarray(axis_bounds(points)[0], dtype=np.float64),
+                                    float(voxel), owner, sums, counts)
+    if occupied < 0:
         raise InvalidInputError(f"voxel: {voxel!r} is too small for the cloud's extent (over 2^62 voxels per axis)")
-    keys = scaled.astype(np.int64)
-    extent = axis_bounds(keys)[1] + 1
-    if float(extent[0]) * float(extent[1]) * float(extent[2]) < 2.0**62:
-        linear = (keys[:, 0] * extent[1] + keys[:, 1]) * extent[2] + keys[:, 2]
-        _, owner, counts = np.unique(linear, return_inverse=True, return_counts=True)
-    else:  # a grid too fine for one int64 key per voxel
-        _, owner, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    owner = owner.reshape(-1).astype(np.intp)
-    sums = np.stack([np.bincount(owner, weights=points[:, axis], minlength=len(counts)) for axis in range(3)], axis=1)
-    return sums / counts[:, None], owner
+    return sums[:occupied] / counts[:occupied, None], owner
 
 
 def dense_point_mask(

@@ -116,38 +116,38 @@ def _correspondences(source_features: np.ndarray, target_features: np.ndarray, l
     return pairs[:limit].astype(np.intp)
 
 
-#: Rows of the descriptor distance matrix computed at once (count; bounds the memory).
-_CHUNK_ROWS = 1024
-
-
 def _nearest_both_ways(source: np.ndarray, target: np.ndarray, workers: int | None = None):
     """Nearest target row of every source row and nearest source row of every target row
-    (Euclidean, from float32 Gram matrices in row chunks: BLAS, then one compiled pass per chunk
-    for the nearest and second nearest both ways), each with Lowe's ratio (nearest over
-    second-nearest distance). Ties go to the first row or column."""
-    source32, target32 = source.astype(np.float32), target.astype(np.float32)
-    target_squares = np.einsum("ij,ij->i", target32, target32)
+    (Euclidean, float32, in one compiled pass: each distance from its dot product, never a whole
+    distance matrix in memory, and no BLAS, whose threads keep spinning after each product and
+    take the cores from the rest), each with Lowe's ratio (nearest over second-nearest distance).
+    Ties go to the first row or column."""
+    source32 = np.ascontiguousarray(source, dtype=np.float32)
+    target32 = np.ascontiguousarray(target, dtype=np.float32)
     forward_i = np.empty(len(source), dtype=np.intp)
     forward_best = np.empty(len(source), dtype=np.float32)
     forward_second = np.empty(len(source), dtype=np.float32)
-    column_best = np.full((2, len(target)), np.inf, dtype=np.float32)
-    column_index = np.zeros(len(target), dtype=np.intp)
-    for start in range(0, len(source), _CHUNK_ROWS):
-        block = source32[start:start + _CHUNK_ROWS]
-        rows = slice(start, start + len(block))
-        _kernels.nearest_descriptors(block @ target32.T, np.einsum("ij,ij->i", block, block), target_squares, start,
-                                     forward_i[rows], forward_best[rows], forward_second[rows], column_best,
-                                     column_index, threads(workers))
+    column_best = np.empty((2, len(target)), dtype=np.float32)
+    column_index = np.empty(len(target), dtype=np.intp)
+    _kernels.nearest_descriptors(source32, np.ascontiguousarray(target32.T), np.einsum("ij,ij->i", source32, source32),
+                                 np.einsum("ij,ij->i", target32, target32), forward_i, forward_best, forward_second,
+                                 column_best, column_index, threads(workers))
     forward_r = np.sqrt(forward_best / np.maximum(forward_second, 1e-30)).astype(np.float64)
     backward_r = np.sqrt(column_best[0] / np.maximum(column_best[1], 1e-30))
     return forward_i, forward_r, column_index, backward_r
 
 
-def _leading_vector(matrices: np.ndarray, tolerance: float, iterations: int = 20) -> np.ndarray:
+#: Power-iteration steps (at most) of a leading eigenvector (count): a cap on the work, the
+#: iteration ending sooner at :attr:`~esmicp.globalreg.config.ScanStrategyConfig.leading_tolerance`.
+_LEADING_STEPS = 20
+
+
+def _leading_vector(matrices: np.ndarray, tolerance: float, iterations: int = _LEADING_STEPS) -> np.ndarray:
     """Leading eigenvectors (non-negative) of symmetric non-negative ``(..., n, n)`` matrices, by
-    power iteration (matrix-vector products by BLAS, which ``einsum`` does not call: the cheaper
-    of the two on the compatibility matrix, ``docs/speed.md``): at most ``iterations`` steps, fewer
-    once a step moves no entry by more than ``tolerance``
+    power iteration (batched products of the small group matrices; the large compatibility matrix
+    has its compiled kernel, ``_kernels.leading_vector``, whose threads are the kernels' own:
+    BLAS's threads keep spinning after each product and take the cores from the rest): at most
+    ``iterations`` steps, fewer once a step moves no entry by more than ``tolerance``
     (:attr:`~esmicp.globalreg.config.ScanStrategyConfig.leading_tolerance`)."""
     vector = np.full(matrices.shape[:-1], 1.0 / max(matrices.shape[-1], 1) ** 0.5, dtype=matrices.dtype)
     for _ in range(iterations):
@@ -183,7 +183,8 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
     _kernels.compatibility(np.ascontiguousarray(source, dtype=np.float64),
                            np.ascontiguousarray(target, dtype=np.float64), float(tolerance), compatible,
                            threads(workers))
-    score = _leading_vector(compatible[None], config.scan.leading_tolerance)[0]
+    score = np.empty(count, dtype=np.float32)
+    _kernels.leading_vector(compatible, float(config.scan.leading_tolerance), _LEADING_STEPS, score, threads(workers))
     spread = 2.0 * tolerance if spread is None else spread
     order = np.argsort(-score, kind="stable")
     order = order[score[order] > 0].astype(np.int64)
