@@ -174,9 +174,11 @@ def degeneracy(points: np.ndarray) -> str | None:
     # the whole cloud. Squaring halves their precision (they resolve to about 1e-16 of the
     # largest), so they only clear a cloud whose second direction lies far above both thresholds
     # below; a cloud anywhere near one is decided by the exact SVD. Coordinates are scaled by
-    # their magnitude first, so that no square overflows or underflows.
+    # their magnitude first, so that no square overflows or underflows. The scatter is summed by
+    # einsum, not by BLAS, whose threads keep spinning after the product and take the cores from
+    # the kernels that follow.
     unit = centred / magnitude
-    squared = np.linalg.eigvalsh(unit.T @ unit)
+    squared = np.linalg.eigvalsh(np.einsum("ni,nj->ij", unit, unit))
     if squared[1] > 1e-12 * squared[2] and np.sqrt(squared[1]) * magnitude > 2.0 * rounding_floor:
         return None
     singular_values = np.linalg.svd(centred, compute_uv=False)
