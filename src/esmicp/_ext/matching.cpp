@@ -112,21 +112,45 @@ const auto common_bits = common_bits_plain;
 //: Columns per piece of nearest_descriptors.
 constexpr int64_t DESCRIPTOR_COLUMNS = 512;
 
-// values[j] = sum_k row[k] * transposed[k * stride + j] for j < width (float32, k in order): one
-// descriptor against a piece of the (D, C) transposed others, a pass per dimension over the piece,
-// which vectorises. On x86-64 with GCC also compiled for Haswell's AVX2 and FMA, chosen at load
-// time where the processor has them (the sums then round once per step: the same on every run of
-// one machine).
+//: Rows of nearest_descriptors whose dot products are formed together (count): each column value
+//: loaded serves them all.
+constexpr int64_t DESCRIPTOR_ROWS = 4;
+//: Columns whose sums stay in registers while the dimensions are summed (count).
+constexpr int64_t DESCRIPTOR_LANES = 16;
+
+// values[r][j] = sum_k rows[r][k] * transposed[k * stride + j] for r < DESCRIPTOR_ROWS (rows past
+// `count` are left alone) and j < width: a few descriptors against a piece of the (D, C) transposed
+// others, float32, k in order, DESCRIPTOR_LANES columns at a time summed in registers. On x86-64
+// with GCC also compiled with AVX and FMA, chosen at load time where the processor has FMA (the
+// sums then round once per step: the same on every run of one machine, the nearest descriptors
+// the same on every machine but where two lie within a rounding of each other).
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__)
-__attribute__((target_clones("arch=haswell", "default")))
+__attribute__((target_clones("fma", "default")))
 #endif
-void dot_products(const float *row, const float *transposed, int64_t stride, int64_t dimension, int64_t width,
-                  float *values) {
-    for (int64_t j = 0; j < width; ++j) values[j] = 0.0f;
-    for (int64_t k = 0; k < dimension; ++k) {
-        const float weight = row[k];
-        const float *column = transposed + stride * k;
-        for (int64_t j = 0; j < width; ++j) values[j] += weight * column[j];
+void dot_products(const float *const *rows, int64_t count, const float *transposed, int64_t stride,
+                  int64_t dimension, int64_t width, float (*values)[DESCRIPTOR_COLUMNS]) {
+    int64_t j0 = 0;
+    if (count == DESCRIPTOR_ROWS) {
+        for (; j0 + DESCRIPTOR_LANES <= width; j0 += DESCRIPTOR_LANES) {
+            float sums[DESCRIPTOR_ROWS][DESCRIPTOR_LANES] = {};
+            for (int64_t k = 0; k < dimension; ++k) {
+                const float *column = transposed + stride * k + j0;
+                for (int64_t r = 0; r < DESCRIPTOR_ROWS; ++r) {
+                    const float weight = rows[r][k];
+                    for (int64_t j = 0; j < DESCRIPTOR_LANES; ++j) sums[r][j] += weight * column[j];
+                }
+            }
+            for (int64_t r = 0; r < DESCRIPTOR_ROWS; ++r)
+                for (int64_t j = 0; j < DESCRIPTOR_LANES; ++j) values[r][j0 + j] = sums[r][j];
+        }
+    }
+    for (int64_t r = 0; r < count; ++r) {
+        for (int64_t j = j0; j < width; ++j) values[r][j] = 0.0f;
+        for (int64_t k = 0; k < dimension; ++k) {
+            const float weight = rows[r][k];
+            const float *column = transposed + stride * k;
+            for (int64_t j = j0; j < width; ++j) values[r][j] += weight * column[j];
+        }
     }
 }
 
@@ -338,14 +362,24 @@ void nearest_descriptors(CF32Arr2 rows_, CF32Arr2 columns_, CF32Arr1 row_squares
     std::vector<int64_t> piece_index(size_t(pieces) * size_t(rows));
     parallel_pieces(pieces, threads, [&](int64_t piece) {
         const int64_t begin = piece * DESCRIPTOR_COLUMNS, end = std::min(columns, begin + DESCRIPTOR_COLUMNS);
+        float block[DESCRIPTOR_ROWS][DESCRIPTOR_COLUMNS];
         float values[DESCRIPTOR_COLUMNS];
         int32_t moved[DESCRIPTOR_COLUMNS];
+        const int64_t width = end - begin;
         for (int64_t i = 0; i < rows; ++i) {
+            if (i % DESCRIPTOR_ROWS == 0) {
+                // The dot products of this row and the next few, together.
+                const float *block_rows[DESCRIPTOR_ROWS];
+                const int64_t count = std::min(DESCRIPTOR_ROWS, rows - i);
+                for (int64_t r = 0; r < count; ++r) block_rows[r] = descriptors + dimension * (i + r);
+                dot_products(block_rows, count, transposed + begin, columns, dimension, width, block);
+            }
+            const float *dots = block[i % DESCRIPTOR_ROWS];
             const float own = row_squares[i];
-            const int64_t width = end - begin, label = i;
-            // Dot products, distances, then the columns' running minima: no dependence between
+            const int64_t label = i;
+            // Distances, then the columns' running minima, row by row: no dependence between
             // columns, so the loops vectorise; then the row's minima, whose branches are rarely taken.
-            dot_products(descriptors + dimension * i, transposed + begin, columns, dimension, width, values);
+            for (int64_t j = 0; j < width; ++j) values[j] = dots[j];
             for (int64_t j = 0; j < width; ++j) {
                 float value = values[j] * -2.0f;
                 value = value + column_squares[begin + j];
