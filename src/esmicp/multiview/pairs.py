@@ -58,17 +58,18 @@ def surface_features(points: np.ndarray, *, radius_spacings: float, normal_neigh
     one scan (at most), over a neighbourhood of ``radius_spacings`` times its median point spacing,
     normals from its ``normal_neighbours`` nearest points: ``(count, 33)``, invariant to a rigid
     motion of the scan."""
-    from scipy.spatial import cKDTree
-
+    from ..core.compiled_tree import CompiledTree
     from ..core.features import estimate_normals, fpfh
     from ..core.sampling import evenly_strided
 
     if len(points) < 3:
         return np.zeros((0, 33))
-    spacing = float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
+    tree = CompiledTree(points)  # one KD-tree gives the spacing, the normals and the features
+    spacing = float(np.median(tree.query_k(points, 2, workers=1)[0][:, 1]))
     if not spacing > 0:
         return np.zeros((0, 33))
-    features = fpfh(points, estimate_normals(points, k=normal_neighbours), radius_spacings * spacing)
+    features = fpfh(points, estimate_normals(points, k=normal_neighbours, tree=tree), radius_spacings * spacing,
+                    tree=tree)
     return features[evenly_strided(len(points), count)]
 
 

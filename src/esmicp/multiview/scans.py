@@ -363,8 +363,11 @@ class _Pairwise:
     spacing: right pairs of sparse subsets can score as low as wrong ones (``docs/design.md``,
     "Measured design choices")."""
 
-    def __init__(self, centred, small, dense, keys, sequence, run_options, stages: _Plan, config: MergeConfig):
+    def __init__(self, centred, small, dense, keys, sequence, run_options, stages: _Plan, config: MergeConfig,
+                 tree: Callable[[int], CompiledTree] | None = None):
         self.centred, self.small, self.dense, self.keys = centred, small, dense, keys
+        # scan -> a compiled KD-tree over its dense subset (made once per scan when the caller shares them)
+        self.tree = tree if tree is not None else (lambda k: CompiledTree(self.dense[k]))
         self.sequence, self.run_options, self.stages, self.config = sequence, run_options, stages, config
         self.edges: dict[tuple[int, int], Edge] = {}
         self.done = 0  # registrations run, for progress and the result
@@ -492,7 +495,7 @@ class _Pairwise:
         T = outcome.transformation
         inverse = np.linalg.inv(T)
         moved = self.dense[i] @ inverse[:3, :3].T + inverse[:3, 3]
-        d, _ = CompiledTree(self.dense[j]).query(moved, workers=1)
+        d, _ = self.tree(j).query(moved, workers=1)
         reverse = float(np.mean(d < outcome.inlier_distance))
         confidence = getattr(outcome, "confidence", None)
         doubts = outcome.doubts()
@@ -912,7 +915,7 @@ def register_scans(
 
     Memory, for 1,000 scans of 20,000 points (the input clouds, 480 MB as float64, stay the caller's): per
     scan, the sparse subset (``pair_points`` x 24 bytes: 36 KB) and the dense one (``refine_points`` x 24
-    bytes: 192 KB), its normals (192 KB) and, from the first joint refinement to the end of the merge, a
+    bytes: 192 KB), its normals (192 KB) and, from its first edge to the end of the merge, a
     compiled KD-tree over it (about 320 KB): about 0.75 MB a scan, 0.75 GB for 1,000 at the defaults (linear in
     ``refine_points``). Per kept edge, the refinement's last neighbours (2 x ``query_points`` x 8 bytes: 16 KB;
     about 0.05 GB for 3,000 edges); the pose graph's sparse Jacobian (72 numbers per edge and residual block, a
@@ -938,7 +941,7 @@ def register_scans(
     work = _prepare(scans, reference, config, plan, started)
     pairwise = _Pairwise(work.centred, work.small, work.dense, work.keys, sequence,
                          {"threads": threads, "processes": processes, "client": client,
-                          "config": config.registration, **register_kwargs}, plan, config)
+                          "config": config.registration, **register_kwargs}, plan, config, work.tree)
     pieces = _Pieces(pairwise, work.small, config)
     graph = _Graph(pairwise, work.reference, config, plan)
     _first_pairs(work, pairwise, pieces, sequence, config, plan)
@@ -1024,7 +1027,7 @@ class _Scans:
         made once per merge and scan: the joint refinement asks again after a free-space conflict."""
         for k in scans:
             if ("fine", k) not in self.made:
-                tree = CompiledTree(self.dense[k])
+                tree = self.tree(k)
                 normals = estimate_normals(self.dense[k], k=neighbours, tree=tree, workers=None)
                 spacing = float(np.median(tree.query_k(self.dense[k], 2)[0][:, 1]))
                 self.made["fine", k] = (neighbours, tree, normals, spacing)
@@ -1033,6 +1036,13 @@ class _Scans:
             raise ValueError("one merge asks for its normals from one number of neighbours")
         return ({k: m[1] for k, m in made.items()}, {k: m[2] for k, m in made.items()},
                 {k: m[3] for k, m in made.items()})
+
+    def tree(self, k: int) -> CompiledTree:
+        """A compiled KD-tree over scan k's dense subset, in its centroid frame; made once per merge
+        and scan (each edge's reverse fitness and the joint refinement query it)."""
+        if ("tree", k) not in self.made:
+            self.made["tree", k] = CompiledTree(self.dense[k])
+        return self.made["tree", k]
 
     def own_frame(self, scans, policy, pool) -> dict:
         """Scan -> its ``policy.free_space_points`` subset of its dense subset, in its own frame
