@@ -791,3 +791,89 @@ def test_a_clean_ring_costs_its_own_pairs_and_no_more(monkeypatch, n):
     assert {(min(e.i, e.j), max(e.i, e.j)) for e in result.edges} == ring
     assert result.pairs_registered == 2 * n
     assert [stage.name for stage in result.stages if "pairs" in stage.name] == ["rank pairs", "pairs"]
+
+
+def _turntable_ring(n, lean_deg, wrong=(), seed=17):
+    """``n`` scans on a turntable (each turned ``360 / n`` degrees about z from the last), the fake
+    pairwise results of the ring's neighbouring pairs each leaning ``lean_deg`` about z the same way
+    (the ring closes ``n * lean_deg`` off), every other pair untrusted, each result with a tight
+    information matrix as a registration's is; ``wrong`` pairs trusted and 40 degrees off."""
+    rng = np.random.default_rng(seed)
+    truth = []
+    for k in range(n):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("z", 360.0 * k / n, degrees=True).as_matrix()
+        T[:3, 3] = rng.normal(scale=0.05, size=3)
+        truth.append(T)
+    ring = {(min(k, (k + 1) % n), max(k, (k + 1) % n)) for k in range(n)}
+    return truth, _clouds(truth, rng, points=400), ring
+
+
+def _leaning(monkeypatch, lean_deg):
+    """Every registration the merge runs returns its pose turned ``lean_deg`` further about z in the
+    sense it turns (a turn of the table measured a little too large, whichever scan is the
+    target), with a tight 6x6 information matrix."""
+    faked = scans_module.register_many
+
+    def leaned(T):
+        lean = np.eye(4)
+        turn = np.sign(np.arctan2(T[1, 0], T[0, 0]))
+        lean[:3, :3] = Rotation.from_euler("z", turn * lean_deg, degrees=True).as_matrix()
+        return T @ lean
+
+    def leaning(jobs, **options):
+        return [replace(r, transformation=leaned(r.transformation), information=1e6 * np.eye(6))
+                if isinstance(r, RegistrationResult) else r for r in faked(jobs, **options)]
+
+    monkeypatch.setattr(scans_module, "register_many", leaning)
+
+
+def test_small_errors_adding_up_around_a_ring_reject_no_edge_the_surfaces_agree_with(monkeypatch):
+    """Twelve scans on a turntable whose neighbouring pairs each lean 0.5 degrees the same way (the
+    ring closes 6 degrees off, each pair well within the graph's 2 degrees): the graph pins the sum
+    on one ring edge, the surfaces (the joint refinement over the other edges) agree with it, so it
+    is kept, every scan is confirmed by the ring, and no pair is asked for beyond the ring's."""
+    n = 12
+    truth, clouds, ring = _turntable_ring(n, 0.5)
+    index = np.arange(n)
+    hops = np.abs(index[:, None] - index[None, :])
+    distances = np.minimum(hops, n - hops) / n
+    monkeypatch.setattr(scans_module.candidates, "matching_distances", lambda clouds, **_: distances)
+    _patch(monkeypatch, truth, clouds, overlapping=ring)
+    _leaning(monkeypatch, 0.5)
+    result = register_scans(clouds, threads=1, range_images=False)
+    names = [stage.name for stage in result.stages]
+    graph = [stage for stage in result.stages if stage.name == "pose graph"][0]
+    assert graph.decided["cycle_inconsistent"] == 1  # the graph alone rejects one right ring edge
+    assert "joint refinement (cycle check)" in names and not any(name.startswith("more pairs") for name in names)
+    assert result.status == ("placed",) * n, result.reasons
+    assert {(min(e.i, e.j), max(e.i, e.j)) for e in result.kept_edges} == ring
+    assert result.pairs_registered == 2 * n
+    for k in range(n):
+        angle, _ = _errors(result.poses[k], truth[k])
+        assert angle < 2.0
+
+
+def test_a_wrong_edge_stays_rejected_when_the_surfaces_judge_the_rejected_edges(monkeypatch):
+    """The same leaning ring with one more pair, across two of its edges, trusted and 40 degrees
+    off: the graph rejects it and pins the ring's 6 degrees on a ring edge; the poses refined over
+    the kept edges agree with that ring edge, not with the wrong one, which stays rejected."""
+    n = 12
+    truth, clouds, ring = _turntable_ring(n, 0.5)
+    index = np.arange(n)
+    hops = np.abs(index[:, None] - index[None, :])
+    distances = np.minimum(hops, n - hops) / n
+    distances[5, 7] = distances[7, 5] = 0.01  # the wrong pair is among the first pairs
+    monkeypatch.setattr(scans_module.candidates, "matching_distances", lambda clouds, **_: distances)
+    _patch(monkeypatch, truth, clouds, overlapping=ring | {(5, 7)}, wrong={(5, 7)}, apart={5, 6})
+    _leaning(monkeypatch, 0.5)
+    result = register_scans(clouds, threads=1, range_images=False)
+    graph = [stage for stage in result.stages if stage.name == "pose graph"][0]
+    assert graph.decided["cycle_inconsistent"] == 2  # the wrong pair and one right ring edge
+    assert "joint refinement (cycle check)" in [stage.name for stage in result.stages]
+    assert {(min(e.i, e.j), max(e.i, e.j)) for e in result.edges} >= ring | {(5, 7)}
+    assert [(min(e.i, e.j), max(e.i, e.j)) for e in result.rejected_edges if e.trusted] == [(5, 7)]
+    assert result.status == ("placed",) * n, result.reasons
+    for k in range(n):
+        angle, _ = _errors(result.poses[k], truth[k])
+        assert angle < 2.0
