@@ -453,10 +453,11 @@ class _Pairwise:
             oriented.append((i, j))
             inits.append(T)
         self.stages.open(stage, 2 * len(requests))
-        # on the sparse subsets: a global search, or a local refinement from the given start
+        # on the sparse subsets: a global search, or a local refinement from the given start; only
+        # its pose and convergence are used (the check below is judged), so it is not judged
         subsets = [self.second if sparse[(min(i, j), max(i, j))] else self.small for i, j in oriented]
         found = self._register([(c[j], c[i]) for c, (i, j) in zip(subsets, oriented)], inits, 0,
-                               config=self.search_config())
+                               config=self.search_config(), judge=False)
         outcomes = {n: outcome for n, outcome in enumerate(found) if not hasattr(outcome, "transformation")}
         # the check on the dense subsets starts at a converged pose: capped
         group = [n for n in range(len(requests)) if n not in outcomes]
