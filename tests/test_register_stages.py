@@ -154,6 +154,22 @@ def test_doubts_at_another_bar_and_without_some_kinds():
         [doubt.kind for doubt in verdict.doubts]  # listed in the order of DOUBT_KINDS
 
 
+
+@pytest.mark.parametrize("init", ["global", "given"])
+def test_an_unjudged_pose_is_the_judged_pose_and_never_trusted(noisy_pair, init):
+    source, target, truth = noisy_pair
+    start = truth if init == "given" else init
+    judged = esmicp.register(source, target, init=start)
+    bare = esmicp.register(source, target, init=start, judge=False)
+    assert judged.trusted  # the pair is one a judgement trusts
+    np.testing.assert_array_equal(bare.transformation, judged.transformation)
+    assert (bare.converged, bare.confidence, bare.fitness) == (judged.converged, judged.confidence, judged.fitness)
+    assert not bare.trusted and bare.covariance is None and bare.information is None
+    assert [doubt.kind for doubt in bare.verdict.doubts] == ["not judged"]
+    assert _names(bare) == ["prepare", "start", "refine", "evaluate"]
+    with pytest.raises(InvalidInputError, match="judge"):
+        esmicp.register(source, target, judge="no")
+
 def test_swapping_source_and_target_gives_the_inverse_pose():
     rng = np.random.default_rng(4)
     cloud = asymmetric_shape(700, rng=np.random.default_rng(2))

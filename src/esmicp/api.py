@@ -62,6 +62,7 @@ class _Request:
     trust: TrustPolicy  # the bars the result is judged by
     coincident_warning: float  # RegistrationConfig.coincident_warning_fraction
     range_images: bool | None = None  # both clouds are range images in their sensor frames (None: as their points show)
+    judge: bool = True  # False: the pose without its covariance, mirror test and free-space test (never trusted)
 
 
 @keeps_keyboard_interrupt
@@ -82,6 +83,7 @@ def register(
     return_correspondences: bool = False,
     config: RegistrationConfig | SearchConfig | dict | None = None,
     range_images: bool | None = None,
+    judge: bool = True,
 ) -> RegistrationResult:
     """Rigidly register ``source`` onto ``target``.
 
@@ -172,6 +174,12 @@ def register(
         check runs when both clouds prove range images and nothing else already casts doubt on
         the pose. False: no such check (clouds in another frame, such as meshes, fused fragments
         or maps, would fail it).
+    judge : bool
+        True (the default): the pose is judged (``result.verdict``). False: the pose and its overlap
+        confidence only, without the covariance, the mirror test or the free-space test, for a
+        caller that judges the pose by other means (the merge's first pass on sparse subsets, whose
+        poses its check on denser ones judges). Such a result is never trusted (its doubt "not
+        judged") and has no covariance.
 
     Returns
     -------
@@ -189,7 +197,7 @@ def register(
     started = time.perf_counter()
     stages: list[Stage] = []
     request = _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
-                        config, range_images)
+                        config, range_images, judge)
     clouds = _prepare(request, started, stages)
     initial, init_name, estimate, keypoints = _start(request, clouds, stages)
     observer = None
@@ -221,8 +229,8 @@ def register(
         **_search_summary(estimate, clouds.frame),
         confidence=verdict.confidence,
         correspondences=correspondences,
-        covariance=verdict.uncertainty.covariance,
-        information=verdict.uncertainty.information,
+        covariance=getattr(verdict.uncertainty, "covariance", None),  # None: not judged
+        information=getattr(verdict.uncertainty, "information", None),
         degenerate_directions=verdict.degenerate_directions,
         free_space=verdict.free_space,
         policy=request.trust,
@@ -534,8 +542,14 @@ def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypo
            estimate: GlobalEstimate | None, pairs, inlier_distance: float, stages: list) -> Verdict:
     """Stage 5: the verdict on the final pose of ``outcome`` (working frame), whose overlap
     confidence the refinement measured (:func:`esmicp.trust.judge.judge`); with range images, the
-    free-space test too."""
+    free-space test too. Unless the request asks for no judgement: then the verdict on the
+    convergence, the confidence and the search alone, with the doubt "not judged"."""
     started = time.perf_counter()
+    if not request.judge:
+        return Verdict.of(converged=outcome.converged, num_iterations=outcome.num_iterations, confidence=confidence,
+                          ambiguous=bool(estimate is not None and estimate.ambiguous),
+                          runner_up_ratio=None if estimate is None else estimate.runner_up_ratio,
+                          policy=request.trust, judged=False)
     sensors = None
     if request.range_images is not False:
         sensors = SensorClouds(request.source, request.target, inlier_distance, request.range_images)
@@ -553,7 +567,7 @@ def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypo
     return verdict
 
 def _validate(source, target, method, init, sigma, max_iterations, tolerance, rng, inlier_distance, workers,
-              config=None, range_images=None) -> _Request:
+              config=None, range_images=None, judge=True) -> _Request:
     """Stage 1: every argument checked (one clear :class:`InvalidInputError` otherwise)."""
     source_points = as_points(source, "source")
     target_points = as_points(target, "target")
@@ -578,6 +592,7 @@ def _validate(source, target, method, init, sigma, max_iterations, tolerance, rn
         trust=registration.trust,
         coincident_warning=registration.coincident_warning_fraction,
         range_images=None if range_images is None else _as_flag(range_images, "range_images"),
+        judge=_as_flag(judge, "judge"),
     )
     if method == "esm-paper" and len(source_points) != len(target_points):
         warnings.warn(

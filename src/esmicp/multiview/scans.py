@@ -1241,9 +1241,9 @@ def _rejudged(work: _Scans, poses: dict, edges: list[Edge], config: MergeConfig,
     the merge goes on from the graph's).
 
     The pose graph weighs the pairwise estimates alone: their small errors, when they lean the
-    same way, add up around a long cycle (15 turntable scans 24 degrees apart: each pair
-    0.3-0.7 degrees off, 5.5 degrees around the ring), and the robust loss pins the sum on one
-    right edge. The refined poses come from the surfaces of the kept edges, never from the
+    same way, add up around a long cycle (a ring of scans of an object turned a step at a time
+    closes several degrees off when each pair is a few tenths of a degree off), and the robust
+    loss pins the sum on one right edge. The refined poses come from the surfaces of the kept edges, never from the
     rejected edge, so a wrong edge stays rejected. With no refinement (``refine_rounds`` 0) the
     edges stay as the graph left them."""
     refined, _, _ = _joint_refinement(work, poses, edges, config, plan, stage="joint refinement (cycle check)")

@@ -20,7 +20,7 @@ from .policy import DEFAULT_POLICY, TrustPolicy
 from .uncertainty import DegenerateDirection, PoseUncertainty, from_registration
 
 #: The kinds of :class:`Doubt`, in the order a verdict lists them.
-DOUBT_KINDS = ("not converged", "confidence", "ambiguous", "degenerate", "free space", "mirrored")
+DOUBT_KINDS = ("not converged", "confidence", "ambiguous", "degenerate", "free space", "mirrored", "not judged")
 
 
 @dataclass(frozen=True)
@@ -93,13 +93,14 @@ class Verdict:
            runner_up_ratio: float | None = None, uncertainty: PoseUncertainty | None = None,
            degenerate_directions: tuple[DegenerateDirection, ...] | None = None, free_space: float | None = None,
            free_space_words: str | None = None, policy: TrustPolicy = DEFAULT_POLICY,
-           handedness: Handedness | None = None) -> "Verdict":
+           handedness: Handedness | None = None, judged: bool = True) -> "Verdict":
         """The verdict on measurements already made (no measuring: :func:`judge` measures).
-        ``degenerate_directions``: those of ``uncertainty`` when None (none without it)."""
+        ``degenerate_directions``: those of ``uncertainty`` when None (none without it);
+        ``judged`` False: the pose was not measured for a judgement (never trusted)."""
         if degenerate_directions is None:
             degenerate_directions = () if uncertainty is None else uncertainty.degenerate_directions
         doubts = weigh(converged, num_iterations, confidence, ambiguous, runner_up_ratio, degenerate_directions,
-                       free_space, policy, handedness=handedness)
+                       free_space, policy, handedness=handedness, judged=judged)
         return cls(confidence, uncertainty, tuple(degenerate_directions), free_space, free_space_words,
                    bool(converged), int(num_iterations), bool(ambiguous), runner_up_ratio, policy, doubts, handedness)
 
@@ -107,7 +108,7 @@ class Verdict:
 def weigh(converged: bool, num_iterations: int, confidence: float | None, ambiguous: bool,
           runner_up_ratio: float | None, degenerate_directions, free_space: float | None,
           policy: TrustPolicy = DEFAULT_POLICY, bar: float | None = None,
-          handedness: Handedness | None = None) -> tuple[Doubt, ...]:
+          handedness: Handedness | None = None, judged: bool = True) -> tuple[Doubt, ...]:
     """Every reason not to trust a pose, in the order of :data:`DOUBT_KINDS`: the refinement did not
     converge (a run stopped by ``max_iterations``, a callback or a problem may still be degrees
     from where it was heading), the overlap ``confidence`` is missing or below ``bar`` (default
@@ -115,7 +116,8 @@ def weigh(converged: bool, num_iterations: int, confidence: float | None, ambigu
     floor or a wall seen alone, or a corridor, lets the pose slide however sharply the clouds
     coincide), the ``free_space`` fraction (when measured) is above ``policy.max_free_space_pair``,
     a mirror image of the source fits clearly better than the pose (``handedness``, when tested:
-    no rotation turns a left hand into a right one)."""
+    no rotation turns a left hand into a right one), the pose was not ``judged`` (its covariance, mirror
+    test and free-space test not run: ``register(judge=False)``)."""
     bar = policy.trusted if bar is None else bar
     doubts = []
     if not converged:
@@ -140,6 +142,9 @@ def weigh(converged: bool, num_iterations: int, confidence: float | None, ambigu
         doubts.append(Doubt("mirrored", f"mirrored: a mirror image of the source coincides with the target on "
                                         f"{100 * handedness.improper:.0f}% of the overlap, the pose on "
                                         f"{100 * handedness.proper:.0f}%: one cloud looks left-handed to the other"))
+    if not judged:
+        doubts.append(Doubt("not judged", "not judged: the covariance, the mirror test and the free-space test "
+                                          "were not run (register(judge=False))"))
     return tuple(doubts)
 
 
