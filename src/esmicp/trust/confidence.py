@@ -11,6 +11,8 @@ Transforms are ``T_target_source`` (``target ~= source @ R.T + t``).
 
 from __future__ import annotations
 
+import weakref
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -51,7 +53,16 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
     than ``policy.min_coincident`` keypoints of either cloud coincide (too little evidence: clouds
     that sparse cannot resolve the pose at the keypoint voxel, never finer than
     ``SearchConfig.scan.keypoint.min_voxel_spacings`` spacings, where a pose tens of degrees off still makes every point
-    "coincide"). ``workers``: threads of the compiled tree's queries (None: every core);
+    "coincide").
+
+    A cloud that carries scattered points (:func:`surface_part`, read from its own keypoints
+    before any pose) is measured on its surface: only its surface keypoints count among those
+    that must coincide, and the distances to it are read at the spacing of that surface (the
+    scattered points stand between its surface samples, so the keypoint voxel would be finer than
+    the surface it sampled). A cloud without scattered points is measured on every keypoint at
+    the keypoint voxel.
+
+    ``workers``: threads of the compiled tree's queries (None: every core);
     ``config``: the ranges and the coincidence distance (a
     :class:`~esmicp.globalreg.config.SearchConfig`); ``policy``: the
     measure's other values (:class:`~esmicp.trust.policy.TrustPolicy`)."""
@@ -59,14 +70,22 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
         return 0.0
     rotation, translation = transformation[:3, :3], transformation[:3, 3]
     voxel = keypoints.voxel
+    spacings = config.scan.keypoint.min_voxel_spacings
+    source_part = surface_part(keypoints.source, keypoints.source_tree, voxel, spacings, workers, policy=policy)
+    target_part = surface_part(keypoints.target, keypoints.target_tree, voxel, spacings, workers, policy=policy)
     sharpness, coincident = [], []
-    for moved, fixed, fixed_points in (
-        (keypoints.source @ rotation.T + translation, keypoints.target_tree, keypoints.target),
-        ((keypoints.target - translation) @ rotation, keypoints.source_tree, keypoints.source),
+    for moved, fixed, fixed_points, moved_part, fixed_part in (
+        (keypoints.source @ rotation.T + translation, keypoints.target_tree, keypoints.target, source_part,
+         target_part),
+        ((keypoints.target - translation) @ rotation, keypoints.source_tree, keypoints.source, target_part,
+         source_part),
     ):
+        if moved_part.surface is not None:
+            moved = moved[moved_part.surface]
         distances, nearest = fixed.query(moved, workers=workers)  # the counts SciPy's tree gives, cheaper
-        overlap = np.count_nonzero(distances <= policy.overlap_voxels * voxel)
-        coincide = distances <= config.scan.keypoint.coincide_voxels * voxel
+        unit = voxel * fixed_part.scale
+        overlap = np.count_nonzero(distances <= policy.overlap_voxels * unit)
+        coincide = distances <= config.scan.keypoint.coincide_voxels * unit
         if np.count_nonzero(coincide) < policy.min_coincident:
             return 0.0
         sharpness.append(np.count_nonzero(coincide) / overlap)
@@ -77,6 +96,91 @@ def overlap_confidence(transformation: np.ndarray, keypoints: Keypoints, workers
             third, second = coincident_spread(points, tree, touched, voxel, workers, policy=policy)
             held = min(held, _ramp(second, config.spread_range), _ramp(third, config.third_range))
     return float(min(_ramp(min(sharpness), config.sharpness_range), held))
+
+
+@dataclass(frozen=True, eq=False)
+class SurfacePart:
+    """Which keypoints of a cloud lie on its surface, and the spacing of that surface.
+
+    Attributes
+    ----------
+    scattered : float
+        The share (0-1) of the cloud's keypoints with no keypoint of their own within
+        ``TrustPolicy.isolated_voxels`` keypoint voxels.
+    surface : (N,) bool array or None
+        The keypoints on the cloud's surface (within ``TrustPolicy.surface_band_voxels`` of the
+        plane their own neighbours fit); None when the cloud carries no scattered points (more
+        than ``TrustPolicy.max_scattered`` of them isolated): every keypoint counts.
+    scale : float
+        The surface's sampling spacing over the spacing the keypoint voxel was made for (at least
+        1; 1 without scattered points): distances to this cloud are read in keypoint voxels times
+        this (gain).
+    """
+
+    scattered: float
+    surface: np.ndarray | None
+    scale: float
+
+
+_PARTS: dict[tuple, tuple[weakref.ref, SurfacePart]] = {}
+
+
+def surface_part(points: np.ndarray, tree: CompiledTree, voxel: float, spacings: float, workers: int | None = None,
+                 *, policy: TrustPolicy = DEFAULT_POLICY) -> SurfacePart:
+    """The :class:`SurfacePart` of keypoints ``points`` (``tree`` is over them, ``voxel`` their
+    voxel, ``spacings`` the point spacings a keypoint voxel is at least:
+    ``SearchConfig.scan.keypoint.min_voxel_spacings``), read from the points alone.
+
+    A cloud carries scattered points when more than ``policy.max_scattered`` of its keypoints
+    have no keypoint of their own within ``policy.isolated_voxels`` voxels (a sampled surface,
+    however sparse at the keypoint voxel, leaves almost none so alone). Its surface keypoints are
+    then those that lie within ``policy.surface_band_voxels`` of the plane fitted to their own
+    nearest ``policy.surface_neighbours`` within ``policy.surface_radius_voxels``, refitted
+    ``policy.surface_fits`` times on the neighbours within that band of the last plane, with at
+    least ``policy.surface_min_neighbours`` of them in the band: a scattered point near a surface
+    fits the surface's plane, not its own. The surface's spacing is the median distance from a
+    surface keypoint to its nearest keypoint, times ``spacings``. Computed once per ``tree``
+    and policy."""
+    key = (id(tree), voxel, spacings, policy.isolated_voxels, policy.max_scattered, policy.surface_neighbours,
+           policy.surface_radius_voxels, policy.surface_band_voxels, policy.surface_min_neighbours,
+           policy.surface_fits)
+    known = _PARTS.get(key)
+    if known is not None and known[0]() is tree:
+        return known[1]
+    part = _surface_part(points, tree, voxel, spacings, workers, policy)
+    _PARTS[key] = (weakref.ref(tree), part)
+    weakref.finalize(tree, _PARTS.pop, key, None)
+    return part
+
+
+def _surface_part(points: np.ndarray, tree: CompiledTree, voxel: float, spacings: float, workers: int | None,
+                  policy: TrustPolicy) -> SurfacePart:
+    if len(points) < 2:
+        return SurfacePart(0.0, None, 1.0)
+    distances, _ = tree.query_k(points, 2, workers=workers)  # the nearest is the point itself
+    scattered = float(np.mean(distances[:, 1] > policy.isolated_voxels * voxel))
+    if scattered <= policy.max_scattered:
+        return SurfacePart(scattered, None, 1.0)
+    count = min(policy.surface_neighbours + 1, len(points))
+    distances, indices = tree.query_k(points, count, workers=workers)
+    distances, neighbours = distances[:, 1:], points[indices[:, 1:]]
+    near = distances <= policy.surface_radius_voxels * voxel
+    weights = near.astype(np.float64)
+    band = policy.surface_band_voxels * voxel
+    for fit in range(policy.surface_fits + 1):
+        total = np.maximum(weights.sum(axis=1), 1.0)
+        centre = np.einsum("nk,nki->ni", weights, neighbours) / total[:, None]
+        spread = neighbours - centre[:, None, :]
+        moment = np.einsum("nk,nki,nkj->nij", weights, spread, spread)
+        normal = np.linalg.eigh(moment)[1][:, :, 0]
+        if fit < policy.surface_fits:
+            weights = (near & (np.abs(np.einsum("nki,ni->nk", spread, normal)) <= band)).astype(np.float64)
+    offset = np.abs(np.einsum("ni,ni->n", points - centre, normal))
+    surface = (weights.sum(axis=1) >= policy.surface_min_neighbours) & (offset <= band)
+    if not surface.any():
+        return SurfacePart(scattered, surface, 1.0)
+    scale = max(1.0, spacings * float(np.median(distances[surface, 0])) / voxel)
+    return SurfacePart(scattered, surface, scale)
 
 
 def _ramp(value: float, bounds: tuple[float, float]) -> float:

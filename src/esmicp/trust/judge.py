@@ -13,8 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.correspondence import NearestNeighbors
 from ..core.keypoints import Keypoints
-from .confidence import ConfidenceRanges, overlap_confidence
+from .confidence import ConfidenceRanges, overlap_confidence, surface_part
 from .handedness import Handedness, handedness as handedness_of
 from .policy import DEFAULT_POLICY, TrustPolicy
 from .uncertainty import DegenerateDirection, PoseUncertainty, from_registration
@@ -195,7 +196,11 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     ``num_iterations``: the refinement's; ``ambiguous``, ``runner_up_ratio``: the global search's
     (False and None without one). ``confidence``: the overlap confidence of this pose on
     ``keypoints`` when the refinement already measured it (else measured here, with the ranges of
-    ``config``, a :class:`~esmicp.globalreg.config.SearchConfig`). ``sensors``: the clouds in their
+    ``config``, a :class:`~esmicp.globalreg.config.SearchConfig`); when either cloud carries
+    scattered points (:func:`scattered_keypoints`), the confidence is measured here on the pair's
+    own keypoints instead, on the surface of that cloud (:func:`~esmicp.trust.confidence.surface_part`:
+    keypoints already chosen among, e.g. the search's with its isolated ones dropped, no longer
+    show the scatter). ``sensors``: the clouds in their
     own frames for the free-space test (None: no such test); declared range images are tested
     always, clouds of unknown kind (``sensors.range_images`` None) only when nothing else casts
     doubt on the pose and both prove range images (:meth:`SensorClouds.premise`). The handedness
@@ -203,6 +208,9 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     on. ``policy``: the bars and the measures' values; ``workers``: threads of the compiled
     kernels (None: every core).
     """
+    scattered = scattered_keypoints(source, target_index, config, policy, workers)
+    if scattered is not None and scattered is not keypoints:
+        keypoints, confidence = scattered, None
     if confidence is None:
         confidence = overlap_confidence(transformation, keypoints, workers, config=config, policy=policy)
     uncertainty = from_registration(source, target_index, transformation, sigma, origin=origin, workers=workers,
@@ -222,6 +230,40 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
         verdict = Verdict.of(**measured, handedness=handedness_of(
             transformation, keypoints, workers, coincide_voxels=config.scan.keypoint.coincide_voxels, policy=policy))
     return verdict
+
+
+def scattered_keypoints(source: np.ndarray, target_index, config, policy: TrustPolicy = DEFAULT_POLICY,
+                        workers: int | None = None) -> Keypoints | None:
+    """The pair's :class:`~esmicp.core.keypoints.Keypoints` (``source`` and the points of
+    ``target_index``, at the voxel of ``config``, a :class:`~esmicp.globalreg.config.SearchConfig`)
+    when either cloud carries scattered points
+    (:attr:`esmicp.trust.confidence.SurfacePart.surface` not None), read from the clouds alone;
+    None when neither does. Clouds of more than ``policy.scatter_points`` points are read first on
+    that many of each, drawn at random by a fixed seed (their own keypoints, at their own spacing),
+    and on the whole clouds only when those carry scattered points."""
+    target = target_index.points
+    if max(len(source), len(target)) <= policy.scatter_points:
+        return _if_scattered(Keypoints.of(source, target, target_index.spacing(), config.keypoints,
+                                          config.scan.keypoint.min_voxel_spacings), config, policy, workers)
+    draw = np.random.default_rng(0)  # a fixed draw: the same verdict on the same clouds
+    source_sample = source[np.sort(draw.permutation(len(source))[:policy.scatter_points])]
+    target_sample = target[np.sort(draw.permutation(len(target))[:policy.scatter_points])]
+    sample_spacing = NearestNeighbors(target_sample, workers=workers).spacing()
+    probe = Keypoints.of(source_sample, target_sample, sample_spacing, config.keypoints,
+                         config.scan.keypoint.min_voxel_spacings)
+    if _if_scattered(probe, config, policy, workers) is None:
+        return None
+    return _if_scattered(Keypoints.of(source, target, target_index.spacing(), config.keypoints,
+                                      config.scan.keypoint.min_voxel_spacings), config, policy, workers)
+
+
+def _if_scattered(keypoints: Keypoints, config, policy: TrustPolicy, workers: int | None) -> Keypoints | None:
+    """``keypoints`` when either cloud's carries scattered points, else None."""
+    spacings = config.scan.keypoint.min_voxel_spacings
+    for points, tree in ((keypoints.source, keypoints.source_tree), (keypoints.target, keypoints.target_tree)):
+        if surface_part(points, tree, keypoints.voxel, spacings, workers, policy=policy).surface is not None:
+            return keypoints
+    return None
 
 
 def _unshifted(transformation: np.ndarray, origin: np.ndarray | None) -> np.ndarray:

@@ -34,6 +34,27 @@ class TrustPolicy(Config):
     overlap_voxels : float
         The overlap confidence's overlap: the keypoints within this many keypoint voxels of the
         other cloud (gain; of them, those within one voxel coincide).
+    isolated_voxels : float
+        A keypoint is isolated when no keypoint of its own cloud lies within this many keypoint
+        voxels (gain; :func:`esmicp.trust.confidence.surface_part`).
+    max_scattered : float
+        A cloud carries scattered points when more than this share (0-1) of its keypoints are
+        isolated; the overlap confidence then measures it on its surface keypoints only.
+    scatter_points : int
+        Whether a registered pair's clouds carry scattered points is read first on at most this
+        many evenly strided points of each (count; :func:`esmicp.trust.judge.scattered_keypoints`).
+    surface_neighbours : int
+        A keypoint's own nearest keypoints (at most) whose plane says whether it lies on its
+        cloud's surface (count) ...
+    surface_radius_voxels : float
+        ... within this many keypoint voxels (gain).
+    surface_band_voxels : float
+        A keypoint lies on its cloud's surface when within this many keypoint voxels of that
+        plane (gain); the plane is refitted on the neighbours within as far of it ...
+    surface_fits : int
+        ... this many times (count) ...
+    surface_min_neighbours : int
+        ... and at least this many of them must lie in the band (count).
     spread_below : float
         The coincident part's normals are asked to hold the pose only when less than this share
         (0-1) of either cloud's keypoints coincides; more is held by the clouds' whole shape.
@@ -170,6 +191,14 @@ class TrustPolicy(Config):
 
     min_coincident: int = count(60)
     overlap_voxels: float = number(3.0, above=0.0)
+    isolated_voxels: float = number(2.0, above=0.0)
+    max_scattered: float = fraction(0.06)
+    scatter_points: int = count(25000)
+    surface_neighbours: int = count(16, least=3)
+    surface_radius_voxels: float = number(3.0, above=0.0)
+    surface_band_voxels: float = number(0.5, above=0.0)
+    surface_fits: int = count(3, least=0)
+    surface_min_neighbours: int = count(6, least=3)
     spread_below: float = fraction(0.5)
     spread_points: int = count(500)
     spread_normal_neighbours: int = count(30, least=3)
