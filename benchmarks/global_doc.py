@@ -36,17 +36,41 @@ def group_of(name: str) -> str:
     return f"{parts[0]}/{parts[1]}"
 
 
+def peers_of(row: dict) -> dict[str, dict]:
+    """A row's peers (``global_regression.py --peer``), name -> ``{"time_s", "success"}``."""
+    if "peers" in row:
+        return row["peers"]
+    if "peer_time_s" in row:
+        return {row["peer"]: {"time_s": row["peer_time_s"], "success": row["peer_success"]}}
+    return {}
+
+
 def groups(run: dict) -> str:
+    """One row per group: right, trusted, trusted and wrong, the median confidence; with peers in
+    the run, each peer's right count and the median of the per-row time ratios esmicp / peer (both
+    timed in the same process, one after the other, on the same clouds)."""
     names: dict[str, list[str]] = {}
     for name in run:
         names.setdefault(group_of(name), []).append(name)
-    lines = ["| trials | n | right | trusted | trusted and wrong | median confidence |", "|---|---|---|---|---|---|"]
+    peers = list(dict.fromkeys(peer for row in run.values() for peer in peers_of(row)))
+    header = "| trials | n | right | trusted | trusted and wrong | median confidence |"
+    for peer in peers:
+        header += f" {peer}: right | time esmicp / {peer} |"
+    lines = [header, "|---|---|---|---|---|---|" + "---|---|" * len(peers)]
     for group, rows in names.items():
         right = sum(run[n]["success"] for n in rows)
         trusted = sum(run[n]["trusted"] for n in rows)
         wrong = sum(run[n]["trusted"] and not run[n]["success"] for n in rows)
         confidence = statistics.median(run[n]["confidence"] for n in rows)
-        lines.append(f"| {group} | {len(rows)} | {right} | {trusted} | {wrong} | {confidence:.2f} |")
+        line = f"| {group} | {len(rows)} | {right} | {trusted} | {wrong} | {confidence:.2f} |"
+        for peer in peers:
+            timed = [n for n in rows if peer in peers_of(run[n])]
+            if not timed:
+                line += " - | - |"
+                continue
+            ratio = statistics.median(run[n]["time_s"] / peers_of(run[n])[peer]["time_s"] for n in timed)
+            line += f" {sum(bool(peers_of(run[n])[peer]['success']) for n in timed)} | {ratio:.2f} |"
+        lines.append(line)
     return "\n".join(lines)
 
 

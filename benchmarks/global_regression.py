@@ -38,15 +38,15 @@ Writes one JSON line per registration (pose, success, rotation error against the
 the object sets right up to symmetry may still be far from it), converged, confidence, trusted, ambiguous,
 runner_up_ratio, where the pose came from, time) to ``--out``. ``--compare BEFORE.jsonl`` instead
 compares two such files: the rows whose pose moved, whose success changed, and the totals
-(successes, trusted and trusted-and-wrong, time). With ``--peer NAME`` each row also runs that
-baseline right after esmicp on the same clouds (the voxel its documentation gives for the data:
-0.05 m indoor, 0.3 m LiDAR, its object default on the ModelNet40 sets), and ``--compare`` reports
-the median of the per-row time ratios esmicp / peer of each file: a ratio measured in one process
-holds under a machine's changing load, which absolute times do not.
+(successes, trusted and trusted-and-wrong, time). With ``--peer NAME[,NAME...]`` each row also runs
+those baselines right after esmicp on the same clouds (the voxel their documentation gives for the
+data: 0.05 m indoor, 0.3 m LiDAR, their object default on the ModelNet40 sets), and ``--compare``
+and ``global_doc.py groups`` report the median of the per-row time ratios esmicp / peer: a ratio
+measured in one process holds under a machine's changing load, which absolute times do not.
 
     python benchmarks/global_regression.py --out /tmp/runs/a.jsonl
     python benchmarks/global_regression.py --out /tmp/runs/b.jsonl --compare /tmp/runs/a.jsonl
-    python benchmarks/global_regression.py --sets real,crops --peer kiss-matcher-gicp --out /tmp/runs/peer.jsonl
+    python benchmarks/global_regression.py --sets real,crops --peer kiss-matcher-gicp,kiss-matcher-icp --out /tmp/runs/peer.jsonl
 """
 
 from __future__ import annotations
@@ -86,21 +86,31 @@ def _seed(*key) -> int:
     return int(np.random.SeedSequence(list(key)).generate_state(1)[0])
 
 
-#: ``--peer``: a baseline of :data:`esmicp_lab.baselines.BASELINES` run right after each registration,
-#: on the same clouds, judged the same way (None: none).
-PEER: str | None = None
+#: ``--peer``: the baselines of :data:`esmicp_lab.baselines.BASELINES` run right after each
+#: registration, in this order, on the same clouds, judged the same way (empty: none).
+PEERS: tuple[str, ...] = ()
 
 
 def _peer(name: str, source, target, seed: int, judge, voxel: float | None) -> dict:
-    """The peer's time and verdict on one row (``peer_*`` fields); its voxel: the one its
-    documentation gives for the data (``voxel``; None: the adapter's object default)."""
+    """One peer's time (seconds) and verdict on one row (a ``peers`` entry); its voxel: the one
+    its documentation gives for the data (``voxel``; None: the adapter's object default)."""
     from esmicp_lab.baselines import get_baseline
 
     started = time.perf_counter()
     result = get_baseline(name)(source, target, voxel_size=voxel, rng=seed)
     elapsed = time.perf_counter() - started
     verdict = judge(np.asarray(result.transformation, dtype=np.float64))
-    return {"peer": name, "peer_time_s": elapsed, "peer_success": verdict["success"]}
+    return {"time_s": elapsed, "success": verdict["success"]}
+
+
+def peer_times(row: dict) -> dict[str, dict]:
+    """A row's peers, name -> ``{"time_s", "success"}`` (also read from the single-peer fields
+    ``peer``, ``peer_time_s``, ``peer_success`` of older files)."""
+    if "peers" in row:
+        return row["peers"]
+    if "peer_time_s" in row:
+        return {row["peer"]: {"time_s": row["peer_time_s"], "success": row["peer_success"]}}
+    return {}
 
 
 def _record(name: str, source, target, seed: int, judge, peer_voxel: float | None = None, **options) -> dict:
@@ -118,8 +128,8 @@ def _record(name: str, source, target, seed: int, judge, peer_voxel: float | Non
         row["trusted_without_free_space"] = not result.doubts(ignore=("free space",))
     row.update({key: value for key, value in result.to_dict().items() if key.startswith("std_")})
     row.update(judge(result.transformation))
-    if PEER is not None:
-        row.update(_peer(PEER, source, target, seed, judge, peer_voxel))
+    if PEERS:
+        row["peers"] = {name: _peer(name, source, target, seed, judge, peer_voxel) for name in PEERS}
     return row
 
 
@@ -299,24 +309,26 @@ def compare(before_path: Path, after_path: Path) -> str:
                   / max(float(np.median([before[n]["time_s"] for n in names])), 1e-12))
         lines.append(f"| {group} | {len(names)} | {ok_before} | {ok_after} | {trusted(before, names)} "
                      f"| {trusted(after, names)} | {ratio:.2f} | {median:.2f} |")
-    peered = [n for n in after if "peer_time_s" in after[n]]
-    if peered:
+    peers = list(dict.fromkeys(name for n in after for name in peer_times(after[n])))
+    if peers:
         lines.append("")
         lines.append("| group | rows | peer | peer success | esmicp success after | median of per-row time ratios "
                      "esmicp / peer: before | after |")
         lines.append("|---|---|---|---|---|---|---|")
         for group, names in groups.items():
-            names = [n for n in names if n in peered]
-            if not names:
-                continue
+            for peer in peers:
+                rows = [n for n in names if peer in peer_times(after[n])]
+                if not rows:
+                    continue
 
-            def ratio(rows):
-                known = [rows[n]["time_s"] / rows[n]["peer_time_s"] for n in names if "peer_time_s" in rows[n]]
-                return f"{float(np.median(known)):.2f}" if known else "-"
+                def ratio(run, rows=rows, peer=peer):
+                    known = [run[n]["time_s"] / peer_times(run[n])[peer]["time_s"] for n in rows
+                             if peer in peer_times(run[n])]
+                    return f"{float(np.median(known)):.2f}" if known else "-"
 
-            lines.append(f"| {group} | {len(names)} | {after[names[0]]['peer']} "
-                         f"| {sum(bool(after[n]['peer_success']) for n in names)} "
-                         f"| {sum(bool(after[n]['success']) for n in names)} | {ratio(before)} | {ratio(after)} |")
+                lines.append(f"| {group} | {len(rows)} | {peer} "
+                             f"| {sum(bool(peer_times(after[n])[peer]['success']) for n in rows)} "
+                             f"| {sum(bool(after[n]['success']) for n in rows)} | {ratio(before)} | {ratio(after)} |")
     ratios = [after[n]["runner_up_ratio"] for n in after if after[n]["runner_up_ratio"] is not None]
     lines.append(f"\nrows moved: {moved} of {len(after)}; largest runner_up_ratio after: "
                  f"{max(ratios) if ratios else None}")
@@ -335,12 +347,19 @@ def main() -> None:
     parser.add_argument("--compare", type=Path, help="a JSON-lines file of an earlier run to compare --out with "
                         "(an existing --out is compared as it is, not run again)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing --out")
-    parser.add_argument("--peer", help="a baseline (esmicp_lab.baselines) run after each registration on the same "
-                        "clouds, at the voxel its documentation gives for the data (e.g. kiss-matcher-gicp): "
-                        "--compare then reports the median per-row time ratio to it")
+    parser.add_argument("--peer", help="baselines (esmicp_lab.baselines, comma-separated) run after each registration "
+                        "on the same clouds, at the voxel their documentation gives for the data (e.g. "
+                        "kiss-matcher-gicp,kiss-matcher-icp): --compare and global_doc.py groups then report the "
+                        "median per-row time ratio to each")
     args = parser.parse_args()
-    global PEER
-    PEER = args.peer
+    global PEERS
+    PEERS = tuple(name for name in (args.peer or "").split(",") if name)
+    if PEERS:
+        from esmicp_lab.baselines import BASELINES
+
+        unknown = [name for name in PEERS if name not in BASELINES]
+        if unknown:
+            parser.error(f"--peer: unknown baseline(s) {', '.join(unknown)}")
     if args.out is not None and args.out.exists() and not args.compare and not args.force:
         parser.error(f"{args.out} exists: pass --force to overwrite it, or --compare to compare it")
     if args.out is not None and not (args.compare and args.out.exists()):
