@@ -321,8 +321,8 @@ def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimat
     object's wrong pose can satisfy better than the truth (a piano half flipped end to end lies on
     the other half's surface), while the overlap confidence asks the overlap to coincide both ways:
     on cut objects such wrong poses become right and none is lost. One search only, and not when
-    the pose covers the whole target: a clean pose of an object under 30% outliers is often not
-    confident on the overlap (its outliers are keypoints too), and every search costs time (``docs/scans-partial-overlap.md``)."""
+    the pose covers the whole target: a clean pose of an object under outliers can fall short of
+    the trust bar on the overlap (its outliers are keypoints too), and every search costs time (``docs/scans-partial-overlap.md``)."""
     from ..trust.confidence import overlap_confidence
 
     keypoints = work.keypoints()
