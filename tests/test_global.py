@@ -201,17 +201,20 @@ def test_the_rotation_searchs_pose_is_final_at_once_only_when_confident_on_the_o
 
 def test_a_pose_covering_the_whole_target_is_final_without_the_scan_search(monkeypatch):
     """A chair under 30% outliers (``benchmarks/global_protocols.py``'s trial 2 of outliers-30):
-    the rotation search's pose is right but not confident on the overlap (the outliers are
-    keypoints too). It covers the whole target, so it is final without the scan strategy. Fails
-    if the coverage is not checked: the scan search then runs."""
+    the rotation search's pose is right and covers the whole target, so it is final without the
+    scan strategy even when its confidence on the overlap is held below the bar (here by
+    replacing the measured confidence with 0: the rule under test is the coverage). Fails if the
+    coverage is not checked: the scan search then runs."""
+    from dataclasses import replace
+
     from esmicp.globalreg import search
 
     trial = make_trial("outliers-30", _cloud("chair_0848"), seed=0, index=2, name="chair_0848")
     searched, decided = [], []
     scan, on_the_overlap = search._scan, search._on_the_overlap
     monkeypatch.setattr(search, "_scan", lambda *args, **kwargs: searched.append(1) or scan(*args, **kwargs))
-    monkeypatch.setattr(search, "_on_the_overlap",
-                        lambda work, estimate: decided.append(on_the_overlap(work, estimate)) or decided[-1])
+    monkeypatch.setattr(search, "_on_the_overlap", lambda work, estimate: decided.append(
+        replace(on_the_overlap(work, estimate), confidence=0.0)) or decided[-1])
     result = esmicp.register(trial.source, trial.target, rng=3141116543)
     assert strict_success(result.transformation, trial.T_target_source, trial.diagonal, pivot=trial.source.mean(axis=0))
     assert result.init == "global:rotation-search" and not searched
