@@ -66,6 +66,7 @@ from esmicp_lab.bench.nees import (CUT_KEEP, DOC_BEGIN, DOC_END, KITCHEN_TRUTH_D
                                    LIDAR_BEGIN, LIDAR_END, LIDAR_STREAM, START_DEGREES, START_SPACINGS, Run,
                                    Table, bunny_scans, cycle, kitchen_triplets, lidar, nees, noise_table,
                                    object_trial, score, shapes)
+from esmicp_lab.bench.tables import write_between
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -162,19 +163,10 @@ def main(argv=None) -> int:
     for (begin, end), text in texts.items():
         print(text + "\n")
         if args.doc is not None:
-            _write_doc(args.doc, text, begin, end)
+            write_between(args.doc, text, begin, end)
     if args.plot is not None and table.points:
         _plot(table.points, args.plot)
     return 0
-
-
-def _write_doc(path: Path, text: str, begin: str = DOC_BEGIN, end: str = DOC_END) -> None:
-    page = path.read_text(encoding="utf-8")
-    if begin not in page or end not in page:
-        raise SystemExit(f"{path}: no generated part (the markers {begin} and {end})")
-    before, rest = page.split(begin, 1)
-    after = rest.split(end, 1)[1]
-    path.write_text(f"{before}{begin}\n{text}\n{end}{after}", encoding="utf-8")
 
 
 def _plot(points, path: Path) -> None:

@@ -30,6 +30,7 @@ from esmicp.trust import uncertainty
 from esmicp_lab.baselines import kiss_matcher
 from esmicp_lab.bench.real_pairs import load_pair, read_pairs
 from esmicp_lab.bench.scans import real_pairs_markdown
+from esmicp_lab.bench.tables import write_between
 
 DOC_BEGIN, DOC_END = "<!-- fastest_peer: begin -->", "<!-- fastest_peer: end -->"
 
@@ -189,12 +190,7 @@ def main(argv=None) -> int:
     ])
     print(text)
     if args.doc is not None:
-        page = args.doc.read_text(encoding="utf-8")
-        if DOC_BEGIN not in page or DOC_END not in page:
-            raise SystemExit(f"{args.doc}: no generated part (the markers {DOC_BEGIN} and {DOC_END})")
-        before, rest = page.split(DOC_BEGIN, 1)
-        after = rest.split(DOC_END, 1)[1]
-        args.doc.write_text(f"{before}{DOC_BEGIN}\n{text}\n{DOC_END}{after}", encoding="utf-8")
+        write_between(args.doc, text, DOC_BEGIN, DOC_END)
     return 0
 
 

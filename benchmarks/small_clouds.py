@@ -47,6 +47,7 @@ from esmicp.metrics import rotation_error_deg, strict_success, up_to_symmetry_su
 from esmicp_lab.bench.off_sensor import turntable_scans
 from esmicp_lab.bench.protocols import make_trials
 from esmicp_lab.bench.real_pairs import estimate_in_pair_frame, turn_source
+from esmicp_lab.bench.tables import write_between
 
 DOC_BEGIN, DOC_END = "<!-- small_clouds: begin -->", "<!-- small_clouds: end -->"
 
@@ -210,12 +211,7 @@ def main(argv=None) -> int:
     ])
     print(text)
     if args.doc is not None:
-        page = args.doc.read_text(encoding="utf-8")
-        if DOC_BEGIN not in page or DOC_END not in page:
-            raise SystemExit(f"{args.doc}: no generated part (the markers {DOC_BEGIN} and {DOC_END})")
-        before, rest = page.split(DOC_BEGIN, 1)
-        after = rest.split(DOC_END, 1)[1]
-        args.doc.write_text(f"{before}{DOC_BEGIN}\n{text}\n{DOC_END}{after}", encoding="utf-8")
+        write_between(args.doc, text, DOC_BEGIN, DOC_END)
     return 0
 
 

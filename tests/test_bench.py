@@ -512,3 +512,15 @@ def test_regenerating_the_refinement_section_keeps_the_pages_notes_and_the_rest(
     assert second == first.replace("| 1 |", "| 2 |")
     module.write_section(page, tables, "Other notes.\n")
     assert "The notes." not in page.read_text() and "Other notes." in page.read_text()
+
+
+def test_a_page_s_generated_part_is_rewritten_between_its_markers_and_the_rest_kept(tmp_path):
+    from esmicp_lab.bench.tables import write_between
+
+    page = tmp_path / "page.md"
+    page.write_text("# Title ±\n\n<!-- a: begin -->\nold\n<!-- a: end -->\n\nprose after\n", encoding="utf-8")
+    write_between(page, "new 1°\nnew 2", "<!-- a: begin -->", "<!-- a: end -->")
+    assert page.read_text(encoding="utf-8") == \
+        "# Title ±\n\n<!-- a: begin -->\nnew 1°\nnew 2\n<!-- a: end -->\n\nprose after\n"
+    with pytest.raises(SystemExit, match="page.md"):
+        write_between(page, "x", "<!-- b: begin -->", "<!-- b: end -->")

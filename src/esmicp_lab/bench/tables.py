@@ -1,5 +1,5 @@
 """Summary tables from rows: Markdown in the paper's layout (rows = methods, columns = metrics)
-and CSV.
+and CSV; and the generated part of a results page, rewritten between its markers.
 
 Conventions (also in ``docs/bench.md``):
 
@@ -358,3 +358,15 @@ def paper_1000_csv(rows: list[dict]) -> str:
     for record in paper_1000_stats(rows):
         writer.writerow({key: record.get(key) for key in PAPER_1000_COLUMNS})
     return out.getvalue()
+
+
+def write_between(path, text: str, begin: str, end: str) -> None:
+    """Rewrite the part of the page at ``path`` between the marker lines ``begin`` and ``end`` (kept)
+    with ``text``; the rest of the page is kept. Exits with a one-line message naming the page when
+    a marker is missing."""
+    page = path.read_text(encoding="utf-8")
+    if begin not in page or end not in page:
+        raise SystemExit(f"{path}: no generated part (the markers {begin} and {end})")
+    before, rest = page.split(begin, 1)
+    after = rest.split(end, 1)[1]
+    path.write_text(f"{before}{begin}\n{text}\n{end}{after}", encoding="utf-8")
