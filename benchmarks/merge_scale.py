@@ -91,8 +91,10 @@ def main(argv=None) -> int:
     nudged = {k: (pose_graph.pose_from_vector(rng.normal(scale=0.002, size=6)) @ T if k else np.eye(4))
               for k, T in enumerate(truth)}
     start = time.perf_counter()
+    merge = MergeConfig()
     refined, rmse, _ = refine(nudged, clouds, normals, pairs, 0, np.geomspace(0.05, 0.02, 6),
-                              query_points=MergeConfig().query_points)
+                              query_points=merge.query_points, rounds_per_distance=merge.refine_steps,
+                              huber_ratio=merge.refine_huber_ratio, min_pairs=merge.refine_min_pairs)
     angle, shift = worst_error(refined, truth)
     print(f"joint refinement: {time.perf_counter() - start:.1f} s; worst {angle:.3f} deg / {shift:.4f} off the truth; "
           f"peak memory {peak_mb():.0f} MB")
