@@ -53,7 +53,7 @@
    ``"unplaced"`` with its reasons; a doubtful or unplaced scan is never silently merged.
 
 :func:`register_scans` reads as these steps, each a function of its own below (``_prepare``,
-``_first_pairs``, the pose graph's ``_Graph.solve``, ``_loop_closures``, ``_more_pairs``,
+``_first_pairs``, the pose graph's ``_Graph.solve``, ``_Loops``, ``_more_pairs``,
 ``_joint_refinement``, ``_free_space_check``, ``_verdict``), and each records what it did
 (:class:`esmicp.result.Stage`) in :attr:`MultiRegistrationResult.stages`.
 """
@@ -953,12 +953,13 @@ def register_scans(
     graph = _Graph(pairwise, work.reference, config, plan)
     _first_pairs(work, pairwise, pieces, sequence, config, plan)
     poses, edges = graph.solve()
-    if sequence and work.n > config.sequence_neighbours + 1:
-        poses, edges = _loop_closures(work, pairwise, graph, poses, edges, config)
+    loops = _Loops(work, pairwise, graph, config) if sequence and work.n > config.sequence_neighbours + 1 else None
+    if loops is not None:
+        poses, edges = loops(poses, edges)
     premise: dict[int, free_space.RangeImageTest] = {}  # posed scans' range-image tests, made once
     rounds = 1  # rounds of pairs, for the stages' names
     for attempt in range(2):
-        poses, edges, rounds = _more_pairs(work, pairwise, pieces, graph, poses, edges, rounds, config)
+        poses, edges, rounds = _more_pairs(work, pairwise, pieces, graph, poses, edges, rounds, config, loops)
         poses, rmse, residual = _joint_refinement(work, poses, edges, config, plan)
         # on the refined poses (the graph's alone drift along a walk and conflict falsely): the
         # edges a conflict disproves are cut once, and the scans they placed searched again
@@ -1145,28 +1146,57 @@ def _first_pairs(work: _Scans, pairwise: _Pairwise, pieces: _Pieces, sequence: b
         pairwise.run([(i, j, None) for i, j in sorted(first)])
 
 
-def _loop_closures(work: _Scans, pairwise: _Pairwise, graph: _Graph, poses: dict, edges: list[Edge],
-                   config: MergeConfig) -> tuple[dict, list[Edge]]:
-    """With a sequence: the loop closures the graph's ``poses`` predict, searched globally
-    (``"pairs (loop closures)"``), and the graph solved again."""
-    extents = candidates.world_extents(poses, work.small)
-    kept = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
-    loops = candidates.loop_pairs(kept, extents, _predicted_overlap(poses, work.small, edges, config), pairwise.tried,
-                                  min_overlap=config.min_predicted_overlap, min_hops=config.loop_min_hops,
-                                  budget=int(np.ceil(config.loop_searches_per_scan * work.n)),
-                                  partners=config.predict_partners)
-    pairwise.run([(i, j, None) for i, j in loops], "pairs (loop closures)")
-    return graph.solve()
+class _Loops:
+    """With a sequence, the loop closures (``"pairs (loop closures)"``, the graph solved again):
+    pairs of posed scans the graph's poses predict to overlap, searched globally, those the graph
+    joins by the longest path first (:func:`candidates.loop_pairs`), at most
+    ``config.loop_searches_per_scan`` per posed scan over the whole merge.
+
+    Sought once the first pairs are solved, over the scans posed then, and again each time a
+    round of more pairs poses scans that were not (a walk whose first pairs break where frames
+    are missing or the view jumps: the far side is joined later, by the pairs its piece proposes),
+    within what is left of the budget, where the new scans' loops are the longest bypasses: the
+    loops that tie the far side to the near one are searched before the joint refinement and the
+    free-space check judge the poses, rather than left to a single bridge."""
+
+    def __init__(self, work: _Scans, pairwise: "_Pairwise", graph: "_Graph", config: MergeConfig):
+        self.work, self.pairwise, self.graph, self.config = work, pairwise, graph, config
+        self.searched = 0  # loop closures searched so far
+        self.posed: frozenset[int] | None = None  # the scans posed when loops were last sought
+
+    def __call__(self, poses: dict, edges: list[Edge]) -> tuple[dict, list[Edge]]:
+        """(poses, edges), the graph solved again when loops were sought: the first call always,
+        a later one when scans are posed that were not at the last and a search is left."""
+        first = self.posed is None
+        if not first and set(poses) <= self.posed:
+            return poses, edges
+        self.posed = frozenset(poses) | (self.posed or frozenset())
+        work, config = self.work, self.config
+        budget = int(np.ceil(config.loop_searches_per_scan * len(poses))) - self.searched
+        loops = []
+        if budget > 0:
+            extents = candidates.world_extents(poses, work.small)
+            kept = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
+            loops = candidates.loop_pairs(kept, extents, _predicted_overlap(poses, work.small, edges, config),
+                                          self.pairwise.tried, min_overlap=config.min_predicted_overlap,
+                                          min_hops=config.loop_min_hops, budget=budget,
+                                          partners=config.predict_partners)
+        if not first and not loops:
+            return poses, edges
+        self.searched += len(loops)
+        self.pairwise.run([(i, j, None) for i, j in loops], "pairs (loop closures)", posed=len(poses))
+        return self.graph.solve()
 
 
 def _more_pairs(work: _Scans, pairwise: _Pairwise, pieces: _Pieces, graph: _Graph, poses: dict, edges: list[Edge],
-                rounds: int, config: MergeConfig) -> tuple[dict, list[Edge], int]:
+                rounds: int, config: MergeConfig, loops: _Loops | None = None) -> tuple[dict, list[Edge], int]:
     """Rounds of more pairs only where a scan is not yet confirmed (``"more pairs (round r)"``, the
     graph solved after each), until ``config.stalled_rounds`` rounds in a row place or confirm no
     scan or no pair is left to ask for: (poses, edges, the rounds of pairs run so far). Before the
     first round, when a posed scan is unconfirmed and the graph rejected a trusted edge between
     posed scans as cycle inconsistent, those edges are judged again against the surfaces, once
-    (:func:`_rejudged`)."""
+    (:func:`_rejudged`). With ``loops`` (a sequence), a round that poses scans not posed before
+    has their loop closures sought after it (:class:`_Loops`)."""
     n, reference = work.n, work.reference
     stalled, best = 0, -1  # rounds in a row that placed or confirmed no scan; the most placed and confirmed
     first = True
@@ -1197,6 +1227,8 @@ def _more_pairs(work: _Scans, pairwise: _Pairwise, pieces: _Pieces, graph: _Grap
         pairwise.run([(i, j, None) for i, j in wanted], f"more pairs (round {rounds})", unconfirmed=len(posed),
                      unplaced=len(unplaced))
         poses, edges = graph.solve()
+        if loops is not None:
+            poses, edges = loops(poses, edges)
     return poses, edges, rounds
 
 
