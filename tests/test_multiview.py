@@ -910,3 +910,33 @@ def test_a_walk_joined_across_a_break_has_its_loops_sought_once_the_far_side_is_
     for k in range(n):
         angle, shift = _errors(result.poses[k], truth[k])
         assert angle < 1e-6 and shift < 1e-6
+
+
+def test_an_edge_the_surfaces_keep_stays_kept_when_the_graph_is_solved_again(monkeypatch):
+    """The leaning ring of twelve scans (the graph pins its 6 degrees on one right ring edge, the
+    surfaces keep it) and a thirteenth scan between scans 0 and 1 whose first pairs (with the
+    scans most like it, 5 and 6) share nothing: the round of more pairs that places it solves the
+    graph again, and the ring edge the surfaces kept stays kept, so the ring confirms every scan."""
+    n = 12
+    truth, clouds, ring = _turntable_ring(n, 0.5)
+    between = np.eye(4)
+    between[:3, :3] = Rotation.from_euler("z", 360.0 / n / 2, degrees=True).as_matrix()
+    truth.append(between)
+    clouds.append(_clouds([between], np.random.default_rng(3), points=400)[0])
+    index = np.arange(n + 1)
+    hops = np.abs(index[:, None] - index[None, :])
+    distances = np.minimum(hops, n - hops) / n
+    distances[n, :] = distances[:, n] = 0.9
+    distances[n, [5, 6]] = distances[[5, 6], n] = 0.01  # its first pairs: the most alike, and apart
+    distances[n, [0, 1]] = distances[[0, 1], n] = 0.5
+    distances[n, n] = 0.0
+    monkeypatch.setattr(scans_module.candidates, "matching_distances", lambda clouds, **_: distances)
+    _patch(monkeypatch, truth, clouds, overlapping=ring | {(0, n), (1, n)})
+    _leaning(monkeypatch, 0.5)
+    result = register_scans(clouds, threads=1, range_images=False)
+    names = [stage.name for stage in result.stages]
+    assert "joint refinement (cycle check)" in names and any(name.startswith("more pairs") for name in names)
+    assert result.status == ("placed",) * (n + 1), result.reasons
+    kept = {(min(e.i, e.j), max(e.i, e.j)) for e in result.kept_edges}
+    assert kept >= ring, sorted(ring - kept)
+    assert all(result.reasons[k][0].startswith("confirmed") for k in range(1, n + 1)), result.reasons

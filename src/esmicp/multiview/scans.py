@@ -512,10 +512,13 @@ class _Pairwise:
                     information=getattr(outcome, "information", None))
 
 
-def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict | None = None):
+def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict | None = None,
+           admitted: set | frozenset = frozenset()):
     """(poses of the scans joined to ``reference``, every edge with ``kept``/``reason`` set): the
     pose graph over the trusted edges (consensus tree, robust optimisation, cycle check, again),
-    except the ``vetoed`` pairs (``(min, max) -> reason``: cut by a free-space conflict)."""
+    except the ``vetoed`` pairs (``(min, max) -> reason``: cut by a free-space conflict); the
+    ``admitted`` pairs (``(min, max)``: kept by the surfaces, :func:`_rejudged`) are never rejected
+    as cycle inconsistent."""
     vetoed = vetoed or {}
     max_edge_error_deg, direct = config.max_edge_error_deg, config.direct_solve_max_poses
     max_shift, gain = config.max_edge_shift_inliers, config.first_check_gain
@@ -544,7 +547,7 @@ def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict 
     def check(edges, poses, angle_deg, spacings):
         out = []
         for e in edges:
-            if e.kept and e.i in poses and e.j in poses:
+            if e.kept and e.i in poses and e.j in poses and (min(e.i, e.j), max(e.i, e.j)) not in admitted:
                 angle, shift = pose_graph.edge_error(poses[e.i], poses[e.j], e.T_i_j)
                 if angle > angle_deg or shift > spacings * e.inlier_distance:
                     e = replace(e, kept=False, reason=f"cycle inconsistent ({angle:.2f} deg, {shift:.3g} off the graph)")
@@ -1103,12 +1106,14 @@ class _Graph:
     def __init__(self, pairwise: _Pairwise, reference: int, config: MergeConfig, plan: _Plan):
         self.pairwise, self.reference, self.config, self.plan = pairwise, reference, config, plan
         self.vetoed: dict[tuple[int, int], str] = {}  # edges cut by a free-space conflict -> why
+        self.admitted: set[tuple[int, int]] = set()  # edges the surfaces kept after the graph rejected them
 
     def solve(self) -> tuple[dict, list[Edge]]:
         """(poses of the scans joined to the reference, every edge with ``kept``/``reason`` set)."""
         self.plan.open("pose graph", 1)
         started = time.perf_counter()
-        poses, edges = _solve(list(self.pairwise.edges.values()), self.reference, self.config, self.vetoed)
+        poses, edges = _solve(list(self.pairwise.edges.values()), self.reference, self.config, self.vetoed,
+                              self.admitted)
         self.plan.close()
         self.plan.record("pose graph", started, edges=len(edges), trusted=sum(e.trusted for e in edges),
                          kept=sum(e.kept for e in edges), vetoed=sum(e.reason.startswith("free-space") for e in edges),
@@ -1116,6 +1121,11 @@ class _Graph:
                          not_connected=sum(e.reason == "not connected to the reference" for e in edges),
                          posed=len(poses))
         return poses, edges
+
+    def admit(self, before: list[Edge], after: list[Edge]) -> None:
+        """Remember the edges :func:`_rejudged` kept (``before`` the graph's edges, ``after`` its
+        answer, edge for edge): every later solve keeps them unless a free-space conflict cuts them."""
+        self.admitted.update((min(a.i, a.j), max(a.i, a.j)) for b, a in zip(before, after) if a.kept and not b.kept)
 
     def veto(self, removed: dict) -> None:
         """Cut the edges a free-space conflict disproved (``removed``, as :func:`cut_off` gives them)."""
@@ -1205,7 +1215,9 @@ def _more_pairs(work: _Scans, pairwise: _Pairwise, pieces: _Pieces, graph: _Grap
         if first and any(k in poses for k in unconfirmed) and any(_cycle_rejected(e, poses) for e in edges):
             # the graph's poses may have pinned what the pairwise estimates' small errors add up to
             # around a long cycle on one right edge: the surfaces judge it again, once, before pairs are asked for
-            edges = _rejudged(work, poses, edges, config, graph.plan)
+            rejudged = _rejudged(work, poses, edges, config, graph.plan)
+            graph.admit(edges, rejudged)
+            edges = rejudged
             unconfirmed = _unconfirmed(n, reference, poses, edges)
         first = False
         settled = len(poses) + n - len(unconfirmed)
