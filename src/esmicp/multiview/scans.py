@@ -24,12 +24,15 @@
 3. With a sequence, loop closures: pairs of placed scans the graph's poses predict to overlap
    (:class:`esmicp.multiview.pairs.PredictedOverlap`), those the graph joins by the longest path
    first (the drift a closure corrects grows with the path it bypasses), at most
-   ``loop_searches_per_scan`` per scan (the fields named here are
-   :class:`esmicp.config.MergeConfig`'s). Then, where a posed scan is not yet confirmed and the
+   ``loop_searches_per_scan`` per posed scan over the merge (the fields named here are
+   :class:`esmicp.config.MergeConfig`'s); sought again after a round of more pairs (below) poses
+   scans not posed before (the far side of a break in the walk), so that its loops tie it before
+   the joint refinement and the free-space check judge its poses. Then, where a posed scan is not yet confirmed and the
    graph rejected a trusted edge as cycle inconsistent, those edges are judged once more against
    the poses a joint refinement over the kept edges gives (step 4; the pose graph weighs the
    pairwise estimates alone, whose small errors can add up around a long cycle), and kept when
-   they agree within the same bounds. Then, with or without, more pairs only where a scan is
+   they agree within the same bounds, and the graph keeps them in every later solve (unless a
+   free-space conflict cuts them). Then, with or without, more pairs only where a scan is
    not yet confirmed (not on a cycle of agreeing edges): across each edge on no cycle, the pair the
    poses predict to overlap most; for each piece of scans not placed, the pairs its pose as a
    whole proposes (the piece fused and searched against the placed scans fused), else those most
@@ -872,7 +875,8 @@ def register_scans(
     progress : callable, optional
         ``progress(stage, done, total)``, called in this thread as the merge goes through its
         stages, one after the other: ``"pairs"`` (with ``sequence``, then ``"pairs (global
-        retry)"`` and ``"pairs (loop closures)"``), ``"more pairs (round r)"`` each time the graph
+        retry)"`` and ``"pairs (loop closures)"``, the latter again after a round that poses scans
+        not posed before), ``"more pairs (round r)"`` each time the graph
         asks for more (preceded by ``"piece pairs (round r)"`` when pieces of unplaced scans are
         placed as a whole to propose their pairs, one registration per piece), ``"pose graph"``
         whenever the graph is solved (``"joint refinement (cycle check)"`` once before the first
@@ -902,7 +906,8 @@ def register_scans(
         ``pairs`` chosen by likeness), each stage of pairs (as ``progress`` names it: the ``pairs``
         registered, ``searched`` globally or ``refined`` from a start, ``registrations`` run,
         ``trusted``, ``failed``, ``redrawn`` on a second draw; a round of more pairs also the
-        ``unconfirmed`` posed scans and ``unplaced`` scans it was asked for; a stage of piece pairs
+        ``unconfirmed`` posed scans and ``unplaced`` scans it was asked for, a stage of loop closures the
+        scans ``posed`` when they were sought; a stage of piece pairs
         the ``pieces``, those ``searched`` and ``posed`` as a whole, and the pairs they proposed),
         ``"pose graph"`` each time it is solved (``edges``, ``trusted``, ``kept``, ``vetoed``,
         ``cycle_inconsistent``, ``not_connected``, scans ``posed``), ``"joint refinement (cycle
