@@ -877,3 +877,66 @@ def test_a_wrong_edge_stays_rejected_when_the_surfaces_judge_the_rejected_edges(
     for k in range(n):
         angle, _ = _errors(result.poses[k], truth[k])
         assert angle < 2.0
+
+
+def test_a_walk_joined_across_a_break_has_its_loops_sought_once_the_far_side_is_posed(monkeypatch):
+    """A walk twice round one place (scan k and scan k + n/2 see the same surface), broken in the
+    middle (the frames either side of the break share nothing): the first pairs pose the near side
+    only, a round of more pairs joins the far side, and then the far side's loop closures are
+    sought too, among every posed scan, within ``loop_searches_per_scan`` per posed scan over the
+    whole merge; every scan is placed, exactly."""
+    n = 20
+    half = n // 2
+    rng = np.random.default_rng(21)
+    truth = _truth(n, rng)
+    clouds = _clouds(truth, rng)
+    walk = {(k, k + d) for d in (1, 2) for k in range(n - d) if (k < half) == (k + d < half)}
+    laps = {(k, k + half) for k in range(half)}
+    index = np.arange(n)
+    distances = np.where(np.abs(index[:, None] - index[None, :]) == half, 0.1, 1.0)
+    np.fill_diagonal(distances, 0.0)
+    monkeypatch.setattr(scans_module.candidates, "matching_distances", lambda clouds, **_: distances)
+    _patch(monkeypatch, truth, clouds, overlapping=walk | laps)
+    config = MergeConfig()
+    result = register_scans(clouds, sequence=True, refine_rounds=0, threads=1, range_images=False)
+    assert result.status == ("placed",) * n, result.reasons
+    names = [stage.name for stage in result.stages]
+    joined = next(m for m, stage in enumerate(result.stages) if stage.name.startswith("more pairs"))
+    loops = [stage for stage in result.stages if stage.name == "pairs (loop closures)"]
+    later = [stage for stage in result.stages[joined:] if stage.name == "pairs (loop closures)"]
+    assert later and later[0].decided["pairs"] >= 1, names
+    assert loops[0].decided["posed"] == half and later[0].decided["posed"] == n  # the near side, then every scan
+    assert sum(stage.decided["pairs"] for stage in loops) <= int(np.ceil(config.loop_searches_per_scan * n))
+    for k in range(n):
+        angle, shift = _errors(result.poses[k], truth[k])
+        assert angle < 1e-6 and shift < 1e-6
+
+
+def test_an_edge_the_surfaces_keep_stays_kept_when_the_graph_is_solved_again(monkeypatch):
+    """The leaning ring of twelve scans (the graph pins its 6 degrees on one right ring edge, the
+    surfaces keep it) and a thirteenth scan between scans 0 and 1 whose first pairs (with the
+    scans most like it, 5 and 6) share nothing: the round of more pairs that places it solves the
+    graph again, and the ring edge the surfaces kept stays kept, so the ring confirms every scan."""
+    n = 12
+    truth, clouds, ring = _turntable_ring(n, 0.5)
+    between = np.eye(4)
+    between[:3, :3] = Rotation.from_euler("z", 360.0 / n / 2, degrees=True).as_matrix()
+    truth.append(between)
+    clouds.append(_clouds([between], np.random.default_rng(3), points=400)[0])
+    index = np.arange(n + 1)
+    hops = np.abs(index[:, None] - index[None, :])
+    distances = np.minimum(hops, n - hops) / n
+    distances[n, :] = distances[:, n] = 0.9
+    distances[n, [5, 6]] = distances[[5, 6], n] = 0.01  # its first pairs: the most alike, and apart
+    distances[n, [0, 1]] = distances[[0, 1], n] = 0.5
+    distances[n, n] = 0.0
+    monkeypatch.setattr(scans_module.candidates, "matching_distances", lambda clouds, **_: distances)
+    _patch(monkeypatch, truth, clouds, overlapping=ring | {(0, n), (1, n)})
+    _leaning(monkeypatch, 0.5)
+    result = register_scans(clouds, threads=1, range_images=False)
+    names = [stage.name for stage in result.stages]
+    assert "joint refinement (cycle check)" in names and any(name.startswith("more pairs") for name in names)
+    assert result.status == ("placed",) * (n + 1), result.reasons
+    kept = {(min(e.i, e.j), max(e.i, e.j)) for e in result.kept_edges}
+    assert kept >= ring, sorted(ring - kept)
+    assert all(result.reasons[k][0].startswith("confirmed") for k in range(1, n + 1)), result.reasons

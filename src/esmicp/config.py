@@ -236,8 +236,9 @@ class MergeConfig(Config):
         With ``sequence``: a loop closure is searched only where the graph joins the two scans by
         a path of at least this many edges (count).
     loop_searches_per_scan : float
-        With ``sequence``: loop closures searched, at most, per scan (ratio; rounded up over all
-        scans).
+        With ``sequence``: loop closures searched, at most, per posed scan over the whole merge
+        (ratio; rounded up over the scans posed when they are sought: after the first pairs, and
+        again after a round of more pairs that poses scans not posed before).
     check_iterations : int
         Iterations of the local check of a pair on the dense subsets, unless ``max_iterations``
         is passed to :func:`esmicp.register_scans` (count).

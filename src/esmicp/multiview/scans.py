@@ -24,12 +24,15 @@
 3. With a sequence, loop closures: pairs of placed scans the graph's poses predict to overlap
    (:class:`esmicp.multiview.pairs.PredictedOverlap`), those the graph joins by the longest path
    first (the drift a closure corrects grows with the path it bypasses), at most
-   ``loop_searches_per_scan`` per scan (the fields named here are
-   :class:`esmicp.config.MergeConfig`'s). Then, where a posed scan is not yet confirmed and the
+   ``loop_searches_per_scan`` per posed scan over the merge (the fields named here are
+   :class:`esmicp.config.MergeConfig`'s); sought again after a round of more pairs (below) poses
+   scans not posed before (the far side of a break in the walk), so that its loops tie it before
+   the joint refinement and the free-space check judge its poses. Then, where a posed scan is not yet confirmed and the
    graph rejected a trusted edge as cycle inconsistent, those edges are judged once more against
    the poses a joint refinement over the kept edges gives (step 4; the pose graph weighs the
    pairwise estimates alone, whose small errors can add up around a long cycle), and kept when
-   they agree within the same bounds. Then, with or without, more pairs only where a scan is
+   they agree within the same bounds, and the graph keeps them in every later solve (unless a
+   free-space conflict cuts them). Then, with or without, more pairs only where a scan is
    not yet confirmed (not on a cycle of agreeing edges): across each edge on no cycle, the pair the
    poses predict to overlap most; for each piece of scans not placed, the pairs its pose as a
    whole proposes (the piece fused and searched against the placed scans fused), else those most
@@ -53,7 +56,7 @@
    ``"unplaced"`` with its reasons; a doubtful or unplaced scan is never silently merged.
 
 :func:`register_scans` reads as these steps, each a function of its own below (``_prepare``,
-``_first_pairs``, the pose graph's ``_Graph.solve``, ``_loop_closures``, ``_more_pairs``,
+``_first_pairs``, the pose graph's ``_Graph.solve``, ``_Loops``, ``_more_pairs``,
 ``_joint_refinement``, ``_free_space_check``, ``_verdict``), and each records what it did
 (:class:`esmicp.result.Stage`) in :attr:`MultiRegistrationResult.stages`.
 """
@@ -512,10 +515,13 @@ class _Pairwise:
                     information=getattr(outcome, "information", None))
 
 
-def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict | None = None):
+def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict | None = None,
+           admitted: set | frozenset = frozenset()):
     """(poses of the scans joined to ``reference``, every edge with ``kept``/``reason`` set): the
     pose graph over the trusted edges (consensus tree, robust optimisation, cycle check, again),
-    except the ``vetoed`` pairs (``(min, max) -> reason``: cut by a free-space conflict)."""
+    except the ``vetoed`` pairs (``(min, max) -> reason``: cut by a free-space conflict); the
+    ``admitted`` pairs (``(min, max)``: kept by the surfaces, :func:`_rejudged`) are never rejected
+    as cycle inconsistent."""
     vetoed = vetoed or {}
     max_edge_error_deg, direct = config.max_edge_error_deg, config.direct_solve_max_poses
     max_shift, gain = config.max_edge_shift_inliers, config.first_check_gain
@@ -544,7 +550,7 @@ def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict 
     def check(edges, poses, angle_deg, spacings):
         out = []
         for e in edges:
-            if e.kept and e.i in poses and e.j in poses:
+            if e.kept and e.i in poses and e.j in poses and (min(e.i, e.j), max(e.i, e.j)) not in admitted:
                 angle, shift = pose_graph.edge_error(poses[e.i], poses[e.j], e.T_i_j)
                 if angle > angle_deg or shift > spacings * e.inlier_distance:
                     e = replace(e, kept=False, reason=f"cycle inconsistent ({angle:.2f} deg, {shift:.3g} off the graph)")
@@ -869,7 +875,8 @@ def register_scans(
     progress : callable, optional
         ``progress(stage, done, total)``, called in this thread as the merge goes through its
         stages, one after the other: ``"pairs"`` (with ``sequence``, then ``"pairs (global
-        retry)"`` and ``"pairs (loop closures)"``), ``"more pairs (round r)"`` each time the graph
+        retry)"`` and ``"pairs (loop closures)"``, the latter again after a round that poses scans
+        not posed before), ``"more pairs (round r)"`` each time the graph
         asks for more (preceded by ``"piece pairs (round r)"`` when pieces of unplaced scans are
         placed as a whole to propose their pairs, one registration per piece), ``"pose graph"``
         whenever the graph is solved (``"joint refinement (cycle check)"`` once before the first
@@ -899,7 +906,8 @@ def register_scans(
         ``pairs`` chosen by likeness), each stage of pairs (as ``progress`` names it: the ``pairs``
         registered, ``searched`` globally or ``refined`` from a start, ``registrations`` run,
         ``trusted``, ``failed``, ``redrawn`` on a second draw; a round of more pairs also the
-        ``unconfirmed`` posed scans and ``unplaced`` scans it was asked for; a stage of piece pairs
+        ``unconfirmed`` posed scans and ``unplaced`` scans it was asked for, a stage of loop closures the
+        scans ``posed`` when they were sought; a stage of piece pairs
         the ``pieces``, those ``searched`` and ``posed`` as a whole, and the pairs they proposed),
         ``"pose graph"`` each time it is solved (``edges``, ``trusted``, ``kept``, ``vetoed``,
         ``cycle_inconsistent``, ``not_connected``, scans ``posed``), ``"joint refinement (cycle
@@ -953,12 +961,13 @@ def register_scans(
     graph = _Graph(pairwise, work.reference, config, plan)
     _first_pairs(work, pairwise, pieces, sequence, config, plan)
     poses, edges = graph.solve()
-    if sequence and work.n > config.sequence_neighbours + 1:
-        poses, edges = _loop_closures(work, pairwise, graph, poses, edges, config)
+    loops = _Loops(work, pairwise, graph, config) if sequence and work.n > config.sequence_neighbours + 1 else None
+    if loops is not None:
+        poses, edges = loops(poses, edges)
     premise: dict[int, free_space.RangeImageTest] = {}  # posed scans' range-image tests, made once
     rounds = 1  # rounds of pairs, for the stages' names
     for attempt in range(2):
-        poses, edges, rounds = _more_pairs(work, pairwise, pieces, graph, poses, edges, rounds, config)
+        poses, edges, rounds = _more_pairs(work, pairwise, pieces, graph, poses, edges, rounds, config, loops)
         poses, rmse, residual = _joint_refinement(work, poses, edges, config, plan)
         # on the refined poses (the graph's alone drift along a walk and conflict falsely): the
         # edges a conflict disproves are cut once, and the scans they placed searched again
@@ -1102,12 +1111,14 @@ class _Graph:
     def __init__(self, pairwise: _Pairwise, reference: int, config: MergeConfig, plan: _Plan):
         self.pairwise, self.reference, self.config, self.plan = pairwise, reference, config, plan
         self.vetoed: dict[tuple[int, int], str] = {}  # edges cut by a free-space conflict -> why
+        self.admitted: set[tuple[int, int]] = set()  # edges the surfaces kept after the graph rejected them
 
     def solve(self) -> tuple[dict, list[Edge]]:
         """(poses of the scans joined to the reference, every edge with ``kept``/``reason`` set)."""
         self.plan.open("pose graph", 1)
         started = time.perf_counter()
-        poses, edges = _solve(list(self.pairwise.edges.values()), self.reference, self.config, self.vetoed)
+        poses, edges = _solve(list(self.pairwise.edges.values()), self.reference, self.config, self.vetoed,
+                              self.admitted)
         self.plan.close()
         self.plan.record("pose graph", started, edges=len(edges), trusted=sum(e.trusted for e in edges),
                          kept=sum(e.kept for e in edges), vetoed=sum(e.reason.startswith("free-space") for e in edges),
@@ -1115,6 +1126,11 @@ class _Graph:
                          not_connected=sum(e.reason == "not connected to the reference" for e in edges),
                          posed=len(poses))
         return poses, edges
+
+    def admit(self, before: list[Edge], after: list[Edge]) -> None:
+        """Remember the edges :func:`_rejudged` kept (``before`` the graph's edges, ``after`` its
+        answer, edge for edge): every later solve keeps them unless a free-space conflict cuts them."""
+        self.admitted.update((min(a.i, a.j), max(a.i, a.j)) for b, a in zip(before, after) if a.kept and not b.kept)
 
     def veto(self, removed: dict) -> None:
         """Cut the edges a free-space conflict disproved (``removed``, as :func:`cut_off` gives them)."""
@@ -1145,28 +1161,57 @@ def _first_pairs(work: _Scans, pairwise: _Pairwise, pieces: _Pieces, sequence: b
         pairwise.run([(i, j, None) for i, j in sorted(first)])
 
 
-def _loop_closures(work: _Scans, pairwise: _Pairwise, graph: _Graph, poses: dict, edges: list[Edge],
-                   config: MergeConfig) -> tuple[dict, list[Edge]]:
-    """With a sequence: the loop closures the graph's ``poses`` predict, searched globally
-    (``"pairs (loop closures)"``), and the graph solved again."""
-    extents = candidates.world_extents(poses, work.small)
-    kept = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
-    loops = candidates.loop_pairs(kept, extents, _predicted_overlap(poses, work.small, edges, config), pairwise.tried,
-                                  min_overlap=config.min_predicted_overlap, min_hops=config.loop_min_hops,
-                                  budget=int(np.ceil(config.loop_searches_per_scan * work.n)),
-                                  partners=config.predict_partners)
-    pairwise.run([(i, j, None) for i, j in loops], "pairs (loop closures)")
-    return graph.solve()
+class _Loops:
+    """With a sequence, the loop closures (``"pairs (loop closures)"``, the graph solved again):
+    pairs of posed scans the graph's poses predict to overlap, searched globally, those the graph
+    joins by the longest path first (:func:`candidates.loop_pairs`), at most
+    ``config.loop_searches_per_scan`` per posed scan over the whole merge.
+
+    Sought once the first pairs are solved, over the scans posed then, and again each time a
+    round of more pairs poses scans that were not (a walk whose first pairs break where frames
+    are missing or the view jumps: the far side is joined later, by the pairs its piece proposes),
+    within what is left of the budget, where the new scans' loops are the longest bypasses: the
+    loops that tie the far side to the near one are searched before the joint refinement and the
+    free-space check judge the poses, rather than left to a single bridge."""
+
+    def __init__(self, work: _Scans, pairwise: "_Pairwise", graph: "_Graph", config: MergeConfig):
+        self.work, self.pairwise, self.graph, self.config = work, pairwise, graph, config
+        self.searched = 0  # loop closures searched so far
+        self.posed: frozenset[int] | None = None  # the scans posed when loops were last sought
+
+    def __call__(self, poses: dict, edges: list[Edge]) -> tuple[dict, list[Edge]]:
+        """(poses, edges), the graph solved again when loops were sought: the first call always,
+        a later one when scans are posed that were not at the last and a search is left."""
+        first = self.posed is None
+        if not first and set(poses) <= self.posed:
+            return poses, edges
+        self.posed = frozenset(poses) | (self.posed or frozenset())
+        work, config = self.work, self.config
+        budget = int(np.ceil(config.loop_searches_per_scan * len(poses))) - self.searched
+        loops = []
+        if budget > 0:
+            extents = candidates.world_extents(poses, work.small)
+            kept = [(e.i, e.j) for e in edges if e.kept and e.i in poses and e.j in poses]
+            loops = candidates.loop_pairs(kept, extents, _predicted_overlap(poses, work.small, edges, config),
+                                          self.pairwise.tried, min_overlap=config.min_predicted_overlap,
+                                          min_hops=config.loop_min_hops, budget=budget,
+                                          partners=config.predict_partners)
+        if not first and not loops:
+            return poses, edges
+        self.searched += len(loops)
+        self.pairwise.run([(i, j, None) for i, j in loops], "pairs (loop closures)", posed=len(poses))
+        return self.graph.solve()
 
 
 def _more_pairs(work: _Scans, pairwise: _Pairwise, pieces: _Pieces, graph: _Graph, poses: dict, edges: list[Edge],
-                rounds: int, config: MergeConfig) -> tuple[dict, list[Edge], int]:
+                rounds: int, config: MergeConfig, loops: _Loops | None = None) -> tuple[dict, list[Edge], int]:
     """Rounds of more pairs only where a scan is not yet confirmed (``"more pairs (round r)"``, the
     graph solved after each), until ``config.stalled_rounds`` rounds in a row place or confirm no
     scan or no pair is left to ask for: (poses, edges, the rounds of pairs run so far). Before the
     first round, when a posed scan is unconfirmed and the graph rejected a trusted edge between
     posed scans as cycle inconsistent, those edges are judged again against the surfaces, once
-    (:func:`_rejudged`)."""
+    (:func:`_rejudged`). With ``loops`` (a sequence), a round that poses scans not posed before
+    has their loop closures sought after it (:class:`_Loops`)."""
     n, reference = work.n, work.reference
     stalled, best = 0, -1  # rounds in a row that placed or confirmed no scan; the most placed and confirmed
     first = True
@@ -1175,7 +1220,9 @@ def _more_pairs(work: _Scans, pairwise: _Pairwise, pieces: _Pieces, graph: _Grap
         if first and any(k in poses for k in unconfirmed) and any(_cycle_rejected(e, poses) for e in edges):
             # the graph's poses may have pinned what the pairwise estimates' small errors add up to
             # around a long cycle on one right edge: the surfaces judge it again, once, before pairs are asked for
-            edges = _rejudged(work, poses, edges, config, graph.plan)
+            rejudged = _rejudged(work, poses, edges, config, graph.plan)
+            graph.admit(edges, rejudged)
+            edges = rejudged
             unconfirmed = _unconfirmed(n, reference, poses, edges)
         first = False
         settled = len(poses) + n - len(unconfirmed)
@@ -1197,6 +1244,8 @@ def _more_pairs(work: _Scans, pairwise: _Pairwise, pieces: _Pieces, graph: _Grap
         pairwise.run([(i, j, None) for i, j in wanted], f"more pairs (round {rounds})", unconfirmed=len(posed),
                      unplaced=len(unplaced))
         poses, edges = graph.solve()
+        if loops is not None:
+            poses, edges = loops(poses, edges)
     return poses, edges, rounds
 
 
