@@ -1,5 +1,7 @@
-"""The joint refinement's weights (:func:`esmicp.multiview.refine.refine`): each pair of scans counts
-with the inverse of its own residual variance, so a pair whose surfaces agree less pulls a scan less."""
+"""The joint refinement (:func:`esmicp.multiview.refine.refine`): each pair of scans counts with the
+inverse of its own residual variance, so a pair whose surfaces agree less pulls a scan less; and a
+pair queries the points of its overlap, so a pair sharing a small part of its scans is refined as
+well as one sharing all."""
 
 from __future__ import annotations
 
@@ -67,3 +69,40 @@ def test_pairs_of_equal_noise_weigh_the_same_and_the_refinement_reaches_the_trut
     for k in (1, 2):
         angle, shift = pose_graph.edge_error(truth[k], poses[k], np.eye(4))
         assert angle < 0.05 and shift < 1e-3, (k, angle, shift)
+
+
+def _corner_pair(seed, count=6000):
+    """Two scans of one bumpy surface, each over a 2 x 2 square, overlapping in a 0.4 x 0.4 corner (4%
+    of each scan): (true poses, clouds in their centroid frames, normals, the second scan's start,
+    about 1.5 degrees and 0.05 off the truth)."""
+    rng = np.random.default_rng(seed)
+    truth, clouds, normals = {}, {}, {}
+    for k, corner in enumerate((0.0, 1.6)):
+        xy = rng.uniform(-1.0, 1.0, (count, 2)) + corner
+        world = np.column_stack([xy, 0.3 * np.sin(5 * xy[:, 0]) * np.cos(4 * xy[:, 1])
+                                 + 0.2 * np.cos(7 * xy[:, 0] + 3 * xy[:, 1])])
+        T = np.eye(4)
+        if k:
+            T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+            T[:3, 3] = rng.normal(0.0, 1.0, 3)
+        local = (world - T[:3, 3]) @ T[:3, :3]
+        centre = local.mean(axis=0)
+        T[:3, 3] += T[:3, :3] @ centre
+        truth[k], clouds[k] = T, local - centre
+        normals[k] = estimate_normals(clouds[k], k=12)
+    start = {0: truth[0], 1: pose_graph.pose_from_vector(rng.normal(0.0, 0.02, 6)) @ truth[1]}
+    return truth, clouds, normals, start
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_pair_sharing_a_small_part_of_its_scans_is_refined_on_its_overlap(seed):
+    truth, clouds, normals, start = _corner_pair(seed)
+    poses = {k: start[k].copy() for k in start}
+    # 200 queried points a direction: evenly strided over a whole scan, 8 of them would lie in the
+    # overlap (under min_pairs: the pair could not move); strided over the overlap, all 200
+    poses, _, _ = refine(poses, clouds, normals, [(0, 1)], 0, np.geomspace(0.1, 0.02, 4), query_points=200,
+                         rounds_per_distance=2, huber_ratio=3.0, min_pairs=10)
+    angle, shift = pose_graph.edge_error(truth[1], poses[1], np.eye(4))
+    start_angle, start_shift = pose_graph.edge_error(truth[1], start[1], np.eye(4))
+    assert start_angle > 0.5
+    assert angle < 0.15 and shift < 0.004, (angle, shift)

@@ -14,7 +14,7 @@ from . import pose_graph
 
 def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: int, distances, *,
            query_points: int, rounds_per_distance: int, huber_ratio: float, min_pairs: int,
-           trees: dict | None = None, edge_variance: bool = True):
+           trees: dict | None = None, edge_variance: bool = True, in_overlap: bool = True):
     """``(poses, rmse, residual per scan)`` after refining ``poses`` (``T_world_scan``, modified in
     place) over the pairs ``edges``; ``clouds`` and ``clouds_normals`` in each scan's frame.
     Each step turns a scan about the world's origin: the merge passes its scans in their centroid
@@ -30,7 +30,11 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
     the scans' borders) then pulls less than one whose surfaces coincide, in proportion to how much
     less they agree, instead of every correspondence weighing the same. Each direction of an edge queries at most
     ``query_points`` points of its scan (evenly strided): a 6-degree-of-freedom step needs no more,
-    and the queries are its cost. ``rmse`` is the point-to-plane RMS over all
+    and the queries are its cost. With ``in_overlap`` they are strided over the part of the scan
+    that lies within the first (largest) cutoff of the other scan at the poses given (found once, by
+    one query of every point): the points outside the overlap have no correspondence, so a pair
+    that shares a small part of its scans still gets up to ``query_points`` correspondences a step,
+    not that share of them; without, over the whole scan. ``rmse`` is the point-to-plane RMS over all
     correspondences of the last step; the residual of scan k is the same over the correspondences
     it takes part in (None for a scan with none, and everything None without a step). ``trees``:
     each scan's :class:`~esmicp.core.compiled_tree.CompiledTree` over ``clouds[k]``, when the caller
@@ -41,8 +45,9 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
     slot = {k: n for n, k in enumerate(free)}
     given = trees or {}
     trees = {k: given[k] if k in given else CompiledTree(clouds[k]) for k in poses}  # each in its scan's frame, built once
-    # each direction of an edge queries an evenly strided subset of at most query_points points
+    # without in_overlap, each direction of an edge queries an evenly strided subset of at most query_points points
     queried = {k: np.arange(0, len(clouds[k]), max(1, len(clouds[k]) // query_points)) for k in poses}
+    subset: dict[tuple[int, int], np.ndarray] = {}  # with in_overlap: each direction's queried points, once
     warm: dict[tuple[int, int], np.ndarray] = {}  # last nearest neighbours: seeds (speed only)
     directions = [(a, b) for i, j in edges for a, b in ((i, j), (j, i))]
 
@@ -51,7 +56,12 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
         derivative of the residuals by scan a's increment (scan b's is -J); None with under
         ``min_pairs``."""
         P_a, P_b = poses[a_scan], poses[b_scan]
-        mine = clouds[b_scan][queried[b_scan]]
+        if in_overlap and (a_scan, b_scan) not in subset:
+            d, _ = trees[a_scan].query(clouds[b_scan], transform=np.linalg.inv(P_a) @ P_b, workers=1)
+            inside = np.flatnonzero(d <= cutoff)
+            subset[(a_scan, b_scan)] = inside[np.arange(0, len(inside), max(1, len(inside) // query_points))]
+        chosen = subset[(a_scan, b_scan)] if in_overlap else queried[b_scan]
+        mine = clouds[b_scan][chosen]
         d, idx = trees[a_scan].query(mine, transform=np.linalg.inv(P_a) @ P_b, warm=warm.get((a_scan, b_scan)),
                                      workers=1)
         warm[(a_scan, b_scan)] = idx
