@@ -57,13 +57,15 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
         ``min_pairs``."""
         P_a, P_b = poses[a_scan], poses[b_scan]
         if in_overlap and (a_scan, b_scan) not in subset:
-            d, _ = trees[a_scan].query(clouds[b_scan], transform=np.linalg.inv(P_a) @ P_b, workers=1)
+            # every point queried once; the overlap's strided subset keeps its answers for this step
+            d, idx = trees[a_scan].query(clouds[b_scan], transform=np.linalg.inv(P_a) @ P_b, workers=1)
             inside = np.flatnonzero(d <= cutoff)
-            subset[(a_scan, b_scan)] = inside[np.arange(0, len(inside), max(1, len(inside) // query_points))]
-        chosen = subset[(a_scan, b_scan)] if in_overlap else queried[b_scan]
-        mine = clouds[b_scan][chosen]
-        d, idx = trees[a_scan].query(mine, transform=np.linalg.inv(P_a) @ P_b, warm=warm.get((a_scan, b_scan)),
-                                     workers=1)
+            chosen = subset[(a_scan, b_scan)] = inside[np.arange(0, len(inside), max(1, len(inside) // query_points))]
+            mine, d, idx = clouds[b_scan][chosen], d[chosen], idx[chosen]
+        else:
+            mine = clouds[b_scan][subset[(a_scan, b_scan)] if in_overlap else queried[b_scan]]
+            d, idx = trees[a_scan].query(mine, transform=np.linalg.inv(P_a) @ P_b, warm=warm.get((a_scan, b_scan)),
+                                         workers=1)
         warm[(a_scan, b_scan)] = idx
         ok = d <= cutoff
         if ok.sum() < min_pairs:
