@@ -42,7 +42,9 @@
    (``docs/design.md``, "Measured design choices"), and a wrong proposal only costs the searches
    it asked for.
 4. Joint refinement: all placed scans against each other (multi-view point-to-plane over the
-   kept edges, a few rounds with a shrinking correspondence distance).
+   kept edges, a few rounds with a shrinking correspondence distance; each pair queries the points
+   of its overlap and counts with the inverse of its own residual variance, so a pair whose
+   surfaces agree less pulls less).
 5. A free-space check (:mod:`esmicp.trust.free_space`) between scans that are range images
    from their origins (depth frames, LiDAR scans in their sensor frames), as declared
    (``range_images``) or as each scan's own points show
