@@ -23,6 +23,65 @@ inline uint64_t coordinate_bits(double value) {
 
 }  // namespace
 
+namespace {
+
+// The occupied cells of edge `voxel` (corner at `low`) of `count` points p (N, 3), numbered in order
+// of first sight: `cells` their integer coordinates (3 a cell), `seen[i]` the number of point i's
+// cell when `seen` is given. False when a cell coordinate reaches 2^62 (too fine a voxel).
+bool hash_cells(const double *p, int64_t count, const double *low, double voxel, std::vector<int64_t> &cells,
+                int64_t *seen) {
+    int bits = 4;
+    while ((int64_t(1) << bits) < 2 * count) ++bits;
+    const int64_t mask = (int64_t(1) << bits) - 1;
+    const int shift = 64 - bits;
+    std::vector<int64_t> table(size_t(mask + 1), -1);  // cell number in order of first sight
+    cells.reserve(size_t(3) * 1024);
+    const auto slot_of = [&](const int64_t *cell) {
+        uint64_t key = uint64_t(cell[0]) * HASH_MULTIPLIER;
+        key = (key ^ uint64_t(cell[1])) * HASH_MULTIPLIER;
+        key = (key ^ uint64_t(cell[2])) * HASH_MULTIPLIER;
+        return int64_t(key >> shift);
+    };
+    constexpr double LIMIT = 4611686018427387904.0;  // 2^62
+    for (int64_t i = 0; i < count; ++i) {
+        if ((i & ((int64_t(1) << 16) - 1)) == 0 && i > 0 && signal_raised()) throw PythonError();
+        int64_t cell[3];
+        for (int a = 0; a < 3; ++a) {
+            const double scaled = std::floor((p[3 * i + a] - low[a]) / voxel);
+            if (!(scaled < LIMIT)) return false;
+            cell[a] = int64_t(scaled);
+        }
+        int64_t slot = slot_of(cell);
+        for (;;) {
+            const int64_t number = table[size_t(slot)];
+            if (number < 0) {
+                const int64_t made = int64_t(cells.size() / 3);
+                table[size_t(slot)] = made;
+                if (seen) seen[i] = made;
+                cells.insert(cells.end(), cell, cell + 3);
+                break;
+            }
+            const int64_t *other = cells.data() + 3 * number;
+            if (other[0] == cell[0] && other[1] == cell[1] && other[2] == cell[2]) {
+                if (seen) seen[i] = number;
+                break;
+            }
+            slot = (slot + 1) & mask;
+        }
+    }
+    return true;
+}
+
+}  // namespace
+
+int64_t voxel_count(CArr2 points_, CArr1 low_, double voxel) {
+    if (points_.shape(1) != 3 || low_.shape(0) != 3)
+        throw std::invalid_argument("voxel_count: points (N, 3), low (3,)");
+    std::vector<int64_t> cells;
+    if (!hash_cells(points_.data(), int64_t(points_.shape(0)), low_.data(), voxel, cells, nullptr)) return -1;
+    return int64_t(cells.size() / 3);
+}
+
 int64_t voxel_cells(CArr2 points_, CArr1 low_, double voxel, Idx owner_, Arr2 sums_, Idx counts_) {
     const int64_t count = int64_t(points_.shape(0));
     if (points_.shape(1) != 3 || low_.shape(0) != 3 || int64_t(owner_.shape(0)) != count ||
@@ -31,43 +90,9 @@ int64_t voxel_cells(CArr2 points_, CArr1 low_, double voxel, Idx owner_, Arr2 su
     const double *p = points_.data(), *low = low_.data();
     int64_t *owner = owner_.data(), *counts = counts_.data();
     double *sums = sums_.data();
-    int bits = 4;
-    while ((int64_t(1) << bits) < 2 * count) ++bits;
-    const int64_t mask = (int64_t(1) << bits) - 1;
-    const int shift = 64 - bits;
-    std::vector<int64_t> table(size_t(mask + 1), -1);  // cell number in order of first sight
     std::vector<int64_t> cells;                          // (cells, 3) integer coordinates
-    cells.reserve(size_t(3) * 1024);
     std::vector<int64_t> seen(static_cast<size_t>(count));  // each point's cell, in order of first sight
-    constexpr double LIMIT = 4611686018427387904.0;  // 2^62
-    for (int64_t i = 0; i < count; ++i) {
-        if ((i & ((int64_t(1) << 16) - 1)) == 0 && i > 0 && signal_raised()) throw PythonError();
-        int64_t cell[3];
-        for (int a = 0; a < 3; ++a) {
-            const double scaled = std::floor((p[3 * i + a] - low[a]) / voxel);
-            if (!(scaled < LIMIT)) return -1;
-            cell[a] = int64_t(scaled);
-        }
-        uint64_t key = uint64_t(cell[0]) * HASH_MULTIPLIER;
-        key = (key ^ uint64_t(cell[1])) * HASH_MULTIPLIER;
-        key = (key ^ uint64_t(cell[2])) * HASH_MULTIPLIER;
-        int64_t slot = int64_t(key >> shift);
-        for (;;) {
-            const int64_t number = table[size_t(slot)];
-            if (number < 0) {
-                table[size_t(slot)] = int64_t(cells.size() / 3);
-                seen[size_t(i)] = int64_t(cells.size() / 3);
-                cells.insert(cells.end(), cell, cell + 3);
-                break;
-            }
-            const int64_t *other = cells.data() + 3 * number;
-            if (other[0] == cell[0] && other[1] == cell[1] && other[2] == cell[2]) {
-                seen[size_t(i)] = number;
-                break;
-            }
-            slot = (slot + 1) & mask;
-        }
-    }
+    if (!hash_cells(p, count, low, voxel, cells, seen.data())) return -1;
     const int64_t occupied = int64_t(cells.size() / 3);
     std::vector<int64_t> sorted(static_cast<size_t>(occupied)), rank(static_cast<size_t>(occupied));
     for (int64_t c = 0; c < occupied; ++c) sorted[size_t(c)] = c;

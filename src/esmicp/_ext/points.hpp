@@ -22,6 +22,9 @@ Coincident coincident(CArr2 points_, U8Arr1 first_);
 // Returns the number of cells; -1 when a cell coordinate reaches 2^62 (too fine a voxel).
 int64_t voxel_cells(CArr2 points, CArr1 low, double voxel, Idx owner, Arr2 sums, Idx counts);
 
+// The number of cells of voxel_cells (the same grid), without the owners, sums or counts; -1 as there.
+int64_t voxel_count(CArr2 points, CArr1 low, double voxel);
+
 // points @ R^T + t into out (N, 3), on `threads` threads (NumPy would call BLAS, whose own
 // threads then compete with the kernels').
 void transform_points(CArr2 points, CArr2 rotation, CArr1 translation, Arr2 out_, int threads);
