@@ -162,6 +162,7 @@ NB_MODULE(_kernels, m) {
     m.def("spread_seeds", &Bound<&kernels::spread_seeds>::call);
     m.def("second_order_partners", &Bound<&kernels::second_order_partners>::call);
     m.def("pair_inlier_counts", &Bound<&kernels::pair_inlier_counts>::call);
+    m.def("count_within", &Bound<&kernels::count_within>::call);
     m.def("fpfh", &Bound<&kernels::fpfh>::call);
     m.def("nearest_descriptors", &Bound<&kernels::nearest_descriptors>::call);
     m.attr("FPFH_BINS") = kernels::FPFH_BINS;
