@@ -2,6 +2,7 @@
 #include "points.hpp"
 
 #include "common.hpp"
+#include "graph.hpp"
 #include "moments.hpp"
 #include "pool.hpp"
 
@@ -80,6 +81,104 @@ int64_t voxel_count(CArr2 points_, CArr1 low_, double voxel) {
     std::vector<int64_t> cells;
     if (!hash_cells(points_.data(), int64_t(points_.shape(0)), low_.data(), voxel, cells, nullptr)) return -1;
     return int64_t(cells.size() / 3);
+}
+
+void knn_in_cells(CArr2 points_, CArr2 queries_, CArr1 low_, double cell, Idx2 out_indices_, U8Arr1 out_exact_,
+                  int threads) {
+    const int64_t count = int64_t(points_.shape(0)), queries = int64_t(queries_.shape(0));
+    const int64_t k = int64_t(out_indices_.shape(1));
+    if (points_.shape(1) != 3 || queries_.shape(1) != 3 || low_.shape(0) != 3 ||
+        int64_t(out_indices_.shape(0)) != queries || int64_t(out_exact_.shape(0)) != queries || k < 1 ||
+        k > GRAPH_K_MAX || !(cell > 0.0))
+        throw std::invalid_argument("knn_in_cells: points (N, 3), queries (Q, 3), low (3,), out_indices (Q, k), "
+                                    "out_exact (Q,), 1 <= k <= 64, cell > 0");
+    const double *p = points_.data(), *q = queries_.data(), *low = low_.data();
+    int64_t *out = out_indices_.data();
+    uint8_t *exact = out_exact_.data();
+    std::vector<int64_t> cells, seen(static_cast<size_t>(count));
+    std::fill(exact, exact + queries, uint8_t(0));
+    if (!hash_cells(p, count, low, cell, cells, seen.data())) return;  // too fine a cell: none exact
+    const int64_t occupied = int64_t(cells.size() / 3);
+    // The points of each cell, in point order (a counting sort by cell).
+    std::vector<int64_t> first(static_cast<size_t>(occupied + 1), 0), members(static_cast<size_t>(count));
+    for (int64_t i = 0; i < count; ++i) ++first[size_t(seen[size_t(i)] + 1)];
+    for (int64_t c = 0; c < occupied; ++c) first[size_t(c + 1)] += first[size_t(c)];
+    {
+        std::vector<int64_t> fill(first.begin(), first.end() - 1);
+        for (int64_t i = 0; i < count; ++i) members[size_t(fill[size_t(seen[size_t(i)])]++)] = i;
+    }
+    // A lookup of the cells by their coordinates (open addressing, as hash_cells numbers them).
+    int bits = 4;
+    while ((int64_t(1) << bits) < 2 * occupied) ++bits;
+    const int64_t mask = (int64_t(1) << bits) - 1;
+    const int shift = 64 - bits;
+    const auto slot_of = [&](const int64_t *at) {
+        uint64_t key = uint64_t(at[0]) * HASH_MULTIPLIER;
+        key = (key ^ uint64_t(at[1])) * HASH_MULTIPLIER;
+        key = (key ^ uint64_t(at[2])) * HASH_MULTIPLIER;
+        return int64_t(key >> shift);
+    };
+    std::vector<int64_t> table(size_t(mask + 1), -1);
+    for (int64_t c = 0; c < occupied; ++c) {
+        int64_t slot = slot_of(cells.data() + 3 * c);
+        while (table[size_t(slot)] >= 0) slot = (slot + 1) & mask;
+        table[size_t(slot)] = c;
+    }
+    const auto find = [&](const int64_t *at) {
+        int64_t slot = slot_of(at);
+        for (;;) {
+            const int64_t number = table[size_t(slot)];
+            if (number < 0) return int64_t(-1);
+            const int64_t *other = cells.data() + 3 * number;
+            if (other[0] == at[0] && other[1] == at[1] && other[2] == at[2]) return number;
+            slot = (slot + 1) & mask;
+        }
+    };
+    // Every point outside the 27 cells around a query's own lies at least one cell away from it;
+    // the margin covers the rounding of the cell coordinates.
+    const double reach = 0.999 * cell;
+    constexpr double LIMIT = 4611686018427387904.0;  // 2^62
+    parallel_pieces(piece_count(queries, 64), queries < 256 ? 1 : threads, [&](int64_t piece) {
+        double best[GRAPH_K_MAX];
+        int64_t slots[GRAPH_K_MAX];
+        const int64_t end = std::min(queries, (piece + 1) * int64_t(64));
+        for (int64_t i = piece * 64; i < end; ++i) {
+            const double x = q[3 * i], y = q[3 * i + 1], z = q[3 * i + 2];
+            int64_t centre[3];
+            bool inside = true;
+            for (int a = 0; a < 3; ++a) {
+                const double scaled = std::floor((q[3 * i + a] - low[a]) / cell);
+                if (!(std::fabs(scaled) < LIMIT)) inside = false;
+                else centre[a] = int64_t(scaled);
+            }
+            if (!inside) continue;
+            std::fill(best, best + k, INF);
+            std::fill(slots, slots + k, int64_t(-1));
+            for (int64_t dx = -1; dx <= 1; ++dx)
+                for (int64_t dy = -1; dy <= 1; ++dy)
+                    for (int64_t dz = -1; dz <= 1; ++dz) {
+                        const int64_t at[3] = {centre[0] + dx, centre[1] + dy, centre[2] + dz};
+                        const int64_t number = find(at);
+                        if (number < 0) continue;
+                        for (int64_t m = first[size_t(number)]; m < first[size_t(number + 1)]; ++m) {
+                            const int64_t j = members[size_t(m)];
+                            const double ex = p[3 * j] - x, ey = p[3 * j + 1] - y, ez = p[3 * j + 2] - z;
+                            const double distance = ex * ex + ey * ey + ez * ez;
+                            if (!(distance < best[k - 1])) continue;
+                            int64_t place = k - 1;
+                            while (place > 0 && distance < best[place - 1]) {
+                                best[place] = best[place - 1];
+                                slots[place] = slots[place - 1];
+                                --place;
+                            }
+                            best[place] = distance;
+                            slots[place] = j;
+                        }
+                    }
+            for (int64_t j = 0; j < k; ++j) out[k * i + j] = slots[j];
+            exact[i] = slots[k - 1] >= 0 && best[k - 1] <= reach * reach;
+        }
+    });
 }
 
 int64_t voxel_cells(CArr2 points_, CArr1 low_, double voxel, Idx owner_, Arr2 sums_, Idx counts_) {
