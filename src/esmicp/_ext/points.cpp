@@ -254,6 +254,39 @@ Coincident coincident(CArr2 points_, U8Arr1 first_) {
     return Coincident{repeats, most, most_count};
 }
 
+void centred_scatter(CArr2 points_, CArr1 centre_, double scale, Arr2 out_) {
+    const int64_t count = int64_t(points_.shape(0));
+    if (points_.shape(1) != 3 || centre_.shape(0) != 3 || out_.shape(0) != 3 || out_.shape(1) != 3)
+        throw std::invalid_argument("centred_scatter: points (N, 3), centre (3,), out (3, 3)");
+    const double *p = points_.data(), *c = centre_.data();
+    // Sums of blocks of SCATTER_BLOCK points, then of the blocks' sums: a rounding error of about
+    // (SCATTER_BLOCK + N / SCATTER_BLOCK) ulps of the total rather than N.
+    constexpr int64_t SCATTER_BLOCK = 4096;
+    double total[6] = {0.0};
+    for (int64_t start = 0; start < count; start += SCATTER_BLOCK) {
+        const int64_t end = std::min(count, start + SCATTER_BLOCK);
+        double block[6] = {0.0};
+        for (int64_t i = start; i < end; ++i) {
+            const double x = (p[3 * i] - c[0]) / scale, y = (p[3 * i + 1] - c[1]) / scale,
+                         z = (p[3 * i + 2] - c[2]) / scale;
+            block[0] += x * x;
+            block[1] += x * y;
+            block[2] += x * z;
+            block[3] += y * y;
+            block[4] += y * z;
+            block[5] += z * z;
+        }
+        for (int a = 0; a < 6; ++a) total[a] += block[a];
+    }
+    double *o = out_.data();
+    o[0] = total[0];
+    o[1] = o[3] = total[1];
+    o[2] = o[6] = total[2];
+    o[4] = total[3];
+    o[5] = o[7] = total[4];
+    o[8] = total[5];
+}
+
 void transform_points(CArr2 points, CArr2 rotation, CArr1 translation, Arr2 out_, int threads) {
     const int64_t count = int64_t(points.shape(0));
     const double *q = points.data(), *r = rotation.data(), *t = translation.data();

@@ -33,6 +33,10 @@ void knn_in_cells(CArr2 points, CArr2 queries, CArr1 low, double cell, Idx2 out_
 // The number of cells of voxel_cells (the same grid), without the owners, sums or counts; -1 as there.
 int64_t voxel_count(CArr2 points, CArr1 low, double voxel);
 
+// The scatter matrix sum_i u_i u_i^T of u_i = (p_i - centre) / scale (out (3, 3), symmetric), in
+// one pass over the points (no centred copy), summed by blocks of points.
+void centred_scatter(CArr2 points, CArr1 centre, double scale, Arr2 out);
+
 // points @ R^T + t into out (N, 3), on `threads` threads (NumPy would call BLAS, whose own
 // threads then compete with the kernels').
 void transform_points(CArr2 points, CArr2 rotation, CArr1 translation, Arr2 out_, int threads);
