@@ -441,3 +441,21 @@ def test_the_steps_graph_walk_matches_ckdtree(case):
     np.testing.assert_array_equal(results[0][0], results[1][0])
     np.testing.assert_array_equal(results[0][1], results[1][1])
     assert results[0][2] == results[1][2]
+
+
+def test_k_nearest_finds_the_k_nearest_distances_of_a_tree():
+    # A large cloud (answered from voxels) with dense and sparse parts and far queries (the voxel
+    # doubled, then a tree): every query's k nearest at the distances a tree finds.
+    rng = np.random.default_rng(11)
+    dense = np.column_stack([rng.uniform(0, 1, size=(60_000, 2)), rng.normal(scale=1e-3, size=60_000)])
+    sparse = rng.uniform(-5, 5, size=(300, 3))
+    points = np.vstack([dense, sparse])
+    queries = np.vstack([dense[::600], sparse[::10], [[40.0, 40.0, 40.0]]])
+    k = 10
+    indices = compiled_tree.k_nearest(points, queries, k, workers=2)
+    expected, _ = compiled_tree.CompiledTree(points).query_k(queries, k)
+    found = np.sqrt(np.square(points[indices] - queries[:, None]).sum(axis=2))
+    assert indices.shape == (len(queries), k) and len(np.unique(indices[0])) == k
+    np.testing.assert_array_equal(found, expected)
+    # Monotone: nearest first.
+    assert (np.diff(found, axis=1) >= 0).all()

@@ -12,6 +12,7 @@ from conftest import require_module, require_shared
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from esmicp.core.compiled_tree import CompiledTree
 from esmicp.core.procrustes import apply, to_matrix
 from esmicp.errors import InvalidInputError
 from esmicp.globalreg.config import DEFAULT
@@ -312,6 +313,20 @@ def test_dense_point_mask_drops_scattered_outliers():
     keep = dense_point_mask(np.vstack([surface, outliers]), 0.05)
     assert keep[:3000].mean() > 0.97
     assert keep[3000:].mean() < 0.1
+
+
+def test_dense_point_mask_counts_every_neighbour_within_the_radius():
+    # The threshold from the exact neighbour counts (the point itself and points at the radius
+    # included), whatever the tree: a brute-force count gives the same mask.
+    rng = np.random.default_rng(10)
+    points = np.vstack([np.round(rng.uniform(0, 1, size=(400, 3)), 1), rng.uniform(0, 1, size=(200, 3))])
+    radius, fraction, quantile = 0.2, 0.5, 0.6
+    counts = (np.square(points[:, None] - points[None]).sum(axis=2) <= radius * radius).sum(axis=1)
+    expected = counts >= fraction * np.quantile(counts, quantile)
+    assert 0 < expected.sum() < len(points)
+    keep = dense_point_mask(points, radius, fraction=fraction, quantile=quantile, tree=CompiledTree(points))
+    assert np.array_equal(keep, expected)
+    assert np.array_equal(dense_point_mask(points, radius, fraction=fraction, quantile=quantile, workers=2), expected)
 
 
 # --------------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from typing import Any, Literal, Protocol, Sequence, Union
 import numpy as np
 import numpy.typing as npt
 
+from . import _kernels
 from .core.procrustes import axis_bounds
 from .errors import InvalidInputError, NonFinitePointsWarning
 
@@ -165,7 +166,7 @@ def degeneracy(points: np.ndarray) -> str | None:
     (or every rotation) undetermined. Planar clouds are fine. Thresholds are relative to the
     cloud's extent, so the check is unit-free.
     """
-    centred = points - points.mean(axis=0)
+    centre = points.mean(axis=0)
     # Coordinates of magnitude m carry rounding noise of about m * 1e-16, which spreads even an
     # exact line; anything below this floor is indistinguishable from that noise.
     magnitude = max(float(np.abs(points).max()), 1e-300)
@@ -174,14 +175,16 @@ def degeneracy(points: np.ndarray) -> str | None:
     # the whole cloud. Squaring halves their precision (they resolve to about 1e-16 of the
     # largest), so they only clear a cloud whose second direction lies far above both thresholds
     # below; a cloud anywhere near one is decided by the exact SVD. Coordinates are scaled by
-    # their magnitude first, so that no square overflows or underflows. The scatter is summed by
-    # einsum, not by BLAS, whose threads keep spinning after the product and take the cores from
-    # the kernels that follow.
-    unit = centred / magnitude
-    squared = np.linalg.eigvalsh(np.einsum("ni,nj->ij", unit, unit))
+    # their magnitude first, so that no square overflows or underflows. The scatter is one
+    # compiled pass (no centred copy; not BLAS, whose threads keep spinning after the product and
+    # take the cores from the kernels that follow).
+    scatter = np.empty((3, 3))
+    _kernels.centred_scatter(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(centre),
+                             float(magnitude), scatter)
+    squared = np.linalg.eigvalsh(scatter)
     if squared[1] > 1e-12 * squared[2] and np.sqrt(squared[1]) * magnitude > 2.0 * rounding_floor:
         return None
-    singular_values = np.linalg.svd(centred, compute_uv=False)
+    singular_values = np.linalg.svd(points - centre, compute_uv=False)
     if singular_values[0] <= rounding_floor:
         return "all points are identical"
     if singular_values[1] <= 1e-9 * singular_values[0] + rounding_floor:

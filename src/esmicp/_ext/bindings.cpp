@@ -142,6 +142,9 @@ NB_MODULE(_kernels, m) {
     m.def("kabsch", &Bound<&kernels::kabsch>::call);
     m.def("transform_points", &Bound<&kernels::transform_points>::call);
     m.def("voxel_cells", &Bound<&kernels::voxel_cells>::call);
+    m.def("voxel_count", &Bound<&kernels::voxel_count>::call);
+    m.def("centred_scatter", &Bound<&kernels::centred_scatter>::call);
+    m.def("knn_in_cells", &Bound<&kernels::knn_in_cells>::call);
     m.def("coincident", [](CArr2 points, U8Arr1 first) {
         const kernels::Coincident found =
             kernels::coincident(view<kernels::CArr2>(points), view<kernels::U8Arr1>(first));
@@ -161,6 +164,7 @@ NB_MODULE(_kernels, m) {
     m.def("spread_seeds", &Bound<&kernels::spread_seeds>::call);
     m.def("second_order_partners", &Bound<&kernels::second_order_partners>::call);
     m.def("pair_inlier_counts", &Bound<&kernels::pair_inlier_counts>::call);
+    m.def("count_within", &Bound<&kernels::count_within>::call);
     m.def("fpfh", &Bound<&kernels::fpfh>::call);
     m.def("nearest_descriptors", &Bound<&kernels::nearest_descriptors>::call);
     m.attr("FPFH_BINS") = kernels::FPFH_BINS;

@@ -25,6 +25,8 @@ constexpr int64_t PARALLEL_NORMALS_MIN = 512;
 
 //: Two cosines closer than this count as equal when choosing a pair's source point.
 constexpr double FPFH_TIE = 1e-9;
+//: Queries per piece of count_within.
+constexpr int64_t COUNT_PIECE = 256;
 //: Points per piece of the FPFH passes.
 constexpr int64_t FPFH_PIECE = 64;
 //: pi, the double NumPy's np.pi is (the POSIX macro for it is not standard C++).
@@ -48,6 +50,28 @@ void within(const Tree &t, double x, double y, double z, double limit, std::vect
         for (int64_t child : {left + 1, left})
             if (box_distance(t.boxes + 6 * child, x, y, z) <= limit) stack[depth++] = child;
     }
+}
+
+// The number of tree points within squared distance `limit` of (x, y, z): within()'s test.
+int64_t count_near(const Tree &t, double x, double y, double z, double limit) {
+    int64_t stack[STACK];
+    stack[0] = 0;
+    int depth = box_distance(t.boxes, x, y, z) <= limit ? 1 : 0;
+    int64_t count = 0;
+    while (depth > 0) {
+        const int64_t node = stack[--depth];
+        const int64_t left = t.lefts[node];
+        if (left < 0) {
+            for (int64_t s = t.starts[node]; s < t.ends[node]; ++s) {
+                const double ex = t.points[3 * s] - x, ey = t.points[3 * s + 1] - y, ez = t.points[3 * s + 2] - z;
+                count += ex * ex + ey * ey + ez * ez <= limit;
+            }
+            continue;
+        }
+        for (int64_t child : {left + 1, left})
+            if (box_distance(t.boxes + 6 * child, x, y, z) <= limit) stack[depth++] = child;
+    }
+    return count;
 }
 
 inline int fpfh_bin(double scaled) {
@@ -133,6 +157,22 @@ void knn_normals(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx
             if (covariance[a][a] < covariance[least][least]) least = a;
         for (int a = 0; a < 3; ++a) normal[a] = vectors[a][least];
     }, limit);
+}
+
+void count_within(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
+                  double radius, Idx out_counts, int threads) {
+    Tree t{tree_points.data(), order.data(), starts.data(), ends.data(), lefts.data(), boxes.data(),
+           int64_t(tree_points.shape(0))};
+    const int64_t count = int64_t(queries.shape(0));
+    if (queries.shape(1) != 3 || int64_t(out_counts.shape(0)) != count || !(radius >= 0.0))
+        throw std::invalid_argument("count_within: queries (Q, 3), out_counts (Q,), radius >= 0");
+    const double *q = queries.data(), limit = radius * radius;
+    int64_t *counts = out_counts.data();
+    parallel_pieces(piece_count(count, COUNT_PIECE), count < 4 * COUNT_PIECE ? 1 : threads, [&](int64_t piece) {
+        const int64_t end = std::min(count, (piece + 1) * COUNT_PIECE);
+        for (int64_t i = piece * COUNT_PIECE; i < end; ++i)
+            counts[i] = count_near(t, q[3 * i], q[3 * i + 1], q[3 * i + 2], limit);
+    });
 }
 
 void fpfh(CArr2 normals_, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,

@@ -23,6 +23,11 @@ inline constexpr double FPFH_BLOCK_SUM = 2.0 * SPFH_BLOCK_SUM;
 void knn_normals(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
                  int64_t k, double upper, CArr1 centre, Arr2 out_normals, Idx out_counts, int threads);
 
+// The number of tree points within `radius` (cloud units, inclusive) of each query (itself
+// included when it is a tree point): out_counts (Q,).
+void count_within(CArr2 queries, CArr2 tree_points, CIdx order, CIdx starts, CIdx ends, CIdx lefts, CArr2 boxes,
+                  double radius, Idx out_counts, int threads);
+
 // FPFH of every point of the tree's cloud within `radius` (cloud units): out (N, 33), rows in the
 // cloud's order; normals (N, 3) in that order too. In parallel, each point's neighbours and the
 // bins of its pairs with the later points (each pair computed once), counted for that point; then,

@@ -22,6 +22,21 @@ Coincident coincident(CArr2 points_, U8Arr1 first_);
 // Returns the number of cells; -1 when a cell coordinate reaches 2^62 (too fine a voxel).
 int64_t voxel_cells(CArr2 points, CArr1 low, double voxel, Idx owner, Arr2 sums, Idx counts);
 
+// The k nearest points of each query (out_indices (Q, k), nearest first, indices into points)
+// among the points of the 27 cells of edge `cell` (corner at `low`) around the query's own,
+// found without a tree; out_exact[q] 1 when they are the k nearest of the whole cloud (the k-th
+// within a cell of the query, so nothing farther out could be nearer), else 0 (fewer found, the
+// k-th beyond a cell, or a query off the grid: ask a tree).
+void knn_in_cells(CArr2 points, CArr2 queries, CArr1 low, double cell, Idx2 out_indices, U8Arr1 out_exact,
+                  int threads);
+
+// The number of cells of voxel_cells (the same grid), without the owners, sums or counts; -1 as there.
+int64_t voxel_count(CArr2 points, CArr1 low, double voxel);
+
+// The scatter matrix sum_i u_i u_i^T of u_i = (p_i - centre) / scale (out (3, 3), symmetric), in
+// one pass over the points (no centred copy), summed by blocks of points.
+void centred_scatter(CArr2 points, CArr1 centre, double scale, Arr2 out);
+
 // points @ R^T + t into out (N, 3), on `threads` threads (NumPy would call BLAS, whose own
 // threads then compete with the kernels').
 void transform_points(CArr2 points, CArr2 rotation, CArr1 translation, Arr2 out_, int threads);

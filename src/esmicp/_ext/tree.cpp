@@ -60,15 +60,20 @@ int64_t build_tree(CArr2 points, int64_t leaf_size, Arr2 tree_points, Idx order,
             int64_t node = stack.back();
             stack.pop_back();
             int64_t start = st[node], end = en[node];
-            for (int a = 0; a < 3; ++a) {
-                double low = INF, high = -INF;
-                for (int64_t k = start; k < end; ++k) {
-                    double value = columns[a * count + ord[k]];
-                    low = std::min(low, value);
-                    high = std::max(high, value);
+            // The node's box, its three axes in one pass over the node's points.
+            double low[3] = {INF, INF, INF}, high[3] = {-INF, -INF, -INF};
+            const double *xs = columns.data(), *ys = xs + count, *zs = ys + count;
+            for (int64_t k = start; k < end; ++k) {
+                const int64_t point = ord[k];
+                const double value[3] = {xs[point], ys[point], zs[point]};
+                for (int a = 0; a < 3; ++a) {
+                    low[a] = std::min(low[a], value[a]);
+                    high[a] = std::max(high[a], value[a]);
                 }
-                bx[6 * node + a] = low;
-                bx[6 * node + 3 + a] = high;
+            }
+            for (int a = 0; a < 3; ++a) {
+                bx[6 * node + a] = low[a];
+                bx[6 * node + 3 + a] = high[a];
             }
             if (end - start <= leaf_size) continue;
             int axis = 0;

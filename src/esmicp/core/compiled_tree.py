@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import _kernels
+from .procrustes import axis_bounds
 
 #: Points per leaf, at most (count): a speed and memory trade of the tree's layout, every answer
 #: exact whatever its value.
@@ -105,3 +106,48 @@ class CompiledTree:
         _kernels.tree_knn(points, self.points, self.order, self.starts, self.ends, self.lefts, self.boxes,
                           distances, indices, threads(workers))
         return distances, indices
+
+
+#: Clouds of at most this many points answer :func:`k_nearest` by a tree (count): building one
+#: costs little there, while a cloud's sparse parts make the cells of the other way large.
+CELL_SEARCH_MIN_POINTS = 50_000
+
+#: The first cell edge of :func:`k_nearest`, in the cloud's spacing guessed from its bounding box
+#: (gain): the k nearest of a query on a surface lie within about ``sqrt(k / pi)`` spacings.
+CELL_SPACINGS_PER_ROOT_K = 2.0
+
+#: Times :func:`k_nearest` doubles the cell for the queries whose k nearest it did not find (count).
+CELL_DOUBLINGS = 2
+
+
+def k_nearest(points: np.ndarray, queries: np.ndarray, k: int, workers: int | None = None) -> np.ndarray:
+    """``(Q, k)`` indices of the ``k`` nearest of ``points`` to each of ``queries``, nearest first:
+    ``CompiledTree(points).query_k(queries, k)[1]`` (up to the order of points at equal distances),
+    without building a tree over a large cloud for a few queries. Each query is answered from the
+    points in the 27 voxels around its own (compiled; exact where the k-th lies within one voxel),
+    the voxel doubled for those that it does not answer, and a tree answers the rest. Clouds of at
+    most :data:`CELL_SEARCH_MIN_POINTS` points are answered by a tree."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
+    if len(points) <= CELL_SEARCH_MIN_POINTS or not np.isfinite(queries).all():
+        return CompiledTree(points).query_k(queries, k, workers=workers)[1]
+    low, high = axis_bounds(points)
+    faces = np.sort(high - low)[1:]
+    spacing = float(np.sqrt(faces[0] * faces[1] / len(points)))
+    cell = CELL_SPACINGS_PER_ROOT_K * spacing * float(np.sqrt(k))
+    indices = np.empty((len(queries), k), dtype=np.int64)
+    pending = np.arange(len(queries))
+    for _ in range(CELL_DOUBLINGS + 1):
+        if not len(pending) or not cell > 0:
+            break
+        found = np.empty((len(pending), k), dtype=np.int64)
+        exact = np.empty(len(pending), dtype=np.uint8)
+        _kernels.knn_in_cells(points, np.ascontiguousarray(queries[pending]), low, float(cell), found, exact,
+                              threads(workers))
+        answered = exact.view(bool)
+        indices[pending[answered]] = found[answered]
+        pending = pending[~answered]
+        cell *= 2.0
+    if len(pending):
+        indices[pending] = CompiledTree(points).query_k(queries[pending], k, workers=workers)[1]
+    return indices

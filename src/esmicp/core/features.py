@@ -54,8 +54,6 @@ search, :func:`fpfh` agrees with Open3D 0.20's ``compute_fpfh_feature`` to round
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from .. import _kernels
@@ -63,9 +61,6 @@ from .compiled_tree import K_MAX, CompiledTree, threads
 from .procrustes import axis_bounds
 from ..errors import InvalidInputError
 from ..types import as_positive
-
-if TYPE_CHECKING:  # SciPy is imported where it is used: `register` on a clean pair never needs it
-    from scipy.spatial import cKDTree
 
 #: Bins per FPFH angle feature, and the feature length (three blocks: theta, alpha, phi): the
 #: compiled kernel's layout.
@@ -137,7 +132,8 @@ def voxel_grid(points, voxel: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def dense_point_mask(
-    points, radius: float, *, fraction: float = 0.3, quantile: float = 0.75, tree: cKDTree | None = None
+    points, radius: float, *, fraction: float = 0.3, quantile: float = 0.75, tree: CompiledTree | None = None,
+    workers: int | None = 1,
 ) -> np.ndarray:
     """Mask of the points that are not isolated: a radius outlier filter with a relative threshold.
 
@@ -156,8 +152,10 @@ def dense_point_mask(
         Relative threshold in ``[0, 1]``; 0 keeps everything.
     quantile : float
         Which quantile of the neighbour counts is the reference density, in ``[0, 1]``.
-    tree : cKDTree, optional
-        A tree over ``points``, to reuse.
+    tree : esmicp.core.compiled_tree.CompiledTree, optional
+        The compiled tree over ``points``, to reuse (the counts are compiled: no SciPy import).
+    workers : int or None
+        Threads of the counts (None: every core).
 
     Returns
     -------
@@ -165,10 +163,10 @@ def dense_point_mask(
     """
     points = _as_cloud(points)
     radius = as_positive(radius, "radius")
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(points) if tree is None else tree
-    counts = tree.query_ball_point(points, radius, return_length=True)
+    tree = CompiledTree(points) if tree is None else tree
+    counts = np.empty(len(points), dtype=np.int64)
+    _kernels.count_within(np.ascontiguousarray(points, dtype=np.float64), tree.points, tree.order, tree.starts,
+                          tree.ends, tree.lefts, tree.boxes, float(radius), counts, threads(workers))
     return counts >= fraction * np.quantile(counts, quantile)
 
 

@@ -14,6 +14,7 @@ from functools import cached_property
 
 import numpy as np
 
+from .. import _kernels
 from .compiled_tree import CompiledTree
 from .correspondence import coincident_points
 from .features import voxel_grid
@@ -71,8 +72,13 @@ def keypoint_voxel(points: np.ndarray, spacing: float, count: int, min_spacings:
 def _occupied(points: np.ndarray, voxel: float, low: np.ndarray) -> int:
     """The number of voxels of edge ``voxel`` that ``points`` occupy, the grid's corner at
     ``low`` (the points' per-axis minimum, computed once by the caller): the distinct integer cell
-    coordinates, counted by one compiled hash pass (exact while they stay below 2**53; cheaper
-    than a sort of every key, and the voxel search makes up to 4 counts: ``docs/speed.md``)."""
+    coordinates of :func:`~esmicp.core.features.voxel_grid`'s grid, counted by one compiled hash
+    pass with no copy of the points (the voxel search makes up to 4 counts: ``docs/speed.md``)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    occupied = _kernels.voxel_count(points, np.ascontiguousarray(low, dtype=np.float64), float(voxel))
+    if occupied >= 0:
+        return int(occupied)
+    # A cell coordinate beyond the compiled grid's 2^62: the distinct floored coordinates.
     cells = np.floor((points - low) / voxel)
     repeats, _, _, _ = coincident_points(cells)
     return len(cells) - repeats

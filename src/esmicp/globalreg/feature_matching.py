@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import _kernels
-from ..core.compiled_tree import threads
+from ..core.compiled_tree import CompiledTree, threads
 from ..core.features import dense_point_mask, estimate_normals, fpfh, voxel_grid
 from ..core.procrustes import batched_weighted_procrustes, to_matrix
 from ..errors import InvalidInputError
@@ -412,16 +412,19 @@ def _keypoints(
     scans, and no tree over the dense cloud.
     """
     down, owner = voxel_grid(points, voxel) if grid is None else grid
+    tree = CompiledTree(down)  # one tree over the keypoints: their filter, normals and FPFH
     if filter_radius is not None:
-        keep = dense_point_mask(down, filter_radius)
-        down = down[keep]
-        if not normals_from_keypoints:  # the dense points serve only the dense normals
-            points = points[keep[owner]]
+        keep = dense_point_mask(down, filter_radius, tree=tree)
+        if not keep.all():
+            down = down[keep]
+            tree = CompiledTree(down)
+            if not normals_from_keypoints:  # the dense points serve only the dense normals
+                points = points[keep[owner]]
     if normals_from_keypoints:
-        normals = estimate_normals(down, k=neighbours, radius=normal_radius)
+        normals = estimate_normals(down, k=neighbours, radius=normal_radius, tree=tree)
     else:
         normals = estimate_normals(points, k=neighbours, radius=normal_radius, at=down)
-    features = fpfh(down, normals, feature_radius)
+    features = fpfh(down, normals, feature_radius, tree=tree)
     described = features.any(axis=1)
     return down[described], features[described]
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..core.correspondence import NearestNeighbors
 from ..core.keypoints import Keypoints
+from ..core.sampling import evenly_strided
 from .confidence import ConfidenceRanges, overlap_confidence, surface_part
 from .handedness import Handedness, handedness as handedness_of
 from .policy import DEFAULT_POLICY, TrustPolicy
@@ -209,7 +210,7 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     kernels (None: every core).
     """
     scattered = scattered_keypoints(source, target_index, config, policy, workers)
-    if scattered is not None and scattered is not keypoints:
+    if scattered is not None:
         keypoints, confidence = scattered, None
     if confidence is None:
         confidence = overlap_confidence(transformation, keypoints, workers, config=config, policy=policy)
@@ -239,15 +240,15 @@ def scattered_keypoints(source: np.ndarray, target_index, config, policy: TrustP
     when either cloud carries scattered points
     (:attr:`esmicp.trust.confidence.SurfacePart.surface` not None), read from the clouds alone;
     None when neither does. Clouds of more than ``policy.scatter_points`` points are read first on
-    that many of each, drawn at random by a fixed seed (their own keypoints, at their own spacing),
-    and on the whole clouds only when those carry scattered points."""
+    that many evenly strided points of each (:func:`~esmicp.core.sampling.evenly_strided`: their own
+    keypoints, at their own spacing), and on the whole clouds only when those carry scattered
+    points."""
     target = target_index.points
     if max(len(source), len(target)) <= policy.scatter_points:
         return _if_scattered(Keypoints.of(source, target, target_index.spacing(), config.keypoints,
                                           config.scan.keypoint.min_voxel_spacings), config, policy, workers)
-    draw = np.random.default_rng(0)  # a fixed draw: the same verdict on the same clouds
-    source_sample = source[np.sort(draw.permutation(len(source))[:policy.scatter_points])]
-    target_sample = target[np.sort(draw.permutation(len(target))[:policy.scatter_points])]
+    source_sample = source[evenly_strided(len(source), policy.scatter_points)]
+    target_sample = target[evenly_strided(len(target), policy.scatter_points)]
     sample_spacing = NearestNeighbors(target_sample, workers=workers).spacing()
     probe = Keypoints.of(source_sample, target_sample, sample_spacing, config.keypoints,
                          config.scan.keypoint.min_voxel_spacings)

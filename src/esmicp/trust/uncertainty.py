@@ -284,16 +284,19 @@ def surface_noise(points: np.ndarray, at: np.ndarray, tree=None, neighbours: int
     curved, clean clouds it is an upper bound; a noise as large as the point spacing is read low
     (the nearest points are then chosen by their noise: about 2/3 of the variance at 0.7
     spacings, 1/3 at 1.1, with 10 neighbours). ``tree``: a
-    :class:`~esmicp.core.compiled_tree.CompiledTree` of ``points`` (built when None); ``workers``:
+    :class:`~esmicp.core.compiled_tree.CompiledTree` of ``points`` (None: the neighbours from
+    :func:`~esmicp.core.compiled_tree.k_nearest`, the same); ``workers``:
     threads of the neighbour search."""
-    from ..core.compiled_tree import CompiledTree
+    from ..core.compiled_tree import k_nearest
 
     points = np.asarray(points, dtype=np.float64)
     k = min(int(neighbours), len(points))
     if k < 4 or len(at) == 0:
         return 0.0
-    tree = CompiledTree(points) if tree is None else tree
-    _, indices = tree.query_k(np.asarray(at, dtype=np.float64), k, workers=workers)
+    if tree is None:  # a few hundred queries need no tree over a large cloud
+        indices = k_nearest(points, np.asarray(at, dtype=np.float64), k, workers=workers)
+    else:
+        _, indices = tree.query_k(np.asarray(at, dtype=np.float64), k, workers=workers)
     indices = indices[np.all(indices < len(points), axis=1)]
     if not len(indices):
         return 0.0
