@@ -108,36 +108,31 @@ class CompiledTree:
         return distances, indices
 
 
-#: Clouds of at most this many points answer :func:`k_nearest` by a tree (count): building one
-#: costs little there, while a cloud's sparse parts make the cells of the other way large.
-CELL_SEARCH_MIN_POINTS = 50_000
-
-#: The first cell edge of :func:`k_nearest`, in the cloud's spacing guessed from its bounding box
-#: (gain): the k nearest of a query on a surface lie within about ``sqrt(k / pi)`` spacings.
-CELL_SPACINGS_PER_ROOT_K = 2.0
-
-#: Times :func:`k_nearest` doubles the cell for the queries whose k nearest it did not find (count).
-CELL_DOUBLINGS = 2
-
-
-def k_nearest(points: np.ndarray, queries: np.ndarray, k: int, workers: int | None = None) -> np.ndarray:
+def k_nearest(points: np.ndarray, queries: np.ndarray, k: int, workers: int | None = None, *,
+              tree_below: int = 50_000, cell_gain: float = 2.0, doublings: int = 2) -> np.ndarray:
     """``(Q, k)`` indices of the ``k`` nearest of ``points`` to each of ``queries``, nearest first:
     ``CompiledTree(points).query_k(queries, k)[1]`` (up to the order of points at equal distances),
     without building a tree over a large cloud for a few queries. Each query is answered from the
     points in the 27 voxels around its own (compiled; exact where the k-th lies within one voxel),
-    the voxel doubled for those that it does not answer, and a tree answers the rest. Clouds of at
-    most :data:`CELL_SEARCH_MIN_POINTS` points are answered by a tree."""
+    the voxel doubled for those that it does not answer, and a tree answers the rest.
+
+    The keywords trade speed only; the distances found are exact whatever their values.
+    ``tree_below`` (count): clouds of at most this many points are answered by a tree, which costs
+    little there, while a cloud's sparse parts make the cells large. ``cell_gain`` (gain): the first
+    cell edge in the cloud's spacing (guessed from its bounding box) times ``sqrt(k)``: the k
+    nearest of a query on a surface lie within about ``sqrt(k / pi)`` spacings. ``doublings``
+    (count): times the cell is doubled for the queries it did not answer before a tree takes them."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
-    if len(points) <= CELL_SEARCH_MIN_POINTS or not np.isfinite(queries).all():
+    if len(points) <= tree_below or not np.isfinite(queries).all():
         return CompiledTree(points).query_k(queries, k, workers=workers)[1]
     low, high = axis_bounds(points)
     faces = np.sort(high - low)[1:]
     spacing = float(np.sqrt(faces[0] * faces[1] / len(points)))
-    cell = CELL_SPACINGS_PER_ROOT_K * spacing * float(np.sqrt(k))
+    cell = cell_gain * spacing * float(np.sqrt(k))
     indices = np.empty((len(queries), k), dtype=np.int64)
     pending = np.arange(len(queries))
-    for _ in range(CELL_DOUBLINGS + 1):
+    for _ in range(doublings + 1):
         if not len(pending) or not cell > 0:
             break
         found = np.empty((len(pending), k), dtype=np.int64)
