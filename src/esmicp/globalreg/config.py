@@ -116,10 +116,10 @@ class VerificationConfig(Config):
     ``docs/measured-global.md``; ``distinct_rotation_deg``: its symmetric shapes;
     ``graph_queries_per_point``: the break-even between the graph's build time per target point
     and the time it spares per query it answers (``docs/design.md``, "Tuned values"; the poses
-    are the same either way); ``support_confidence``: chosen on the kitchen walk's frames 10-150
-    apart (every pair the searches at other voxels brought to a right pose had reached 0.27 or
-    more at the standard voxel), confirmed on the 3DMatch pairs cropped to 25% and 15% overlap
-    (0.45).
+    are the same either way); ``support_confidence``: below the least that a pair the searches at
+    other voxels brought to a right pose had reached at the standard voxel, on depth-camera pairs
+    at 8-45% overlap, confirmed on scan pairs cropped to 15-25% (``docs/design.md``, "Tuned
+    values").
     """
 
     candidates: int = count(16)
