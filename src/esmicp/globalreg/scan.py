@@ -339,12 +339,12 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
     and :attr:`ScanEstimate.voxel` stays the standard keypoint voxel. ``searches``: stop after
     that many searches (None: no limit). ``policy``: the overlap confidence's values.
 
-    The searches at other voxels are skipped when none at the standard voxel reached
-    ``config.verification.support_confidence`` (the estimate then says so,
-    :attr:`ScanEstimate.unsupported`),
-    unless ``scattered()`` (asked only then) says either cloud carries scattered points: a pair
-    that shares nothing ends after two searches, not four. Every pair those searches brought to a
-    right pose had been more confident at the standard voxel than such a pair.
+    The searches at other voxels are skipped when none at the standard voxel went above
+    ``config.verification.support_confidence`` (by default: no pose made the clouds coincide at
+    all; the estimate then says so, :attr:`ScanEstimate.unsupported`), unless ``scattered()``
+    (asked only then) says either cloud carries scattered points: such a pair ends after two
+    searches, not four. Every pair those searches brought to a right pose had been confident to
+    some degree at the standard voxel.
 
     Why: at 10-25% overlap only a few hundred of the 5,000 keypoints lie in the overlap and often
     no true correspondence survives the pruning; normals at the keypoints' scale and at the dense
@@ -377,10 +377,10 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
         if other != voxel and other not in others:  # not a repeat (a small cloud is at the floor for every count)
             others.append(other)
     bar = config.verification.support_confidence
-    if others and best.confidence < bar and not (scattered is not None and scattered()):
+    if others and best.confidence <= bar and not (scattered is not None and scattered()):
         return replace(best, unsupported=(
             f"no support: no pose of the searches at the standard voxel made the clouds coincide (overlap confidence "
-            f"{best.confidence:.2f}, below {bar:g}), so the searches at {len(others)} other voxel(s) were skipped"))
+            f"{best.confidence:.2f}, at most {bar:g}), so the searches at {len(others)} other voxel(s) were skipped"))
     for other in others:
         found = scan_estimate(source, target, spacing=spacing, workers=workers, voxel=other, config=config)
         if keep_if_better(replace(found, keypoints=best.keypoints)):
