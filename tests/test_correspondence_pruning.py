@@ -451,9 +451,11 @@ def test_a_small_cloud_skips_the_last_searches(monkeypatch):
     assert overlap_confidence(found.transformations[0], found.keypoints, config=DEFAULT) < DEFAULT.confident
     assert len(calls) == 2 and calls[0] == calls[1]  # both standard searches, at one voxel
     # With a standard voxel above the floor, the searches at other voxels run, each voxel once:
-    # 10,000 and 2,500 keypoints are both at the floor here, 50 above the standard voxel.
+    # 10,000 and 2,500 keypoints are both at the floor here, 50 above the standard voxel. (These
+    # clouds share nothing, so the support rule, which would skip those searches, is off.)
     calls.clear()
-    finer = replace(DEFAULT, keypoints=200, scan=replace(DEFAULT.scan, last_keypoints=(10000, 2500, 50)))
+    finer = replace(DEFAULT, keypoints=200, scan=replace(DEFAULT.scan, last_keypoints=(10000, 2500, 50)),
+                    verification=replace(DEFAULT.verification, support_confidence=-1.0))
     scan.scan_estimate_until_confident(source, target, spacing=spacing, config=finer)
     assert len(calls) == 4 and calls[2] < calls[0] < calls[3]
 

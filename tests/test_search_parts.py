@@ -13,6 +13,7 @@ from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.nearest_grid import NearestGrid
 from esmicp.globalreg import search as global_search
 from esmicp.globalreg.config import DEFAULT
+from esmicp.globalreg.scan import NORMALS_FROM_KEYPOINTS
 from esmicp.core.procrustes import batched_rotation_from_cross_covariance
 from esmicp.globalreg.rotation_search import NeighbourGraph, batched_esm, so3_grid
 from esmicp.methods import ConvergenceCriteria, EsmEstimator, SigmaSchedule
@@ -432,3 +433,70 @@ def test_so3_grid_is_made_of_rotations(count):
     grid = so3_grid(count)
     assert grid.shape == (count, 3, 3)
     np.testing.assert_allclose(np.linalg.det(grid), 1.0)
+
+
+def _terrain(seed: int, side: int = 45) -> np.ndarray:
+    """A bumpy square sheet (unit side, ``side`` x ``side`` points, a little noise)."""
+    rng = np.random.default_rng(seed)
+    x, y = np.meshgrid(np.linspace(0, 1, side), np.linspace(0, 1, side))
+    z = np.zeros_like(x)
+    for _ in range(25):
+        cx, cy, width, height = rng.uniform(0, 1), rng.uniform(0, 1), rng.uniform(0.04, 0.15), rng.uniform(-0.1, 0.1)
+        z += height * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * width * width))
+    points = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    return points + rng.normal(scale=0.001, size=points.shape)
+
+
+def _searches(monkeypatch, source, target, config, scattered=None):
+    """``(estimate, searches run)`` of ``scan_estimate_until_confident`` (every search counted)."""
+    from esmicp.globalreg import scan
+
+    run = []
+    original = scan.scan_estimate
+
+    def counted(*args, **kwargs):
+        run.append(kwargs.get("voxel"))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(scan, "scan_estimate", counted)
+    found = scan.scan_estimate_until_confident(source, target, spacing=NearestNeighbors(target).spacing(),
+                                               config=config, scattered=scattered)
+    return found, len(run)
+
+
+#: Keypoint counts small enough that 2,000-point clouds have voxels to search beyond the standard one.
+_SMALL = replace(DEFAULT, keypoints=600, scan=replace(DEFAULT.scan, last_keypoints=(1200, 300)))
+
+
+def test_a_pair_sharing_nothing_ends_after_the_standard_searches_with_its_reason(monkeypatch):
+    # An object onto a bumpy sheet: no pose makes them coincide, so no search at the standard voxel
+    # gives a pose with any overlap confidence, and the searches at other voxels are not run.
+    source, target = 0.5 * asymmetric_shape(2000, np.random.default_rng(1)), _terrain(2)
+    found, run = _searches(monkeypatch, source, target, _SMALL)
+    assert found.unsupported is not None
+    assert found.confidence <= _SMALL.verification.support_confidence
+    assert run == len(NORMALS_FROM_KEYPOINTS)
+    # Clouds carrying scattered points (their keypoint confidence is blind): every search runs.
+    scattered, every = _searches(monkeypatch, source, target, _SMALL, scattered=lambda: True)
+    assert scattered.unsupported is None
+    assert every == len(NORMALS_FROM_KEYPOINTS) + len(_SMALL.scan.last_keypoints)
+
+
+def test_a_registerable_pair_is_untouched_by_the_support_rule(monkeypatch):
+    target = _terrain(3)
+    source = (target - 0.5) @ random_rotation(np.random.default_rng(0)).T + 0.3
+    found, run = _searches(monkeypatch, source, target, _SMALL)
+    without, _ = _searches(monkeypatch, source, target, replace(_SMALL, verification=replace(
+        _SMALL.verification, support_confidence=-1.0)))
+    assert found.unsupported is None
+    np.testing.assert_array_equal(found.transformations, without.transformations)
+
+
+def test_a_search_stopped_for_want_of_support_is_never_trusted():
+    from esmicp.trust.judge import Verdict
+
+    sure = Verdict.of(converged=True, num_iterations=5, confidence=0.95)
+    stopped = Verdict.of(converged=True, num_iterations=5, confidence=0.95, unsupported="no support: nothing coincided")
+    assert sure.trusted and not stopped.trusted
+    assert [doubt.kind for doubt in stopped.doubts] == ["no support"]
+    assert [doubt.kind for doubt in stopped.at(0.0)] == ["no support"]

@@ -549,7 +549,8 @@ def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypo
         return Verdict.of(converged=outcome.converged, num_iterations=outcome.num_iterations, confidence=confidence,
                           ambiguous=bool(estimate is not None and estimate.ambiguous),
                           runner_up_ratio=None if estimate is None else estimate.runner_up_ratio,
-                          policy=request.trust, judged=False)
+                          policy=request.trust, judged=False,
+                          unsupported=None if estimate is None else estimate.unsupported)
     sensors = None
     if request.range_images is not False:
         sensors = SensorClouds(request.source, request.target, inlier_distance, request.range_images)
@@ -558,7 +559,8 @@ def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypo
                     converged=outcome.converged, num_iterations=outcome.num_iterations, config=request.config,
                     policy=request.trust, ambiguous=bool(estimate is not None and estimate.ambiguous),
                     runner_up_ratio=None if estimate is None else estimate.runner_up_ratio, confidence=confidence,
-                    origin=clouds.frame.origin, sensors=sensors, workers=request.workers)
+                    origin=clouds.frame.origin, sensors=sensors, workers=request.workers,
+                    unsupported=None if estimate is None else estimate.unsupported)
     stages.append(Stage("judge", time.perf_counter() - started, pose=clouds.pose_out(outcome.transformation),
                         decided={"confidence": verdict.confidence, "trusted": verdict.trusted,
                                  "doubts": tuple(doubt.kind for doubt in verdict.doubts),

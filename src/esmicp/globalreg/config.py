@@ -102,6 +102,14 @@ class VerificationConfig(Config):
         this many nearest-neighbour queries per target point (poses x source points x iterations
         over target points; ratio); fewer are answered by the tree alone, from their warm starts,
         with the same neighbours: only the time changes.
+    support_confidence : float
+        When the best pose of every scan-strategy search at the standard voxel has an overlap
+        confidence of at most this (0-1; the default 0: no pose made the clouds coincide at all),
+        the pair shows no support there: the searches at other voxels
+        (:attr:`ScanStrategyConfig.last_keypoints`) are skipped and the result carries the doubt
+        "no support" (never trusted). Not applied when either cloud carries scattered points
+        (their keypoints' overlap confidence is blind to a right pose) or when no other voxel is
+        left to search; negative: never.
 
     References
     ----------
@@ -109,7 +117,10 @@ class VerificationConfig(Config):
     ``docs/measured-global.md``; ``distinct_rotation_deg``: its symmetric shapes;
     ``graph_queries_per_point``: the break-even between the graph's build time per target point
     and the time it spares per query it answers (``docs/design.md``, "Tuned values"; the poses
-    are the same either way).
+    are the same either way); ``support_confidence``: the confidence's floor, not tuned: pairs the
+    searches at other voxels brought to a right pose had reached 0.17-0.45 at the standard voxel,
+    and no bar above the floor kept every one of them while stopping pairs that share nothing
+    (``docs/design.md``, "Tuned values").
     """
 
     candidates: int = count(16)
@@ -125,6 +136,7 @@ class VerificationConfig(Config):
     cover_points: int = count(1000)
     twin_angles_deg: tuple = numbers_tuple((180.0,))
     graph_queries_per_point: float = number(1.0, least=0.0)
+    support_confidence: float = number(0.0, least=-1.0, most=1.0)
 
 
 @dataclass(frozen=True)

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 
@@ -69,7 +70,9 @@ class ScanEstimate:
     """Verified poses, best first (each distinct from those before it), their overlap scores (the
     fraction of keypoints of both clouds lying on the other cloud, 0-1), and the keypoints;
     ``confidence``: :func:`~esmicp.trust.confidence.overlap_confidence` of the best pose on those
-    keypoints, once :func:`scan_estimate_until_confident` has judged it (None before)."""
+    keypoints, once :func:`scan_estimate_until_confident` has judged it (None before);
+    ``unsupported``: why the searches stopped before the other voxels, in words, when they did
+    (``VerificationConfig.support_confidence``), else None."""
 
     transformations: np.ndarray
     scores: np.ndarray
@@ -77,6 +80,7 @@ class ScanEstimate:
     correspondences: int
     inlier_counts: np.ndarray
     confidence: float | None = None
+    unsupported: str | None = None
 
     @property
     def voxel(self) -> float:
@@ -323,7 +327,8 @@ def scan_estimate(source: np.ndarray, target: np.ndarray, *, spacing: float, wor
 
 def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spacing: float,
                                   workers: int | None = None, searches: int | None = None,
-                                  config: SearchConfig = DEFAULT, policy: TrustPolicy = DEFAULT_POLICY) -> ScanEstimate:
+                                  config: SearchConfig = DEFAULT, policy: TrustPolicy = DEFAULT_POLICY,
+                                  scattered: Callable[[], bool] | None = None) -> ScanEstimate:
     """:func:`scan_estimate` with each setting of ``NORMALS_FROM_KEYPOINTS`` in turn until one's
     best pose is confident (:func:`~esmicp.trust.confidence.overlap_confidence` at least
     ``config.confident``), then, while none is, at the voxel of each count of
@@ -333,6 +338,13 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
     most confident before them, which they then carry: the confidence keeps the data's one scale,
     and :attr:`ScanEstimate.voxel` stays the standard keypoint voxel. ``searches``: stop after
     that many searches (None: no limit). ``policy``: the overlap confidence's values.
+
+    The searches at other voxels are skipped when none at the standard voxel went above
+    ``config.verification.support_confidence`` (by default: no pose made the clouds coincide at
+    all; the estimate then says so, :attr:`ScanEstimate.unsupported`), unless ``scattered()``
+    (asked only then) says either cloud carries scattered points: such a pair ends after two
+    searches, not four. Every pair those searches brought to a right pose had been confident to
+    some degree at the standard voxel.
 
     Why: at 10-25% overlap only a few hundred of the 5,000 keypoints lie in the overlap and often
     no true correspondence survives the pruning; normals at the keypoints' scale and at the dense
@@ -359,12 +371,17 @@ def scan_estimate_until_confident(source: np.ndarray, target: np.ndarray, *, spa
                                         normals_from_keypoints=normals_from_keypoints, voxel=voxel,
                                         config=config)):
             return best
-    searched = {voxel}
+    others = []
     for count in config.scan.last_keypoints:
         other = keypoint_voxel(target, spacing, count, floor)
-        if other in searched:
-            continue  # a repeat (a small cloud is at the floor for every count)
-        searched.add(other)
+        if other != voxel and other not in others:  # not a repeat (a small cloud is at the floor for every count)
+            others.append(other)
+    bar = config.verification.support_confidence
+    if others and best.confidence <= bar and not (scattered is not None and scattered()):
+        return replace(best, unsupported=(
+            f"no support: no pose of the searches at the standard voxel made the clouds coincide (overlap confidence "
+            f"{best.confidence:.2f}, at most {bar:g}), so the searches at {len(others)} other voxel(s) were skipped"))
+    for other in others:
         found = scan_estimate(source, target, spacing=spacing, workers=workers, voxel=other, config=config)
         if keep_if_better(replace(found, keypoints=best.keypoints)):
             break

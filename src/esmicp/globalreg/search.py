@@ -74,7 +74,9 @@ class GlobalEstimate:
     ``transformations`` ``(K, 4, 4)`` and ``scores`` ``(K,)`` (soft fraction, 0-1, of the
     verification source points lying on the target) hold the best pose and every distinct pose
     scoring at least ``ambiguity_ratio`` of it, plus the best distinct runner-up below that, if any.
-    ``strategies`` names where each came from; ``candidates`` counts the poses verified.
+    ``strategies`` names where each came from; ``candidates`` counts the poses verified;
+    ``unsupported``: why the scan strategy stopped before its searches at other voxels, in words
+    (:attr:`esmicp.globalreg.scan.ScanEstimate.unsupported`: a doubt on the result), or None.
     """
 
     transformations: np.ndarray
@@ -84,6 +86,7 @@ class GlobalEstimate:
     keypoints: object = None  # the scan strategy's :class:`~esmicp.core.keypoints.Keypoints`, for confidence
     confidence: float | None = None  # overlap confidence of transformations[0] on keypoints, when already judged
     ambiguity_ratio: float = DEFAULT.ambiguity_ratio  # the config's, for :attr:`ambiguous`
+    unsupported: str | None = None
 
     @property
     def transformation(self) -> np.ndarray:
@@ -264,6 +267,16 @@ def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
     searches = config.scan_searches if scored is None else 1
     scanned = _scan(work.source, work.target, work.full_index, target_spacing, searches=searches, config=config,
                     policy=policy)
+    return replace(_after_the_scan(work, rotation, scored, scanned, searched), unsupported=scanned.unsupported)
+
+
+def _after_the_scan(work: _Workspace, rotation: GlobalEstimate, scored: GlobalEstimate | None,
+                    scanned: GlobalEstimate, searched: int) -> GlobalEstimate:
+    """Steps 2-4 of :func:`_auto` after the scan strategy's searches (``scanned``): the decision
+    between its poses, the rotation search's (``rotation``; ``scored`` when its score alone was
+    confident) and, unless the scan strategy leads, the feature strategy's. ``searched``: the
+    candidates counted before."""
+    config, policy, workers = work.config, work.policy, work.full_index.workers
     if _scan_leads(scanned, rotation.transformation, margin=config.scan_margin, workers=workers, config=config,
                    policy=policy):
         return _on_the_verifier_scale(work, replace(scanned, candidates=searched + scanned.candidates))
@@ -369,12 +382,16 @@ def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | 
     most ``searches`` of its searches (None: until one is confident)."""
     from .scan import scan_estimate_until_confident
 
+    from ..trust.judge import scattered_keypoints
+
     spacing = full_index.spacing() if target_spacing is None else target_spacing
-    found = scan_estimate_until_confident(source, target, spacing=spacing, workers=full_index.workers,
-                                          searches=searches, config=config, policy=policy)
+    found = scan_estimate_until_confident(
+        source, target, spacing=spacing, workers=full_index.workers, searches=searches, config=config, policy=policy,
+        scattered=lambda: scattered_keypoints(source, full_index, config, policy, full_index.workers) is not None)
     return GlobalEstimate(
         found.transformations, found.scores, ("scan",) * len(found.scores), candidates=len(found.scores),
         keypoints=found.keypoints, confidence=found.confidence, ambiguity_ratio=config.ambiguity_ratio,
+        unsupported=found.unsupported,
     )
 
 

@@ -22,7 +22,8 @@ from .policy import DEFAULT_POLICY, TrustPolicy
 from .uncertainty import DegenerateDirection, PoseUncertainty, from_registration
 
 #: The kinds of :class:`Doubt`, in the order a verdict lists them.
-DOUBT_KINDS = ("not converged", "confidence", "ambiguous", "degenerate", "free space", "mirrored", "not judged")
+DOUBT_KINDS = ("not converged", "confidence", "ambiguous", "degenerate", "free space", "mirrored", "no support",
+               "not judged")
 
 
 @dataclass(frozen=True)
@@ -63,6 +64,10 @@ class Verdict:
         pose nothing else casts doubt on at the policy's bar.
     policy : TrustPolicy
         The bars the pose was judged by.
+    unsupported : str or None
+        Why the global search stopped before its last searches (no pose of its first searches made
+        the clouds coincide: :attr:`esmicp.globalreg.search.GlobalEstimate.unsupported`), in
+        words; None when it did not.
     doubts : tuple of Doubt
         Every reason not to trust the pose at the policy's trust bar (empty: trusted).
     """
@@ -79,6 +84,7 @@ class Verdict:
     policy: TrustPolicy
     doubts: tuple[Doubt, ...]
     handedness: Handedness | None = None
+    unsupported: str | None = None
 
     @property
     def trusted(self) -> bool:
@@ -88,29 +94,33 @@ class Verdict:
     def at(self, bar: float) -> tuple[Doubt, ...]:
         """The doubts with the overlap confidence held to ``bar`` (0-1) instead of the policy's bar."""
         return weigh(self.converged, self.num_iterations, self.confidence, self.ambiguous, self.runner_up_ratio,
-                     self.degenerate_directions, self.free_space, self.policy, bar, self.handedness)
+                     self.degenerate_directions, self.free_space, self.policy, bar, self.handedness,
+                     unsupported=self.unsupported)
 
     @classmethod
     def of(cls, *, converged: bool, num_iterations: int, confidence: float | None, ambiguous: bool = False,
            runner_up_ratio: float | None = None, uncertainty: PoseUncertainty | None = None,
            degenerate_directions: tuple[DegenerateDirection, ...] | None = None, free_space: float | None = None,
            free_space_words: str | None = None, policy: TrustPolicy = DEFAULT_POLICY,
-           handedness: Handedness | None = None, judged: bool = True) -> "Verdict":
+           handedness: Handedness | None = None, judged: bool = True, unsupported: str | None = None) -> "Verdict":
         """The verdict on measurements already made (no measuring: :func:`judge` measures).
         ``degenerate_directions``: those of ``uncertainty`` when None (none without it);
-        ``judged`` False: the pose was not measured for a judgement (never trusted)."""
+        ``judged`` False: the pose was not measured for a judgement (never trusted); ``unsupported``:
+        the global search's words when it stopped for want of support (never trusted)."""
         if degenerate_directions is None:
             degenerate_directions = () if uncertainty is None else uncertainty.degenerate_directions
         doubts = weigh(converged, num_iterations, confidence, ambiguous, runner_up_ratio, degenerate_directions,
-                       free_space, policy, handedness=handedness, judged=judged)
+                       free_space, policy, handedness=handedness, judged=judged, unsupported=unsupported)
         return cls(confidence, uncertainty, tuple(degenerate_directions), free_space, free_space_words,
-                   bool(converged), int(num_iterations), bool(ambiguous), runner_up_ratio, policy, doubts, handedness)
+                   bool(converged), int(num_iterations), bool(ambiguous), runner_up_ratio, policy, doubts, handedness,
+                   unsupported)
 
 
 def weigh(converged: bool, num_iterations: int, confidence: float | None, ambiguous: bool,
           runner_up_ratio: float | None, degenerate_directions, free_space: float | None,
           policy: TrustPolicy = DEFAULT_POLICY, bar: float | None = None,
-          handedness: Handedness | None = None, judged: bool = True) -> tuple[Doubt, ...]:
+          handedness: Handedness | None = None, judged: bool = True,
+          unsupported: str | None = None) -> tuple[Doubt, ...]:
     """Every reason not to trust a pose, in the order of :data:`DOUBT_KINDS`: the refinement did not
     converge (a run stopped by ``max_iterations``, a callback or a problem may still be degrees
     from where it was heading), the overlap ``confidence`` is missing or below ``bar`` (default
@@ -118,8 +128,9 @@ def weigh(converged: bool, num_iterations: int, confidence: float | None, ambigu
     floor or a wall seen alone, or a corridor, lets the pose slide however sharply the clouds
     coincide), the ``free_space`` fraction (when measured) is above ``policy.max_free_space_pair``,
     a mirror image of the source fits clearly better than the pose (``handedness``, when tested:
-    no rotation turns a left hand into a right one), the pose was not ``judged`` (its covariance, mirror
-    test and free-space test not run: ``register(judge=False)``)."""
+    no rotation turns a left hand into a right one), the global search stopped for want of support
+    (``unsupported``, its words: no pose of its first searches made the clouds coincide), the pose was
+    not ``judged`` (its covariance, mirror test and free-space test not run: ``register(judge=False)``)."""
     bar = policy.trusted if bar is None else bar
     doubts = []
     if not converged:
@@ -144,6 +155,8 @@ def weigh(converged: bool, num_iterations: int, confidence: float | None, ambigu
         doubts.append(Doubt("mirrored", f"mirrored: a mirror image of the source coincides with the target on "
                                         f"{100 * handedness.improper:.0f}% of the overlap, the pose on "
                                         f"{100 * handedness.proper:.0f}%: one cloud looks left-handed to the other"))
+    if unsupported is not None:
+        doubts.append(Doubt("no support", unsupported))
     if not judged:
         doubts.append(Doubt("not judged", "not judged: the covariance, the mirror test and the free-space test "
                                           "were not run (register(judge=False))"))
@@ -184,7 +197,8 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
           sample: np.ndarray | None = None,
           config: ConfidenceRanges, policy: TrustPolicy = DEFAULT_POLICY, ambiguous: bool = False,
           runner_up_ratio: float | None = None, confidence: float | None = None, origin: np.ndarray | None = None,
-          sensors: SensorClouds | None = None, workers: int | None = None) -> Verdict:
+          sensors: SensorClouds | None = None, workers: int | None = None,
+          unsupported: str | None = None) -> Verdict:
     """The verdict on a registered pose.
 
     ``transformation`` (4x4 ``T_target_source``), ``source`` (N, 3) and ``keypoints`` are in the
@@ -207,7 +221,8 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     doubt on the pose and both prove range images (:meth:`SensorClouds.premise`). The handedness
     test (:func:`esmicp.trust.handedness.handedness`) runs last, on a pose nothing else casts doubt
     on. ``policy``: the bars and the measures' values; ``workers``: threads of the compiled
-    kernels (None: every core).
+    kernels (None: every core); ``unsupported``: the global search's words when it stopped for want
+    of support (a doubt), else None.
     """
     scattered = scattered_keypoints(source, target_index, config, policy, workers)
     if scattered is not None:
@@ -217,7 +232,7 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     uncertainty = from_registration(source, target_index, transformation, sigma, origin=origin, workers=workers,
                                     pairs=pairs, sample=sample, policy=policy)
     measured = dict(converged=converged, num_iterations=num_iterations, confidence=confidence, ambiguous=ambiguous,
-                    runner_up_ratio=runner_up_ratio, uncertainty=uncertainty, policy=policy)
+                    runner_up_ratio=runner_up_ratio, uncertainty=uncertainty, policy=policy, unsupported=unsupported)
     verdict = Verdict.of(**measured)
     if sensors is not None and (sensors.range_images or (verdict.trusted and sensors.premise(policy) is None)):
         from . import free_space as test  # here: it loads SciPy
