@@ -153,10 +153,12 @@ def _offset(original: np.ndarray, given: np.ndarray) -> np.ndarray:
     raise AssertionError("a registered cloud is not a shifted subset of its scan")
 
 
-def _patch(monkeypatch, truth, clouds, first_draw_fails=(), sparse_points=None, **kwargs):
+def _patch(monkeypatch, truth, clouds, first_draw_fails=(), sparse_points=None, stalled=(), **kwargs):
     """Replace the pairwise registrations by :func:`_fake_pairwise` (relative poses from ``truth``,
     in the frames of the clouds the merge registers); the searches of the pairs in
-    ``first_draw_fails`` fail on the first draw of the sparse subsets (``sparse_points`` each)."""
+    ``first_draw_fails`` fail on the first draw of the sparse subsets (``sparse_points`` each); the
+    pairs in ``stalled``, refined from a given start, stop at their iteration cap (not converged,
+    so untrusted) at the right pose with the full overlap confidence, 1.0."""
     fake = _fake_pairwise(truth, **kwargs)
     captured = {}
     offsets = {}
@@ -172,8 +174,15 @@ def _patch(monkeypatch, truth, clouds, first_draw_fails=(), sparse_points=None, 
             if (min(pairs[n]), max(pairs[n])) in first_draw_fails and {id(c) for c in jobs[n]} <= first:
                 known.remove(n)  # "not a pair of scans": the search found nothing
         out = ["not a pair of scans"] * len(jobs)  # e.g. a piece of scans fused: no fake for it
+        if register_kwargs.get("judge") is False:
+            # the merge's pose-finding run on the sparse subsets; its dense check (the next call)
+            # starts at the pose found, so only this call tells a refinement from a search
+            captured["from_start"] = {pairs[n] for n in known if inits is not None and inits[n] is not None}
         for n, result in zip(known, fake([jobs[n] for n in known], pairs=[pairs[n] for n in known])):
             (s, t), (i, j) = jobs[n], pairs[n]
+            if isinstance(result, RegistrationResult) and (min(i, j), max(i, j)) in stalled \
+                    and (i, j) in captured.get("from_start", ()):
+                result = replace(result, converged=False, num_iterations=30, confidence=1.0)
             if isinstance(result, RegistrationResult):
                 # judged by the policy the merge asks for, as register does
                 result = replace(result, policy=RegistrationConfig.of(register_kwargs.get("config")).trust)
@@ -313,6 +322,28 @@ def test_a_search_that_failed_on_one_draw_of_the_points_is_tried_on_another_wher
     result = register_scans(clouds, refine_rounds=0, threads=1, partners=n - 1, pair_points=100, refine_points=300)
     assert result.status == ("placed",) * n, result.reasons
     assert sum(1 for e in result.kept_edges if 0 in (e.i, e.j)) >= 2
+    for k in range(n):
+        angle, shift = _errors(result.poses[k], truth[k])
+        assert angle < 1e-6 and shift < 1e-6
+
+
+def test_a_trusted_registration_of_a_pair_is_kept_over_an_untrusted_one_however_confident(monkeypatch):
+    """A walk whose pairs across scans 3 and 4 (the only ones joining its two halves) stop at their
+    iteration cap when refined from the identity: untrusted, yet at the full overlap confidence.
+    Their global retry is trusted at a lower confidence; the merge keeps the trusted edges, and
+    every scan is placed, exactly."""
+    n = 8
+    rng = np.random.default_rng(13)
+    truth = _truth(n, rng)
+    clouds = _clouds(truth, rng)
+    walk = {(k, k + d) for d in (1, 2) for k in range(n - d)}
+    across = {(2, 4), (3, 4), (3, 5)}
+    _patch(monkeypatch, truth, clouds, overlapping=walk, stalled=across)
+    result = register_scans(clouds, sequence=True, refine_rounds=0, threads=1, range_images=False)
+    stored = {(min(e.i, e.j), max(e.i, e.j)): e for e in result.edges}
+    for pair in sorted(across):
+        assert stored[pair].trusted and stored[pair].kind == "global", (pair, stored[pair].reason)
+    assert result.status == ("placed",) * n, result.reasons
     for k in range(n):
         angle, shift = _errors(result.poses[k], truth[k])
         assert angle < 1e-6 and shift < 1e-6

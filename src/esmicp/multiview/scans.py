@@ -361,7 +361,8 @@ class _Plan:
 
 class _Pairwise:
     """The edges of one merge: runs pairwise registrations and keeps every edge tried (one per
-    pair of scans; a later registration of the same pair replaces it only when more confident).
+    pair of scans; a later registration of the same pair replaces it only when it ranks higher by
+    :func:`_standing`: a trusted result before an untrusted one, then the more confident).
 
     A pair is searched globally on the sparse subsets (``small``), or refined there from a given
     start, then refined locally on the dense subsets (``dense``) from the pose found, and judged
@@ -485,7 +486,7 @@ class _Pairwise:
                 self.redrawn.add(key)
             self.tried.add(key)
             old = self.edges.get(key)
-            if old is None or (edge.confidence or -1.0) > (old.confidence or -1.0):
+            if old is None or _standing(edge) > _standing(old):
                 self.edges[key] = edge
             new.append(edge)
         self._record(stage, started, before, new, sparse, asked)
@@ -515,6 +516,14 @@ class _Pairwise:
                     False, reason, confidence=confidence, trusted=trusted, kind=kind,
                     inlier_distance=float(outcome.inlier_distance),
                     information=getattr(outcome, "information", None))
+
+
+def _standing(edge: Edge) -> tuple[bool, float]:
+    """How two registrations of one pair rank, the higher kept: a trusted result before an
+    untrusted one, whatever their confidences (a refinement stopped by its iteration cap can
+    score the full overlap confidence, 1.0, and still be untrusted), then the more confident
+    (a failed registration, which has no confidence, last)."""
+    return edge.trusted, -1.0 if edge.confidence is None else edge.confidence
 
 
 def _solve(edges: list[Edge], reference: int, config: MergeConfig, vetoed: dict | None = None,
