@@ -103,3 +103,24 @@ def test_a_clean_cloud_is_measured_on_every_keypoint(pair):
         assert (part.surface is not None) == scattered, part.scattered
         if not scattered:
             assert part.scale == 1.0
+
+
+@pytest.mark.parametrize("cloud", ["scattered", "clean"])
+def test_the_keypoints_a_caller_already_made_judge_as_keypoints_made_again(pair, cloud):
+    """The judge reads the clouds' scatter from the whole clouds' keypoints; given those keypoints
+    (``made``, as :func:`esmicp.register` passes its own), it decides the same as when it makes
+    them itself: a confidence handed in is replaced by one measured on the surface where a cloud
+    carries scattered points, and kept where none does."""
+    source, target, truth, clean = pair
+    source = source if cloud == "scattered" else clean
+    pose = truth.copy()
+    pose[:3, :3] = turn(10.0, [0, 0, 1]) @ truth[:3, :3]
+    index = NearestNeighbors(target, workers=1)
+    keypoints = Keypoints.of(source, target, index.spacing(), DEFAULT.keypoints,
+                             DEFAULT.scan.keypoint.min_voxel_spacings)
+    verdicts = [judge(pose, source=source, target_index=index, keypoints=keypoints, pairs=None, sigma=None,
+                      converged=True, num_iterations=1, config=DEFAULT, workers=1, confidence=1.0, made=made)
+                for made in (None, keypoints)]
+    assert verdicts[0].confidence == verdicts[1].confidence
+    assert verdicts[0].doubts == verdicts[1].doubts
+    assert (verdicts[1].confidence < 1.0) == (cloud == "scattered")

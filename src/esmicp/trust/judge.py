@@ -198,7 +198,8 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
           config: ConfidenceRanges, policy: TrustPolicy = DEFAULT_POLICY, ambiguous: bool = False,
           runner_up_ratio: float | None = None, confidence: float | None = None, origin: np.ndarray | None = None,
           sensors: SensorClouds | None = None, workers: int | None = None,
-          unsupported: str | None = None) -> Verdict:
+          unsupported: str | None = None,
+          made: Keypoints | None = None) -> Verdict:
     """The verdict on a registered pose.
 
     ``transformation`` (4x4 ``T_target_source``), ``source`` (N, 3) and ``keypoints`` are in the
@@ -222,9 +223,11 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     test (:func:`esmicp.trust.handedness.handedness`) runs last, on a pose nothing else casts doubt
     on. ``policy``: the bars and the measures' values; ``workers``: threads of the compiled
     kernels (None: every core); ``unsupported``: the global search's words when it stopped for want
-    of support (a doubt), else None.
+    of support (a doubt), else None. ``made``: the whole clouds' keypoints as
+    :func:`scattered_keypoints` makes them, when the caller already made them (None: made there
+    when needed).
     """
-    scattered = scattered_keypoints(source, target_index, config, policy, workers)
+    scattered = scattered_keypoints(source, target_index, config, policy, workers, made=made)
     if scattered is not None:
         keypoints, confidence = scattered, None
     if confidence is None:
@@ -249,7 +252,7 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
 
 
 def scattered_keypoints(source: np.ndarray, target_index, config, policy: TrustPolicy = DEFAULT_POLICY,
-                        workers: int | None = None) -> Keypoints | None:
+                        workers: int | None = None, *, made: Keypoints | None = None) -> Keypoints | None:
     """The pair's :class:`~esmicp.core.keypoints.Keypoints` (``source`` and the points of
     ``target_index``, at the voxel of ``config``, a :class:`~esmicp.globalreg.config.SearchConfig`)
     when either cloud carries scattered points
@@ -257,11 +260,20 @@ def scattered_keypoints(source: np.ndarray, target_index, config, policy: TrustP
     None when neither does. Clouds of more than ``policy.scatter_points`` points are read first on
     that many evenly strided points of each (:func:`~esmicp.core.sampling.evenly_strided`: their own
     keypoints, at their own spacing), and on the whole clouds only when those carry scattered
-    points."""
+    points. ``made``: the whole clouds' keypoints (``Keypoints.of(source, target_index.points,
+    target_index.spacing(), config.keypoints, config.scan.keypoint.min_voxel_spacings)``) when the
+    caller already made them: used instead of the same made again (with their trees, and the
+    surface parts already read from them)."""
     target = target_index.points
+
+    def whole() -> Keypoints:
+        if made is not None:
+            return made
+        return Keypoints.of(source, target, target_index.spacing(), config.keypoints,
+                            config.scan.keypoint.min_voxel_spacings)
+
     if max(len(source), len(target)) <= policy.scatter_points:
-        return _if_scattered(Keypoints.of(source, target, target_index.spacing(), config.keypoints,
-                                          config.scan.keypoint.min_voxel_spacings), config, policy, workers)
+        return _if_scattered(whole(), config, policy, workers)
     source_sample = source[evenly_strided(len(source), policy.scatter_points)]
     target_sample = target[evenly_strided(len(target), policy.scatter_points)]
     sample_spacing = NearestNeighbors(target_sample, workers=workers).spacing()
@@ -269,8 +281,7 @@ def scattered_keypoints(source: np.ndarray, target_index, config, policy: TrustP
                          config.scan.keypoint.min_voxel_spacings)
     if _if_scattered(probe, config, policy, workers) is None:
         return None
-    return _if_scattered(Keypoints.of(source, target, target_index.spacing(), config.keypoints,
-                                      config.scan.keypoint.min_voxel_spacings), config, policy, workers)
+    return _if_scattered(whole(), config, policy, workers)
 
 
 def _if_scattered(keypoints: Keypoints, config, policy: TrustPolicy, workers: int | None) -> Keypoints | None:
