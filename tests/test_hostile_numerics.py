@@ -9,7 +9,6 @@ What each case returns is listed in docs/reliability.md.
 
 from __future__ import annotations
 
-import types
 import warnings
 
 import numpy as np
@@ -21,6 +20,7 @@ import esmicp.api
 import esmicp.methods.guard
 from esmicp.core.procrustes import apply, to_matrix
 from esmicp.errors import IndexAlignmentWarning, InvalidInputError
+from esmicp.globalreg.search import GlobalEstimate
 from esmicp.metrics import rotation_error_deg, translation_error
 from esmicp.shapes import asymmetric_shape
 
@@ -215,11 +215,8 @@ def test_a_non_finite_refinement_result_is_reported_and_never_returned(monkeypat
 
 def test_a_non_finite_global_estimate_is_reported_and_not_refined(monkeypatch):
     def nan_estimate(*args, **kwargs):
-        return types.SimpleNamespace(
-            transformation=np.full((4, 4), np.nan), strategies=("rotation-search",), ambiguous=False,
-            runner_up=None, runner_up_score=None, runner_up_ratio=None, score=1.0, candidates=1, confidence=None,
-            keypoints=None,
-        )
+        return GlobalEstimate(transformations=np.full((1, 4, 4), np.nan), scores=np.array([1.0]),
+                              strategies=("rotation-search",), candidates=1)
 
     monkeypatch.setattr(esmicp.api, "global_estimate", nan_estimate)
     result = run(SHAPE, SHAPE, "esm", None)
