@@ -21,14 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from esmicp.core.procrustes import rigid_inverse
 from esmicp.trust.policy import DEFAULT_POLICY
-from esmicp_lab.bench.protocols import median_spacing, scan_overlap
 from esmicp_lab.bench.real_pairs import (
     crop_to_overlap, criteria_for, estimate_in_pair_frame, load_pair, pair_errors, read_pairs, turn_source,
 )
 from esmicp_lab.bench.scans import METHOD_LABELS, _timed, _warm_up
-from esmicp_lab.bench.sequences import read_frame, read_poses
+from esmicp_lab.bench.sequences import frame_pairs
 
 METHODS = ("esm-global", "kiss-matcher-gicp")
 #: Frames apart (in kept frames, every 10th of the walk) of the confirmation pairs.
@@ -49,19 +47,9 @@ def choice_pairs(folder: Path, seeds, overlaps=(0.25, 0.15)):
 
 
 def confirmation_pairs(folder: Path, every: int = 5):
-    poses = read_poses(folder)
-    names = sorted(poses)
-    for start in range(0, len(names), every):
-        for gap in FRAME_GAPS:
-            if start + gap >= len(names):
-                continue
-            target_name, source_name = names[start], names[start + gap]
-            target = read_frame(folder, target_name).astype(np.float64)
-            source = read_frame(folder, source_name).astype(np.float64)
-            truth = rigid_inverse(poses[target_name]) @ poses[source_name]
-            overlap = scan_overlap(source, target, truth, 3.0 * median_spacing(target))
-            if KITCHEN_OVERLAP[0] <= overlap <= KITCHEN_OVERLAP[1]:
-                yield f"{source_name} onto {target_name}", source, target, truth, None, overlap
+    for source_name, target_name, source, target, truth, overlap in frame_pairs(folder, FRAME_GAPS, every):
+        if KITCHEN_OVERLAP[0] <= overlap <= KITCHEN_OVERLAP[1]:
+            yield f"{source_name} onto {target_name}", source, target, truth, None, overlap
 
 
 def run(pairs, criteria):

@@ -34,10 +34,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import esmicp
-from esmicp.core.procrustes import apply, bounding_box_diagonal, rigid_inverse
-from esmicp_lab.bench.protocols import make_trials, median_spacing, scan_overlap
+from esmicp.core.procrustes import apply, bounding_box_diagonal
+from esmicp_lab.bench.protocols import make_trials
 from esmicp_lab.bench.real_pairs import load_pair, read_pairs, turn_source
-from esmicp_lab.bench.sequences import read_frame, read_poses
+from esmicp_lab.bench.sequences import frame_pairs
 
 #: Target points kept in the 3DMatch set lie farther than this from the placed source (metres).
 APART_M = 0.5
@@ -60,18 +60,9 @@ def match_pairs(folder: Path):
 
 def kitchen_pairs(folder: Path, every: int = 10):
     """The same tuples for kitchen frames far apart that do not overlap."""
-    poses = read_poses(folder)
-    names = sorted(poses)
-    for start in range(0, len(names), every):
-        for gap in KITCHEN_GAPS:
-            if start + gap >= len(names):
-                continue
-            target_name, source_name = names[start], names[start + gap]
-            target = read_frame(folder, target_name).astype(np.float64)
-            source = read_frame(folder, source_name).astype(np.float64)
-            truth = rigid_inverse(poses[target_name]) @ poses[source_name]
-            if scan_overlap(source, target, truth, 3.0 * median_spacing(target)) <= KITCHEN_MAX_OVERLAP:
-                yield "kitchen, apart", f"{source_name} onto {target_name}", source, target, SCENE_VOXEL
+    for source_name, target_name, source, target, _, overlap in frame_pairs(folder, KITCHEN_GAPS, every):
+        if overlap <= KITCHEN_MAX_OVERLAP:
+            yield "kitchen, apart", f"{source_name} onto {target_name}", source, target, SCENE_VOXEL
 
 
 def object_pairs(folder: Path, count: int = 6):

@@ -36,6 +36,27 @@ def read_frame(folder: str | Path, name: str) -> np.ndarray:
     return np.load(Path(folder) / "frames" / f"{name}.npy").astype(np.float64)
 
 
+def frame_pairs(folder: str | Path, gaps, every: int):
+    """``(source_name, target_name, source, target, T_target_source, overlap)`` of the frames of
+    ``folder`` ``gap`` apart for each of ``gaps``, starting at every ``every``-th frame (in name
+    order): the source the later frame, ``overlap`` the fraction of its points within 3 target
+    spacings of the target under the truth (:func:`esmicp_lab.bench.protocols.scan_overlap`)."""
+    from esmicp.core.procrustes import rigid_inverse
+    from esmicp_lab.bench.protocols import median_spacing, scan_overlap
+
+    poses = read_poses(folder)
+    names = sorted(poses)
+    for start in range(0, len(names), every):
+        for gap in gaps:
+            if start + gap >= len(names):
+                continue
+            target_name, source_name = names[start], names[start + gap]
+            target, source = read_frame(folder, target_name), read_frame(folder, source_name)
+            truth = rigid_inverse(poses[target_name]) @ poses[source_name]
+            yield source_name, target_name, source, target, truth, scan_overlap(source, target, truth,
+                                                                                 3.0 * median_spacing(target))
+
+
 def dominant_plane(points: np.ndarray, tolerance: float, rng: np.random.Generator,
                    tries: int = 300) -> tuple[np.ndarray, np.ndarray]:
     """``(unit normal, a point on it)`` of the plane with the most ``points`` within ``tolerance``
