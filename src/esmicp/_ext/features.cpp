@@ -32,8 +32,9 @@ constexpr int64_t FPFH_PIECE = 64;
 //: pi, the double NumPy's np.pi is (the POSIX macro for it is not standard C++).
 constexpr double FPFH_PI = 3.141592653589793;
 
-// Tree slots within squared distance `limit` of (x, y, z), appended to `found` (tree order).
-void within(const Tree &t, double x, double y, double z, double limit, std::vector<int64_t> &found) {
+// Calls visit(s) for every tree slot s within squared distance `limit` of (x, y, z), in tree order.
+template <class Visit>
+void visit_near(const Tree &t, double x, double y, double z, double limit, Visit &&visit) {
     int64_t stack[STACK];
     stack[0] = 0;
     int depth = box_distance(t.boxes, x, y, z) <= limit ? 1 : 0;
@@ -43,7 +44,7 @@ void within(const Tree &t, double x, double y, double z, double limit, std::vect
         if (left < 0) {
             for (int64_t s = t.starts[node]; s < t.ends[node]; ++s) {
                 const double ex = t.points[3 * s] - x, ey = t.points[3 * s + 1] - y, ez = t.points[3 * s + 2] - z;
-                if (ex * ex + ey * ey + ez * ez <= limit) found.push_back(s);
+                if (ex * ex + ey * ey + ez * ez <= limit) visit(s);
             }
             continue;
         }
@@ -52,25 +53,15 @@ void within(const Tree &t, double x, double y, double z, double limit, std::vect
     }
 }
 
-// The number of tree points within squared distance `limit` of (x, y, z): within()'s test.
+// Tree slots within squared distance `limit` of (x, y, z), appended to `found` (tree order).
+void within(const Tree &t, double x, double y, double z, double limit, std::vector<int64_t> &found) {
+    visit_near(t, x, y, z, limit, [&found](int64_t s) { found.push_back(s); });
+}
+
+// The number of tree points within squared distance `limit` of (x, y, z).
 int64_t count_near(const Tree &t, double x, double y, double z, double limit) {
-    int64_t stack[STACK];
-    stack[0] = 0;
-    int depth = box_distance(t.boxes, x, y, z) <= limit ? 1 : 0;
     int64_t count = 0;
-    while (depth > 0) {
-        const int64_t node = stack[--depth];
-        const int64_t left = t.lefts[node];
-        if (left < 0) {
-            for (int64_t s = t.starts[node]; s < t.ends[node]; ++s) {
-                const double ex = t.points[3 * s] - x, ey = t.points[3 * s + 1] - y, ez = t.points[3 * s + 2] - z;
-                count += ex * ex + ey * ey + ez * ez <= limit;
-            }
-            continue;
-        }
-        for (int64_t child : {left + 1, left})
-            if (box_distance(t.boxes + 6 * child, x, y, z) <= limit) stack[depth++] = child;
-    }
+    visit_near(t, x, y, z, limit, [&count](int64_t) { ++count; });
     return count;
 }
 
