@@ -229,8 +229,8 @@ def register(
         **_search_summary(estimate, clouds.frame),
         confidence=verdict.confidence,
         correspondences=correspondences,
-        covariance=getattr(verdict.uncertainty, "covariance", None),  # None: not judged
-        information=getattr(verdict.uncertainty, "information", None),
+        covariance=None if verdict.uncertainty is None else verdict.uncertainty.covariance,  # None: not judged
+        information=None if verdict.uncertainty is None else verdict.uncertainty.information,
         degenerate_directions=verdict.degenerate_directions,
         free_space=verdict.free_space,
         policy=request.trust,

@@ -14,7 +14,7 @@ from . import pose_graph
 
 def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: int, distances, *,
            query_points: int, rounds_per_distance: int, huber_ratio: float, min_pairs: int,
-           trees: dict | None = None, edge_variance: bool = True, in_overlap: bool = True):
+           trees: dict | None = None):
     """``(poses, rmse, residual per scan)`` after refining ``poses`` (``T_world_scan``, modified in
     place) over the pairs ``edges``; ``clouds`` and ``clouds_normals`` in each scan's frame.
     Each step turns a scan about the world's origin: the merge passes its scans in their centroid
@@ -23,18 +23,18 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
     ``distances`` are the correspondence cutoffs (cloud units), each used for
     ``rounds_per_distance`` Gauss-Newton steps, its residuals Huber-weighted beyond the cutoff over
     ``huber_ratio``; a direction of an edge with fewer than ``min_pairs`` correspondences within the
-    cutoff adds nothing to a step. With ``edge_variance``, each direction of an edge counts in a step with
+    cutoff adds nothing to a step. Each direction of an edge counts in a step with
     the inverse of its own Huber-weighted residual variance (cloud units squared) at that step: the
     maximum-likelihood weight when each pair of scans has a noise of its own. A pair whose surfaces
     agree less (a warped or noisy scan, a surface that is not the same in both, a thin overlap at
     the scans' borders) then pulls less than one whose surfaces coincide, in proportion to how much
     less they agree, instead of every correspondence weighing the same. Each direction of an edge queries at most
     ``query_points`` points of its scan (evenly strided): a 6-degree-of-freedom step needs no more,
-    and the queries are its cost. With ``in_overlap`` they are strided over the part of the scan
+    and the queries are its cost. They are strided over the part of the scan
     that lies within the first (largest) cutoff of the other scan at the poses given (found once, by
     one query of every point): the points outside the overlap have no correspondence, so a pair
     that shares a small part of its scans still gets up to ``query_points`` correspondences a step,
-    not that share of them; without, over the whole scan. ``rmse`` is the point-to-plane RMS over all
+    not that share of them. ``rmse`` is the point-to-plane RMS over all
     correspondences of the last step; the residual of scan k is the same over the correspondences
     it takes part in (None for a scan with none, and everything None without a step). ``trees``:
     each scan's :class:`~esmicp.core.compiled_tree.CompiledTree` over ``clouds[k]``, when the caller
@@ -45,9 +45,7 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
     slot = {k: n for n, k in enumerate(free)}
     given = trees or {}
     trees = {k: given[k] if k in given else CompiledTree(clouds[k]) for k in poses}  # each in its scan's frame, built once
-    # without in_overlap, each direction of an edge queries an evenly strided subset of at most query_points points
-    queried = {k: np.arange(0, len(clouds[k]), max(1, len(clouds[k]) // query_points)) for k in poses}
-    subset: dict[tuple[int, int], np.ndarray] = {}  # with in_overlap: each direction's queried points, once
+    subset: dict[tuple[int, int], np.ndarray] = {}  # each direction's queried points, chosen once
     warm: dict[tuple[int, int], np.ndarray] = {}  # last nearest neighbours: seeds (speed only)
     directions = [(a, b) for i, j in edges for a, b in ((i, j), (j, i))]
 
@@ -56,14 +54,14 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
         derivative of the residuals by scan a's increment (scan b's is -J); None with under
         ``min_pairs``."""
         P_a, P_b = poses[a_scan], poses[b_scan]
-        if in_overlap and (a_scan, b_scan) not in subset:
+        if (a_scan, b_scan) not in subset:
             # every point queried once; the overlap's strided subset keeps its answers for this step
             d, idx = trees[a_scan].query(clouds[b_scan], transform=np.linalg.inv(P_a) @ P_b, workers=1)
             inside = np.flatnonzero(d <= cutoff)
             chosen = subset[(a_scan, b_scan)] = inside[np.arange(0, len(inside), max(1, len(inside) // query_points))]
             mine, d, idx = clouds[b_scan][chosen], d[chosen], idx[chosen]
         else:
-            mine = clouds[b_scan][subset[(a_scan, b_scan)] if in_overlap else queried[b_scan]]
+            mine = clouds[b_scan][subset[(a_scan, b_scan)]]
             d, idx = trees[a_scan].query(mine, transform=np.linalg.inv(P_a) @ P_b, warm=warm.get((a_scan, b_scan)),
                                          workers=1)
         warm[(a_scan, b_scan)] = idx
@@ -77,9 +75,9 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
         huber = cutoff / huber_ratio
         w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-300))
         J = np.hstack([np.cross(b, n), n])
-        if edge_variance:  # this direction's own noise: its Huber-weighted residual variance
-            # (a variance under a millionth of the cutoff, squared, is taken as that: exact data stay finite)
-            w = w / max(float(np.sum(w * r * r) / np.sum(w)), (1e-6 * cutoff) ** 2)
+        # this direction's own noise, its Huber-weighted residual variance, weighs it (a variance under a
+        # millionth of the cutoff, squared, is taken as that: exact data stay finite)
+        w = w / max(float(np.sum(w * r * r) / np.sum(w)), (1e-6 * cutoff) ** 2)
         return (J * w[:, None]).T @ J, (J * (w * r)[:, None]).sum(axis=0), float(np.sum(r * r)), len(r)
 
     rmse, per_scan = None, {}
