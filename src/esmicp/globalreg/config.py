@@ -318,8 +318,10 @@ class SearchConfig(Config):
         exit of the verification, for cost.
     confident_score : float
         ``"auto"`` stops after the rotation search when its best pose puts at least this soft
-        fraction of the source on the target (0-1; above 1: never) and is unambiguous and
-        confident on the overlap or covers the target.
+        fraction of the source on the target (0-1; above 1: never, either way) and is
+        unambiguous and confident on the overlap or covers the target. When either cloud carries
+        scattered points, which never lie on the other cloud, an unambiguous pose confident on the
+        overlap (measured on the surface) stops it whatever its score.
     full_cover : float
         Such a pose is also final when at least this fraction (0-1) of the target's points lie
         within two score widths of the placed source: the full overlap the score assumes holds

@@ -39,9 +39,13 @@ pose that wins keeps its place, but it and its runner-ups are scored by the veri
 **One exit, for cost**: the rotation search's pose is final before the scan strategy runs when
 it scores ``config.confident_score`` (after a few more ESM iterations, :func:`_settle`, when it
 scored just short of it: ``config.settle_from``), unambiguously, and is confident on the overlap
-or covers the target (``config.full_cover``). Most whole objects end there; closing the exit
-costs 1.5 times the time on the development objects and halves, for the same successes
-(``docs/measured-global.md``, "Exits for cost").
+or covers the target (``config.full_cover``). When either cloud carries scattered points
+(:func:`~esmicp.trust.judge.scattered_keypoints`, read from the clouds alone), the score cannot
+reach the bar (the scattered points never lie on the other cloud): the unambiguous pose is then
+final when it is confident on the overlap, which measures such a cloud on its surface. Most whole
+objects end there; closing the exit (``confident_score`` above 1 closes both ways) costs 1.5 times
+the time on the development objects and halves, for the same successes (``docs/measured-global.md``,
+"Exits for cost").
 
 ``init="rotation-search"`` / ``"features"`` / ``"scan"`` run one generator alone, through the same
 verifier (the scan strategy through its own verification on the overlap).
@@ -262,6 +266,13 @@ def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
         confident = final is not None and final.confidence is not None and final.confidence >= config.confident
         if final is not None and (confident or _covers_the_target(work, final.transformation)):
             return final
+    if scored is None and not rotation.ambiguous and config.confident_score <= 1.0 and _scattered(work):
+        # A cloud carrying scattered points: its score cannot reach the bar (they never lie on the
+        # other cloud); the pose is final when it is confident on the overlap, measured on the surface.
+        if _confidence(work, rotation.transformation) >= config.confident:
+            final = _on_the_overlap(work, _decide(work, rotation))
+            if final.confidence >= config.confident:
+                return final
     # 2. Partial overlaps: correspondences pruned by consistency (the scan strategy); a pose
     # confident on its score alone is only checked by its first search.
     searches = config.scan_searches if scored is None else 1
@@ -342,6 +353,28 @@ def _on_the_overlap(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimat
     confidence = overlap_confidence(estimate.transformation, keypoints, work.full_index.workers, config=work.config,
                                     policy=work.policy)
     return replace(estimate, keypoints=keypoints, confidence=confidence)
+
+
+def _confidence(work: _Workspace, transformation: np.ndarray) -> float:
+    """The overlap confidence of ``transformation`` on the pair's keypoints
+    (:func:`~esmicp.trust.confidence.overlap_confidence`, as :func:`_on_the_overlap` measures it)."""
+    from ..trust.confidence import overlap_confidence
+
+    return overlap_confidence(transformation, work.keypoints(), work.full_index.workers, config=work.config,
+                              policy=work.policy)
+
+
+def _scattered(work: _Workspace) -> bool:
+    """True when either cloud carries scattered points, read from the clouds alone before any pose
+    (:func:`~esmicp.trust.judge.scattered_keypoints`, the judge's reading; the pair's keypoints are
+    then those :meth:`_Workspace.keypoints` builds, kept for it)."""
+    from ..trust.judge import scattered_keypoints
+
+    found = scattered_keypoints(work.source, work.full_index, work.config, work.policy, work.full_index.workers,
+                                made=work._keypoints)
+    if found is not None and work._keypoints is None:
+        work._keypoints = found
+    return found is not None
 
 
 def _covers_the_target(work: _Workspace, transformation: np.ndarray) -> bool:
