@@ -79,8 +79,38 @@ def test_register_takes_a_config_and_its_values_reach_the_search():
 
 
 def test_scan_searches_bounds_the_scan_strategy_and_the_default_leaves_it_unbounded(monkeypatch):
-    """Two clouds that share no surface: no scan search is confident, so the default runs more
-    than one of them (each setting, then other voxels), and ``scan_searches=1`` exactly one."""
+    """Two clouds that share no surface (a sphere and an asymmetric shape): no scan search is
+    confident, so the default runs more than one of them (each setting, then other voxels), and
+    ``scan_searches=1`` exactly one."""
+    calls = _counted_scan_searches(monkeypatch)
+    rng = np.random.default_rng(3)
+    target = asymmetric_shape(250, rng)
+    directions = rng.normal(size=(250, 3))
+    source = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    esmicp.register(source, target, rng=2, workers=1)
+    assert DEFAULT.scan_searches is None and len(calls) >= 2
+    calls.clear()
+    esmicp.register(source, target, rng=2, workers=1, config=dataclasses.replace(DEFAULT, scan_searches=1))
+    assert len(calls) == 1
+
+
+def test_a_cloud_of_scattered_points_gets_the_scattered_pairs_scan_searches(monkeypatch):
+    """Points scattered through a cube (every one isolated: the cloud carries scattered points)
+    against an asymmetric shape: no scan search is confident, and the search runs at most
+    ``verification.scattered_scan_searches`` of them."""
+    calls = _counted_scan_searches(monkeypatch)
+    rng = np.random.default_rng(3)
+    source, target = rng.uniform(-1, 1, (250, 3)), asymmetric_shape(250, rng)
+    for most in (DEFAULT.verification.scattered_scan_searches, 2):
+        calls.clear()
+        config = dataclasses.replace(DEFAULT, verification=dataclasses.replace(DEFAULT.verification,
+                                                                               scattered_scan_searches=most))
+        esmicp.register(source, target, rng=2, workers=1, config=config)
+        assert len(calls) == most
+
+
+def _counted_scan_searches(monkeypatch) -> list:
+    """The voxel of every scan-strategy search run from now on (``scan.scan_estimate`` counted)."""
     from esmicp.globalreg import scan
 
     calls = []
@@ -91,10 +121,4 @@ def test_scan_searches_bounds_the_scan_strategy_and_the_default_leaves_it_unboun
         return real(*args, **kwargs)
 
     monkeypatch.setattr(scan, "scan_estimate", counted)
-    rng = np.random.default_rng(3)
-    source, target = rng.uniform(-1, 1, (250, 3)), asymmetric_shape(250, rng)
-    esmicp.register(source, target, rng=2, workers=1)
-    assert DEFAULT.scan_searches is None and len(calls) >= 2
-    calls.clear()
-    esmicp.register(source, target, rng=2, workers=1, config=dataclasses.replace(DEFAULT, scan_searches=1))
-    assert len(calls) == 1
+    return calls

@@ -110,6 +110,12 @@ class VerificationConfig(Config):
         "no support" (never trusted). Not applied when either cloud carries scattered points
         (their keypoints' overlap confidence is blind to a right pose) or when no other voxel is
         left to search; negative: never.
+    scattered_scan_searches : int
+        At most this many searches of the scan strategy in one ``"auto"`` search (count) when
+        either cloud carries scattered points (:func:`~esmicp.trust.judge.scattered_keypoints`,
+        read from the clouds alone): its searches judge their poses on keypoints that keep the
+        points scattered a few voxels off the surface, so none becomes confident and every search
+        would run.
 
     References
     ----------
@@ -120,7 +126,8 @@ class VerificationConfig(Config):
     are the same either way); ``support_confidence``: the confidence's floor, not tuned: pairs the
     searches at other voxels brought to a right pose had reached 0.17-0.45 at the standard voxel,
     and no bar above the floor kept every one of them while stopping pairs that share nothing
-    (``docs/design.md``, "Tuned values").
+    (``docs/design.md``, "Tuned values"); ``scattered_scan_searches``: whole ModelNet40 objects
+    under 60% outliers (``docs/measured-global.md``, "Exits for cost").
     """
 
     candidates: int = count(16)
@@ -137,6 +144,7 @@ class VerificationConfig(Config):
     twin_angles_deg: tuple = numbers_tuple((180.0,))
     graph_queries_per_point: float = number(1.0, least=0.0)
     support_confidence: float = number(0.0, least=-1.0, most=1.0)
+    scattered_scan_searches: int = count(1)
 
 
 @dataclass(frozen=True)

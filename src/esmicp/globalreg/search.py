@@ -171,6 +171,7 @@ class _Workspace:
     grid: NearestGrid | None = None  # the rotation search's lookup grid over ``index``, once built
     _keypoints: "Keypoints | None" = field(default=None, repr=False)  # once built (:meth:`keypoints`)
     _source_index: NearestNeighbors | None = field(default=None, repr=False)  # once built (:meth:`source_index`)
+    _scatter: bool | None = field(default=None, repr=False)  # once read (:func:`_scattered`)
 
     def keypoints(self) -> "Keypoints":
         """The pair's :class:`~esmicp.core.keypoints.Keypoints` (the ones ``register`` judges its
@@ -274,10 +275,14 @@ def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
             if final.confidence >= config.confident:
                 return final
     # 2. Partial overlaps: correspondences pruned by consistency (the scan strategy); a pose
-    # confident on its score alone is only checked by its first search.
+    # confident on its score alone is only checked by its first search, and a pair carrying
+    # scattered points by ``config.verification.scattered_scan_searches``.
     searches = config.scan_searches if scored is None else 1
+    if searches != 1 and _scattered(work):
+        most = config.verification.scattered_scan_searches
+        searches = min(searches or most, most)
     scanned = _scan(work.source, work.target, work.full_index, target_spacing, searches=searches, config=config,
-                    policy=policy)
+                    policy=policy, scattered=lambda: _scattered(work))
     return replace(_after_the_scan(work, rotation, scored, scanned, searched), unsupported=scanned.unsupported)
 
 
@@ -370,11 +375,13 @@ def _scattered(work: _Workspace) -> bool:
     then those :meth:`_Workspace.keypoints` builds, kept for it)."""
     from ..trust.judge import scattered_keypoints
 
-    found = scattered_keypoints(work.source, work.full_index, work.config, work.policy, work.full_index.workers,
-                                made=work._keypoints)
-    if found is not None and work._keypoints is None:
-        work._keypoints = found
-    return found is not None
+    if work._scatter is None:
+        found = scattered_keypoints(work.source, work.full_index, work.config, work.policy, work.full_index.workers,
+                                    made=work._keypoints)
+        if found is not None and work._keypoints is None:
+            work._keypoints = found
+        work._scatter = found is not None
+    return work._scatter
 
 
 def _covers_the_target(work: _Workspace, transformation: np.ndarray) -> bool:
@@ -410,17 +417,22 @@ def _settle(work: _Workspace, estimate: GlobalEstimate) -> GlobalEstimate | None
 
 def _scan(source, target, full_index: NearestNeighbors, target_spacing: float | None,
           searches: int | None = None, config: SearchConfig = DEFAULT,
-          policy: TrustPolicy = DEFAULT_POLICY) -> GlobalEstimate:
+          policy: TrustPolicy = DEFAULT_POLICY, scattered=None) -> GlobalEstimate:
     """The ``"scan"`` strategy (:mod:`esmicp.globalreg.scan`): its poses and overlap scores, from at
-    most ``searches`` of its searches (None: until one is confident)."""
+    most ``searches`` of its searches (None: until one is confident). ``scattered``: a callable
+    telling whether either cloud carries scattered points (None: read here when asked)."""
     from .scan import scan_estimate_until_confident
 
     from ..trust.judge import scattered_keypoints
 
+    if scattered is None:
+        def scattered():
+            return scattered_keypoints(source, full_index, config, policy, full_index.workers) is not None
+
     spacing = full_index.spacing() if target_spacing is None else target_spacing
     found = scan_estimate_until_confident(
         source, target, spacing=spacing, workers=full_index.workers, searches=searches, config=config, policy=policy,
-        scattered=lambda: scattered_keypoints(source, full_index, config, policy, full_index.workers) is not None)
+        scattered=scattered)
     return GlobalEstimate(
         found.transformations, found.scores, ("scan",) * len(found.scores), candidates=len(found.scores),
         keypoints=found.keypoints, confidence=found.confidence, ambiguity_ratio=config.ambiguity_ratio,
