@@ -545,7 +545,8 @@ def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypo
     free-space test too. Unless the request asks for no judgement: then the verdict on the
     convergence, the confidence and the search alone, with the doubt "not judged". ``keypoints``:
     :func:`_start`'s; when not the search's, they are the whole clouds' keypoints the judge reads
-    the clouds' scatter from, and it reads it from them rather than making them again."""
+    the clouds' scatter from, and it reads it from them rather than making them again (and from
+    the search's :attr:`~esmicp.globalreg.search.GlobalEstimate.whole_keypoints` when it made them)."""
     started = time.perf_counter()
     if not request.judge:
         return Verdict.of(converged=outcome.converged, num_iterations=outcome.num_iterations, confidence=confidence,
@@ -563,7 +564,7 @@ def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypo
                     runner_up_ratio=None if estimate is None else estimate.runner_up_ratio, confidence=confidence,
                     origin=clouds.frame.origin, sensors=sensors, workers=request.workers,
                     unsupported=None if estimate is None else estimate.unsupported,
-                    made=keypoints if getattr(estimate, "keypoints", None) is None else None)
+                    made=keypoints if estimate is None or estimate.keypoints is None else estimate.whole_keypoints)
     stages.append(Stage("judge", time.perf_counter() - started, pose=clouds.pose_out(outcome.transformation),
                         decided={"confidence": verdict.confidence, "trusted": verdict.trusted,
                                  "doubts": tuple(doubt.kind for doubt in verdict.doubts),

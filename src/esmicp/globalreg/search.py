@@ -81,6 +81,9 @@ class GlobalEstimate:
     ``strategies`` names where each came from; ``candidates`` counts the poses verified;
     ``unsupported``: why the scan strategy stopped before its searches at other voxels, in words
     (:attr:`esmicp.globalreg.scan.ScanEstimate.unsupported`: a doubt on the result), or None.
+    ``whole_keypoints``: the whole clouds' :class:`~esmicp.core.keypoints.Keypoints` (``Keypoints.of``
+    at the config's voxel, the ones the judge reads the clouds' scatter from) when the search
+    made them, else None.
     """
 
     transformations: np.ndarray
@@ -91,6 +94,7 @@ class GlobalEstimate:
     confidence: float | None = None  # overlap confidence of transformations[0] on keypoints, when already judged
     ambiguity_ratio: float = DEFAULT.ambiguity_ratio  # the config's, for :attr:`ambiguous`
     unsupported: str | None = None
+    whole_keypoints: object = None  # the whole clouds' :class:`~esmicp.core.keypoints.Keypoints`, when made
 
     @property
     def transformation(self) -> np.ndarray:
@@ -246,7 +250,7 @@ def global_estimate(
         return global_estimate(source, target, strategy="rotation-search", rng=rng, target_index=full_index,
                                target_spacing=target_spacing, workers=full_index.workers, config=config,
                                policy=policy)
-    return _auto(work, target_spacing)
+    return replace(_auto(work, target_spacing), whole_keypoints=work._keypoints)
 
 
 def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
