@@ -1,7 +1,8 @@
 """The overlap confidence of a whole object whose source carries scattered outliers: it is measured
 on the surface of the cloud that carries them (:func:`esmicp.trust.confidence.surface_part`, read
 from the cloud alone, before any pose), so a right pose is trusted and a pose a few voxels off or
-turned is not, and a cloud without scattered points is measured as before."""
+turned is not, and a cloud without scattered points is measured as before; the search ends after
+the rotation search on such a whole object when its pose is unambiguous and confident there."""
 
 from __future__ import annotations
 
@@ -124,3 +125,29 @@ def test_the_keypoints_a_caller_already_made_judge_as_keypoints_made_again(pair,
     assert verdicts[0].confidence == verdicts[1].confidence
     assert verdicts[0].doubts == verdicts[1].doubts
     assert (verdicts[1].confidence < 1.0) == (cloud == "scattered")
+
+
+def test_a_whole_object_under_scattered_outliers_ends_after_the_rotation_search(monkeypatch):
+    """A whole asymmetric object whose source carries 60% scattered outliers: its rotation-search
+    score cannot reach ``confident_score`` (the outliers never lie on the target), yet the pose,
+    unambiguous and confident on the surface, is final there: no scan-strategy search runs, and
+    the result is right and trusted."""
+    import esmicp
+    from esmicp.core.procrustes import to_matrix
+    from esmicp.globalreg import scan
+    from esmicp.metrics import rotation_error_deg
+    from esmicp.shapes import asymmetric_shape
+    from scipy.spatial.transform import Rotation
+
+    searches = []
+    real = scan.scan_estimate
+    monkeypatch.setattr(scan, "scan_estimate", lambda *args, **kwargs: searches.append(1) or real(*args, **kwargs))
+    rng = np.random.default_rng(0)
+    shape = asymmetric_shape(1500, rng)
+    truth = to_matrix(Rotation.random(random_state=0).as_matrix(), rng.normal(size=3))
+    source = with_outliers(shape[rng.permutation(len(shape))[:1000]], 0.6, rng)
+    target = shape @ truth[:3, :3].T + truth[:3, 3]
+    result = esmicp.register(source, target, rng=0, workers=1)
+    assert not searches
+    assert rotation_error_deg(result.transformation, truth) < 1.0
+    assert result.trusted

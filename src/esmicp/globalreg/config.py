@@ -329,7 +329,8 @@ class SearchConfig(Config):
         fraction of the source on the target (0-1; above 1: never, either way) and is
         unambiguous and confident on the overlap or covers the target. When either cloud carries
         scattered points, which never lie on the other cloud, an unambiguous pose confident on the
-        overlap (measured on the surface) stops it whatever its score.
+        overlap (measured on the surface) stops it whatever its score, when it stays unambiguous
+        once its twins are verified beside it.
     full_cover : float
         Such a pose is also final when at least this fraction (0-1) of the target's points lie
         within two score widths of the placed source: the full overlap the score assumes holds

@@ -42,7 +42,8 @@ scored just short of it: ``config.settle_from``), unambiguously, and is confiden
 or covers the target (``config.full_cover``). When either cloud carries scattered points
 (:func:`~esmicp.trust.judge.scattered_keypoints`, read from the clouds alone), the score cannot
 reach the bar (the scattered points never lie on the other cloud): the unambiguous pose is then
-final when it is confident on the overlap, which measures such a cloud on its surface. Most whole
+final when it is confident on the overlap, which measures such a cloud on its surface, and stays
+unambiguous once its twins (:func:`_twins`) are verified beside it. Most whole
 objects end there; closing the exit (``confident_score`` above 1 closes both ways) costs 1.5 times
 the time on the development objects and halves, for the same successes (``docs/measured-global.md``,
 "Exits for cost").
@@ -273,11 +274,15 @@ def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:
             return final
     if scored is None and not rotation.ambiguous and config.confident_score <= 1.0 and _scattered(work):
         # A cloud carrying scattered points: its score cannot reach the bar (they never lie on the
-        # other cloud); the pose is final when it is confident on the overlap, measured on the surface.
+        # other cloud); the pose is final when it is confident on the overlap, measured on the
+        # surface, and stays unambiguous against its twins (a box's flip is as confident there).
         if _confidence(work, rotation.transformation) >= config.confident:
-            final = _on_the_overlap(work, _decide(work, rotation))
-            if final.confidence >= config.confident:
-                return final
+            twins = _twins(work.index.points, rotation.transformation, config.verification.twin_angles_deg)
+            checked = _decide(work, _verify(work, twins, "rotation-search", carried=rotation))
+            if not checked.ambiguous:
+                final = _on_the_overlap(work, replace(checked, candidates=searched + len(twins)))
+                if final.confidence >= config.confident:
+                    return final
     # 2. Partial overlaps: correspondences pruned by consistency (the scan strategy); a pose
     # confident on its score alone is only checked by its first search, and a pair carrying
     # scattered points by ``config.verification.scattered_scan_searches``.
