@@ -34,6 +34,25 @@ def test_tree_and_hash_match_ckdtree(workers):
     np.testing.assert_allclose(distances, reference_distances, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("cloud", ["spread", "ties"])
+def test_a_tree_is_the_same_built_on_one_or_more_threads(cloud):
+    """A large tree is built in subtrees on several threads: every array is the one a single thread
+    builds (on a cloud of many equal coordinates too), and it answers as SciPy's tree does."""
+    points = _cloud(40_001, 4)  # above the size from which the build runs in parallel; odd, so halves differ
+    if cloud == "ties":
+        points = points.round(1)
+    one = compiled_tree.CompiledTree(points, workers=1)
+    for workers in (2, 3, None):
+        other = compiled_tree.CompiledTree(points, workers=workers)
+        for name in ("points", "order", "starts", "ends", "lefts", "boxes", "rank"):
+            assert np.array_equal(getattr(one, name), getattr(other, name)), name
+    queries = _cloud(2000, 5) * 1.2
+    distances, indices = one.query(queries, workers=2)
+    reference, _ = cKDTree(points).query(queries)
+    np.testing.assert_allclose(distances, reference, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(points[indices] - queries, axis=1), reference, atol=1e-12)
+
+
 def test_moments_match_numpy_kabsch():
     rng = np.random.default_rng(3)
     source = rng.normal(size=(20000, 3))

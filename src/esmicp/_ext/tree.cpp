@@ -33,64 +33,121 @@ void select_nth(int64_t *order, const double *coordinates, int64_t start, int64_
     }
 }
 
+// Nodes of the subtree over `count` points (split at floor(count / 2) while above the leaf size).
+int64_t subtree_nodes(int64_t count, int64_t leaf_size) {
+    if (count <= leaf_size) return 1;
+    return 1 + subtree_nodes(count / 2, leaf_size) + subtree_nodes(count - count / 2, leaf_size);
+}
+
+// One node of the build: its box, and when it holds more than `leaf_size` points its split (the
+// median along the box's longest axis) into children numbered `left` and `left + 1`. True when
+// split.
+bool build_node(int64_t node, int64_t left, int64_t count, int64_t leaf_size, const double *columns, int64_t *ord,
+                int64_t *st, int64_t *en, int64_t *lf, double *bx) {
+    const int64_t start = st[node], end = en[node];
+    // The node's box, its three axes in one pass over the node's points.
+    double low[3] = {INF, INF, INF}, high[3] = {-INF, -INF, -INF};
+    const double *xs = columns, *ys = xs + count, *zs = ys + count;
+    for (int64_t k = start; k < end; ++k) {
+        const int64_t point = ord[k];
+        const double value[3] = {xs[point], ys[point], zs[point]};
+        for (int a = 0; a < 3; ++a) {
+            low[a] = std::min(low[a], value[a]);
+            high[a] = std::max(high[a], value[a]);
+        }
+    }
+    for (int a = 0; a < 3; ++a) {
+        bx[6 * node + a] = low[a];
+        bx[6 * node + 3 + a] = high[a];
+    }
+    if (end - start <= leaf_size) return false;
+    int axis = 0;
+    for (int c = 1; c < 3; ++c)
+        if (bx[6 * node + 3 + c] - bx[6 * node + c] > bx[6 * node + 3 + axis] - bx[6 * node + axis]) axis = c;
+    const int64_t middle = (start + end) / 2;
+    select_nth(ord, columns + axis * count, start, end, middle);
+    lf[node] = left;
+    st[left] = start;
+    en[left] = middle;
+    st[left + 1] = middle;
+    en[left + 1] = end;
+    return true;
+}
+
+// The build of `root` and every node below it, depth first, the right child before the left, the
+// children numbered from `nodes` on in that order.
+void build_below(int64_t root, int64_t nodes, int64_t count, int64_t leaf_size, const double *columns, int64_t *ord,
+                 int64_t *st, int64_t *en, int64_t *lf, double *bx) {
+    std::vector<int64_t> stack{root};
+    while (!stack.empty()) {
+        const int64_t node = stack.back();
+        stack.pop_back();
+        if (!build_node(node, nodes, count, leaf_size, columns, ord, st, en, lf, bx)) continue;
+        stack.push_back(nodes);
+        stack.push_back(nodes + 1);
+        nodes += 2;
+    }
+}
+
 }  // namespace
 
 int64_t build_tree(CArr2 points, int64_t leaf_size, Arr2 tree_points, Idx order, Idx starts, Idx ends, Idx lefts,
-                   Arr2 boxes) {
+                   Arr2 boxes, int threads) {
     const int64_t count = int64_t(points.shape(0));
     const double *p = points.data();
     int64_t *ord = order.data();
     int64_t *st = starts.data(), *en = ends.data(), *lf = lefts.data();
     double *bx = boxes.data();
     const int64_t capacity = int64_t(starts.shape(0));
+    if (count < PARALLEL_BUILD_MIN) threads = 1;
+    if (threads <= 0) threads = int(std::max(1u, std::thread::hardware_concurrency()));
+    std::vector<double> columns(3 * count);
+    // The top levels split in turn; below them, each subtree is built on its own (parallel_pieces),
+    // its nodes numbered from where the depth-first build of the whole tree numbers them: a
+    // subtree's node count depends only on its point count, so every array is the same whatever
+    // the number of threads.
+    struct Subtree {
+        int64_t node, first;
+    };
+    std::vector<Subtree> subtrees;
     int64_t nodes = 1;
     {
         GilReleased release;
-        std::vector<double> columns(3 * count);
         for (int64_t k = 0; k < count; ++k) {
             ord[k] = k;
             for (int a = 0; a < 3; ++a) columns[a * count + k] = p[3 * k + a];
         }
-        for (int64_t n = 0; n < capacity; ++n) lf[n] = -1;
-        std::vector<int64_t> stack;
-        stack.push_back(0);
+        std::fill(lf, lf + capacity, int64_t(-1));
         st[0] = 0;
         en[0] = count;
+        int depth = 0;
+        while ((int64_t(1) << depth) < int64_t(BUILD_SUBTREES_PER_THREAD) * threads) ++depth;
+        if (threads <= 1) depth = 0;
+        // (node, depth), depth first, the right child before the left, as build_below visits them.
+        std::vector<std::pair<int64_t, int>> stack{{0, 0}};
         while (!stack.empty()) {
-            int64_t node = stack.back();
+            auto [node, level] = stack.back();
             stack.pop_back();
-            int64_t start = st[node], end = en[node];
-            // The node's box, its three axes in one pass over the node's points.
-            double low[3] = {INF, INF, INF}, high[3] = {-INF, -INF, -INF};
-            const double *xs = columns.data(), *ys = xs + count, *zs = ys + count;
-            for (int64_t k = start; k < end; ++k) {
-                const int64_t point = ord[k];
-                const double value[3] = {xs[point], ys[point], zs[point]};
-                for (int a = 0; a < 3; ++a) {
-                    low[a] = std::min(low[a], value[a]);
-                    high[a] = std::max(high[a], value[a]);
-                }
+            const int64_t size = en[node] - st[node];
+            if (level == depth || size <= leaf_size) {
+                subtrees.push_back({node, nodes});
+                nodes += subtree_nodes(size, leaf_size) - 1;
+                continue;
             }
-            for (int a = 0; a < 3; ++a) {
-                bx[6 * node + a] = low[a];
-                bx[6 * node + 3 + a] = high[a];
-            }
-            if (end - start <= leaf_size) continue;
-            int axis = 0;
-            for (int c = 1; c < 3; ++c)
-                if (bx[6 * node + 3 + c] - bx[6 * node + c] > bx[6 * node + 3 + axis] - bx[6 * node + axis]) axis = c;
-            int64_t middle = (start + end) / 2;
-            select_nth(ord, columns.data() + axis * count, start, end, middle);
-            int64_t left = nodes;
+            const int64_t left = nodes;
+            build_node(node, left, count, leaf_size, columns.data(), ord, st, en, lf, bx);
             nodes += 2;
-            lf[node] = left;
-            st[left] = start;
-            en[left] = middle;
-            st[left + 1] = middle;
-            en[left + 1] = end;
-            stack.push_back(left);
-            stack.push_back(left + 1);
+            stack.push_back({left, level + 1});
+            stack.push_back({left + 1, level + 1});
         }
+    }
+    if (nodes > capacity) throw std::invalid_argument("build_tree: more nodes than the arrays hold");
+    parallel_pieces(int64_t(subtrees.size()), threads, [&](int64_t piece) {
+        const Subtree &subtree = subtrees[size_t(piece)];
+        build_below(subtree.node, subtree.first, count, leaf_size, columns.data(), ord, st, en, lf, bx);
+    });
+    {
+        GilReleased release;
         double *tp = tree_points.data();
         for (int64_t k = 0; k < count; ++k)
             for (int a = 0; a < 3; ++a) tp[3 * k + a] = p[3 * ord[k] + a];

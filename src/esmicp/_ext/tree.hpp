@@ -117,9 +117,16 @@ inline void keep_nearer(double *best, int64_t *slots, int64_t k, double squared,
     slots[j] = slot;
 }
 
-// Builds the tree into the caller's arrays (capacity nodes); returns the number of nodes.
+//: Trees of fewer points than this are built on the calling thread alone.
+inline constexpr int64_t PARALLEL_BUILD_MIN = 32768;
+
+//: Subtrees per thread that a parallel build cuts the tree into below its top levels (count).
+inline constexpr int BUILD_SUBTREES_PER_THREAD = 2;
+
+// Builds the tree into the caller's arrays (capacity nodes) on `threads` threads (0: every core;
+// the same arrays whatever the number); returns the number of nodes.
 int64_t build_tree(CArr2 points, int64_t leaf_size, Arr2 tree_points, Idx order, Idx starts, Idx ends, Idx lefts,
-                   Arr2 boxes);
+                   Arr2 boxes, int threads);
 
 // The nearest tree point of each query mapped by (rotation, translation), seeded with the target
 // point warm[i] (-1: none): out_distances (cloud units) and out_indices (into the target as given).

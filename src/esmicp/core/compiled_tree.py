@@ -61,9 +61,11 @@ class CompiledTree:
     ----------
     target : (M, 3) float64 array, M >= 1
         Target points (target frame); copied in tree order.
+    workers : int or None
+        Threads of the build (None: every core); the tree is the same whatever their number.
     """
 
-    def __init__(self, target: np.ndarray, leaf_size: int = LEAF_SIZE):
+    def __init__(self, target: np.ndarray, leaf_size: int = LEAF_SIZE, workers: int | None = None):
         target = np.ascontiguousarray(target, dtype=np.float64)
         if target.ndim != 2 or target.shape[1] != 3 or len(target) == 0:
             raise ValueError(f"CompiledTree needs an (M, 3) array with M >= 1 points, got shape {target.shape}")
@@ -78,7 +80,8 @@ class CompiledTree:
         ends = np.empty(capacity, dtype=np.int64)
         lefts = np.empty(capacity, dtype=np.int64)
         boxes = np.empty((capacity, 6))
-        nodes = _kernels.build_tree(target, int(leaf_size), points, order, starts, ends, lefts, boxes)
+        nodes = _kernels.build_tree(target, int(leaf_size), points, order, starts, ends, lefts, boxes,
+                                     threads(workers))
         self.points, self.order = points, order
         self.starts, self.ends = starts[:nodes].copy(), ends[:nodes].copy()
         self.lefts, self.boxes = lefts[:nodes].copy(), boxes[:nodes].copy()

@@ -61,7 +61,7 @@ class NearestNeighbors:
     def exact_tree(self) -> "compiled_tree.CompiledTree":
         """The compiled KD-tree of the target (built on first use)."""
         if self._compiled is None:
-            self._compiled = compiled_tree.CompiledTree(self.points)
+            self._compiled = compiled_tree.CompiledTree(self.points, workers=self.workers)
         return self._compiled
 
     def __len__(self) -> int:
@@ -219,7 +219,7 @@ class NearestNeighbors:
         count = len(self.points)
         sample = self.points[np.linspace(0, count - 1, min(count, max_samples)).astype(np.intp)]
         repeats, _, _, first = self.coincident()
-        tree = self.exact_tree() if not repeats else compiled_tree.CompiledTree(self.points[first])
+        tree = self.exact_tree() if not repeats else compiled_tree.CompiledTree(self.points[first], workers=self.workers)
         if len(tree.points) < 2:
             return self._keep_spacing(0.0, default)
         distances = tree.query_k(sample, 2, workers=self.workers)[0][:, 1]
