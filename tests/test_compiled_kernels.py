@@ -53,6 +53,19 @@ def test_a_tree_is_the_same_built_on_one_or_more_threads(cloud):
     np.testing.assert_allclose(np.linalg.norm(points[indices] - queries, axis=1), reference, atol=1e-12)
 
 
+@pytest.mark.parametrize("count", [1, 2, 1000, 100_003])
+def test_the_compiled_centroid_is_numpys_mean_to_the_last_bit(count):
+    """``centroid`` sums the columns in the order NumPy does: the same bits as ``mean(axis=0)``,
+    on clouds far from the origin (where the order of the additions shows) and on a strided view."""
+    from esmicp.core.procrustes import centroid
+
+    rng = np.random.default_rng(count)
+    points = rng.normal(size=(count, 3)) * np.array([1e-3, 1.0, 1e3]) + rng.normal(size=3) * 1e6
+    assert np.array_equal(centroid(points), points.mean(axis=0))
+    assert np.array_equal(centroid(points[::2]), points[::2].mean(axis=0))
+    assert np.array_equal(centroid(points.astype(np.float32)), points.astype(np.float32).mean(axis=0))
+
+
 def test_moments_match_numpy_kabsch():
     rng = np.random.default_rng(3)
     source = rng.normal(size=(20000, 3))

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .core.procrustes import bounding_box_diagonal
+from .core.procrustes import bounding_box_diagonal, centroid
 
 #: The clouds are registered in a shifted frame when the target's centroid is farther from the
 #: origin than this many times the target's bounding-box diagonal (rounding noise then exceeds
@@ -37,9 +37,9 @@ class WorkingFrame:
     def for_target(cls, target: np.ndarray) -> "WorkingFrame":
         """Shifted onto the target's centroid when it is farther than :data:`FAR_FROM_ORIGIN`
         diagonals from the origin; unshifted otherwise."""
-        centroid = target.mean(axis=0)
-        if float(np.linalg.norm(centroid)) > FAR_FROM_ORIGIN * bounding_box_diagonal(target):
-            return cls(centroid)
+        centre = centroid(target)
+        if float(np.linalg.norm(centre)) > FAR_FROM_ORIGIN * bounding_box_diagonal(target):
+            return cls(centre)
         return cls(None)
 
     def points(self, points: np.ndarray) -> np.ndarray:

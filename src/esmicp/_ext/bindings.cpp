@@ -144,6 +144,7 @@ NB_MODULE(_kernels, m) {
     m.def("voxel_cells", &Bound<&kernels::voxel_cells>::call);
     m.def("voxel_count", &Bound<&kernels::voxel_count>::call);
     m.def("centred_scatter", &Bound<&kernels::centred_scatter>::call);
+    m.def("column_sums", &Bound<&kernels::column_sums>::call);
     m.def("knn_in_cells", &Bound<&kernels::knn_in_cells>::call);
     m.def("coincident", [](CArr2 points, U8Arr1 first) {
         const kernels::Coincident found =

@@ -267,6 +267,26 @@ Coincident coincident(CArr2 points_, U8Arr1 first_) {
     return run(slots.data());
 }
 
+void column_sums(CArr2 points_, Arr1 out_) {
+    const int64_t count = int64_t(points_.shape(0));
+    if (points_.shape(1) != 3 || out_.shape(0) != 3)
+        throw std::invalid_argument("column_sums: points (N, 3), out (3,)");
+    const double *p = points_.data();
+    double x = 0.0, y = 0.0, z = 0.0;
+    {
+        GilReleased release;
+        for (int64_t i = 0; i < count; ++i) {
+            x += p[3 * i];
+            y += p[3 * i + 1];
+            z += p[3 * i + 2];
+        }
+    }
+    double *o = out_.data();
+    o[0] = x;
+    o[1] = y;
+    o[2] = z;
+}
+
 void centred_scatter(CArr2 points_, CArr1 centre_, double scale, Arr2 out_) {
     const int64_t count = int64_t(points_.shape(0));
     if (points_.shape(1) != 3 || centre_.shape(0) != 3 || out_.shape(0) != 3 || out_.shape(1) != 3)

@@ -33,6 +33,11 @@ void knn_in_cells(CArr2 points, CArr2 queries, CArr1 low, double cell, Idx2 out_
 // The number of cells of voxel_cells (the same grid), without the owners, sums or counts; -1 as there.
 int64_t voxel_count(CArr2 points, CArr1 low, double voxel);
 
+// The sum of each column of points (N, 3) into out (3,), row after row from the first: NumPy's
+// sum(axis=0) of a C-contiguous (N, 3) float64 array adds in that order, so the sums are its own
+// to the last bit, without its inner loop of three values per row.
+void column_sums(CArr2 points, Arr1 out);
+
 // The scatter matrix sum_i u_i u_i^T of u_i = (p_i - centre) / scale (out (3, 3), symmetric), in
 // one pass over the points (no centred copy), summed by blocks of points.
 void centred_scatter(CArr2 points, CArr1 centre, double scale, Arr2 out);

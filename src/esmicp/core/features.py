@@ -58,7 +58,7 @@ import numpy as np
 
 from .. import _kernels
 from .compiled_tree import K_MAX, CompiledTree, threads
-from .procrustes import axis_bounds
+from .procrustes import axis_bounds, centroid
 from ..errors import InvalidInputError
 from ..types import as_positive
 
@@ -234,7 +234,7 @@ class NormalEstimator:
         self.tree = CompiledTree(self.points) if tree is None else tree
         self.workers = workers
         # Covariances are taken of coordinates relative to the cloud's centroid (for accuracy).
-        self.centroid = self.points.mean(axis=0)
+        self.centroid = centroid(self.points)
 
     def at(self, query, viewpoint=None) -> np.ndarray:
         """Unit normals at ``query`` ((M, 3), cloud units), oriented as :func:`estimate_normals`

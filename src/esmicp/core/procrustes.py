@@ -152,6 +152,19 @@ def axis_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([points[:, axis].min() for axis in columns]), np.array([points[:, axis].max() for axis in columns])
 
 
+def centroid(points: np.ndarray) -> np.ndarray:
+    """``points.mean(axis=0)`` of an ``(N, 3)`` array, to the last bit (cloud units): a C-contiguous
+    float64 cloud's column sums are compiled (NumPy adds the rows in order, as the kernel does, but
+    its inner loop of three values per row costs a 300k-point cloud some milliseconds)."""
+    points = np.asarray(points)
+    if points.dtype != np.float64 or points.ndim != 2 or points.shape[1] != 3 or len(points) == 0 \
+            or not points.flags.c_contiguous:
+        return points.mean(axis=0)
+    sums = np.empty(3)
+    _kernels.column_sums(points, sums)
+    return sums / len(points)
+
+
 def bounding_box_diagonal(points: np.ndarray) -> float:
     """Length of the diagonal of the axis-aligned bounding box of ``(N, 3)`` points (the size of a
     cloud, in its units)."""
