@@ -9,6 +9,8 @@ Transforms are ``T_target_source`` (``target ~= source @ R.T + t``).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -227,13 +229,18 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     :func:`scattered_keypoints` makes them, when the caller already made them (None: made there
     when needed).
     """
-    scattered = scattered_keypoints(source, target_index, config, policy, workers, made=made)
-    if scattered is not None:
-        keypoints, confidence = scattered, None
-    if confidence is None:
-        confidence = overlap_confidence(transformation, keypoints, workers, config=config, policy=policy)
-    uncertainty = from_registration(source, target_index, transformation, sigma, origin=origin, workers=workers,
-                                    pairs=pairs, sample=sample, policy=policy)
+    # The covariance and the scatter test read the clouds apart: on more than one thread, the
+    # covariance is estimated on a second thread meanwhile (the same numbers).
+    with ThreadPoolExecutor(max_workers=1) if workers != 1 else nullcontext() as pool:
+        arguments = (source, target_index, transformation, sigma)
+        options = dict(origin=origin, workers=workers, pairs=pairs, sample=sample, policy=policy)
+        covariance = None if pool is None else pool.submit(from_registration, *arguments, **options)
+        scattered = scattered_keypoints(source, target_index, config, policy, workers, made=made)
+        if scattered is not None:
+            keypoints, confidence = scattered, None
+        if confidence is None:
+            confidence = overlap_confidence(transformation, keypoints, workers, config=config, policy=policy)
+        uncertainty = from_registration(*arguments, **options) if covariance is None else covariance.result()
     measured = dict(converged=converged, num_iterations=num_iterations, confidence=confidence, ambiguous=ambiguous,
                     runner_up_ratio=runner_up_ratio, uncertainty=uncertainty, policy=policy, unsupported=unsupported)
     verdict = Verdict.of(**measured)
