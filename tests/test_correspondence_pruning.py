@@ -257,10 +257,11 @@ def _reference_seeds(order, source, target, seeds, spread):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_pruning_kernels_equal_plain_numpy(seed):
-    """Seed spreading, second-order partners and inlier counts (the compiled helpers of ``prune``
-    and ``scan_estimate``) against the NumPy they replace: a dense second-order matrix sorted by a
-    stable argsort (ties to the lower index, partners at 0 in index order), a loop over the seeds,
-    every pose's residuals; on 1 and 2 threads."""
+    """Seed spreading, second-order partners, the groups' second-order matrices and inlier counts
+    (the compiled helpers of ``prune`` and ``scan_estimate``) against the NumPy they replace: a
+    dense second-order matrix sorted by a stable argsort (ties to the lower index, partners at 0 in
+    index order), a loop over the seeds, the gather and product of each group's matrix, every
+    pose's residuals; on 1 and 2 threads."""
     from esmicp import _kernels
     from esmicp.globalreg.feature_matching import _inlier_counts
 
@@ -286,6 +287,16 @@ def test_the_pruning_kernels_equal_plain_numpy(seed):
             _kernels.second_order_partners(compatible, seeds, partners, counted, threads)
             np.testing.assert_array_equal(partners, expected)
             np.testing.assert_array_equal(counted.astype(bool), np.take_along_axis(second, expected, axis=1) > 0)
+    # Each group's second-order matrix: the gather, mask and product written in NumPy, to the bit.
+    groups = np.concatenate([seeds[:, None], partners[:, :30]], axis=1)
+    valid = np.concatenate([np.ones((kept, 1), bool), counted[:, :30].astype(bool)], axis=1)
+    valid[::3, 5] = False  # some members left out
+    local = compatible[groups[:, :, None], groups[:, None, :]] * (valid[:, :, None] & valid[:, None, :])
+    reference = local * np.matmul(local, local)
+    for threads in (1, 2):
+        matrices = np.empty((kept, 31 * 31), dtype=np.float32)
+        _kernels.group_second_order(compatible, groups, valid.astype(np.uint8), matrices, threads)
+        assert np.array_equal(matrices.reshape(kept, 31, 31), reference)
     rotations = Rotation.random(50, random_state=seed).as_matrix()
     translations = generator.normal(0, 1, (50, 3))
     rotations[0], translations[0] = np.eye(3), np.zeros(3)

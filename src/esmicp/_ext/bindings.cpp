@@ -164,6 +164,7 @@ NB_MODULE(_kernels, m) {
     m.def("leading_vector", &Bound<&kernels::leading_vector>::call);
     m.def("spread_seeds", &Bound<&kernels::spread_seeds>::call);
     m.def("second_order_partners", &Bound<&kernels::second_order_partners>::call);
+    m.def("group_second_order", &Bound<&kernels::group_second_order>::call);
     m.def("pair_inlier_counts", &Bound<&kernels::pair_inlier_counts>::call);
     m.def("count_within", &Bound<&kernels::count_within>::call);
     m.def("fpfh", &Bound<&kernels::fpfh>::call);

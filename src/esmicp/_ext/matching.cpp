@@ -311,6 +311,41 @@ void second_order_partners(CF32Arr2 compatible, CIdx seeds, Idx2 partners, U8Arr
     });
 }
 
+void group_second_order(CF32Arr2 compatible, CIdx2 groups_, U8Arr2 valid_, F32Arr2 out_, int threads) {
+    const int64_t count = int64_t(compatible.shape(0));
+    const int64_t groups = int64_t(groups_.shape(0)), size = int64_t(groups_.shape(1));
+    if (int64_t(compatible.shape(1)) != count || int64_t(valid_.shape(0)) != groups ||
+        int64_t(valid_.shape(1)) != size || int64_t(out_.shape(0)) != groups || int64_t(out_.shape(1)) != size * size)
+        throw std::invalid_argument("group_second_order: compatible (K, K), groups and valid (S, G), out (S, G * G)");
+    const float *c = compatible.data();
+    const int64_t *members = groups_.data();
+    const uint8_t *valid = valid_.data();
+    float *out = out_.data();
+    for (int64_t k = 0; k < groups * size; ++k)
+        if (members[k] < 0 || members[k] >= count) throw std::invalid_argument("group_second_order: member out of range");
+    parallel_pieces(groups, groups < 16 ? 1 : threads, [&](int64_t g) {
+        const int64_t *member = members + size * g;
+        const uint8_t *ok = valid + size * g;
+        std::vector<float> local(size_t(size * size));
+        for (int64_t i = 0; i < size; ++i)
+            for (int64_t j = 0; j < size; ++j)
+                local[size_t(i * size + j)] = ok[i] && ok[j] ? c[count * member[i] + member[j]] : 0.0f;
+        // Row i of local @ local: the rows k of local that row i holds, added (whole numbers: exact).
+        float *result = out + size * size * g;
+        for (int64_t i = 0; i < size; ++i) {
+            const float *row = local.data() + size * i;
+            float *both = result + size * i;
+            std::fill(both, both + size, 0.0f);
+            for (int64_t k = 0; k < size; ++k) {
+                if (row[k] == 0.0f) continue;
+                const float *other = local.data() + size * k;
+                for (int64_t j = 0; j < size; ++j) both[j] += row[k] * other[j];
+            }
+            for (int64_t j = 0; j < size; ++j) both[j] *= row[j];
+        }
+    });
+}
+
 void pair_inlier_counts(CArr2 rotations, CArr2 translations, CArr2 source, CArr2 target, double distance, Idx out,
                         int threads) {
     const int64_t poses = int64_t(rotations.shape(0));

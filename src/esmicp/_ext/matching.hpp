@@ -37,6 +37,13 @@ int64_t spread_seeds(CIdx order, CArr2 source, CArr2 target, double spread, int6
 // second-order compatibility is above 0. Seeds in parallel.
 void second_order_partners(CF32Arr2 compatible, CIdx seeds, Idx2 partners, U8Arr2 valid, int threads);
 
+// The second-order matrices of the seeds' groups (S groups of G members): with members m = groups[g]
+// and valid[g] (0/1), local[i][j] = C[m_i][m_j] valid[g][i] valid[g][j], and out[g] (row-major
+// G x G) = local[i][j] times (local @ local)[i][j], the members compatible with both i and j where
+// the two are compatible. Whole numbers of at most G, exact in float32 whatever the order of the
+// sums: NumPy's gather, mask and batched product give the same values. Groups in parallel.
+void group_second_order(CF32Arr2 compatible, CIdx2 groups, U8Arr2 valid, F32Arr2 out, int threads);
+
 // How many of K paired points (source[k] <-> target[k]) each of S poses maps within `distance`:
 // out[c] = #{k : |R_c source[k] + t_c - target[k]| <= distance}. `rotations` (S, 9) row-major,
 // `translations` (S, 3). Poses in parallel.

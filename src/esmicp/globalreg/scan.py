@@ -207,8 +207,12 @@ def prune(source: np.ndarray, target: np.ndarray, tolerance: float, *, seeds: in
     _kernels.second_order_partners(compatible, chosen, partners, counted, threads(workers))
     groups = np.concatenate([chosen[:, None], partners], axis=1).astype(np.intp)
     valid = np.concatenate([np.ones((len(chosen), 1), bool), counted.astype(bool)], axis=1)
-    local = compatible[groups[:, :, None], groups[:, None, :]] * (valid[:, :, None] & valid[:, None, :])
-    local_second = local * np.matmul(local, local)
+    # Each group's own second-order matrix (compiled, groups in parallel): its members' compatibility
+    # times the count of members compatible with both.
+    local_second = np.empty((len(groups), groups.shape[1] ** 2), dtype=np.float32)
+    _kernels.group_second_order(compatible, np.ascontiguousarray(groups, dtype=np.int64),
+                                np.ascontiguousarray(valid, dtype=np.uint8), local_second, threads(workers))
+    local_second = local_second.reshape(len(groups), groups.shape[1], groups.shape[1])
     weights = _leading_vector(local_second.astype(np.float64), config.scan.leading_tolerance) * valid
     enough = (weights > 1e-9).sum(axis=1) >= 3
     if not enough.any():
