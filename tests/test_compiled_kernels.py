@@ -66,6 +66,22 @@ def test_the_compiled_centroid_is_numpys_mean_to_the_last_bit(count):
     assert np.array_equal(centroid(points.astype(np.float32)), points.astype(np.float32).mean(axis=0))
 
 
+@pytest.mark.parametrize("cell", [0.05, 0.4])
+def test_the_voxel_hash_orders_its_points_as_a_stable_sort_of_their_cells(cell):
+    """The points in the order of a stable NumPy argsort of their cell keys (many points share a
+    cell: ties keep the points' order), each point's rank in it, and the cells' starts."""
+    points = _cloud(30_000, 6).round(1) * 0.5  # a coarse grid: many equal coordinates
+    near = voxel_hash.VoxelHash(points, cell)
+    ijk = np.floor((points - near.low) / near.cell).astype(np.int64)
+    keys = ijk[:, 0] + near.dims[0] * (ijk[:, 1] + near.dims[1] * ijk[:, 2])
+    order = np.argsort(keys, kind="stable")
+    assert np.array_equal(near.sorted_index, order)
+    assert np.array_equal(near.sorted_points, points[order])
+    assert np.array_equal(near.rank[order], np.arange(len(points)))
+    starts = np.concatenate([[0], np.flatnonzero(np.diff(keys[order])) + 1, [len(points)]])
+    assert np.array_equal(near.cell_starts, starts)
+
+
 def test_moments_match_numpy_kabsch():
     rng = np.random.default_rng(3)
     source = rng.normal(size=(20000, 3))

@@ -136,6 +136,7 @@ NB_MODULE(_kernels, m) {
     m.def("tree_query", &Bound<&kernels::tree_query>::call);
     m.def("tree_within", &Bound<&kernels::tree_within>::call);
     m.def("build_table", &Bound<&kernels::build_table>::call);
+    m.def("cell_order", &Bound<&kernels::cell_order>::call);
     m.def("hash_query", &Bound<&kernels::hash_query>::call);
     m.def("pair_moments", &Bound<&kernels::pair_moments>::call);
     m.def("paper_moments", &Bound<&kernels::paper_moments>::call);

@@ -2,6 +2,8 @@
 #include "voxel_hash.hpp"
 
 #include <algorithm>
+#include <cmath>
+#include <stdexcept>
 #include <vector>
 
 namespace kernels {
@@ -20,6 +22,56 @@ void build_table(CIdx cell_keys, Idx table_keys, Idx table_cells) {
         while (tk[slot] != -1) slot = (slot + 1) & mask;
         tk[slot] = ck[cell];
         tc[slot] = cell;
+    }
+}
+
+void cell_order(CArr2 points_, CArr1 low_, double cell, CIdx dims_, Idx out_keys, Idx out_order, Arr2 out_points,
+                Idx out_rank) {
+    const int64_t count = int64_t(points_.shape(0));
+    if (points_.shape(1) != 3 || low_.shape(0) != 3 || dims_.shape(0) != 3 || int64_t(out_keys.shape(0)) != count ||
+        int64_t(out_order.shape(0)) != count || int64_t(out_points.shape(0)) != count || out_points.shape(1) != 3 ||
+        int64_t(out_rank.shape(0)) != count)
+        throw std::invalid_argument("cell_order: points (M, 3), low and dims (3,), outputs of M rows");
+    const double *p = points_.data(), *low = low_.data();
+    const int64_t *dims = dims_.data();
+    int64_t *keys = out_keys.data(), *order = out_order.data(), *rank = out_rank.data();
+    double *sorted = out_points.data();
+    GilReleased release;
+    const size_t size = static_cast<size_t>(count);
+    std::vector<int64_t> key(size), swap_key(size), swap_order(size);
+    int64_t largest = 0;
+    for (int64_t n = 0; n < count; ++n) {
+        int64_t ijk[3];
+        for (int a = 0; a < 3; ++a) ijk[a] = int64_t(std::floor((p[3 * n + a] - low[a]) / cell));
+        key[size_t(n)] = ijk[0] + dims[0] * (ijk[1] + dims[1] * ijk[2]);
+        largest = std::max(largest, key[size_t(n)]);
+        order[n] = n;
+    }
+    // Least significant digit first, 16 bits a pass, each pass stable: the order of a stable sort.
+    int64_t *from_key = key.data(), *from_order = order, *to_key = swap_key.data(), *to_order = swap_order.data();
+    std::vector<int64_t> counts(size_t(1) << 16);
+    for (int shift = 0; shift < 64 && (largest >> shift) > 0; shift += 16) {
+        std::fill(counts.begin(), counts.end(), int64_t(0));
+        for (int64_t n = 0; n < count; ++n) ++counts[size_t((from_key[n] >> shift) & 0xFFFF)];
+        int64_t total = 0;
+        for (auto &value : counts) {
+            const int64_t here = value;
+            value = total;
+            total += here;
+        }
+        for (int64_t n = 0; n < count; ++n) {
+            const int64_t slot = counts[size_t((from_key[n] >> shift) & 0xFFFF)]++;
+            to_key[slot] = from_key[n];
+            to_order[slot] = from_order[n];
+        }
+        std::swap(from_key, to_key);
+        std::swap(from_order, to_order);
+    }
+    for (int64_t n = 0; n < count; ++n) {
+        keys[n] = from_key[n];
+        order[n] = from_order[n];
+        rank[from_order[n]] = n;
+        for (int a = 0; a < 3; ++a) sorted[3 * n + a] = p[3 * from_order[n] + a];
     }
 }
 

@@ -120,6 +120,14 @@ inline bool hash_nearest(const Hash &h, const Tree &t, const int64_t *tree_rank,
 // The table of the occupied cells: table_keys (a power of two long; -1: empty) and table_cells.
 void build_table(CIdx cell_keys, Idx table_keys, Idx table_cells);
 
+// The points (M, 3) in cell order: each point's cell key i + dims[0] (j + dims[1] k), with
+// (i, j, k) = floor((p - low) / cell) (non-negative: `low` below every point), sorted stably
+// (ties in point order: NumPy's stable argsort of the keys, the same permutation). Writes the
+// sorted keys, the order (sorted slot -> point), the points in that order and the rank (point ->
+// sorted slot).
+void cell_order(CArr2 points, CArr1 low, double cell, CIdx dims, Idx out_keys, Idx out_order, Arr2 out_points,
+                Idx out_rank);
+
 // hash_nearest for each query mapped by (rotation, translation), seeded with warm[i]; returns the
 // number of misses.
 int64_t hash_query(CArr2 queries, CArr2 rotation, CArr1 translation, CIdx warm, CIdx rank, CArr2 sorted_points,

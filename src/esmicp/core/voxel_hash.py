@@ -56,14 +56,15 @@ class VoxelHash:
         self.dims = np.maximum(np.ceil(extent / self.cell).astype(np.int64), 1)
         if float(np.prod(self.dims.astype(np.float64))) >= 2.0**62:
             raise ValueError(f"VoxelHash: cell {cell!r} is too small for the target's extent")
-        ijk = np.floor((target - self.low) / self.cell).astype(np.int64)
-        keys = ijk[:, 0] + self.dims[0] * (ijk[:, 1] + self.dims[1] * ijk[:, 2])
-        order = np.argsort(keys, kind="stable")
-        sorted_keys = keys[order]
-        self.sorted_points = np.ascontiguousarray(target[order])
-        self.sorted_index = order.astype(np.int64)
+        # Each point's cell key, the points sorted stably by it (compiled: the permutation of a stable
+        # argsort of the keys), and each point's rank in that order.
+        sorted_keys = np.empty(len(target), dtype=np.int64)
+        self.sorted_index = np.empty(len(target), dtype=np.int64)
+        self.sorted_points = np.empty_like(target)
         self.rank = np.empty(len(target), dtype=np.int64)
-        self.rank[order] = np.arange(len(target))
+        _kernels.cell_order(target, np.ascontiguousarray(self.low, dtype=np.float64), self.cell,
+                            np.ascontiguousarray(self.dims, dtype=np.int64), sorted_keys, self.sorted_index,
+                            self.sorted_points, self.rank)
         boundaries = np.flatnonzero(np.diff(sorted_keys)) + 1
         self.cell_starts = np.concatenate([[0], boundaries, [len(target)]]).astype(np.int64)
         cell_keys = sorted_keys[self.cell_starts[:-1]]
