@@ -14,7 +14,7 @@ from esmicp.core.keypoints import Keypoints
 from esmicp.core.procrustes import bounding_box_diagonal
 from esmicp.globalreg.config import DEFAULT
 from esmicp.trust.confidence import surface_part
-from esmicp.trust.judge import judge
+from esmicp.trust.judge import judge, scattered_keypoints
 
 SIDES = np.array([1.0, 0.6, 0.3])
 
@@ -109,8 +109,8 @@ def test_a_clean_cloud_is_measured_on_every_keypoint(pair):
 @pytest.mark.parametrize("cloud", ["scattered", "clean"])
 def test_the_keypoints_a_caller_already_made_judge_as_keypoints_made_again(pair, cloud):
     """The judge reads the clouds' scatter from the whole clouds' keypoints; given those keypoints
-    (``made``, as :func:`esmicp.register` passes its own), it decides the same as when it makes
-    them itself: a confidence handed in is replaced by one measured on the surface where a cloud
+    (``made``, as :func:`esmicp.register` passes its own), or its caller's reading of that scatter
+    (``scatter``, the search's), it decides the same as when it makes them itself: a confidence handed in is replaced by one measured on the surface where a cloud
     carries scattered points, and kept where none does."""
     source, target, truth, clean = pair
     source = source if cloud == "scattered" else clean
@@ -119,11 +119,16 @@ def test_the_keypoints_a_caller_already_made_judge_as_keypoints_made_again(pair,
     index = NearestNeighbors(target, workers=1)
     keypoints = Keypoints.of(source, target, index.spacing(), DEFAULT.keypoints,
                              DEFAULT.scan.keypoint.min_voxel_spacings)
+    # The caller's own reading of the scatter (the search's), handed in with what it returned.
+    found = scattered_keypoints(source, index, DEFAULT, workers=1, made=keypoints)
+    assert (found is not None) == (cloud == "scattered")
     verdicts = [judge(pose, source=source, target_index=index, keypoints=keypoints, pairs=None, sigma=None,
-                      converged=True, num_iterations=1, config=DEFAULT, workers=1, confidence=1.0, made=made)
-                for made in (None, keypoints)]
-    assert verdicts[0].confidence == verdicts[1].confidence
-    assert verdicts[0].doubts == verdicts[1].doubts
+                      converged=True, num_iterations=1, config=DEFAULT, workers=1, confidence=1.0, made=made,
+                      scatter=scatter)
+                for made, scatter in ((None, None), (keypoints, None), (found, found is not None))]
+    for verdict in verdicts[1:]:
+        assert verdict.confidence == verdicts[0].confidence
+        assert verdict.doubts == verdicts[0].doubts
     assert (verdicts[1].confidence < 1.0) == (cloud == "scattered")
 
 

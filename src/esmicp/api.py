@@ -546,7 +546,9 @@ def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypo
     convergence, the confidence and the search alone, with the doubt "not judged". ``keypoints``:
     :func:`_start`'s; when not the search's, they are the whole clouds' keypoints the judge reads
     the clouds' scatter from, and it reads it from them rather than making them again (and from
-    the search's :attr:`~esmicp.globalreg.search.GlobalEstimate.whole_keypoints` when it made them)."""
+    the search's :attr:`~esmicp.globalreg.search.GlobalEstimate.whole_keypoints` when it made them);
+    the search's reading of that scatter, when it made one, is not made again
+    (:attr:`~esmicp.globalreg.search.GlobalEstimate.scattered`)."""
     started = time.perf_counter()
     if not request.judge:
         return Verdict.of(converged=outcome.converged, num_iterations=outcome.num_iterations, confidence=confidence,
@@ -564,7 +566,8 @@ def _judge(outcome, confidence: float, request: _Request, clouds: _Clouds, keypo
                     runner_up_ratio=None if estimate is None else estimate.runner_up_ratio, confidence=confidence,
                     origin=clouds.frame.origin, sensors=sensors, workers=request.workers,
                     unsupported=None if estimate is None else estimate.unsupported,
-                    made=keypoints if estimate is None or estimate.keypoints is None else estimate.whole_keypoints)
+                    made=keypoints if estimate is None or estimate.keypoints is None else estimate.whole_keypoints,
+                    scatter=None if estimate is None else estimate.scattered)
     stages.append(Stage("judge", time.perf_counter() - started, pose=clouds.pose_out(outcome.transformation),
                         decided={"confidence": verdict.confidence, "trusted": verdict.trusted,
                                  "doubts": tuple(doubt.kind for doubt in verdict.doubts),

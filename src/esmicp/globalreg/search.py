@@ -84,7 +84,10 @@ class GlobalEstimate:
     (:attr:`esmicp.globalreg.scan.ScanEstimate.unsupported`: a doubt on the result), or None.
     ``whole_keypoints``: the whole clouds' :class:`~esmicp.core.keypoints.Keypoints` (``Keypoints.of``
     at the config's voxel, the ones the judge reads the clouds' scatter from) when the search
-    made them, else None.
+    made them, else None. ``scattered``: the search's reading of the clouds' scatter
+    (:func:`~esmicp.trust.judge.scattered_keypoints` with its config, policy and workers: True
+    when a cloud carries scattered points, ``whole_keypoints`` then the keypoints it returned),
+    None when it did not read it.
     """
 
     transformations: np.ndarray
@@ -96,6 +99,7 @@ class GlobalEstimate:
     ambiguity_ratio: float = DEFAULT.ambiguity_ratio  # the config's, for :attr:`ambiguous`
     unsupported: str | None = None
     whole_keypoints: object = None  # the whole clouds' :class:`~esmicp.core.keypoints.Keypoints`, when made
+    scattered: bool | None = None  # the clouds' scatter as the search read it, when it did
 
     @property
     def transformation(self) -> np.ndarray:
@@ -251,7 +255,7 @@ def global_estimate(
         return global_estimate(source, target, strategy="rotation-search", rng=rng, target_index=full_index,
                                target_spacing=target_spacing, workers=full_index.workers, config=config,
                                policy=policy)
-    return replace(_auto(work, target_spacing), whole_keypoints=work._keypoints)
+    return replace(_auto(work, target_spacing), whole_keypoints=work._keypoints, scattered=work._scatter)
 
 
 def _auto(work: _Workspace, target_spacing: float | None) -> GlobalEstimate:

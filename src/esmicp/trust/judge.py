@@ -201,7 +201,7 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
           runner_up_ratio: float | None = None, confidence: float | None = None, origin: np.ndarray | None = None,
           sensors: SensorClouds | None = None, workers: int | None = None,
           unsupported: str | None = None,
-          made: Keypoints | None = None) -> Verdict:
+          made: Keypoints | None = None, scatter: bool | None = None) -> Verdict:
     """The verdict on a registered pose.
 
     ``transformation`` (4x4 ``T_target_source``), ``source`` (N, 3) and ``keypoints`` are in the
@@ -227,7 +227,10 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
     kernels (None: every core); ``unsupported``: the global search's words when it stopped for want
     of support (a doubt), else None. ``made``: the whole clouds' keypoints as
     :func:`scattered_keypoints` makes them, when the caller already made them (None: made there
-    when needed).
+    when needed). ``scatter``: :func:`scattered_keypoints`'s reading of these clouds when the caller
+    already made it, with the same ``config``, ``policy`` and ``workers`` (True: a cloud carries
+    scattered points, and ``made`` holds the keypoints it returned; False: none does; None: read
+    here).
     """
     # The covariance and the scatter test read the clouds apart: on more than one thread, the
     # covariance is estimated on a second thread meanwhile (the same numbers).
@@ -235,7 +238,12 @@ def judge(transformation: np.ndarray, *, source: np.ndarray, target_index, keypo
         arguments = (source, target_index, transformation, sigma)
         options = dict(origin=origin, workers=workers, pairs=pairs, sample=sample, policy=policy)
         covariance = None if pool is None else pool.submit(from_registration, *arguments, **options)
-        scattered = scattered_keypoints(source, target_index, config, policy, workers, made=made)
+        if scatter is None:
+            scattered = scattered_keypoints(source, target_index, config, policy, workers, made=made)
+        else:
+            scattered = made if scatter else None
+            if scatter and made is None:
+                raise ValueError("judge: scatter=True needs the keypoints the reading returned (made=)")
         if scattered is not None:
             keypoints, confidence = scattered, None
         if confidence is None:
