@@ -62,10 +62,11 @@ class CompiledTree:
     target : (M, 3) float64 array, M >= 1
         Target points (target frame); copied in tree order.
     workers : int or None
-        Threads of the build (None: every core); the tree is the same whatever their number.
+        Threads of the build (default: the calling thread alone; None: every core); the tree is the
+        same whatever their number.
     """
 
-    def __init__(self, target: np.ndarray, leaf_size: int = LEAF_SIZE, workers: int | None = None):
+    def __init__(self, target: np.ndarray, leaf_size: int = LEAF_SIZE, workers: int | None = 1):
         target = np.ascontiguousarray(target, dtype=np.float64)
         if target.ndim != 2 or target.shape[1] != 3 or len(target) == 0:
             raise ValueError(f"CompiledTree needs an (M, 3) array with M >= 1 points, got shape {target.shape}")
@@ -128,7 +129,7 @@ def k_nearest(points: np.ndarray, queries: np.ndarray, k: int, workers: int | No
     points = np.ascontiguousarray(points, dtype=np.float64)
     queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
     if len(points) <= tree_below or not np.isfinite(queries).all():
-        return CompiledTree(points).query_k(queries, k, workers=workers)[1]
+        return CompiledTree(points, workers=workers).query_k(queries, k, workers=workers)[1]
     low, high = axis_bounds(points)
     faces = np.sort(high - low)[1:]
     spacing = float(np.sqrt(faces[0] * faces[1] / len(points)))
@@ -147,5 +148,5 @@ def k_nearest(points: np.ndarray, queries: np.ndarray, k: int, workers: int | No
         pending = pending[~answered]
         cell *= 2.0
     if len(pending):
-        indices[pending] = CompiledTree(points).query_k(queries[pending], k, workers=workers)[1]
+        indices[pending] = CompiledTree(points, workers=workers).query_k(queries[pending], k, workers=workers)[1]
     return indices

@@ -163,7 +163,7 @@ def dense_point_mask(
     """
     points = _as_cloud(points)
     radius = as_positive(radius, "radius")
-    tree = CompiledTree(points) if tree is None else tree
+    tree = CompiledTree(points, workers=workers) if tree is None else tree
     counts = np.empty(len(points), dtype=np.int64)
     _kernels.count_within(np.ascontiguousarray(points, dtype=np.float64), tree.points, tree.order, tree.starts,
                           tree.ends, tree.lefts, tree.boxes, float(radius), counts, threads(workers))
@@ -231,7 +231,7 @@ class NormalEstimator:
             raise InvalidInputError(f"k: need 3 to {K_MAX} neighbours for a normal, got {k!r}")
         self.k = min(int(k), len(self.points))
         self.upper = np.inf if radius is None else as_positive(radius, "radius")
-        self.tree = CompiledTree(self.points) if tree is None else tree
+        self.tree = CompiledTree(self.points, workers=workers) if tree is None else tree
         self.workers = workers
         # Covariances are taken of coordinates relative to the cloud's centroid (for accuracy).
         self.centroid = centroid(self.points)
@@ -296,7 +296,7 @@ def fpfh(points, normals, radius: float, tree: CompiledTree | None = None, worke
     if normals.shape != points.shape:
         raise InvalidInputError(f"normals: expected shape {points.shape}, got {normals.shape}")
     radius = as_positive(radius, "radius")
-    tree = CompiledTree(points) if tree is None else tree
+    tree = CompiledTree(points, workers=workers) if tree is None else tree
     features = np.empty((len(points), FPFH_DIMENSION))
     _kernels.fpfh(np.ascontiguousarray(normals), tree.points, tree.order, tree.starts, tree.ends, tree.lefts,
                   tree.boxes, float(radius), features, threads(workers))
