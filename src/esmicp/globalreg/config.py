@@ -126,8 +126,9 @@ class VerificationConfig(Config):
     are the same either way); ``support_confidence``: the confidence's floor, not tuned: pairs the
     searches at other voxels brought to a right pose had reached 0.17-0.45 at the standard voxel,
     and no bar above the floor kept every one of them while stopping pairs that share nothing
-    (``docs/design.md``, "Tuned values"); ``scattered_scan_searches``: whole ModelNet40 objects
-    under 60% outliers (``docs/measured-global.md``, "Exits for cost").
+    (``docs/design.md``, "Tuned values"); ``scattered_scan_searches``: whole objects
+    under 60% outliers, one search as good as two on the development and the confirmation
+    objects (``docs/measured-global.md``, "Clouds carrying scattered points").
     """
 
     candidates: int = count(16)
