@@ -74,7 +74,11 @@ def refine(poses: dict, clouds: dict, clouds_normals: dict, edges, reference: in
         r = np.einsum("ij,ij->i", n, a - b)
         huber = cutoff / huber_ratio
         w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-300))
-        J = np.hstack([np.cross(b, n), n])
+        J = np.empty((len(r), 6))  # (b x n, n): the cross product written out (np.cross's own products, less overhead)
+        J[:, 0] = b[:, 1] * n[:, 2] - b[:, 2] * n[:, 1]
+        J[:, 1] = b[:, 2] * n[:, 0] - b[:, 0] * n[:, 2]
+        J[:, 2] = b[:, 0] * n[:, 1] - b[:, 1] * n[:, 0]
+        J[:, 3:] = n
         # this direction's own noise, its Huber-weighted residual variance, weighs it (a variance under a
         # millionth of the cutoff, squared, is taken as that: exact data stay finite)
         w = w / max(float(np.sum(w * r * r) / np.sum(w)), (1e-6 * cutoff) ** 2)
