@@ -14,7 +14,7 @@ import pytest
 
 import esmicp
 from esmicp import InvalidInputError
-from esmicp.config import RegistrationConfig
+from esmicp.config import RefineConfig, RegistrationConfig
 from esmicp.core.correspondence import NearestNeighbors
 from esmicp.core.keypoints import Keypoints
 from esmicp.core.procrustes import apply, bounding_box_diagonal, rigid_inverse, to_matrix
@@ -93,7 +93,7 @@ def test_the_stages_are_frozen_data_that_json_and_pickle_hold(noisy_pair):
 
 def test_a_fixed_sigma_refines_once_and_a_low_confidence_start_tries_twice(noisy_pair):
     """From a given start, the second try is a stage of its own, with both confidences and the run
-    kept; with a fixed sigma there is none."""
+    kept; with a fixed sigma, or with ``refine.second_try`` off, there is none."""
     source, target, truth = noisy_pair
     never = RegistrationConfig(trust=TrustPolicy(trusted=1.01))  # every run is below the bar
     tried = esmicp.register(source, target, init=truth, config=never)
@@ -106,6 +106,11 @@ def test_a_fixed_sigma_refines_once_and_a_low_confidence_start_tries_twice(noisy
         np.testing.assert_array_equal(first.pose, tried.transformation)
     fixed = esmicp.register(source, target, init=truth, sigma=0.01, config=never)
     assert "second try" not in _names(fixed)
+    # the second try switched off: the first run's pose, refined once
+    once = esmicp.register(source, target, init=truth,
+                           config=RegistrationConfig(trust=never.trust, refine=RefineConfig(second_try=False)))
+    assert _names(once) == ["prepare", "start", "refine", "evaluate", "judge"]
+    np.testing.assert_array_equal(once.transformation, first.pose)
 
 
 def test_the_verdict_is_one_call_of_judge_and_the_result_returns_it(noisy_pair):

@@ -110,7 +110,7 @@ def register(
         ``"none"``): pure local refinement from the identity. A 4x4 ``T_target_source``: pure local
         refinement from there. (From a given start, ``esm`` with the automatic sigma runs a second
         time with a tighter coarse sigma when the first run ends below the trust bar, and keeps
-        the more confident run.)
+        the more confident run, unless ``config.refine.second_try`` is False.)
     sigma : float, optional
         Kernel width in the clouds' units. None: ``esm`` and ``esm-plane`` choose it from the data
         each iteration (see :mod:`esmicp.methods.esm`, :mod:`esmicp.methods.plane`), ``esm-paper``
@@ -310,7 +310,8 @@ def _refine_from(initial: np.ndarray, request: _Request, clouds: _Clouds, keypoi
                  estimate: GlobalEstimate | None, observer: Observer | None, stages: list):
     """Stage 3: ``(outcome, confidence)``: the refinement from ``initial`` (working frame) and the
     overlap confidence of its pose on ``keypoints``; from a given start, ``esm`` with the automatic
-    sigma tries a second run when the first ends below the trust bar (:func:`_second_try`).
+    sigma tries a second run when the first ends below the trust bar (:func:`_second_try`; unless
+    ``refine.second_try`` is False).
     ``observer`` (the callback and the history, working frame) watches every run and changes none."""
     # After a global search (which ends at the finest sigma) the pose is already close: start in
     # the fine phase, so that a coarse sigma cannot pull partial overlaps apart again.
@@ -322,8 +323,8 @@ def _refine_from(initial: np.ndarray, request: _Request, clouds: _Clouds, keypoi
         estimator.start_from(start_distances)
     outcome = _refine(clouds, estimator, initial, request, keypoints, estimate, observer, stages)
     confidence = _confidence(outcome.transformation, keypoints, request)
-    if start_distances is not None and request.sigma is None and confidence < request.trust.trusted \
-            and not (observer is not None and observer.stopped):
+    if start_distances is not None and request.sigma is None and request.refine.second_try \
+            and confidence < request.trust.trusted and not (observer is not None and observer.stopped):
         outcome, confidence = _second_try(clouds, initial, request, keypoints, start_distances, outcome, confidence,
                                           observer, stages)
     if observer is not None:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
-from .core.config import Config, NeighbourIndexConfig, count, fraction, number, part
+from .core.config import Config, NeighbourIndexConfig, count, flag, fraction, number, part
 from .errors import InvalidInputError
 from .globalreg.config import SearchConfig, as_config
 from .methods.config import EsmConfig, LoopConfig, PlaneConfig
@@ -71,6 +71,10 @@ class RefineConfig(Config):
         for the pairs, and with ``esm-paper``, whose pairs are by index). A fraction measured on
         ``n`` such points has a standard error of at most ``0.5 / sqrt(n)`` (0.0025 at 40,000);
         each pair of the covariance stands for the source points strided over.
+    second_try : bool
+        From a given start, ``esm`` with the automatic sigma runs a second time, with a tighter
+        coarse sigma, when the first run ends below the trust bar, and keeps the more confident
+        run (:func:`esmicp.register`'s ``init``). False: the first run only.
     index_aligned_fraction : float
         An ``esm-paper`` result whose source points lie nearest to the target point of their own
         index for less than this fraction of them (0-1) warns that the clouds are not
@@ -106,6 +110,7 @@ class RefineConfig(Config):
     inlier_distance_spacings: float = number(3.0, above=0.0)
     evaluated_points: int = count(40_000, least=3)
     index_aligned_fraction: float = fraction(0.5)
+    second_try: bool = flag(True)
     esm: EsmConfig = part(EsmConfig)
     plane: PlaneConfig = part(PlaneConfig)
     loop: LoopConfig = part(LoopConfig)

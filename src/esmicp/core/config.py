@@ -2,8 +2,8 @@
 round-trip through a JSON-ready dict.
 
 A configuration class derives from :class:`Config` and declares each field with one of
-:func:`count`, :func:`number`, :func:`fraction`, :func:`span` (a range), :func:`numbers_tuple` or
-:func:`part` (a nested configuration), which
+:func:`count`, :func:`number`, :func:`fraction`, :func:`flag` (True or False), :func:`span` (a
+range), :func:`numbers_tuple` or :func:`part` (a nested configuration), which
 record what the field accepts. Making an instance (directly, by :func:`dataclasses.replace` or by
 :meth:`Config.from_dict`) checks every field and raises :class:`~esmicp.errors.InvalidInputError`
 naming the class and the field; :meth:`Config.from_dict` refuses unknown keys.
@@ -19,6 +19,8 @@ import math
 import numbers
 from dataclasses import dataclass
 from typing import Any, TypeVar
+
+import numpy as np
 
 from ..errors import InvalidInputError
 
@@ -40,6 +42,11 @@ def number(default: float, *, above: float | None = None, least: float | None = 
 def fraction(default: float):
     """A real field in [0, 1] (a fraction, a ratio, a confidence)."""
     return number(default, least=0.0, most=1.0)
+
+
+def flag(default: bool):
+    """A field that is True or False (a choice between two ways of working)."""
+    return dataclasses.field(default=default, metadata={"check": ("flag",)})
 
 
 def span(default: tuple[float, float]):
@@ -125,6 +132,10 @@ class Config:
                 raise InvalidInputError(f"{where}: expected a finite number{' ' + bounds if bounds else ''}, "
                                         f"got {value!r}")
             return float(value)
+        if check[0] == "flag":
+            if not isinstance(value, (bool, np.bool_)):
+                raise InvalidInputError(f"{where}: expected True or False, got {value!r}")
+            return value if type(value) is bool else bool(value)
         if check[0] == "span":
             if not (isinstance(value, (tuple, list)) and len(value) == 2 and all(map(_is_real, value))
                     and value[0] < value[1]):
