@@ -52,12 +52,12 @@ class RangeView:
         ranges = np.linalg.norm(points, axis=1)
         directions = points / np.maximum(ranges, 1e-300)[:, None]
         distance, index = self.tree.query(directions, k=self.seen_directions, distance_upper_bound=self.radius)
-        seen = np.isfinite(distance).all(axis=1)
-        nearest_surface = np.where(seen[:, None], self.ranges[np.where(seen[:, None], index, 0)], np.inf).min(axis=1)
-        count = int(seen.sum())
+        seen = np.flatnonzero(np.isfinite(distance).all(axis=1))
+        count = len(seen)
         if count == 0:
             return 0, 0.0
-        return count, float(np.count_nonzero(seen & (ranges < nearest_surface - tolerance)) / count)
+        nearest_surface = self.ranges[index[seen]].min(axis=1)  # along the seen points' directions only
+        return count, float(np.count_nonzero(ranges[seen] < nearest_surface - tolerance) / count)
 
 
 def pair_free_space(views: dict, points: dict, poses: dict, a: int, b: int, tolerance: float,
