@@ -698,12 +698,16 @@ def test_progress_contract_check_catches_a_growing_total():
         == [("pairs", 4), ("pose graph", 1)]
 
 
-@pytest.mark.parametrize("search", [None, {"keypoints": 3000}])
-def test_the_merge_bounds_the_scan_searches_of_its_global_pair_searches_only(monkeypatch, search):
-    """Every batch of pairs holding a global search (a pair without a start) runs with at most
-    ``MergeConfig.pair_scan_searches`` scan-strategy searches, on the merge's registration config
-    otherwise; the local checks keep that config as given, and ``register``'s default search
-    stays unbounded."""
+@pytest.mark.parametrize("search, sequence, second_try", [(None, False, False), ({"keypoints": 3000}, True, True),
+                                                        (None, True, False)])
+def test_the_merge_bounds_the_scan_searches_of_its_global_pair_searches_only(monkeypatch, search, sequence,
+                                                                            second_try):
+    """Every batch of pairs on the sparse subsets (a global search, or with ``sequence`` a
+    refinement from the identity: a call not judged) runs with at most
+    ``MergeConfig.pair_scan_searches`` scan-strategy searches and the second try of a refinement
+    from a given start as ``MergeConfig.sparse_second_try`` says, on the merge's registration
+    config otherwise; the local checks on the dense subsets keep that config as given, and
+    ``register``'s default search stays unbounded."""
     from esmicp.config import MergeConfig, RegistrationConfig
     from esmicp.globalreg.config import DEFAULT
 
@@ -715,21 +719,27 @@ def test_the_merge_bounds_the_scan_searches_of_its_global_pair_searches_only(mon
     fake, seen = scans_module.register_many, []
 
     def recorder(jobs, *, inits=None, **options):
-        seen.append((inits, options.get("config")))
+        seen.append((inits, options.get("config"), options.get("judge", True)))
         return fake(jobs, inits=inits, **options)
 
     monkeypatch.setattr(scans_module, "register_many", recorder)
-    merge = MergeConfig() if search is None else MergeConfig.from_dict({"registration": {"search": search}})
-    register_scans(clouds, refine_rounds=0, threads=1, pair_points=100, refine_points=300, config=merge)
+    merge = MergeConfig(sparse_second_try=second_try) if search is None else \
+        MergeConfig.from_dict({"registration": {"search": search}, "sparse_second_try": second_try})
+    register_scans(clouds, refine_rounds=0, threads=1, pair_points=100, refine_points=300, config=merge,
+                   sequence=sequence)
     # a batch of pairs passes one start or None per pair (a piece's placement passes none)
-    searches = [config for inits, config in seen if inits is not None and any(init is None for init in inits)]
-    checks = [config for inits, config in seen if inits is not None and all(init is not None for init in inits)]
-    assert searches and checks
+    sparse = [config for inits, config, judged in seen if inits is not None and not judged]
+    checks = [config for inits, config, judged in seen if inits is not None and judged]
+    assert sparse and checks
+    refined = [inits for inits, _, judged in seen
+               if inits is not None and not judged and all(init is not None for init in inits)]
+    assert bool(refined) == sequence  # the sequence's first pairs, refined from the identity
     given = merge.registration
-    for config in searches:
+    for config in sparse:
         assert isinstance(config, RegistrationConfig)
         assert config.search == replace(given.search, scan_searches=merge.pair_scan_searches)
-        assert config.trust == given.trust and config.refine == given.refine
+        assert config.trust == given.trust
+        assert config.refine == replace(given.refine, second_try=second_try)
     assert all(config == given for config in checks)
     assert DEFAULT.scan_searches is None
 

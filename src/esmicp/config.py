@@ -252,6 +252,13 @@ class MergeConfig(Config):
         than this times the target's bounding-box diagonal); measured for the merge's checks
         (``docs/merge.md``), finer than :attr:`RefineConfig.strided_tolerance`, where
         :func:`esmicp.register`'s own refinement stops after a global search.
+    sparse_second_try : bool
+        Whether a pair refined from a given start on the sparse subsets (with ``sequence``, the
+        first pairs) runs its second, tighter coarse sigma when it ends below the trust bar
+        (:attr:`RefineConfig.second_try`). Off: the overlap confidence that asks for it is not
+        meaningful at the sparse subsets' density (right pairs score as low as wrong ones there),
+        and the check on the dense subsets, which starts where that refinement ends, runs its own
+        second try when it ends below the bar.
     refine_normal_neighbours : int
         Nearest points of each normal of the dense subsets, whose planes the joint refinement's
         residuals measure (count).
@@ -285,8 +292,8 @@ class MergeConfig(Config):
     References
     ----------
     ``stalled_rounds``, ``pair_scan_searches``, ``refine_floor_spacings``, ``query_points``,
-    ``check_iterations``, ``check_tolerance``, ``loop_searches_per_scan``, ``piece_points`` and the
-    ``match_*`` fields were each chosen on one set of scans and confirmed on another:
+    ``check_iterations``, ``check_tolerance``, ``sparse_second_try``, ``loop_searches_per_scan``,
+    ``piece_points`` and the ``match_*`` fields were each chosen on one set of scans and confirmed on another:
     ``docs/design.md``, "Tuned values". ``bridging_growth`` is a bound on the search, not a tuned
     optimum.
     The measurements: ``docs/merge.md``, "Tuned values".
@@ -317,6 +324,7 @@ class MergeConfig(Config):
     loop_searches_per_scan: float = number(0.125, least=0.0)
     check_iterations: int = count(30)
     check_tolerance: float = number(3e-6, least=0.0)
+    sparse_second_try: bool = flag(False)
     refine_normal_neighbours: int = count(12, least=3)
     refine_steps: int = count(2)
     refine_huber_ratio: float = number(3.0, above=0.0)

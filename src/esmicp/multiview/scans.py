@@ -392,14 +392,17 @@ class _Pairwise:
         return (self.tried - once) | self.redrawn
 
     def search_config(self) -> RegistrationConfig:
-        """The registrations' config for the global pair searches on the sparse subsets: the
-        merge's :attr:`~esmicp.config.MergeConfig.registration`, with at most
-        :attr:`~esmicp.config.MergeConfig.pair_scan_searches` scan-strategy searches when its
-        search config sets no bound itself."""
+        """The registrations' config on the sparse subsets (the global pair searches, and the
+        refinements from a given start): the merge's :attr:`~esmicp.config.MergeConfig.registration`,
+        with at most :attr:`~esmicp.config.MergeConfig.pair_scan_searches` scan-strategy searches
+        when its search config sets no bound itself, and the second try of a refinement from a
+        given start as :attr:`~esmicp.config.MergeConfig.sparse_second_try` says."""
         registration = self.config.registration
-        if registration.search.scan_searches is not None:
-            return registration
-        return replace(registration, search=replace(registration.search, scan_searches=self.config.pair_scan_searches))
+        search = registration.search
+        if search.scan_searches is None:
+            search = replace(search, scan_searches=self.config.pair_scan_searches)
+        return replace(registration, search=search,
+                       refine=replace(registration.refine, second_try=self.config.sparse_second_try))
 
     def orient(self, a: int, b: int) -> tuple[int, int]:
         """(target, source): in a sequence the earlier scan is the target; otherwise the larger
