@@ -101,6 +101,18 @@ def test_an_invalid_refinement_value_is_refused_naming_its_field(changes, field)
         RefineConfig(**changes)
 
 
+@pytest.mark.parametrize("kind, field, value", [(MergeConfig, "sparse_second_try", "no"),
+                                                (RefineConfig, "second_try", 1), (RefineConfig, "second_try", None)])
+def test_a_flag_is_true_or_false_and_nothing_else(kind, field, value):
+    """A flag field takes True or False (numpy's too, stored as a bool) and refuses anything else,
+    naming its field."""
+    with pytest.raises(InvalidInputError, match=rf"^{kind.__name__}\.{field}: expected True or False, got "):
+        kind(**{field: value})
+    stored = getattr(kind(**{field: np.bool_(False)}), field)
+    assert stored is False
+    assert kind.from_dict(kind(**{field: True}).to_dict()) == kind(**{field: True})
+
+
 def test_the_methods_take_their_values_from_the_tree():
     """A method made with the tree's records uses their values, not the defaults (lengths as gains
     times the target's spacing)."""
