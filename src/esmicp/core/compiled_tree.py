@@ -67,7 +67,10 @@ class CompiledTree:
     """
 
     def __init__(self, target: np.ndarray, leaf_size: int = LEAF_SIZE, workers: int | None = 1):
+        given = target
         target = np.ascontiguousarray(target, dtype=np.float64)
+        # The caller's array when the tree was built from it or a view of it (no copy is kept alive).
+        self._given = given if target is given or target.base is given else None
         if target.ndim != 2 or target.shape[1] != 3 or len(target) == 0:
             raise ValueError(f"CompiledTree needs an (M, 3) array with M >= 1 points, got shape {target.shape}")
         count = len(target)
@@ -88,6 +91,13 @@ class CompiledTree:
         self.lefts, self.boxes = lefts[:nodes].copy(), boxes[:nodes].copy()
         self.rank = np.empty(len(target), dtype=np.int64)
         self.rank[self.order] = np.arange(len(target))
+
+    def is_over(self, points: np.ndarray) -> bool:
+        """True when this tree's points are ``points`` ((M, 3), in that order): the very array the
+        tree was built from (which must not have changed since), or one equal to it."""
+        if points is self._given:
+            return True
+        return len(self.points) == len(points) and np.array_equal(self.points[self.rank], points)
 
     def query(self, points: np.ndarray, transform: np.ndarray | None = None,
               warm: np.ndarray | None = None, workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:

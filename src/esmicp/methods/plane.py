@@ -130,8 +130,7 @@ class PlaneEstimator(Estimator):
         """Unit normals at ``target[indices]``, estimated once per target point."""
         if self._target is not target:
             offered = self._offered
-            same = offered is not None and len(offered.points) == len(target) and np.array_equal(
-                offered.points[offered.rank], target)
+            same = offered is not None and offered.is_over(target)
             self._target = target
             self._estimator = NormalEstimator(target, self.config.normal_neighbours, tree=offered if same else CompiledTree(target),
                                               workers=self._workers)
