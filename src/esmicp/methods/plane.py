@@ -77,8 +77,10 @@ class PlaneEstimator(Estimator):
         self._whole = False
         self._target: np.ndarray | None = None
         self._estimator: NormalEstimator | None = None
+        # The normals estimated so far (rows in the order they were estimated) and each target
+        # point's row among them (-1: not estimated yet).
         self._normals: np.ndarray | None = None
-        self._known: np.ndarray | None = None
+        self._row: np.ndarray | None = None
         self._offered: CompiledTree | None = None
         self._workers: int | None = 1
 
@@ -134,13 +136,15 @@ class PlaneEstimator(Estimator):
             self._target = target
             self._estimator = NormalEstimator(target, self.config.normal_neighbours, tree=offered if same else CompiledTree(target),
                                               workers=self._workers)
-            self._normals = np.empty_like(target)
-            self._known = np.zeros(len(target), dtype=bool)
-        needed = np.unique(indices[~self._known[indices]])
+            self._normals = np.empty((0, 3))
+            self._row = np.full(len(target), -1, dtype=np.intp)
+        rows = self._row[indices]
+        needed = np.unique(indices[rows < 0])
         if len(needed):
-            self._normals[needed] = self._estimator.at(target[needed])
-            self._known[needed] = True
-        return self._normals[indices]
+            self._row[needed] = np.arange(len(self._normals), len(self._normals) + len(needed))
+            self._normals = np.concatenate([self._normals, self._estimator.at(target[needed])])
+            rows = self._row[indices]
+        return self._normals[rows]
 
 
 def plane_step(source: np.ndarray, target: np.ndarray, normals: np.ndarray, weights: np.ndarray,
