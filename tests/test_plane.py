@@ -168,13 +168,29 @@ def test_normals_come_from_the_offered_tree_only_when_it_holds_the_target(scene,
     expected = estimate_normals(target, plane.PlaneConfig().normal_neighbours, at=target[indices])
     built = []
     monkeypatch.setattr(plane, "CompiledTree", lambda points: built.append(len(points)) or CompiledTree(points))
-    for offered, builds in [(NearestNeighbors(target).exact_tree(), 0), (CompiledTree(target[::-1].copy()), 1)]:
+    for offered, builds in [(NearestNeighbors(target).exact_tree(), 0), (CompiledTree(target.copy()), 0),
+                            (CompiledTree(target[::-1].copy()), 1)]:
         built.clear()
         estimator = PlaneEstimator(floor=0.02, diameter=6.0)
         estimator.use_target_tree(offered, workers=2)
         normals = estimator._normals_at(target, indices)
         assert len(built) == builds
         assert np.allclose(np.abs(np.einsum("ij,ij->i", normals, expected)), 1.0, atol=1e-9)
+
+
+def test_normals_asked_again_are_the_ones_estimated_first(scene):
+    """The normals of target points asked for over several steps (each point estimated once, then
+    kept) are bit for bit those of one estimate at all of them, in the order asked."""
+    from esmicp.core.features import estimate_normals
+    from esmicp.methods import plane
+
+    _, target = scene
+    rng = np.random.default_rng(3)
+    estimator = PlaneEstimator(floor=0.02, diameter=6.0)
+    for _ in range(3):
+        indices = rng.integers(0, len(target), 300)
+        expected = estimate_normals(target, plane.PlaneConfig().normal_neighbours, at=target[indices])
+        assert np.array_equal(estimator._normals_at(target, indices), expected)
 
 
 @pytest.mark.parametrize("plane_moves_by_deg, kept", [(0.5, True), (40.0, False)])
