@@ -478,8 +478,9 @@ class _Pairwise:
         for n, check in zip(group, checked):
             if hasattr(check, "transformation"):
                 # the check's cap is this function's own budget, not a run cut short: the pair has
-                # converged when the run that found its pose did
-                check = replace(check, converged=found[n].converged)
+                # converged when the run that found its pose did, and its iterations are both runs'
+                check = replace(check, converged=found[n].converged,
+                                num_iterations=found[n].num_iterations + check.num_iterations)
             outcomes[n] = check
         new = []
         for n, (i, j) in enumerate(oriented):
