@@ -135,7 +135,7 @@ class Config:
         if check[0] == "flag":
             if not isinstance(value, (bool, np.bool_)):
                 raise InvalidInputError(f"{where}: expected True or False, got {value!r}")
-            return value if type(value) is bool else bool(value)
+            return bool(value)
         if check[0] == "span":
             if not (isinstance(value, (tuple, list)) and len(value) == 2 and all(map(_is_real, value))
                     and value[0] < value[1]):
